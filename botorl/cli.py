@@ -1,0 +1,70 @@
+"""The ``botorl`` command line.
+
+Each sub-command lives next to the code it drives and exposes ``main(argv) -> int``; this
+module only dispatches, so ``botorl --help`` stays fast (no JAX import) and a user error
+(``BotorlError``) becomes a one-paragraph message with exit code 2.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+# name -> (module:function, one-line help). Imported lazily.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("botorl.pipeline.cli:run_main", "run one method on one task, offline to online"),
+    "resume": ("botorl.pipeline.cli:resume_main", "continue a run directory from its last checkpoint"),
+    "eval": ("botorl.pipeline.cli:eval_main", "evaluate the last checkpoint of a run directory"),
+    "data": ("botorl.data.cli:main", "generate datasets and show their statistics"),
+    "tasks": ("botorl.envs.cli:main", "list the tasks, or check one's environment"),
+    "bandit": ("botorl.boto.bandit:main", "reproduce the paper's bandit figures 2 and 3"),
+    "bench": ("botorl.bench:main", "measure update speed (optionally against d3rlpy)"),
+    "sweep": ("botorl.experiments.cli:sweep_main", "run a grid of tasks x methods x seeds x alphas"),
+    "report": ("botorl.experiments.cli:report_main", "Table 1 and Figure 5 from finished runs"),
+}
+
+
+def _usage() -> str:
+    width = max(len(n) for n in COMMANDS)
+    lines = ["usage: botorl <command> [options]", "", "commands:"]
+    for name, (_, help_) in COMMANDS.items():
+        lines.append(f"  {name.ljust(width)}  {help_}")
+    lines += ["", "`botorl <command> --help` shows the options of a command."]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv:
+        # Bare `botorl` is the README's main job: BOTO on a task whose data botorl makes.
+        argv = ["run"]
+    if argv[0] in ("-h", "--help", "help"):
+        print(_usage())
+        return 0
+    if argv[0] in ("-V", "--version"):
+        from botorl import __version__
+
+        print(__version__)
+        return 0
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"botorl: unknown command {name!r}.\n\n{_usage()}", file=sys.stderr)
+        return 2
+    target, _ = COMMANDS[name]
+    module_name, func_name = target.split(":")
+    from botorl.errors import BotorlError
+
+    try:
+        func = getattr(importlib.import_module(module_name), func_name)
+        code = func(rest)
+    except BotorlError as err:
+        print(f"botorl {name}: error: {err}", file=sys.stderr)
+        return err.exit_code
+    except KeyboardInterrupt:
+        print(f"botorl {name}: interrupted", file=sys.stderr)
+        return 130
+    return int(code or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,31 @@
+"""The one exception type for problems a user can fix.
+
+Everything that is the user's doing (a file in the wrong format, a missing dataset, a bad
+config value) raises ``BotorlError`` with a one-paragraph message that names the thing and
+says how to fix it. The CLI prints that message and exits with code 2, never a traceback.
+Bugs in botorl itself stay ordinary exceptions so that they do show a traceback.
+"""
+
+from __future__ import annotations
+
+
+class BotorlError(Exception):
+    """A problem with the user's input, data or configuration (CLI exit code 2)."""
+
+    exit_code = 2
+
+
+class DatasetNotFoundError(BotorlError):
+    """A dataset botorl needs is not on this machine."""
+
+
+class DataFormatError(BotorlError):
+    """A file is not in the format it claims, or its contents are invalid."""
+
+
+class ConfigError(BotorlError):
+    """A configuration value is invalid."""
+
+
+class TrainingDivergedError(BotorlError):
+    """A loss became NaN or inf; the last good checkpoint is kept."""
