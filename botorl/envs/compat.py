@@ -1,0 +1,84 @@
+"""Compatibility patch: FrankaKitchen-v1 (gymnasium-robotics 1.4.2) under mujoco >= 3.12.
+
+The joint helpers in ``gymnasium_robotics.utils.mujoco_utils`` (``get_joint_qpos``,
+``get_joint_qvel``, ``set_joint_qpos``, ``set_joint_qvel``) check the joint type with
+``model.jnt_type[i] in (mjtJoint.mjJNT_HINGE, mjtJoint.mjJNT_SLIDE)``. Since mujoco 3.12 the
+enum members are no longer plain ints for tuple membership: ``np.int32(3) == mjJNT_HINGE`` is
+True but ``np.int32(3) in (mjJNT_HINGE, ...)`` is False, so the assert fails and
+``FrankaKitchen-v1`` crashes at construction (in ``robot_get_obs``).
+
+``apply()`` replaces those four helpers with versions that compare integer codes. They are
+otherwise the same (address lookup by joint name, width by joint type); the patch is applied
+once, at make time of a kitchen env, and is a no-op where the originals already work.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+_applied = False
+
+# Width of a joint in qpos / qvel, by integer joint type (mjtJoint: FREE=0, BALL=1, SLIDE=2, HINGE=3).
+_QPOS_WIDTH = {0: 7, 1: 4, 2: 1, 3: 1}
+_QVEL_WIDTH = {0: 6, 1: 3, 2: 1, 3: 1}
+
+
+def _joint(model, name: str) -> tuple[int, int]:
+    joint_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+    if joint_id == -1:
+        raise KeyError(f"joint {name!r} is not part of the model")
+    return joint_id, int(model.jnt_type[joint_id])
+
+
+def get_joint_qpos(model, data, name):
+    joint_id, kind = _joint(model, name)
+    start = int(model.jnt_qposadr[joint_id])
+    return data.qpos[start : start + _QPOS_WIDTH[kind]].copy()
+
+
+def get_joint_qvel(model, data, name):
+    joint_id, kind = _joint(model, name)
+    start = int(model.jnt_dofadr[joint_id])
+    # A ball joint has 3 dofs (the original helper slices 4; kitchen has no ball joints).
+    return data.qvel[start : start + _QVEL_WIDTH[kind]].copy()
+
+
+def set_joint_qpos(model, data, name, value):
+    joint_id, kind = _joint(model, name)
+    start = int(model.jnt_qposadr[joint_id])
+    width = _QPOS_WIDTH[kind]
+    data.qpos[start : start + width] = np.asarray(value).reshape(width)
+
+
+def set_joint_qvel(model, data, name, value):
+    joint_id, kind = _joint(model, name)
+    start = int(model.jnt_dofadr[joint_id])
+    width = _QVEL_WIDTH[kind]
+    data.qvel[start : start + width] = np.asarray(value).reshape(width)
+
+
+def needs_patch() -> bool:
+    """True where the installed mujoco breaks the original tuple-membership check."""
+    return np.int32(int(mujoco.mjtJoint.mjJNT_HINGE)) not in (
+        mujoco.mjtJoint.mjJNT_HINGE,
+        mujoco.mjtJoint.mjJNT_SLIDE,
+    )
+
+
+def apply() -> bool:
+    """Patch gymnasium-robotics' joint helpers if needed (idempotent). Returns True if patched."""
+    global _applied
+    if _applied:
+        return True
+    if not needs_patch():
+        return False
+    from gymnasium_robotics.utils import mujoco_utils
+
+    # robot_get_obs and the kitchen env look these up as module globals at call time.
+    mujoco_utils.get_joint_qpos = get_joint_qpos
+    mujoco_utils.get_joint_qvel = get_joint_qvel
+    mujoco_utils.set_joint_qpos = set_joint_qpos
+    mujoco_utils.set_joint_qvel = set_joint_qvel
+    _applied = True
+    return True

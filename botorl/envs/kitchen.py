@@ -1,0 +1,56 @@
+"""Franka kitchen as D4RL's kitchen-partial-v0 / kitchen-mixed-v0, on ``FrankaKitchen-v1``.
+
+- Target sub-tasks (D4RL's registrations, checked against d4rl/kitchen/__init__.py):
+  kitchen-partial-v0 = ``KitchenMicrowaveKettleLightSliderV0``: microwave, kettle, light
+  switch, slide cabinet; kitchen-mixed-v0 = ``KitchenMicrowaveKettleBottomBurnerLightV0``:
+  microwave, kettle, bottom burner, light switch.
+- ``remove_task_when_completed=False``: the env's reward is the number of target sub-tasks
+  whose objects are within 0.3 of their goal at this step (0-4), the reward the D4RL datasets
+  (and WSRL's fork) carry.
+- Termination when all 4 are done at the same step; horizon 280 (set by the registry).
+- ``info["success"]`` = reward / 4, the fraction done now; the registry reads it at the last
+  step of an episode (success_mode "last").
+- Observation (59, float32): the env's ``observation`` entry only, i.e. robot joint qpos (9)
+  and qvel (9), object qpos (21) and object qvel (20). The ``achieved_goal`` / ``desired_goal``
+  dicts are left out: the desired goal is a constant of the task and the achieved goal is a
+  (noise-free) copy of object qpos already in ``observation``. A loader of the Minari
+  ``D4RL/kitchen/*`` datasets takes the ``observation`` key (``KITCHEN_OBS_KEYS``).
+- Observation noise: Gymnasium-Robotics' defaults (``robot_noise_ratio=0.01``,
+  ``object_noise_ratio=0.0005``), with which the Minari kitchen datasets were recorded.
+- mujoco >= 3.12 needs ``botorl.envs.compat.apply()`` (applied here at make time).
+"""
+
+from __future__ import annotations
+
+from botorl.envs import compat
+from botorl.envs.wrappers import TaskEnv
+
+PARTIAL_TASKS = ("microwave", "kettle", "light switch", "slide cabinet")
+MIXED_TASKS = ("microwave", "kettle", "bottom burner", "light switch")
+KITCHEN_OBS_KEYS = ("observation",)
+OBS_DIM, ACTION_DIM = 59, 9
+
+
+class KitchenTask(TaskEnv):
+    def __init__(self, env, tasks, seed=None):
+        super().__init__(env, OBS_DIM, seed)
+        self.tasks = tuple(tasks)
+
+    def _observe(self, obs):
+        return obs["observation"]
+
+    def _task_step(self, obs, reward, terminated, info):
+        n_done = int(round(reward))
+        return float(n_done), n_done == len(self.tasks), n_done / len(self.tasks)
+
+
+def make_kitchen(tasks, seed: int | None = None) -> KitchenTask:
+    compat.apply()
+    from gymnasium_robotics.envs.franka_kitchen import KitchenEnv
+
+    inner = KitchenEnv(
+        tasks_to_complete=list(tasks),
+        terminate_on_tasks_completed=False,  # we terminate when all are done at once
+        remove_task_when_completed=False,
+    )
+    return KitchenTask(inner, tasks, seed)

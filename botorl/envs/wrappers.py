@@ -1,0 +1,78 @@
+"""The one wrapper shape every botorl task has (docs/CONTRACTS.md, "Tasks").
+
+``TaskEnv`` turns a Gymnasium(-Robotics) env into the env the pipeline sees: a flat float32
+observation, actions in [-1, 1]^A, a task-specific reward / termination, and
+``info["success"]`` (a float in [0, 1]) after ``reset`` and every ``step``. Each domain module
+subclasses it and implements ``_observe`` and ``_task_step``; ``finish`` adds the time limit.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.wrappers import TimeLimit
+
+
+class TaskEnv(gym.Wrapper):
+    """Flat float32 observations, [-1, 1] actions and ``info["success"]`` for one task.
+
+    ``seed`` (from ``TaskSpec.make_env(seed)``) seeds the first ``reset`` that names no seed,
+    so an env made with a seed is reproducible without the caller seeding it again.
+    """
+
+    def __init__(self, env: gym.Env, obs_dim: int, seed: int | None = None):
+        super().__init__(env)
+        act = env.action_space
+        if not isinstance(act, spaces.Box) or not (np.all(act.low == -1.0) and np.all(act.high == 1.0)):
+            raise ValueError(f"{type(env.unwrapped).__name__}: expected a [-1, 1] Box action space, got {act}")
+        self.action_space = spaces.Box(-1.0, 1.0, shape=act.shape, dtype=np.float32)
+        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(obs_dim,), dtype=np.float32)
+        self._pending_seed = seed
+        if seed is not None:
+            self.action_space.seed(seed)
+
+    # -- to implement per domain -------------------------------------------------------------
+    def _observe(self, obs: Any) -> np.ndarray:
+        raise NotImplementedError
+
+    def _task_step(self, obs: Any, reward: float, terminated: bool, info: dict) -> tuple[float, bool, float]:
+        """Return (reward, terminated, success) for one inner step."""
+        raise NotImplementedError
+
+    def _reset_options(self) -> dict | None:
+        return None
+
+    def _after_reset(self, obs: Any, info: dict) -> Any:
+        return obs
+
+    # -- gymnasium API -----------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is None and self._pending_seed is not None:
+            seed = self._pending_seed
+        self._pending_seed = None
+        if options is None:
+            options = self._reset_options()
+        obs, info = self.env.reset(seed=seed, options=options)
+        obs = self._after_reset(obs, info)
+        info = dict(info)
+        info["success"] = 0.0
+        return self._flat(obs), info
+
+    def step(self, action):
+        action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        info = dict(info)
+        reward, terminated, success = self._task_step(obs, float(reward), bool(terminated), info)
+        info["success"] = float(success)
+        return self._flat(obs), float(reward), bool(terminated), bool(truncated), info
+
+    def _flat(self, obs: Any) -> np.ndarray:
+        return np.asarray(self._observe(obs), dtype=np.float32).reshape(self.observation_space.shape)
+
+
+def finish(env: TaskEnv, max_episode_steps: int) -> gym.Env:
+    """Add the task's horizon (truncation, not termination)."""
+    return TimeLimit(env, max_episode_steps=max_episode_steps)
