@@ -1,0 +1,379 @@
+"""SAC with a critic ensemble: the online learner of the WSRL protocol (stage 3).
+
+One ``update(batch)`` is one environment step's worth of learning at UTD ratio u, as WSRL
+does it: the batch of u*B rows is split into u minibatches; each gets a critic step followed
+by its Polyak update (tau); then one actor step and one temperature step use the whole
+batch. (WSRL: zhouzypaul/wsrl, "utd" handling in the SAC agent's update; RLPD does the same.)
+
+Choices (each a ``SACConfig`` field):
+- TD target: min over a random subset of ``num_min_critics`` target critics, drawn with
+  replacement (WSRL) or without (RLPD) -- ``subsample_replace``.
+- Actor objective: min (WSRL) or mean (RLPD) over all critics -- ``actor_objective``.
+- Backup entropy (``- temp * log pi(a'|s')`` inside the target): off in WSRL fine-tuning.
+- Max-target backup (``max_target_backup``, antmaze): draw ``num_backup_actions`` next
+  actions a'_1..a'_n ~ pi(.|s'); for each, take the min over the critic subset; the target
+  uses the max over the n of those values, and, when backup entropy is on, the log-prob of
+  that same argmax action (as Cal-QL/JaxCQL's ``cql_max_target_backup`` does).
+- The SAC entropy coefficient is called ``temperature``/``temp`` here; BOTO's ``alpha`` is
+  something else.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import flax.struct as struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from botorl.agents.common import (
+    TrainState,
+    adam,
+    check_batch,
+    ensure_mc_returns,
+    jit_eval,
+    jit_sample,
+    jit_update,
+    jit_update_many,
+    polyak,
+)
+from botorl.errors import ConfigError
+from botorl.networks import (
+    CriticEnsemble,
+    TanhGaussianActor,
+    Temperature,
+    sample_tanh_gaussian,
+    subsample_ensemble,
+    tanh_gaussian_mode,
+)
+
+
+@dataclass(frozen=True)
+class SACConfig:
+    """SAC settings; defaults are WSRL's online fine-tuning on antmaze (algorithms.md s5)."""
+
+    actor_hidden_dims: tuple[int, ...] = (256, 256)
+    critic_hidden_dims: tuple[int, ...] = (256, 256, 256, 256)
+    actor_layer_norm: bool = True
+    critic_layer_norm: bool = True
+    state_dependent_std: bool = True
+    log_std_min: float = -20.0
+    log_std_max: float = 2.0
+    num_critics: int = 10
+    num_min_critics: int = 2
+    subsample_replace: bool = True
+    actor_objective: str = "min"  # "min" (WSRL) | "mean" (RLPD)
+    actor_lr: float = 1e-4
+    critic_lr: float = 3e-4
+    temp_lr: float = 1e-4
+    discount: float = 0.99
+    tau: float = 0.005
+    init_temp: float = 1.0
+    target_entropy: float | None = None  # None -> -action_dim
+    backup_entropy: bool = False
+    max_target_backup: bool = False
+    num_backup_actions: int = 10
+    utd_ratio: int = 4
+
+    def validate(self) -> None:
+        def bad(field, why):
+            raise ConfigError(f"{type(self).__name__}.{field} = {getattr(self, field)!r} is invalid: {why}.")
+
+        if self.num_critics < 1:
+            bad("num_critics", "need at least one critic")
+        if self.num_min_critics < 1 or (not self.subsample_replace and self.num_min_critics > self.num_critics):
+            bad("num_min_critics", "must be >= 1 and, without replacement, <= num_critics")
+        if self.actor_objective not in ("min", "mean"):
+            bad("actor_objective", 'use "min" (WSRL) or "mean" (RLPD)')
+        if self.utd_ratio < 1:
+            bad("utd_ratio", "must be >= 1")
+        if not 0.0 < self.tau <= 1.0:
+            bad("tau", "the Polyak rate must be in (0, 1]")
+        if not 0.0 <= self.discount <= 1.0:
+            bad("discount", "must be in [0, 1]")
+        if self.init_temp <= 0:
+            bad("init_temp", "the temperature must be positive")
+        if self.num_backup_actions < 1:
+            bad("num_backup_actions", "must be >= 1")
+        for f in ("actor_hidden_dims", "critic_hidden_dims"):
+            v = getattr(self, f)
+            if not isinstance(v, tuple) or not all(isinstance(h, int) and h > 0 for h in v):
+                bad(f, "give a tuple of positive layer widths, e.g. (256, 256)")
+
+
+@functools.lru_cache(maxsize=None)
+def actor_def(config, action_dim: int) -> TanhGaussianActor:
+    """Actor module for a config (cached: equal configs give the same object -> one jit)."""
+    return TanhGaussianActor(
+        hidden_dims=config.actor_hidden_dims,
+        action_dim=action_dim,
+        use_layer_norm=config.actor_layer_norm,
+        dropout_rate=getattr(config, "actor_dropout", None),
+        state_dependent_std=config.state_dependent_std,
+        log_std_min=config.log_std_min,
+        log_std_max=config.log_std_max,
+    )
+
+
+@functools.lru_cache(maxsize=None)
+def critic_def(hidden_dims: tuple[int, ...], num: int, layer_norm: bool) -> CriticEnsemble:
+    return CriticEnsemble(hidden_dims=hidden_dims, num=num, use_layer_norm=layer_norm)
+
+
+@functools.lru_cache(maxsize=None)
+def temp_def(init_temp: float) -> Temperature:
+    return Temperature(init_temp)
+
+
+def _as_batch(x):
+    return jnp.asarray(x, jnp.float32)
+
+
+class SACAgent(struct.PyTreeNode):
+    """SAC-family agent. Fields shared with CQL/Cal-QL (CONTRACTS.md)."""
+
+    actor: TrainState
+    critic: TrainState  # ensemble: every parameter leaf has leading axis num_critics
+    target_critic_params: Any
+    temp: TrainState  # SAC entropy temperature (exp of the log_temp parameter)
+    rng: jax.Array
+    config: SACConfig = struct.field(pytree_node=False)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def create(cls, config: SACConfig | None = None, obs_dim: int = 0, action_dim: int = 0, seed: int = 0):
+        config = cls._default_config() if config is None else config
+        config.validate()
+        if obs_dim < 1 or action_dim < 1:
+            raise ConfigError(f"{cls.__name__}.create needs obs_dim >= 1 and action_dim >= 1, got {obs_dim}, {action_dim}.")
+        if config.target_entropy is None:
+            config = dataclasses.replace(config, target_entropy=-float(action_dim))
+        rng = jax.random.PRNGKey(seed)
+        rng, k_actor, k_critic, k_temp = jax.random.split(rng, 4)
+        obs = jnp.zeros((1, obs_dim), jnp.float32)
+        act = jnp.zeros((1, action_dim), jnp.float32)
+
+        a_def = actor_def(config, action_dim)
+        actor = TrainState.create(
+            apply_fn=a_def.apply, params=a_def.init(k_actor, obs)["params"], tx=adam(config.actor_lr)
+        )
+        c_def = critic_def(config.critic_hidden_dims, config.num_critics, config.critic_layer_norm)
+        critic_params = c_def.init(k_critic, obs, act)["params"]
+        critic = TrainState.create(apply_fn=c_def.apply, params=critic_params, tx=adam(config.critic_lr))
+        t_def = temp_def(config.init_temp)
+        temp = TrainState.create(apply_fn=t_def.apply, params=t_def.init(k_temp)["params"], tx=adam(config.temp_lr))
+        return cls(
+            actor=actor,
+            critic=critic,
+            target_critic_params=critic_params,
+            temp=temp,
+            rng=rng,
+            config=config,
+            **cls._extra_fields(config, rng),
+        )
+
+    @classmethod
+    def _default_config(cls):
+        return SACConfig()
+
+    @classmethod
+    def _extra_fields(cls, config, rng) -> dict:
+        return {}
+
+    @classmethod
+    def from_pretrained(cls, agent, config: SACConfig | None = None, seed: int | None = None) -> "SACAgent":
+        """WSRL warm start: the online SAC learner from a pre-trained agent.
+
+        Takes the actor parameters, the critic ensemble (and, for SAC/CQL/Cal-QL, the target
+        critics and the temperature) of ``agent``; optimiser states are fresh. From IQL, the
+        Q ensemble becomes both critic and target critic and the temperature starts at
+        ``config.init_temp`` (IQL has none). The networks in ``config`` must match the
+        pre-trained ones (same hidden sizes, LayerNorm, std parameterisation).
+
+        Ensemble size: if ``config.num_critics`` differs from the pre-trained ensemble size M,
+        and num_critics is a multiple of M, the M members are replicated (tiled) to fill the
+        ensemble (e.g. IQL's 2 Q networks -> 10 SAC critics, members 0,1,0,1,...); WSRL
+        itself pre-trains with the fine-tuning ensemble size, which is the better choice.
+        Any other mismatch is a ConfigError.
+        """
+        if config is None:
+            config = SACConfig(**{f.name: getattr(agent.config, f.name) for f in dataclasses.fields(SACConfig) if hasattr(agent.config, f.name)})
+        obs_dim, action_dim = _dims_of(agent)
+        fresh = cls.create(config, obs_dim, action_dim, seed=0)
+        src_critic = agent.critic.params
+        # IQL keeps its target Q parameters under the same field name.
+        src_target = getattr(agent, "target_critic_params", src_critic)
+        m = jax.tree_util.tree_leaves(src_critic)[0].shape[0]
+        n = config.num_critics
+        if m != n:
+            if n % m != 0:
+                raise ConfigError(
+                    f"from_pretrained: the pre-trained agent has {m} critics and SACConfig.num_critics is {n}; "
+                    f"num_critics must equal {m} or be a multiple of it (members are then replicated). "
+                    f"Pre-train with the fine-tuning ensemble size, or set num_critics={m}."
+                )
+            tile = lambda p: jnp.concatenate([p] * (n // m), axis=0)  # noqa: E731
+            src_critic = jax.tree_util.tree_map(tile, src_critic)
+            src_target = jax.tree_util.tree_map(tile, src_target)
+        _check_same_shapes("actor", fresh.actor.params, agent.actor.params, config)
+        _check_same_shapes("critic", fresh.critic.params, src_critic, config)
+        actor = TrainState.create(apply_fn=fresh.actor.apply_fn, params=agent.actor.params, tx=fresh.actor.tx)
+        critic = TrainState.create(apply_fn=fresh.critic.apply_fn, params=src_critic, tx=fresh.critic.tx)
+        temp = fresh.temp
+        if hasattr(agent, "temp"):
+            temp = TrainState.create(apply_fn=fresh.temp.apply_fn, params=agent.temp.params, tx=fresh.temp.tx)
+        rng = agent.rng if seed is None else jax.random.PRNGKey(seed)
+        rng = jax.random.fold_in(rng, 0x5AC)
+        return fresh.replace(actor=actor, critic=critic, target_critic_params=src_target, temp=temp, rng=rng)
+
+    # ------------------------------------------------------------------ public API
+    def update(self, batch):
+        """One learning step (UTD u critic steps + 1 actor + 1 temperature); jitted."""
+        check_batch(batch)
+        return jit_update(self, ensure_mc_returns(batch))
+
+    def update_many(self, batches):
+        """K updates in one call (``lax.scan``); batches have a leading axis K."""
+        check_batch(batches)
+        return jit_update_many(self, ensure_mc_returns(batches))
+
+    def sample_actions(self, observations):
+        return jit_sample(self, _as_batch(observations))
+
+    def eval_actions(self, observations):
+        return jit_eval(self, _as_batch(observations))
+
+    # ------------------------------------------------------------------ pieces (traced)
+    @property
+    def action_dim(self) -> int:
+        return self.actor.params["mean"]["kernel"].shape[-1]
+
+    def temperature(self) -> jax.Array:
+        return self.temp.apply_fn({"params": self.temp.params})
+
+    def critic_values(self, params, observations, actions) -> jax.Array:
+        """All members: (N, B)."""
+        return self.critic.apply_fn({"params": params}, observations, actions)
+
+    def policy(self, observations, actor_params=None):
+        return self.actor.apply_fn({"params": self.actor.params if actor_params is None else actor_params}, observations)
+
+    def target_values(self, batch, key) -> tuple[jax.Array, dict]:
+        """TD target y = r + discount (1 - done) V'(s'), shape (B,)."""
+        cfg = self.config
+        k_act, k_sub = jax.random.split(key)
+        next_obs = batch["next_observations"]
+        bsz = next_obs.shape[0]
+        mean, log_std = self.policy(next_obs)
+        sub = subsample_ensemble(k_sub, self.target_critic_params, cfg.num_min_critics, cfg.num_critics, cfg.subsample_replace)
+        sub_def = critic_def(cfg.critic_hidden_dims, cfg.num_min_critics, cfg.critic_layer_norm)
+        if cfg.max_target_backup:
+            n = cfg.num_backup_actions
+            next_a, next_logp = sample_tanh_gaussian(k_act, mean, log_std, n)  # (B, n, A), (B, n)
+            obs_rep = jnp.repeat(next_obs, n, axis=0)  # row b*n + j <-> (b, j)
+            q = sub_def.apply({"params": sub}, obs_rep, next_a.reshape(bsz * n, -1))
+            q = q.min(axis=0).reshape(bsz, n)
+            best = jnp.argmax(q, axis=1)[:, None]
+            next_q = jnp.take_along_axis(q, best, axis=1)[:, 0]
+            next_logp = jnp.take_along_axis(next_logp, best, axis=1)[:, 0]
+        else:
+            next_a, next_logp = sample_tanh_gaussian(k_act, mean, log_std)
+            next_q = sub_def.apply({"params": sub}, next_obs, next_a).min(axis=0)
+        if cfg.backup_entropy:
+            next_q = next_q - self.temperature() * next_logp
+        target = batch["rewards"] + cfg.discount * (1.0 - batch["dones"]) * next_q
+        return jax.lax.stop_gradient(target), {"target_q": target.mean()}
+
+    def critic_loss(self, params, batch, target, key) -> tuple[jax.Array, dict]:
+        q = self.critic_values(params, batch["observations"], batch["actions"])  # (N, B)
+        # Mean over members and batch (WSRL/RLPD); with Adam the scale is immaterial.
+        loss = jnp.mean((q - target[None]) ** 2)
+        return loss, {"critic_loss": loss, "q_data": q.mean()}
+
+    def critic_step(self, batch, key):
+        k_target, k_loss = jax.random.split(key)
+        target, t_info = self.target_values(batch, k_target)
+        grads, info = jax.grad(self.critic_loss, has_aux=True)(self.critic.params, batch, target, k_loss)
+        critic = self.critic.apply_gradients(grads=grads)
+        target_params = polyak(critic.params, self.target_critic_params, self.config.tau)
+        return self.replace(critic=critic, target_critic_params=target_params), {**info, **t_info}
+
+    def actor_loss(self, actor_params, batch, key) -> tuple[jax.Array, dict]:
+        obs = batch["observations"]
+        mean, log_std = self.policy(obs, actor_params)
+        actions, log_prob = sample_tanh_gaussian(key, mean, log_std)
+        q = self.critic_values(self.critic.params, obs, actions)
+        q = q.min(axis=0) if self.config.actor_objective == "min" else q.mean(axis=0)
+        loss = jnp.mean(self.temperature() * log_prob - q)
+        return loss, {"actor_loss": loss, "entropy": -log_prob.mean()}
+
+    def actor_step(self, batch, key):
+        grads, info = jax.grad(self.actor_loss, has_aux=True)(self.actor.params, batch, key)
+        return self.replace(actor=self.actor.apply_gradients(grads=grads)), info
+
+    def temp_loss(self, temp_params, entropy) -> tuple[jax.Array, dict]:
+        # d/dlog_temp = temp * (entropy - target): entropy below target raises the temperature.
+        temp = self.temp.apply_fn({"params": temp_params})
+        loss = temp * (jax.lax.stop_gradient(entropy) - self.config.target_entropy)
+        return loss, {"temp_loss": loss, "temperature": temp}
+
+    def temp_step(self, entropy):
+        grads, info = jax.grad(self.temp_loss, has_aux=True)(self.temp.params, entropy)
+        return self.replace(temp=self.temp.apply_gradients(grads=grads)), info
+
+    def _update(self, batch):
+        cfg = self.config
+        rng, k_critic, k_actor = jax.random.split(self.rng, 3)
+        agent = self.replace(rng=rng)
+        u = cfg.utd_ratio
+        bsz = batch["rewards"].shape[0]
+        if bsz % u != 0:
+            raise ConfigError(
+                f"the batch has {bsz} rows but utd_ratio is {u}: the batch of an update is split into "
+                f"utd_ratio critic minibatches, so its size must be a multiple of utd_ratio."
+            )
+        minis = jax.tree_util.tree_map(lambda x: x.reshape((u, bsz // u) + x.shape[1:]), batch)
+        keys = jax.random.split(k_critic, u)
+        agent, c_infos = jax.lax.scan(lambda a, xs: a.critic_step(*xs), agent, (minis, keys))
+        info = {k: v[-1] for k, v in c_infos.items()}
+        agent, a_info = agent.actor_step(batch, k_actor)
+        agent, t_info = agent.temp_step(a_info["entropy"])
+        return agent, {**info, **a_info, **t_info}
+
+    def _sample_actions(self, observations):
+        rng, key = jax.random.split(self.rng)
+        mean, log_std = self.policy(observations)
+        actions, _ = sample_tanh_gaussian(key, mean, log_std)
+        return actions, self.replace(rng=rng)
+
+    def _eval_actions(self, observations):
+        mean, _ = self.policy(observations)
+        return tanh_gaussian_mode(mean)
+
+
+def _dims_of(agent) -> tuple[int, int]:
+    """(obs_dim, action_dim) from the critic ensemble's first kernel and the actor's head."""
+    try:
+        first = agent.critic.params["members"]["MLP_0"]["Dense_0"]["kernel"]  # (N, O + A, H)
+        action_dim = int(agent.actor.params["mean"]["kernel"].shape[-1])
+    except (AttributeError, KeyError, TypeError) as err:
+        raise ConfigError(
+            f"from_pretrained: {type(agent).__name__} has no botorl actor/critic ensemble ({err}); "
+            f"pass a SACAgent, CQLAgent or IQLAgent."
+        ) from None
+    return int(first.shape[1]) - action_dim, action_dim
+
+
+def _check_same_shapes(name, want, got, config) -> None:
+    ws = jax.tree_util.tree_map(lambda x: tuple(np.shape(x)), want)
+    gs = jax.tree_util.tree_map(lambda x: tuple(np.shape(x)), got)
+    if jax.tree_util.tree_structure(want) != jax.tree_util.tree_structure(got) or ws != gs:
+        raise ConfigError(
+            f"from_pretrained: the pre-trained {name} does not match the network that {type(config).__name__} "
+            f"describes (hidden sizes, LayerNorm, state_dependent_std, ensemble size). Set those fields of the "
+            f"fine-tuning config to the pre-training values."
+        )

@@ -1,0 +1,96 @@
+"""Tanh-squashed Gaussian policy and its sampling / log-prob helpers.
+
+The module returns the mean and log-std of the Gaussian over the pre-tanh action u; the
+action is a = tanh(u). Log-probs include the change of variables:
+``log pi(a|s) = sum_i [log N(u_i; mean_i, std_i) - log(1 - tanh(u_i)^2)]``, with the second
+term written as ``2 (log 2 - u - softplus(-2u))`` for numerical stability (as in
+TensorFlow Probability's Tanh bijector).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from botorl.networks.common import MLP, default_init
+
+_LOG_2PI = math.log(2.0 * math.pi)
+# Dataset actions are clipped to +-(1 - 1e-5) on construction (CONTRACTS.md); this keeps
+# atanh finite for anything that slips past.
+_ATANH_CLIP = 1.0 - 1e-6
+
+
+class TanhGaussianActor(nn.Module):
+    """Gaussian over pre-tanh actions; ``__call__`` returns ``(mean, log_std)``.
+
+    ``state_dependent_std=False`` learns one log-std vector (as in IQL's policy); log-std is
+    clipped to ``[log_std_min, log_std_max]``.
+    """
+
+    hidden_dims: Sequence[int]
+    action_dim: int
+    use_layer_norm: bool = False
+    dropout_rate: float | None = None
+    state_dependent_std: bool = True
+    log_std_min: float = -20.0
+    log_std_max: float = 2.0
+
+    @nn.compact
+    def __call__(self, observations: jax.Array, training: bool = False):
+        x = MLP(
+            self.hidden_dims,
+            activate_final=True,
+            use_layer_norm=self.use_layer_norm,
+            dropout_rate=self.dropout_rate,
+        )(observations, training=training)
+        mean = nn.Dense(self.action_dim, kernel_init=default_init(), name="mean")(x)
+        if self.state_dependent_std:
+            log_std = nn.Dense(self.action_dim, kernel_init=default_init(), name="log_std")(x)
+        else:
+            log_std = self.param("log_std", nn.initializers.zeros, (self.action_dim,))
+            log_std = jnp.broadcast_to(log_std, mean.shape)
+        log_std = jnp.clip(log_std, self.log_std_min, self.log_std_max)
+        return mean, log_std
+
+
+def _log_det_tanh(u: jax.Array) -> jax.Array:
+    # log(1 - tanh(u)^2), stable for large |u|
+    return 2.0 * (math.log(2.0) - u - jax.nn.softplus(-2.0 * u))
+
+
+def _gaussian_log_prob(u: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
+    z = (u - mean) * jnp.exp(-log_std)
+    return jnp.sum(-0.5 * z * z - log_std - 0.5 * _LOG_2PI, axis=-1)
+
+
+def sample_tanh_gaussian(key: jax.Array, mean: jax.Array, log_std: jax.Array, num_samples: int | None = None):
+    """Reparameterised sample ``a = tanh(mean + std * eps)`` and its log-prob.
+
+    With ``num_samples=n`` the samples get a new axis before the action axis: actions
+    ``(..., n, A)``, log-probs ``(..., n)``; otherwise ``(..., A)`` and ``(...)``.
+    """
+    if num_samples is not None:
+        mean = jnp.expand_dims(mean, -2)
+        log_std = jnp.expand_dims(log_std, -2)
+        shape = mean.shape[:-2] + (num_samples, mean.shape[-1])
+    else:
+        shape = mean.shape
+    eps = jax.random.normal(key, shape, mean.dtype)
+    u = mean + jnp.exp(log_std) * eps
+    log_prob = jnp.sum(-0.5 * eps * eps - log_std - 0.5 * _LOG_2PI, axis=-1) - jnp.sum(_log_det_tanh(u), axis=-1)
+    return jnp.tanh(u), log_prob
+
+
+def tanh_gaussian_log_prob(mean: jax.Array, log_std: jax.Array, actions: jax.Array) -> jax.Array:
+    """log pi(a|s) of given squashed actions (e.g. dataset actions for IQL's AWR)."""
+    u = jnp.arctanh(jnp.clip(actions, -_ATANH_CLIP, _ATANH_CLIP))
+    return _gaussian_log_prob(u, mean, log_std) - jnp.sum(_log_det_tanh(u), axis=-1)
+
+
+def tanh_gaussian_mode(mean: jax.Array) -> jax.Array:
+    """Deterministic action: tanh of the mean (the evaluation action of WSRL/Cal-QL)."""
+    return jnp.tanh(mean)
