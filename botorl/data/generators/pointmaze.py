@@ -1,0 +1,162 @@
+"""PointMaze data in the style of D4RL maze2d (tasks ``pointmaze-umaze|medium|large``).
+
+Recipe (docs: ../shared/reference/tasks-and-data.md, "Data that can be made here"):
+
+- one long trajectory; a planner goal is a random free cell (centre + uniform +-0.25 noise);
+  when the point is within 0.45 of it, a new one is drawn;
+- the next waypoint is the centre of the neighbouring cell on a shortest path to the goal
+  cell (BFS over maze cells), or the goal itself once in the goal cell;
+- action = clip(10 * (waypoint - xy) - 1 * velocity + N(0, 0.5^2), -1, 1);
+- the start is a random free cell (+-0.25 noise), with zero velocity.
+
+Rewards and episode boundaries are those of the *evaluation* task (``botorl.envs.pointmaze``):
+as in D4RL maze2d, the reward is 1 where the next position is within 0.45 of the fixed
+evaluation goal, whatever goal the planner is heading for, so the data describe the task the
+agent is evaluated on. Because the evaluation env terminates there, such rows are also
+``terminals`` (and episode ends; the trajectory simply goes on in a new episode). A planner
+goal switch, or 1,000 steps without reaching the planner goal, ends an episode by truncation
+(D4RL's ``timeouts``).
+
+Speed: the MuJoCo model is the one the env builds (``PointMazeEnv``'s generated XML), stepped
+directly with ``mujoco.mj_step`` and the env's own step semantics (velocity clipped to +-5
+before the step, ``ctrl = action``, one step of 0.01 s), so the data match the env's
+dynamics without Gymnasium's per-step overhead (tests replay the actions in the env).
+Deterministic for a given seed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import mujoco
+import numpy as np
+
+from botorl.data.dataset import Dataset
+from botorl.envs.pointmaze import MAZES, SUCCESS_RADIUS, cell_to_xy, free_cells, make_inner, next_cell_table
+
+KP, KD, ACTION_NOISE = 10.0, 1.0, 0.5
+GOAL_RADIUS = 0.45  # planner goal reached
+GOAL_NOISE = 0.25  # uniform noise on planner goals and the start, in cells
+MAX_STEPS_PER_GOAL = 1000
+VEL_CLIP = 5.0  # PointEnv._clip_velocity
+
+
+def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset:
+    if maze not in MAZES:
+        raise ValueError(f"unknown maze {maze!r}; one of {sorted(MAZES)}")
+    if steps <= 0:
+        raise ValueError("steps must be positive")
+    spec = MAZES[maze]
+    maze_map = spec.maze_map
+    rows, cols = len(maze_map), len(maze_map[0])
+    inner = make_inner(spec)
+    model = inner.point_env.model
+    data = mujoco.MjData(model)
+    inner.close()
+
+    table = next_cell_table(maze_map)
+    cells = free_cells(maze_map)
+    centres = {c: tuple(cell_to_xy(maze_map, c)) for c in cells}
+    eval_gx, eval_gy = cell_to_xy(maze_map, spec.goal_cell)
+    r2_eval, r2_goal = SUCCESS_RADIUS**2, GOAL_RADIUS**2
+
+    rng = np.random.default_rng(seed)
+    noise = rng.normal(0.0, ACTION_NOISE, size=(steps, 2))
+
+    def draw_goal(avoid):
+        while True:
+            c = cells[rng.integers(len(cells))]
+            if c != avoid:
+                cx, cy = centres[c]
+                return c, cx + rng.uniform(-GOAL_NOISE, GOAL_NOISE), cy + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
+
+    start = cells[rng.integers(len(cells))]
+    sx, sy = centres[start]
+    mujoco.mj_resetData(model, data)
+    data.qpos[0] = sx + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
+    data.qpos[1] = sy + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
+    data.qvel[:] = 0.0
+    mujoco.mj_forward(model, data)
+    goal_cell, gx, gy = draw_goal(start)
+    steps_on_goal = 0
+
+    states = np.empty((steps + 1, 4))
+    actions = np.empty((steps, 2))
+    rewards = np.zeros(steps, dtype=np.float32)
+    ends = np.zeros(steps, dtype=bool)
+    qpos, qvel, ctrl = data.qpos, data.qvel, data.ctrl
+    states[0] = (qpos[0], qpos[1], qvel[0], qvel[1])
+    half_r, half_c = rows / 2, cols / 2
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps, desc=f"pointmaze-{maze}", unit="step", mininterval=1.0)
+    nextc = table[goal_cell]
+    for t in range(steps):
+        x, y, vx, vy = qpos[0], qpos[1], qvel[0], qvel[1]
+        cell = (math.floor(half_r - y), math.floor(x + half_c))
+        if cell == goal_cell:
+            wx, wy = gx, gy
+        else:
+            wx, wy = centres[nextc.get(cell, goal_cell)]
+        ax = KP * (wx - x) - KD * vx + noise[t, 0]
+        ay = KP * (wy - y) - KD * vy + noise[t, 1]
+        ax = -1.0 if ax < -1.0 else (1.0 if ax > 1.0 else ax)
+        ay = -1.0 if ay < -1.0 else (1.0 if ay > 1.0 else ay)
+        # PointEnv.step: clip the velocity, then one physics step with ctrl = action.
+        qvel[0] = -VEL_CLIP if vx < -VEL_CLIP else (VEL_CLIP if vx > VEL_CLIP else vx)
+        qvel[1] = -VEL_CLIP if vy < -VEL_CLIP else (VEL_CLIP if vy > VEL_CLIP else vy)
+        ctrl[0], ctrl[1] = ax, ay
+        mujoco.mj_step(model, data)
+        nx, ny = qpos[0], qpos[1]
+        states[t + 1] = (nx, ny, qvel[0], qvel[1])
+        actions[t] = (ax, ay)
+        if (nx - eval_gx) ** 2 + (ny - eval_gy) ** 2 <= r2_eval:
+            rewards[t] = 1.0
+        steps_on_goal += 1
+        if (nx - gx) ** 2 + (ny - gy) ** 2 <= r2_goal or steps_on_goal >= MAX_STEPS_PER_GOAL:
+            ends[t] = True
+            goal_cell, gx, gy = draw_goal(goal_cell)
+            nextc = table[goal_cell]
+            steps_on_goal = 0
+        if bar is not None and (t + 1) % 10000 == 0:
+            bar.update(10000)
+    if bar is not None:
+        bar.update(steps - bar.n)
+        bar.close()
+
+    terminals = rewards > 0
+    return Dataset(
+        observations=states[:-1],
+        actions=actions,
+        rewards=rewards,
+        next_observations=states[1:],
+        terminals=terminals,
+        episode_ends=ends | terminals,
+        infos={"success": rewards.copy()},
+        metadata={
+            "source": f"generated: pointmaze-{maze} (steps={steps}, seed={seed})",
+            "task": f"pointmaze-{maze}",
+            "generator": "botorl.data.generators.pointmaze",
+            "steps": int(steps),
+            "seed": int(seed),
+            "maze": maze,
+            "eval_start_cell": list(spec.start_cell),
+            "eval_goal_cell": list(spec.goal_cell),
+            "observation_layout": "x, y, vx, vy",
+        },
+    )
+
+
+def generate_umaze(steps: int, seed: int, progress: bool = True) -> Dataset:
+    return generate("umaze", steps, seed, progress)
+
+
+def generate_medium(steps: int, seed: int, progress: bool = True) -> Dataset:
+    return generate("medium", steps, seed, progress)
+
+
+def generate_large(steps: int, seed: int, progress: bool = True) -> Dataset:
+    return generate("large", steps, seed, progress)
