@@ -105,6 +105,19 @@ class SACConfig:
                 bad(f, "give a tuple of positive layer widths, e.g. (256, 256)")
 
 
+# The fields that fix the shapes of the parameters (must agree for a warm start).
+ARCHITECTURE_FIELDS = (
+    "actor_hidden_dims",
+    "critic_hidden_dims",
+    "actor_layer_norm",
+    "critic_layer_norm",
+    "state_dependent_std",
+    "log_std_min",
+    "log_std_max",
+    "num_critics",
+)
+
+
 @functools.lru_cache(maxsize=None)
 def actor_def(config, action_dim: int) -> TanhGaussianActor:
     """Actor module for a config (cached: equal configs give the same object -> one jit)."""
@@ -201,7 +214,8 @@ class SACAgent(struct.PyTreeNode):
         Any other mismatch is a ConfigError.
         """
         if config is None:
-            config = SACConfig(**{f.name: getattr(agent.config, f.name) for f in dataclasses.fields(SACConfig) if hasattr(agent.config, f.name)})
+            # Default online settings, the pre-trained agent's network architecture.
+            config = SACConfig(**{f: getattr(agent.config, f) for f in ARCHITECTURE_FIELDS if hasattr(agent.config, f)})
         obs_dim, action_dim = _dims_of(agent)
         fresh = cls.create(config, obs_dim, action_dim, seed=0)
         src_critic = agent.critic.params
