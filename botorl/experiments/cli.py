@@ -1,0 +1,186 @@
+"""`botorl sweep` and `botorl report`.
+
+    botorl sweep --tasks pointmaze-umaze,pointmaze-medium --methods boto,wsrl --seeds 0-4 \
+        --alphas -1:1:0.1 --profile quick --set online.steps=2000 --out sweeps/alpha
+    botorl sweep --grid grid.yaml --out sweeps/table1 --backend ray --ray-address auto
+    botorl report sweeps/alpha [more dirs] [--out DIR] [--select-alpha]
+
+Starting the same `botorl sweep` command again after it was killed finishes the grid:
+finished trials are never rerun, the others resume from their checkpoints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shlex
+import sys
+from pathlib import Path
+from typing import Literal, Optional
+
+import tyro
+
+from botorl.errors import ConfigError
+
+
+@dataclasses.dataclass
+class SweepArgs:
+    """Run a grid of tasks x methods x seeds (x alphas for boto), one run directory per trial."""
+
+    out: str
+    """sweep directory; trial i lives in OUT/<task>/<method>[-<pretrain>]/[alpha<+0.50>/]seed<k>"""
+    grid: Optional[str] = None
+    """YAML file with tasks, methods, seeds, alphas, overrides, profile (the flags below win)"""
+    tasks: Optional[str] = None
+    """comma-separated task names"""
+    methods: Optional[str] = None
+    """comma-separated: boto, wsrl, calql, cql, iql, rlpd; boto-cql / boto-iql pick BOTO's pre-training"""
+    seeds: Optional[str] = None
+    """e.g. 0-4 (inclusive) or 0,1,2"""
+    alphas: Optional[str] = None
+    """boto only, e.g. -1:1:0.1 (stop included) or -0.5,0,0.5; default: each task's preset"""
+    profile: Optional[str] = None
+    """botorl run profile: quick, full or smoke"""
+    set: tuple[str, ...] = ()
+    """config overrides dotted.path=value, passed as --dotted.path value to every trial"""
+    backend: Literal["sequential", "local", "ray"] = "local"
+    """sequential: one at a time; local: one pinned process per core; ray: Ray tasks"""
+    workers: Optional[int] = None
+    """parallel trials (local, or a local Ray instance); default: the usable cores"""
+    max_retries: int = 2
+    """a failed trial is resumed from its checkpoint at most this many times per invocation"""
+    ray_address: Optional[str] = None
+    """existing Ray cluster (e.g. auto or ray://head:10001); default: start a local instance"""
+    trial_command: Optional[str] = None
+    """command that stands in for `python -m botorl.cli` (testing); gets run/resume arguments"""
+    dry_run: bool = False
+    """list the trials and what each would do (run / resume / done), launch nothing"""
+    progress: bool = True
+    """show a progress bar over trials"""
+
+
+def _gather_set(argv: list[str]) -> list[str]:
+    """Accept both `--set a=1 b=2` and `--set a=1 --set b=2` (tyro sees one --set)."""
+    values: list[str] = []
+    rest: list[str] = []
+    i = 0
+    while i < len(argv):
+        tok = argv[i]
+        if tok == "--set":
+            i += 1
+            while i < len(argv) and not argv[i].startswith("--"):
+                values.append(argv[i])
+                i += 1
+            continue
+        if tok.startswith("--set="):
+            values.append(tok[len("--set="):])
+        else:
+            rest.append(tok)
+        i += 1
+    return rest + (["--set", *values] if values else [])
+
+
+def sweep_main(argv: list[str]) -> int:
+    from botorl.experiments.grid import build_grid, load_grid_file
+    from botorl.experiments.runner import Sweep, SweepOptions, next_action
+
+    args = tyro.cli(SweepArgs, args=_gather_set(list(argv)), prog="botorl sweep")
+    file_fields = load_grid_file(args.grid) if args.grid else None
+    grid = build_grid(
+        file_fields,
+        tasks=args.tasks,
+        methods=args.methods,
+        seeds=args.seeds,
+        alphas=args.alphas,
+        overrides=list(args.set) if args.set else None,
+        profile=args.profile,
+    )
+    _check_tasks(grid.tasks)
+    command = shlex.split(args.trial_command) if args.trial_command else None
+    options = SweepOptions(
+        out=Path(args.out),
+        backend=args.backend,
+        workers=args.workers,
+        max_retries=args.max_retries,
+        ray_address=args.ray_address,
+        command=command,
+        progress=args.progress,
+    )
+    sweep = Sweep(grid, options)
+    if args.dry_run:
+        for trial in sweep.trials:
+            print(f"{next_action(sweep.run_dir(trial)):6s}  {trial.relpath}")
+        print(f"{len(sweep.trials)} trials in {sweep.out}")
+        return 0
+    manifest = sweep.run()
+    states = {t.id: manifest["trials"][t.id] for t in sweep.trials}
+    failed = [tid for tid, e in states.items() if e["state"] != "finished"]
+    n = len(states)
+    print(f"botorl sweep: {n - len(failed)}/{n} trials finished in {sweep.out}")
+    for tid in failed:
+        entry = states[tid]
+        reason = (entry.get("error") or entry["state"]).splitlines()[0]
+        print(f"  FAILED {tid}: {reason} (log: {sweep.out / tid / 'sweep-trial.log'})", file=sys.stderr)
+    if failed:
+        print(
+            "botorl sweep: start the same command again to retry the failed trials "
+            "(finished ones are kept).",
+            file=sys.stderr,
+        )
+    return 1 if failed else 0
+
+
+def _check_tasks(tasks: list[str]) -> None:
+    """Fail before launching anything when a task name is wrong (if the registry exists)."""
+    try:
+        from botorl.envs.registry import get_task
+    except ImportError:
+        return
+    for task in tasks:
+        try:
+            get_task(task)
+        except (KeyError, ValueError) as err:
+            raise ConfigError(f"Sweep grid: unknown task {task!r} ({err}). `botorl tasks` lists them.") from None
+
+
+@dataclasses.dataclass
+class ReportArgs:
+    """Table 1, Figure 5 and the alpha-sensitivity figure from finished run directories."""
+
+    dirs: tyro.conf.Positional[tuple[str, ...]]
+    """run or sweep directories, searched recursively for summary.json"""
+    out: Optional[str] = None
+    """output folder (default: the first DIR/report)"""
+    select_alpha: bool = False
+    """pick alpha per task from an alpha sweep and print the preset lines"""
+    bootstrap: int = 2000
+    """bootstrap resamples for the IQM confidence intervals"""
+    confidence: float = 0.95
+    """confidence level of the IQM intervals"""
+    seed: int = 0
+    """seed of the bootstrap"""
+    grid_points: int = 101
+    """points of the common env-step grid of Figure 5"""
+
+
+def report_main(argv: list[str]) -> int:
+    from botorl.experiments.report import make_report, select_alpha
+
+    args = tyro.cli(ReportArgs, args=list(argv), prog="botorl report")
+    if not args.dirs:
+        raise ConfigError("botorl report needs at least one run or sweep directory.")
+    for d in args.dirs:
+        if not Path(d).is_dir():
+            raise ConfigError(f"botorl report: {d} is not a directory; give run or sweep directories.")
+    out = Path(args.out) if args.out else Path(args.dirs[0]) / "report"
+    result = make_report(
+        [Path(d) for d in args.dirs],
+        out,
+        n_boot=args.bootstrap,
+        confidence=args.confidence,
+        seed=args.seed,
+        grid_points=args.grid_points,
+    )
+    print(result.summary_text())
+    if args.select_alpha:
+        print(select_alpha(result.runs).text())
+    return 0

@@ -1,0 +1,310 @@
+"""The grid of a sweep: which trials exist, what each is called, and how each is launched.
+
+A grid is tasks x methods x seeds (x alphas for BOTO only: alpha is BOTO's bias controller,
+the other methods have no alpha, so they get one trial per seed with alpha recorded as
+null). Each trial has a deterministic run-directory name under the sweep directory, so a
+second invocation of the same command finds the trials the first one made.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any
+
+from botorl.errors import ConfigError
+
+METHODS = ("boto", "wsrl", "calql", "cql", "iql", "rlpd")
+PRETRAINS = ("calql", "cql", "iql")
+PROFILES_HINT = "quick, full (or another profile botorl run accepts, e.g. smoke)"
+
+
+@dataclasses.dataclass(frozen=True)
+class Trial:
+    """One run of the grid: a `botorl run` invocation and its run directory."""
+
+    task: str
+    method: str
+    seed: int
+    alpha: float | None = None  # BOTO only; None = the task's preset alpha
+    pretrain: str | None = None  # BOTO only; None = the pipeline's default pre-training
+
+    @property
+    def method_label(self) -> str:
+        return self.method if self.pretrain is None else f"{self.method}-{self.pretrain}"
+
+    @property
+    def relpath(self) -> str:
+        """`<task>/<method>[-<pretrain>]/[alpha<+0.50>/]seed<k>`."""
+        parts = [self.task, self.method_label]
+        if self.method == "boto":
+            parts.append(format_alpha_dir(self.alpha))
+        parts.append(f"seed{self.seed}")
+        return "/".join(parts)
+
+    @property
+    def id(self) -> str:
+        return self.relpath
+
+    def run_args(self, profile: str | None, overrides: dict[str, str]) -> list[str]:
+        """Arguments after `botorl run` (without `--out`)."""
+        args = ["--task", self.task, "--method", self.method, "--seed", str(self.seed)]
+        if self.alpha is not None:
+            args.append(f"--alpha={format_alpha(self.alpha)}")  # "=": a leading '-' is no flag
+        if self.pretrain is not None:
+            args += ["--pretrain", self.pretrain]
+        if profile:
+            args += ["--profile", profile]
+        for key, value in overrides.items():
+            args += [f"--{key}={value}"] if value.startswith("-") else [f"--{key}", value]
+        return args
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "task": self.task,
+            "method": self.method,
+            "pretrain": self.pretrain,
+            "alpha": self.alpha,
+            "seed": self.seed,
+        }
+
+
+def format_alpha(alpha: float) -> str:
+    """Shortest exact decimal for a grid alpha (grid values are rounded to 1e-6)."""
+    text = f"{alpha:.6f}".rstrip("0").rstrip(".")
+    return "0" if text in ("-0", "") else text
+
+
+def format_alpha_dir(alpha: float | None) -> str:
+    if alpha is None:
+        return "alpha_preset"
+    return f"alpha{alpha:+.2f}" if round(alpha, 2) == round(alpha, 6) else f"alpha{alpha:+.6f}"
+
+
+# ---------------------------------------------------------------------------------------------
+# Parsing the grid's pieces from the command line or a YAML file
+
+
+def _as_list(value: Any, field: str) -> list[Any]:
+    if value is None:
+        return []
+    if isinstance(value, str):
+        return [v.strip() for v in value.split(",") if v.strip()]
+    if isinstance(value, (list, tuple)):
+        return list(value)
+    if isinstance(value, (int, float)):
+        return [value]
+    raise ConfigError(f"Grid field {field!r} must be a comma-separated string or a list, got {value!r}.")
+
+
+def parse_seeds(value: Any) -> list[int]:
+    """`"0-4"` -> 0..4 inclusive; `"0,2,5"`; `3`; a list; or a mix (`"0-2,7"`)."""
+    seeds: list[int] = []
+    for item in _as_list(value, "seeds"):
+        text = str(item).strip()
+        try:
+            if "-" in text[1:]:
+                lo, hi = text.split("-", 1)
+                lo_i, hi_i = int(lo), int(hi)
+                if hi_i < lo_i:
+                    raise ValueError
+                seeds.extend(range(lo_i, hi_i + 1))
+            else:
+                seeds.append(int(text))
+        except ValueError:
+            raise ConfigError(
+                f"Grid field 'seeds': cannot read {text!r}. Use a range like 0-4 (inclusive), a "
+                "comma-separated list like 0,1,2, or a YAML list of integers."
+            ) from None
+    if any(s < 0 for s in seeds):
+        raise ConfigError(f"Grid field 'seeds': seeds must be >= 0, got {seeds}.")
+    return sorted(dict.fromkeys(seeds))
+
+
+def parse_alphas(value: Any) -> list[float]:
+    """`"-1:1:0.1"` (start:stop:step, stop inclusive) or `"0,0.5,-0.3"` or a list."""
+    if value is None:
+        return []
+    alphas: list[float] = []
+    items = [value] if isinstance(value, str) and ":" in value and "," not in value else _as_list(value, "alphas")
+    for item in items:
+        text = str(item).strip()
+        try:
+            if ":" in text:
+                start, stop, step = (float(p) for p in text.split(":"))
+                if step <= 0 or stop < start:
+                    raise ValueError
+                n = int(math.floor((stop - start) / step + 1e-9)) + 1
+                alphas.extend(round(start + i * step, 6) for i in range(n))
+            else:
+                alphas.append(round(float(text), 6))
+        except ValueError:
+            raise ConfigError(
+                f"Grid field 'alphas': cannot read {text!r}. Use start:stop:step with stop included "
+                "(e.g. -1:1:0.1 gives 21 values) or a comma-separated list like -0.5,0,0.5."
+            ) from None
+    bad = [a for a in alphas if not -1.0 <= a <= 1.0]
+    if bad:
+        raise ConfigError(f"Grid field 'alphas': BOTO's alpha lies in [-1, 1]; got {bad}.")
+    return [0.0 if a == 0 else a for a in dict.fromkeys(alphas)]
+
+
+def parse_methods(value: Any) -> list[tuple[str, str | None]]:
+    """Methods as `(method, pretrain)`; BOTO's pre-training is written `boto-cql` or `boto+cql`."""
+    out: list[tuple[str, str | None]] = []
+    for item in _as_list(value, "methods"):
+        text = str(item).strip().lower()
+        method, pretrain = text, None
+        for sep in ("+", "-", ":"):
+            if sep in text:
+                method, pretrain = text.split(sep, 1)
+                break
+        if method not in METHODS:
+            raise ConfigError(
+                f"Grid field 'methods': unknown method {item!r}. Known: {', '.join(METHODS)}; "
+                "BOTO with another pre-training is written boto-cql (or boto+cql)."
+            )
+        if pretrain is not None and (method != "boto" or pretrain not in PRETRAINS):
+            raise ConfigError(
+                f"Grid field 'methods': {item!r} is not valid; only boto takes a pre-training "
+                f"suffix, one of {', '.join(PRETRAINS)} (e.g. boto-iql)."
+            )
+        out.append((method, pretrain))
+    return list(dict.fromkeys(out))
+
+
+def parse_overrides(value: Any) -> dict[str, str]:
+    """`["online.steps=2000", ...]` or a YAML mapping -> `{dotted.path: value}`."""
+    if value is None:
+        return {}
+    if isinstance(value, dict):
+        items = list(_flatten(value).items())
+    else:
+        items = []
+        for item in _as_list(value, "overrides") if not isinstance(value, (list, tuple)) else value:
+            text = str(item)
+            if "=" not in text:
+                raise ConfigError(
+                    f"Override {text!r} has no '='. Write overrides as dotted.path=value, e.g. "
+                    "--set online.steps=2000."
+                )
+            key, val = text.split("=", 1)
+            items.append((key.strip().lstrip("-"), val.strip()))
+    out: dict[str, str] = {}
+    for key, val in items:
+        if not key:
+            raise ConfigError("An override has an empty name; write dotted.path=value.")
+        out[key] = _yaml_scalar_to_arg(val)
+    return out
+
+
+def _flatten(mapping: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    flat: dict[str, Any] = {}
+    for key, val in mapping.items():
+        name = f"{prefix}{key}"
+        if isinstance(val, dict):
+            flat.update(_flatten(val, name + "."))
+        else:
+            flat[name] = val
+    return flat
+
+
+def _yaml_scalar_to_arg(val: Any) -> str:
+    if isinstance(val, bool):
+        return "True" if val else "False"
+    if val is None:
+        return "None"
+    return str(val)
+
+
+@dataclasses.dataclass
+class Grid:
+    tasks: list[str]
+    methods: list[tuple[str, str | None]]
+    seeds: list[int]
+    alphas: list[float] = dataclasses.field(default_factory=list)  # empty: the task presets
+    overrides: dict[str, str] = dataclasses.field(default_factory=dict)
+    profile: str | None = None
+
+    def trials(self) -> list[Trial]:
+        out: list[Trial] = []
+        for task in self.tasks:
+            for method, pretrain in self.methods:
+                alphas: list[float | None] = list(self.alphas) if method == "boto" and self.alphas else [None]
+                for alpha in alphas:
+                    for seed in self.seeds:
+                        out.append(Trial(task, method, seed, alpha, pretrain))
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "tasks": list(self.tasks),
+            "methods": [m if p is None else f"{m}-{p}" for m, p in self.methods],
+            "seeds": list(self.seeds),
+            "alphas": list(self.alphas),
+            "overrides": dict(self.overrides),
+            "profile": self.profile,
+        }
+
+    def validate(self) -> None:
+        for field in ("tasks", "methods", "seeds"):
+            if not getattr(self, field):
+                raise ConfigError(
+                    f"The sweep grid has no {field}. Give --{field} on the command line or a "
+                    f"'{field}:' entry in the --grid YAML file."
+                )
+        if self.alphas and not any(m == "boto" for m, _ in self.methods):
+            raise ConfigError(
+                "The sweep grid lists alphas but no boto method; alpha is BOTO's bias controller "
+                "and applies to boto only. Add boto to --methods or drop --alphas."
+            )
+
+
+def load_grid_file(path: str | Path) -> dict[str, Any]:
+    import yaml
+
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"Grid file {path} does not exist; check the --grid path.") from None
+    except yaml.YAMLError as err:
+        raise ConfigError(f"Grid file {path} is not valid YAML: {err}") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"Grid file {path} must be a YAML mapping with tasks, methods, seeds, ...")
+    known = {"tasks", "methods", "seeds", "alphas", "overrides", "profile"}
+    unknown = set(data) - known
+    if unknown:
+        raise ConfigError(
+            f"Grid file {path} has unknown field(s) {sorted(unknown)}; known fields are "
+            f"{sorted(known)}."
+        )
+    return data
+
+
+def build_grid(
+    file_fields: dict[str, Any] | None = None,
+    *,
+    tasks: Any = None,
+    methods: Any = None,
+    seeds: Any = None,
+    alphas: Any = None,
+    overrides: Any = None,
+    profile: str | None = None,
+) -> Grid:
+    """Command-line values win over the file's; overrides from both are merged."""
+    f = file_fields or {}
+    grid = Grid(
+        tasks=[str(t) for t in _as_list(tasks if tasks is not None else f.get("tasks"), "tasks")],
+        methods=parse_methods(methods if methods is not None else f.get("methods")),
+        seeds=parse_seeds(seeds if seeds is not None else f.get("seeds")),
+        alphas=parse_alphas(alphas if alphas is not None else f.get("alphas")),
+        overrides={**parse_overrides(f.get("overrides")), **parse_overrides(overrides)},
+        profile=profile if profile is not None else f.get("profile"),
+    )
+    grid.tasks = list(dict.fromkeys(grid.tasks))
+    grid.validate()
+    return grid

@@ -1,0 +1,571 @@
+"""Run every trial of a grid as its own `botorl run` process, and survive being killed.
+
+Each trial is a normal run directory under the sweep directory. What a trial needs next is
+read from disk every time, never trusted from memory: `summary.json` with status finished
+means done (never rerun); a `checkpoints/` folder with a file means `botorl resume`; anything
+else means `botorl run`. So a sweep that was killed (or a machine that rebooted) is finished
+by starting the same command again. `sweep.json` (written atomically) records the grid and,
+per trial, its state, how many times it was launched and how it last ended.
+
+Backends:
+- sequential: one trial at a time with the machine's full thread pools;
+- local: one process per core, each pinned to its core, XLA/BLAS limited to one thread
+  (a 1-core trial with many threads only adds context switches);
+- ray: one Ray task (num_cpus=1) per trial on an existing cluster or a local instance.
+
+Trial processes get PR_SET_PDEATHSIG, so killing only the sweep process also stops them; a
+trial that still outlives its sweep (e.g. its pid was reparented before the signal was set)
+is found through the pid file in its run directory and stopped when the sweep restarts.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import dataclasses
+import datetime as _dt
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+from botorl.errors import BotorlError, ConfigError
+from botorl.experiments.grid import Grid, Trial
+
+MANIFEST = "sweep.json"
+LOCKFILE = ".sweep.lock"
+TRIAL_LOG = "sweep-trial.log"  # stdout+stderr of every attempt, appended
+TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan detection)
+USER_ERROR_EXIT = 2  # BotorlError: retrying cannot help
+
+BACKENDS = ("sequential", "local", "ray")
+
+# Thread settings for a trial pinned to one core. JAX 0.10's CPU client accepts
+# --xla_cpu_multi_thread_eigen=false (an unknown XLA flag aborts the process, so only flags
+# checked against this JAX version go here); the rest are the usual BLAS/OpenMP knobs.
+SINGLE_THREAD_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "VECLIB_MAXIMUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+    "TF_NUM_INTRAOP_THREADS": "1",
+    "TF_NUM_INTEROP_THREADS": "1",
+}
+SINGLE_THREAD_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false"
+
+
+def default_command() -> list[str]:
+    return [sys.executable, "-m", "botorl.cli"]
+
+
+def single_thread_env(base: dict[str, str] | None = None) -> dict[str, str]:
+    env = dict(os.environ if base is None else base)
+    env.update(SINGLE_THREAD_ENV)
+    flags = env.get("XLA_FLAGS", "")
+    if "xla_cpu_multi_thread_eigen" not in flags:
+        env["XLA_FLAGS"] = f"{flags} {SINGLE_THREAD_XLA_FLAGS}".strip()
+    return env
+
+
+def _now() -> str:
+    return _dt.datetime.now().isoformat(timespec="seconds")
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=2, sort_keys=False)
+            f.write("\n")
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def read_json(path: Path) -> dict[str, Any] | None:
+    try:
+        with open(path) as f:
+            data = json.load(f)
+        return data if isinstance(data, dict) else None
+    except (OSError, ValueError):
+        return None
+
+
+# ---------------------------------------------------------------------------------------------
+# What a trial needs next, read from its run directory
+
+
+def run_status(run_dir: Path) -> str | None:
+    summary = read_json(Path(run_dir) / "summary.json")
+    return None if summary is None else str(summary.get("status"))
+
+
+def has_checkpoint(run_dir: Path) -> bool:
+    ckpt = Path(run_dir) / "checkpoints"
+    return ckpt.is_dir() and any(p.is_file() for p in ckpt.rglob("*") if not p.name.startswith("."))
+
+
+def next_action(run_dir: Path) -> str:
+    """'done', 'resume' or 'run'."""
+    if run_status(run_dir) == "finished":
+        return "done"
+    if has_checkpoint(run_dir) and (Path(run_dir) / "config.json").exists():
+        return "resume"
+    return "run"
+
+
+def trial_command(
+    trial: Trial, run_dir: Path, grid: Grid, command: Sequence[str] | None = None
+) -> tuple[str, list[str]]:
+    prefix = list(command) if command else default_command()
+    action = next_action(run_dir)
+    if action == "resume":
+        return action, prefix + ["resume", str(run_dir)]
+    args = trial.run_args(grid.profile, grid.overrides)
+    return action, prefix + ["run", *args, "--out", str(run_dir)]
+
+
+# ---------------------------------------------------------------------------------------------
+# Child processes
+
+
+def _child_setup(cpu: int | None, parent_pid: int) -> Callable[[], None]:
+    """Runs in the forked child before exec: die with the sweep, stay on one core."""
+
+    def setup() -> None:
+        with contextlib.suppress(Exception):
+            libc = ctypes.CDLL("libc.so.6", use_errno=True)
+            libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+        if os.getppid() != parent_pid:  # the sweep died before prctl: do not run orphaned
+            os._exit(1)
+        if cpu is not None:
+            with contextlib.suppress(OSError):
+                os.sched_setaffinity(0, {cpu})
+
+    return setup
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def stop_orphan(run_dir: Path, timeout: float = 15.0) -> bool:
+    """Stop a trial process left from an earlier sweep of this directory (same host only)."""
+    info = read_json(Path(run_dir) / TRIAL_PID)
+    if not info or info.get("host") != socket.gethostname():
+        return False
+    pid = int(info.get("pid", 0) or 0)
+    if pid <= 0 or pid == os.getpid() or not _pid_alive(pid):
+        return False
+    if str(Path(run_dir).resolve()) not in _cmdline(pid):  # pid reused by something else
+        return False
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and _pid_alive(pid) and str(Path(run_dir).resolve()) in _cmdline(pid):
+        time.sleep(0.1)
+    if _pid_alive(pid) and str(Path(run_dir).resolve()) in _cmdline(pid):
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    return True
+
+
+def _log_tail(path: Path, n: int = 20) -> str:
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(0, size - 8192))
+            lines = f.read().decode(errors="replace").splitlines()
+        return "\n".join(lines[-n:])
+    except OSError:
+        return ""
+
+
+# ---------------------------------------------------------------------------------------------
+# The sweep
+
+
+@dataclasses.dataclass
+class SweepOptions:
+    out: Path
+    backend: str = "local"
+    workers: int | None = None  # default: the cores this process may use
+    max_retries: int = 2
+    ray_address: str | None = None
+    command: Sequence[str] | None = None  # trial command prefix; default `python -m botorl.cli`
+    progress: bool = True
+    poll_interval: float = 0.25
+
+
+@dataclasses.dataclass
+class _Running:
+    trial: Trial
+    handle: Any  # subprocess.Popen or a Ray ObjectRef
+    slot: int | None
+    started: float
+
+
+class Sweep:
+    """One invocation of `botorl sweep` over a grid, in `options.out`."""
+
+    def __init__(self, grid: Grid, options: SweepOptions):
+        if options.backend not in BACKENDS:
+            raise ConfigError(f"Unknown sweep backend {options.backend!r}; use one of {', '.join(BACKENDS)}.")
+        if options.max_retries < 0:
+            raise ConfigError(f"--max-retries must be >= 0, got {options.max_retries}.")
+        self.grid = grid
+        self.opt = options
+        self.out = Path(options.out).resolve()
+        self.trials = grid.trials()
+        self.manifest: dict[str, Any] = {}
+        self._lock_file = None
+        self._ray = None
+        self._ray_fn = None
+        self._pbar = None
+
+    # -- manifest ------------------------------------------------------------------------------
+
+    def run_dir(self, trial: Trial) -> Path:
+        return self.out / trial.relpath
+
+    def _load_manifest(self) -> None:
+        old = read_json(self.out / MANIFEST) or {}
+        trials = old.get("trials", {}) if isinstance(old.get("trials"), dict) else {}
+        history = list(old.get("invocations", []))
+        history.append({"started": _now(), "grid": self.grid.to_json(), "backend": self.opt.backend})
+        self.manifest = {
+            "version": 1,
+            "grid": self.grid.to_json(),
+            "backend": self.opt.backend,
+            "command": list(self.opt.command) if self.opt.command else default_command(),
+            "max_retries": self.opt.max_retries,
+            "invocations": history,
+            "updated": _now(),
+            "trials": trials,
+        }
+        for trial in self.trials:
+            entry = trials.setdefault(trial.id, {})
+            entry.update(trial.to_json())
+            entry["dir"] = trial.relpath
+            entry.setdefault("launches", 0)
+            entry["failures_this_invocation"] = 0
+            entry["state"] = "finished" if run_status(self.run_dir(trial)) == "finished" else "pending"
+
+    def _save(self) -> None:
+        self.manifest["updated"] = _now()
+        states = [self.manifest["trials"][t.id]["state"] for t in self.trials]
+        self.manifest["counts"] = {s: states.count(s) for s in sorted(set(states))}
+        write_json_atomic(self.out / MANIFEST, self.manifest)
+
+    def _entry(self, trial: Trial) -> dict[str, Any]:
+        return self.manifest["trials"][trial.id]
+
+    # -- locking: two sweeps in one directory would launch every trial twice ---------------------
+
+    def _acquire_lock(self) -> None:
+        import fcntl
+
+        self.out.mkdir(parents=True, exist_ok=True)
+        f = open(self.out / LOCKFILE, "a+")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            who = f.read().strip() or "another process"
+            f.close()
+            raise BotorlError(
+                f"Another sweep ({who}) is running in {self.out}. Wait for it to end, or stop it "
+                "and start this command again: finished trials are kept and the rest resume."
+            ) from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()} on {socket.gethostname()}")
+        f.flush()
+        self._lock_file = f
+
+    def _release_lock(self) -> None:
+        if self._lock_file is not None:
+            self._lock_file.close()
+            self._lock_file = None
+
+    # -- launching -------------------------------------------------------------------------------
+
+    def _workers(self) -> int:
+        if self.opt.backend == "sequential":
+            return 1
+        if self.opt.workers:
+            return max(1, int(self.opt.workers))
+        try:
+            return len(os.sched_getaffinity(0))
+        except AttributeError:
+            return os.cpu_count() or 1
+
+    def _cores(self) -> list[int]:
+        try:
+            return sorted(os.sched_getaffinity(0))
+        except AttributeError:
+            return list(range(os.cpu_count() or 1))
+
+    def _trial_env(self) -> dict[str, str]:
+        env = dict(os.environ)
+        if self.opt.backend != "sequential":
+            env = single_thread_env(env)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        return env
+
+    def _prepare(self, trial: Trial) -> tuple[Path, list[str], Path]:
+        run_dir = self.run_dir(trial)
+        stop_orphan(run_dir)
+        action, cmd = trial_command(trial, run_dir, self.grid, self.opt.command)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        log = run_dir / TRIAL_LOG
+        entry = self._entry(trial)
+        entry["launches"] += 1
+        entry.update(state="running", action=action, started=_now(), ended=None, command=cmd)
+        with open(log, "a") as f:
+            f.write(f"\n===== botorl sweep: attempt {entry['launches']} ({action}) at {_now()}\n")
+            f.write("===== " + " ".join(cmd) + "\n")
+        return run_dir, cmd, log
+
+    def _launch_local(self, trial: Trial, slot: int | None) -> subprocess.Popen:
+        run_dir, cmd, log = self._prepare(trial)
+        cores = self._cores()
+        cpu = cores[slot % len(cores)] if (slot is not None and self.opt.backend == "local") else None
+        with open(log, "ab") as logf:
+            proc = subprocess.Popen(
+                cmd,
+                stdout=logf,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env=self._trial_env(),
+                cwd=str(self.out),
+                preexec_fn=_child_setup(cpu, os.getpid()),
+            )
+        write_json_atomic(run_dir / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": cpu})
+        entry = self._entry(trial)
+        entry.update(pid=proc.pid, cpu=cpu)
+        self._save()
+        return proc
+
+    def _launch_ray(self, trial: Trial) -> Any:
+        run_dir, cmd, log = self._prepare(trial)
+        self._entry(trial).update(pid=None, cpu=None)
+        self._save()
+        env = {k: v for k, v in self._trial_env().items() if k in SINGLE_THREAD_ENV or k in ("XLA_FLAGS", "PYTHONUNBUFFERED", "BOTORL_JAX_CACHE", "BOTORL_DATA_DIR", "MINARI_DATASETS_PATH", "MUJOCO_GL")}
+        return self._ray_fn.remote(cmd, env, str(log), str(run_dir), str(self.out))
+
+    def _start_ray(self) -> None:
+        try:
+            import ray
+        except ImportError:
+            raise BotorlError(
+                "The ray backend needs Ray, which is not installed. Install it with "
+                "`pip install 'botorl[ray]'` (or `pip install 'ray[default]'`), or use "
+                "--backend local."
+            ) from None
+        self._ray = ray
+        kwargs: dict[str, Any] = {"log_to_driver": False, "include_dashboard": False}
+        if self.opt.ray_address:
+            kwargs["address"] = self.opt.ray_address
+        else:
+            kwargs["num_cpus"] = self._workers()
+        if not ray.is_initialized():
+            try:
+                ray.init(**kwargs)
+            except Exception as err:  # a bad --ray-address is the user's to fix
+                raise BotorlError(
+                    f"Could not connect to or start Ray ({kwargs.get('address', 'local instance')}): "
+                    f"{err}. Check --ray-address (e.g. ray://host:10001 or auto) or leave it out "
+                    "to start a local instance."
+                ) from None
+        self._ray_fn = ray.remote(num_cpus=1, max_retries=0)(_ray_trial)
+
+    def _stop_ray(self) -> None:
+        if self._ray is not None and self._ray.is_initialized():
+            self._ray.shutdown()
+
+    # -- finishing a trial -----------------------------------------------------------------------
+
+    def _finish(self, trial: Trial, returncode: int, queue: deque[Trial]) -> None:
+        run_dir = self.run_dir(trial)
+        entry = self._entry(trial)
+        status = run_status(run_dir)
+        entry.update(ended=_now(), returncode=returncode, pid=None, run_status=status)
+        with contextlib.suppress(OSError):
+            (run_dir / TRIAL_PID).unlink()
+        if status == "finished":
+            entry["state"] = "finished"
+            entry.pop("error", None)
+            self._tick(1)
+            return
+        entry["failures_this_invocation"] += 1
+        if returncode == 0:
+            reason = f"exited 0 but summary.json status is {status!r}"
+        else:
+            reason = f"exited with code {returncode}"
+        entry["error"] = reason + "; log tail:\n" + _log_tail(run_dir / TRIAL_LOG)
+        if returncode == USER_ERROR_EXIT:
+            entry["state"] = "failed"  # a BotorlError (bad config, missing data) fails again
+        elif entry["failures_this_invocation"] <= self.opt.max_retries:
+            entry["state"] = "retrying"
+            queue.appendleft(trial)
+        else:
+            entry["state"] = "failed"
+        if entry["state"] == "failed":
+            self._tick(1)
+
+    def _tick(self, n: int) -> None:
+        if self._pbar is not None:
+            self._pbar.update(n)
+            self._set_postfix()
+
+    def _set_postfix(self) -> None:
+        if self._pbar is None:
+            return
+        states = [self._entry(t)["state"] for t in self.trials]
+        self._pbar.set_postfix(
+            running=states.count("running"), failed=states.count("failed"), refresh=False
+        )
+
+    # -- main loop -------------------------------------------------------------------------------
+
+    def run(self) -> dict[str, Any]:
+        from tqdm import tqdm
+
+        self._acquire_lock()
+        running: dict[int, _Running] = {}
+        try:
+            self._load_manifest()
+            self._save()
+            queue: deque[Trial] = deque(t for t in self.trials if self._entry(t)["state"] != "finished")
+            done = len(self.trials) - len(queue)
+            n_workers = min(self._workers(), max(1, len(queue)))
+            if self.opt.backend == "ray" and queue:
+                self._start_ray()
+            self._pbar = tqdm(
+                total=len(self.trials), initial=done, desc="sweep", unit="trial",
+                disable=not self.opt.progress, dynamic_ncols=True,
+            )
+            next_key = 0
+            while queue or running:
+                free_slots = [s for s in range(n_workers) if s not in {r.slot for r in running.values()}]
+                while queue and free_slots:
+                    trial = queue.popleft()
+                    slot = free_slots.pop(0)
+                    if self.opt.backend == "ray":
+                        handle = self._launch_ray(trial)
+                    else:
+                        handle = self._launch_local(trial, slot)
+                    running[next_key] = _Running(trial, handle, slot, time.monotonic())
+                    next_key += 1
+                    self._set_postfix()
+                finished_keys = self._poll(running)
+                for key, code in finished_keys:
+                    self._finish(running.pop(key).trial, code, queue)
+                if finished_keys:
+                    self._save()
+                else:
+                    time.sleep(self.opt.poll_interval)
+        except BaseException:
+            self._abort(running)
+            raise
+        finally:
+            if self._pbar is not None:
+                self._pbar.close()
+                self._pbar = None
+            self._stop_ray()
+            self._release_lock()
+        return self.manifest
+
+    def _poll(self, running: dict[int, _Running]) -> list[tuple[int, int]]:
+        out: list[tuple[int, int]] = []
+        if self.opt.backend == "ray":
+            refs = {r.handle: k for k, r in running.items()}
+            if not refs:
+                return out
+            ready, _ = self._ray.wait(list(refs), num_returns=len(refs), timeout=self.opt.poll_interval)
+            for ref in ready:
+                try:
+                    code = int(self._ray.get(ref))
+                except Exception as err:  # the Ray task itself died (node lost, worker killed)
+                    print(f"botorl sweep: Ray task failed: {err}", file=sys.stderr)
+                    code = -1
+                out.append((refs[ref], code))
+            return out
+        for key, r in running.items():
+            code = r.handle.poll()
+            if code is not None:
+                out.append((key, code))
+        return out
+
+    def _abort(self, running: dict[int, _Running]) -> None:
+        """Ctrl-C or an error in the sweep itself: stop the trials; they resume next time."""
+        for r in running.values():
+            if self.opt.backend == "ray":
+                with contextlib.suppress(Exception):
+                    self._ray.cancel(r.handle, force=True)
+            else:
+                with contextlib.suppress(ProcessLookupError):
+                    r.handle.terminate()
+        for r in running.values():
+            if self.opt.backend != "ray":
+                try:
+                    r.handle.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    r.handle.kill()
+            with contextlib.suppress(Exception):
+                self._entry(r.trial).update(state="interrupted", ended=_now(), pid=None)
+        with contextlib.suppress(Exception):
+            if self.manifest:
+                self._save()
+
+
+def _ray_trial(cmd: list[str], env: dict[str, str], log: str, run_dir: str, cwd: str) -> int:
+    """Body of the Ray task: one trial as a subprocess of the Ray worker."""
+    full_env = dict(os.environ)
+    full_env.update(env)
+    with open(log, "ab") as logf:
+        proc = subprocess.Popen(
+            cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            env=full_env, cwd=cwd, preexec_fn=_child_setup(None, os.getpid()),
+        )
+    write_json_atomic(Path(run_dir) / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": None})
+    try:
+        return proc.wait()
+    except BaseException:  # ray.cancel raises in the worker: do not leave the trial running
+        proc.terminate()
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        raise
+
+
+def run_sweep(grid: Grid, options: SweepOptions) -> dict[str, Any]:
+    return Sweep(grid, options).run()
