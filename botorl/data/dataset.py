@@ -1,0 +1,448 @@
+"""The one offline dataset type every algorithm uses, and the one reward transform.
+
+A ``Dataset`` holds flat transitions ``(s, a, r, s', terminal)`` in the row order of their
+episodes. ``episode_ends[i]`` marks the last row of an episode (terminal or truncated);
+``terminals[i]`` marks a true terminal (no bootstrapping). The two are independent: Cal-QL's
+adroit data have several terminal rows inside one trajectory, and a truncated episode ends
+without a terminal.
+
+Two ways to draw batches:
+
+* ``Dataset.sample(rng, batch_size)``: numpy fancy indexing on the host.
+* ``Dataset.to_device()`` + ``sample_batch(arrays, key, batch_size)``: the arrays live on the
+  accelerator and sampling is a pure function, so it can run inside ``jax.jit`` /
+  ``lax.scan`` (no host round trip per update).
+
+Both return a ``Batch`` (CONTRACTS.md): a dict of float32 arrays with the keys in
+``BATCH_KEYS``; ``dones`` is 1.0 on true terminals only; ``mc_returns`` is zeros where the
+Monte-Carlo returns are unknown.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import Any, Iterator
+
+import numpy as np
+
+from botorl.errors import DataFormatError
+
+BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones", "mc_returns")
+
+# Actions are kept strictly inside the open box so that atanh (tanh-squashed policies'
+# log-probabilities of dataset actions) stays finite; 1e-5 as in jaxrl/IQL/Cal-QL.
+ACTION_CLIP = 1.0 - 1e-5
+
+
+@dataclass(frozen=True)
+class RewardTransform:
+    """``r' = scale * r + bias``: the single place where rewards are rescaled.
+
+    The same object transforms the offline dataset (``Dataset.with_reward_transform``) and
+    the rewards of online transitions (the pipeline calls it on every env reward), so offline
+    and online rewards can never drift apart. Evaluation returns are never transformed.
+    """
+
+    scale: float = 1.0
+    bias: float = 0.0
+
+    def __call__(self, rewards):
+        return self.scale * rewards + self.bias
+
+    @property
+    def is_identity(self) -> bool:
+        return self.scale == 1.0 and self.bias == 0.0
+
+
+def _source(metadata: dict | None) -> str:
+    return str((metadata or {}).get("source", "<in-memory dataset>"))
+
+
+class Dataset:
+    """Flat offline transitions (see the module docstring).
+
+    Args:
+        observations: (N, O). next_observations: (N, O). actions: (N, A), clipped here to
+            ``±(1 - 1e-5)`` (the largest raw magnitude is kept in ``raw_action_max`` so that
+            ``validate`` can still reject data that were far outside the box).
+        rewards: (N,). terminals: (N,) bool, true terminals.
+        episode_ends: (N,) bool, last row of each episode; default: terminal rows plus the last row.
+            The last row is always an episode end.
+        mc_returns: (N,) float32 Monte-Carlo returns-to-go, or None until ``with_mc_returns``.
+        infos: optional per-row arrays of length N (e.g. ``{"success": ...}``), carried through
+            ``concat``, written by ``write_minari``.
+        metadata: free-form dict; ``metadata["source"]`` names the file the data came from
+            (used in error messages).
+    """
+
+    def __init__(
+        self,
+        observations,
+        actions,
+        rewards,
+        next_observations,
+        terminals,
+        episode_ends=None,
+        mc_returns=None,
+        infos: dict[str, np.ndarray] | None = None,
+        metadata: dict[str, Any] | None = None,
+        *,
+        raw_action_max: float | None = None,
+    ):
+        src = _source(metadata)
+        obs = np.asarray(observations, dtype=np.float32)
+        nobs = np.asarray(next_observations, dtype=np.float32)
+        act = np.asarray(actions, dtype=np.float32)
+        rew = np.asarray(rewards, dtype=np.float32)
+        term = np.asarray(terminals).astype(bool)
+        if obs.ndim == 1:
+            obs = obs[:, None]
+        if nobs.ndim == 1:
+            nobs = nobs[:, None]
+        if act.ndim == 1:
+            act = act[:, None]
+        rew = rew.reshape(-1) if rew.ndim == 2 and rew.shape[1] == 1 else rew
+        term = term.reshape(-1) if term.ndim == 2 and term.shape[1] == 1 else term
+        n = obs.shape[0]
+        shapes = {
+            "observations": obs.shape,
+            "actions": act.shape,
+            "rewards": rew.shape,
+            "next_observations": nobs.shape,
+            "terminals": term.shape,
+        }
+        if obs.ndim != 2 or nobs.ndim != 2 or act.ndim != 2 or rew.ndim != 1 or term.ndim != 1:
+            raise DataFormatError(
+                f"{src}: arrays have the wrong number of dimensions ({shapes}); expected "
+                "observations/next_observations (N, O), actions (N, A), rewards and terminals (N,). "
+                "Flatten observations before building a Dataset."
+            )
+        lengths = {k: s[0] for k, s in shapes.items()}
+        if len(set(lengths.values())) != 1 or nobs.shape[1] != obs.shape[1]:
+            raise DataFormatError(
+                f"{src}: mismatched array lengths/shapes {shapes}. Every field needs one row per "
+                "transition and next_observations must have the same width as observations; the "
+                "file is truncated or was written inconsistently."
+            )
+        if n == 0:
+            raise DataFormatError(f"{src}: the dataset has no transitions.")
+        if episode_ends is None:
+            ends = term.copy()
+        else:
+            ends = np.asarray(episode_ends).astype(bool).reshape(-1)
+            if ends.shape != (n,):
+                raise DataFormatError(f"{src}: episode_ends has shape {ends.shape}, expected ({n},).")
+        ends[-1] = True
+        if mc_returns is not None:
+            mc_returns = np.asarray(mc_returns, dtype=np.float32).reshape(-1)
+            if mc_returns.shape != (n,):
+                raise DataFormatError(f"{src}: mc_returns has shape {mc_returns.shape}, expected ({n},).")
+        infos = {k: np.asarray(v) for k, v in (infos or {}).items()}
+        for k, v in infos.items():
+            if v.shape[:1] != (n,):
+                raise DataFormatError(f"{src}: info field {k!r} has {v.shape[:1]} rows, expected {n}.")
+        if raw_action_max is None:
+            # inf counts (validate reports it); NaN is left to the finiteness check.
+            mags = np.abs(act[~np.isnan(act)])
+            raw_action_max = float(mags.max()) if mags.size else 0.0
+        self.raw_action_max = float(raw_action_max)
+        # NaN actions stay NaN (validate reports them); everything else is clipped.
+        self.observations = obs
+        self.actions = np.clip(act, -ACTION_CLIP, ACTION_CLIP)
+        self.rewards = rew
+        self.next_observations = nobs
+        self.terminals = term
+        self.episode_ends = ends
+        self.mc_returns = mc_returns
+        self.infos = infos
+        self.metadata = dict(metadata or {})
+
+    # ------------------------------------------------------------------ basics
+    def __len__(self) -> int:
+        return int(self.rewards.shape[0])
+
+    def __repr__(self) -> str:
+        return (
+            f"Dataset(n={len(self)}, obs_dim={self.obs_dim}, action_dim={self.action_dim}, "
+            f"episodes={self.num_episodes}, source={_source(self.metadata)!r})"
+        )
+
+    @property
+    def obs_dim(self) -> int:
+        return int(self.observations.shape[1])
+
+    @property
+    def action_dim(self) -> int:
+        return int(self.actions.shape[1])
+
+    @property
+    def num_episodes(self) -> int:
+        return int(self.episode_ends.sum())
+
+    def _replace(self, **changes) -> "Dataset":
+        fields = dict(
+            observations=self.observations,
+            actions=self.actions,
+            rewards=self.rewards,
+            next_observations=self.next_observations,
+            terminals=self.terminals,
+            episode_ends=self.episode_ends,
+            mc_returns=self.mc_returns,
+            infos=self.infos,
+            metadata=copy.deepcopy(self.metadata),
+            raw_action_max=self.raw_action_max,
+        )
+        fields.update(changes)
+        return Dataset(**fields)
+
+    def episode_slices(self) -> list[slice]:
+        """Row ranges of the episodes, in order."""
+        ends = np.flatnonzero(self.episode_ends) + 1
+        starts = np.concatenate([[0], ends[:-1]])
+        return [slice(int(s), int(e)) for s, e in zip(starts, ends)]
+
+    def episodes(self) -> Iterator[dict[str, np.ndarray]]:
+        """Yield each episode as a dict of its rows (views, not copies)."""
+        for sl in self.episode_slices():
+            ep = {
+                "observations": self.observations[sl],
+                "actions": self.actions[sl],
+                "rewards": self.rewards[sl],
+                "next_observations": self.next_observations[sl],
+                "terminals": self.terminals[sl],
+            }
+            if self.mc_returns is not None:
+                ep["mc_returns"] = self.mc_returns[sl]
+            for k, v in self.infos.items():
+                ep[f"infos/{k}"] = v[sl]
+            yield ep
+
+    # ------------------------------------------------------------------ transforms
+    def with_reward_transform(self, scale: float | RewardTransform = 1.0, bias: float = 0.0) -> "Dataset":
+        """A copy with ``r' = scale * r + bias`` (``RewardTransform``).
+
+        If Monte-Carlo returns were computed, they are recomputed from the new rewards with
+        the same settings (a sparse negative reward is transformed too), because the return
+        of transformed rewards is not an affine map of the old return.
+        """
+        tf = scale if isinstance(scale, RewardTransform) else RewardTransform(float(scale), float(bias))
+        meta = copy.deepcopy(self.metadata)
+        meta.setdefault("reward_transforms", []).append({"scale": tf.scale, "bias": tf.bias})
+        out = self._replace(rewards=tf(self.rewards).astype(np.float32), mc_returns=None, metadata=meta)
+        mc = self.metadata.get("mc_returns")
+        if self.mc_returns is not None and mc is not None:
+            r_neg = mc["sparse_negative_reward"]
+            out = out.with_mc_returns(
+                mc["gamma"],
+                sparse_negative_reward=None if r_neg is None else float(tf(r_neg)),
+                infinite_horizon=mc["infinite_horizon"],
+            )
+        return out
+
+    def with_mc_returns(
+        self,
+        gamma: float,
+        *,
+        sparse_negative_reward: float | None = None,
+        infinite_horizon: bool = False,
+    ) -> "Dataset":
+        """A copy with Monte-Carlo returns-to-go, as Cal-QL computes them.
+
+        Per episode (``episode_ends``), backwards: ``G_t = r_t + gamma * (1 - terminal_t) * G_{t+1}``,
+        with ``G = 0`` after the episode's last row (or ``r_last / (1 - gamma)`` with
+        ``infinite_horizon``, Cal-QL's choice for kitchen, where the last reward is assumed
+        to repeat forever). A terminal row inside an episode restarts the sum.
+
+        Never-succeeding sparse trajectories: if ``sparse_negative_reward`` (r_neg, in the
+        units of the current ``rewards``) is given, an episode whose rewards are *all* equal to
+        r_neg (``np.isclose``) gets ``r_neg / (1 - gamma)`` at every row instead of the finite
+        discounted sum, i.e. it is treated as failing forever (Cal-QL,
+        nakamotoo/Cal-QL JaxCQL/replay_buffer.py ``calc_return_to_go``). For adroit-binary
+        r_neg = -1 (raw) and for antmaze r_neg = 0 (raw); dense tasks pass None.
+        """
+        if not 0.0 <= gamma < 1.0:
+            raise ValueError(f"gamma must be in [0, 1), got {gamma}")
+        from scipy.signal import lfilter
+
+        out = np.empty(len(self), dtype=np.float64)
+        rew = self.rewards.astype(np.float64)
+        # Segments end at episode ends and at terminals; inside a segment the recursion has
+        # the constant coefficient gamma, so a reversed IIR filter computes it exactly.
+        seg_end = self.episode_ends | self.terminals
+        ends = np.flatnonzero(seg_end) + 1
+        starts = np.concatenate([[0], ends[:-1]])
+        for s, e in zip(starts, ends):
+            r = rew[s:e]
+            g = lfilter([1.0], [1.0, -gamma], r[::-1])[::-1]
+            if infinite_horizon and not self.terminals[e - 1]:
+                tail = r[-1] / (1.0 - gamma)
+                g = g + tail * gamma ** np.arange(e - s, 0, -1)
+            out[s:e] = g
+        if sparse_negative_reward is not None:
+            r_neg = float(sparse_negative_reward)
+            for sl in self.episode_slices():
+                if np.all(np.isclose(rew[sl], r_neg, rtol=0.0, atol=1e-6)):
+                    out[sl] = r_neg / (1.0 - gamma)
+        meta = copy.deepcopy(self.metadata)
+        meta["mc_returns"] = {
+            "gamma": float(gamma),
+            "sparse_negative_reward": sparse_negative_reward,
+            "infinite_horizon": bool(infinite_horizon),
+        }
+        return self._replace(mc_returns=out.astype(np.float32), metadata=meta)
+
+    def concat(self, other: "Dataset") -> "Dataset":
+        """Rows of ``self`` then ``other`` (each keeps its episode boundaries).
+
+        MC returns are kept only if both have them; infos only the keys both have.
+        """
+        if other.obs_dim != self.obs_dim or other.action_dim != self.action_dim:
+            raise DataFormatError(
+                f"cannot concatenate {_source(self.metadata)} (obs {self.obs_dim}, action "
+                f"{self.action_dim}) with {_source(other.metadata)} (obs {other.obs_dim}, action "
+                f"{other.action_dim}): the dimensions differ."
+            )
+        mc = None
+        if self.mc_returns is not None and other.mc_returns is not None:
+            mc = np.concatenate([self.mc_returns, other.mc_returns])
+        keys = sorted(set(self.infos) & set(other.infos))
+        meta = copy.deepcopy(self.metadata)
+        meta["source"] = f"{_source(self.metadata)} + {_source(other.metadata)}"
+        if self.metadata.get("mc_returns") != other.metadata.get("mc_returns"):
+            meta.pop("mc_returns", None)
+        return Dataset(
+            np.concatenate([self.observations, other.observations]),
+            np.concatenate([self.actions, other.actions]),
+            np.concatenate([self.rewards, other.rewards]),
+            np.concatenate([self.next_observations, other.next_observations]),
+            np.concatenate([self.terminals, other.terminals]),
+            np.concatenate([self.episode_ends, other.episode_ends]),
+            mc,
+            {k: np.concatenate([self.infos[k], other.infos[k]]) for k in keys},
+            meta,
+            raw_action_max=max(self.raw_action_max, other.raw_action_max),
+        )
+
+    # ------------------------------------------------------------------ sampling
+    def batch_at(self, idx: np.ndarray) -> dict[str, np.ndarray]:
+        """The Batch of the given row indices (any index shape: (B,) or (K, B))."""
+        mc = self.mc_returns[idx] if self.mc_returns is not None else np.zeros(idx.shape, np.float32)
+        return {
+            "observations": self.observations[idx],
+            "actions": self.actions[idx],
+            "rewards": self.rewards[idx],
+            "next_observations": self.next_observations[idx],
+            "dones": self.terminals[idx].astype(np.float32),
+            "mc_returns": mc,
+        }
+
+    def sample(self, rng: np.random.Generator, batch_size: int, num_batches: int | None = None) -> dict:
+        """Uniform rows with replacement: a Batch of (B, ...) or, with ``num_batches=K``, (K, B, ...)."""
+        shape = (batch_size,) if num_batches is None else (num_batches, batch_size)
+        return self.batch_at(rng.integers(0, len(self), size=shape))
+
+    def to_device(self) -> dict:
+        """The Batch fields of all rows as a pytree of ``jnp`` arrays (for ``sample_batch``)."""
+        import jax.numpy as jnp
+
+        return {k: jnp.asarray(v) for k, v in self.batch_at(np.arange(len(self))).items()}
+
+    # ------------------------------------------------------------------ stats
+    def stats(self, success_key: str = "success") -> dict[str, Any]:
+        """Size, episodes, per-episode return statistics and success rate (if known).
+
+        Success of an episode is the max of ``infos[success_key]`` over its rows when present;
+        otherwise it is unknown (None).
+        """
+        slices = self.episode_slices()
+        csum = np.concatenate([[0.0], np.cumsum(self.rewards, dtype=np.float64)])
+        rets = np.array([csum[s.stop] - csum[s.start] for s in slices])
+        lens = np.array([s.stop - s.start for s in slices])
+        out: dict[str, Any] = {
+            "transitions": len(self),
+            "episodes": len(slices),
+            "obs_dim": self.obs_dim,
+            "action_dim": self.action_dim,
+            "terminals": int(self.terminals.sum()),
+            "episode_length_mean": float(lens.mean()),
+            "return_mean": float(rets.mean()),
+            "return_std": float(rets.std()),
+            "return_min": float(rets.min()),
+            "return_max": float(rets.max()),
+            "reward_min": float(self.rewards.min()),
+            "reward_max": float(self.rewards.max()),
+            "success_rate": None,
+        }
+        if success_key in self.infos:
+            succ = np.asarray(self.infos[success_key], dtype=np.float64)
+            out["success_rate"] = float(np.mean([succ[s].max() for s in slices]))
+        return out
+
+
+def sample_batch(arrays: dict, key, batch_size: int) -> dict:
+    """Pure, jit-friendly uniform sampling from ``Dataset.to_device()`` arrays.
+
+    ``batch_size`` must be static under ``jax.jit`` (pass it via ``static_argnums`` or a
+    closure). Usable inside ``lax.scan``: split the key per step.
+    """
+    import jax
+
+    n = arrays["rewards"].shape[0]
+    idx = jax.random.randint(key, (batch_size,), 0, n)
+    return jax.tree_util.tree_map(lambda x: x[idx], arrays)
+
+
+def sample_batches(arrays: dict, key, num_batches: int, batch_size: int) -> dict:
+    """``num_batches`` independent batches stacked as (K, B, ...) for ``update_many``."""
+    import jax
+
+    n = arrays["rewards"].shape[0]
+    idx = jax.random.randint(key, (num_batches, batch_size), 0, n)
+    return jax.tree_util.tree_map(lambda x: x[idx], arrays)
+
+
+def validate(
+    dataset: Dataset,
+    obs_dim: int | None = None,
+    action_dim: int | None = None,
+    action_tolerance: float = 1e-3,
+) -> Dataset:
+    """Check a dataset before training; raise ``DataFormatError`` naming the file and problem.
+
+    Checks: finite values in every field; observation/action widths match ``obs_dim`` /
+    ``action_dim`` when given; the raw actions (before the ±(1 - 1e-5) clip) lie within
+    ``[-1 - action_tolerance, 1 + action_tolerance]``. Returns the dataset unchanged.
+    """
+    src = _source(dataset.metadata)
+    for name in ("observations", "actions", "rewards", "next_observations"):
+        arr = getattr(dataset, name)
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            rows = np.flatnonzero(bad.reshape(len(arr), -1).any(axis=1))
+            raise DataFormatError(
+                f"{src}: field {name!r} has {int(bad.sum())} NaN/inf values (first at row "
+                f"{int(rows[0])}, {len(rows)} rows affected). Clean or drop those transitions "
+                "before loading; botorl does not train on non-finite data."
+            )
+    if dataset.mc_returns is not None and not np.isfinite(dataset.mc_returns).all():
+        raise DataFormatError(f"{src}: mc_returns contain NaN/inf values.")
+    if obs_dim is not None and dataset.obs_dim != obs_dim:
+        raise DataFormatError(
+            f"{src}: observations have {dataset.obs_dim} dimensions but the task expects "
+            f"{obs_dim}. The file belongs to a different task or version (or its dict "
+            "observations were flattened in another order/subset); load the matching dataset."
+        )
+    if action_dim is not None and dataset.action_dim != action_dim:
+        raise DataFormatError(
+            f"{src}: actions have {dataset.action_dim} dimensions but the task expects "
+            f"{action_dim}. The file belongs to a different task; load the matching dataset."
+        )
+    if dataset.raw_action_max > 1.0 + action_tolerance:
+        raise DataFormatError(
+            f"{src}: actions reach magnitude {dataset.raw_action_max:.4g}, outside [-1, 1] by more "
+            f"than the tolerance {action_tolerance:g}. botorl expects actions normalised to "
+            "[-1, 1]; rescale the actions, or pass a larger action_tolerance if clipping them "
+            "is acceptable."
+        )
+    return dataset

@@ -1,0 +1,592 @@
+"""Readers for the real dataset formats of the paper's tasks, each returning a ``Dataset``.
+
+* ``load_d4rl_hdf5``: D4RL hdf5 files, with D4RL's ``qlearning_dataset`` semantics.
+* ``load_minari``: Minari datasets by id (offline, ``$MINARI_DATASETS_PATH``) or by folder.
+* ``load_calql_adroit``: Cal-QL's adroit-binary ``.npy`` pair (pickle: explicit path only).
+* ``load_dapg_demos``: DAPG human demos, the original pickle or botorl's ``.npz``.
+
+Every loader returns raw rewards (the pipeline applies the task's ``RewardTransform``) and
+runs ``validate``; bad files raise ``DataFormatError`` naming the file and the problem, and
+missing ones ``DatasetNotFoundError`` saying where botorl looked and how to get the data.
+
+Pickle-based formats (``.npy`` object arrays, ``.pickle``/``.pkl``) execute code when loaded,
+so botorl opens them only from a path the user names explicitly, never by searching.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from botorl.data.dataset import Dataset, validate
+from botorl.data.minari_io import SPLIT_KEY
+from botorl.errors import DataFormatError, DatasetNotFoundError
+
+# ----------------------------------------------------------------------------- hints
+
+# The paper's D4RL tasks and their current Minari ports (minari.farama.org dataset pages;
+# `minari download <id>` fetches one into $MINARI_DATASETS_PATH or ~/.minari/datasets).
+MINARI_PORTS: dict[str, str] = {
+    "antmaze-large-diverse-v2": "D4RL/antmaze/large-diverse-v1",
+    "antmaze-large-play-v2": "D4RL/antmaze/large-play-v1",
+    "kitchen-partial-v0": "D4RL/kitchen/partial-v2",
+    "kitchen-mixed-v0": "D4RL/kitchen/mixed-v2",
+}
+
+# Where Cal-QL's adroit-binary data come from (nakamotoo/Cal-QL README, "Adroit Binary").
+CALQL_ADROIT_FILES: dict[str, tuple[str, str]] = {
+    "door-binary-v0": ("door2_sparse.npy", "door_bc_sparse4.npy"),
+    "pen-binary-v0": ("pen2_sparse.npy", "pen_bc_sparse4.npy"),
+}
+CALQL_DATA_INSTRUCTIONS = (
+    "Download the adroit-binary offline data linked in the Cal-QL README "
+    "(https://github.com/nakamotoo/Cal-QL, section 'Adroit Binary': a Google Drive zip of "
+    "demonstrations/offpolicy_hand_data/*.npy), unzip it, and pass the folder or the two files "
+    "explicitly (e.g. --data-path /path/to/offpolicy_hand_data). These files are pickles, so "
+    "botorl only opens files you name."
+)
+
+
+def minari_root() -> Path:
+    """Minari's dataset root: ``$MINARI_DATASETS_PATH`` or ``~/.minari/datasets``."""
+    env = os.environ.get("MINARI_DATASETS_PATH")
+    return Path(env) if env else Path.home() / ".minari" / "datasets"
+
+
+def download_hint(name: str) -> str:
+    """How a user gets the data of a task name or Minari id (one sentence or two)."""
+    if name in MINARI_PORTS:
+        mid = MINARI_PORTS[name]
+        return (
+            f"{name} is read from its Minari port {mid}: run `minari download {mid}` (needs "
+            f"`pip install \"minari[hdf5]\"` and network) once; it lands in {minari_root()} "
+            "(set MINARI_DATASETS_PATH to use another folder)."
+        )
+    if name in CALQL_ADROIT_FILES:
+        expert, bc = CALQL_ADROIT_FILES[name]
+        return f"{name} needs Cal-QL's {expert} and {bc}. {CALQL_DATA_INSTRUCTIONS}"
+    if "/" in name or name.rsplit("-v", 1)[-1].isdigit():
+        return (
+            f"If {name} is a public Minari dataset, run `minari download {name}`; it lands in "
+            f"{minari_root()} (set MINARI_DATASETS_PATH to use another folder)."
+        )
+    return "Check the path, or generate the data with `botorl data generate TASK`."
+
+
+def dataset_not_found(name: str, looked: Sequence[str | os.PathLike] | str, hint: str | None = None) -> DatasetNotFoundError:
+    """Build the ``DatasetNotFoundError`` for ``name`` (task name, Minari id or file).
+
+    ``looked``: the places botorl searched; ``hint``: how to get it (default
+    ``download_hint(name)``). The task registry uses this for its own datasets.
+    """
+    places = [looked] if isinstance(looked, (str, os.PathLike)) else list(looked)
+    where = ", ".join(str(p) for p in places) or "(nowhere)"
+    return DatasetNotFoundError(
+        f"dataset {name} was not found; botorl looked in: {where}. {hint or download_hint(name)}"
+    )
+
+
+def _require_file(path: str | os.PathLike, what: str) -> Path:
+    p = Path(path).expanduser()
+    if not p.exists():
+        raise dataset_not_found(str(p), [p], f"Check the path of the {what} file.")
+    return p
+
+
+# ----------------------------------------------------------------------------- D4RL hdf5
+
+
+def _qlearning_rows(terminals: np.ndarray, timeouts: np.ndarray | None, max_episode_steps: int | None):
+    """Row selection of D4RL's ``qlearning_dataset`` (terminate_on_end=False).
+
+    Mirrors Farama-Foundation/D4RL d4rl/__init__.py ``qlearning_dataset``: rows i < N - 1
+    only (the last row has no next observation); next obs = row i + 1; a row marked
+    ``timeouts`` (or, in files without ``timeouts`` such as kitchen, the row where the
+    per-episode step counter reaches ``max_episode_steps - 1``) starts no transition and
+    resets the counter; a terminal row is kept (done=True) and resets the counter.
+    Returns (kept row indices, episode_end flags for the kept rows).
+    """
+    n = terminals.shape[0]
+    if timeouts is not None:
+        keep = ~timeouts[: n - 1].astype(bool)
+        skipped = timeouts[: n - 1].astype(bool)
+    else:
+        keep = np.ones(n - 1, bool)
+        skipped = np.zeros(n - 1, bool)
+        if max_episode_steps is not None:
+            step = 0
+            term = terminals.astype(bool).tolist()
+            for i in range(n - 1):
+                if step == max_episode_steps - 1:
+                    keep[i] = False
+                    skipped[i] = True
+                    step = 0
+                    continue
+                step = 0 if term[i] else step + 1
+    idx = np.flatnonzero(keep)
+    # A kept row ends its episode if it is terminal, or the next row is a skipped
+    # time-out row, or it is the last kept row.
+    nxt = idx + 1
+    ends = terminals[idx].astype(bool) | np.concatenate([skipped, [True]])[nxt]
+    if len(ends):
+        ends[-1] = True
+    return idx, ends
+
+
+def load_d4rl_hdf5(
+    path: str | os.PathLike,
+    *,
+    max_episode_steps: int | None = None,
+    obs_dim: int | None = None,
+    action_dim: int | None = None,
+    action_tolerance: float = 1e-3,
+) -> Dataset:
+    """A D4RL hdf5 file (``observations, actions, rewards, terminals[, timeouts, infos/*]``).
+
+    Transitions follow D4RL's ``qlearning_dataset`` exactly (see ``_qlearning_rows``).
+    ``max_episode_steps`` only matters for files without ``timeouts`` (kitchen: D4RL uses the
+    env's limit, 280); None treats such a file as episodes split only by terminals.
+    ``infos/success`` or ``infos/goal_achieved``, if present, become ``infos["success"]``.
+    """
+    import h5py
+
+    p = _require_file(path, "D4RL hdf5")
+    try:
+        f = h5py.File(p, "r")
+    except OSError as err:
+        raise DataFormatError(
+            f"{p}: not a readable HDF5 file ({err}). A D4RL dataset is an .hdf5 file with "
+            "datasets observations, actions, rewards, terminals; re-download it."
+        ) from None
+    with f:
+        missing = [k for k in ("observations", "actions", "rewards", "terminals") if k not in f]
+        if missing:
+            raise DataFormatError(
+                f"{p}: missing D4RL field(s) {missing} (found {sorted(f.keys())}). A D4RL file "
+                "needs observations, actions, rewards, terminals (and usually timeouts)."
+            )
+        obs = np.asarray(f["observations"], np.float32)
+        act = np.asarray(f["actions"], np.float32)
+        rew = np.asarray(f["rewards"], np.float32).reshape(-1)
+        term = np.asarray(f["terminals"]).reshape(-1).astype(bool)
+        tout = np.asarray(f["timeouts"]).reshape(-1).astype(bool) if "timeouts" in f else None
+        success = None
+        for key in ("infos/success", "infos/goal_achieved"):
+            if key in f:
+                success = np.asarray(f[key]).reshape(-1).astype(np.float32)
+                break
+    n = obs.shape[0]
+    lens = {"observations": n, "actions": act.shape[0], "rewards": rew.shape[0], "terminals": term.shape[0]}
+    if tout is not None:
+        lens["timeouts"] = tout.shape[0]
+    if len(set(lens.values())) != 1:
+        raise DataFormatError(f"{p}: fields have different lengths {lens}; the file is truncated or corrupt.")
+    if n < 2:
+        raise DataFormatError(f"{p}: only {n} rows; a D4RL file needs at least 2 to form a transition.")
+    if obs.ndim != 2 or act.ndim != 2:
+        raise DataFormatError(f"{p}: observations {obs.shape} and actions {act.shape} must be 2-D.")
+    idx, ends = _qlearning_rows(term, tout, max_episode_steps)
+    infos = {}
+    if success is not None and success.shape[0] == n:
+        infos["success"] = success[idx + 1]  # success after the step, like the env's info
+    ds = Dataset(
+        obs[idx], act[idx], rew[idx], obs[idx + 1], term[idx], ends,
+        infos=infos, metadata={"source": str(p), "format": "d4rl-hdf5"},
+    )
+    return validate(ds, obs_dim, action_dim, action_tolerance)
+
+
+# ----------------------------------------------------------------------------- Minari
+
+
+def flatten_observation(obs: Any, keys: Sequence[str] | None = None) -> np.ndarray:
+    """Flatten a (nested) dict observation batch to (T, D) float32.
+
+    Order: with ``keys`` None, the dict keys sorted alphabetically at every level
+    (recursively), leaves concatenated along the last axis, each leaf reshaped to (T, -1).
+    With ``keys``, exactly those leaves in that order, nested keys written as
+    ``"a/b"`` (e.g. ``["achieved_goal", "observation"]`` for D4RL's antmaze layout).
+    Arrays pass through unchanged (reshaped to 2-D).
+    """
+    if not isinstance(obs, dict):
+        a = np.asarray(obs, np.float32)
+        return a.reshape(a.shape[0], -1)
+    if keys is not None:
+        leaves = []
+        for k in keys:
+            node = obs
+            for part in k.split("/"):
+                if not isinstance(node, dict) or part not in node:
+                    raise KeyError(k)
+                node = node[part]
+            leaves.append(flatten_observation(node))
+        return np.concatenate(leaves, axis=-1)
+    return np.concatenate([flatten_observation(obs[k]) for k in sorted(obs)], axis=-1)
+
+
+def _minari_data_path(id_or_path: str | os.PathLike) -> tuple[Path, bool]:
+    """(folder holding main_data / metadata.json, given-as-path?)."""
+    p = Path(id_or_path).expanduser()
+    as_path = isinstance(id_or_path, os.PathLike) or p.is_absolute() or str(id_or_path).startswith((".", "~")) or p.exists()
+    if as_path:
+        if p.is_file():
+            p = p.parent
+        if (p / "data").is_dir():
+            p = p / "data"
+        return p, True
+    return minari_root() / str(id_or_path) / "data", False
+
+
+def load_minari(
+    id_or_path: str | os.PathLike,
+    *,
+    obs_keys: Sequence[str] | None = None,
+    obs_dim: int | None = None,
+    action_dim: int | None = None,
+    action_tolerance: float = 1e-3,
+    success_info_key: str = "success",
+) -> Dataset:
+    """A Minari dataset, by id (``minari.load_dataset``, offline) or by path.
+
+    ``id_or_path``: a dataset id such as ``"D4RL/antmaze/large-diverse-v1"`` (read from
+    ``$MINARI_DATASETS_PATH`` or ``~/.minari/datasets``; never downloaded), or a path (a
+    ``Path``, an absolute/relative path that exists, or one starting with ``.``/``~``) to the
+    dataset folder, its ``data`` folder, or its ``main_data.hdf5``.
+
+    Dict observations are flattened by ``flatten_observation`` (sorted keys, recursively,
+    unless ``obs_keys`` gives the order). Per episode of T steps (T + 1 observations):
+    ``next_observations = observations[1:]``, ``terminals = terminations``, the last step is
+    an episode end (terminated or truncated). ``infos[success_info_key]`` (the last T entries
+    when Minari stored T + 1, the first being the reset info) becomes ``infos["success"]``.
+    """
+    data_path, as_path = _minari_data_path(id_or_path)
+    name = str(id_or_path)
+    if not (data_path / "metadata.json").exists() and not (data_path / "main_data.hdf5").exists():
+        looked = [data_path]
+        raise dataset_not_found(name, looked, None if not as_path else
+                                "Pass the folder of a Minari dataset (it contains data/main_data.hdf5 and data/metadata.json).")
+    try:
+        from minari import MinariDataset
+
+        mds = MinariDataset(data_path)
+    except Exception as err:  # minari raises assorted errors on broken folders
+        raise DataFormatError(
+            f"{data_path}: not a readable Minari dataset ({type(err).__name__}: {err}). "
+            "Re-download it with `minari download <id>` or rewrite it."
+        ) from None
+    obs_l, nobs_l, act_l, rew_l, term_l, end_l, succ_l = [], [], [], [], [], [], []
+    have_success = True
+    for ep in mds.iterate_episodes():
+        try:
+            o = flatten_observation(ep.observations, obs_keys)
+        except KeyError as err:
+            raise DataFormatError(
+                f"{data_path}: observation key {err} not in the dataset's dict observations; "
+                "check obs_keys."
+            ) from None
+        t = len(ep.rewards)
+        if o.shape[0] != t + 1 or np.asarray(ep.actions).shape[0] != t:
+            raise DataFormatError(
+                f"{data_path}: episode {ep.id} has {o.shape[0]} observations and "
+                f"{np.asarray(ep.actions).shape[0]} actions for {t} rewards (expected T + 1, T, T)."
+            )
+        if t == 0:
+            continue
+        obs_l.append(o[:-1])
+        nobs_l.append(o[1:])
+        act_l.append(np.asarray(ep.actions, np.float32).reshape(t, -1))
+        rew_l.append(np.asarray(ep.rewards, np.float32).reshape(t))
+        term = np.asarray(ep.terminations).reshape(t).astype(bool)
+        term_l.append(term)
+        info = ep.infos if isinstance(ep.infos, dict) else {}
+        end = np.zeros(t, bool)
+        # botorl's writer splits an episode where it is not continuous; join it back.
+        end[-1] = not (SPLIT_KEY in info and np.asarray(info[SPLIT_KEY]).reshape(-1)[-1] > 0)
+        end_l.append(end)
+        if have_success and success_info_key in info:
+            s = np.asarray(info[success_info_key], np.float32).reshape(-1)
+            succ_l.append(s[-t:])
+        else:
+            have_success = False
+    if not obs_l:
+        raise DataFormatError(f"{data_path}: the Minari dataset has no steps.")
+    meta = {"source": str(data_path.parent if data_path.name == "data" else data_path), "format": "minari",
+            "minari_id": mds.id}
+    try:
+        extra = mds.storage.metadata.get("botorl_metadata")
+        if extra:
+            import json
+
+            meta["botorl"] = json.loads(extra)
+    except Exception:
+        pass
+    ds = Dataset(
+        np.concatenate(obs_l), np.concatenate(act_l), np.concatenate(rew_l), np.concatenate(nobs_l),
+        np.concatenate(term_l), np.concatenate(end_l),
+        infos={"success": np.concatenate(succ_l)} if have_success and succ_l else None,
+        metadata=meta,
+    )
+    return validate(ds, obs_dim, action_dim, action_tolerance)
+
+
+# ----------------------------------------------------------------------------- pickles
+
+
+def _load_pickle_array(path: Path, what: str):
+    """np.load(allow_pickle=True) / pickle.load of a file the user named explicitly."""
+    try:
+        if path.suffix == ".npy":
+            return np.load(path, allow_pickle=True)
+        with open(path, "rb") as fh:
+            return pickle.load(fh)
+    except Exception as err:
+        raise DataFormatError(
+            f"{path}: cannot be read as a {what} ({type(err).__name__}: {err}). Check that this "
+            "is the right file (pickle-based files are opened only from paths you name)."
+        ) from None
+
+
+def _as_list_of_dicts(obj, path: Path, what: str) -> list[dict]:
+    if isinstance(obj, np.ndarray) and obj.dtype == object:
+        obj = list(obj.reshape(-1))
+    if not isinstance(obj, (list, tuple)) or not obj or not all(isinstance(t, dict) for t in obj):
+        raise DataFormatError(
+            f"{path}: expected a {what}: a non-empty list (or object array) of per-trajectory "
+            f"dicts, got {type(obj).__name__}."
+        )
+    return list(obj)
+
+
+def _need(traj: dict, keys: Sequence[str], path: Path, i: int) -> None:
+    missing = [k for k in keys if k not in traj]
+    if missing:
+        raise DataFormatError(
+            f"{path}: trajectory {i} lacks key(s) {missing} (has {sorted(traj)})."
+        )
+
+
+def _stack_obs(seq, key: str | None, path: Path, i: int) -> np.ndarray:
+    try:
+        if key is not None:
+            return np.stack([np.asarray(x[key], np.float32) for x in seq])
+        return np.asarray(seq, np.float32).reshape(len(seq), -1)
+    except (KeyError, TypeError, IndexError, ValueError) as err:
+        raise DataFormatError(
+            f"{path}: trajectory {i}: observations are not {'dicts with ' + repr(key) if key else 'numeric arrays'} ({err})."
+        ) from None
+
+
+def load_calql_adroit(
+    expert_path: str | os.PathLike | None,
+    bc_path: str | os.PathLike | None = None,
+    *,
+    obs_dim: int | None = None,
+    action_dim: int | None = None,
+    action_tolerance: float = 1e-3,
+) -> Dataset:
+    """Cal-QL's adroit-binary data: expert ``*2_sparse.npy`` and/or BC ``*_bc_sparse4.npy``.
+
+    Both are pickled object arrays of per-trajectory dicts; they are loaded only from the
+    paths given here (never searched for). Layout and processing follow Cal-QL
+    (nakamotoo/Cal-QL, JaxCQL/replay_buffer.py ``get_hand_dataset_with_mc_calculation``):
+
+    * expert file: ``observations`` / ``next_observations`` are lists of per-step dicts whose
+      ``"state_observation"`` is the state; ``rewards`` may have one entry more than
+      ``terminals`` and is cut to the number of observations.
+    * BC file: plain arrays; ``rewards`` and ``terminals`` are (T, 1) and are squeezed.
+    * Rewards are binary {-1, 0} (0 = success). A trajectory with no 0 reward is dropped;
+      the others are cut right after their last success step; every success step is
+      terminal (Cal-QL's ``dones = rewards == reward_pos``); the recorded terminals are
+      ignored. Each kept trajectory is one episode.
+
+    Cal-QL's MC returns for this data: ``with_mc_returns(0.99, sparse_negative_reward=-1)``
+    (before the reward transform; with_reward_transform keeps them consistent).
+    """
+    parts = []
+    for path, kind in ((expert_path, "expert"), (bc_path, "bc")):
+        if path is None:
+            continue
+        p = _require_file(path, f"Cal-QL {kind} .npy")
+        trajs = _as_list_of_dicts(_load_pickle_array(p, "Cal-QL .npy"), p, "Cal-QL adroit .npy file")
+        obs_l, nobs_l, act_l, rew_l, ends_l = [], [], [], [], []
+        for i, tr in enumerate(trajs):
+            _need(tr, ("observations", "next_observations", "actions", "rewards"), p, i)
+            key = "state_observation" if kind == "expert" else None
+            if kind == "bc" and len(tr["observations"]) and isinstance(tr["observations"][0], dict):
+                key = "state_observation"  # tolerate an expert-style BC file
+            if kind == "expert" and len(tr["observations"]) and not isinstance(tr["observations"][0], dict):
+                key = None
+            o = _stack_obs(tr["observations"], key, p, i)
+            no = _stack_obs(tr["next_observations"], key, p, i)
+            a = np.asarray(tr["actions"], np.float32).reshape(len(o), -1) if len(o) else np.zeros((0, 1), np.float32)
+            r = np.asarray(tr["rewards"], np.float32).squeeze()
+            r = np.atleast_1d(r)[: len(o)]
+            if not (len(o) == len(no) == len(a) == len(r)):
+                raise DataFormatError(
+                    f"{p}: trajectory {i} has mismatched lengths: {len(o)} observations, "
+                    f"{len(no)} next_observations, {len(a)} actions, {len(r)} rewards."
+                )
+            succ = np.flatnonzero(r == 0.0)
+            if len(succ) == 0:
+                continue  # never succeeds: Cal-QL drops it
+            cut = int(succ[-1]) + 1
+            obs_l.append(o[:cut]); nobs_l.append(no[:cut]); act_l.append(a[:cut]); rew_l.append(r[:cut])
+            e = np.zeros(cut, bool); e[-1] = True
+            ends_l.append(e)
+        if not obs_l:
+            raise DataFormatError(f"{p}: no trajectory reaches a success (reward 0); nothing to load.")
+        rew = np.concatenate(rew_l)
+        parts.append(Dataset(
+            np.concatenate(obs_l), np.concatenate(act_l), rew, np.concatenate(nobs_l),
+            rew == 0.0, np.concatenate(ends_l),
+            infos={"success": (rew == 0.0).astype(np.float32)},
+            metadata={"source": str(p), "format": f"calql-adroit-{kind}"},
+        ))
+    if not parts:
+        raise dataset_not_found("door-binary-v0 / pen-binary-v0", ["(no path given)"], CALQL_DATA_INSTRUCTIONS)
+    ds = parts[0] if len(parts) == 1 else parts[0].concat(parts[1])
+    return validate(ds, obs_dim, action_dim, action_tolerance)
+
+
+def door_success(observations: np.ndarray) -> np.ndarray:
+    """Adroit door opened: hinge angle ``obs[..., 28] >= 1.35`` (DAPG / Gymnasium-Robotics)."""
+    return np.asarray(observations)[..., 28] >= 1.35
+
+
+def _dapg_trajectories(p: Path) -> list[dict]:
+    if p.suffix == ".npz":
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                missing = [k for k in ("observations", "actions", "rewards", "episode_lengths") if k not in z.files]
+                if missing:
+                    raise DataFormatError(
+                        f"{p}: .npz lacks key(s) {missing} (has {sorted(z.files)}); botorl's DAPG "
+                        "demo file has observations, actions, rewards, episode_lengths."
+                    )
+                obs, act, rew, lens = (np.asarray(z[k]) for k in ("observations", "actions", "rewards", "episode_lengths"))
+        except DataFormatError:
+            raise
+        except Exception as err:
+            raise DataFormatError(f"{p}: not a readable .npz file ({type(err).__name__}: {err}).") from None
+        lens = lens.astype(np.int64).reshape(-1)
+        if (lens <= 0).any() or lens.sum() != obs.shape[0] or not (obs.shape[0] == act.shape[0] == rew.shape[0]):
+            raise DataFormatError(
+                f"{p}: lengths do not fit: episode_lengths sum to {int(lens.sum())}, observations "
+                f"{obs.shape[0]}, actions {act.shape[0]}, rewards {rew.shape[0]}."
+            )
+        bounds = np.concatenate([[0], np.cumsum(lens)])
+        return [
+            {"observations": obs[s:e], "actions": act[s:e], "rewards": rew[s:e]}
+            for s, e in zip(bounds[:-1], bounds[1:])
+        ]
+    trajs = _as_list_of_dicts(_load_pickle_array(p, "DAPG demo pickle"), p, "DAPG demo pickle")
+    out = []
+    for i, tr in enumerate(trajs):
+        _need(tr, ("observations", "actions", "rewards"), p, i)
+        o = np.asarray(tr["observations"], np.float32)
+        a = np.asarray(tr["actions"], np.float32)
+        r = np.asarray(tr["rewards"], np.float32).reshape(-1)
+        if not (len(o) == len(a) == len(r)) or o.ndim != 2 or a.ndim != 2:
+            raise DataFormatError(
+                f"{p}: demo {i} has observations {o.shape}, actions {a.shape}, rewards {r.shape}; "
+                "expected (T, O), (T, A), (T,)."
+            )
+        out.append({"observations": o, "actions": a, "rewards": r})
+    return out
+
+
+def load_dapg_demos(
+    path: str | os.PathLike,
+    *,
+    binary_reward: bool = False,
+    success_fn: Callable[[np.ndarray], np.ndarray] | None = door_success,
+    drop_unsuccessful: bool = True,
+    obs_dim: int | None = None,
+    action_dim: int | None = None,
+    action_tolerance: float = 1e-3,
+) -> Dataset:
+    """DAPG human demos: the original list-of-dicts pickle or botorl's ``.npz``.
+
+    ``.npz`` (no pickle): ``observations, actions, rewards, episode_lengths`` as described in
+    ../shared/data/README.md. ``.pickle``/``.pkl``: the DAPG file, a list of dicts with
+    ``observations, actions, rewards`` (``init_state_dict`` etc. are ignored); opened only
+    because the user named it.
+
+    Each demo of T recorded steps gives T - 1 transitions (next obs = the next row; the last
+    step has no next observation, as in D4RL). Dense mode keeps the recorded rewards, no
+    terminals, one episode per demo.
+
+    ``binary_reward=True`` (the Cal-QL-style "binary" task): success is
+    ``success_fn(next_observation)`` (the state after the step, which is what the env's
+    reward sees; default: door hinge ``obs[28] >= 1.35``), reward = success - 1, and the
+    demo is cut at its first success, which is terminal. ``infos["success"]`` holds
+    ``success_fn(next_observation)`` in both modes (zeros if ``success_fn`` is None; pass
+    the pen criterion, or None, for pen demos). Demos that never succeed are
+    dropped when ``drop_unsuccessful`` (as Cal-QL does with its data), else kept with
+    reward -1 throughout and no terminal.
+    """
+    if binary_reward and success_fn is None:
+        raise ValueError("binary_reward=True needs a success_fn")
+    p = _require_file(path, "DAPG demo")
+    trajs = _dapg_trajectories(p)
+    obs_l, nobs_l, act_l, rew_l, term_l, end_l, succ_l = [], [], [], [], [], [], []
+    for tr in trajs:
+        o, a, r = tr["observations"], tr["actions"], tr["rewards"]
+        if len(o) < 2:
+            continue
+        o_, no_, a_, r_ = o[:-1], o[1:], a[:-1], r[:-1].astype(np.float32)
+        succ = np.asarray(success_fn(no_), bool) if success_fn is not None else np.zeros(len(o_), bool)
+        term = np.zeros(len(o_), bool)
+        if binary_reward:
+            hit = np.flatnonzero(succ)
+            if len(hit):
+                cut = int(hit[0]) + 1
+                o_, no_, a_, succ = o_[:cut], no_[:cut], a_[:cut], succ[:cut]
+                term = np.zeros(cut, bool)
+                term[-1] = True
+            elif drop_unsuccessful:
+                continue
+            r_ = succ.astype(np.float32) - 1.0
+        end = np.zeros(len(o_), bool)
+        end[-1] = True
+        obs_l.append(o_); nobs_l.append(no_); act_l.append(a_); rew_l.append(r_)
+        term_l.append(term); end_l.append(end); succ_l.append(succ.astype(np.float32))
+    if not obs_l:
+        raise DataFormatError(f"{p}: no usable demo (all shorter than 2 steps or none succeeds).")
+    ds = Dataset(
+        np.concatenate(obs_l), np.concatenate(act_l), np.concatenate(rew_l), np.concatenate(nobs_l),
+        np.concatenate(term_l), np.concatenate(end_l),
+        infos={"success": np.concatenate(succ_l)},
+        metadata={"source": str(p), "format": "dapg-" + ("npz" if p.suffix == ".npz" else "pickle"),
+                  "binary_reward": binary_reward},
+    )
+    return validate(ds, obs_dim, action_dim, action_tolerance)
+
+
+def load_path(path: str | os.PathLike, **kwargs) -> Dataset:
+    """Pick a loader by what ``path`` is (used by ``botorl data info PATH``).
+
+    Folder or ``main_data.hdf5`` -> Minari; ``.hdf5``/``.h5`` -> D4RL; ``.npz`` -> DAPG npz;
+    ``.pickle``/``.pkl`` -> DAPG pickle; ``.npy`` -> Cal-QL expert-or-BC file.
+    """
+    p = _require_file(path, "dataset")
+    if p.is_dir() or p.name == "main_data.hdf5":
+        return load_minari(p, **kwargs)
+    suffix = p.suffix.lower()
+    if suffix in (".hdf5", ".h5"):
+        return load_d4rl_hdf5(p, **kwargs)
+    if suffix in (".npz", ".pickle", ".pkl"):
+        return load_dapg_demos(p, **kwargs)
+    if suffix == ".npy":
+        obj = _as_list_of_dicts(_load_pickle_array(p, "Cal-QL .npy"), p, "Cal-QL adroit .npy file")
+        first = obj[0].get("observations")
+        is_expert = first is not None and len(first) and isinstance(first[0], dict)
+        return load_calql_adroit(p, None, **kwargs) if is_expert else load_calql_adroit(None, p, **kwargs)
+    raise DataFormatError(
+        f"{p}: unknown dataset format {suffix!r}; botorl reads Minari folders, D4RL .hdf5, "
+        "DAPG .npz/.pickle and Cal-QL .npy files."
+    )

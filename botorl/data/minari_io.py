@@ -1,0 +1,188 @@
+"""Writing botorl datasets as Minari datasets, so any Minari-aware tool can read them.
+
+Written with Minari's public API (``minari.create_dataset_from_buffers`` with one
+``EpisodeBuffer`` per episode) into a private temporary root next to the destination, then
+moved into place with one ``rename``: a crash leaves either no dataset or a complete one,
+never a half-written one under the final id.
+
+Layout (Minari's own): ``<root>/<dataset_id>/data/main_data.hdf5`` + ``metadata.json``.
+Per episode of T steps: T + 1 observations (``observations`` then the last
+``next_observation``), T actions/rewards/terminations/truncations; the last step of an
+episode is truncated unless it is terminal. ``infos`` holds every ``Dataset.infos`` field
+(e.g. ``success``) with T + 1 entries, the first (Minari's reset info) being 0. botorl's
+metadata (generator, steps, seed, ...) is a JSON string under the metadata key
+``botorl_metadata``; ``load_minari`` restores it to ``Dataset.metadata["botorl"]``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import uuid
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from botorl.data.dataset import Dataset
+from botorl.errors import BotorlError, ConfigError
+
+# Marks an episode split that botorl had to make because next_observation[i] !=
+# observation[i + 1] inside one episode (Minari stores one observation sequence per
+# episode); load_minari joins such pieces back into one episode.
+SPLIT_KEY = "botorl_split"
+
+
+@contextlib.contextmanager
+def _minari_root(path: Path):
+    old = os.environ.get("MINARI_DATASETS_PATH")
+    os.environ["MINARI_DATASETS_PATH"] = str(path)
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("MINARI_DATASETS_PATH", None)
+        else:
+            os.environ["MINARI_DATASETS_PATH"] = old
+
+
+def _episode_buffers(ds: Dataset):
+    from minari.data_collector import EpisodeBuffer
+
+    n = len(ds)
+    # Discontinuities inside an episode force a split (see SPLIT_KEY).
+    jump = np.zeros(n, bool)
+    if n > 1:
+        jump[:-1] = ~ds.episode_ends[:-1] & np.any(ds.next_observations[:-1] != ds.observations[1:], axis=1)
+    cut = ds.episode_ends | jump
+    ends = np.flatnonzero(cut) + 1
+    starts = np.concatenate([[0], ends[:-1]])
+    info_keys = sorted(ds.infos)
+    for ep_id, (s, e) in enumerate(zip(starts, ends)):
+        obs = np.concatenate([ds.observations[s:e], ds.next_observations[e - 1 : e]])
+        term = ds.terminals[s:e].copy()
+        trunc = np.zeros(e - s, bool)
+        trunc[-1] = not term[-1]
+        infos: dict[str, Any] = {}
+        for k in info_keys:
+            v = np.asarray(ds.infos[k])
+            infos[k] = np.concatenate([np.zeros((1,) + v.shape[1:], v.dtype), v[s:e]])
+        if jump.any():
+            split = np.zeros(e - s + 1, np.float32)
+            split[-1] = float(jump[e - 1])
+            infos[SPLIT_KEY] = split
+        yield EpisodeBuffer(
+            id=ep_id,
+            observations=obs,
+            actions=ds.actions[s:e],
+            rewards=ds.rewards[s:e],
+            terminations=term,
+            truncations=trunc,
+            infos=infos or None,
+        )
+
+
+def _resolve(dataset_id: str | None, path: str | os.PathLike | None, root: str | os.PathLike | None):
+    from minari.dataset.minari_dataset import parse_dataset_id
+
+    from botorl.data.loaders import minari_root
+
+    if path is not None:
+        p = Path(path).expanduser().resolve()
+        root_p, dataset_id = p.parent, p.name
+    else:
+        if dataset_id is None:
+            raise ConfigError("write_minari needs a dataset_id or a path.")
+        root_p = Path(root).expanduser() if root is not None else minari_root()
+    try:
+        parse_dataset_id(dataset_id)
+    except Exception:
+        raise ConfigError(
+            f"{dataset_id!r} is not a valid Minari dataset id: use (namespace/)name-v<N> with "
+            "letters, digits, '-' and '_' (e.g. botorl/pointmaze-large/steps1000000-seed0-v0)."
+        ) from None
+    return root_p, dataset_id
+
+
+def write_minari(
+    dataset: Dataset,
+    dataset_id: str | None = None,
+    *,
+    path: str | os.PathLike | None = None,
+    root: str | os.PathLike | None = None,
+    overwrite: bool = False,
+    description: str | None = None,
+    metadata: dict[str, Any] | None = None,
+    algorithm_name: str = "botorl generator",
+) -> Path:
+    """Write ``dataset`` as a Minari dataset; returns its folder.
+
+    Where: ``dataset_id`` (e.g. ``"botorl/pointmaze-large/steps1000000-seed0-v0"``) under
+    ``root`` (default: Minari's root, ``$MINARI_DATASETS_PATH`` or ``~/.minari/datasets``), so
+    ``minari.load_dataset(dataset_id)`` reads it; or ``path``, a folder whose name is the id
+    (``.../name-v0``). ``metadata`` (JSON-serialisable: generator name, steps, seed, ...) is
+    stored with botorl's dataset metadata. An existing dataset is replaced only with
+    ``overwrite=True``.
+    """
+    import minari
+
+    root_p, dataset_id = _resolve(dataset_id, path, root)
+    final = root_p / dataset_id
+    if final.exists() and not overwrite:
+        raise BotorlError(
+            f"a dataset already exists at {final}; pass overwrite=True (CLI: --overwrite) to "
+            "replace it, or choose another id."
+        )
+    root_p.mkdir(parents=True, exist_ok=True)
+    tmp_root = root_p / f".botorl-tmp-{uuid.uuid4().hex[:12]}"
+    import gymnasium as gym
+
+    obs_space = gym.spaces.Box(-np.inf, np.inf, (dataset.obs_dim,), np.float32)
+    act_space = gym.spaces.Box(-1.0, 1.0, (dataset.action_dim,), np.float32)
+    meta = {k: v for k, v in dataset.metadata.items() if k not in ("source",)}
+    meta.update(metadata or {})
+    meta["transitions"] = len(dataset)
+    try:
+        with _minari_root(tmp_root), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # Minari warns about every optional field left empty
+            mds = minari.create_dataset_from_buffers(
+                dataset_id,
+                list(_episode_buffers(dataset)),
+                algorithm_name=algorithm_name,
+                author="botorl",
+                author_email="none",
+                code_permalink="https://github.com/botorl/botorl",
+                action_space=act_space,
+                observation_space=obs_space,
+                description=description or f"botorl dataset {dataset_id}",
+            )
+            mds.storage.update_metadata({"botorl_metadata": json.dumps(meta, default=_json_default)})
+        # Carry Minari's namespace marker files over if the destination has none.
+        ns = Path(dataset_id).parent
+        while str(ns) not in ("", "."):
+            src, dst = tmp_root / ns / "namespace_metadata.json", root_p / ns / "namespace_metadata.json"
+            if src.exists() and not dst.exists():
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(src, dst)
+            ns = ns.parent
+        final.parent.mkdir(parents=True, exist_ok=True)
+        if final.exists():  # overwrite: move the old one aside first, delete it after
+            old = tmp_root / "old"
+            os.replace(final, old)
+        os.replace(tmp_root / dataset_id, final)
+    finally:
+        shutil.rmtree(tmp_root, ignore_errors=True)
+    return final
+
+
+def _json_default(obj):
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.floating,)):
+        return float(obj)
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return str(obj)
