@@ -15,7 +15,8 @@ from __future__ import annotations
 
 from botorl.envs.wrappers import TaskEnv
 
-DOOR_OBS_DIM, PEN_OBS_DIM, ACTION_DIM = 39, 45, 28
+DOOR_OBS_DIM, PEN_OBS_DIM = 39, 45
+DOOR_ACTION_DIM, PEN_ACTION_DIM = 28, 24
 DOOR_SUCCESS_ANGLE = 1.35
 
 

@@ -1,0 +1,276 @@
+"""``door-binary-local``: Cal-QL-style door data made from the 25 DAPG human demos.
+
+Cal-QL's door-binary-v0 data are the human demos (``door2_sparse.npy``) plus rollouts of a
+behaviour-cloned policy (``door_bc_sparse4.npy``). Both halves are made here:
+
+1. Demos: the recorded observations/actions of ``door_human_demos.npz`` are used as they are
+   (open-loop replay in today's simulator does not reproduce them, and resetting the env to a
+   demo's stored initial state does not give the recorded first observation: the stored
+   ``init_qpos`` has the hand's base joints (qpos 0-5) at 0, while the recorded first
+   observations already show them moved, so the palm position (obs 29-31, 35-37) differs too;
+   the recordings start after the stored state). Transition t is (obs[t], act[t], obs[t+1]),
+   so each demo's last recorded row, which has no successor, gives no transition.
+2. BC rollouts: a 2 x 256 MLP (tanh output) is fit to all 25 demos by mean squared error
+   (optax Adam 1e-3, ``bc_steps`` steps, batch 256), then rolled out in ``AdroitHandDoor-v1``
+   from the env's own random resets, with Gaussian action noise ``N(0, noise_std^2)``, through
+   the door-binary task wrapper (reward success - 1, ends at the first success, 200 steps).
+
+Both halves get the binary reward (``obs'[28] >= 1.35`` -> 0, else -1), every success step is
+terminal, and successful trajectories are cut right after their last success step (Cal-QL's
+loading rule). Cal-QL also drops trajectories that never succeed; here that is
+``drop_unsuccessful=True``. The default keeps them (as truncated, all -1 trajectories)
+because this BC policy rarely succeeds (0 of 10 episodes measured, deterministic or with
+noise 0.1, 3k or 10k BC steps, with or without observation normalisation), and only 8 of
+the 25 demos reach the 1.35 hinge angle, so the filter would leave a handful of demos.
+``steps`` counts BC-rollout env steps collected. The success rate of the rollouts is stored
+in ``metadata["bc_success_rate"]``.
+"""
+
+from __future__ import annotations
+
+import os
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from botorl.data.dataset import Dataset
+from botorl.envs.adroit import DOOR_SUCCESS_ANGLE
+from botorl.errors import DatasetNotFoundError, DataFormatError
+
+ENV_VAR = "BOTORL_DOOR_DEMOS"
+HINGE = 28
+HORIZON = 200
+HIDDEN = (256, 256)
+
+
+def find_demos(demos_path: str | os.PathLike | None = None) -> Path:
+    """The demo file: the argument, else ``$BOTORL_DOOR_DEMOS``, else an explanatory error."""
+    where = demos_path or os.environ.get(ENV_VAR)
+    if not where:
+        raise DatasetNotFoundError(
+            "door-binary-local needs the 25 DAPG door demonstrations (door_human_demos.npz) and "
+            f"no path was given. Set {ENV_VAR}=/path/to/door_human_demos.npz (in a botorl "
+            f"checkout: export {ENV_VAR}=../shared/data/adroit/door_human_demos.npz) or pass "
+            "demos_path to botorl.data.generators.door.generate."
+        )
+    path = Path(where).expanduser()
+    if not path.is_file():
+        raise DatasetNotFoundError(
+            f"door demos file {path} does not exist (from {'demos_path' if demos_path else ENV_VAR}). "
+            "Point it at door_human_demos.npz, e.g. ../shared/data/adroit/door_human_demos.npz."
+        )
+    return path
+
+
+def load_demos(path: Path) -> list[dict[str, np.ndarray]]:
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            obs, act, lengths = f["observations"], f["actions"], f["episode_lengths"]
+    except (KeyError, ValueError, OSError) as err:
+        raise DataFormatError(
+            f"{path}: not a door demos .npz with observations, actions and episode_lengths ({err})."
+        ) from None
+    if obs.ndim != 2 or obs.shape[1] != 39 or act.shape != (obs.shape[0], 28) or lengths.sum() != obs.shape[0]:
+        raise DataFormatError(
+            f"{path}: expected observations (N, 39), actions (N, 28) and episode_lengths summing to N; "
+            f"got {obs.shape}, {act.shape}, sum {int(lengths.sum())}."
+        )
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    return [
+        {"observations": obs[s : s + n].astype(np.float64), "actions": act[s : s + n].astype(np.float64)}
+        for s, n in zip(starts, lengths)
+    ]
+
+
+def _binary_trajectory(obs, act, next_obs, drop_unsuccessful: bool) -> dict | None:
+    """Reward success-1, success steps terminal, cut after the last success (Cal-QL); a
+    trajectory that never succeeds is None if ``drop_unsuccessful``, else kept whole."""
+    success = next_obs[:, HINGE] >= DOOR_SUCCESS_ANGLE
+    if not success.any():
+        if drop_unsuccessful:
+            return None
+        end = len(success)
+    else:
+        end = int(np.nonzero(success)[0][-1]) + 1
+    ends = np.zeros(end, dtype=bool)
+    ends[-1] = True
+    return {
+        "observations": obs[:end],
+        "actions": act[:end],
+        "next_observations": next_obs[:end],
+        "rewards": success[:end].astype(np.float32) - 1.0,
+        "terminals": success[:end],
+        "episode_ends": ends,
+    }
+
+
+# ---------------------------------------------------------------------------- behaviour cloning
+def train_bc(demos, steps: int, seed: int, progress: bool = True) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Fit a tanh MLP to the demos (MSE); returns [(W, b), ...] as numpy arrays."""
+    import jax
+    import jax.numpy as jnp
+    import optax
+
+    x = jnp.asarray(np.concatenate([d["observations"] for d in demos]), dtype=jnp.float32)
+    y = jnp.asarray(np.clip(np.concatenate([d["actions"] for d in demos]), -1, 1), dtype=jnp.float32)
+    sizes = (x.shape[1], *HIDDEN, y.shape[1])
+    keys = jax.random.split(jax.random.PRNGKey(seed), len(sizes))
+    params = [
+        (jax.random.normal(k, (i, o)) * jnp.sqrt(1.0 / i), jnp.zeros(o))
+        for k, i, o in zip(keys[1:], sizes[:-1], sizes[1:])
+    ]
+    opt = optax.adam(1e-3)
+
+    def forward(p, obs):
+        h = obs
+        for w, b in p[:-1]:
+            h = jax.nn.relu(h @ w + b)
+        return jnp.tanh(h @ p[-1][0] + p[-1][1])
+
+    def loss_fn(p, xb, yb):
+        return jnp.mean((forward(p, xb) - yb) ** 2)
+
+    @partial(jax.jit, static_argnums=3)
+    def run(p, state, key, n):
+        def body(carry, k):
+            p, state = carry
+            idx = jax.random.randint(k, (256,), 0, x.shape[0])
+            loss, g = jax.value_and_grad(loss_fn)(p, x[idx], y[idx])
+            upd, state = opt.update(g, state, p)
+            return (optax.apply_updates(p, upd), state), loss
+
+        (p, state), losses = jax.lax.scan(body, (p, state), jax.random.split(key, n))
+        return p, state, losses[-1]
+
+    state = opt.init(params)
+    key = keys[0]
+    chunk = 500
+    done = 0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps, desc="door BC", unit="step")
+    while done < steps:
+        n = min(chunk, steps - done)
+        key, sub = jax.random.split(key)
+        params, state, loss = run(params, state, sub, n)  # compiled once per chunk length
+        done += n
+        if bar is not None:
+            bar.update(n)
+            bar.set_postfix(loss=float(loss))
+    if bar is not None:
+        bar.close()
+    return [(np.asarray(w, np.float64), np.asarray(b, np.float64)) for w, b in params]
+
+
+def bc_policy(params):
+    def act(obs: np.ndarray) -> np.ndarray:
+        h = obs
+        for w, b in params[:-1]:
+            h = np.maximum(h @ w + b, 0.0)
+        return np.tanh(h @ params[-1][0] + params[-1][1])
+
+    return act
+
+
+def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = True):
+    """Roll ``policy`` out in the door-binary env until ``steps`` env steps are collected
+    (whole episodes). Returns (trajectories, number of episodes, number of successes)."""
+    from botorl.envs.adroit import make_door
+    from botorl.envs.wrappers import finish
+
+    env = finish(make_door(seed), HORIZON)
+    rng = np.random.default_rng(seed)
+    trajs, n_eps, n_succ, collected = [], 0, 0, 0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps, desc="door BC rollouts", unit="step")
+    while collected < steps:
+        obs, _ = env.reset()
+        o, a, no = [], [], []
+        while True:
+            action = np.clip(policy(obs.astype(np.float64)) + noise_std * rng.standard_normal(28), -1, 1)
+            nobs, _, term, trunc, info = env.step(action)
+            o.append(obs), a.append(action), no.append(nobs)
+            obs = nobs
+            if term or trunc:
+                break
+        n_eps += 1
+        n_succ += int(info["success"] > 0)
+        collected += len(o)
+        if bar is not None:
+            bar.update(len(o))
+        trajs.append((np.array(o, np.float64), np.array(a, np.float64), np.array(no, np.float64)))
+    if bar is not None:
+        bar.close()
+    env.close()
+    return trajs, n_eps, n_succ
+
+
+def _concat(trajs: list[dict]) -> dict[str, np.ndarray]:
+    return {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0]}
+
+
+def generate(
+    steps: int,
+    seed: int,
+    progress: bool = True,
+    demos_path: str | os.PathLike | None = None,
+    bc_steps: int = 3000,
+    noise_std: float = 0.1,
+    drop_unsuccessful: bool = False,
+) -> Dataset:
+    if steps < 0:
+        raise ValueError("steps must be >= 0")
+    path = find_demos(demos_path)
+    demos = load_demos(path)
+
+    parts = []
+    for d in demos:
+        t = _binary_trajectory(d["observations"][:-1], d["actions"][:-1], d["observations"][1:], drop_unsuccessful)
+        if t is not None:
+            parts.append(t)
+    n_demo_kept = len(parts)
+
+    bc_rate, n_eps = float("nan"), 0
+    if steps > 0:
+        params = train_bc(demos, bc_steps, seed, progress)
+        trajs, n_eps, n_succ = rollout(bc_policy(params), steps, seed, noise_std, progress)
+        bc_rate = n_succ / max(n_eps, 1)
+        for o, a, no in trajs:
+            t = _binary_trajectory(o, a, no, drop_unsuccessful)
+            if t is not None:
+                parts.append(t)
+    if not parts:
+        raise DataFormatError(f"{path}: no demonstration and no rollout succeeded; nothing to keep.")
+    arr = _concat(parts)
+    is_demo = np.zeros(len(arr["rewards"]), dtype=np.float32)
+    is_demo[: sum(len(p["rewards"]) for p in parts[:n_demo_kept])] = 1.0
+    return Dataset(
+        observations=arr["observations"],
+        actions=arr["actions"],
+        rewards=arr["rewards"],
+        next_observations=arr["next_observations"],
+        terminals=arr["terminals"],
+        episode_ends=arr["episode_ends"],
+        infos={"success": arr["terminals"].astype(np.float32), "is_demo": is_demo},
+        metadata={
+            "source": f"generated: door-binary-local (steps={steps}, seed={seed}, demos={path})",
+            "task": "door-binary-local",
+            "generator": "botorl.data.generators.door",
+            "steps": int(steps),
+            "seed": int(seed),
+            "demos_kept": n_demo_kept,
+            "demos_total": len(demos),
+            "bc_steps": int(bc_steps),
+            "noise_std": float(noise_std),
+            "drop_unsuccessful": bool(drop_unsuccessful),
+            "bc_episodes": int(n_eps),
+            "bc_success_rate": bc_rate,
+            "bc_trajectories_kept": len(parts) - n_demo_kept,
+        },
+    )
