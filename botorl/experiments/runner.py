@@ -113,8 +113,16 @@ def run_status(run_dir: Path) -> str | None:
 
 
 def has_checkpoint(run_dir: Path) -> bool:
+    """A complete checkpoint exists (the pipeline's `latest.json`, or any non-temporary file)."""
     ckpt = Path(run_dir) / "checkpoints"
-    return ckpt.is_dir() and any(p.is_file() for p in ckpt.rglob("*") if not p.name.startswith("."))
+    if not ckpt.is_dir():
+        return False
+    if (ckpt / "latest.json").is_file():
+        return True
+    return any(
+        p.is_file() and not any(part.startswith(".") for part in p.relative_to(ckpt).parts)
+        for p in ckpt.rglob("*")
+    )
 
 
 def next_action(run_dir: Path) -> str:
