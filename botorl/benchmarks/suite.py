@@ -1,0 +1,285 @@
+"""``botorl bench --against d3rlpy``: botorl's updates beside d3rlpy's, in one run.
+
+Per workload (``workloads.WORKLOADS``): botorl updates/s, d3rlpy updates/s on identical
+shapes, their ratio, botorl's achieved GFLOP/s (FLOPs per update counted on the traced
+program, ``flops.jaxpr_flops``; XLA's cost analysis beside it) and its share of the fp32
+matmul peak measured in the same run. Then env steps/s of the online loop (UTD 4, 10
+critics) and its ratio to the online update alone (``online_loop_efficiency``).
+
+Noise: the machine is shared, so every number that is compared is measured in the same
+run, repeats are interleaved (round r times every botorl workload and then its d3rlpy twin
+before round r + 1 starts), and each figure is the median over rounds. The load average
+at start and end is in the JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, Optional
+
+from botorl.benchmarks import flops as flopmod
+from botorl.benchmarks import workloads as wl
+from botorl.errors import BotorlError
+
+SCHEMA_VERSION = 1
+
+
+@dataclass
+class BenchConfig:
+    """Options of ``botorl bench --against d3rlpy``."""
+
+    against: Optional[Literal["d3rlpy"]] = None
+    """compare with d3rlpy (runs in its own venv, made on first use)"""
+    json: Optional[str] = None
+    """also write the results to this JSON file"""
+    quick: bool = False
+    """fewer repeats, shorter timings, a smaller set of workloads"""
+    only: Optional[str] = None
+    """comma-separated workload names (default: all; --quick: sac2,calql,online_utd4)"""
+    repeats: int = 5
+    """interleaved rounds; figures are medians over them"""
+    min_time: float = 1.5
+    """seconds per timed block"""
+    loop: bool = True
+    """also time the whole online loop (env + buffer + update)"""
+    tiny: bool = False
+    """toy network sizes (for tests: compiles in seconds)"""
+    threads: int = 0
+    """torch threads of the d3rlpy worker (0: all cores, as XLA uses)"""
+
+
+def _load() -> list[float] | None:
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        return None
+
+
+def _median(xs: list[float]) -> float | None:
+    xs = [x for x in xs if x is not None and math.isfinite(x)]
+    return statistics.median(xs) if xs else None
+
+
+def _calibrate(step: Any, min_time: float) -> int:
+    """Calls per timed block, after compiling (first call) and warming up."""
+    step(1)
+    t0 = time.perf_counter()
+    step(2)
+    per_call = max((time.perf_counter() - t0) / 2, 1e-6)
+    return max(1, int(math.ceil(min_time / per_call)))
+
+
+def _time_block(step: Any, n: int) -> float:
+    t0 = time.perf_counter()
+    step(n)
+    return n / (time.perf_counter() - t0)
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def run(cfg: BenchConfig) -> dict[str, Any]:
+    from botorl.jaxsetup import setup_jax
+
+    setup_jax()
+    import jax
+
+    if cfg.quick:
+        repeats, min_time = min(cfg.repeats, 2), min(cfg.min_time, 0.5)
+    else:
+        repeats, min_time = cfg.repeats, cfg.min_time
+    if repeats < 1 or min_time <= 0:
+        raise BotorlError(f"bench: --repeats ({cfg.repeats}) and --min-time ({cfg.min_time}) must be positive.")
+    names = cfg.only.split(",") if cfg.only else list(wl.QUICK if cfg.quick else wl.WORKLOADS)
+    unknown = [n for n in names if n not in wl.WORKLOADS]
+    if unknown:
+        raise BotorlError(f"bench: unknown workload(s) {', '.join(unknown)} in --only; "
+                          f"choose from {', '.join(wl.WORKLOADS)}.")
+    chosen = [wl.WORKLOADS[n].tiny() if cfg.tiny else wl.WORKLOADS[n] for n in names]
+
+    worker = None
+    d3_info: dict[str, Any] = {}
+    if cfg.against == "d3rlpy":
+        from botorl.benchmarks.d3rlpy_env import D3rlpyWorker, ensure_venv
+
+        worker = D3rlpyWorker(ensure_venv(), threads=cfg.threads)
+        d3_info = {k: v for k, v in worker.info.items() if k != "ready"}
+
+    load_start = _load()
+    _log(f"bench: {len(chosen)} workloads x {repeats} rounds of {min_time:.1f} s; load {load_start}")
+    rows: dict[str, dict[str, Any]] = {}
+    bound: dict[str, wl.Bound] = {}
+    calls: dict[str, int] = {}
+    for w in chosen:
+        row = rows[w.name] = {"label": w.label, "note": w.note, "shapes": _shapes(w),
+                              "botorl_updates_per_s": None, "d3rlpy_updates_per_s": None,
+                              "ratio": None, "gflops": None, "peak_fraction": None,
+                              "flops_per_update": None, "flops_per_update_xla": None,
+                              "botorl_samples": [], "d3rlpy_samples": []}
+        try:
+            b = bound[w.name] = wl.build(w)
+        except wl.Unavailable as err:
+            row["botorl_error"] = str(err)
+            _log(f"bench: {w.name}: botorl side unavailable: {err}")
+        else:
+            count = flopmod.jaxpr_flops(b.flop_fn, *b.flop_args)
+            row["flops_per_update"] = count.flops
+            row["matmul_flops_per_update"] = count.matmul_flops
+            try:
+                row["flops_per_update_xla"] = flopmod.xla_flops(jax.jit(b.flop_fn), *b.flop_args)
+            except Exception as err:  # the cross-check must not sink the run
+                row["flops_per_update_xla_error"] = str(err)
+            calls[w.name] = _calibrate(b.step, min_time)
+        if worker is not None and w.d3rlpy_spec() is not None:
+            err = worker.setup(w.name, w.d3rlpy_spec())
+            if err:
+                row["d3rlpy_error"] = err
+
+    peaks: list[float] = []
+    for r in range(repeats):
+        peaks.append(flopmod.matmul_peak_gflops())
+        for w in chosen:
+            row = rows[w.name]
+            if w.name in bound:
+                row["botorl_samples"].append(_time_block(bound[w.name].step, calls[w.name]))
+            if worker is not None and w.d3rlpy_spec() is not None and "d3rlpy_error" not in row:
+                try:
+                    row["d3rlpy_samples"].append(worker.time(w.name, min_time))
+                except RuntimeError as err:
+                    row["d3rlpy_error"] = str(err)
+        _log(f"bench: round {r + 1}/{repeats} done")
+
+    loop = None
+    if cfg.loop and "online_utd4" in bound:
+        loop = _loop_benchmark(wl.WORKLOADS["online_utd4"].tiny() if cfg.tiny else wl.WORKLOADS["online_utd4"],
+                               repeats, min_time)
+    if worker is not None:
+        worker.close()
+
+    peak = max(peaks)
+    for name, row in rows.items():
+        row["botorl_updates_per_s"] = _median(row["botorl_samples"])
+        row["d3rlpy_updates_per_s"] = _median(row["d3rlpy_samples"])
+        if row["botorl_updates_per_s"] and row["d3rlpy_updates_per_s"]:
+            row["ratio"] = row["botorl_updates_per_s"] / row["d3rlpy_updates_per_s"]
+        if row["botorl_updates_per_s"] and row["flops_per_update"]:
+            row["gflops"] = row["flops_per_update"] * row["botorl_updates_per_s"] / 1e9
+            row["peak_fraction"] = row["gflops"] / peak
+
+    efficiency = None
+    if loop is not None and rows.get("online_utd4", {}).get("botorl_updates_per_s"):
+        efficiency = loop["env_steps_per_s"] / rows["online_utd4"]["botorl_updates_per_s"]
+        loop["update_alone_per_s"] = rows["online_utd4"]["botorl_updates_per_s"]
+    return {
+        "schema": SCHEMA_VERSION,
+        "command": "botorl bench" + (" --against d3rlpy" if cfg.against else "") + (" --quick" if cfg.quick else ""),
+        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
+                    "jax": jax.__version__, "jax_backend": jax.default_backend(),
+                    "load_start": load_start, "load_end": _load(), **({"d3rlpy_worker": d3_info} if d3_info else {})},
+        "settings": {"repeats": repeats, "min_time_s": min_time, "tiny": cfg.tiny,
+                     "flop_count": "jaxpr (dot_general exact, elementwise 1/elem, scan x length); "
+                                   "flops_per_update_xla = XLA cost analysis (counts a scan body once)"},
+        "matmul_peak_gflops": peak,
+        "matmul_peak_samples": peaks,
+        "updates": rows,
+        "online_loop": loop,
+        "online_loop_efficiency": efficiency,
+    }
+
+
+def _shapes(w: wl.Workload) -> dict[str, Any]:
+    return {"num_critics": w.num_critics, "critic_hidden": list(w.critic_hidden),
+            "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim,
+            "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples}
+
+
+def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, Any]:
+    from botorl.agents.sac import SACAgent, SACConfig
+    from botorl.benchmarks.online_loop import OnlineLoop, make_env
+
+    env, env_name = make_env("antmaze")
+    obs_dim = int(env.observation_space.shape[0])
+    action_dim = int(env.action_space.shape[0])
+    cfg = SACConfig(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden,
+                    num_critics=w.num_critics, utd_ratio=w.utd)
+    agent = SACAgent.create(cfg, obs_dim, action_dim, 0)
+    loop = OnlineLoop(agent, env, w.batch, w.utd, prefill=max(w.batch * w.utd, 2000))
+    n = _calibrate(loop.run, min_time)
+    samples = [_time_block(loop.run, n) for _ in range(repeats)]
+    # The update alone on this env's shapes (may differ from the table's 29/8 if the env did).
+    if (obs_dim, action_dim) != (w.obs_dim, w.action_dim):
+        b = wl.build(__import__("dataclasses").replace(w, obs_dim=obs_dim, action_dim=action_dim))
+        m = _calibrate(b.step, min_time)
+        alone = _median([_time_block(b.step, m) for _ in range(repeats)])
+    else:
+        alone = None
+    env.close()
+    return {"env": env_name, "obs_dim": obs_dim, "action_dim": action_dim,
+            "env_steps_per_s": _median(samples), "samples": samples,
+            "update_alone_same_shapes_per_s": alone}
+
+
+# ------------------------------------------------------------------------ output
+
+
+def _fmt(x: Any, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def format_table(result: dict[str, Any]) -> str:
+    lines = []
+    m = result["machine"]
+    lines.append(f"botorl bench  (jax {m['jax']} {m['jax_backend']}, {m['cpu_count']} cores, "
+                 f"load {m['load_start']} -> {m['load_end']}"
+                 + (f"; d3rlpy {m['d3rlpy_worker'].get('d3rlpy')} torch {m['d3rlpy_worker'].get('torch')}"
+                    f" x{m['d3rlpy_worker'].get('torch_threads')} threads" if "d3rlpy_worker" in m else "") + ")")
+    lines.append(f"fp32 matmul peak (1024^2, jitted, best of {len(result['matmul_peak_samples'])}): "
+                 f"{result['matmul_peak_gflops']:.0f} GFLOP/s")
+    head = f"{'update':34s} {'botorl/s':>9s} {'d3rlpy/s':>9s} {'ratio':>6s} {'MFLOP/upd':>10s} {'GFLOP/s':>8s} {'%peak':>6s}"
+    lines += [head, "-" * len(head)]
+    for name, r in result["updates"].items():
+        lines.append(f"{r['label'][:34]:34s} {_fmt(r['botorl_updates_per_s'], '9.1f')} "
+                     f"{_fmt(r['d3rlpy_updates_per_s'], '9.1f')} {_fmt(r['ratio'], '6.2f')} "
+                     f"{_fmt(r['flops_per_update'] and r['flops_per_update'] / 1e6, '10.1f')} "
+                     f"{_fmt(r['gflops'], '8.1f')} {_fmt(r['peak_fraction'] and 100 * r['peak_fraction'], '6.1f')}")
+        for key in ("botorl_error", "d3rlpy_error"):
+            if key in r:
+                lines.append(f"    {key.split('_')[0]}: {r[key]}")
+    loop = result.get("online_loop")
+    if loop:
+        lines.append(f"online loop ({loop['env']}, UTD 4, 10 critics): {loop['env_steps_per_s']:.1f} env steps/s; "
+                     f"online_loop_efficiency = {_fmt(result['online_loop_efficiency'], '.2f')}")
+    return "\n".join(lines)
+
+
+def write_json(result: dict[str, Any], path: str) -> None:
+    """Atomically (temp file + rename): an interrupted run leaves no half file."""
+    target = Path(path).expanduser()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        json.dump(result, f, indent=2)
+        f.write("\n")
+    os.replace(tmp, target)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import tyro
+
+    cfg = tyro.cli(BenchConfig, args=argv, prog="botorl bench", description=__doc__.split("\n")[0])
+    result = run(cfg)
+    print(format_table(result))
+    if cfg.json:
+        write_json(result, cfg.json)
+        print(f"wrote {cfg.json}")
+    return 0

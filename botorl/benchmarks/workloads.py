@@ -1,0 +1,198 @@
+"""The named updates the benchmark times, built on botorl's real agents.
+
+Each ``Workload`` is one kind of update at fixed shapes, with the matching d3rlpy update
+(``d3rlpy_spec``, run by ``d3rlpy_worker.py``) where d3rlpy has one. Sizes are the reference
+ones of algorithms.md section 5: 2 critics of (256, 256) for offline pre-training as in the
+d3rlpy reference figures; WSRL's 10 critics of 4 x 256 (antmaze, obs 29 / action 8) for the
+online SAC step and BOTO; adroit's 3 x 512 critic / 2 x 512 actor (door: obs 39 /
+action 28) for one Cal-QL row. Batch 256 per critic step everywhere.
+
+A builder returns a ``Bound`` workload: ``step(n)`` runs n updates (chained: each on the
+agent the previous one returned, as training does) and blocks until done; ``flop_fn`` and
+``flop_args`` give one update to the FLOP counter. A piece of botorl that is not there
+yet (another developer's module) makes the builder raise ``Unavailable``; the row then
+says why instead of failing the whole run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import jax
+import numpy as np
+
+
+class Unavailable(Exception):
+    """This botorl update cannot be built here (module missing or API not as expected)."""
+
+
+@dataclass(frozen=True)
+class Workload:
+    name: str
+    label: str
+    algo: str  # calql | cql | iql | sac | online | boto
+    num_critics: int
+    critic_hidden: tuple[int, ...]
+    actor_hidden: tuple[int, ...]
+    obs_dim: int = 29
+    action_dim: int = 8
+    batch: int = 256  # rows per critic step
+    utd: int = 1
+    n_action_samples: int = 10  # CQL/Cal-QL: per kind (uniform, pi(s), pi(s')), and backup actions
+    d3rlpy_algo: str | None = None
+    note: str = ""
+
+    def d3rlpy_spec(self) -> dict[str, Any] | None:
+        if self.d3rlpy_algo is None:
+            return None
+        return {
+            "algo": self.d3rlpy_algo, "n_critics": self.num_critics,
+            "critic_hidden": list(self.critic_hidden), "actor_hidden": list(self.actor_hidden),
+            "obs_dim": self.obs_dim, "action_dim": self.action_dim, "batch": self.batch,
+            "n_action_samples": self.n_action_samples, "utd": self.utd, "layer_norm": 1,
+        }
+
+    def tiny(self) -> "Workload":
+        """Same update on toy sizes (tests: compiles in seconds)."""
+        return dataclasses.replace(self, label=self.label.split(",")[0] + ", tiny", critic_hidden=(16,), actor_hidden=(16,), batch=8,
+                                   num_critics=min(self.num_critics, 2), obs_dim=5, action_dim=2,
+                                   n_action_samples=2)
+
+
+_H2 = (256, 256)
+_H4 = (256, 256, 256, 256)
+_NOTE_SAC = ("d3rlpy's SAC target is min over all critics with backup entropy; botorl's is "
+             "min over a random 2 of them, no backup entropy (WSRL)")
+WORKLOADS: dict[str, Workload] = {w.name: w for w in [
+    Workload("calql", "Cal-QL step, 2 x (256,256)", "calql", 2, _H2, _H2, d3rlpy_algo="calql",
+             note="critic (10+10+10 CQL samples, max-target backup over 10) + actor + temperature; fixed CQL weight"),
+    Workload("cql", "CQL step, 2 x (256,256)", "cql", 2, _H2, _H2, d3rlpy_algo="cql",
+             note="as Cal-QL without the MC lower bound"),
+    Workload("iql", "IQL step, 2 x (256,256)", "iql", 2, _H2, _H2, d3rlpy_algo="iql",
+             note="Q + V + AWR actor + Polyak"),
+    Workload("sac2", "SAC step, 2 x (256,256)", "sac", 2, _H2, _H2, d3rlpy_algo="sac",
+             note="critic + actor + temperature; " + _NOTE_SAC),
+    Workload("sac10", "SAC step, 10 x 4x256", "sac", 10, _H4, _H2, d3rlpy_algo="sac",
+             note="critic + actor + temperature; " + _NOTE_SAC),
+    Workload("online_utd4", "online step UTD 4, 10 x 4x256", "online", 10, _H4, _H2, utd=4,
+             d3rlpy_algo="sac_utd",
+             note="4 x (critic + Polyak) on 256 rows each, then actor + temperature on the 1,024; "
+                  "d3rlpy has no UTD: composed from its update_critic/update_actor"),
+    Workload("boto_critic", "BOTO critic step, 10 x 4x256", "boto", 10, _H4, _H2,
+             d3rlpy_algo="sac_critic",
+             note="d3rlpy has no BOTO: compared with its SAC critic step (no noise/penalty)"),
+    Workload("calql_adroit", "Cal-QL step, 2 x 3x512 (adroit)", "calql", 2, (512, 512, 512), (512, 512),
+             obs_dim=39, action_dim=28, d3rlpy_algo="calql", note="door sizes"),
+]}
+QUICK = ("sac2", "calql", "online_utd4")
+
+
+@dataclass
+class Bound:
+    workload: Workload
+    step: Callable[[int], None]
+    flop_fn: Callable[..., Any]
+    flop_args: tuple
+    extra: dict = field(default_factory=dict)
+
+
+def make_batch(rows: int, obs_dim: int, action_dim: int, seed: int = 0, lead: tuple[int, ...] = ()) -> dict:
+    """A random Batch (CONTRACTS.md) already on the device."""
+    rng = np.random.default_rng(seed)
+    u = lambda *s: rng.uniform(-1, 1, lead + s).astype(np.float32)  # noqa: E731
+    batch = {
+        "observations": u(rows, obs_dim), "actions": u(rows, action_dim) * 0.99,
+        "rewards": u(rows), "next_observations": u(rows, obs_dim),
+        "dones": (rng.uniform(size=lead + (rows,)) < 0.01).astype(np.float32),
+        "mc_returns": u(rows) * 10,
+    }
+    return jax.device_put(batch)
+
+
+def _config(cls: type, **wanted: Any) -> Any:
+    """A config with the wanted fields that ``cls`` has; a missing one is Unavailable."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    missing = [k for k in wanted if k not in names]
+    if missing:
+        raise Unavailable(f"{cls.__name__} has no field(s) {', '.join(missing)}")
+    return cls(**wanted)
+
+
+def _net_fields(w: Workload, utd: int = 1) -> dict[str, Any]:
+    return dict(actor_hidden_dims=tuple(w.actor_hidden), critic_hidden_dims=tuple(w.critic_hidden),
+                num_critics=w.num_critics, utd_ratio=utd)
+
+
+def _agent_step(agent: Any, batch: dict) -> Bound:
+    state = {"agent": agent}
+
+    def step(n: int) -> None:
+        a = state["agent"]
+        for _ in range(n):
+            a, info = a.update(batch)
+        jax.block_until_ready(a)
+        state["agent"] = a
+
+    return step, (lambda a, b: a.update(b)), (agent, batch)
+
+
+def build(w: Workload, seed: int = 0) -> Bound:
+    """The botorl side of a workload; raises Unavailable when that piece is not there."""
+    try:
+        if w.algo in ("sac", "online"):
+            from botorl.agents.sac import SACAgent, SACConfig
+
+            cfg = _config(SACConfig, **_net_fields(w, w.utd))
+            agent = SACAgent.create(cfg, w.obs_dim, w.action_dim, seed)
+            batch = make_batch(w.batch * w.utd, w.obs_dim, w.action_dim, seed)
+            return Bound(w, *_agent_step(agent, batch))
+        if w.algo in ("calql", "cql"):
+            from botorl.agents.cql import CQLAgent, CQLConfig
+
+            cfg = _cql_config(CQLConfig, w)
+            agent = CQLAgent.create(cfg, w.obs_dim, w.action_dim, seed)
+            return Bound(w, *_agent_step(agent, make_batch(w.batch, w.obs_dim, w.action_dim, seed)))
+        if w.algo == "iql":
+            from botorl.agents.iql import IQLAgent, IQLConfig
+
+            cfg = _iql_config(IQLConfig, w)
+            agent = IQLAgent.create(cfg, w.obs_dim, w.action_dim, seed)
+            return Bound(w, *_agent_step(agent, make_batch(w.batch, w.obs_dim, w.action_dim, seed)))
+        if w.algo == "boto":
+            return _build_boto(w, seed)
+    except ImportError as err:
+        raise Unavailable(f"not in botorl yet ({err})") from None
+    raise ValueError(f"unknown workload algo {w.algo!r}")
+
+
+def _cql_config(cls: type, w: Workload) -> Any:
+    names = {f.name for f in dataclasses.fields(cls)}
+    fields = _net_fields(w)
+    fields["calql"] = w.algo == "calql"
+    # CQL sample count and backup: take whichever field name the agent uses.
+    for name in ("cql_n_actions", "num_cql_actions", "cql_num_actions", "n_action_samples"):
+        if name in names:
+            fields[name] = w.n_action_samples
+            break
+    if "max_target_backup" in names:
+        fields["max_target_backup"] = True
+        fields["num_backup_actions"] = w.n_action_samples
+    if "cql_lagrange" in names:
+        fields["cql_lagrange"] = False  # d3rlpy side runs with a fixed weight too
+    return _config(cls, **fields)
+
+
+def _iql_config(cls: type, w: Workload) -> Any:
+    names = {f.name for f in dataclasses.fields(cls)}
+    fields = {k: v for k, v in _net_fields(w).items() if k in names or k in ("actor_hidden_dims", "critic_hidden_dims")}
+    if "value_hidden_dims" in names:
+        fields["value_hidden_dims"] = tuple(w.critic_hidden)
+    if "num_critics" in names:
+        fields["num_critics"] = w.num_critics
+    return _config(cls, **fields)
+
+
+def _build_boto(w: Workload, seed: int) -> Bound:
+    raise Unavailable("the BOTO critic update (botorl/boto/objective.py) is not in botorl yet")
