@@ -26,15 +26,8 @@ def reward_function(kind: str):
     """R(a) for a batch of actions (N, A) -> (N,), from the bandit data generator."""
     from botorl.data.generators import bandit
 
-    for name in (f"reward_{kind}", f"{kind}_reward", "reward_fn", "reward"):
-        fn = getattr(bandit, name, None)
-        if callable(fn):
-            break
-    else:  # pragma: no cover - depends on the data package's names
-        raise AttributeError(f"botorl.data.generators.bandit has no reward function for {kind!r}")
-    if name in ("reward_fn", "reward"):
-        return lambda a, _fn=fn: np.asarray(_fn(kind, a), dtype=np.float64).reshape(-1)
-    return lambda a, _fn=fn: np.asarray(_fn(a), dtype=np.float64).reshape(-1)
+    fn = {"pinwheel": bandit.pinwheel_reward, "1d": bandit.bandit_1d_reward}[kind]
+    return lambda a: np.asarray(fn(np.asarray(a, np.float64)), dtype=np.float64).reshape(-1)
 
 
 class BanditEnv(gym.Env):

@@ -54,7 +54,6 @@ class DatasetSource:
     kind: str
     ref: str
     obs_keys: tuple[str, ...] | None = None
-    default_steps: int | None = None  # generated data: the default size
 
     def describe(self) -> str:
         if self.kind == "minari":
@@ -261,7 +260,7 @@ def _build() -> dict[str, TaskSpec]:
         TaskSpec(
             name="door-binary-local", domain="adroit", env_factory=_door,
             max_episode_steps=200, success_mode="any", reward_scale=10.0, reward_bias=5.0,
-            dataset_source=DatasetSource("generated", "door-binary-local", default_steps=100_000),
+            dataset_source=DatasetSource("generated", "door-binary-local"),
             generated=True, obs_dim=39, action_dim=28, networks=ADROIT_NET,
             description="door-binary with data made here: the 25 DAPG demos + BC rollouts",
         ),
@@ -272,7 +271,7 @@ def _build() -> dict[str, TaskSpec]:
             TaskSpec(
                 name=f"pointmaze-{maze}", domain="pointmaze", env_factory=partial(_pointmaze, maze),
                 max_episode_steps=horizon, success_mode="any", reward_scale=10.0, reward_bias=-5.0,
-                dataset_source=DatasetSource("generated", f"pointmaze-{maze}", default_steps=1_000_000),
+                dataset_source=DatasetSource("generated", f"pointmaze-{maze}"),
                 generated=True, obs_dim=4, action_dim=2, networks=POINTMAZE_NET,
                 description=f"point mass, D4RL maze2d {maze} map, fixed start and goal; maze2d-style data",
             )
@@ -285,7 +284,7 @@ def _build() -> dict[str, TaskSpec]:
             TaskSpec(
                 name=f"bandit-{kind}", domain="bandit", env_factory=partial(_bandit, kind),
                 max_episode_steps=1, success_mode="last", reward_scale=1.0, reward_bias=0.0,
-                dataset_source=DatasetSource("generated", f"bandit-{kind}", default_steps=None),
+                dataset_source=DatasetSource("generated", f"bandit-{kind}"),
                 generated=True, obs_dim=obs_dim, action_dim=action_dim, networks=BANDIT_NET,
                 description=f"one-step bandit: {desc}",
             )
