@@ -1,0 +1,164 @@
+"""``botorl data``: generate datasets and show their statistics.
+
+    botorl data generate TASK [--steps N] [--seed S] [--out PATH] [--overwrite] [--no-progress]
+    botorl data info TASK|PATH [--steps N] [--seed S] [--json]
+
+``generate`` is deterministic for a seed and cached (``$BOTORL_DATA_DIR``, default
+``~/.botorl/datasets``): a second call with the same task/steps/seed only reports the cached
+dataset. ``info`` reads a cached generated dataset (all cached sizes/seeds of TASK unless
+--steps/--seed pick one), a task's downloaded data, or any dataset file/folder botorl reads.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import time
+from pathlib import Path
+from typing import Annotated, Optional
+
+import tyro
+
+from botorl.errors import BotorlError
+
+
+@dataclasses.dataclass
+class Generate:
+    """Generate (or find in the cache) the dataset of a task botorl can make itself."""
+
+    task: Annotated[str, tyro.conf.Positional]
+    """task name, e.g. pointmaze-large, door-binary-local, bandit-pinwheel, bandit-1d"""
+    steps: Optional[int] = None
+    """dataset size in env steps (default: the task's default, e.g. 1,000,000 for pointmaze)"""
+    seed: int = 0
+    """generator seed"""
+    out: Optional[Path] = None
+    """also write a copy here: a folder named like name-v0 becomes that Minari dataset;
+    any other folder is used as a Minari root (MINARI_DATASETS_PATH=PATH reads it)"""
+    overwrite: bool = False
+    """regenerate even if cached, and replace an existing --out dataset"""
+    no_progress: bool = False
+    """hide the progress bar"""
+
+
+@dataclasses.dataclass
+class Info:
+    """Size, episodes, return statistics and success rate of a dataset."""
+
+    target: Annotated[str, tyro.conf.Positional]
+    """a task name (its cached generated data, or its downloaded data), or a dataset path"""
+    steps: Optional[int] = None
+    """only the cached dataset of this size"""
+    seed: Optional[int] = None
+    """only the cached dataset of this seed"""
+    json: bool = False
+    """print JSON instead of a table"""
+
+
+def _generate(cfg: Generate) -> int:
+    from botorl.data.generate import cache_id, cache_path, ensure_dataset
+    from botorl.data.generators import DEFAULT_STEPS, get_generator
+    from botorl.data.minari_io import write_minari
+
+    get_generator(cfg.task)  # unknown/missing generator: clear error before any work
+    steps = cfg.steps if cfg.steps is not None else DEFAULT_STEPS[cfg.task]
+    path = cache_path(cfg.task, steps, cfg.seed)
+    cached = (path / "data" / "metadata.json").exists() and not cfg.overwrite
+    t0 = time.time()
+    ds = ensure_dataset(cfg.task, steps, cfg.seed, progress=not cfg.no_progress, regenerate=cfg.overwrite)
+    took = time.time() - t0
+    verb = "found cached" if cached else f"generated in {took:.1f} s"
+    print(f"{cfg.task}: {verb}: {len(ds):,} transitions, {ds.num_episodes:,} episodes -> {path}")
+    if cfg.out is not None:
+        out = cfg.out.expanduser()
+        if re.fullmatch(r"[-\w]+-v\d+", out.name):
+            dest = write_minari(ds, path=out, overwrite=cfg.overwrite, metadata=ds.metadata.get("botorl", {}))
+        else:
+            dest = write_minari(ds, cache_id(cfg.task, steps, cfg.seed), root=out, overwrite=cfg.overwrite,
+                                metadata=ds.metadata.get("botorl", {}))
+        print(f"copy written to {dest}")
+    return 0
+
+
+def _load_for_info(cfg: Info) -> list[tuple[str, object]]:
+    from botorl.data.generate import cached_datasets
+    from botorl.data.generators import GENERATORS
+    from botorl.data.loaders import load_minari, load_path
+
+    target = cfg.target
+    if target in GENERATORS:
+        found = cached_datasets(target)
+        chosen = []
+        for p in found:
+            m = re.fullmatch(r"steps(\d+)-seed(\d+)-v0", p.name)
+            if (cfg.steps is None or int(m.group(1)) == cfg.steps) and (cfg.seed is None or int(m.group(2)) == cfg.seed):
+                chosen.append(p)
+        if not chosen:
+            sel = "".join(f" --{k} {v}" for k, v in (("steps", cfg.steps), ("seed", cfg.seed)) if v is not None)
+            raise BotorlError(
+                f"no generated dataset of {target}{sel or ''} in the cache "
+                f"({Path(found[0]).parent if found else 'BOTORL_DATA_DIR'}); make it with "
+                f"`botorl data generate {target}{sel}`."
+            )
+        return [(str(p), load_minari(p)) for p in chosen]
+    if Path(target).expanduser().exists():
+        return [(target, load_path(target))]
+    try:
+        from botorl.envs.registry import get_task
+
+        task = get_task(target)
+    except ImportError:
+        task = None
+    except BotorlError:
+        raise BotorlError(
+            f"{target!r} is neither a task name nor an existing dataset path. Tasks with "
+            f"generated data: {', '.join(GENERATORS)}; `botorl tasks` lists all tasks."
+        ) from None
+    if task is None:
+        raise BotorlError(f"{target!r} is not a dataset path or a generated task.")
+    return [(target, task.load_dataset())]
+
+
+def _info(cfg: Info) -> int:
+    results = []
+    for name, ds in _load_for_info(cfg):
+        st = ds.stats()
+        st["dataset"] = name
+        meta = ds.metadata.get("botorl") or {}
+        for k in ("generator", "steps", "seed"):
+            if k in meta:
+                st[f"meta_{k}"] = meta[k]
+        results.append(st)
+    if cfg.json:
+        print(json.dumps(results if len(results) > 1 else results[0], indent=2))
+        return 0
+    for st in results:
+        print(st["dataset"])
+        sr = st["success_rate"]
+        rows = [
+            ("transitions", f"{st['transitions']:,}"),
+            ("episodes", f"{st['episodes']:,} (mean length {st['episode_length_mean']:.1f})"),
+            ("obs / action dim", f"{st['obs_dim']} / {st['action_dim']}"),
+            ("terminals", f"{st['terminals']:,}"),
+            ("return / episode", f"mean {st['return_mean']:.3f}  std {st['return_std']:.3f}  "
+                                 f"min {st['return_min']:.3f}  max {st['return_max']:.3f}"),
+            ("reward range", f"[{st['reward_min']:.3f}, {st['reward_max']:.3f}]"),
+            ("success rate", "unknown" if sr is None else f"{sr:.3f} (episodes reaching success)"),
+        ]
+        rows += [(k[5:], str(v)) for k, v in st.items() if k.startswith("meta_")]
+        for k, v in rows:
+            print(f"  {k:<18} {v}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    cfg = tyro.extras.subcommand_cli_from_dict(
+        {"generate": Generate, "info": Info},
+        args=argv,
+        prog="botorl data",
+        description="Generate botorl's own datasets and show dataset statistics.",
+    )
+    if isinstance(cfg, Generate):
+        return _generate(cfg)
+    return _info(cfg)

@@ -1,0 +1,96 @@
+"""The cache of generated datasets: ``ensure_dataset(task, steps, seed)``.
+
+Generated datasets are Minari datasets under ``$BOTORL_DATA_DIR`` (default
+``~/.botorl/datasets``), which is laid out as a Minari root, one dataset per (task, steps,
+seed) with id ``botorl/<task>/steps<steps>-seed<seed>-v0``. So they can be inspected with
+Minari's own tools, e.g. ``MINARI_DATASETS_PATH=~/.botorl/datasets minari show
+botorl/pointmaze-large/steps1000000-seed0-v0``.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+from botorl.data.dataset import Dataset
+from botorl.data.generators import DEFAULT_STEPS, get_generator
+from botorl.errors import BotorlError, ConfigError
+
+
+def data_dir() -> Path:
+    """``$BOTORL_DATA_DIR`` or ``~/.botorl/datasets``."""
+    env = os.environ.get("BOTORL_DATA_DIR")
+    return Path(env).expanduser() if env else Path.home() / ".botorl" / "datasets"
+
+
+def default_steps(task: str) -> int:
+    if task not in DEFAULT_STEPS:
+        raise ConfigError(f"no default size for {task!r}; pass steps explicitly.")
+    return DEFAULT_STEPS[task]
+
+
+def cache_id(task: str, steps: int, seed: int) -> str:
+    return f"botorl/{task}/steps{int(steps)}-seed{int(seed)}-v0"
+
+
+def cache_path(task: str, steps: int, seed: int) -> Path:
+    return data_dir() / cache_id(task, steps, seed)
+
+
+def _complete(path: Path) -> bool:
+    return (path / "data" / "metadata.json").exists() and (path / "data" / "main_data.hdf5").exists()
+
+
+def cached_datasets(task: str) -> list[Path]:
+    """Folders of the cached datasets of ``task`` (largest first, then by seed)."""
+    folder = data_dir() / "botorl" / task
+    if not folder.is_dir():
+        return []
+    found = []
+    for p in folder.iterdir():
+        m = re.fullmatch(r"steps(\d+)-seed(\d+)-v0", p.name)
+        if m and _complete(p):
+            found.append((-int(m.group(1)), int(m.group(2)), p))
+    return [p for *_, p in sorted(found)]
+
+
+def ensure_dataset(
+    task: str,
+    steps: int | None = None,
+    seed: int = 0,
+    *,
+    progress: bool = True,
+    regenerate: bool = False,
+) -> Dataset:
+    """The generated dataset of ``task`` for (steps, seed): from the cache, or made and cached.
+
+    ``steps`` None means the task's default size (``generators.DEFAULT_STEPS``). The data
+    are deterministic for a seed, so a cache hit equals a fresh generation.
+    """
+    from botorl.data.loaders import load_minari
+    from botorl.data.minari_io import write_minari
+
+    steps = default_steps(task) if steps is None else int(steps)
+    if steps <= 0:
+        raise ConfigError(f"steps must be positive, got {steps}")
+    path = cache_path(task, steps, seed)
+    if _complete(path) and not regenerate:
+        return load_minari(path)
+    generate = get_generator(task)
+    ds = generate(steps, seed, progress=progress)
+    meta = {"task": task, "steps": steps, "seed": int(seed), "generator": get_generator_name(task)}
+    try:
+        write_minari(ds, cache_id(task, steps, seed), root=data_dir(), overwrite=regenerate, metadata=meta,
+                     description=f"botorl generated data for {task} ({steps} steps, seed {seed})")
+    except (BotorlError, OSError):
+        if not _complete(path):  # not a concurrent writer that finished first
+            raise
+    ds.metadata.update(cache_path=str(path))
+    return ds
+
+
+def get_generator_name(task: str) -> str:
+    from botorl.data.generators import GENERATORS
+
+    return GENERATORS[task]
