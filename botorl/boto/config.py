@@ -1,0 +1,87 @@
+"""``BOTOConfig``: the settings of the BOTO phase (stage 2b of the pipeline).
+
+Names follow the paper: ``alpha`` (bias controller, in [-1, 1]), ``boto_steps``, ``log_sigma``.
+Fields left at ``None`` are taken from the pre-trained agent's own config (discount, Polyak
+rate, critic subset size), so BOTO bootstraps exactly like the agent it continues.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from botorl.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class BOTOConfig:
+    """Settings of BOTO training; defaults are the paper's (Table 2, B.1) where it gives them.
+
+    alpha: bias controller in [-1, 1]; > 0 lowers Q far from the data (conservative), < 0
+        raises it (optimistic), 0 is plain noisy-action Q-learning, 1 is Oh & Lee's NAMDP.
+    boto_steps: critic gradient steps (paper: 100k, 250k on kitchen).
+    noise: "hybrid" (paper B.1) or "gaussian" (N(a, sigma^2 I), the bandit figure 3).
+    log_sigma: the hybrid noise's lower end of log t (paper: -20; -30 on antmaze-large-diverse).
+    sigma: the Gaussian noise's standard deviation.
+    weight_fn: the hybrid mixing weight w(t): "linear" (w = t, OUR choice, see noise.py), a
+        constant probability (e.g. 0.05) or "zero".
+    clip: clip perturbed actions to the action box [-1, 1]^A.
+    batch_size: rows per critic step, drawn uniformly from D_BOTO = D_offline u D_warmup.
+    steps_per_call: critic steps fused into one jitted ``lax.scan`` call (also the logging and
+        callback period of ``run_boto``).
+    num_min_critics / subsample_replace: the target takes the min over a random subset of the
+        target critics. None -> the agent's own setting (SAC/CQL: ``num_min_critics``,
+        ``subsample_replace``); an agent without one (IQL) uses all its members.
+    backup_entropy: subtract ``tau * log pi(a~|s')`` in the target (SAC's soft value; the paper
+        prints ``+``, algorithms.md s2 -- we use the SAC sign). Agents without a SAC
+        temperature (IQL) use tau = 0.
+    discount, tau: None -> the agent's ``config.discount`` / ``config.tau`` (Polyak rate).
+    train_actor: also train the actor and temperature with the SAC losses after every critic
+        step (SAC-family agents only). Default False: Theorem 1 is stated for a fixed policy.
+    """
+
+    alpha: float = 0.0
+    boto_steps: int = 100_000
+    noise: str = "hybrid"
+    log_sigma: float = -20.0
+    sigma: float = 0.25
+    weight_fn: str | float = "linear"
+    clip: bool = True
+    batch_size: int = 256
+    steps_per_call: int = 1_000
+    num_min_critics: int | None = None
+    subsample_replace: bool | None = None
+    backup_entropy: bool = True
+    discount: float | None = None
+    tau: float | None = None
+    train_actor: bool = False
+    seed: int = 0
+
+    def validate(self) -> None:
+        def bad(field: str, why: str) -> None:
+            raise ConfigError(f"BOTOConfig.{field} = {getattr(self, field)!r} is invalid: {why}.")
+
+        a = self.alpha
+        if not isinstance(a, (int, float)) or math.isnan(a) or not -1.0 <= a <= 1.0:
+            bad("alpha", "the bias controller must lie in [-1, 1] (paper section 4); e.g. --alpha -0.5")
+        if self.boto_steps < 0:
+            bad("boto_steps", "must be >= 0")
+        if self.noise not in ("hybrid", "gaussian"):
+            bad("noise", 'use "hybrid" (paper B.1) or "gaussian"')
+        if not (self.log_sigma < 0) or math.isinf(self.log_sigma):
+            bad("log_sigma", "must be a finite negative number (paper: -20, or -30 on antmaze-large-diverse)")
+        if not self.sigma > 0:
+            bad("sigma", "the Gaussian noise scale must be positive, e.g. 0.25")
+        if self.batch_size < 1:
+            bad("batch_size", "must be >= 1")
+        if self.steps_per_call < 1:
+            bad("steps_per_call", "must be >= 1")
+        if self.num_min_critics is not None and self.num_min_critics < 1:
+            bad("num_min_critics", "must be >= 1 or None (use the agent's setting)")
+        if self.discount is not None and not 0.0 <= self.discount <= 1.0:
+            bad("discount", "must be in [0, 1] or None")
+        if self.tau is not None and not 0.0 < self.tau <= 1.0:
+            bad("tau", "the Polyak rate must be in (0, 1] or None")
+        from botorl.boto.noise import resolve_weight_fn
+
+        resolve_weight_fn(self.weight_fn)

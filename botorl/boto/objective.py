@@ -1,0 +1,260 @@
+"""The BOTO critic update (paper eq. 1-2 and section 4.1; algorithms.md section 2).
+
+For a batch (s, a, r, s', done) of D_BOTO and a perturbed action a_bar ~ q_sigma(.|a):
+
+    y_bar = r - alpha ||a - a_bar||^2
+              + gamma (1 - done) (min_{j in subset} Q'_j(s', a~) - tau log pi(a~|s')),  a~ ~ pi(.|s')
+    loss  = mean_i mean_B (Q_i(s, a_bar) - y_bar)^2
+
+followed by a Polyak update of the target critics after every step.
+
+Decisions (algorithms.md s2, ours where the paper is silent):
+- Entropy sign: the paper prints ``+ tau log pi``; we use SAC's soft value ``- tau log pi``
+  (``backup_entropy=False`` drops the term).
+- The actor and the SAC temperature are frozen by default (Theorem 1 is stated for a fixed
+  policy pi). ``train_actor=True`` also runs the agent's own SAC actor and temperature steps
+  after every critic step (SAC-family agents only).
+- One next action a~ per row (the paper's target), even for agents pre-trained with the
+  max-target backup.
+- Works on any agent with ``actor``, ``critic`` (ensemble), ``target_critic_params``, ``rng``,
+  ``config`` and the methods ``policy(obs)`` / ``critic_values(params, obs, act)``: SAC, CQL,
+  Cal-QL and IQL. IQL has no SAC temperature: its AWR tanh-Gaussian actor gives a~ and
+  log pi, and tau = 0 (the entropy term vanishes). The critic keeps the agent's optimiser (and
+  its Adam state) from pre-training.
+- ``alpha`` is a traced argument, not part of the static settings: changing it does not
+  recompile, and ``jax.vmap`` over alpha trains several critics in one program (bandit.py).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from botorl.boto.config import BOTOConfig
+from botorl.boto.noise import make_noise_fn
+from botorl.errors import ConfigError
+
+_BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones")
+
+
+def check_alpha(alpha: Any) -> None:
+    """Raise ConfigError unless alpha is a number in [-1, 1] (or an array of them)."""
+    try:
+        import numpy as np
+
+        arr = np.asarray(alpha, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"BOTO alpha={alpha!r} is not a number; give a value in [-1, 1].") from None
+    if arr.size == 0 or np.isnan(arr).any() or (arr < -1.0).any() or (arr > 1.0).any():
+        raise ConfigError(
+            f"BOTO alpha={alpha!r} is outside [-1, 1]. alpha is the bias controller: > 0 is "
+            "conservative, < 0 optimistic, 1 is the NAMDP of Oh & Lee (2025); the paper searches "
+            "[-1, 1] in steps of 0.1."
+        )
+
+
+@dataclass(frozen=True)
+class ObjectiveSettings:
+    """Static (hashable) settings of the BOTO step, resolved against one agent."""
+
+    noise: str
+    log_sigma: float
+    sigma: float
+    weight_fn: Any
+    clip: bool
+    num_min_critics: int
+    subsample_replace: bool
+    backup_entropy: bool
+    discount: float
+    tau: float
+    train_actor: bool
+
+    @classmethod
+    def resolve(cls, config: BOTOConfig, agent) -> "ObjectiveSettings":
+        config.validate()
+        acfg = agent.config
+        for field in ("actor", "critic", "target_critic_params", "rng"):
+            if not hasattr(agent, field):
+                raise ConfigError(
+                    f"BOTO needs an agent with a critic ensemble and a policy (fields actor, critic, "
+                    f"target_critic_params, rng); {type(agent).__name__} has no {field!r}. Pass a "
+                    f"SACAgent, CQLAgent (Cal-QL) or IQLAgent."
+                )
+        n = int(jax.tree_util.tree_leaves(agent.critic.params)[0].shape[0])
+        k = config.num_min_critics or getattr(acfg, "num_min_critics", n)
+        replace = config.subsample_replace
+        if replace is None:
+            replace = bool(getattr(acfg, "subsample_replace", False))
+        if not replace and k > n:
+            raise ConfigError(
+                f"BOTOConfig.num_min_critics = {k} exceeds the agent's {n} critics; without "
+                f"replacement the subset must be at most {n} (or set subsample_replace=True)."
+            )
+        if config.train_actor and not (hasattr(agent, "actor_step") and hasattr(agent, "temp")):
+            raise ConfigError(
+                f"BOTOConfig.train_actor=True needs a SAC-family agent (SAC, CQL, Cal-QL) with a "
+                f"temperature; {type(agent).__name__} has none. Convert it first with "
+                f"SACAgent.from_pretrained(agent), or keep the actor frozen (train_actor=False)."
+            )
+        return cls(
+            noise=config.noise,
+            log_sigma=float(config.log_sigma),
+            sigma=float(config.sigma),
+            weight_fn=config.weight_fn,
+            clip=bool(config.clip),
+            num_min_critics=int(k),
+            subsample_replace=bool(replace),
+            backup_entropy=bool(config.backup_entropy and hasattr(agent, "temp")),
+            discount=float(acfg.discount if config.discount is None else config.discount),
+            tau=float(acfg.tau if config.tau is None else config.tau),
+            train_actor=bool(config.train_actor),
+        )
+
+    def noise_fn(self):
+        return make_noise_fn(
+            self.noise, log_sigma=self.log_sigma, sigma=self.sigma, weight_fn=self.weight_fn, clip=self.clip
+        )
+
+
+# ----------------------------------------------------------------------------- pure pieces
+
+
+def boto_target(rewards, dones, actions, a_bar, next_v, alpha, discount):
+    """y_bar = r - alpha ||a - a_bar||^2 + discount (1 - done) next_v; also returns ||a - a_bar||^2."""
+    sq_dist = jnp.sum((actions - a_bar) ** 2, axis=-1)
+    return rewards - alpha * sq_dist + discount * (1.0 - dones) * next_v, sq_dist
+
+
+def _subset_min(agent, key, obs, actions, k: int, replace: bool):
+    """min over a random subset of k target critics of Q'_j(obs, actions), shape (B,)."""
+    from botorl.agents.sac import critic_def
+    from botorl.networks import subsample_ensemble
+
+    cfg = agent.config
+    n = int(jax.tree_util.tree_leaves(agent.target_critic_params)[0].shape[0])
+    if k == n and not replace:
+        return agent.critic_values(agent.target_critic_params, obs, actions).min(axis=0)
+    sub = subsample_ensemble(key, agent.target_critic_params, k, n, replace)
+    sub_def = critic_def(tuple(cfg.critic_hidden_dims), k, bool(cfg.critic_layer_norm))
+    return sub_def.apply({"params": sub}, obs, actions).min(axis=0)
+
+
+def next_value(agent, next_obs, key, settings: ObjectiveSettings):
+    """min_{j in subset} Q'_j(s', a~) - tau log pi(a~|s') with a~ ~ pi(.|s'), shape (B,)."""
+    from botorl.networks import sample_tanh_gaussian
+
+    k_act, k_sub = jax.random.split(key)
+    mean, log_std = agent.policy(next_obs)
+    next_a, next_logp = sample_tanh_gaussian(k_act, mean, log_std)
+    v = _subset_min(agent, k_sub, next_obs, next_a, settings.num_min_critics, settings.subsample_replace)
+    if settings.backup_entropy:
+        v = v - agent.temperature() * next_logp
+    return v
+
+
+def boto_critic_step(agent, batch, alpha, settings: ObjectiveSettings, noise_key=None):
+    """One BOTO critic step (+ Polyak update, + actor/temperature step if ``train_actor``).
+
+    ``noise_key`` fixes the noise draw (tests); by default everything comes from ``agent.rng``.
+    """
+    from botorl.agents.common import polyak
+
+    rng, k_noise, k_next, k_actor = jax.random.split(agent.rng, 4)
+    agent = agent.replace(rng=rng)
+    a_bar, ninfo = settings.noise_fn()(k_noise if noise_key is None else noise_key, batch["actions"])
+    next_v = next_value(agent, batch["next_observations"], k_next, settings)
+    target, sq_dist = boto_target(
+        batch["rewards"], batch["dones"], batch["actions"], a_bar, next_v, alpha, settings.discount
+    )
+    target = jax.lax.stop_gradient(target)
+    obs = batch["observations"]
+
+    def loss_fn(params):
+        q = agent.critic_values(params, obs, a_bar)  # (N, B)
+        return jnp.mean((q - target[None]) ** 2), q
+
+    (loss, q_bar), grads = jax.value_and_grad(loss_fn, has_aux=True)(agent.critic.params)
+    critic = agent.critic.apply_gradients(grads=grads)
+    agent = agent.replace(critic=critic, target_critic_params=polyak(critic.params, agent.target_critic_params, settings.tau))
+    info = {
+        "critic_loss": loss,
+        "q_perturbed": q_bar.mean(),
+        "target": target.mean(),
+        "penalty": (alpha * sq_dist).mean(),
+        "sq_dist": sq_dist.mean(),
+        "uniform_share": ninfo["uniform"].astype(jnp.float32).mean(),
+    }
+    if settings.train_actor:
+        agent, a_info = agent.actor_step(batch, k_actor)
+        agent, t_info = agent.temp_step(a_info["entropy"])
+        info.update(actor_loss=a_info["actor_loss"], entropy=a_info["entropy"], temperature=t_info["temperature"])
+    return agent, info
+
+
+def q_diagnostics(agent, batch, key) -> dict:
+    """Mean Q (over members and rows) at the dataset actions and at uniform actions in the box."""
+    obs, act = batch["observations"], batch["actions"]
+    uni = jax.random.uniform(key, act.shape, act.dtype, -1.0, 1.0)
+    return {
+        "q_data": agent.critic_values(agent.critic.params, obs, act).mean(),
+        "q_uniform": agent.critic_values(agent.critic.params, obs, uni).mean(),
+    }
+
+
+def _update_many(agent, batches, alpha, settings: ObjectiveSettings):
+    def body(a, b):
+        return boto_critic_step(a, b, alpha, settings)
+
+    agent, infos = jax.lax.scan(body, agent, batches)
+    info = jax.tree_util.tree_map(jnp.mean, infos)
+    last = jax.tree_util.tree_map(lambda x: x[-1], batches)
+    rng, key = jax.random.split(agent.rng)
+    info.update(q_diagnostics(agent, last, key))
+    return agent.replace(rng=rng), info
+
+
+_jit_update_many = jax.jit(_update_many, static_argnames=("settings",))
+
+
+def _check_batches(batches, many: bool) -> None:
+    if not isinstance(batches, dict) or any(k not in batches for k in _BATCH_KEYS):
+        missing = [k for k in _BATCH_KEYS if not isinstance(batches, dict) or k not in batches]
+        raise ConfigError(
+            f"a BOTO update needs a Batch dict with {', '.join(_BATCH_KEYS)}; missing {', '.join(missing)} "
+            "(CONTRACTS.md, Batch)."
+        )
+    want = 3 if many else 2
+    if jnp.ndim(batches["actions"]) != want:
+        raise ConfigError(
+            f"BOTO {'update_many' if many else 'update'}: actions have shape {jnp.shape(batches['actions'])}; "
+            f"expected {'(K, B, A)' if many else '(B, A)'}."
+        )
+
+
+def boto_update_many(agent, batches, alpha: float, config: BOTOConfig | ObjectiveSettings):
+    """K BOTO critic steps under one ``lax.scan`` (batches stacked as (K, B, ...)); jitted.
+
+    Returns ``(agent, metrics)``: the mean over the K steps of critic_loss, q_perturbed,
+    target, penalty (alpha ||a - a_bar||^2), sq_dist (||a - a_bar||^2), uniform_share, and,
+    after the last step, q_data / q_uniform (mean Q at the last batch's dataset actions and at
+    uniform actions).
+    """
+    check_alpha(alpha)
+    settings = config if isinstance(config, ObjectiveSettings) else ObjectiveSettings.resolve(config, agent)
+    _check_batches(batches, many=True)
+    batches = {k: jnp.asarray(batches[k], jnp.float32) for k in _BATCH_KEYS}
+    return _jit_update_many(agent, batches, jnp.float32(alpha), settings)
+
+
+def boto_update(agent, batch, alpha: float, config: BOTOConfig | ObjectiveSettings):
+    """One BOTO critic step (the K = 1 case of ``boto_update_many``)."""
+    _check_batches(batch, many=False)
+    return boto_update_many(agent, {k: jnp.asarray(batch[k])[None] for k in _BATCH_KEYS}, alpha, config)
+
+
+def is_finite_metrics(metrics: dict) -> bool:
+    return all(math.isfinite(float(v)) for v in metrics.values())
