@@ -440,7 +440,7 @@ def validate(
         )
     if dataset.raw_action_max > 1.0 + action_tolerance:
         raise DataFormatError(
-            f"{src}: actions reach magnitude {dataset.raw_action_max:.4g}, outside [-1, 1] by more "
+            f"{src}: actions reach magnitude {dataset.raw_action_max:.6g}, outside [-1, 1] by more "
             f"than the tolerance {action_tolerance:g}. botorl expects actions normalised to "
             "[-1, 1]; rescale the actions, or pass a larger action_tolerance if clipping them "
             "is acceptable."

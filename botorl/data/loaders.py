@@ -335,6 +335,12 @@ def load_minari(
 
 # ----------------------------------------------------------------------------- pickles
 
+# The recorded adroit human demos are not inside [-1, 1]: the DAPG door demos reach |a| = 1.37
+# (5.6% of the action entries, 82% of the rows exceed 1). The simulator clamps controls to
+# their range, so clipping them (as Cal-QL's ``clip_action`` does) keeps what was applied;
+# the adroit loaders therefore accept up to |a| <= 2 by default and clip.
+ADROIT_ACTION_TOLERANCE = 1.0
+
 
 def _load_pickle_array(path: Path, what: str):
     """np.load(allow_pickle=True) / pickle.load of a file the user named explicitly."""
@@ -386,7 +392,7 @@ def load_calql_adroit(
     *,
     obs_dim: int | None = None,
     action_dim: int | None = None,
-    action_tolerance: float = 1e-3,
+    action_tolerance: float = ADROIT_ACTION_TOLERANCE,
 ) -> Dataset:
     """Cal-QL's adroit-binary data: expert ``*2_sparse.npy`` and/or BC ``*_bc_sparse4.npy``.
 
@@ -507,7 +513,7 @@ def load_dapg_demos(
     drop_unsuccessful: bool = True,
     obs_dim: int | None = None,
     action_dim: int | None = None,
-    action_tolerance: float = 1e-3,
+    action_tolerance: float = ADROIT_ACTION_TOLERANCE,
 ) -> Dataset:
     """DAPG human demos: the original list-of-dicts pickle or botorl's ``.npz``.
 
