@@ -26,6 +26,7 @@ import dataclasses
 import datetime as _dt
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -203,6 +204,52 @@ def stop_orphan(run_dir: Path, timeout: float = 15.0) -> bool:
     return True
 
 
+def stop_processes_mentioning(needle: str, timeout: float = 10.0) -> int:
+    """SIGTERM (then SIGKILL) this user's processes whose command line contains `needle`."""
+    me = os.getpid()
+    uid = os.getuid()
+    victims = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == me:
+            continue
+        try:
+            if entry.stat().st_uid != uid:
+                continue
+        except OSError:
+            continue
+        if _mentions(int(entry.name), needle):
+            victims.append(int(entry.name))
+    for pid in victims:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and any(_pid_alive(p) and _mentions(p, needle) for p in victims):
+        time.sleep(0.1)
+    for pid in victims:
+        if _pid_alive(pid) and _mentions(pid, needle):
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(pid, signal.SIGKILL)
+    return len(victims)
+
+
+def _mentions(pid: int, needle: str) -> bool:
+    """The command line or an open file of `pid` contains `needle` (Ray's daemons rename
+    their process title, but keep their log files under the instance's temp dir open)."""
+    if needle in _cmdline(pid):
+        return True
+    try:
+        fds = list(Path(f"/proc/{pid}/fd").iterdir())
+    except OSError:
+        return False
+    for fd in fds:
+        try:
+            if needle in os.readlink(fd):
+                return True
+        except OSError:
+            continue
+    return False
+
+
 def _log_tail(path: Path, n: int = 20) -> str:
     try:
         with open(path, "rb") as f:
@@ -255,6 +302,7 @@ class Sweep:
         self._lock_file = None
         self._ray = None
         self._ray_fn = None
+        self._ray_tmp: str | None = None
         self._pbar = None
 
     # -- manifest ------------------------------------------------------------------------------
@@ -264,6 +312,7 @@ class Sweep:
 
     def _load_manifest(self) -> None:
         old = read_json(self.out / MANIFEST) or {}
+        self._cleanup_previous_ray(old)
         trials = old.get("trials", {}) if isinstance(old.get("trials"), dict) else {}
         history = list(old.get("invocations", []))
         history.append({"started": _now(), "grid": self.grid.to_json(), "backend": self.opt.backend})
@@ -403,6 +452,14 @@ class Sweep:
             kwargs["address"] = self.opt.ray_address
         else:
             kwargs["num_cpus"] = self._workers()
+            # A private temp dir names every process of this local instance on its command
+            # line, so a sweep killed with SIGKILL can have its leftover Ray daemons stopped by
+            # the next invocation (Ray's agents outlive a SIGKILLed driver). Short path: Ray's
+            # unix sockets live under it (108-byte limit).
+            self._ray_tmp = tempfile.mkdtemp(prefix="botorl-ray-", dir="/tmp")
+            kwargs["_temp_dir"] = self._ray_tmp
+            self.manifest["ray_local_temp_dir"] = self._ray_tmp
+            self._save()
         if not ray.is_initialized():
             try:
                 ray.init(**kwargs)
@@ -417,6 +474,20 @@ class Sweep:
     def _stop_ray(self) -> None:
         if self._ray is not None and self._ray.is_initialized():
             self._ray.shutdown()
+        if self._ray_tmp:
+            stop_processes_mentioning(self._ray_tmp)
+            shutil.rmtree(self._ray_tmp, ignore_errors=True)
+            self._ray_tmp = None
+            with contextlib.suppress(Exception):
+                self.manifest.pop("ray_local_temp_dir", None)
+                self._save()
+
+    def _cleanup_previous_ray(self, old_manifest: dict[str, Any]) -> None:
+        """Stop the daemons of a local Ray instance that an earlier, killed sweep started."""
+        tmp = old_manifest.get("ray_local_temp_dir")
+        if isinstance(tmp, str) and tmp.startswith("/tmp/botorl-ray-"):
+            stop_processes_mentioning(tmp)
+            shutil.rmtree(tmp, ignore_errors=True)
 
     # -- finishing a trial -----------------------------------------------------------------------
 
