@@ -1,0 +1,86 @@
+"""botorl sweep: the grid (parsing, trial names, run arguments) and the command line."""
+
+from __future__ import annotations
+
+import pytest
+
+from botorl.errors import BotorlError, ConfigError
+from botorl.experiments import grid as G
+from botorl.experiments.cli import _gather_set, sweep_main
+
+
+def test_parse_pieces():
+    assert G.parse_seeds("0-4") == [0, 1, 2, 3, 4]
+    assert G.parse_seeds("0-2,7") == [0, 1, 2, 7]
+    assert G.parse_seeds([3, 1]) == [1, 3]
+    alphas = G.parse_alphas("-1:1:0.1")
+    assert len(alphas) == 21 and alphas[0] == -1.0 and alphas[-1] == 1.0 and alphas[10] == 0.0
+    assert alphas[7] == -0.3  # rounded, not -0.30000000000000004
+    assert G.parse_alphas("0.5,-0.3") == [0.5, -0.3]
+    assert G.parse_methods("boto,wsrl,boto-cql,boto+iql") == [
+        ("boto", None), ("wsrl", None), ("boto", "cql"), ("boto", "iql")]
+    assert G.parse_overrides(["online.steps=2000", "eval.episodes=-1"]) == {
+        "online.steps": "2000", "eval.episodes": "-1"}
+    assert G.parse_overrides({"online": {"steps": 2000, "sac": {"utd": 4}}, "x": True}) == {
+        "online.steps": "2000", "online.sac.utd": "4", "x": "True"}
+    for bad in (lambda: G.parse_seeds("a-b"), lambda: G.parse_alphas("-2:1:0.5"),
+                lambda: G.parse_methods("sac"), lambda: G.parse_methods("wsrl-cql"),
+                lambda: G.parse_overrides(["online.steps"])):
+        with pytest.raises(ConfigError):
+            bad()
+
+
+def test_trials_names_and_arguments():
+    grid = G.build_grid(tasks="t1,t2", methods="boto,wsrl,boto-cql", seeds="0-1", alphas="-0.5,0",
+                        overrides=["online.steps=2000"], profile="smoke")
+    trials = grid.trials()
+    # boto and boto-cql: 2 tasks x 2 alphas x 2 seeds each; wsrl: 2 tasks x 2 seeds, no alpha
+    assert len(trials) == 8 + 8 + 4
+    names = {t.relpath for t in trials}
+    assert "t1/boto/alpha-0.50/seed1" in names and "t2/boto-cql/alpha+0.00/seed0" in names
+    assert "t1/wsrl/seed0" in names
+    assert all(t.alpha is None for t in trials if t.method == "wsrl")
+    boto = next(t for t in trials if t.relpath == "t1/boto-cql/alpha-0.50/seed1")
+    assert boto.run_args(grid.profile, grid.overrides) == [
+        "--task", "t1", "--method", "boto", "--seed", "1", "--alpha=-0.5", "--pretrain", "cql",
+        "--profile", "smoke", "--online.steps", "2000"]
+    # no --alphas: boto runs with the task's preset alpha
+    preset = G.build_grid(tasks="t1", methods="boto", seeds="0").trials()
+    assert [t.relpath for t in preset] == ["t1/boto/alpha_preset/seed0"]
+    assert "--alpha" not in " ".join(preset[0].run_args(None, {}))
+
+
+def test_grid_file_and_command_line_merge(tmp_path):
+    path = tmp_path / "grid.yaml"
+    path.write_text(
+        "tasks: [pointmaze-umaze, pointmaze-medium]\nmethods: [boto, wsrl]\nseeds: 0-2\n"
+        "alphas: -1:1:0.5\noverrides:\n  online:\n    steps: 3000\nprofile: quick\n"
+    )
+    grid = G.build_grid(G.load_grid_file(path), seeds="4", overrides=["eval.interval=500"])
+    assert grid.tasks == ["pointmaze-umaze", "pointmaze-medium"]
+    assert grid.seeds == [4]  # the command line wins
+    assert grid.alphas == [-1.0, -0.5, 0.0, 0.5, 1.0]
+    assert grid.overrides == {"online.steps": "3000", "eval.interval": "500"}
+    assert grid.profile == "quick"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("tasks: [a]\nmethod: [boto]\n")
+    with pytest.raises(ConfigError, match="unknown field"):
+        G.load_grid_file(bad)
+    with pytest.raises(ConfigError, match="no seeds"):
+        G.build_grid(tasks="a", methods="boto")
+    with pytest.raises(ConfigError, match="applies to boto only"):
+        G.build_grid(tasks="a", methods="wsrl", seeds="0", alphas="0.5")
+
+
+def test_sweep_cli_dry_run_and_errors(tmp_path, capsys):
+    assert _gather_set(["--set", "a=1", "b=2", "--out", "x", "--set", "c=3"]) == [
+        "--out", "x", "--set", "a=1", "b=2", "c=3"]
+    out = tmp_path / "sw"
+    code = sweep_main(["--tasks", "pointmaze-umaze", "--methods", "boto,wsrl", "--seeds", "0-1",
+                       "--alphas", "-1:1:1", "--out", str(out), "--dry-run"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "run     pointmaze-umaze/boto/alpha-1.00/seed0" in printed
+    assert "8 trials" in printed
+    with pytest.raises(BotorlError, match="unknown task"):
+        sweep_main(["--tasks", "no-such-task", "--methods", "boto", "--seeds", "0", "--out", str(out)])
