@@ -1,0 +1,160 @@
+"""botorl sweep's bookkeeping with a stand-in trial command (fast, no JAX): retries resume
+from the checkpoint, user errors are not retried, one sweep per directory, a killed sweep
+process group is finished by the same command without rerunning finished trials.
+
+The real `botorl run` under every backend is tested in test_experiments_sweep_pipeline.py.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from botorl.errors import BotorlError
+from botorl.experiments.cli import sweep_main
+from botorl.experiments.grid import build_grid
+from botorl.experiments.runner import Sweep, SweepOptions, next_action
+
+# Speaks the `botorl run ... --out DIR` / `botorl resume DIR` protocol of CONTRACTS.md "Runs".
+FAKE = textwrap.dedent(
+    """
+    import json, os, sys, time
+    from pathlib import Path
+    argv = sys.argv[1:]
+    if argv[0] == "run":
+        toks = []
+        for t in argv[1:]:
+            toks += t.split("=", 1) if t.startswith("--") and "=" in t else [t]
+        a = dict(zip(toks[0::2], toks[1::2]))
+        out = Path(a["--out"])
+        out.mkdir(parents=True, exist_ok=True)
+        cfg = {"task": a["--task"], "method": a["--method"], "seed": int(a["--seed"]),
+               "alpha": float(a["--alpha"]) if "--alpha" in a else None, "pretrain": a.get("--pretrain")}
+        (out / "config.json").write_text(json.dumps(cfg))
+        start_at = 0
+    else:
+        out = Path(argv[1])
+        cfg = json.loads((out / "config.json").read_text())
+        start_at = int((out / "checkpoints" / "step").read_text())
+    with open(out / "starts.txt", "a") as f:
+        f.write(argv[0] + "\\n")
+    if os.environ.get("FAKE_EXIT"):
+        sys.exit(int(os.environ["FAKE_EXIT"]))
+    (out / "summary.json").write_text(json.dumps({**cfg, "status": "running"}))
+    for step in range(start_at, 4):
+        time.sleep(float(os.environ.get("FAKE_SLEEP", "0.05")))
+        (out / "checkpoints").mkdir(exist_ok=True)
+        (out / "checkpoints" / "step").write_text(str(step + 1))
+        if os.environ.get("FAKE_FAIL_ONCE") and step == 1 and argv[0] == "run":
+            sys.exit(1)
+    (out / "eval.csv").write_text("stage,env_step,success,return,q_data,q_uniform\\nonline,0,0.5,0,0,0\\n")
+    (out / "summary.json").write_text(json.dumps({**cfg, "status": "finished", "success_initial": 0.5,
+        "success_10k": None, "success_final": 0.5, "stage_seconds": {}}))
+    """
+)
+
+
+@pytest.fixture()
+def fake(tmp_path) -> list[str]:
+    path = tmp_path / "fake_botorl.py"
+    path.write_text(FAKE)
+    return [sys.executable, str(path)]
+
+
+def starts(run_dir: Path) -> list[str]:
+    return (run_dir / "starts.txt").read_text().split()
+
+
+def test_failed_trial_resumes_from_checkpoint(tmp_path, fake, monkeypatch):
+    monkeypatch.setenv("FAKE_FAIL_ONCE", "1")
+    grid = build_grid(tasks="t1", methods="boto,wsrl", seeds="0", alphas="0.5")
+    sweep = Sweep(grid, SweepOptions(out=tmp_path / "sw", backend="sequential", command=fake, progress=False))
+    manifest = sweep.run()
+    for trial in sweep.trials:
+        d = sweep.run_dir(trial)
+        assert starts(d) == ["run", "resume"]  # the retry continued from the checkpoint
+        entry = manifest["trials"][trial.id]
+        assert entry["state"] == "finished" and entry["launches"] == 2
+        assert next_action(d) == "done"
+        assert (d / "sweep-trial.log").read_text().count("===== botorl sweep: attempt") == 2
+    saved = json.loads((tmp_path / "sw" / "sweep.json").read_text())
+    assert saved["counts"] == {"finished": 2}
+    assert saved["trials"]["t1/boto/alpha+0.50/seed0"]["alpha"] == 0.5
+    assert saved["trials"]["t1/wsrl/seed0"]["alpha"] is None
+    # a finished grid is never rerun
+    Sweep(grid, SweepOptions(out=tmp_path / "sw", backend="local", command=fake, progress=False)).run()
+    assert all(starts(sweep.run_dir(t)) == ["run", "resume"] for t in sweep.trials)
+
+
+def test_retry_limit_and_user_errors(tmp_path, fake, monkeypatch, capsys):
+    out = tmp_path / "sw"
+    args = ["--tasks", "t1", "--methods", "wsrl", "--seeds", "0", "--out", str(out),
+            "--trial-command", " ".join(fake), "--no-progress", "--backend", "sequential"]
+    monkeypatch.setenv("FAKE_EXIT", "1")
+    assert sweep_main(args + ["--max-retries", "1"]) == 1
+    assert len(starts(out / "t1/wsrl/seed0")) == 2  # 1 + max_retries launches
+    assert "FAILED t1/wsrl/seed0: exited with code 1" in capsys.readouterr().err
+    monkeypatch.setenv("FAKE_EXIT", "2")  # BotorlError: a retry cannot help
+    assert sweep_main(args) == 1
+    assert len(starts(out / "t1/wsrl/seed0")) == 3
+    monkeypatch.delenv("FAKE_EXIT")
+    assert sweep_main(args) == 0  # the same command again retries the failed trial
+    manifest = json.loads((out / "sweep.json").read_text())
+    assert manifest["trials"]["t1/wsrl/seed0"]["state"] == "finished"
+    assert len(manifest["invocations"]) == 3
+
+
+def test_one_sweep_per_directory(tmp_path, fake):
+    import fcntl
+
+    out = tmp_path / "sw"
+    out.mkdir()
+    with open(out / ".sweep.lock", "w") as holder:
+        fcntl.flock(holder, fcntl.LOCK_EX)
+        holder.write("pid 1 on elsewhere")
+        holder.flush()
+        sweep = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0"),
+                      SweepOptions(out=out, backend="sequential", command=fake, progress=False))
+        with pytest.raises(BotorlError, match="Another sweep"):
+            sweep.run()
+
+
+def test_killed_process_group_then_same_command_completes(tmp_path, fake):
+    out = tmp_path / "sw"
+    cmd = [sys.executable, "-m", "botorl.cli", "sweep", "--tasks", "t1,t2", "--methods", "boto,wsrl",
+           "--seeds", "0-1", "--out", str(out), "--backend", "local", "--workers", "2",
+           "--trial-command", " ".join(fake), "--no-progress"]
+    env = dict(os.environ, FAKE_SLEEP="0.4")
+    proc = subprocess.Popen(cmd, env=env, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    finished_before: dict[Path, float] = {}
+    while time.monotonic() < deadline:
+        done = [p.parent for p in out.glob("*/*/**/summary.json")
+                if json.loads(p.read_text() or "{}").get("status") == "finished"]
+        if len(done) >= 2:
+            break
+        time.sleep(0.1)
+    os.killpg(proc.pid, signal.SIGKILL)  # the sweep and its trials, as a Ctrl-\ or OOM would
+    proc.wait()
+    for d in (p.parent for p in out.glob("*/*/**/summary.json")):
+        if json.loads((d / "summary.json").read_text()).get("status") == "finished":
+            finished_before[d] = (d / "summary.json").stat().st_mtime_ns
+    assert 2 <= len(finished_before) < 8, "kill the sweep mid-grid"
+    subprocess.run(cmd, env=dict(os.environ, FAKE_SLEEP="0.01"), check=True, timeout=120,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    manifest = json.loads((out / "sweep.json").read_text())
+    assert manifest["counts"] == {"finished": 8}
+    for d, mtime in finished_before.items():
+        assert (d / "summary.json").stat().st_mtime_ns == mtime
+        assert len(starts(d)) == 1, f"{d} was rerun"
+    relaunched = [t for t, e in manifest["trials"].items() if e["launches"] > 1]
+    assert all(out / t not in finished_before for t in relaunched)
