@@ -1,0 +1,153 @@
+"""Make a RunConfig consistent (``resolve``) and reject bad values (``validate``).
+
+Both run before any work: a bad configuration is a ``ConfigError`` (exit code 2) whose
+message names the field and says what to change.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+from botorl.configs.schema import RunConfig
+from botorl.errors import BotorlError, ConfigError
+
+
+def resolve(cfg: RunConfig) -> RunConfig:
+    """Fill the derived fields: pretrain, alpha, and what the pipeline owns in agent configs."""
+    from botorl.envs.registry import get_task
+    from botorl.pipeline.methods import get_method, resolve_pretrain
+
+    spec = get_task(cfg.task)
+    method = get_method(cfg.method)
+    pretrain = resolve_pretrain(cfg.method, cfg.pretrain)
+    if cfg.alpha is not None and not method.uses_alpha:
+        raise ConfigError(
+            f"--alpha is BOTO's bias controller; --method {cfg.method} has no BOTO phase. Drop --alpha, "
+            f"or use --method boto."
+        )
+    alpha = None
+    boto = cfg.boto
+    if method.uses_alpha:
+        alpha = cfg.boto.alpha if cfg.alpha is None else cfg.alpha
+        _check_alpha(alpha)
+        boto = replace(boto, alpha=float(alpha), seed=cfg.seed)
+        alpha = float(alpha)
+
+    net = cfg.network
+    ln = net.layer_norm
+    cql = replace(
+        cfg.offline.cql,
+        actor_hidden_dims=tuple(net.actor_hidden_dims),
+        critic_hidden_dims=tuple(net.critic_hidden_dims),
+        actor_layer_norm=ln,
+        critic_layer_norm=ln,
+        num_critics=net.pretrain_num_critics or net.num_critics,
+        calql=(pretrain == "calql"),
+        # calql/cql continued online take utd x batch rows per env step (UTD 1 by default)
+        utd_ratio=cfg.online.utd if method.online == "continue" else 1,
+    )
+    sac = replace(
+        cfg.online.sac,
+        actor_hidden_dims=tuple(net.actor_hidden_dims),
+        critic_hidden_dims=tuple(net.critic_hidden_dims),
+        actor_layer_norm=ln,
+        critic_layer_norm=ln,
+        num_critics=net.num_critics,
+        utd_ratio=cfg.online.utd,
+    )
+    if pretrain == "iql" and method.online == "wsrl":
+        # WSRL's warm start copies IQL's networks: the SAC learner must have their shapes.
+        iql = cfg.offline.iql
+        sac = replace(
+            sac,
+            actor_hidden_dims=tuple(iql.actor_hidden_dims),
+            critic_hidden_dims=tuple(iql.critic_hidden_dims),
+            actor_layer_norm=iql.actor_layer_norm,
+            critic_layer_norm=iql.critic_layer_norm,
+            state_dependent_std=iql.state_dependent_std,
+            log_std_min=iql.log_std_min,
+            log_std_max=iql.log_std_max,
+        )
+    if cfg.method == "rlpd" and sac.target_entropy is None:
+        sac = replace(sac, target_entropy=-spec.action_dim / 2.0)
+    return replace(
+        cfg,
+        pretrain=pretrain,
+        alpha=alpha,
+        boto=boto,
+        offline=replace(cfg.offline, cql=cql),
+        online=replace(cfg.online, sac=sac),
+    )
+
+
+def _check_alpha(alpha) -> None:
+    if not isinstance(alpha, (int, float)) or math.isnan(alpha) or not -1.0 <= alpha <= 1.0:
+        raise ConfigError(
+            f"alpha = {alpha!r} is outside [-1, 1]. alpha is BOTO's bias controller (paper section 4): "
+            f"> 0 conservative, < 0 optimistic, the paper's grid is [-1, 1] in steps of 0.1. "
+            f"Pass e.g. --alpha -0.5."
+        )
+
+
+def validate(cfg: RunConfig) -> None:
+    """Raise ConfigError for any value that cannot run (call after ``resolve``)."""
+    from botorl.configs.presets import PROFILES
+    from botorl.pipeline.methods import get_method
+
+    method = get_method(cfg.method)
+    if cfg.profile not in PROFILES:
+        raise ConfigError(f"unknown profile {cfg.profile!r} (--profile); choose one of {', '.join(PROFILES)}.")
+
+    def need(cond: bool, field: str, value, what: str) -> None:
+        if not cond:
+            raise ConfigError(f"--{field} = {value!r} is invalid: {what}.")
+
+    budgets = {
+        "offline.steps": cfg.offline.steps,
+        "warmup.steps": cfg.warmup.steps,
+        "boto.boto_steps": cfg.boto.boto_steps,
+        "online.steps": cfg.online.steps,
+        "online.random_steps": cfg.online.random_steps,
+    }
+    for name, v in budgets.items():
+        need(isinstance(v, int) and v >= 0, name, v, "a step budget must be a non-negative integer (0 skips the work)")
+    positive = {
+        "offline.batch_size": cfg.offline.batch_size,
+        "offline.updates_per_call": cfg.offline.updates_per_call,
+        "offline.log_every": cfg.offline.log_every,
+        "online.batch_size": cfg.online.batch_size,
+        "online.utd": cfg.online.utd,
+        "online.log_every": cfg.online.log_every,
+        "eval.episodes": cfg.eval.episodes,
+        "eval.interval": cfg.eval.interval,
+        "eval.num_envs": cfg.eval.num_envs,
+        "eval.q_pairs": cfg.eval.q_pairs,
+        "checkpoint_every": cfg.checkpoint_every,
+        "network.num_critics": cfg.network.num_critics,
+    }
+    for name, v in positive.items():
+        need(isinstance(v, int) and v >= 1, name, v, "must be a positive integer")
+    need(0.0 <= cfg.online.offline_ratio <= 1.0, "online.offline_ratio", cfg.online.offline_ratio, "must lie in [0, 1]")
+    if cfg.online.buffer_capacity is not None:
+        need(cfg.online.buffer_capacity >= 1, "online.buffer_capacity", cfg.online.buffer_capacity, "must be positive or None")
+    p = cfg.network.pretrain_num_critics
+    if p is not None:
+        need(p >= 1 and cfg.network.num_critics % p == 0, "network.pretrain_num_critics", p,
+             f"must divide network.num_critics ({cfg.network.num_critics}) so the pre-trained members can be tiled")
+    for name, dims in (("network.actor_hidden_dims", cfg.network.actor_hidden_dims),
+                       ("network.critic_hidden_dims", cfg.network.critic_hidden_dims)):
+        need(len(dims) >= 1 and all(int(d) >= 1 for d in dims), name, dims, "give positive layer widths, e.g. 256 256")
+    if method.uses_alpha:
+        _check_alpha(cfg.boto.alpha)
+    try:
+        if "pretrain" in method.stages:
+            (cfg.offline.iql if cfg.pretrain == "iql" else cfg.offline.cql).validate()
+        if method.online in ("wsrl", "scratch"):
+            cfg.online.sac.validate()
+        if "boto" in method.stages:
+            cfg.boto.validate()
+    except ConfigError:
+        raise
+    except BotorlError:
+        raise

@@ -1,0 +1,215 @@
+"""The run configuration: typed nested dataclasses; tyro makes the CLI from them.
+
+Every field can be set on the command line as ``--<dotted.path> VALUE``, e.g.
+``--online.steps 2000``, ``--offline.cql.cql_weight 1.0``, ``--boto.log_sigma -30``,
+``--network.critic_hidden_dims 64 64``. The preset of the task and profile gives the
+defaults (presets.py); ``resolve`` then makes the config consistent (below) and
+``validate`` rejects bad values before any work.
+
+What the pipeline owns (``resolve`` writes it into the agent configs, so set it here, not in
+``offline.cql``/``online.sac``): the network sizes and ensemble size (``network.*``), the
+UTD ratio of fine-tuning (``online.utd``), the CQL/Cal-QL switch (``pretrain``) and BOTO's
+``alpha`` (top-level ``alpha``, copied into ``boto.alpha``). Everything else in the agent
+configs is theirs to set.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from botorl.agents.cql import CQLConfig
+from botorl.agents.iql import IQLConfig
+from botorl.agents.sac import SACConfig
+from botorl.boto.config import BOTOConfig
+
+
+@dataclass
+class DataConfig:
+    """Where the offline data come from."""
+
+    path: str | None = None
+    """Dataset location for the task's loader: a Minari dataset folder or id (antmaze, kitchen),
+    the Cal-QL folder or ``expert.npy,bc.npy`` (adroit binary). None: the task's default (the
+    Minari id under $MINARI_DATASETS_PATH; generated tasks: botorl's cache, made when missing)."""
+    steps: int | None = None
+    """Generated tasks only: dataset size in env steps (None: the generator's default)."""
+    seed: int = 0
+    """Generated tasks only: the dataset's seed (independent of the run seed, like a D4RL file)."""
+    demos: str | None = None
+    """door-binary-local: the DAPG demos (door_human_demos.npz); default $BOTORL_DOOR_DEMOS."""
+
+
+@dataclass
+class NetworkConfig:
+    """Network sizes used by pre-training and fine-tuning alike (algorithms.md section 5)."""
+
+    actor_hidden_dims: tuple[int, ...] = (256, 256)
+    critic_hidden_dims: tuple[int, ...] = (256, 256, 256, 256)
+    num_critics: int = 10
+    """Critic ensemble size of fine-tuning (WSRL: 10)."""
+    pretrain_num_critics: int | None = None
+    """Ensemble size during CQL/Cal-QL pre-training; None = num_critics (WSRL pre-trains with
+    the fine-tuning ensemble). A smaller divisor of num_critics is tiled (members repeated)
+    when fine-tuning starts (SACAgent.from_pretrained)."""
+    layer_norm: bool = True
+    """LayerNorm after each hidden layer of actor and critic (WSRL/RLPD). IQL keeps its own."""
+
+
+@dataclass
+class OfflineConfig:
+    """Stage 1: offline pre-training."""
+
+    steps: int = 1_000_000
+    batch_size: int = 256
+    updates_per_call: int = 50
+    """Gradient steps fused into one jitted lax.scan call."""
+    log_every: int = 1_000
+    cql: CQLConfig = field(default_factory=CQLConfig)
+    """CQL and Cal-QL (``calql`` is set from --pretrain)."""
+    iql: IQLConfig = field(default_factory=IQLConfig)
+    mc_sparse_negative_reward: float | None = None
+    """Raw reward of a never-succeeding sparse trajectory (Cal-QL's MC-return rule); None: off."""
+    mc_infinite_horizon: bool = False
+    """MC returns assume the last reward repeats forever (Cal-QL on kitchen)."""
+
+
+@dataclass
+class WarmupConfig:
+    """Stage 2a: the frozen pre-trained policy collects D_warmup (no updates)."""
+
+    steps: int = 5_000
+
+
+@dataclass
+class OnlineConfig:
+    """Stage 3: online fine-tuning."""
+
+    steps: int = 300_000
+    """Online env steps (the paper's budget: 300k)."""
+    batch_size: int = 256
+    """Rows per critic update; one env step's update uses utd x batch_size rows (WSRL: 4 x 256,
+    the actor on all 1,024)."""
+    utd: int = 4
+    """Critic updates per env step (WSRL/BOTO 4; Cal-QL/CQL/IQL baselines 1; RLPD 4 here)."""
+    offline_ratio: float = 0.0
+    """Share of each batch drawn from D_offline (WSRL/BOTO: 0, the offline data are dropped;
+    baselines and RLPD: 0.5)."""
+    random_steps: int = 0
+    """Env steps with uniform random actions and no updates at the start (RLPD: 5,000)."""
+    log_every: int = 1_000
+    sac: SACConfig = field(default_factory=SACConfig)
+    """The SAC learner of the WSRL protocol (boto, wsrl, rlpd)."""
+    buffer_capacity: int | None = None
+    """Replay capacity; None = everything (warm-up + online steps)."""
+
+
+@dataclass
+class EvalConfig:
+    """Evaluation (algorithms.md section 6)."""
+
+    episodes: int = 20
+    """Deterministic episodes per evaluation."""
+    interval: int = 5_000
+    """Online env steps between evaluations (plus one at step 0 and one at the end)."""
+    num_envs: int = 20
+    """Envs stepped in lockstep (one batched policy call per step)."""
+    q_pairs: int = 1_000
+    """Dataset (s, a) pairs for the q_data / q_uniform statistics."""
+
+
+@dataclass
+class RunConfig:
+    """One run of one method on one task."""
+
+    task: str = "pointmaze-large"
+    method: Literal["boto", "wsrl", "calql", "cql", "iql", "rlpd"] = "boto"
+    seed: int = 0
+    alpha: float | None = None
+    """BOTO's bias controller in [-1, 1]; None = the preset's (the paper's per-task value)."""
+    pretrain: Literal["calql", "cql", "iql"] | None = None
+    """Offline algorithm of boto/wsrl (default calql); calql/cql/iql use themselves; rlpd none."""
+    profile: Literal["quick", "full", "smoke"] = "quick"
+    out: str | None = None
+    """Run directory; default runs/<task>-<method>-s<seed>-<timestamp>."""
+    wandb: bool = False
+    """Also log to Weights & Biases (needs `pip install wandb`)."""
+    tensorboard: bool = True
+    """TensorBoard events under DIR/tb when tensorboardX is installed."""
+    progress: bool = True
+    """tqdm progress bars."""
+    checkpoint_every: int = 50_000
+    """Steps between checkpoints inside a stage (gradient steps offline/BOTO, env steps online);
+    every stage also checkpoints at its end."""
+    data: DataConfig = field(default_factory=DataConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    offline: OfflineConfig = field(default_factory=OfflineConfig)
+    warmup: WarmupConfig = field(default_factory=WarmupConfig)
+    boto: BOTOConfig = field(default_factory=BOTOConfig)
+    online: OnlineConfig = field(default_factory=OnlineConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+
+
+# ------------------------------------------------------------------ dict round trip
+def to_dict(cfg: Any) -> Any:
+    if dataclasses.is_dataclass(cfg):
+        return {f.name: to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
+    if isinstance(cfg, tuple):
+        return [to_dict(v) for v in cfg]
+    if isinstance(cfg, float) and math.isinf(cfg):
+        return "inf" if cfg > 0 else "-inf"
+    return cfg
+
+
+def from_dict(cls: type, data: dict[str, Any]) -> Any:
+    """Rebuild a (nested) config dataclass from ``to_dict`` output; unknown keys are ignored."""
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            continue
+        kwargs[f.name] = _convert(hints[f.name], data[f.name])
+    return cls(**kwargs)
+
+
+def _convert(tp: Any, value: Any) -> Any:
+    if value is None:
+        return None
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        for a in args:  # the first that fits
+            try:
+                return _convert(a, value)
+            except (TypeError, ValueError):
+                continue
+        return value
+    if dataclasses.is_dataclass(tp):
+        return from_dict(tp, value)
+    if origin is tuple:
+        args = typing.get_args(tp)
+        inner = args[0] if args else Any
+        return tuple(_convert(inner, v) for v in value)
+    if tp is float:
+        if isinstance(value, str):
+            return float(value)  # "inf", "-inf"
+        if isinstance(value, bool):
+            raise TypeError
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+            raise TypeError
+        return int(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise TypeError
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise TypeError
+        return value
+    return value

@@ -1,0 +1,271 @@
+"""The run directory: every file a run writes, in the layout of CONTRACTS.md "Runs".
+
+    DIR/config.json           resolved config (top-level task, method, seed, alpha, pretrain, profile)
+    DIR/eval.csv              stage, env_step, success, return, q_data, q_uniform
+    DIR/metrics/<stage>.csv   one row per logged training step (+ .jsonl with the same rows)
+    DIR/tb/                   TensorBoard events (only when tensorboardX is importable)
+    DIR/checkpoints/          see checkpoint.py
+    DIR/curve.png             success against online env steps
+    DIR/summary.json          task, method, seed, alpha, pretrain, success_initial,
+                              success_10k, success_final, stage_seconds, status
+
+Every whole-file write is atomic (temp file in the same folder + os.replace), so a run killed
+at any moment leaves either the old or the new file, never half of one. The CSV/JSONL logs are
+appended line by line; on resume they are cut back to the checkpoint's step (``truncate``), so
+rows written after the last checkpoint do not appear twice.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+EVAL_COLUMNS = ["stage", "env_step", "success", "return", "q_data", "q_uniform"]
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if hasattr(x, "item") and callable(x.item):  # numpy / jax scalars
+        try:
+            x = x.item()
+        except (ValueError, TypeError):
+            return str(x)
+    if isinstance(x, float) and not math.isfinite(x):
+        return None if math.isnan(x) else (1e308 if x > 0 else -1e308)
+    if isinstance(x, (str, int, float, bool)) or x is None:
+        return x
+    return str(x)
+
+
+def atomic_write_json(path: Path, obj: Any) -> None:
+    atomic_write_bytes(path, (json.dumps(_jsonable(obj), indent=2) + "\n").encode())
+
+
+def read_json(path: Path) -> Any:
+    with open(path) as f:
+        return json.load(f)
+
+
+class RunDir:
+    """Paths of one run directory."""
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+
+    @property
+    def config(self) -> Path:
+        return self.root / "config.json"
+
+    @property
+    def eval_csv(self) -> Path:
+        return self.root / "eval.csv"
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.root / "checkpoints"
+
+    @property
+    def summary(self) -> Path:
+        return self.root / "summary.json"
+
+    @property
+    def curve(self) -> Path:
+        return self.root / "curve.png"
+
+    @property
+    def tb(self) -> Path:
+        return self.root / "tb"
+
+    def create(self) -> None:
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.metrics.mkdir(exist_ok=True)
+        self.checkpoints.mkdir(exist_ok=True)
+
+
+# ----------------------------------------------------------------------------- line logs
+class CsvLog:
+    """Append-only CSV with a fixed header (the first row's keys; later extra keys dropped)."""
+
+    def __init__(self, path: Path, columns: list[str] | None = None):
+        self.path = Path(path)
+        self.columns = list(columns) if columns else None
+        if self.path.exists() and self.path.stat().st_size > 0:
+            with open(self.path, newline="") as f:
+                header = next(csv.reader(f), None)
+            if header:
+                self.columns = header
+
+    def append(self, row: dict[str, Any]) -> None:
+        new = not self.path.exists() or self.path.stat().st_size == 0
+        if self.columns is None:
+            self.columns = list(row.keys())
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=self.columns, extrasaction="ignore", lineterminator="\n")
+        if new:
+            w.writeheader()
+        w.writerow({k: _fmt(row.get(k, "")) for k in self.columns})
+        with open(self.path, "a", newline="") as f:
+            f.write(buf.getvalue())
+            f.flush()
+
+    def rows(self) -> list[dict[str, str]]:
+        if not self.path.exists():
+            return []
+        with open(self.path, newline="") as f:
+            return [r for r in csv.DictReader(f) if r]
+
+    def truncate(self, keep) -> None:
+        """Keep only rows for which ``keep(row)`` is true (atomic rewrite)."""
+        if not self.path.exists():
+            return
+        rows = self.rows()
+        buf = io.StringIO()
+        cols = self.columns or (list(rows[0].keys()) if rows else [])
+        w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
+        w.writeheader()
+        for r in rows:
+            if keep(r):
+                w.writerow(r)
+        atomic_write_bytes(self.path, buf.getvalue().encode())
+
+
+def _fmt(v: Any) -> Any:
+    if hasattr(v, "item") and callable(v.item):
+        try:
+            v = v.item()
+        except (ValueError, TypeError):
+            pass
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return v
+
+
+class JsonlLog:
+    def __init__(self, path: Path):
+        self.path = Path(path)
+
+    def append(self, row: dict[str, Any]) -> None:
+        with open(self.path, "a") as f:
+            f.write(json.dumps(_jsonable(row)) + "\n")
+            f.flush()
+
+    def truncate(self, keep) -> None:
+        if not self.path.exists():
+            return
+        out = []
+        with open(self.path) as f:
+            for line in f:
+                line = line.strip()
+                if not line:
+                    continue
+                try:
+                    row = json.loads(line)
+                except json.JSONDecodeError:  # a line cut by a kill
+                    continue
+                if keep(row):
+                    out.append(json.dumps(row))
+        atomic_write_bytes(self.path, ("\n".join(out) + ("\n" if out else "")).encode())
+
+
+class MetricsLogger:
+    """metrics/<stage>.csv + .jsonl, and TensorBoard / W&B when available / asked."""
+
+    def __init__(self, run: RunDir, *, tensorboard: bool = True, wandb_run: Any = None):
+        self.run = run
+        self._csv: dict[str, CsvLog] = {}
+        self._jsonl: dict[str, JsonlLog] = {}
+        self._tb = None
+        self._wandb = wandb_run
+        if tensorboard:
+            try:
+                from tensorboardX import SummaryWriter  # optional dependency
+
+                self._tb = SummaryWriter(str(run.tb))
+            except ImportError:
+                self._tb = None
+
+    def _logs(self, stage: str) -> tuple[CsvLog, JsonlLog]:
+        if stage not in self._csv:
+            self._csv[stage] = CsvLog(self.run.metrics / f"{stage}.csv")
+            self._jsonl[stage] = JsonlLog(self.run.metrics / f"{stage}.jsonl")
+        return self._csv[stage], self._jsonl[stage]
+
+    def log(self, stage: str, step: int, metrics: dict[str, Any]) -> None:
+        row = {"step": int(step)}
+        row.update({k: _scalar(v) for k, v in metrics.items()})
+        c, j = self._logs(stage)
+        c.append(row)
+        j.append(row)
+        if self._tb is not None:
+            for k, v in row.items():
+                if k != "step" and isinstance(v, (int, float)):
+                    self._tb.add_scalar(f"{stage}/{k}", v, step)
+        if self._wandb is not None:
+            self._wandb.log({f"{stage}/{k}": v for k, v in row.items() if k != "step"} | {f"{stage}/step": step})
+
+    def log_eval(self, row: dict[str, Any]) -> None:
+        if self._tb is not None:
+            for k in ("success", "return", "q_data", "q_uniform"):
+                v = row.get(k)
+                if isinstance(v, (int, float)) and math.isfinite(v):
+                    self._tb.add_scalar(f"eval/{k}", v, row["env_step"])
+        if self._wandb is not None:
+            self._wandb.log({f"eval/{k}": row[k] for k in ("success", "return", "q_data", "q_uniform")}
+                            | {"eval/env_step": row["env_step"]})
+
+    def truncate(self, stage: str, max_step: int) -> None:
+        """Drop rows of ``stage`` logged after ``max_step`` (they are redone after a resume)."""
+        c, j = self._logs(stage)
+        c.truncate(lambda r: _num(r.get("step")) <= max_step)
+        j.truncate(lambda r: _num(r.get("step")) <= max_step)
+
+    def close(self) -> None:
+        if self._tb is not None:
+            self._tb.flush()
+            self._tb.close()
+            self._tb = None
+
+
+def _scalar(v: Any) -> Any:
+    if hasattr(v, "item") and callable(v.item):
+        try:
+            return v.item()
+        except (ValueError, TypeError):
+            return float("nan")
+    return v
+
+
+def _num(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.inf
