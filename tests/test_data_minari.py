@@ -43,6 +43,11 @@ def test_write_then_minari_load_dataset(tmp_path, monkeypatch):
         np.testing.assert_array_equal(getattr(back, k), getattr(ds, k), err_msg=k)
     np.testing.assert_array_equal(back.infos["success"], ds.infos["success"])
     assert back.metadata["botorl"]["generator"] == "unit" and back.metadata["botorl"]["seed"] == 0
+    (path / "botorl_flat.npz").unlink()  # the Minari data alone give the same rows
+    slow = load_minari("botorl/unit/steps8-seed0-v0")
+    for k in ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends"):
+        np.testing.assert_array_equal(getattr(slow, k), getattr(ds, k), err_msg=k)
+    assert slow.metadata["botorl"]["seed"] == 0
     with pytest.raises(BotorlError, match="already exists"):
         write_minari(ds, "botorl/unit/steps8-seed0-v0")
     write_minari(ds.with_reward_transform(2.0, 0.0), "botorl/unit/steps8-seed0-v0", overwrite=True)

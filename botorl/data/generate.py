@@ -82,7 +82,8 @@ def ensure_dataset(
     meta = {"task": task, "steps": steps, "seed": int(seed), "generator": get_generator_name(task)}
     try:
         write_minari(ds, cache_id(task, steps, seed), root=data_dir(), overwrite=regenerate, metadata=meta,
-                     description=f"botorl generated data for {task} ({steps} steps, seed {seed})")
+                     description=f"botorl generated data for {task} ({steps} steps, seed {seed})",
+                     progress=progress)
     except (BotorlError, OSError):
         if not _complete(path):  # not a concurrent writer that finished first
             raise

@@ -11,7 +11,8 @@ Per episode of T steps: T + 1 observations (``observations`` then the last
 episode is truncated unless it is terminal. ``infos`` holds every ``Dataset.infos`` field
 (e.g. ``success``) with T + 1 entries, the first (Minari's reset info) being 0. botorl's
 metadata (generator, steps, seed, ...) is a JSON string under the metadata key
-``botorl_metadata``; ``load_minari`` restores it to ``Dataset.metadata["botorl"]``.
+``botorl_metadata``; ``load_minari`` restores it to ``Dataset.metadata["botorl"]``. A flat ``botorl_flat.npz``
+copy of the rows sits beside ``data/`` for fast loading (see ``FLAT_FILE``).
 """
 
 from __future__ import annotations
@@ -34,6 +35,12 @@ from botorl.errors import BotorlError, ConfigError
 # observation[i + 1] inside one episode (Minari stores one observation sequence per
 # episode); load_minari joins such pieces back into one episode.
 SPLIT_KEY = "botorl_split"
+
+# Minari's hdf5 layout costs about 1-5 ms per episode to read (one group per episode), a
+# minute for 1M pointmaze steps in 15k episodes. botorl therefore also stores the same rows
+# flat, beside the Minari ``data`` folder (Minari ignores it), written in the same atomic
+# step; ``load_minari`` reads it when present and no ``obs_keys`` are asked for.
+FLAT_FILE = "botorl_flat.npz"
 
 
 @contextlib.contextmanager
@@ -117,6 +124,7 @@ def write_minari(
     description: str | None = None,
     metadata: dict[str, Any] | None = None,
     algorithm_name: str = "botorl generator",
+    progress: bool = False,
 ) -> Path:
     """Write ``dataset`` as a Minari dataset; returns its folder.
 
@@ -150,7 +158,7 @@ def write_minari(
             warnings.simplefilter("ignore")  # Minari warns about every optional field left empty
             mds = minari.create_dataset_from_buffers(
                 dataset_id,
-                list(_episode_buffers(dataset)),
+                _progress(list(_episode_buffers(dataset)), progress, dataset_id),
                 algorithm_name=algorithm_name,
                 author="botorl",
                 author_email="none",
@@ -160,6 +168,7 @@ def write_minari(
                 description=description or f"botorl dataset {dataset_id}",
             )
             mds.storage.update_metadata({"botorl_metadata": json.dumps(meta, default=_json_default)})
+        _write_flat(dataset, tmp_root / dataset_id / FLAT_FILE, meta)
         # Carry Minari's namespace marker files over if the destination has none.
         ns = Path(dataset_id).parent
         while str(ns) not in ("", "."):
@@ -176,6 +185,39 @@ def write_minari(
     finally:
         shutil.rmtree(tmp_root, ignore_errors=True)
     return final
+
+
+def _progress(buffers: list, show: bool, name: str):
+    if not show:
+        return buffers
+    from tqdm import tqdm
+
+    # Minari only iterates the buffer list, so a tqdm wrapper shows the writing progress.
+    return tqdm(buffers, desc=f"writing {name}", unit="episode")
+
+
+def _write_flat(ds: Dataset, path: Path, meta: dict) -> None:
+    arrays = {
+        "observations": ds.observations, "actions": ds.actions, "rewards": ds.rewards,
+        "next_observations": ds.next_observations, "terminals": ds.terminals,
+        "episode_ends": ds.episode_ends, "raw_action_max": np.asarray(ds.raw_action_max),
+        "botorl_metadata": np.asarray(json.dumps(meta, default=_json_default)),
+    }
+    arrays.update({f"infos/{k}": v for k, v in ds.infos.items()})
+    with open(path, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+def read_flat(folder: Path) -> Dataset | None:
+    """The flat copy written beside a botorl Minari dataset, or None if there is none."""
+    path = Path(folder) / FLAT_FILE
+    if not path.exists():
+        return None
+    with np.load(path, allow_pickle=False) as z:
+        infos = {k[6:]: z[k] for k in z.files if k.startswith("infos/")}
+        meta = {"source": str(folder), "format": "minari", "botorl": json.loads(str(z["botorl_metadata"]))}
+        return Dataset(z["observations"], z["actions"], z["rewards"], z["next_observations"], z["terminals"],
+                       z["episode_ends"], infos=infos, metadata=meta, raw_action_max=float(z["raw_action_max"]))
 
 
 def _json_default(obj):
