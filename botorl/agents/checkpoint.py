@@ -32,17 +32,10 @@ def _config_json(config) -> str:
         return json.dumps(repr(config))
 
 
-def save(path: str | os.PathLike, agent) -> Path:
+def _atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Write via a temp file in the same folder + os.replace: never a half-written file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    state = jax.tree_util.tree_map(np.asarray, serialization.to_state_dict(agent))
-    payload = {
-        "format": FORMAT,
-        "agent_class": type(agent).__name__,
-        "config": _config_json(agent.config),
-        "state": state,
-    }
-    data = serialization.msgpack_serialize(payload)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
@@ -54,6 +47,19 @@ def save(path: str | os.PathLike, agent) -> Path:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def save(path: str | os.PathLike, agent) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = jax.tree_util.tree_map(np.asarray, serialization.to_state_dict(agent))
+    payload = {
+        "format": FORMAT,
+        "agent_class": type(agent).__name__,
+        "config": _config_json(agent.config),
+        "state": state,
+    }
+    _atomic_write_bytes(path, serialization.msgpack_serialize(payload))
     return path
 
 
