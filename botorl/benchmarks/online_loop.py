@@ -1,6 +1,7 @@
 """Env steps per second of the whole online loop: act, step, insert, update (UTD 4).
 
-The loop is WSRL's fine-tuning loop as the pipeline runs it, one env step at a time: the
+The loop is WSRL's fine-tuning loop as ``botorl.pipeline.stages.finetune`` runs it (that
+function needs a whole run context, so its body is mirrored here), one env step at a time: the
 agent samples an action for the current observation (one jitted call), the real task env
 steps, the transition goes into the real ``ReplayBuffer``, a batch of ``utd * batch`` rows
 is sampled and ``agent.update`` does utd critic steps + 1 actor + 1 temperature step.
@@ -48,7 +49,7 @@ class OnlineLoop:
         from botorl.data.replay import ReplayBuffer
 
         self.agent, self.env = agent, env
-        self.rows = batch * utd
+        self.batch, self.utd = batch, utd
         obs_dim = int(np.prod(env.observation_space.shape))
         action_dim = int(np.prod(env.action_space.shape))
         self.buffer = ReplayBuffer(max(100_000, prefill * 2), obs_dim, action_dim)
@@ -71,8 +72,9 @@ class OnlineLoop:
         for _ in range(n):
             action, agent = agent.sample_actions(self.obs)
             self._env_step(np.asarray(action, np.float32))
-            batch = self.buffer.sample(self.rng, self.rows)
-            agent, _ = agent.update(batch)
+            # As botorl.pipeline.stages.finetune: u minibatches of B, flattened to u*B rows.
+            b = self.buffer.sample(self.rng, self.batch, num_batches=self.utd)
+            agent, _ = agent.update({k: v.reshape((-1,) + v.shape[2:]) for k, v in b.items()})
         jax.block_until_ready(agent)
         self.agent = agent
 

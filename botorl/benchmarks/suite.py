@@ -132,11 +132,13 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
             row["botorl_error"] = str(err)
             _log(f"bench: {w.name}: botorl side unavailable: {err}")
         else:
+            k = b.updates_per_call
             count = flopmod.jaxpr_flops(b.flop_fn, *b.flop_args)
-            row["flops_per_update"] = count.flops
-            row["matmul_flops_per_update"] = count.matmul_flops
+            row["flops_per_update"] = count.flops / k
+            row["matmul_flops_per_update"] = count.matmul_flops / k
+            row["updates_per_call"] = k
             try:
-                row["flops_per_update_xla"] = flopmod.xla_flops(jax.jit(b.flop_fn), *b.flop_args)
+                row["flops_per_update_xla"] = flopmod.xla_flops(jax.jit(b.flop_fn), *b.flop_args) / k
             except Exception as err:  # the cross-check must not sink the run
                 row["flops_per_update_xla_error"] = str(err)
             calls[w.name] = _calibrate(b.step, min_time)
@@ -151,7 +153,8 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
         for w in chosen:
             row = rows[w.name]
             if w.name in bound:
-                row["botorl_samples"].append(_time_block(bound[w.name].step, calls[w.name]))
+                b = bound[w.name]
+                row["botorl_samples"].append(_time_block(b.step, calls[w.name]) * b.updates_per_call)
             if worker is not None and w.d3rlpy_spec() is not None and "d3rlpy_error" not in row:
                 try:
                     row["d3rlpy_samples"].append(worker.time(w.name, min_time))

@@ -43,6 +43,7 @@ class Workload:
     n_action_samples: int = 10  # CQL/Cal-QL: per kind (uniform, pi(s), pi(s')), and backup actions
     d3rlpy_algo: str | None = None
     note: str = ""
+    layer_norm: bool = True  # WSRL/Cal-QL: LayerNorm after hidden layers; IQL: none
 
     def d3rlpy_spec(self) -> dict[str, Any] | None:
         if self.d3rlpy_algo is None:
@@ -51,7 +52,7 @@ class Workload:
             "algo": self.d3rlpy_algo, "n_critics": self.num_critics,
             "critic_hidden": list(self.critic_hidden), "actor_hidden": list(self.actor_hidden),
             "obs_dim": self.obs_dim, "action_dim": self.action_dim, "batch": self.batch,
-            "n_action_samples": self.n_action_samples, "utd": self.utd, "layer_norm": 1,
+            "n_action_samples": self.n_action_samples, "utd": self.utd, "layer_norm": int(self.layer_norm),
         }
 
     def tiny(self) -> "Workload":
@@ -71,7 +72,7 @@ WORKLOADS: dict[str, Workload] = {w.name: w for w in [
     Workload("cql", "CQL step, 2 x (256,256)", "cql", 2, _H2, _H2, d3rlpy_algo="cql",
              note="as Cal-QL without the MC lower bound"),
     Workload("iql", "IQL step, 2 x (256,256)", "iql", 2, _H2, _H2, d3rlpy_algo="iql",
-             note="Q + V + AWR actor + Polyak"),
+             layer_norm=False, note="Q + V + AWR actor + Polyak; no LayerNorm (IQL's default)"),
     Workload("sac2", "SAC step, 2 x (256,256)", "sac", 2, _H2, _H2, d3rlpy_algo="sac",
              note="critic + actor + temperature; " + _NOTE_SAC),
     Workload("sac10", "SAC step, 10 x 4x256", "sac", 10, _H4, _H2, d3rlpy_algo="sac",
@@ -95,6 +96,7 @@ class Bound:
     step: Callable[[int], None]
     flop_fn: Callable[..., Any]
     flop_args: tuple
+    updates_per_call: int = 1  # flop_fn does this many updates (the FLOPs are divided by it)
     extra: dict = field(default_factory=dict)
 
 
@@ -194,5 +196,30 @@ def _iql_config(cls: type, w: Workload) -> Any:
     return _config(cls, **fields)
 
 
+BOTO_STEPS_PER_CALL = 10
+
+
 def _build_boto(w: Workload, seed: int) -> Bound:
-    raise Unavailable("the BOTO critic update (botorl/boto/objective.py) is not in botorl yet")
+    """BOTO critic steps as the BOTO phase runs them: K steps per jitted call (lax.scan).
+
+    ``boto_update_many`` also computes q_data/q_uniform once per call (two forward passes);
+    with K = 10 that is a few % of a step. The phase itself uses steps_per_call = 1,000.
+    """
+    from botorl.agents.sac import SACAgent, SACConfig
+    from botorl.boto.config import BOTOConfig
+    from botorl.boto.objective import ObjectiveSettings, boto_update_many
+
+    agent = SACAgent.create(_config(SACConfig, **_net_fields(w)), w.obs_dim, w.action_dim, seed)
+    settings = ObjectiveSettings.resolve(BOTOConfig(alpha=0.5), agent)
+    k = BOTO_STEPS_PER_CALL
+    batches = make_batch(w.batch, w.obs_dim, w.action_dim, seed, lead=(k,))
+    state = {"agent": agent}
+
+    def step(n: int) -> None:
+        a = state["agent"]
+        for _ in range(n):
+            a, _ = boto_update_many(a, batches, 0.5, settings)
+        jax.block_until_ready(a)
+        state["agent"] = a
+
+    return Bound(w, step, lambda a, b: boto_update_many(a, b, 0.5, settings), (agent, batches), updates_per_call=k)
