@@ -58,7 +58,10 @@ def build_config(argv: list[str]):
 
     argv = _expand_shortcuts(list(argv))
     pre = _pre_parse(argv)
-    get_method(pre.method)  # a clear error before tyro's generic one
+    get_method(pre.method)  # clear errors before tyro's generic ones
+    from botorl.pipeline.methods import resolve_pretrain
+
+    resolve_pretrain(pre.method, pre.pretrain)
     from botorl.envs.registry import get_task
 
     get_task(pre.task)

@@ -1,0 +1,154 @@
+"""Presets, the CLI's config parsing, and the bad-configuration errors (exit code 2).
+
+No training here: every bad configuration must fail before any work (no run directory).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import pytest
+
+from botorl.cli import main as botorl_main
+from botorl.configs.presets import PROFILES, make_preset
+from botorl.configs.resolve import resolve, validate
+from botorl.configs.schema import RunConfig, from_dict, to_dict
+from botorl.envs.registry import get_task
+from botorl.pipeline.cli import build_config
+from botorl.pipeline.methods import METHODS
+
+PAPER_TASKS = ["antmaze-large-diverse-v2", "antmaze-large-play-v2", "kitchen-partial-v0", "kitchen-mixed-v0",
+               "door-binary-v0", "pen-binary-v0"]
+GENERATED = ["pointmaze-umaze", "pointmaze-medium", "pointmaze-large", "door-binary-local"]
+
+
+@pytest.mark.parametrize("task", PAPER_TASKS)
+def test_full_preset_is_the_papers(task):
+    cfg = resolve(make_preset(task, "full", "boto"))
+    validate(cfg)
+    spec = get_task(task)
+    assert cfg.alpha == spec.paper.alpha == cfg.boto.alpha
+    assert cfg.boto.boto_steps == spec.paper.boto_steps and cfg.boto.log_sigma == spec.paper.log_sigma
+    assert cfg.online.steps == 300_000 and cfg.online.utd == 4 and cfg.online.offline_ratio == 0.0
+    assert cfg.network.num_critics == 10 and cfg.online.sac.num_critics == 10 and cfg.offline.cql.num_critics == 10
+    assert cfg.offline.cql.calql and cfg.pretrain == "calql"
+    assert cfg.eval.episodes == 20 and cfg.warmup.steps == 5_000
+    # algorithms.md section 5: networks and pre-training length per domain
+    want = {"antmaze": ((256,) * 4, (256,) * 2, 1_000_000), "adroit": ((512,) * 3, (512,) * 2, 20_000),
+            "kitchen": ((512,) * 3, (512,) * 3, 250_000)}[spec.domain]
+    assert (cfg.online.sac.critic_hidden_dims, cfg.online.sac.actor_hidden_dims, cfg.offline.steps) == want
+    assert cfg.offline.cql.critic_hidden_dims == want[0]
+    assert cfg.online.sac.max_target_backup == (spec.domain == "antmaze")
+    assert cfg.offline.cql.cql_weight == {"antmaze": 5.0, "adroit": 1.0, "kitchen": 5.0}[spec.domain]
+    assert cfg.offline.cql.cql_lagrange == (spec.domain == "antmaze")
+
+
+@pytest.mark.parametrize("task", GENERATED)
+@pytest.mark.parametrize("profile", PROFILES)
+def test_every_generated_preset_validates(task, profile):
+    for method in METHODS:
+        cfg = resolve(make_preset(task, profile, method))
+        validate(cfg)
+        assert cfg.task == task and cfg.profile == profile and cfg.method == method
+
+
+def test_method_table_settings():
+    base = "pointmaze-umaze"
+    for m in ("calql", "cql", "iql"):
+        cfg = resolve(make_preset(base, "full", m))
+        assert cfg.pretrain == m and cfg.online.utd == 1 and cfg.online.offline_ratio == 0.5 and cfg.alpha is None
+    rlpd = resolve(make_preset(base, "full", "rlpd"))
+    assert rlpd.pretrain is None and rlpd.online.random_steps == 5_000 and rlpd.online.offline_ratio == 0.5
+    assert rlpd.online.utd == 4 and rlpd.online.sac.target_entropy == -get_task(base).action_dim / 2
+    assert rlpd.online.sac.actor_objective == "mean" and not rlpd.online.sac.subsample_replace
+    boto_iql = resolve(make_preset(base, "quick", "boto", "iql"))
+    # the SAC learner takes over IQL's networks
+    iql = boto_iql.offline.iql
+    assert boto_iql.online.sac.critic_hidden_dims == iql.critic_hidden_dims
+    assert boto_iql.online.sac.state_dependent_std == iql.state_dependent_std
+
+
+def test_dict_round_trip():
+    cfg = resolve(make_preset("kitchen-mixed-v0", "full", "boto", "cql"))
+    back = from_dict(RunConfig, to_dict(cfg))
+    assert back == cfg
+
+
+def test_dotted_overrides_and_shortcuts():
+    cfg = build_config(["--task", "pointmaze-umaze", "--online.steps", "2000", "--offline.cql.cql_weight", "2.5",
+                        "--network.critic_hidden_dims", "64", "64", "--alpha", "0.3", "--demos", "/x/demos.npz"])
+    assert cfg.online.steps == 2000 and cfg.offline.cql.cql_weight == 2.5
+    assert cfg.online.sac.critic_hidden_dims == (64, 64) == cfg.offline.cql.critic_hidden_dims
+    assert cfg.alpha == 0.3 == cfg.boto.alpha and cfg.data.demos == "/x/demos.npz"
+    bare = build_config([])
+    assert (bare.task, bare.method, bare.profile, bare.pretrain) == ("pointmaze-large", "boto", "quick", "calql")
+
+
+# ----------------------------------------------------------------------------- errors
+def _run(capsys, tmp_path, *args):
+    out = tmp_path / "run"
+    code = botorl_main(["run", "--out", str(out), *args])
+    err = capsys.readouterr().err
+    assert not out.exists(), "a bad configuration must fail before the run directory is made"
+    return code, err
+
+
+@pytest.mark.parametrize(
+    "args, needles",
+    [
+        (["--task", "pointmaze-largee"], ["unknown task 'pointmaze-largee'", "pointmaze-large"]),
+        (["--method", "botox"], ["unknown method 'botox'", "boto, wsrl, calql, cql, iql, rlpd"]),
+        (["--alpha", "1.5"], ["alpha = 1.5 is outside [-1, 1]", "--alpha -0.5"]),
+        (["--alpha", "-2"], ["outside [-1, 1]"]),
+        (["--online.steps", "-5"], ["--online.steps = -5", "non-negative"]),
+        (["--offline.steps", "-1"], ["--offline.steps = -1"]),
+        (["--boto.boto_steps", "-10"], ["--boto.boto_steps = -10"]),
+        (["--warmup.steps", "-3"], ["--warmup.steps = -3"]),
+        (["--profile", "huge"], ["unknown profile 'huge'"]),
+        (["--method", "wsrl", "--alpha", "0.5"], ["--method wsrl has no BOTO phase"]),
+        (["--method", "cql", "--pretrain", "iql"], ["--method cql pre-trains with cql"]),
+        (["--pretrain", "bc"], ["unknown pre-training algorithm 'bc'"]),
+        (["--eval.interval", "0"], ["--eval.interval = 0", "positive"]),
+    ],
+)
+def test_bad_configuration_exit_2(capsys, tmp_path, args, needles):
+    code, err = _run(capsys, tmp_path, "--profile", "smoke", *args) if "--profile" not in args else _run(capsys, tmp_path, *args)
+    assert code == 2, err
+    for n in needles:
+        assert n in err, err
+
+
+def test_missing_dataset_exit_2(capsys, tmp_path, monkeypatch):
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "empty-minari"))
+    code, err = _run(capsys, tmp_path, "--task", "antmaze-large-diverse-v2", "--profile", "smoke")
+    assert code == 2 and "minari download D4RL/antmaze/large-diverse-v1" in err, err
+    code, err = _run(capsys, tmp_path, "--task", "door-binary-v0", "--profile", "smoke")
+    assert code == 2 and "Cal-QL" in err, err
+    code, err = _run(capsys, tmp_path, "--task", "door-binary-v0", "--profile", "smoke",
+                     "--data.path", str(tmp_path / "nowhere"))
+    assert code == 2 and "nowhere" in err, err
+
+
+def test_missing_door_demos_exit_2(capsys, tmp_path, monkeypatch):
+    monkeypatch.delenv("BOTORL_DOOR_DEMOS", raising=False)
+    code, err = _run(capsys, tmp_path, "--task", "door-binary-local", "--profile", "smoke",
+                     "--demos", str(tmp_path / "no-demos.npz"))
+    assert code == 2 and "no-demos.npz" in err and "door_human_demos.npz" in err, err
+    code, err = _run(capsys, tmp_path, "--task", "door-binary-local", "--profile", "smoke")
+    assert code == 2 and "BOTORL_DOOR_DEMOS" in err, err
+
+
+def test_resume_and_eval_of_a_non_run(capsys, tmp_path):
+    assert botorl_main(["resume", str(tmp_path)]) == 2
+    assert "not a botorl run directory" in capsys.readouterr().err
+    assert botorl_main(["eval", str(tmp_path)]) == 2
+    assert "not a botorl run directory" in capsys.readouterr().err
+
+
+def test_existing_out_is_refused(capsys, tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "config.json").write_text("{}")
+    assert botorl_main(["run", "--profile", "smoke", "--task", "pointmaze-umaze", "--out", str(out)]) == 2
+    assert "botorl resume" in capsys.readouterr().err

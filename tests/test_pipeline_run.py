@@ -1,0 +1,150 @@
+"""A whole run (smoke profile) through the CLI: the run-directory contract, every method,
+evaluation, and a divergence that stops the run with the last good checkpoint kept.
+
+One module-scoped BOTO run is shared by several tests; runs are in-process so that jitted
+functions compile once.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from botorl.cli import main as botorl_main
+
+TASK = "pointmaze-umaze"
+SUMMARY_KEYS = {"task", "method", "seed", "alpha", "pretrain", "success_initial", "success_10k", "success_final",
+                "stage_seconds", "status"}
+
+
+def _run(out: Path, *args: str) -> int:
+    return botorl_main(["run", "--task", TASK, "--profile", "smoke", "--no-progress", "--no-tensorboard",
+                        "--out", str(out), *args])
+
+
+def _csv(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def boto_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("pipeline") / "boto"
+    assert _run(out, "--seed", "3", "--alpha", "-0.5") == 0
+    return out
+
+
+def test_run_directory_contract(boto_run):
+    d = boto_run
+    cfg = json.loads((d / "config.json").read_text())
+    assert (cfg["task"], cfg["method"], cfg["seed"], cfg["alpha"], cfg["pretrain"], cfg["profile"]) == (
+        TASK, "boto", 3, -0.5, "calql", "smoke")
+    assert cfg["boto"]["alpha"] == -0.5
+
+    rows = _csv(d / "eval.csv")
+    assert list(rows[0].keys()) == ["stage", "env_step", "success", "return", "q_data", "q_uniform"]
+    # smoke: 40 online steps, evaluations at 0, every 20, and the end
+    assert [int(r["env_step"]) for r in rows] == [0, 20, 40]
+    for r in rows:
+        assert r["stage"] == "finetune" and 0.0 <= float(r["success"]) <= 1.0
+        assert math.isfinite(float(r["q_data"])) and math.isfinite(float(r["q_uniform"]))
+
+    for stage in ("pretrain", "warmup", "boto", "finetune"):
+        assert (d / "metrics" / f"{stage}.csv").stat().st_size > 0
+        lines = (d / "metrics" / f"{stage}.jsonl").read_text().splitlines()
+        assert lines and all("step" in json.loads(x) for x in lines)
+        assert (d / "checkpoints" / f"{stage}-final" / "agent.ckpt").is_file()
+    assert (d / "checkpoints" / "warmup-final" / "warmup.npz").is_file()
+    latest = json.loads((d / "checkpoints" / "latest.json").read_text())
+    assert latest["name"] == "finetune-final" and latest["stage_done"]
+    # intermediate checkpoints are pruned once the stage's final one exists
+    assert not [p for p in (d / "checkpoints").iterdir() if "-step" in p.name or p.name.startswith(".")]
+
+    png = (d / "curve.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+
+    s = json.loads((d / "summary.json").read_text())
+    assert SUMMARY_KEYS <= set(s)
+    assert s["status"] == "finished" and s["task"] == TASK and s["method"] == "boto" and s["alpha"] == -0.5
+    assert set(s["stage_seconds"]) == {"pretrain", "warmup", "boto", "finetune"}
+    assert s["success_initial"] == float(rows[0]["success"]) and s["success_final"] == float(rows[-1]["success"])
+    assert s["success_10k"] is None  # 40 online steps never reach 10k
+
+    # the warm-up dataset has the run's length and transformed rewards (pointmaze: 10 r - 5)
+    with np.load(d / "checkpoints" / "warmup-final" / "warmup.npz") as z:
+        assert len(z["rewards"]) == cfg["warmup"]["steps"]
+        assert set(np.unique(z["rewards"])) <= {-5.0, 5.0}
+
+
+def test_q_probe_logged_per_stage(boto_run):
+    rows = _csv(boto_run / "metrics" / "q_probe.csv")
+    assert [r["stage"] for r in rows] == ["pretrain", "boto"]
+    # BOTO changed the critic: Q on the probe moved
+    assert rows[0]["q_uniform"] != rows[1]["q_uniform"]
+
+
+def test_eval_command(boto_run, capsys):
+    assert botorl_main(["eval", str(boto_run), "--episodes", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "success" in out and "q_uniform" in out
+    res = json.loads((boto_run / "eval-finetune-final.json").read_text())
+    assert res["episodes"] == 2 and 0.0 <= res["success"] <= 1.0 and res["stage"] == "finetune"
+
+
+def test_resume_of_finished_run_is_a_no_op(boto_run, capsys):
+    before = (boto_run / "eval.csv").read_text()
+    assert botorl_main(["resume", str(boto_run)]) == 0
+    assert "finished already" in capsys.readouterr().err
+    assert (boto_run / "eval.csv").read_text() == before
+
+
+@pytest.mark.parametrize(
+    "method, stages, pretrain",
+    [
+        ("wsrl", ["pretrain", "warmup", "finetune"], "calql"),
+        ("cql", ["pretrain", "finetune"], "cql"),
+        ("iql", ["pretrain", "finetune"], "iql"),
+        ("rlpd", ["finetune"], None),
+    ],
+)
+def test_methods_run_their_stages(tmp_path, method, stages, pretrain):
+    out = tmp_path / method
+    assert _run(out, "--method", method) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["status"] == "finished" and s["method"] == method and s["pretrain"] == pretrain and s["alpha"] is None
+    assert list(s["stage_seconds"]) == stages
+    assert [int(r["env_step"]) for r in _csv(out / "eval.csv")] == [0, 20, 40]
+    assert not (out / "checkpoints" / "boto-final").exists()
+
+
+def test_divergence_stops_with_last_good_checkpoint(tmp_path, monkeypatch, capsys):
+    """A NaN loss in fine-tuning: exit 2, status failed, the checkpoint before it kept."""
+    from botorl.agents.sac import SACAgent
+
+    real_update = SACAgent.update
+    calls = {"n": 0}
+
+    def poisoned(self, batch):
+        agent, metrics = real_update(self, batch)
+        calls["n"] += 1
+        if calls["n"] >= 25:
+            metrics = dict(metrics, critic_loss=np.float32("nan"))
+        return agent, metrics
+
+    monkeypatch.setattr(SACAgent, "update", poisoned)
+    out = tmp_path / "nan"
+    code = _run(out)
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "diverged" in err and "critic_loss = nan" in err and "finetune" in err
+    s = json.loads((out / "summary.json").read_text())
+    assert s["status"] == "failed" and "diverged" in s["error"]
+    latest = json.loads((out / "checkpoints" / "latest.json").read_text())
+    # the mid-stage checkpoint at step 20 was written before the NaN (update 25); nothing after
+    assert latest["name"] == "finetune-step000000020"
+    assert not (out / "checkpoints" / "finetune-final").exists()
