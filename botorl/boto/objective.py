@@ -156,21 +156,26 @@ def next_value(agent, next_obs, key, settings: ObjectiveSettings):
     return v
 
 
-def boto_critic_step(agent, batch, alpha, settings: ObjectiveSettings, noise_key=None):
+def compute_target(agent, batch, alpha, settings: ObjectiveSettings, k_noise, k_next):
+    """The BOTO target of every row: ``(y_bar (B,), a_bar (B, A), ||a - a_bar||^2 (B,), noise info)``."""
+    a_bar, ninfo = settings.noise_fn()(k_noise, batch["actions"])
+    next_v = next_value(agent, batch["next_observations"], k_next, settings)
+    target, sq_dist = boto_target(
+        batch["rewards"], batch["dones"], batch["actions"], a_bar, next_v, alpha, settings.discount
+    )
+    return jax.lax.stop_gradient(target), a_bar, sq_dist, ninfo
+
+
+def boto_critic_step(agent, batch, alpha, settings: ObjectiveSettings):
     """One BOTO critic step (+ Polyak update, + actor/temperature step if ``train_actor``).
 
-    ``noise_key`` fixes the noise draw (tests); by default everything comes from ``agent.rng``.
+    The keys come from ``agent.rng``: ``rng, k_noise, k_next, k_actor = split(agent.rng, 4)``.
     """
     from botorl.agents.common import polyak
 
     rng, k_noise, k_next, k_actor = jax.random.split(agent.rng, 4)
     agent = agent.replace(rng=rng)
-    a_bar, ninfo = settings.noise_fn()(k_noise if noise_key is None else noise_key, batch["actions"])
-    next_v = next_value(agent, batch["next_observations"], k_next, settings)
-    target, sq_dist = boto_target(
-        batch["rewards"], batch["dones"], batch["actions"], a_bar, next_v, alpha, settings.discount
-    )
-    target = jax.lax.stop_gradient(target)
+    target, a_bar, sq_dist, ninfo = compute_target(agent, batch, alpha, settings, k_noise, k_next)
     obs = batch["observations"]
 
     def loss_fn(params):
