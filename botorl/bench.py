@@ -84,8 +84,27 @@ def _iql(repeats: int, steps: int) -> dict:
     return _time_updates(IQLAgent.create(IQLConfig(), OBS_DIM, ACTION_DIM, 0), BATCH, repeats, steps)
 
 
+def _matmul(repeats: int, steps: int) -> dict:
+    """fp32 2048^3 matmul: the machine's speed now, to read the other rows against."""
+    import jax
+    import jax.numpy as jnp
+
+    x = jnp.ones((2048, 2048), jnp.float32)
+    f = jax.jit(lambda a: a @ a)
+    f(x).block_until_ready()
+    rates = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            f(x).block_until_ready()
+        rates.append(steps / (time.perf_counter() - t0))
+    med = statistics.median(rates)
+    return {"updates_per_s": med, "gflops": med * 2 * 2048**3 / 1e9, "all": rates, "compile_s": 0.0, "steps": steps}
+
+
 # name -> (description, function(repeats, steps) -> result dict)
 WORKLOADS: dict[str, tuple[str, Callable[[int, int], dict]]] = {
+    "matmul_2048": ("fp32 2048x2048 matmuls/s (reference for the machine's current speed)", _matmul),
     "sac_2x256_2critics": ("SAC update, 2 critics 2x256, batch 256", _sac(2, SMALL)),
     "sac_antmaze_10critics": ("SAC update, 10 critics 4x256, batch 256", _sac(10, ANTMAZE)),
     "sac_adroit_10critics": ("SAC update, 10 critics 3x512, batch 256", _sac(10, ADROIT)),
