@@ -28,7 +28,7 @@ FAKE = textwrap.dedent(
     """
     import json, os, sys, time
     from pathlib import Path
-    argv = sys.argv[1:]
+    argv = [a for a in sys.argv[1:] if a != "--no-progress"]
     if argv[0] == "run":
         toks = []
         for t in argv[1:]:
@@ -43,7 +43,8 @@ FAKE = textwrap.dedent(
     else:
         out = Path(argv[1])
         cfg = json.loads((out / "config.json").read_text())
-        start_at = int((out / "checkpoints" / "step").read_text())
+        ckpt = out / "checkpoints" / "step"
+        start_at = int(ckpt.read_text()) if ckpt.exists() else 0
     with open(out / "starts.txt", "a") as f:
         f.write(argv[0] + "\\n")
     if os.environ.get("FAKE_EXIT"):

@@ -48,9 +48,12 @@ USER_ERROR_EXIT = 2  # BotorlError: retrying cannot help
 
 BACKENDS = ("sequential", "local", "ray")
 
-# Thread settings for a trial pinned to one core. JAX 0.10's CPU client accepts
-# --xla_cpu_multi_thread_eigen=false (an unknown XLA flag aborts the process, so only flags
-# checked against this JAX version go here); the rest are the usual BLAS/OpenMP knobs.
+# Thread settings for a trial pinned to one core: the usual BLAS/OpenMP knobs. XLA needs no
+# flag: its CPU thread pools are sized from the affinity mask (a JAX 0.10 process pinned to
+# one core starts 13 threads instead of 17, all on that core). --xla_cpu_multi_thread_eigen=false
+# is accepted by JAX 0.10 but did not change that, and any XLA_FLAGS value is part of the
+# persistent compile cache's key, so setting it would make pinned trials recompile everything
+# that unpinned runs already cached. Extra flags for pinned trials: $BOTORL_SWEEP_XLA_FLAGS.
 SINGLE_THREAD_ENV = {
     "OMP_NUM_THREADS": "1",
     "OPENBLAS_NUM_THREADS": "1",
@@ -60,7 +63,9 @@ SINGLE_THREAD_ENV = {
     "TF_NUM_INTRAOP_THREADS": "1",
     "TF_NUM_INTEROP_THREADS": "1",
 }
-SINGLE_THREAD_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false"
+
+
+RAY_ENV_PREFIXES = ("BOTORL_", "XLA_", "JAX_", "MINARI_", "MUJOCO_", "PYTHONUNBUFFERED")
 
 
 def default_command() -> list[str]:
@@ -70,9 +75,9 @@ def default_command() -> list[str]:
 def single_thread_env(base: dict[str, str] | None = None) -> dict[str, str]:
     env = dict(os.environ if base is None else base)
     env.update(SINGLE_THREAD_ENV)
-    flags = env.get("XLA_FLAGS", "")
-    if "xla_cpu_multi_thread_eigen" not in flags:
-        env["XLA_FLAGS"] = f"{flags} {SINGLE_THREAD_XLA_FLAGS}".strip()
+    extra = env.get("BOTORL_SWEEP_XLA_FLAGS", "").strip()
+    if extra:
+        env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {extra}".strip()
     return env
 
 
@@ -113,24 +118,14 @@ def run_status(run_dir: Path) -> str | None:
     return None if summary is None else str(summary.get("status"))
 
 
-def has_checkpoint(run_dir: Path) -> bool:
-    """A complete checkpoint exists (the pipeline's `latest.json`, or any non-temporary file)."""
-    ckpt = Path(run_dir) / "checkpoints"
-    if not ckpt.is_dir():
-        return False
-    if (ckpt / "latest.json").is_file():
-        return True
-    return any(
-        p.is_file() and not any(part.startswith(".") for part in p.relative_to(ckpt).parts)
-        for p in ckpt.rglob("*")
-    )
-
-
 def next_action(run_dir: Path) -> str:
-    """'done', 'resume' or 'run'."""
+    """'done', 'resume' or 'run'.
+
+    `botorl run` refuses a directory that holds config.json, and `botorl resume` of a run
+    killed before its first checkpoint starts it over, so config.json decides."""
     if run_status(run_dir) == "finished":
         return "done"
-    if has_checkpoint(run_dir) and (Path(run_dir) / "config.json").exists():
+    if (Path(run_dir) / "config.json").exists():
         return "resume"
     return "run"
 
@@ -140,10 +135,11 @@ def trial_command(
 ) -> tuple[str, list[str]]:
     prefix = list(command) if command else default_command()
     action = next_action(run_dir)
+    # no progress bars: a trial's output goes to its log file, where tqdm's redraws pile up
     if action == "resume":
-        return action, prefix + ["resume", str(run_dir)]
+        return action, prefix + ["resume", str(run_dir), "--no-progress"]
     args = trial.run_args(grid.profile, grid.overrides)
-    return action, prefix + ["run", *args, "--out", str(run_dir)]
+    return action, prefix + ["run", *args, "--out", str(run_dir), "--no-progress"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -434,7 +430,9 @@ class Sweep:
         run_dir, cmd, log = self._prepare(trial)
         self._entry(trial).update(pid=None, cpu=None)
         self._save()
-        env = {k: v for k, v in self._trial_env().items() if k in SINGLE_THREAD_ENV or k in ("XLA_FLAGS", "PYTHONUNBUFFERED", "BOTORL_JAX_CACHE", "BOTORL_DATA_DIR", "MINARI_DATASETS_PATH", "MUJOCO_GL")}
+        # only the settings that concern botorl: the rest of this machine's environment (PATH,
+        # HOME) may be wrong on another node of a cluster
+        env = {k: v for k, v in self._trial_env().items() if k in SINGLE_THREAD_ENV or k.startswith(RAY_ENV_PREFIXES)}
         return self._ray_fn.remote(cmd, env, str(log), str(run_dir), str(self.out))
 
     def _start_ray(self) -> None:
