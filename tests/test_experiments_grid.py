@@ -84,3 +84,11 @@ def test_sweep_cli_dry_run_and_errors(tmp_path, capsys):
     assert "8 trials" in printed
     with pytest.raises(BotorlError, match="unknown task"):
         sweep_main(["--tasks", "no-such-task", "--methods", "boto", "--seeds", "0", "--out", str(out)])
+    # a typo in an override fails once, before any trial starts, naming the option
+    with pytest.raises(BotorlError, match="online.stepz"):
+        sweep_main(["--tasks", "pointmaze-umaze", "--methods", "wsrl", "--seeds", "0", "--out", str(out),
+                    "--set", "online.stepz=3"])
+    with pytest.raises(BotorlError, match="unknown profile"):
+        sweep_main(["--tasks", "pointmaze-umaze", "--methods", "wsrl", "--seeds", "0", "--out", str(out),
+                    "--profile", "fast"])
+    assert not (out / "sweep.json").exists()

@@ -12,6 +12,7 @@ finished trials are never rerun, the others resume from their checkpoints.
 from __future__ import annotations
 
 import dataclasses
+import re
 import shlex
 import sys
 from pathlib import Path
@@ -94,8 +95,9 @@ def sweep_main(argv: list[str]) -> int:
         overrides=list(args.set) if args.set else None,
         profile=args.profile,
     )
-    if not args.trial_command:  # a stand-in command may know other tasks
+    if not args.trial_command:  # a stand-in command may know other tasks and options
         _check_tasks(grid.tasks)
+        _check_trial_configs(grid)
     command = shlex.split(args.trial_command) if args.trial_command else None
     options = SweepOptions(
         out=Path(args.out),
@@ -141,6 +143,41 @@ def _check_tasks(tasks: list[str]) -> None:
             get_task(task)
         except (KeyError, ValueError) as err:
             raise ConfigError(f"Sweep grid: unknown task {task!r} ({err}). `botorl tasks` lists them.") from None
+
+
+def _check_trial_configs(grid) -> None:
+    """Build each (task, method) config as `botorl run` would, so a typo in --set or a bad
+    profile fails once, now, instead of in every trial."""
+    import contextlib
+    import io
+
+    from botorl.errors import BotorlError
+
+    try:
+        from botorl.pipeline.cli import build_config
+    except ImportError:
+        return
+    seen = set()
+    for trial in grid.trials():
+        key = (trial.task, trial.method, trial.pretrain)
+        if key in seen:
+            continue
+        seen.add(key)
+        args = trial.run_args(grid.profile, grid.overrides) + ["--out", "botorl-sweep-config-check"]
+        captured = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(captured), contextlib.redirect_stdout(captured):
+                build_config(args)
+        except BotorlError as err:
+            raise ConfigError(f"Sweep trial {trial.id}: {err}") from None
+        except SystemExit:
+            text = re.sub(r"[-─━│╭╮╰╯]{3,}|[│╭╮╰╯]", " ", captured.getvalue())  # tyro's box drawing
+            tail = " ".join(text.split())[-500:]
+            raise ConfigError(
+                f"Sweep trial {trial.id}: `botorl run {' '.join(args[:-2])}` rejects its arguments "
+                f"({tail}). Check --profile and the --set / grid overrides (dotted.path=value; "
+                "`botorl run --help` lists the fields)."
+            ) from None
 
 
 @dataclasses.dataclass
