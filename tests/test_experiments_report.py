@@ -77,6 +77,9 @@ def runs_dir(tmp_path_factory) -> Path:
     # not finished: must be listed as skipped, with the reason
     write_run(root, task="t1", method="rlpd", seed=0, initial=0, s10k=0, final=0, status="running")
     write_run(root, task="t1", method="rlpd", seed=1, initial=0, s10k=0, final=0, status="failed")
+    never = root / "t1" / "rlpd" / "seed3"  # `botorl run` failed before making the run directory
+    never.mkdir(parents=True)
+    (never / "sweep-trial.log").write_text("===== attempt 1\nbotorl run: error: dataset not found\n")
     crashed = root / "t1" / "rlpd" / "seed2"
     (crashed / "checkpoints").mkdir(parents=True)
     (crashed / "config.json").write_text(json.dumps({"task": "t1", "method": "rlpd", "seed": 2}))
@@ -107,9 +110,10 @@ def test_report_tables_exact(runs_dir, tmp_path):
     result = R.make_report([runs_dir], out, n_boot=300, seed=0)
     assert len(result.runs) == 4 + 5 + 2 + 6
     reasons = {s.path.name: s.reason for s in result.skipped}
-    assert len(result.skipped) == 3
+    assert len(result.skipped) == 4
     assert "running" in reasons["seed0"] and "failed" in reasons["seed1"]
     assert "no summary.json" in reasons["seed2"]
+    assert reasons["seed3"].endswith("botorl run: error: dataset not found")
 
     with open(out / "table1.csv", newline="") as f:
         rows = {(r["task"], r["method"], r["alpha"]): r for r in csv.DictReader(f)}

@@ -162,7 +162,8 @@ def _load_run(run_dir: Path) -> Run | Skipped:
         return Skipped(run_dir, f"summary.json unreadable ({err})")
     status = summary.get("status")
     if status != "finished":
-        return Skipped(run_dir, f"status is {status!r}, not 'finished'")
+        error = f" ({summary['error']})" if summary.get("error") else ""
+        return Skipped(run_dir, f"status is {status!r}, not 'finished'{error}")
     config: dict[str, Any] = {}
     try:
         loaded = json.loads((run_dir / "config.json").read_text())
@@ -200,6 +201,14 @@ def _load_run(run_dir: Path) -> Run | Skipped:
     )
 
 
+def _last_line(path: Path) -> str:
+    try:
+        lines = [ln.strip() for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return "(unreadable)"
+    return lines[-1][:300] if lines else "(empty)"
+
+
 def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
     """Every run directory under `dirs` (a folder with summary.json, or with config.json and
     no summary yet), recursively; run directories are not searched further down."""
@@ -227,6 +236,12 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
                 if root_p not in seen:
                     seen.add(root_p)
                     skipped.append(Skipped(Path(root), "no summary.json (the run never got far enough to write one)"))
+            elif "sweep-trial.log" in files:  # a sweep trial whose `botorl run` failed before starting
+                subdirs[:] = []
+                if root_p not in seen:
+                    seen.add(root_p)
+                    last = _last_line(Path(root) / "sweep-trial.log")
+                    skipped.append(Skipped(Path(root), f"the run never started; sweep-trial.log ends: {last}"))
             else:
                 subdirs[:] = sorted(d for d in subdirs if not d.startswith("."))
     runs.sort(key=lambda r: (r.task, r.label, -99 if r.alpha is None else r.alpha, r.seed or 0))
