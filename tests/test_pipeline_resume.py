@@ -1,0 +1,84 @@
+"""A run killed with SIGKILL in the middle of a stage continues with `botorl resume DIR`.
+
+The run is a subprocess (the real CLI). It is killed as soon as a mid-stage checkpoint of
+fine-tuning exists (so the kill lands inside a stage, between checkpoints), then resumed to
+the end. Checks: summary says finished; eval.csv and the metrics have each step once, in
+order (rows written after the checkpoint and before the kill are dropped and redone); the
+resumed run lost at most the steps since the checkpoint.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def _csv(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.timeout(600)
+def test_sigkill_mid_stage_then_resume(tmp_path):
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "botorl.cli", "run", "--task", "pointmaze-umaze", "--profile", "smoke",
+           "--no-progress", "--no-tensorboard", "--online.steps", "400", "--checkpoint_every", "50",
+           "--eval.interval", "100", "--out", str(out)]
+    proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    latest = out / "checkpoints" / "latest.json"
+    killed_at = None
+    deadline = time.time() + 420
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if latest.exists():
+                try:
+                    info = json.loads(latest.read_text())
+                except json.JSONDecodeError:  # cannot happen with atomic writes; be strict below
+                    raise AssertionError("latest.json was read half-written")
+                if info["stage"] == "finetune" and not info["stage_done"]:
+                    os.kill(proc.pid, signal.SIGKILL)
+                    killed_at = info["step"]
+                    break
+            time.sleep(0.02)
+    finally:
+        if proc.poll() is None and killed_at is None:
+            os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert killed_at is not None, f"no mid-stage checkpoint appeared; stderr: {proc.stderr.read().decode()[-2000:]}"
+    assert proc.returncode == -signal.SIGKILL
+    assert json.loads((out / "summary.json").read_text())["status"] == "running"
+
+    res = subprocess.run([sys.executable, "-m", "botorl.cli", "resume", str(out), "--no-progress"], env=_env(),
+                         capture_output=True, text=True, timeout=420)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert f"resuming {out} from finetune step {killed_at}" in res.stderr
+
+    s = json.loads((out / "summary.json").read_text())
+    assert s["status"] == "finished"
+    assert set(s["stage_seconds"]) == {"pretrain", "warmup", "boto", "finetune"}
+    steps = [int(r["env_step"]) for r in _csv(out / "eval.csv")]
+    assert steps == [0, 100, 200, 300, 400]
+    logged = [int(r["step"]) for r in _csv(out / "metrics" / "finetune.csv")]
+    assert logged == sorted(set(logged)) and logged[-1] == 400
+    jsonl = [json.loads(x)["step"] for x in (out / "metrics" / "finetune.jsonl").read_text().splitlines()]
+    assert jsonl == logged
+    # the stages before fine-tuning were not redone: one pre-training log ends at its last step
+    pre = [int(r["step"]) for r in _csv(out / "metrics" / "pretrain.csv")]
+    assert pre == sorted(set(pre))
+    assert json.loads((out / "checkpoints" / "latest.json").read_text())["name"] == "finetune-final"
