@@ -52,6 +52,7 @@ def processes_in(out: Path) -> list[int]:
             if p.name.isdigit() and int(p.name) != me and _mentions(int(p.name), str(out))]
 
 
+@pytest.mark.timeout(1200)
 def test_local_full_grid_killed_and_restarted(tmp_path):
     """8 real trials, 2 pinned workers; SIGKILL only the sweep process mid-grid (its trials
     must not live on as orphans); the same command again completes the grid and reruns no
@@ -99,6 +100,7 @@ def test_local_full_grid_killed_and_restarted(tmp_path):
     assert (rep / "figure5.png").stat().st_size > 10_000
 
 
+@pytest.mark.timeout(600)
 def test_sequential_backend(tmp_path):
     out = tmp_path / "seq"
     assert sweep_main(sweep_args(out, tasks="pointmaze-umaze", methods="wsrl,boto", seeds="0",
@@ -114,6 +116,7 @@ def test_sequential_backend(tmp_path):
     assert first["cpu"] is None and second["cpu"] is None  # not pinned
 
 
+@pytest.mark.timeout(600)
 def test_ray_backend(tmp_path):
     pytest.importorskip("ray", reason="the ray backend needs `pip install 'botorl[ray]'`")
     out = tmp_path / "ray"

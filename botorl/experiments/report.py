@@ -444,22 +444,32 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
     tasks = sorted({r.task for r in runs})
     ncols = min(3, max(1, len(tasks)))
     nrows = math.ceil(len(tasks) / ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(4.6 * ncols, 3.5 * nrows), squeeze=False)
     groups = _group(runs)
+    crowded = max(sum(1 for k in groups if k[0] == t) for t in tasks) > 6 if tasks else False
+    width = 4.6 + (2.2 if crowded else 0.0)  # room for a legend beside each panel
+    fig, axes = plt.subplots(nrows, ncols, figsize=(width * ncols, 3.5 * nrows), squeeze=False)
     labels = sorted({k[1] for k in groups})
     colors = {lab: plt.cm.tab10(i % 10) for i, lab in enumerate(labels)}
     for ax, task in zip(axes.flat, tasks):
         keys = sorted((k for k in groups if k[0] == task), key=lambda k: (k[1], -99 if k[2] is None else k[2]))
-        multi_alpha = any(sum(1 for k2 in keys if k2[1] == k[1]) > 1 for k in keys)
+        per_label = {lab: [k for k in keys if k[1] == lab] for lab in {k[1] for k in keys}}
         max_step = max(float(r.steps[-1]) for k in keys for r in groups[k] if r.steps.size) if keys else 0.0
         grid = np.linspace(0.0, max(max_step, 1.0), grid_points)
-        for i, key in enumerate(keys):
+        for key in keys:
             curves = np.stack([curve_on_grid(r, grid) for r in groups[key]])
             mean, se, count = mean_se_curves(curves)
             ok = count > 0
-            color = colors[key[1]] if not multi_alpha else plt.cm.viridis(i / max(1, len(keys) - 1))
-            name = _line_label(key[1], key[2], multi_alpha) + f" (n={len(groups[key])})"
-            ax.plot(grid[ok], mean[ok], color=color, label=name, lw=1.6)
+            siblings = per_label[key[1]]
+            style = "-"
+            if len(siblings) > 1:  # an alpha sweep: blue (alpha -1) to red (alpha +1)
+                alpha_value = 0.0 if key[2] is None else key[2]
+                color = plt.cm.coolwarm((alpha_value + 1.0) / 2.0)
+            else:
+                color = colors[key[1]]
+                if len(per_label) < len(keys):  # beside a sweep: dashed, to tell them apart
+                    style = "--"
+            name = _line_label(key[1], key[2], len(siblings) > 1) + f" (n={len(groups[key])})"
+            ax.plot(grid[ok], mean[ok], style, color=color, label=name, lw=1.6)
             ax.fill_between(grid[ok], (mean - se)[ok], (mean + se)[ok], color=color, alpha=0.2, lw=0)
         ax.set_title(task)
         ax.set_xlabel("online env steps")
@@ -467,7 +477,10 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
         ax.set_ylabel("success rate")
         ax.set_ylim(-0.03, 1.03)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="best")
+        if len(keys) > 6:
+            ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+        else:
+            ax.legend(fontsize=7, loc="best")
     for ax in list(axes.flat)[len(tasks):]:
         ax.set_visible(False)
     fig.suptitle("Success during online fine-tuning (mean ± standard error over seeds)", fontsize=10)

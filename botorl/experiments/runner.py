@@ -542,9 +542,13 @@ class Sweep:
             self._save()
             queue: deque[Trial] = deque(t for t in self.trials if self._entry(t)["state"] != "finished")
             done = len(self.trials) - len(queue)
-            n_workers = min(self._workers(), max(1, len(queue)))
+            n_workers = self._workers()
             if self.opt.backend == "ray" and queue:
                 self._start_ray()
+                if self.opt.ray_address and not self.opt.workers:
+                    # an existing cluster: as many trials at once as it has CPUs
+                    n_workers = max(1, int(self._ray.cluster_resources().get("CPU", 1)))
+            n_workers = min(n_workers, max(1, len(queue)))
             self._pbar = tqdm(
                 total=len(self.trials), initial=done, desc="sweep", unit="trial",
                 disable=not self.opt.progress, dynamic_ncols=True,
