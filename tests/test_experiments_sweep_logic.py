@@ -159,3 +159,32 @@ def test_killed_process_group_then_same_command_completes(tmp_path, fake):
         assert len(starts(d)) == 1, f"{d} was rerun"
     relaunched = [t for t, e in manifest["trials"].items() if e["launches"] > 1]
     assert all(out / t not in finished_before for t in relaunched)
+
+
+def test_sigterm_stops_trials_and_records_them(tmp_path, fake):
+    out = tmp_path / "sw"
+    cmd = [sys.executable, "-m", "botorl.cli", "sweep", "--tasks", "t1", "--methods", "wsrl",
+           "--seeds", "0-1", "--out", str(out), "--backend", "local", "--workers", "2",
+           "--trial-command", " ".join(fake), "--no-progress"]
+    proc = subprocess.Popen(cmd, env=dict(os.environ, FAKE_SLEEP="5"), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(list(out.glob("t1/wsrl/seed*/starts.txt"))) < 2:
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=30) == 130
+    manifest = json.loads((out / "sweep.json").read_text())
+    assert {e["state"] for e in manifest["trials"].values()} == {"interrupted"}
+    pids = [e.get("pid") for e in manifest["trials"].values()]
+    assert pids == [None, None]
+    for d in out.glob("t1/wsrl/seed*"):
+        assert not (d / ".sweep-trial.json").exists() or not _alive_from(d)
+
+
+def _alive_from(run_dir: Path) -> bool:
+    info = json.loads((run_dir / ".sweep-trial.json").read_text())
+    try:
+        os.kill(info["pid"], 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{info['pid']}/status").read_text().find("State:\tZ") < 0

@@ -32,6 +32,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections import deque
 from pathlib import Path
@@ -537,6 +538,11 @@ class Sweep:
 
         self._acquire_lock()
         running: dict[int, _Running] = {}
+        old_term = None
+        if threading.current_thread() is threading.main_thread():
+            # `kill PID` (a scheduler's preemption) ends the trials cleanly and records them,
+            # as Ctrl-C does; SIGKILL is handled by PR_SET_PDEATHSIG and the next invocation
+            old_term = signal.signal(signal.SIGTERM, _raise_interrupt)
         try:
             self._load_manifest()
             self._save()
@@ -582,6 +588,8 @@ class Sweep:
                 self._pbar = None
             self._stop_ray()
             self._release_lock()
+            if old_term is not None:
+                signal.signal(signal.SIGTERM, old_term)
         return self.manifest
 
     def _poll(self, running: dict[int, _Running]) -> list[tuple[int, int]]:
@@ -625,6 +633,10 @@ class Sweep:
         with contextlib.suppress(Exception):
             if self.manifest:
                 self._save()
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
 
 
 def _ray_trial(cmd: list[str], env: dict[str, str], log: str, run_dir: str, cwd: str) -> int:
