@@ -102,11 +102,12 @@ class D3rlpyWorker:
         answer = self.request(cmd="setup", name=name, spec=spec)
         return None if answer.get("ok") else str(answer.get("error"))
 
-    def time(self, name: str, min_time: float) -> float:
+    def time(self, name: str, min_time: float) -> tuple[float, float]:
+        """(updates per wall-clock second, updates per CPU second of the worker)."""
         answer = self.request(cmd="time", name=name, min_time=min_time)
         if not answer.get("ok"):
             raise RuntimeError(f"d3rlpy worker: {answer.get('error')}")
-        return float(answer["updates_per_s"])
+        return float(answer["updates_per_s"]), float(answer.get("updates_per_cpu_s", "nan"))
 
     def close(self) -> None:
         try:

@@ -134,6 +134,7 @@ class Workload:
         self.algo.create_impl((args.obs_dim,), args.action_dim)
         self.impl = self.algo.impl
         self.step = 0
+        self.last_cpu_rate = float("nan")
 
         rng = np.random.default_rng(args.seed)
 
@@ -174,12 +175,13 @@ class Workload:
         while k < 2 or time.perf_counter() - t0 < min_time / 4:
             self.update()
             k += 1
-        n, t0 = 0, time.perf_counter()
+        n, t0, c0 = 0, time.perf_counter(), time.process_time()
         while True:
             self.update()
             n += 1
             elapsed = time.perf_counter() - t0
             if elapsed >= min_time and n >= 2:
+                self.last_cpu_rate = n / max(time.process_time() - c0, 1e-9)
                 return n / elapsed
 
 
@@ -213,7 +215,8 @@ def serve(stdin: Any = None, stdout: Any = None) -> int:
                 reply({"ok": True, "name": req["name"]})
             elif cmd == "time":
                 rate = workloads[req["name"]].time(float(req.get("min_time", 1.0)))
-                reply({"ok": True, "name": req["name"], "updates_per_s": rate})
+                reply({"ok": True, "name": req["name"], "updates_per_s": rate,
+                       "updates_per_cpu_s": workloads[req["name"]].last_cpu_rate})
             else:
                 reply({"ok": False, "error": f"unknown cmd {cmd!r}"})
         except SystemExit as err:  # argparse error inside a setup request

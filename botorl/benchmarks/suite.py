@@ -54,7 +54,8 @@ class BenchConfig:
     tiny: bool = False
     """toy network sizes (for tests: compiles in seconds)"""
     threads: int = 0
-    """torch threads of the d3rlpy worker (0: all cores, as XLA uses)"""
+    """threads of both sides: 0 = all cores (XLA's and torch's default); 1 = one thread each
+    (XLA: no Eigen thread pool; torch.set_num_threads(1)), less hurt by a loaded machine"""
 
 
 def _load() -> list[float] | None:
@@ -78,10 +79,11 @@ def _calibrate(step: Any, min_time: float) -> int:
     return max(1, int(math.ceil(min_time / per_call)))
 
 
-def _time_block(step: Any, n: int) -> float:
-    t0 = time.perf_counter()
+def _time_block(step: Any, n: int) -> tuple[float, float]:
+    """(calls per wall-clock second, calls per CPU second of this process)."""
+    t0, c0 = time.perf_counter(), time.process_time()
     step(n)
-    return n / (time.perf_counter() - t0)
+    return n / (time.perf_counter() - t0), n / max(time.process_time() - c0, 1e-9)
 
 
 def _log(msg: str) -> None:
@@ -89,6 +91,11 @@ def _log(msg: str) -> None:
 
 
 def run(cfg: BenchConfig) -> dict[str, Any]:
+    if cfg.threads == 1:
+        if "jax" in sys.modules and sys.modules["jax"].__dict__.get("_src") is not None:
+            _log("bench: --threads 1 must be set before JAX starts; XLA keeps its threads")
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                                   " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1").strip()
     from botorl.jaxsetup import setup_jax
 
     setup_jax()
@@ -125,7 +132,8 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
                               "botorl_updates_per_s": None, "d3rlpy_updates_per_s": None,
                               "ratio": None, "gflops": None, "peak_fraction": None,
                               "flops_per_update": None, "flops_per_update_xla": None,
-                              "botorl_samples": [], "d3rlpy_samples": []}
+                              "botorl_samples": [], "d3rlpy_samples": [],
+                              "botorl_cpu_samples": [], "d3rlpy_cpu_samples": []}
         try:
             b = bound[w.name] = wl.build(w)
         except wl.Unavailable as err:
@@ -154,10 +162,14 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
             row = rows[w.name]
             if w.name in bound:
                 b = bound[w.name]
-                row["botorl_samples"].append(_time_block(b.step, calls[w.name]) * b.updates_per_call)
+                wall, cpu = _time_block(b.step, calls[w.name])
+                row["botorl_samples"].append(wall * b.updates_per_call)
+                row["botorl_cpu_samples"].append(cpu * b.updates_per_call)
             if worker is not None and w.d3rlpy_spec() is not None and "d3rlpy_error" not in row:
                 try:
-                    row["d3rlpy_samples"].append(worker.time(w.name, min_time))
+                    wall, cpu = worker.time(w.name, min_time)
+                    row["d3rlpy_samples"].append(wall)
+                    row["d3rlpy_cpu_samples"].append(cpu)
                 except RuntimeError as err:
                     row["d3rlpy_error"] = str(err)
         _log(f"bench: round {r + 1}/{repeats} done")
@@ -173,16 +185,22 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
     for name, row in rows.items():
         row["botorl_updates_per_s"] = _median(row["botorl_samples"])
         row["d3rlpy_updates_per_s"] = _median(row["d3rlpy_samples"])
+        row["botorl_updates_per_cpu_s"] = _median(row["botorl_cpu_samples"])
+        row["d3rlpy_updates_per_cpu_s"] = _median(row["d3rlpy_cpu_samples"])
         if row["botorl_updates_per_s"] and row["d3rlpy_updates_per_s"]:
             row["ratio"] = row["botorl_updates_per_s"] / row["d3rlpy_updates_per_s"]
+            # Per round, then the median: both sides of a round met the same load.
+            pairs = [b / d for b, d in zip(row["botorl_samples"], row["d3rlpy_samples"]) if d > 0]
+            row["ratio_median_of_rounds"] = _median(pairs)
+        if row["botorl_updates_per_cpu_s"] and row["d3rlpy_updates_per_cpu_s"]:
+            row["ratio_cpu"] = row["botorl_updates_per_cpu_s"] / row["d3rlpy_updates_per_cpu_s"]
         if row["botorl_updates_per_s"] and row["flops_per_update"]:
             row["gflops"] = row["flops_per_update"] * row["botorl_updates_per_s"] / 1e9
             row["peak_fraction"] = row["gflops"] / peak
 
     efficiency = None
-    if loop is not None and rows.get("online_utd4", {}).get("botorl_updates_per_s"):
-        efficiency = loop["env_steps_per_s"] / rows["online_utd4"]["botorl_updates_per_s"]
-        loop["update_alone_per_s"] = rows["online_utd4"]["botorl_updates_per_s"]
+    if loop is not None:
+        efficiency = loop["online_loop_efficiency"]
     return {
         "schema": SCHEMA_VERSION,
         "command": "botorl bench" + (" --against d3rlpy" if cfg.against else "") + (" --quick" if cfg.quick else ""),
@@ -207,6 +225,9 @@ def _shapes(w: wl.Workload) -> dict[str, Any]:
 
 
 def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, Any]:
+    """The online loop and the same update alone, interleaved round by round."""
+    import dataclasses
+
     from botorl.agents.sac import SACAgent, SACConfig
     from botorl.benchmarks.online_loop import OnlineLoop, make_env
 
@@ -217,19 +238,23 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
                     num_critics=w.num_critics, utd_ratio=w.utd)
     agent = SACAgent.create(cfg, obs_dim, action_dim, 0)
     loop = OnlineLoop(agent, env, w.batch, w.utd, prefill=max(w.batch * w.utd, 2000))
-    n = _calibrate(loop.run, min_time)
-    samples = [_time_block(loop.run, n) for _ in range(repeats)]
-    # The update alone on this env's shapes (may differ from the table's 29/8 if the env did).
-    if (obs_dim, action_dim) != (w.obs_dim, w.action_dim):
-        b = wl.build(__import__("dataclasses").replace(w, obs_dim=obs_dim, action_dim=action_dim))
-        m = _calibrate(b.step, min_time)
-        alone = _median([_time_block(b.step, m) for _ in range(repeats)])
-    else:
-        alone = None
+    # The update alone on the env's shapes (the same jit cache entry as the table's row
+    # when those are the same).
+    alone = wl.build(dataclasses.replace(w, obs_dim=obs_dim, action_dim=action_dim))
+    n_loop = _calibrate(loop.run, min_time)
+    n_alone = _calibrate(alone.step, min_time)
+    loop_rates, alone_rates, ratios = [], [], []
+    for _ in range(repeats):
+        lr, _ = _time_block(loop.run, n_loop)
+        ar, _ = _time_block(alone.step, n_alone)
+        loop_rates.append(lr)
+        alone_rates.append(ar)
+        ratios.append(lr / ar)
     env.close()
     return {"env": env_name, "obs_dim": obs_dim, "action_dim": action_dim,
-            "env_steps_per_s": _median(samples), "samples": samples,
-            "update_alone_same_shapes_per_s": alone}
+            "env_steps_per_s": _median(loop_rates), "samples": loop_rates,
+            "update_alone_per_s": _median(alone_rates), "update_alone_samples": alone_rates,
+            "online_loop_efficiency": _median(ratios)}
 
 
 # ------------------------------------------------------------------------ output
@@ -248,11 +273,13 @@ def format_table(result: dict[str, Any]) -> str:
                     f" x{m['d3rlpy_worker'].get('torch_threads')} threads" if "d3rlpy_worker" in m else "") + ")")
     lines.append(f"fp32 matmul peak (1024^2, jitted, best of {len(result['matmul_peak_samples'])}): "
                  f"{result['matmul_peak_gflops']:.0f} GFLOP/s")
-    head = f"{'update':34s} {'botorl/s':>9s} {'d3rlpy/s':>9s} {'ratio':>6s} {'MFLOP/upd':>10s} {'GFLOP/s':>8s} {'%peak':>6s}"
+    head = (f"{'update':34s} {'botorl/s':>9s} {'d3rlpy/s':>9s} {'ratio':>6s} {'ratio_cpu':>9s} "
+            f"{'MFLOP/upd':>10s} {'GFLOP/s':>8s} {'%peak':>6s}")
     lines += [head, "-" * len(head)]
     for name, r in result["updates"].items():
         lines.append(f"{r['label'][:34]:34s} {_fmt(r['botorl_updates_per_s'], '9.1f')} "
                      f"{_fmt(r['d3rlpy_updates_per_s'], '9.1f')} {_fmt(r['ratio'], '6.2f')} "
+                     f"{_fmt(r.get('ratio_cpu'), '9.2f')} "
                      f"{_fmt(r['flops_per_update'] and r['flops_per_update'] / 1e6, '10.1f')} "
                      f"{_fmt(r['gflops'], '8.1f')} {_fmt(r['peak_fraction'] and 100 * r['peak_fraction'], '6.1f')}")
         for key in ("botorl_error", "d3rlpy_error"):
@@ -260,8 +287,11 @@ def format_table(result: dict[str, Any]) -> str:
                 lines.append(f"    {key.split('_')[0]}: {r[key]}")
     loop = result.get("online_loop")
     if loop:
-        lines.append(f"online loop ({loop['env']}, UTD 4, 10 critics): {loop['env_steps_per_s']:.1f} env steps/s; "
+        lines.append(f"online loop ({loop['env']}, UTD 4, 10 critics): {loop['env_steps_per_s']:.1f} env steps/s, "
+                     f"update alone {loop['update_alone_per_s']:.1f}/s (interleaved); "
                      f"online_loop_efficiency = {_fmt(result['online_loop_efficiency'], '.2f')}")
+    lines.append("ratio = botorl/d3rlpy wall-clock updates/s; ratio_cpu = the same per CPU-second of each "
+                 "process (less sensitive to other users' load); %peak = GFLOP/s over the matmul peak")
     return "\n".join(lines)
 
 
