@@ -1,9 +1,19 @@
 """Writing botorl datasets as Minari datasets, so any Minari-aware tool can read them.
 
-Written with Minari's public API (``minari.create_dataset_from_buffers`` with one
-``EpisodeBuffer`` per episode) into a private temporary root next to the destination, then
-moved into place with one ``rename``: a crash leaves either no dataset or a complete one,
-never a half-written one under the final id.
+Minari's own writer (``minari.create_dataset_from_buffers`` with one ``EpisodeBuffer`` per
+episode) costs about 2.5 ms per episode, 70 s for the 14.5k episodes of 1M pointmaze steps.
+So ``metadata.json`` is made by Minari itself (``create_dataset_from_buffers`` with no
+episodes, then ``update_metadata`` with the totals), and the episodes are written straight
+into ``main_data.hdf5`` with h5py's low-level API in the layout of Minari 0.5's
+``HDF5Storage.update_episodes`` (one group ``episode_<id>`` with attributes ``id`` and
+``total_steps``; datasets ``observations``, ``actions``, ``rewards``, ``terminations``,
+``truncations`` and a group ``infos``). Differences that Minari's readers do not see: the
+datasets are contiguous (Minari makes them chunked and resizable, which triples the file
+size and only matters for appending steps to an existing episode), and the file is built in
+memory and written once. About 0.7 ms of CPU per episode, 10 s for those 14.5k (tests compare with Minari's
+writer). Everything goes into a private temporary root next to the destination, then moves
+into place with one ``rename``: a crash leaves either no dataset or a complete one, never a
+half-written one under the final id.
 
 Layout (Minari's own): ``<root>/<dataset_id>/data/main_data.hdf5`` + ``metadata.json``.
 Per episode of T steps: T + 1 observations (``observations`` then the last
@@ -56,40 +66,109 @@ def _minari_root(path: Path):
             os.environ["MINARI_DATASETS_PATH"] = old
 
 
-def _episode_buffers(ds: Dataset):
-    from minari.data_collector import EpisodeBuffer
-
+def _cuts(ds: Dataset):
+    """Episode (starts, ends) row ranges, and where a discontinuity forced a split."""
     n = len(ds)
     # Discontinuities inside an episode force a split (see SPLIT_KEY).
     jump = np.zeros(n, bool)
     if n > 1:
         jump[:-1] = ~ds.episode_ends[:-1] & np.any(ds.next_observations[:-1] != ds.observations[1:], axis=1)
-    cut = ds.episode_ends | jump
-    ends = np.flatnonzero(cut) + 1
-    starts = np.concatenate([[0], ends[:-1]])
+    ends = np.flatnonzero(ds.episode_ends | jump) + 1
+    starts = np.concatenate([[0], ends[:-1]]).astype(ends.dtype)
+    return starts, ends, jump
+
+
+def _episodes(ds: Dataset):
+    """Per episode: (observations (T+1), actions, rewards, terminations, truncations, infos)."""
+    starts, ends, jump = _cuts(ds)
     info_keys = sorted(ds.infos)
-    for ep_id, (s, e) in enumerate(zip(starts, ends)):
+    infos_all = {k: np.asarray(ds.infos[k]) for k in info_keys}
+    split_any = bool(jump.any())
+    for s, e in zip(starts.tolist(), ends.tolist()):
         obs = np.concatenate([ds.observations[s:e], ds.next_observations[e - 1 : e]])
-        term = ds.terminals[s:e].copy()
+        term = ds.terminals[s:e]
         trunc = np.zeros(e - s, bool)
         trunc[-1] = not term[-1]
         infos: dict[str, Any] = {}
-        for k in info_keys:
-            v = np.asarray(ds.infos[k])
+        for k, v in infos_all.items():
             infos[k] = np.concatenate([np.zeros((1,) + v.shape[1:], v.dtype), v[s:e]])
-        if jump.any():
+        if split_any:
             split = np.zeros(e - s + 1, np.float32)
             split[-1] = float(jump[e - 1])
             infos[SPLIT_KEY] = split
-        yield EpisodeBuffer(
-            id=ep_id,
-            observations=obs,
-            actions=ds.actions[s:e],
-            rewards=ds.rewards[s:e],
-            terminations=term,
-            truncations=trunc,
-            infos=infos or None,
-        )
+        yield obs, ds.actions[s:e], ds.rewards[s:e], term, trunc, infos
+
+
+def _episode_buffers(ds: Dataset):
+    """The same episodes as Minari ``EpisodeBuffer``s (for Minari's own writer)."""
+    from minari.data_collector import EpisodeBuffer
+
+    for ep_id, (obs, act, rew, term, trunc, infos) in enumerate(_episodes(ds)):
+        yield EpisodeBuffer(id=ep_id, observations=obs, actions=act, rewards=rew, terminations=term.copy(),
+                            truncations=trunc, infos=infos or None)
+
+
+def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) -> tuple[int, int]:
+    """Write every episode of ``ds`` into ``file_path`` in Minari's HDF5 layout.
+
+    Returns (episodes, steps). h5py's high-level ``create_dataset`` spends most of its
+    time in Python (chunk guessing, property lists); the low-level calls with shared
+    property lists and datatypes are about 2x faster, and the in-memory ("core") driver
+    writes the file once at close instead of many small writes.
+    """
+    import h5py
+    from h5py import h5a, h5d, h5g, h5p, h5s, h5t
+
+    n_eps = len(_cuts(ds)[1])
+    tids: dict = {}
+
+    def tid_of(dtype):
+        t = tids.get(dtype)
+        if t is None:
+            t = tids[dtype] = h5t.py_create(dtype, logical=True)
+        return t
+
+    def write(gid, key: bytes, arr: np.ndarray):
+        arr = np.ascontiguousarray(arr)
+        dset = h5d.create(gid, key, tid_of(arr.dtype), h5s.create_simple(arr.shape))
+        dset.write(h5s.ALL, h5s.ALL, arr)
+
+    scalar = h5s.create(h5s.SCALAR)
+
+    def attr(gid, key: bytes, value: int):
+        a = np.asarray(value, np.int64)  # what h5py's ``attrs[key] = int`` stores
+        h5a.create(gid, key, tid_of(a.dtype), scalar).write(a)
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_eps, desc=f"writing {name}", unit="episode", mininterval=1.0)
+    steps = eps = 0
+    # As Minari: the root group tracks the creation order of its episode groups.
+    with h5py.File(file_path, "w", track_order=True, driver="core", backing_store=True) as f:
+        root = f.id
+        for eps, (obs, act, rew, term, trunc, infos) in enumerate(_episodes(ds), start=1):
+            ep_id = eps - 1
+            g = h5g.create(root, f"episode_{ep_id}".encode())
+            attr(g, b"id", ep_id)
+            attr(g, b"total_steps", len(rew))
+            write(g, b"observations", obs)
+            write(g, b"actions", act)
+            write(g, b"rewards", rew)
+            write(g, b"terminations", term)
+            write(g, b"truncations", trunc)
+            if infos:
+                ig = h5g.create(g, b"infos")
+                for k, v in infos.items():
+                    write(ig, k.encode(), v)
+            steps += len(rew)
+            if bar is not None and eps % 500 == 0:
+                bar.update(500)
+    if bar is not None:
+        bar.update(eps - bar.n)
+        bar.close()
+    return eps, steps
 
 
 def _resolve(dataset_id: str | None, path: str | os.PathLike | None, root: str | os.PathLike | None):
@@ -125,6 +204,7 @@ def write_minari(
     metadata: dict[str, Any] | None = None,
     algorithm_name: str = "botorl generator",
     progress: bool = False,
+    _minari_writer: bool = False,
 ) -> Path:
     """Write ``dataset`` as a Minari dataset; returns its folder.
 
@@ -156,18 +236,19 @@ def write_minari(
     try:
         with _minari_root(tmp_root), warnings.catch_warnings():
             warnings.simplefilter("ignore")  # Minari warns about every optional field left empty
-            mds = minari.create_dataset_from_buffers(
-                dataset_id,
-                _progress(list(_episode_buffers(dataset)), progress, dataset_id),
-                algorithm_name=algorithm_name,
-                author="botorl",
-                author_email="none",
-                code_permalink="https://github.com/botorl/botorl",
-                action_space=act_space,
-                observation_space=obs_space,
-                description=description or f"botorl dataset {dataset_id}",
-            )
-            mds.storage.update_metadata({"botorl_metadata": json.dumps(meta, default=_json_default)})
+            kwargs = dict(algorithm_name=algorithm_name, author="botorl", author_email="none",
+                          code_permalink="https://github.com/botorl/botorl", action_space=act_space,
+                          observation_space=obs_space, description=description or f"botorl dataset {dataset_id}")
+            extra = {"botorl_metadata": json.dumps(meta, default=_json_default)}
+            if _minari_writer:  # Minari's own (slow) writer; tests compare the two
+                mds = minari.create_dataset_from_buffers(
+                    dataset_id, _progress(list(_episode_buffers(dataset)), progress, dataset_id), **kwargs)
+            else:  # Minari writes metadata.json for an empty dataset, botorl the episodes
+                mds = minari.create_dataset_from_buffers(dataset_id, [], **kwargs)
+                eps, steps = _write_episodes_h5(dataset, mds.storage.data_path / "main_data.hdf5", progress, dataset_id)
+                extra.update(total_episodes=eps, total_steps=steps)
+            extra["dataset_size"] = mds.storage.get_size()
+            mds.storage.update_metadata(extra)
         _write_flat(dataset, tmp_root / dataset_id / FLAT_FILE, meta)
         # Carry Minari's namespace marker files over if the destination has none.
         ns = Path(dataset_id).parent
