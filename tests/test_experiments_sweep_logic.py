@@ -93,6 +93,15 @@ def test_failed_trial_resumes_from_checkpoint(tmp_path, fake, monkeypatch):
     # a finished grid is never rerun
     Sweep(grid, SweepOptions(out=tmp_path / "sw", backend="local", command=fake, progress=False)).run()
     assert all(starts(sweep.run_dir(t)) == ["run", "resume"] for t in sweep.trials)
+    # other settings in the same directory would mix runs silently: refused
+    other = build_grid(tasks="t1", methods="boto,wsrl", seeds="0", alphas="0.5", profile="full")
+    with pytest.raises(BotorlError, match="profile"):
+        Sweep(other, SweepOptions(out=tmp_path / "sw", command=fake, progress=False)).run()
+    # more seeds are fine: only the new trials run
+    more = build_grid(tasks="t1", methods="boto,wsrl", seeds="0-1", alphas="0.5")
+    manifest = Sweep(more, SweepOptions(out=tmp_path / "sw", command=fake, progress=False)).run()
+    assert manifest["counts"] == {"finished": 4}
+    assert all(starts(sweep.run_dir(t)) == ["run", "resume"] for t in sweep.trials)
 
 
 def test_retry_limit_and_user_errors(tmp_path, fake, monkeypatch, capsys):

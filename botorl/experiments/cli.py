@@ -6,7 +6,14 @@
     botorl report sweeps/alpha [more dirs] [--out DIR] [--select-alpha]
 
 Starting the same `botorl sweep` command again after it was killed finishes the grid:
-finished trials are never rerun, the others resume from their checkpoints.
+finished trials are never rerun, the others resume from their checkpoints. A sweep directory
+keeps one profile and one set of overrides; tasks, methods, seeds and alphas may be added.
+
+On a Ray cluster (--ray-address) every node needs botorl installed and the sweep directory
+on a shared file system: each trial is `python -m botorl.cli run ... --out <dir>` on some node.
+
+`botorl report --select-alpha` criterion: the highest mean over seeds of
+(success_10k + success_final) / 2; ties go to the smaller |alpha| (the less biased critic).
 """
 
 from __future__ import annotations
@@ -46,7 +53,7 @@ class SweepArgs:
     backend: Literal["sequential", "local", "ray"] = "local"
     """sequential: one at a time; local: one pinned process per core; ray: Ray tasks"""
     workers: Optional[int] = None
-    """parallel trials (local, or a local Ray instance); default: the usable cores"""
+    """parallel trials (local: pinned to cores round-robin; ray: CPUs of a local instance); default: the usable cores"""
     max_retries: int = 2
     """a failed trial is resumed from its checkpoint at most this many times per invocation"""
     ray_address: Optional[str] = None

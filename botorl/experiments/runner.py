@@ -310,6 +310,17 @@ class Sweep:
     def _load_manifest(self) -> None:
         old = read_json(self.out / MANIFEST) or {}
         self._cleanup_previous_ray(old)
+        old_grid = old.get("grid") or {}
+        for field in ("profile", "overrides"):
+            if old_grid and old_grid.get(field) != self.grid.to_json()[field]:
+                # finished trials are never rerun, so mixing settings would go unnoticed
+                raise BotorlError(
+                    f"{self.out / MANIFEST} holds a sweep made with {field} "
+                    f"{old_grid.get(field)!r}, but this command asks for "
+                    f"{self.grid.to_json()[field]!r}. Runs of one sweep directory share their "
+                    "settings (tasks, methods, seeds and alphas may be added); use another --out "
+                    "or the same profile and overrides."
+                )
         trials = old.get("trials", {}) if isinstance(old.get("trials"), dict) else {}
         history = list(old.get("invocations", []))
         history.append({"started": _now(), "grid": self.grid.to_json(), "backend": self.opt.backend})
@@ -330,6 +341,10 @@ class Sweep:
             entry.setdefault("launches", 0)
             entry["failures_this_invocation"] = 0
             entry["state"] = "finished" if run_status(self.run_dir(trial)) == "finished" else "pending"
+            if entry["state"] == "finished" and not entry.get("ended"):  # the last sweep was killed
+                with contextlib.suppress(OSError):
+                    mtime = (self.run_dir(trial) / "summary.json").stat().st_mtime
+                    entry["ended"] = _dt.datetime.fromtimestamp(mtime).isoformat(timespec="seconds")
 
     def _save(self) -> None:
         self.manifest["updated"] = _now()
