@@ -47,6 +47,8 @@ FAKE = textwrap.dedent(
         start_at = int(ckpt.read_text()) if ckpt.exists() else 0
     with open(out / "starts.txt", "a") as f:
         f.write(argv[0] + "\\n")
+    (out / "worker.json").write_text(json.dumps({"cpus": sorted(os.sched_getaffinity(0)),
+        "omp": os.environ.get("OMP_NUM_THREADS"), "openblas": os.environ.get("OPENBLAS_NUM_THREADS")}))
     if os.environ.get("FAKE_EXIT"):
         sys.exit(int(os.environ["FAKE_EXIT"]))
     (out / "summary.json").write_text(json.dumps({**cfg, "status": "running"}))
@@ -197,3 +199,23 @@ def _alive_from(run_dir: Path) -> bool:
     except ProcessLookupError:
         return False
     return Path(f"/proc/{info['pid']}/status").read_text().find("State:\tZ") < 0
+
+
+def test_local_workers_are_pinned_single_threaded(tmp_path, fake):
+    cores = sorted(os.sched_getaffinity(0))
+    grid = build_grid(tasks="t1", methods="wsrl", seeds=f"0-{len(cores)}")  # one more than cores
+    sweep = Sweep(grid, SweepOptions(out=tmp_path / "loc", backend="local", command=fake, progress=False))
+    manifest = sweep.run()
+    used = []
+    for trial in sweep.trials:
+        worker = json.loads((sweep.run_dir(trial) / "worker.json").read_text())
+        assert len(worker["cpus"]) == 1 and worker["cpus"][0] in cores
+        assert worker["omp"] == "1" and worker["openblas"] == "1"
+        assert [manifest["trials"][trial.id]["cpu"]] == worker["cpus"]
+        used += worker["cpus"]
+    assert set(used) == set(cores)  # every core got work
+    seq = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0"),
+                SweepOptions(out=tmp_path / "seq", backend="sequential", command=fake, progress=False))
+    seq.run()
+    worker = json.loads((seq.run_dir(seq.trials[0]) / "worker.json").read_text())
+    assert worker["cpus"] == cores  # the sequential backend leaves the whole machine to its trial
