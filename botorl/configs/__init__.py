@@ -1,1 +1,2 @@
-
+"""Run configurations: the dataclasses (``schema``), per-task presets (``presets``), and
+``resolve`` / ``validate`` (``resolve``)."""
