@@ -219,3 +219,12 @@ def test_local_workers_are_pinned_single_threaded(tmp_path, fake):
     seq.run()
     worker = json.loads((seq.run_dir(seq.trials[0]) / "worker.json").read_text())
     assert worker["cpus"] == cores  # the sequential backend leaves the whole machine to its trial
+
+
+def test_ray_backend_without_ray_is_a_clear_error(tmp_path, fake, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
+    sweep = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0"),
+                  SweepOptions(out=tmp_path / "sw", backend="ray", command=fake, progress=False))
+    with pytest.raises(BotorlError, match=r"pip install 'botorl\[ray\]'"):
+        sweep.run()
+    assert json.loads((tmp_path / "sw" / "sweep.json").read_text())["counts"] == {"pending": 1}
