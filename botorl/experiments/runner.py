@@ -532,6 +532,14 @@ class Sweep:
             entry["state"] = "failed"
         if entry["state"] == "failed":
             self._tick(1)
+        what = "retrying" if entry["state"] == "retrying" else "gave up"
+        self._say(f"botorl sweep: {trial.id} {reason} ({what}; log {run_dir / TRIAL_LOG})")
+
+    def _say(self, line: str) -> None:
+        if self._pbar is not None and not self._pbar.disable:
+            self._pbar.write(line, file=sys.stderr)
+        else:
+            print(line, file=sys.stderr)
 
     def _tick(self, n: int) -> None:
         if self._pbar is not None:
