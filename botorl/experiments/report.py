@@ -540,14 +540,14 @@ def alpha_figure(runs: Sequence[Run], path: Path) -> bool:
 
 def _save_fig(fig: Any, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
+    tmp = path.with_name(f".{path.name}.tmp.{os.getpid()}.png")
     fig.savefig(tmp, dpi=120)
     os.replace(tmp, path)
 
 
 def _write_text(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
+    tmp = path.with_name(f".{path.name}.tmp.{os.getpid()}")
     tmp.write_text(text)
     os.replace(tmp, path)
 
