@@ -228,3 +228,27 @@ def test_ray_backend_without_ray_is_a_clear_error(tmp_path, fake, monkeypatch):
     with pytest.raises(BotorlError, match=r"pip install 'botorl\[ray\]'"):
         sweep.run()
     assert json.loads((tmp_path / "sw" / "sweep.json").read_text())["counts"] == {"pending": 1}
+
+
+def test_orphan_of_an_earlier_sweep_is_stopped(tmp_path):
+    from botorl.experiments.runner import TRIAL_PID, stop_orphan, write_json_atomic
+
+    run_dir = tmp_path / "t1" / "wsrl" / "seed0"
+    run_dir.mkdir(parents=True)
+    sleeper = [sys.executable, "-c", "import time; time.sleep(120)"]
+    orphan = subprocess.Popen(sleeper + [str(run_dir.resolve())])
+    stranger = subprocess.Popen(sleeper + ["unrelated"])
+    try:
+        import socket
+
+        write_json_atomic(run_dir / TRIAL_PID, {"pid": stranger.pid, "host": socket.gethostname()})
+        assert not stop_orphan(run_dir)  # a pid that is not this trial's is never touched
+        assert stranger.poll() is None
+        write_json_atomic(run_dir / TRIAL_PID, {"pid": orphan.pid, "host": socket.gethostname()})
+        assert stop_orphan(run_dir)
+        assert orphan.wait(timeout=20) == -signal.SIGTERM
+    finally:
+        for p in (orphan, stranger):
+            if p.poll() is None:
+                p.kill()
+                p.wait()
