@@ -107,7 +107,7 @@ def test_resume_of_finished_run_is_a_no_op(boto_run, capsys):
     "method, stages, pretrain",
     [
         ("wsrl", ["pretrain", "warmup", "finetune"], "calql"),
-        ("cql", ["pretrain", "finetune"], "cql"),
+        ("calql", ["pretrain", "finetune"], "calql"),
         ("iql", ["pretrain", "finetune"], "iql"),
         ("rlpd", ["finetune"], None),
     ],

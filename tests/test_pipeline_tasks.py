@@ -123,3 +123,16 @@ def test_paper_task_smoke(task, tmp_path):
         raw = (z["rewards"] - spec.reward_bias) / spec.reward_scale
         lo, hi = {"antmaze": (0, 1), "kitchen": (0, 4), "adroit": (-1, 0)}[spec.domain]
         assert raw.min() >= lo - 1e-4 and raw.max() <= hi + 1e-4
+
+
+def test_door_binary_local_with_demos_option(door_demos_path, tmp_path, monkeypatch):
+    """door-binary-local makes its data from the demos given by --demos (BOTORL_DOOR_DEMOS unset)."""
+    monkeypatch.delenv("BOTORL_DOOR_DEMOS", raising=False)
+    out = tmp_path / "door-local"
+    code = botorl_main(["run", "--task", "door-binary-local", "--profile", "smoke", "--no-progress",
+                        "--no-tensorboard", "--out", str(out), "--eval.episodes", "1", "--eval.num_envs", "1",
+                        "--demos", str(door_demos_path)])
+    assert code == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["status"] == "finished" and s["task"] == "door-binary-local" and s["alpha"] == 0.0
+    assert json.loads((out / "config.json").read_text())["data"]["demos"] == str(door_demos_path)

@@ -109,6 +109,11 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
         data=DataConfig(), network=net, offline=offline, warmup=WarmupConfig(5_000),
         boto=boto, online=online, eval=EvalConfig(), checkpoint_every=50_000,
     )
+    if spec.domain == "adroit":
+        # The 25 DAPG human demos (door2_sparse.npy / door_human_demos.npz) hold actions up to
+        # |a| = 1.37; the env clips actions to the box, so the Dataset's clip to +-1 keeps what
+        # the env executed. Accept them instead of rejecting the file.
+        cfg = replace(cfg, data=replace(cfg.data, action_tolerance=0.5))
     if profile == "quick":
         cfg = _quick(cfg, spec)
     elif profile == "smoke":

@@ -42,6 +42,8 @@ class DataConfig:
     """Generated tasks only: the dataset's seed (independent of the run seed, like a D4RL file)."""
     demos: str | None = None
     """door-binary-local: the DAPG demos (door_human_demos.npz); default $BOTORL_DOOR_DEMOS."""
+    action_tolerance: float = 1e-3
+    """Largest |action| - 1 accepted in the data before the clip to the box (else an error)."""
 
 
 @dataclass

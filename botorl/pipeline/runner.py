@@ -47,7 +47,8 @@ def load_offline(cfg: RunConfig, spec) -> Dataset:
         ds = spec.load_dataset(None, steps=cfg.data.steps, seed=cfg.data.seed, progress=cfg.progress)
     else:
         ds = spec.load_dataset(cfg.data.path)
-    return validate_dataset(ds, obs_dim=spec.obs_dim, action_dim=spec.action_dim)
+    return validate_dataset(ds, obs_dim=spec.obs_dim, action_dim=spec.action_dim,
+                            action_tolerance=cfg.data.action_tolerance)
 
 
 def transform_dataset(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
@@ -210,7 +211,8 @@ def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict,
         "success_initial": initial["success"] if initial else None,
         # the first evaluation at or after 10k online steps (exactly 10k with the presets)
         "success_10k": after_10k[0]["success"] if after_10k else None,
-        "success_final": final["success"] if final and status == "finished" else (final["success"] if final else None),
+        # the last evaluation (at online.steps once the run has finished)
+        "success_final": final["success"] if final else None,
         "env_step_10k": after_10k[0]["env_step"] if after_10k else None,
         "env_step_final": final["env_step"] if final else None,
         "q_data_initial": initial["q_data"] if initial else None,
