@@ -152,3 +152,27 @@ def test_existing_out_is_refused(capsys, tmp_path):
     (out / "config.json").write_text("{}")
     assert botorl_main(["run", "--profile", "smoke", "--task", "pointmaze-umaze", "--out", str(out)]) == 2
     assert "botorl resume" in capsys.readouterr().err
+
+
+def test_online_mc_returns_follow_the_offline_rule():
+    """Cal-QL continued online: MC returns of finished episodes, same rule as the data."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from botorl.data.replay import ReplayBuffer
+    from botorl.pipeline.runner import with_mc_returns
+    from botorl.pipeline.stages import _fill_mc_returns
+
+    cfg = resolve(make_preset("pointmaze-umaze", "smoke", "calql"))
+    spec = get_task(cfg.task)
+    ctx = SimpleNamespace(mc_returns=lambda ds: with_mc_returns(cfg, spec, ds).mc_returns)
+    buf = ReplayBuffer(10, 1, 1)
+    for r, done in [(-5.0, False), (-5.0, False), (5.0, True), (-5.0, False), (-5.0, False)]:
+        buf.insert(np.zeros(1), np.zeros(1), r, np.zeros(1), done)
+    _fill_mc_returns(ctx, buf, [0, 1, 2])  # reaches the goal
+    _fill_mc_returns(ctx, buf, [3, 4])  # truncated, never succeeds: r_neg / (1 - gamma)
+    g2 = 5.0
+    g1 = -5.0 + 0.99 * g2
+    g0 = -5.0 + 0.99 * g1
+    np.testing.assert_allclose(buf.mc_returns[:5], [g0, g1, g2, -500.0, -500.0], rtol=1e-5)

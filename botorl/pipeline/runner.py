@@ -53,13 +53,16 @@ def load_offline(cfg: RunConfig, spec) -> Dataset:
 
 def transform_dataset(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
     """The task's reward transform, then Cal-QL's Monte-Carlo returns (in transformed units)."""
-    tf = spec.reward_transform
-    out = ds.with_reward_transform(tf)
+    return with_mc_returns(cfg, spec, ds.with_reward_transform(spec.reward_transform))
+
+
+def with_mc_returns(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
+    """MC returns of already-transformed rewards (Cal-QL's rule; algorithms.md section 5)."""
     r_neg = cfg.offline.mc_sparse_negative_reward
     gamma = cfg.offline.iql.discount if cfg.pretrain == "iql" else cfg.offline.cql.discount
-    return out.with_mc_returns(
+    return ds.with_mc_returns(
         gamma,
-        sparse_negative_reward=None if r_neg is None else float(tf(r_neg)),
+        sparse_negative_reward=None if r_neg is None else float(spec.reward_transform(r_neg)),
         infinite_horizon=cfg.offline.mc_infinite_horizon,
     )
 
@@ -113,6 +116,9 @@ class RunContext:
     # -- data
     def transform(self, ds: Dataset) -> Dataset:
         return transform_dataset(self.cfg, self.spec, ds)
+
+    def mc_returns(self, ds: Dataset) -> np.ndarray:
+        return with_mc_returns(self.cfg, self.spec, ds).mc_returns
 
     # -- checkpoints
     def load_agent(self, name: str, like):

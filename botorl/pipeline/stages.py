@@ -112,6 +112,16 @@ def _rng_from(state: dict | None, seed_seq) -> np.random.Generator:
     return rng
 
 
+def _fill_mc_returns(ctx, buffer, rows: list[int]) -> None:
+    """Monte-Carlo returns of one finished online episode, by the offline data's rule."""
+    if not rows:
+        return
+    idx = np.asarray(rows)
+    ep = Dataset(buffer.observations[idx], buffer.actions[idx], buffer.rewards[idx], buffer.next_observations[idx],
+                 buffer.dones[idx] > 0.5, metadata={"source": "online episode"})
+    buffer.mc_returns[idx] = ctx.mc_returns(ep)
+
+
 # ---------------------------------------------------------------------------- stage 1
 def pretrain(ctx, resume: dict | None = None):
     """Offline pre-training with the configured algorithm on the transformed D_offline."""
@@ -297,6 +307,10 @@ def finetune(ctx, agent, d_warmup: Dataset | None, resume: dict | None = None):
     obs, _ = env.reset(seed=env_seed)
     tf = spec.reward_transform
     ep_ret, ep_succ, ep_len = 0.0, 0.0, 0
+    ep_rows: list[int] = []
+    # Cal-QL continued online bounds Q by the MC return of the data, online rows included:
+    # their returns are filled in when the episode ends (zeros until then).
+    needs_mc = bool(getattr(agent.config, "calql", False))
     episodes = int(extra.get("episodes", 0))
     recent_success: list[float] = []
     window: list[dict] = []
@@ -316,12 +330,16 @@ def finetune(ctx, agent, d_warmup: Dataset | None, resume: dict | None = None):
                 action, agent = agent.sample_actions(obs)
                 action = np.asarray(action, dtype=np.float32)
             next_obs, r, terminated, truncated, info = env.step(action)
+            ep_rows.append(buffer.insert_index)
             buffer.insert(obs, action, tf(float(r)), next_obs, terminated)
             ep_ret += float(r)
             ep_len += 1
             ep_succ = max(ep_succ, float(info.get("success", 0.0))) if spec.success_mode == "any" else float(info.get("success", 0.0))
             obs = next_obs
             if terminated or truncated:
+                if needs_mc:
+                    _fill_mc_returns(ctx, buffer, ep_rows)
+                ep_rows = []
                 episodes += 1
                 recent_success.append(ep_succ)
                 obs, _ = env.reset()
