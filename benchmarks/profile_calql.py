@@ -203,14 +203,34 @@ def main(argv=None) -> int:
         calls[name] = _calls_for(fn, args.min_time)
         jitted[name] = fn
 
-    # ---- recompilation: a fresh agent object of the same config must hit the jit cache
-    from botorl.agents.common import jit_update
+    # ---- recompilation: a fresh agent of the same config, numpy or device batches, must
+    # not compile again (XLA compiles are logged by jax_log_compiles)
+    import logging
 
-    before = jit_update._cache_size()
-    a2 = CQLAgent.create(cfg, O, A, seed=7)
-    for _ in range(3):
-        a2, _ = a2.update(make_batch(B, O, A, seed=9))
-    recompiles = jit_update._cache_size() - before
+    compiles = []
+
+    class _Count(logging.Handler):
+        def emit(self, record):
+            if record.getMessage().startswith("Finished XLA compilation"):
+                compiles.append(record.getMessage())
+
+    handler = _Count()
+    jax_logger = logging.getLogger("jax")
+    jax_logger.addHandler(handler)
+    old_level = jax_logger.level
+    jax_logger.setLevel(logging.DEBUG)
+    jax.config.update("jax_log_compiles", True)
+    try:
+        a2 = CQLAgent.create(cfg, O, A, seed=7)
+        for i in range(3):
+            b2 = make_batch(B, O, A, seed=9)
+            a2, _ = a2.update(jax.device_get(b2) if i == 1 else b2)
+        jax.block_until_ready(a2)
+    finally:
+        jax.config.update("jax_log_compiles", False)
+        jax_logger.removeHandler(handler)
+        jax_logger.setLevel(old_level)
+    recompiles = len([m for m in compiles if "_update" in m])
 
     samples = {name: [] for name in jitted}
     peaks = []
@@ -235,7 +255,7 @@ def main(argv=None) -> int:
     for k, v in per_update.items():
         print(f"{k:18s} {v:9.1f} updates/s ({1e3 / v:.2f} ms/update)")
     print(f"{'host_sample_only':18s} {med['host_sample_only']:9.1f} batches/s ({1e3 / med['host_sample_only']:.2f} ms/batch)")
-    print(f"recompilations for a new agent of the same config: {recompiles}")
+    print(f"XLA compilations of the update for a new agent of the same config (3 calls, numpy and device batches): {recompiles}")
     out["per_update"] = per_update
     if args.json:
         with open(args.json, "w") as f:

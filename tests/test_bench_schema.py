@@ -38,3 +38,12 @@ def test_schema(result, tmp_path):
 def test_unknown_workload_is_a_user_error():
     with pytest.raises(BotorlError, match="unknown workload"):
         main(["--only", "nope"])
+
+
+def test_botorl_bench_against_routes_to_the_comparison():
+    # `botorl bench --against d3rlpy` reaches botorl.benchmarks (its workload names), and
+    # rejects a bad one before any venv is made.
+    from botorl.bench import main as bench_main
+
+    with pytest.raises(BotorlError, match="unknown workload"):
+        bench_main(["--against", "d3rlpy", "--only", "nope"])
