@@ -117,11 +117,18 @@ WORKLOADS: dict[str, tuple[str, Callable[[int, int], dict]]] = {
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if any(a == "--against" or a.startswith("--against=") for a in argv):
+        # The side-by-side comparison (issue 7) lives in botorl/benchmarks/.
+        from botorl.benchmarks.suite import main as against_main
+
+        return against_main(argv)
     parser = argparse.ArgumentParser(prog="botorl bench", description=__doc__.splitlines()[0])
     parser.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats per workload (median reported)")
     parser.add_argument("--steps", type=int, default=20, help="updates per repeat (CQL workloads use a quarter)")
     parser.add_argument("--only", nargs="*", default=None, help=f"workload names: {', '.join(WORKLOADS)}")
+    parser.add_argument("--against", choices=["d3rlpy"], help="compare with d3rlpy (see botorl.benchmarks.suite)")
     args = parser.parse_args(argv)
     from botorl.errors import ConfigError
     from botorl.jaxsetup import setup_jax
