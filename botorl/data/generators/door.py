@@ -3,13 +3,20 @@
 Cal-QL's door-binary-v0 data are the human demos (``door2_sparse.npy``) plus rollouts of a
 behaviour-cloned policy (``door_bc_sparse4.npy``). Both halves are made here:
 
-1. Demos: the recorded observations/actions of ``door_human_demos.npz`` are used as they are
-   (open-loop replay in today's simulator does not reproduce them, and resetting the env to a
-   demo's stored initial state does not give the recorded first observation: the stored
-   ``init_qpos`` has the hand's base joints (qpos 0-5) at 0, while the recorded first
-   observations already show them moved, so the palm position (obs 29-31, 35-37) differs too;
-   the recordings start after the stored state). Transition t is (obs[t], act[t], obs[t+1]),
-   so each demo's last recorded row, which has no successor, gives no transition.
+1. Demos: the recorded observations/actions of ``door_human_demos.npz`` are used as they are.
+   Transition t is (obs[t], act[t], obs[t+1]), so each demo's last recorded row, which has no
+   successor, gives no transition. Why resetting to the stored state differs (checked in
+   gymnasium-robotics 1.4.2 / mujoco 4): every stored ``init_qpos`` is all zeros (the env's
+   default pose), while the recordings start with the arm already moved (obs 0-4 = qpos 1-5,
+   e.g. ARRz 0.39), hence the palm (obs 29-31, 35-37) differs too. Setting qpos 1-27 from
+   obs[0] (hinge, latch from obs 28, 27) and solving the unobserved slide qpos 0 from the palm
+   position reproduces the recorded first observation exactly (max error < 1e-4), and
+   open-loop replay of the demo actions from there, *as normalised actions* (the env maps
+   a in [-1, 1] to act_mean + a * act_rng and clips |a| > 1, 5.6% of the entries), follows the
+   recorded hinge angle to 0.007 rad on average and succeeds in 8 of 25 demos (7 of 25 in the
+   recording; replaying them as raw actuator targets: 0 of 25, 0.36 rad off). So the demos
+   do match this env; only 7 of them reach 1.35 at all, and only 6 before step 200 (the
+   horizon): the humans reach hinge 1.0 only after 157-277 steps.
 2. BC rollouts: a 2 x 256 MLP (tanh output) is fit to all 25 demos by mean squared error
    (optax Adam 1e-3, ``bc_steps`` steps, batch 256), then rolled out in ``AdroitHandDoor-v1``
    from the env's own random resets, with Gaussian action noise ``N(0, noise_std^2)``, through
@@ -19,9 +26,14 @@ Both halves get the binary reward (``obs'[28] >= 1.35`` -> 0, else -1), every su
 terminal, and successful trajectories are cut right after their last success step (Cal-QL's
 loading rule). Cal-QL also drops trajectories that never succeed; here that is
 ``drop_unsuccessful=True``. The default keeps them (as truncated, all -1 trajectories)
-because this BC policy rarely succeeds (0 of 10 episodes measured, deterministic or with
-noise 0.1, 3k or 10k BC steps, with or without observation normalisation), and only 8 of
-the 25 demos reach the 1.35 hinge angle, so the filter would leave a handful of demos.
+because this BC policy rarely succeeds, and only 7 of the 25 demos reach the 1.35 hinge
+angle, so the filter would leave a handful of demos. Measured BC success in AdroitHandDoor-v1
+(20 episodes from the env's random resets, horizon 200; deterministic / noise 0.1):
+2x256, 3k steps: 0.00 / 0.00 (mean max hinge 0.01); with observation normalisation:
+0.00 / 0.00; 20k steps + normalisation: 0.05 / 0.00; 3x512, 20k steps + normalisation
+(loss 0.0033): 0.10 / 0.00 (mean max hinge 0.23). The policy mostly never unlatches the
+door: the env starts with the arm at its zero pose, which no demo state shows, and the demos
+are slow (see 1.).
 ``steps`` counts BC-rollout env steps collected. The success rate of the rollouts is stored
 in ``metadata["bc_success_rate"]``.
 """
