@@ -284,7 +284,7 @@ def execute(cfg: RunConfig, run: RunDir, d_offline_raw: Dataset, *, resume: bool
         agent = ctx.load_agent(checkpoint_name(last, None), _template(cfg, last, d_offline))
     if "warmup" in state["done_stages"]:
         arrays = ckpt.arrays(checkpoint_name("warmup", None), "warmup")
-        d_warmup = _dataset_from_arrays(arrays, "D_warmup (checkpoint)")
+        d_warmup = _dataset_from_arrays(arrays, "D_warmup (checkpoint)") if arrays else None
 
     try:
         for stage in method.stages:
@@ -298,7 +298,7 @@ def execute(cfg: RunConfig, run: RunDir, d_offline_raw: Dataset, *, resume: bool
                 ctx.log_q("pretrain", cfg.offline.steps, agent)
             elif stage == "warmup":
                 d_warmup, agent = S.warmup(ctx, agent)
-                arrays = {"warmup": _dataset_arrays(d_warmup)}
+                arrays = {"warmup": _dataset_arrays(d_warmup)} if d_warmup is not None else None
             elif stage == "boto":
                 if resume_here is not None and agent is None:
                     agent = _template(cfg, "boto", d_offline)

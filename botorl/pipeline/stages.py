@@ -171,11 +171,13 @@ def pretrain(ctx, resume: dict | None = None):
 
 
 # ---------------------------------------------------------------------------- stage 2a
-def warmup(ctx, agent) -> tuple[Dataset, Any]:
+def warmup(ctx, agent) -> tuple[Dataset | None, Any]:
     """D_warmup: ``warmup.steps`` env steps of the frozen pre-trained policy (stochastic)."""
     cfg = ctx.cfg
     spec = ctx.spec
     n = cfg.warmup.steps
+    if n == 0:
+        return None, agent
     env = spec.make_env(seed=cfg.seed * 1000 + 7)
     obs, _ = env.reset(seed=cfg.seed * 1000 + 7)
     O, A = ctx.d_offline.obs_dim, ctx.d_offline.action_dim
