@@ -182,6 +182,12 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
         worker.close()
 
     peak = max(peaks)
+    for w in chosen:  # rows that share another row's d3rlpy update (same round, same figures)
+        twin = rows.get(w.d3rlpy_same_as or "")
+        if twin is not None:
+            rows[w.name]["d3rlpy_samples"] = list(twin["d3rlpy_samples"])
+            rows[w.name]["d3rlpy_cpu_samples"] = list(twin["d3rlpy_cpu_samples"])
+            rows[w.name]["d3rlpy_same_as"] = w.d3rlpy_same_as
     for name, row in rows.items():
         row["botorl_updates_per_s"] = _median(row["botorl_samples"])
         row["d3rlpy_updates_per_s"] = _median(row["d3rlpy_samples"])
@@ -221,7 +227,8 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
 def _shapes(w: wl.Workload) -> dict[str, Any]:
     return {"num_critics": w.num_critics, "critic_hidden": list(w.critic_hidden),
             "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim,
-            "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples}
+            "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples,
+            "updates_per_call": w.scan_k}
 
 
 def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, Any]:

@@ -44,6 +44,8 @@ class Workload:
     d3rlpy_algo: str | None = None
     note: str = ""
     layer_norm: bool = True  # WSRL/Cal-QL: LayerNorm after hidden layers; IQL: none
+    scan_k: int = 1  # > 1: K updates per call via update_many (lax.scan), as the pipeline pre-trains
+    d3rlpy_same_as: str | None = None  # compare with that row's d3rlpy figures (same update)
 
     def d3rlpy_spec(self) -> dict[str, Any] | None:
         if self.d3rlpy_algo is None:
@@ -57,7 +59,7 @@ class Workload:
 
     def tiny(self) -> "Workload":
         """Same update on toy sizes (tests: compiles in seconds)."""
-        return dataclasses.replace(self, label=self.label.split(",")[0] + ", tiny", critic_hidden=(16,), actor_hidden=(16,), batch=8,
+        return dataclasses.replace(self, label=self.label[:26] + " [tiny]", critic_hidden=(16,), actor_hidden=(16,), batch=8,
                                    num_critics=min(self.num_critics, 2), obs_dim=5, action_dim=2,
                                    n_action_samples=2)
 
@@ -84,6 +86,11 @@ WORKLOADS: dict[str, Workload] = {w.name: w for w in [
     Workload("boto_critic", "BOTO critic step, 10 x 4x256", "boto", 10, _H4, _H2,
              d3rlpy_algo="sac_critic",
              note="d3rlpy has no BOTO: compared with its SAC critic step (no noise/penalty)"),
+    Workload("calql_k8", "Cal-QL step, 8 per call (scan)", "calql", 2, _H2, _H2, scan_k=8,
+             d3rlpy_same_as="calql",
+             note="update_many over 8 batches (the pipeline's pre-training path); d3rlpy: its per-call Cal-QL step"),
+    Workload("sac10_k8", "SAC step 10 x 4x256, 8 per call", "sac", 10, _H4, _H2, scan_k=8,
+             d3rlpy_same_as="sac10", note="update_many over 8 batches; d3rlpy: its per-call SAC step"),
     Workload("calql_adroit", "Cal-QL step, 2 x 3x512 (adroit)", "calql", 2, (512, 512, 512), (512, 512),
              obs_dim=39, action_dim=28, d3rlpy_algo="calql", note="door sizes"),
 ]}
@@ -127,17 +134,23 @@ def _net_fields(w: Workload, utd: int = 1) -> dict[str, Any]:
                 num_critics=w.num_critics, utd_ratio=utd)
 
 
-def _agent_step(agent: Any, batch: dict) -> Bound:
+def _agent_step(agent: Any, batch: dict, scan_k: int = 1) -> tuple:
+    """(step, flop_fn, flop_args, updates_per_call) for plain updates or K per call."""
     state = {"agent": agent}
+    if scan_k > 1:
+        batch = jax.tree_util.tree_map(lambda x: jax.numpy.stack([x] * scan_k), batch)
+        call = lambda a, b: a.update_many(b)  # noqa: E731
+    else:
+        call = lambda a, b: a.update(b)  # noqa: E731
 
     def step(n: int) -> None:
         a = state["agent"]
         for _ in range(n):
-            a, info = a.update(batch)
+            a, info = call(a, batch)
         jax.block_until_ready(a)
         state["agent"] = a
 
-    return step, (lambda a, b: a.update(b)), (agent, batch)
+    return step, call, (agent, batch), scan_k
 
 
 def build(w: Workload, seed: int = 0) -> Bound:
@@ -149,13 +162,13 @@ def build(w: Workload, seed: int = 0) -> Bound:
             cfg = _config(SACConfig, **_net_fields(w, w.utd))
             agent = SACAgent.create(cfg, w.obs_dim, w.action_dim, seed)
             batch = make_batch(w.batch * w.utd, w.obs_dim, w.action_dim, seed)
-            return Bound(w, *_agent_step(agent, batch))
+            return Bound(w, *_agent_step(agent, batch, w.scan_k))
         if w.algo in ("calql", "cql"):
             from botorl.agents.cql import CQLAgent, CQLConfig
 
             cfg = _cql_config(CQLConfig, w)
             agent = CQLAgent.create(cfg, w.obs_dim, w.action_dim, seed)
-            return Bound(w, *_agent_step(agent, make_batch(w.batch, w.obs_dim, w.action_dim, seed)))
+            return Bound(w, *_agent_step(agent, make_batch(w.batch, w.obs_dim, w.action_dim, seed), w.scan_k))
         if w.algo == "iql":
             from botorl.agents.iql import IQLAgent, IQLConfig
 
