@@ -156,9 +156,9 @@ def main(argv: list[str] | None = None) -> int:
         "results": results,
     }
     if args.json is not None:
-        from botorl.agents.checkpoint import _atomic_write_bytes
+        from botorl.io import atomic_write_bytes
 
-        _atomic_write_bytes(args.json, json.dumps(out, indent=2).encode())
+        atomic_write_bytes(args.json, json.dumps(out, indent=2).encode())
     return 0
 
 

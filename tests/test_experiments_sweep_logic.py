@@ -231,7 +231,8 @@ def test_ray_backend_without_ray_is_a_clear_error(tmp_path, fake, monkeypatch):
 
 
 def test_orphan_of_an_earlier_sweep_is_stopped(tmp_path):
-    from botorl.experiments.runner import TRIAL_PID, stop_orphan, write_json_atomic
+    from botorl.experiments.runner import TRIAL_PID, stop_orphan
+    from botorl.io import atomic_write_json as write_json_atomic
 
     run_dir = tmp_path / "t1" / "wsrl" / "seed0"
     run_dir.mkdir(parents=True)

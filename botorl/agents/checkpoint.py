@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import jax
@@ -21,6 +20,7 @@ import numpy as np
 from flax import serialization
 
 from botorl.errors import DataFormatError
+from botorl.io import atomic_write_bytes
 
 FORMAT = "botorl-agent-v1"
 
@@ -30,23 +30,6 @@ def _config_json(config) -> str:
         return json.dumps(dataclasses.asdict(config), sort_keys=True, default=str)
     except TypeError:
         return json.dumps(repr(config))
-
-
-def _atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write via a temp file in the same folder + os.replace: never a half-written file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def save(path: str | os.PathLike, agent) -> Path:
@@ -59,7 +42,7 @@ def save(path: str | os.PathLike, agent) -> Path:
         "config": _config_json(agent.config),
         "state": state,
     }
-    _atomic_write_bytes(path, serialization.msgpack_serialize(payload))
+    atomic_write_bytes(path, serialization.msgpack_serialize(payload))
     return path
 
 

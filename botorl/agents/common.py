@@ -17,6 +17,7 @@ import optax
 from flax.training.train_state import TrainState
 
 from botorl.errors import ConfigError
+from botorl.networks import sample_tanh_gaussian, tanh_gaussian_mode
 
 __all__ = ["TrainState", "polyak", "jit_update", "jit_update_many", "jit_sample", "jit_eval", "adam", "check_batch"]
 
@@ -49,11 +50,16 @@ def _update_many(agent, batches):
 
 
 def _sample(agent, observations):
-    return agent._sample_actions(observations)
+    # Every agent's actor is a tanh-Gaussian behind ``agent.policy`` (SAC, CQL, IQL alike).
+    rng, key = jax.random.split(agent.rng)
+    mean, log_std = agent.policy(observations)
+    actions, _ = sample_tanh_gaussian(key, mean, log_std)
+    return actions, agent.replace(rng=rng)
 
 
 def _eval(agent, observations):
-    return agent._eval_actions(observations)
+    mean, _ = agent.policy(observations)
+    return tanh_gaussian_mode(mean)
 
 
 jit_update = jax.jit(_update)

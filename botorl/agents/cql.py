@@ -30,11 +30,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import flax.struct as struct
 import jax
 import jax.numpy as jnp
 
-from botorl.agents.common import TrainState, adam
+from botorl.agents.common import TrainState, adam, polyak
 from botorl.agents.sac import SACAgent, SACConfig, temp_def
 from botorl.networks import sample_tanh_gaussian
 
@@ -152,9 +151,7 @@ class CQLAgent(SACAgent):
         grads, info = jax.grad(self.critic_loss, has_aux=True)(self.critic.params, batch, target, k_loss)
         diff = info.pop("_diff")
         critic = self.critic.apply_gradients(grads=grads)
-        target_params = jax.tree_util.tree_map(
-            lambda p, t: self.config.tau * p + (1.0 - self.config.tau) * t, critic.params, self.target_critic_params
-        )
+        target_params = polyak(critic.params, self.target_critic_params, self.config.tau)
         agent = self.replace(critic=critic, target_critic_params=target_params)
         if self.config.cql_lagrange:
             l_loss, l_grads = jax.value_and_grad(self.lagrange_loss)(self.lagrange.params, diff)

@@ -40,7 +40,7 @@ from botorl.agents.common import (
 )
 from botorl.agents.sac import actor_def, critic_def
 from botorl.errors import ConfigError
-from botorl.networks import ValueNetwork, sample_tanh_gaussian, tanh_gaussian_log_prob, tanh_gaussian_mode
+from botorl.networks import ValueNetwork, tanh_gaussian_log_prob
 
 import functools
 
@@ -181,13 +181,3 @@ class IQLAgent(struct.PyTreeNode):
         critic = agent.critic.apply_gradients(grads=g)
         agent = agent.replace(critic=critic, target_critic_params=polyak(critic.params, agent.target_critic_params, agent.config.tau))
         return agent, {**v_info, **a_info, **c_info}
-
-    def _sample_actions(self, observations):
-        rng, key = jax.random.split(self.rng)
-        mean, log_std = self.policy(observations)
-        actions, _ = sample_tanh_gaussian(key, mean, log_std)
-        return actions, self.replace(rng=rng)
-
-    def _eval_actions(self, observations):
-        mean, _ = self.policy(observations)
-        return tanh_gaussian_mode(mean)

@@ -48,7 +48,6 @@ from botorl.networks import (
     Temperature,
     sample_tanh_gaussian,
     subsample_ensemble,
-    tanh_gaussian_mode,
 )
 
 
@@ -357,16 +356,6 @@ class SACAgent(struct.PyTreeNode):
         agent, a_info = agent.actor_step(batch, k_actor)
         agent, t_info = agent.temp_step(a_info["entropy"])
         return agent, {**info, **a_info, **t_info}
-
-    def _sample_actions(self, observations):
-        rng, key = jax.random.split(self.rng)
-        mean, log_std = self.policy(observations)
-        actions, _ = sample_tanh_gaussian(key, mean, log_std)
-        return actions, self.replace(rng=rng)
-
-    def _eval_actions(self, observations):
-        mean, _ = self.policy(observations)
-        return tanh_gaussian_mode(mean)
 
 
 def _dims_of(agent) -> tuple[int, int]:

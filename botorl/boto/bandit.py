@@ -25,15 +25,14 @@ Choices made here (not fixed by the paper):
 
 from __future__ import annotations
 
-import json
-import os
-import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
 
 import numpy as np
+
+from botorl.io import atomic_save_figure, atomic_write_json
 
 FIG3_ALPHAS = (-1.0, -0.5, 0.0, 0.5, 1.0)
 FIG3_SIGMA = 0.25
@@ -277,7 +276,7 @@ def plot_fig3(res: dict, path: Path) -> None:
         else:
             a.legend(fontsize=7, loc="lower left")
         a.set_xlabel("action a")
-    _save_fig(fig, path)
+    atomic_save_figure(fig, path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -428,31 +427,11 @@ def plot_fig2(res: dict, path: Path) -> None:
     fig.colorbar(im, ax=axes[0, :].tolist(), shrink=0.85, label="Q(a) (dots: reward r)", extend="both")
     fig.suptitle("bandit-pinwheel: Q over the action square (top; dots = data, coloured by reward) "
                  "and KDE of Q values (bottom)", fontsize=11)
-    _save_fig(fig, path)
+    atomic_save_figure(fig, path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
 # ----------------------------------------------------------------------------- I/O and CLI
-
-
-def _save_fig(fig, path: Path) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".png")
-    os.close(fd)
-    try:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
-def _write_json(obj: dict, path: Path) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(obj, f, indent=1)
-    os.replace(tmp, path)
 
 
 def main(argv: list[str]) -> int:
@@ -474,7 +453,7 @@ def main(argv: list[str]) -> int:
         fig2.pop("_plot")
         result["fig2"] = fig2
     result["seconds"] = time.perf_counter() - t0
-    _write_json(result, out / "bandit.json")
+    atomic_write_json(out / "bandit.json", result, indent=1)
     print(f"wrote {out / 'bandit_fig3.png'}" + ("" if cfg.skip_fig2 else f", {out / 'bandit_fig2.png'}") +
           f", {out / 'bandit.json'} in {result['seconds']:.0f} s")
     for r in fig3["alphas"]:

@@ -117,7 +117,7 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
     writes the file once at close instead of many small writes.
     """
     import h5py
-    from h5py import h5a, h5d, h5g, h5p, h5s, h5t
+    from h5py import h5a, h5d, h5g, h5s, h5t
 
     n_eps = len(_cuts(ds)[1])
     tids: dict = {}

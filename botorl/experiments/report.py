@@ -29,6 +29,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from botorl.errors import BotorlError
+from botorl.io import atomic_save_figure, atomic_write_text
 
 POINTS = (("initial", "success_initial"), ("10k", "success_10k"), ("final", "success_final"))
 SELECT_ALPHA_CRITERION = (
@@ -485,7 +486,7 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
         ax.set_visible(False)
     fig.suptitle("Success during online fine-tuning (mean ± standard error over seeds)", fontsize=10)
     fig.tight_layout()
-    _save_fig(fig, path)
+    atomic_save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 
@@ -533,23 +534,9 @@ def alpha_figure(runs: Sequence[Run], path: Path) -> bool:
         ax.set_visible(False)
     fig.suptitle("Alpha sensitivity (mean ± standard error over seeds)", fontsize=10)
     fig.tight_layout()
-    _save_fig(fig, path)
+    atomic_save_figure(fig, path, dpi=120)
     plt.close(fig)
     return True
-
-
-def _save_fig(fig: Any, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.{os.getpid()}.png")
-    fig.savefig(tmp, dpi=120)
-    os.replace(tmp, path)
-
-
-def _write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -663,8 +650,8 @@ def make_report(
                 f"{task} / {label}{'' if alpha is None else f' alpha {alpha:+.2f}'}: seed(s) "
                 f"{dupes} appear more than once ({where}); each run counts as one sample"
             )
-    _write_text(out / "table1.csv", cells_csv(cells))
-    _write_text(out / "aggregate_iqm.csv", aggregate_csv(aggs))
+    atomic_write_text(out / "table1.csv", cells_csv(cells))
+    atomic_write_text(out / "aggregate_iqm.csv", aggregate_csv(aggs))
     files += [out / "table1.csv", out / "aggregate_iqm.csv"]
     if runs:
         figure5(runs, out / "figure5.png", grid_points=grid_points)
@@ -707,9 +694,9 @@ def make_report(
         md.append("")
     if notes:
         md += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]
-    _write_text(out / "report.md", "\n".join(md))
+    atomic_write_text(out / "report.md", "\n".join(md))
     files.insert(0, out / "report.md")
     if selection.choices:
-        _write_text(out / "alpha_selection.txt", selection.text() + "\n")
+        atomic_write_text(out / "alpha_selection.txt", selection.text() + "\n")
         files.append(out / "alpha_selection.txt")
     return ReportResult(out, runs, skipped, cells, aggs, files, notes)

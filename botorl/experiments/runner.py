@@ -38,6 +38,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from botorl.io import atomic_write_json
 from botorl.errors import BotorlError, ConfigError
 from botorl.experiments.grid import Grid, Trial
 
@@ -86,24 +87,6 @@ def _now() -> str:
     return _dt.datetime.now().isoformat(timespec="seconds")
 
 
-_UMASK = os.umask(0)
-os.umask(_UMASK)
-
-
-def write_json_atomic(path: Path, data: Any) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp's 0600 would hide the manifest from a shared group
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=2, sort_keys=False)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
 
 
 def read_json(path: Path) -> dict[str, Any] | None:
@@ -355,7 +338,7 @@ class Sweep:
         self.manifest["updated"] = _now()
         states = [self.manifest["trials"][t.id]["state"] for t in self.trials]
         self.manifest["counts"] = {s: states.count(s) for s in sorted(set(states))}
-        write_json_atomic(self.out / MANIFEST, self.manifest)
+        atomic_write_json(self.out / MANIFEST, self.manifest)
 
     def _entry(self, trial: Trial) -> dict[str, Any]:
         return self.manifest["trials"][trial.id]
@@ -441,7 +424,7 @@ class Sweep:
                 cwd=str(self.out),
                 preexec_fn=_child_setup(cpu, os.getpid()),
             )
-        write_json_atomic(run_dir / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": cpu})
+        atomic_write_json(run_dir / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": cpu})
         entry = self._entry(trial)
         entry.update(pid=proc.pid, cpu=cpu)
         self._save()
@@ -676,7 +659,7 @@ def _ray_trial(cmd: list[str], env: dict[str, str], log: str, run_dir: str, cwd:
             cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             env=full_env, cwd=cwd, preexec_fn=_child_setup(None, os.getpid()),
         )
-    write_json_atomic(Path(run_dir) / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": None})
+    atomic_write_json(Path(run_dir) / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": None})
     try:
         return proc.wait()
     except BaseException:  # ray.cancel raises in the worker: do not leave the trial running
