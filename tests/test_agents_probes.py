@@ -6,7 +6,6 @@ compiles once.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest

@@ -5,8 +5,6 @@ No training here: every bad configuration must fail before any work (no run dire
 
 from __future__ import annotations
 
-import dataclasses
-import os
 
 import pytest
 
@@ -82,7 +80,21 @@ def test_dotted_overrides_and_shortcuts():
     assert cfg.online.sac.critic_hidden_dims == (64, 64) == cfg.offline.cql.critic_hidden_dims
     assert cfg.alpha == 0.3 == cfg.boto.alpha and cfg.data.demos == "/x/demos.npz"
     bare = build_config([])
-    assert (bare.task, bare.method, bare.profile, bare.pretrain) == ("pointmaze-large", "boto", "quick", "calql")
+    assert (bare.task, bare.method, bare.profile, bare.pretrain) == ("pointmaze-large", "boto", "quick", "iql")
+    assert bare.offline.steps == 100_000
+
+
+def test_quick_pointmaze_pretrain_default_and_budget():
+    # quick pointmaze: IQL by default with the 100k steps the large maze needs; an explicit
+    # Cal-QL/CQL keeps the 10k its ~9x costlier step affords; other domains keep Cal-QL.
+    assert build_config(["--method", "wsrl"]).pretrain == "iql"
+    calql = build_config(["--pretrain", "calql"])
+    assert calql.pretrain == "calql" and calql.offline.steps == 10_000 and calql.offline.cql.calql
+    assert build_config(["--method", "iql"]).offline.steps == 100_000
+    assert build_config(["--method", "cql"]).offline.steps == 10_000
+    door = build_config(["--task", "door-binary-local"])
+    assert door.pretrain == "calql" and door.offline.steps == 10_000
+    assert build_config(["--profile", "full"]).pretrain == "calql"
 
 
 # ----------------------------------------------------------------------------- errors

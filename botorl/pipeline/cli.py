@@ -14,7 +14,6 @@ $BOTORL_DOOR_DEMOS).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path

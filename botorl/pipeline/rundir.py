@@ -22,27 +22,13 @@ import io
 import json
 import math
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
+from botorl.io import atomic_write_bytes
+from botorl.io import atomic_write_json as _atomic_write_json
+
 EVAL_COLUMNS = ["stage", "env_step", "success", "return", "q_data", "q_uniform"]
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _jsonable(x: Any) -> Any:
@@ -63,7 +49,8 @@ def _jsonable(x: Any) -> Any:
 
 
 def atomic_write_json(path: Path, obj: Any) -> None:
-    atomic_write_bytes(path, (json.dumps(_jsonable(obj), indent=2) + "\n").encode())
+    """JSON with numpy scalars unwrapped and non-finite floats made valid JSON."""
+    _atomic_write_json(path, _jsonable(obj))
 
 
 def read_json(path: Path) -> Any:

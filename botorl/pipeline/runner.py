@@ -19,12 +19,12 @@ import numpy as np
 
 from botorl.configs.schema import RunConfig, to_dict
 from botorl.data.dataset import Dataset
-from botorl.errors import BotorlError, ConfigError, TrainingDivergedError
+from botorl.errors import ConfigError, TrainingDivergedError
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_name
 from botorl.pipeline.evaluation import QProbe, run_episodes
 from botorl.pipeline.methods import get_method
-from botorl.pipeline.rundir import EVAL_COLUMNS, CsvLog, MetricsLogger, RunDir, atomic_write_json, read_json
+from botorl.pipeline.rundir import EVAL_COLUMNS, CsvLog, MetricsLogger, RunDir, atomic_write_json
 
 _DS_FIELDS = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends", "mc_returns")
 
@@ -386,7 +386,7 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    from botorl.pipeline.rundir import atomic_write_bytes
+    from botorl.io import atomic_write_bytes
 
     atomic_write_bytes(run.curve, buf.getvalue())
     return run.curve

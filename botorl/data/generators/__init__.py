@@ -24,7 +24,7 @@ GENERATORS: dict[str, str] = {
 # Default dataset sizes (transitions / env steps) when none is given; pointmaze as D4RL
 # maze2d-large (1M); door: BC rollout steps on top of the 25 demos (our choice); bandits:
 # enough samples for the figures, few enough that Minari's one-group-per-episode files
-# stay quick to write (about 2.5 ms per one-step episode) (our choice).
+# stay quick to write (botorl.data.minari_io: about 0.7 ms per episode) (our choice).
 DEFAULT_STEPS: dict[str, int] = {
     "pointmaze-umaze": 1_000_000,
     "pointmaze-medium": 1_000_000,
