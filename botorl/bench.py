@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats per workload (median reported)")
     parser.add_argument("--steps", type=int, default=20, help="updates per repeat (CQL workloads use a quarter)")
     parser.add_argument("--only", nargs="*", default=None, help=f"workload names: {', '.join(WORKLOADS)}")
-    parser.add_argument("--against", choices=["d3rlpy"], help="compare with d3rlpy (see botorl.benchmarks.suite)")
+    parser.add_argument("--against", choices=["d3rlpy"], help="compare with d3rlpy in the same run; its own options (--threads, --quick, --min-time, ...): `botorl bench --against d3rlpy --help`")
     args = parser.parse_args(argv)
     from botorl.errors import ConfigError
     from botorl.jaxsetup import setup_jax

@@ -13,7 +13,7 @@ whose reward is +10 / -0.1 and whose pen horizon is 200):
 
 from __future__ import annotations
 
-from botorl.envs.wrappers import TaskEnv
+from botorl.envs.wrappers import TaskEnv, import_robotics
 
 DOOR_OBS_DIM, PEN_OBS_DIM = 39, 45
 DOOR_ACTION_DIM, PEN_ACTION_DIM = 28, 24
@@ -30,12 +30,14 @@ class AdroitBinaryTask(TaskEnv):
 
 
 def make_door(seed: int | None = None) -> AdroitBinaryTask:
+    import_robotics()
     from gymnasium_robotics.envs.adroit_hand.adroit_door import AdroitHandDoorEnv
 
     return AdroitBinaryTask(AdroitHandDoorEnv(reward_type="dense"), DOOR_OBS_DIM, seed)
 
 
 def make_pen(seed: int | None = None) -> AdroitBinaryTask:
+    import_robotics()
     from gymnasium_robotics.envs.adroit_hand.adroit_pen import AdroitHandPenEnv
 
     return AdroitBinaryTask(AdroitHandPenEnv(reward_type="dense"), PEN_OBS_DIM, seed)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from botorl.envs.wrappers import TaskEnv
+from botorl.envs.wrappers import TaskEnv, import_robotics
 
 START_CELL = (1, 1)
 GOAL_CELL = (7, 9)
@@ -41,6 +41,7 @@ class AntMazeTask(TaskEnv):
 
 
 def make_antmaze(seed: int | None = None) -> AntMazeTask:
+    import_robotics()
     from gymnasium_robotics.envs.maze import maps
     from gymnasium_robotics.envs.maze.ant_maze_v4 import AntMazeEnv
 

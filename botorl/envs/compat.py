@@ -17,6 +17,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from botorl.envs.wrappers import import_robotics
+
 _applied = False
 
 # Width of a joint in qpos / qvel, by integer joint type (mjtJoint: FREE=0, BALL=1, SLIDE=2, HINGE=3).
@@ -73,6 +75,7 @@ def apply() -> bool:
         return True
     if not needs_patch():
         return False
+    import_robotics()
     from gymnasium_robotics.utils import mujoco_utils
 
     # robot_get_obs and the kitchen env look these up as module globals at call time.

@@ -23,7 +23,7 @@
 from __future__ import annotations
 
 from botorl.envs import compat
-from botorl.envs.wrappers import TaskEnv
+from botorl.envs.wrappers import TaskEnv, import_robotics
 
 PARTIAL_TASKS = ("microwave", "kettle", "light switch", "slide cabinet")
 MIXED_TASKS = ("microwave", "kettle", "bottom burner", "light switch")
@@ -46,6 +46,7 @@ class KitchenTask(TaskEnv):
 
 def make_kitchen(tasks, seed: int | None = None) -> KitchenTask:
     compat.apply()
+    import_robotics()
     from gymnasium_robotics.envs.franka_kitchen import KitchenEnv
 
     inner = KitchenEnv(

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from botorl.envs.wrappers import TaskEnv
+from botorl.envs.wrappers import TaskEnv, import_robotics
 
 SUCCESS_RADIUS = 0.45
 OBS_DIM, ACTION_DIM = 4, 2
@@ -38,6 +38,7 @@ class MazeSpec:
 
     @property
     def maze_map(self) -> list[list[int]]:
+        import_robotics()
         from gymnasium_robotics.envs.maze import maps
 
         grid = {"umaze": maps.U_MAZE, "medium": maps.MEDIUM_MAZE, "large": maps.LARGE_MAZE}[self.name]
@@ -115,6 +116,7 @@ class PointMazeTask(TaskEnv):
 
 
 def make_inner(spec: MazeSpec):
+    import_robotics()
     from gymnasium_robotics.envs.maze.point_maze import PointMazeEnv
 
     return PointMazeEnv(maze_map=spec.maze_map, reward_type="sparse", continuing_task=False, reset_target=False)

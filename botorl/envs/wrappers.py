@@ -8,12 +8,32 @@ subclasses it and implements ``_observe`` and ``_task_step``; ``finish`` adds th
 
 from __future__ import annotations
 
+import contextlib
+import io
+import sys
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from gymnasium.wrappers import TimeLimit
+
+
+def import_robotics() -> None:
+    """Import gymnasium_robotics without its Farama notice on stderr.
+
+    On import it prints a notice that the Adroit *Dense* rewards changed in 1.2.1; botorl's
+    Adroit tasks use the binary success reward, so the notice would only puzzle users on every
+    run. Anything else printed during the import still reaches stderr.
+    """
+    if "gymnasium_robotics" in sys.modules:
+        return
+    buf = io.StringIO()
+    with contextlib.redirect_stderr(buf):
+        import gymnasium_robotics  # noqa: F401
+    text = buf.getvalue()
+    if text and "reward functions were updated" not in text:
+        sys.stderr.write(text)
 
 
 class TaskEnv(gym.Wrapper):
