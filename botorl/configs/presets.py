@@ -117,7 +117,10 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
         # the env executed. Accept them instead of rejecting the file.
         cfg = replace(cfg, data=replace(cfg.data, action_tolerance=0.5))
     if profile == "quick":
-        if spec.domain == "pointmaze" and pretrain is None and method in ("boto", "wsrl"):
+        from botorl.pipeline.methods import get_method
+
+        m = get_method(method)
+        if spec.domain == "pointmaze" and pretrain is None and m.fixed_pretrain is None and "pretrain" in m.stages:
             cfg = replace(cfg, pretrain="iql")  # see _quick
         cfg = _quick(cfg, spec)
     elif profile == "smoke":
@@ -139,7 +142,9 @@ def _quick(cfg: RunConfig, spec) -> RunConfig:
     offline_steps = 10_000
     if spec.domain == "pointmaze":
         data = replace(data, steps=200_000)
-        if cfg.pretrain == "iql" or cfg.method == "iql":
+        from botorl.pipeline.methods import resolve_pretrain
+
+        if resolve_pretrain(cfg.method, cfg.pretrain) == "iql":
             # IQL costs ~1 ms a step here (Cal-QL's 31 critic passes per state ~9 ms), so it can
             # take the 100k steps the large maze needs: 10k leave every method at 0 success
             # (measured, README "Results").
