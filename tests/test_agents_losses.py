@@ -208,6 +208,34 @@ def test_cql_penalty_with_importance_sampling(calql):
     np.testing.assert_allclose(l_loss, -np.mean(math.e * 2.0 * (want_diff - 0.5)), **TOL)
 
 
+@pytest.mark.parametrize("calql,lagrange", [(False, False), (True, True)])
+def test_cql_chunked_gradient_equals_whole_batch_gradient(calql, lagrange):
+    # critic_grads sums the gradients of chunks of states (CPU cache locality); it must be
+    # the gradient of critic_loss on the whole batch, with the same info.
+    n = 2  # 3n + 1 = 7 rows per state
+    base = dict(TINY, cql_n_actions=n, calql=calql, cql_lagrange=lagrange, cql_weight=2.0, cql_target_action_gap=0.5)
+    whole = CQLAgent.create(CQLConfig(**base, cql_chunk_rows=0), O, A, seed=6)
+    chunked = CQLAgent.create(CQLConfig(**base, cql_chunk_rows=14), O, A, seed=6)  # 2 states per chunk
+    bsz = 6
+    batch = _jnp_batch(make_batch(7, b=bsz, mc=np.linspace(-3.0, 3.0, bsz)))
+    assert whole.chunk_states(bsz) == bsz and chunked.chunk_states(bsz) == 2
+    target = jnp.asarray(np.linspace(-1.0, 1.0, bsz), jnp.float32)
+    key = jax.random.PRNGKey(2)
+    p = whole.critic.params
+    (loss, info), g_auto = jax.value_and_grad(whole.critic_loss, has_aux=True)(p, batch, target, key)
+    g_whole, info_whole = whole.critic_grads(p, batch, target, key)
+    g_chunk, info_chunk = chunked.critic_grads(p, batch, target, key)
+    for g in (g_whole, g_chunk):
+        jax.tree_util.tree_map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), g, g_auto)
+    assert max(float(jnp.abs(x).max()) for x in jax.tree_util.tree_leaves(g_auto)) > 1e-3  # not trivially zero
+    for key_name, value in info.items():
+        np.testing.assert_allclose(info_chunk[key_name], value, rtol=1e-5, atol=1e-6, err_msg=key_name)
+        np.testing.assert_allclose(info_whole[key_name], value, rtol=1e-5, atol=1e-6, err_msg=key_name)
+    # States per chunk: the largest divisor of the batch whose rows fit the chunk.
+    big = CQLAgent.create(CQLConfig(**dict(TINY, cql_n_actions=10), cql_chunk_rows=256), O, A, seed=0)
+    assert big.chunk_states(256) == 8 and big.chunk_states(7) == 7 and big.chunk_states(250) == 5
+
+
 def test_cql_penalty_without_importance_sampling():
     n = 2
     cfg = CQLConfig(**TINY, cql_n_actions=n, cql_importance_sample=False, cql_temp=0.5, cql_lagrange=False)
