@@ -214,8 +214,8 @@ def test_cql_chunked_gradient_equals_whole_batch_gradient(calql, lagrange):
     # the gradient of critic_loss on the whole batch, with the same info.
     n = 2  # 3n + 1 = 7 rows per state
     base = dict(TINY, cql_n_actions=n, calql=calql, cql_lagrange=lagrange, cql_weight=2.0, cql_target_action_gap=0.5)
-    whole = CQLAgent.create(CQLConfig(**base, cql_chunk_rows=0), O, A, seed=6)
-    chunked = CQLAgent.create(CQLConfig(**base, cql_chunk_rows=14), O, A, seed=6)  # 2 states per chunk
+    whole = CQLAgent.create(CQLConfig(**base, chunk_rows=0), O, A, seed=6)
+    chunked = CQLAgent.create(CQLConfig(**base, chunk_rows=14), O, A, seed=6)  # 2 states per chunk
     bsz = 6
     batch = _jnp_batch(make_batch(7, b=bsz, mc=np.linspace(-3.0, 3.0, bsz)))
     assert whole.chunk_states(bsz) == bsz and chunked.chunk_states(bsz) == 2
@@ -232,8 +232,38 @@ def test_cql_chunked_gradient_equals_whole_batch_gradient(calql, lagrange):
         np.testing.assert_allclose(info_chunk[key_name], value, rtol=1e-5, atol=1e-6, err_msg=key_name)
         np.testing.assert_allclose(info_whole[key_name], value, rtol=1e-5, atol=1e-6, err_msg=key_name)
     # States per chunk: the largest divisor of the batch whose rows fit the chunk.
-    big = CQLAgent.create(CQLConfig(**dict(TINY, cql_n_actions=10), cql_chunk_rows=256), O, A, seed=0)
+    big = CQLAgent.create(CQLConfig(**dict(TINY, cql_n_actions=10), chunk_rows=256), O, A, seed=0)
     assert big.chunk_states(256) == 8 and big.chunk_states(7) == 7 and big.chunk_states(250) == 5
+
+
+def test_sac_actor_chunked_gradient_equals_whole_batch_gradient():
+    from botorl.agents.common import chunk_size, summed_value_and_grad
+
+    agent = SACAgent.create(SACConfig(**TINY, chunk_rows=2), O, A, seed=8)
+    bsz = 6
+    batch = _jnp_batch(make_batch(11, b=bsz))
+    key = jax.random.PRNGKey(4)
+    (loss, info), g_whole = jax.value_and_grad(agent.actor_loss, has_aux=True)(agent.actor.params, batch, key)
+    per = chunk_size(bsz, 1, agent.config.chunk_rows)
+    assert per == 2
+    (loss_c, neg_logp), g_chunk = summed_value_and_grad(
+        lambda p, r: agent._actor_loss_sum(p, r, bsz), agent.actor.params, agent._actor_rows(batch, key), per)
+    np.testing.assert_allclose(loss_c, loss, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(neg_logp / bsz, info["entropy"], rtol=1e-5, atol=1e-6)
+    jax.tree_util.tree_map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), g_chunk, g_whole)
+    assert max(float(jnp.abs(x).max()) for x in jax.tree_util.tree_leaves(g_whole)) > 1e-3
+    # actor_step reports the same loss and entropy as actor_loss
+    _, step_info = agent.actor_step(batch, key)
+    np.testing.assert_allclose(step_info["actor_loss"], loss, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(step_info["entropy"], info["entropy"], rtol=1e-5, atol=1e-6)
+    # chunk sizes: no chunking for 0, or when the rows fit
+    assert chunk_size(1024, 1, 256) == 256 and chunk_size(1024, 1, 0) == 1024 and chunk_size(200, 1, 256) == 200
+    # unset: sized to ~256k activation floats per layer, at least 256 rows (CPU; tests run there)
+    from botorl.agents.common import auto_chunk_rows
+
+    assert jax.default_backend() == "cpu"
+    assert [auto_chunk_rows(n * w) for n, w in ((2, 256), (10, 256), (2, 512), (2, 64))] == [512, 256, 256, 2048]
+    assert chunk_size(256, 31, None, 2 * 256) == 16 and chunk_size(1024, 1, None, 10 * 256) == 256
 
 
 def test_cql_penalty_without_importance_sampling():

@@ -34,12 +34,14 @@ from botorl.agents.common import (
     TrainState,
     adam,
     check_batch,
+    chunk_size,
     ensure_mc_returns,
     jit_eval,
     jit_sample,
     jit_update,
     jit_update_many,
     polyak,
+    summed_value_and_grad,
 )
 from botorl.errors import ConfigError
 from botorl.networks import (
@@ -48,6 +50,7 @@ from botorl.networks import (
     Temperature,
     sample_tanh_gaussian,
     subsample_ensemble,
+    tanh_gaussian_from_noise,
 )
 
 
@@ -77,6 +80,11 @@ class SACConfig:
     max_target_backup: bool = False
     num_backup_actions: int = 10
     utd_ratio: int = 4
+    # Rows per chunk of a gradient that is a sum over rows (the actor's pass through the
+    # critics; CQL's penalty): None -> sized to the CPU's caches (at least 256 rows) and one
+    # chunk elsewhere, 0 -> one chunk. Speed only: the result is the same up to float
+    # rounding (agents/common.py).
+    chunk_rows: int | None = None
 
     def validate(self) -> None:
         def bad(field, why):
@@ -98,6 +106,8 @@ class SACConfig:
             bad("init_temp", "the temperature must be positive")
         if self.num_backup_actions < 1:
             bad("num_backup_actions", "must be >= 1")
+        if self.chunk_rows is not None and (not isinstance(self.chunk_rows, int) or self.chunk_rows < 0):
+            bad("chunk_rows", "give a row count, 0 for no chunking, or None for the device's default")
         for f in ("actor_hidden_dims", "critic_hidden_dims"):
             v = getattr(self, f)
             if not isinstance(v, tuple) or not all(isinstance(h, int) and h > 0 for h in v):
@@ -265,6 +275,11 @@ class SACAgent(struct.PyTreeNode):
     def action_dim(self) -> int:
         return self.actor.params["mean"]["kernel"].shape[-1]
 
+    @property
+    def critic_floats_per_row(self) -> int:
+        """Activations per input row in the widest layer of the critic ensemble."""
+        return self.config.num_critics * max(self.config.critic_hidden_dims)
+
     def temperature(self) -> jax.Array:
         return self.temp.apply_fn({"params": self.temp.params})
 
@@ -315,17 +330,35 @@ class SACAgent(struct.PyTreeNode):
         target_params = polyak(critic.params, self.target_critic_params, self.config.tau)
         return self.replace(critic=critic, target_critic_params=target_params), {**info, **t_info}
 
-    def actor_loss(self, actor_params, batch, key) -> tuple[jax.Array, dict]:
+    def _actor_rows(self, batch, key) -> dict:
         obs = batch["observations"]
+        # The reparameterisation noise of the whole batch, drawn as sample_tanh_gaussian does.
+        eps = jax.random.normal(key, (obs.shape[0], self.action_dim), obs.dtype)
+        return {"observations": obs, "eps": eps}
+
+    def _actor_loss_sum(self, actor_params, rows, bsz: int):
+        """These rows' share of the actor loss (over the whole batch size) and -sum log pi."""
+        obs = rows["observations"]
         mean, log_std = self.policy(obs, actor_params)
-        actions, log_prob = sample_tanh_gaussian(key, mean, log_std)
+        actions, log_prob = tanh_gaussian_from_noise(rows["eps"], mean, log_std)
         q = self.critic_values(self.critic.params, obs, actions)
         q = q.min(axis=0) if self.config.actor_objective == "min" else q.mean(axis=0)
-        loss = jnp.mean(self.temperature() * log_prob - q)
-        return loss, {"actor_loss": loss, "entropy": -log_prob.mean()}
+        return jnp.sum(self.temperature() * log_prob - q) / bsz, -jnp.sum(log_prob)
+
+    def actor_loss(self, actor_params, batch, key) -> tuple[jax.Array, dict]:
+        bsz = batch["observations"].shape[0]
+        loss, neg_logp_sum = self._actor_loss_sum(actor_params, self._actor_rows(batch, key), bsz)
+        return loss, {"actor_loss": loss, "entropy": neg_logp_sum / bsz}
 
     def actor_step(self, batch, key):
-        grads, info = jax.grad(self.actor_loss, has_aux=True)(self.actor.params, batch, key)
+        """One actor step; on large batches (the 1,024 rows of UTD 4 through 10 critics) the
+        gradient is summed over chunks of rows, 1.4x faster on a CPU (agents/common.py)."""
+        bsz = batch["observations"].shape[0]
+        per = chunk_size(bsz, 1, self.config.chunk_rows, self.critic_floats_per_row)
+        (loss, neg_logp_sum), grads = summed_value_and_grad(
+            lambda p, r: self._actor_loss_sum(p, r, bsz), self.actor.params, self._actor_rows(batch, key), per
+        )
+        info = {"actor_loss": loss, "entropy": neg_logp_sum / bsz}
         return self.replace(actor=self.actor.apply_gradients(grads=grads)), info
 
     def temp_loss(self, temp_params, entropy) -> tuple[jax.Array, dict]:

@@ -25,6 +25,7 @@ from botorl.networks.common import (
 from botorl.networks.actor import (
     TanhGaussianActor,
     sample_tanh_gaussian,
+    tanh_gaussian_from_noise,
     tanh_gaussian_log_prob,
     tanh_gaussian_mode,
 )
@@ -37,6 +38,7 @@ __all__ = [
     "Temperature",
     "TanhGaussianActor",
     "sample_tanh_gaussian",
+    "tanh_gaussian_from_noise",
     "tanh_gaussian_log_prob",
     "tanh_gaussian_mode",
     "default_init",

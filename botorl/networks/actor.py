@@ -79,7 +79,12 @@ def sample_tanh_gaussian(key: jax.Array, mean: jax.Array, log_std: jax.Array, nu
         shape = mean.shape[:-2] + (num_samples, mean.shape[-1])
     else:
         shape = mean.shape
-    eps = jax.random.normal(key, shape, mean.dtype)
+    return tanh_gaussian_from_noise(jax.random.normal(key, shape, mean.dtype), mean, log_std)
+
+
+def tanh_gaussian_from_noise(eps: jax.Array, mean: jax.Array, log_std: jax.Array):
+    """``a = tanh(mean + std * eps)`` and its log-prob, for standard normal noise drawn
+    beforehand (so a batch can be processed in chunks with the noise of the whole batch)."""
     u = mean + jnp.exp(log_std) * eps
     log_prob = jnp.sum(-0.5 * eps * eps - log_std - 0.5 * _LOG_2PI, axis=-1) - jnp.sum(_log_det_tanh(u), axis=-1)
     return jnp.tanh(u), log_prob
