@@ -68,13 +68,21 @@ def _time(fn, min_time: float = 0.2, rounds: int = 5) -> float:
     return best
 
 
+def collect_dots(fn, *args) -> tuple[collections.Counter, dict]:
+    """The distinct ``dot_general``s of one traced call and how often each runs."""
+    import jax
+
+    found: collections.Counter = collections.Counter()
+    _dots(jax.make_jaxpr(fn)(*args).jaxpr, 1, found)
+    params = found.pop("_params", {})
+    return found, params
+
+
 def matmul_seconds(flop_fn, flop_args) -> tuple[float, int]:
     """(seconds of one call's matmuls, each timed alone, best of rounds; distinct matmuls)."""
     import jax
 
-    found: collections.Counter = collections.Counter()
-    _dots(jax.make_jaxpr(flop_fn)(*flop_args).jaxpr, 1, found)
-    params = found.pop("_params", {})
+    found, params = collect_dots(flop_fn, *flop_args)
     total = 0.0
     key = jax.random.PRNGKey(0)
     for k, count in found.items():

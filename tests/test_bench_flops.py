@@ -40,3 +40,29 @@ def test_gradient_of_a_dense_layer_counts_backward_pass():
     w = np.ones((16, 4), np.float32)
     count = jaxpr_flops(jax.grad(lambda w, x: jnp.sum(x @ w)), w, x)
     assert count.matmul_flops == 2 * (2 * 8 * 16 * 4)
+
+
+def test_matmul_bound_finds_every_matmul_of_a_scanned_gradient():
+    # benchmarks/matmul_bound.py: grad of sum(x @ w) w.r.t. w has two matmuls (forward and
+    # x^T @ ones); under a scan of length 3 each runs 3 times; their time alone is positive.
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(__file__).resolve().parents[1] / "benchmarks" / "matmul_bound.py"
+    spec = importlib.util.spec_from_file_location("matmul_bound", path)
+    mb = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mb)
+    x = np.ones((3, 8, 16), np.float32)
+    w = np.ones((16, 4), np.float32)
+
+    def scanned_grad(x, w):
+        def body(acc, xi):
+            return acc + jax.grad(lambda w: jnp.sum(xi @ w))(w), None
+        return jax.lax.scan(body, jnp.zeros_like(w), x)[0]
+
+    found, _ = mb.collect_dots(scanned_grad, x, w)
+    assert sorted(found.values()) == [3, 3]
+    # forward (8, 16) x (16, 4); backward contracts the 8 rows of the cotangent with x's
+    assert {(k[0], k[2]) for k in found} == {((8, 16), (16, 4)), ((8, 4), (8, 16))}
+    seconds, distinct = mb.matmul_seconds(scanned_grad, (x, w))
+    assert distinct == 2 and seconds > 0

@@ -145,7 +145,7 @@ def _quick(cfg: RunConfig, spec) -> RunConfig:
         from botorl.pipeline.methods import resolve_pretrain
 
         if resolve_pretrain(cfg.method, cfg.pretrain) == "iql":
-            # IQL costs ~1 ms a step here (Cal-QL's 31 critic passes per state ~9 ms), so it can
+            # IQL costs ~0.6-1 ms a step here (Cal-QL's 16 critic passes per state ~5-6 ms), so it can
             # take the 100k steps the large maze needs: 10k leave every method at 0 success
             # (measured, README "Results").
             offline_steps = 100_000
