@@ -222,7 +222,7 @@ def test_cql_chunked_gradient_equals_whole_batch_gradient(calql, lagrange):
     target = jnp.asarray(np.linspace(-1.0, 1.0, bsz), jnp.float32)
     key = jax.random.PRNGKey(2)
     p = whole.critic.params
-    (loss, info), g_auto = jax.value_and_grad(whole.critic_loss, has_aux=True)(p, batch, target, key)
+    (_, info), g_auto = jax.value_and_grad(whole.critic_loss, has_aux=True)(p, batch, target, key)
     g_whole, info_whole = whole.critic_grads(p, batch, target, key)
     g_chunk, info_chunk = chunked.critic_grads(p, batch, target, key)
     for g in (g_whole, g_chunk):

@@ -69,7 +69,6 @@ class CQLConfig(SACConfig):
             raise ConfigError(f"CQLConfig.cql_temp = {self.cql_temp} is invalid: must be positive.")
 
 
-
 class CQLAgent(SACAgent):
     """SAC-family agent with the CQL / Cal-QL critic loss; ``lagrange`` holds log alpha'."""
 
