@@ -63,6 +63,22 @@ def test_update_many_equals_k_updates(stepped):
     assert all(np.isfinite(float(v)) for v in info.values())
 
 
+def test_update_many_on_device_draws_its_batches_inside_the_call(stepped):
+    # the device-sampled path = update_many on the batches sample_batches draws with the same key
+    from botorl.agents.common import update_many_on_device
+    from botorl.data.dataset import sample_batches
+
+    agent0, _, bs = stepped
+    arrays = {k: jax.numpy.asarray(v.reshape((K * B,) + v.shape[2:])) for k, v in bs.items()}
+    key = jax.random.PRNGKey(11)
+    on_device, _ = update_many_on_device(agent0, arrays, key, K, B)
+    host, _ = agent0.update_many(jax.device_get(sample_batches(arrays, key, K, B)))
+    assert leaves_close(on_device, host, 1e-6)
+    assert not leaves_close(on_device, agent0, 1e-6)  # it did train
+    with pytest.raises(ConfigError, match="rewards"):
+        update_many_on_device(agent0, {k: v for k, v in arrays.items() if k != "rewards"}, key, K, B)
+
+
 def test_checkpoint_round_trip_is_bit_identical(stepped, tmp_path):
     _, agent, bs = stepped
     path = tmp_path / "agent.ckpt"

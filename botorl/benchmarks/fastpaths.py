@@ -1,23 +1,21 @@
-"""Prototypes of the fast paths the profile (benchmarks/profile_calql.py) measures.
+"""The device-sampled training path, as the profile (benchmarks/profile_calql.py) times it.
 
-These live here, beside the benchmark, until the owners of the agents and the pipeline
-take them over; nothing in the training code uses them yet.
-
-- ``DeviceData`` + ``scan_updates``: the offline data sit on the device once; a jitted
-  function samples the batch indices with ``jax.random`` and runs K updates under one
-  ``lax.scan``: no numpy sampling, no host-to-device copy and one Python dispatch per K
-  updates instead of per update.
+- ``device_data`` + ``scan_updates``: the offline data sit on the device once; one jitted
+  call samples the batch indices with ``jax.random`` and runs K updates under one
+  ``lax.scan``: no numpy sampling, no host-to-device copy, one Python dispatch per K
+  updates. The training code has it as ``botorl.agents.common.update_many_on_device``
+  (pre-training uses it off the CPU, or with ``--offline.sample_on_device True``); this
+  module only adapts the benchmark's whole-dataset batch to it.
 """
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones", "mc_returns")
+from botorl.agents.common import BATCH_KEYS, update_many_on_device
 
 
 def device_data(batch_like: dict[str, Any]) -> dict[str, jax.Array]:
@@ -25,19 +23,6 @@ def device_data(batch_like: dict[str, Any]) -> dict[str, jax.Array]:
     return {k: jnp.asarray(batch_like[k], jnp.float32) for k in BATCH_KEYS}
 
 
-@functools.partial(jax.jit, static_argnames=("num_updates", "batch_size"))
 def scan_updates(agent: Any, data: dict[str, jax.Array], key: jax.Array, num_updates: int, batch_size: int):
-    """``num_updates`` agent updates, each on a uniform batch drawn on the device.
-
-    Uses the agent's traced ``_update`` (the body of its jitted ``update``), so the
-    learning step is the agent's own; only where the batch comes from differs.
-    """
-    n = data["rewards"].shape[0]
-
-    def body(agent, k):
-        idx = jax.random.randint(k, (batch_size,), 0, n)
-        batch = jax.tree_util.tree_map(lambda x: x[idx], data)
-        return agent._update(batch)
-
-    agent, infos = jax.lax.scan(body, agent, jax.random.split(key, num_updates))
-    return agent, jax.tree_util.tree_map(jnp.mean, infos)
+    """``num_updates`` agent updates, each on a uniform batch drawn on the device."""
+    return update_many_on_device(agent, data, key, num_updates, batch_size)

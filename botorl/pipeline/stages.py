@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from botorl.agents.common import update_many_on_device
 from botorl.data.dataset import Dataset
 from botorl.errors import TrainingDivergedError
 
@@ -140,14 +141,23 @@ def pretrain(ctx, resume: dict | None = None):
     every = cfg.checkpoint_every
     log_every = cfg.offline.log_every
     window: list[dict] = []
+    on_device = cfg.offline.sample_on_device
+    if on_device is None:
+        on_device = jax.default_backend() != "cpu"
+    if on_device:
+        arrays = d.to_device()
+        # the key of each call follows from (seed, step), so a resumed run draws the same batches
+        base_key = jax.random.PRNGKey(cfg.seed * 1_000_003 + 1)
     bar = _bar(ctx, total, step, f"pretrain ({cfg.pretrain})")
     t_last, n_last = time.perf_counter(), step
     try:
         while step < total:
             # chunk ends at the next checkpoint boundary so that checkpoints land on multiples
             k = min(K, total - step, every - step % every)
-            batches = d.sample(rng, B, num_batches=k)
-            agent, metrics = agent.update_many(batches)
+            if on_device:
+                agent, metrics = update_many_on_device(agent, arrays, jax.random.fold_in(base_key, step), k, B)
+            else:
+                agent, metrics = agent.update_many(d.sample(rng, B, num_batches=k))
             window.append(metrics)
             prev, step = step, step + k
             bar.update(k)
