@@ -266,6 +266,16 @@ def test_sac_actor_chunked_gradient_equals_whole_batch_gradient():
     assert chunk_size(256, 31, None, 2 * 256) == 16 and chunk_size(1024, 1, None, 10 * 256) == 256
 
 
+def test_no_chunking_off_the_cpu(monkeypatch):
+    # On an accelerator one big batch is faster: unset chunk_rows means one chunk there.
+    from botorl.agents import common
+
+    monkeypatch.setattr(common.jax, "default_backend", lambda: "gpu")
+    assert common.auto_chunk_rows(2 * 256) == 0
+    assert common.chunk_size(256, 31, None, 2 * 256) == 256 and common.chunk_size(1024, 1, None, 2560) == 1024
+    assert common.chunk_size(1024, 1, 256, 2560) == 256  # an explicit size still applies
+
+
 def test_cql_penalty_without_importance_sampling():
     n = 2
     cfg = CQLConfig(**TINY, cql_n_actions=n, cql_importance_sample=False, cql_temp=0.5, cql_lagrange=False)
