@@ -71,8 +71,7 @@ class OfflineConfig:
     updates_per_call: int = 50
     """Gradient steps fused into one jitted lax.scan call."""
     sample_on_device: bool | None = None
-    """Keep D_offline on the device and draw batches inside the jitted call; None: on for
-    GPU/TPU, off on the CPU (where numpy sampling costs ~1% of an update)."""
+    """Draw batches inside the jitted call from D_offline kept on the device; None: on off the CPU."""
     log_every: int = 1_000
     cql: CQLConfig = field(default_factory=CQLConfig)
     """CQL and Cal-QL (``calql`` is set from --pretrain)."""
