@@ -21,7 +21,7 @@ Pieces of one Cal-QL update (CQLAgent, calql=True, fixed CQL weight, batch 256):
               but one fat matmul per layer: what the matmul unit does at this size
 Plus: dispatch overhead (update_many K=8 vs 8 x update), host-sampled training loop
 (ReplayBuffer.sample + update) vs the device-sampled scan prototype
-(botorl.benchmarks.fastpaths), and a recompilation check.
+(botorl.agents.common.update_many_on_device), and a recompilation check.
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ def main(argv=None) -> int:
 
     setup_jax()
     from botorl.agents.cql import CQLAgent, CQLConfig
-    from botorl.benchmarks.fastpaths import device_data, scan_updates
+    from botorl.agents.common import update_many_on_device
     from botorl.benchmarks.flops import jaxpr_flops, matmul_peak_gflops
     from botorl.benchmarks.workloads import make_batch
     from botorl.data.replay import ReplayBuffer
@@ -178,7 +178,7 @@ def main(argv=None) -> int:
     buf.insert_batch(big["observations"], big["actions"], big["rewards"], big["next_observations"],
                      big["dones"], big["mc_returns"])
     nprng = np.random.default_rng(0)
-    dev = device_data(big)
+    dev = jax.tree_util.tree_map(jnp.asarray, big)
 
     def host_loop():
         a = state["a"]
@@ -191,7 +191,7 @@ def main(argv=None) -> int:
 
     def device_scan():
         keys["k"], sub = jax.random.split(keys["k"])
-        state["a"], _ = scan_updates(state["a"], dev, sub, num_updates=K, batch_size=B)
+        state["a"], _ = update_many_on_device(state["a"], dev, sub, K, B)
         return state["a"]
 
     def sample_only():

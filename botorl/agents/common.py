@@ -127,6 +127,8 @@ def _update_many_on_device(agent, arrays, key, num_updates: int, batch_size: int
 
 jit_update = jax.jit(_update)
 jit_update_many = jax.jit(_update_many)
+jit_sample = jax.jit(_sample)
+jit_eval = jax.jit(_eval)
 _jit_update_many_on_device = jax.jit(_update_many_on_device, static_argnames=("num_updates", "batch_size"))
 
 
@@ -140,8 +142,6 @@ def update_many_on_device(agent, arrays: dict, key: jax.Array, num_updates: int,
     """
     check_batch(arrays)
     return _jit_update_many_on_device(agent, ensure_mc_returns(arrays), key, num_updates, batch_size)
-jit_sample = jax.jit(_sample)
-jit_eval = jax.jit(_eval)
 
 
 def check_batch(batch, *, many: bool = False) -> None:
