@@ -7,8 +7,15 @@ module only dispatches, so ``botorl --help`` stays fast (no JAX import) and a us
 
 from __future__ import annotations
 
+import errno
 import importlib
+import os
 import sys
+
+# OSErrors that say the machine cannot take the output (not a bug in botorl): exit 2.
+_IO_FAULTS = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
+              errno.EROFS: "the file system is read-only", errno.EACCES: "permission denied",
+              errno.EPERM: "operation not permitted"}
 
 # name -> (module:function, one-line help). Imported lazily.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -63,7 +70,41 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"botorl {name}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # stdout was closed early (`botorl run --help | head`): no traceback, and none at exit
+        # when Python flushes stdout again.
+        _silence_stdout()
+        return 2
+    except OSError as err:
+        if err.errno not in _IO_FAULTS:
+            raise
+        where = f" {err.filename}" if err.filename else ""
+        print(f"botorl {name}: error: cannot write{where}: {_IO_FAULTS[err.errno]} ({err.strerror}). Free space, "
+              f"or write somewhere writable (--out).", file=sys.stderr)
+        return 2
+    except SystemExit as err:
+        # argparse / tyro exit after printing help or a usage error; flush here so that a
+        # closed pipe surfaces now, not as a traceback at interpreter exit
+        try:
+            sys.stdout.flush()
+        except BrokenPipeError:
+            _silence_stdout()
+            return 2
+        raise err
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        _silence_stdout()
+        return 2
     return int(code or 0)
+
+
+def _silence_stdout() -> None:
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
 
 
 if __name__ == "__main__":

@@ -6,11 +6,16 @@ parameters, optimiser states, step counters, the rng key). Static parts (the con
 definitions, optimisers) come from ``like``, a template agent built with the same config,
 so ``load(path, like=agent)`` returns exactly the saved pytree and an update after loading
 is bit-identical to one without the round trip. Writes are atomic (temp file + os.replace).
+
+Verified: the state is stored as msgpack bytes together with their sha256 (format v2); ``load``
+and ``read_header`` refuse a file whose bytes no longer match (``DataFormatError`` naming the
+file). v1 files (no checksum) are still read.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -22,7 +27,8 @@ from flax import serialization
 from botorl.errors import DataFormatError
 from botorl.io import atomic_write_bytes
 
-FORMAT = "botorl-agent-v1"
+FORMAT = "botorl-agent-v2"
+FORMATS = ("botorl-agent-v1", FORMAT)
 
 
 def _config_json(config) -> str:
@@ -36,11 +42,13 @@ def save(path: str | os.PathLike, agent) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     state = jax.tree_util.tree_map(np.asarray, serialization.to_state_dict(agent))
+    state_bytes = serialization.msgpack_serialize(state)
     payload = {
         "format": FORMAT,
         "agent_class": type(agent).__name__,
         "config": _config_json(agent.config),
-        "state": state,
+        "state_msgpack": state_bytes,
+        "sha256": hashlib.sha256(state_bytes).hexdigest(),
     }
     atomic_write_bytes(path, serialization.msgpack_serialize(payload))
     return path
@@ -62,8 +70,21 @@ def _read(path: Path) -> dict:
             f"checkpoint {path} cannot be read ({type(err).__name__}: {err}); the file is damaged or not a botorl "
             f"checkpoint. Use an earlier checkpoint of the run or retrain."
         ) from None
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT or "state" not in payload:
+    if not isinstance(payload, dict) or payload.get("format") not in FORMATS:
         raise DataFormatError(f"{path} is not a botorl agent checkpoint (expected format tag {FORMAT!r}).")
+    if payload["format"] == FORMAT:
+        raw = payload.get("state_msgpack")
+        if not isinstance(raw, bytes) or hashlib.sha256(raw).hexdigest() != payload.get("sha256"):
+            raise DataFormatError(
+                f"checkpoint {path} fails its sha256 check: the file changed after it was written. Use an "
+                f"earlier checkpoint of the run (`botorl resume RUN_DIR --from NAME`) or retrain."
+            )
+        try:
+            payload["state"] = serialization.msgpack_restore(raw)
+        except Exception as err:
+            raise DataFormatError(f"checkpoint {path}: state cannot be decoded ({type(err).__name__}).") from None
+    elif "state" not in payload:
+        raise DataFormatError(f"{path} is not a botorl agent checkpoint (no state).")
     return payload
 
 

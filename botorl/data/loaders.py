@@ -10,11 +10,16 @@ runs ``validate``; bad files raise ``DataFormatError`` naming the file and the p
 missing ones ``DatasetNotFoundError`` saying where botorl looked and how to get the data.
 
 Pickle-based formats (``.npy`` object arrays, ``.pickle``/``.pkl``) execute code when loaded,
-so botorl opens them only from a path the user names explicitly, never by searching.
+so botorl opens them only from a path the user names explicitly, never by searching. A ``.npy``
+is first read with ``allow_pickle=False``; only an object array needs pickle. Inside
+``refuse_pickle(origin)`` (``botorl resume``/``eval``, whose paths come from a run directory's
+``config.json``, not from the user) pickle is refused with a message, unless ``--allow-pickle``.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import os
 import pickle
 from pathlib import Path
@@ -46,8 +51,8 @@ CALQL_DATA_INSTRUCTIONS = (
     "Download the adroit-binary offline data linked in the Cal-QL README "
     "(https://github.com/nakamotoo/Cal-QL, section 'Adroit Binary': a Google Drive zip of "
     "demonstrations/offpolicy_hand_data/*.npy), unzip it, and pass the folder or the two files "
-    "explicitly (e.g. --data-path /path/to/offpolicy_hand_data). These files are pickles, so "
-    "botorl only opens files you name."
+    "explicitly (e.g. `botorl run --task door-binary-v0 --data.path /path/to/offpolicy_hand_data`, "
+    "or --data.path EXPERT.npy,BC.npy). These files are pickles, so botorl only opens files you name."
 )
 
 
@@ -386,8 +391,42 @@ def load_minari(
 ADROIT_ACTION_TOLERANCE = 1.0
 
 
+# Where the path being loaded came from when it was not named by the user (e.g. "the run
+# directory's config.json"); None = the user named it (command line or API call).
+_PICKLE_REFUSED: contextvars.ContextVar[str | None] = contextvars.ContextVar("botorl_pickle_refused", default=None)
+
+
+@contextlib.contextmanager
+def refuse_pickle(origin: str):
+    """Within this block, pickle-based files are refused: their paths came from ``origin``."""
+    token = _PICKLE_REFUSED.set(origin)
+    try:
+        yield
+    finally:
+        _PICKLE_REFUSED.reset(token)
+
+
+def _pickle_refused(path: Path, what: str, origin: str) -> DataFormatError:
+    return DataFormatError(
+        f"{path}: this {what} is a pickle, and its path comes from {origin}, not from you; a pickle can "
+        "run code when loaded, so botorl does not open it. If you trust the file, pass --allow-pickle to "
+        f"`botorl resume`/`botorl eval`, or name it yourself: `botorl run ... --data.path {path}`."
+    )
+
+
 def _load_pickle_array(path: Path, what: str):
-    """np.load(allow_pickle=True) / pickle.load of a file the user named explicitly."""
+    """A pickle-based file: without pickle when the data allow it, else only from a path the user named."""
+    origin = _PICKLE_REFUSED.get()
+    if path.suffix == ".npy":
+        try:
+            return np.load(path, allow_pickle=False)  # plain arrays need no pickle
+        except ValueError as err:
+            if "allow_pickle" not in str(err):
+                raise DataFormatError(f"{path}: cannot be read as a {what} ({err}).") from None
+        except Exception as err:
+            raise DataFormatError(f"{path}: cannot be read as a {what} ({type(err).__name__}: {err}).") from None
+    if origin is not None:
+        raise _pickle_refused(path, what, origin)
     try:
         if path.suffix == ".npy":
             return np.load(path, allow_pickle=True)

@@ -2,29 +2,63 @@
 
     checkpoints/latest.json               {"name": ..., "stage": ..., "step": ..., "stage_done": ...}
     checkpoints/<stage>-final/            written at the end of each stage (kept)
-    checkpoints/<stage>-step000012000/    every N steps inside a long stage (only the newest kept)
+    checkpoints/<stage>-step000012000/    every N steps inside a long stage
         agent.ckpt                        botorl.agents.checkpoint.save (bit-identical restore)
         <name>.npz                        arrays: replay buffer state_dict, D_warmup, ...
         state.json                        stage, step, numpy rng state, counters, stage_seconds
+        MANIFEST.json                     size and sha256 of every file above, and a sequence number
 
 A checkpoint folder is first written as ``.tmp-*`` and then renamed (atomic on one file
 system); ``latest.json`` is replaced atomically after the rename. A kill -9 at any moment
 leaves ``latest.json`` pointing at a complete folder, so ``botorl resume`` loses at most the
 steps since that checkpoint.
+
+Verified: every file is checked against ``MANIFEST.json`` before it is read (``state``,
+``arrays``; the agent file carries its own checksum). ``latest()`` returns the checkpoint
+``latest.json`` names if it passes the check, else -- saying which one failed and why -- the
+newest one that passes (by sequence number), and points ``latest.json`` at it. The two newest
+checkpoints of the run's line (the one just written and the one before it) are kept, and
+every ``<stage>-final``; ``select(name)`` (``botorl resume --from NAME``) makes a chosen one
+the start of the resume. Checkpoints written before manifests existed are accepted unverified.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import shutil
+import sys
+import time
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
+from botorl.errors import ConfigError, DataFormatError
 from botorl.pipeline.rundir import atomic_write_json, read_json
 
 LATEST = "latest.json"
+MANIFEST = "MANIFEST.json"
+
+
+def file_sha256(path: Path, chunk: int = 1 << 22) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while True:
+            b = f.read(chunk)
+            if not b:
+                break
+            h.update(b)
+    return h.hexdigest()
+
+
+def _describe(path: Path) -> dict[str, Any]:
+    return {"size": path.stat().st_size, "sha256": file_sha256(path)}
+
+
+class CheckpointCorrupt(DataFormatError):
+    """A checkpoint's file does not match its manifest (or cannot be read)."""
 
 
 def checkpoint_name(stage: str, step: int | None) -> str:
@@ -57,8 +91,14 @@ def _save_npz(path: Path, arrays: dict[str, Any]) -> None:
 
 
 def load_npz(path: Path) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except Exception as err:  # truncated zip, bad header, object arrays
+        raise CheckpointCorrupt(
+            f"{path} cannot be read ({type(err).__name__}: {err}); the checkpoint is damaged. Resume from an "
+            f"earlier one: `botorl resume RUN_DIR --from NAME` (names: `ls {path.parent.parent}`)."
+        ) from None
 
 
 class CheckpointManager:
@@ -86,6 +126,8 @@ class CheckpointManager:
         for key, group in (arrays or {}).items():
             _save_npz(tmp / f"{key}.npz", group)
         atomic_write_json(tmp / "state.json", state)
+        files = {q.name: _describe(q) for q in sorted(tmp.iterdir()) if q.is_file() and not q.name.startswith(".")}
+        atomic_write_json(tmp / MANIFEST, {"name": name, "seq": self._next_seq(), "time": time.time(), "files": files})
         _fsync_dir(tmp)
         final = self.root / name
         if final.exists():  # re-saving the same name (e.g. after a resume): swap, then remove
@@ -98,34 +140,174 @@ class CheckpointManager:
         else:
             os.replace(tmp, final)
         _fsync_dir(self.root)
+        previous = self._latest_name()
+        self._point_latest(name, state)
+        self._prune(keep={name, previous} - {None})
+        return final
+
+    def _point_latest(self, name: str, state: dict[str, Any]) -> None:
         atomic_write_json(
             self.root / LATEST,
             {"name": name, "stage": state.get("stage"), "step": state.get("step"),
              "stage_done": bool(state.get("stage_done", False))},
         )
-        self._prune(keep=name)
-        return final
 
-    def _prune(self, keep: str) -> None:
-        """Intermediate (``-step``) checkpoints other than the newest are removed."""
+    def _latest_name(self) -> str | None:
+        try:
+            info = read_json(self.root / LATEST)
+            return str(info["name"]) if isinstance(info, dict) and info.get("name") else None
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+
+    def _manifest(self, name: str) -> dict[str, Any] | None:
+        p = self.root / name / MANIFEST
+        if not p.exists():
+            return None
+        try:
+            m = read_json(p)
+            if not isinstance(m, dict) or not isinstance(m.get("files"), dict):
+                raise ValueError("no file list")
+            return m
+        except (OSError, ValueError) as err:
+            raise CheckpointCorrupt(f"checkpoint {name}: {MANIFEST} cannot be read ({err}).") from None
+
+    def _next_seq(self) -> int:
+        seq = 0
+        for name in self.names():
+            try:
+                m = self._manifest(name)
+            except CheckpointCorrupt:
+                continue
+            if m is not None:
+                seq = max(seq, int(m.get("seq", 0)))
+        return seq + 1
+
+    def _prune(self, keep: set[str]) -> None:
+        """Remove ``-step`` checkpoints other than ``keep`` (the newest and the one before it)."""
         for p in self.root.iterdir():
             if p.name.startswith(".tmp-") or p.name.startswith(".trash-"):
                 # left by a killed writer of *another* process; ours was renamed already
                 if not p.name.endswith(f"-{os.getpid()}"):
                     shutil.rmtree(p, ignore_errors=True)
                 continue
-            if p.is_dir() and "-step" in p.name and p.name != keep:
+            if p.is_dir() and "-step" in p.name and p.name not in keep:
                 shutil.rmtree(p, ignore_errors=True)
+
+    # ------------------------------------------------------------------ checking
+    def names(self) -> list[str]:
+        if not self.root.is_dir():
+            return []
+        return sorted(p.name for p in self.root.iterdir() if p.is_dir() and not p.name.startswith("."))
+
+    def _check_file(self, name: str, fname: str) -> None:
+        """Raise CheckpointCorrupt unless ``name/fname`` matches the manifest (no manifest: accepted)."""
+        m = self._manifest(name)
+        path = self.root / name / fname
+        if m is None:
+            return
+        want = m["files"].get(fname)
+        if want is None:
+            raise CheckpointCorrupt(f"checkpoint {name}: {fname} is not in its {MANIFEST}.")
+        if not path.is_file():
+            raise CheckpointCorrupt(f"checkpoint {name}: {fname} is missing.")
+        size = path.stat().st_size
+        if size != want.get("size"):
+            raise CheckpointCorrupt(f"checkpoint {name}: {fname} has {size} bytes, its manifest says {want.get('size')}.")
+        if file_sha256(path) != want.get("sha256"):
+            raise CheckpointCorrupt(f"checkpoint {name}: {fname} does not match its sha256 checksum (the file changed "
+                                    f"after it was written).")
+
+    def verify(self, name: str) -> str | None:
+        """None if checkpoint ``name`` passes the check, else the reason it does not."""
+        folder = self.root / name
+        if not (folder / "state.json").is_file():
+            return f"checkpoint {name}: no state.json (not a complete checkpoint)"
+        try:
+            m = self._manifest(name)
+            for fname in (m["files"] if m is not None else ["state.json"]):
+                self._check_file(name, fname)
+            st = read_json(folder / "state.json")
+            if not isinstance(st, dict) or "stage" not in st:
+                raise CheckpointCorrupt(f"checkpoint {name}: state.json has no stage.")
+        except CheckpointCorrupt as err:
+            return str(err)
+        except (OSError, ValueError) as err:
+            return f"checkpoint {name}: state.json cannot be read ({err})"
+        return None
+
+    def verify_named(self, name: str) -> None:
+        """ConfigError unless ``name`` is a checkpoint of this run that passes the check."""
+        if name not in self.names() or not (self.root / name / "state.json").exists():
+            raise ConfigError(f"checkpoint {name!r} is not in {self.root}; there are: {', '.join(self.names()) or 'none'}.")
+        reason = self.verify(name)
+        if reason is not None:
+            good = [n for n in self.names() if n != name and self.verify(n) is None]
+            raise ConfigError(f"{reason} Pick another: {', '.join(good) or 'none passes the check'}.")
+
+    def select(self, name: str) -> dict[str, Any]:
+        """Make checkpoint ``name`` the one ``latest()`` returns (``botorl resume --from NAME``)."""
+        self.verify_named(name)
+        st = self.state(name)
+        self._point_latest(name, st)
+        return self.latest()
+
+    def _order(self, name: str) -> tuple[float, float]:
+        try:
+            m = self._manifest(name)
+        except CheckpointCorrupt:
+            m = None
+        if m is not None:
+            return (float(m.get("seq", 0)), float(m.get("time", 0)))
+        try:  # written before manifests: by its time
+            return (0.0, float(read_json(self.root / name / "state.json").get("time", 0)))
+        except (OSError, ValueError, AttributeError):
+            return (-1.0, 0.0)
 
     # ------------------------------------------------------------------ reading
     def latest(self) -> dict[str, Any] | None:
+        """The checkpoint a resume starts from: latest.json's if verified, else the newest verified one.
+
+        A checkpoint that fails the check is named on stderr together with the one used instead,
+        and latest.json is pointed at the one used. None if no checkpoint passes.
+        """
         p = self.root / LATEST
-        if not p.exists():
+        named = self._latest_name()
+        bad: list[str] = []
+        if p.exists() and named is None:
+            bad.append(f"{p} cannot be read")
+        if named is not None:
+            if not (self.root / named).is_dir():
+                bad.append(f"{p} names {named}, which does not exist")
+            else:
+                reason = self.verify(named)
+                if reason is None:
+                    return self._info(named)
+                bad.append(reason)
+        elif not p.exists() and not self.names():
             return None
-        info = read_json(p)
-        if not (self.root / info["name"]).is_dir():
-            return None
-        return info
+        for name in sorted(self.names(), key=self._order, reverse=True):
+            if name == named:
+                continue
+            reason = self.verify(name)
+            if reason is None:
+                if bad:
+                    print(f"botorl: warning: {'; '.join(bad)}. Falling back to the previous checkpoint, {name}.",
+                          file=sys.stderr)
+                    try:
+                        self._point_latest(name, self.state(name))
+                    except OSError:
+                        pass  # a read-only run directory (eval): nothing to repair
+                return self._info(name)
+            if name not in (named,):
+                bad.append(reason)
+        if bad:
+            print(f"botorl: warning: {'; '.join(bad)}; no checkpoint passes the check.", file=sys.stderr)
+        return None
+
+    def _info(self, name: str) -> dict[str, Any]:
+        st = self.state(name)
+        return {"name": name, "stage": st.get("stage"), "step": st.get("step"),
+                "stage_done": bool(st.get("stage_done", False))}
 
     def path(self, name: str) -> Path:
         return self.root / name
@@ -134,8 +316,20 @@ class CheckpointManager:
         return (self.root / name / "state.json").exists()
 
     def state(self, name: str) -> dict[str, Any]:
-        return read_json(self.root / name / "state.json")
+        self._check_file(name, "state.json")
+        path = self.root / name / "state.json"
+        try:
+            st = read_json(path)
+        except (OSError, ValueError) as err:
+            raise CheckpointCorrupt(f"checkpoint {name}: {path} cannot be read ({err}). Resume from an earlier "
+                                    f"one with `botorl resume RUN_DIR --from NAME` (there are: {', '.join(self.names())}).") from None
+        if not isinstance(st, dict):
+            raise CheckpointCorrupt(f"checkpoint {name}: {path} does not hold a state object.")
+        return st
 
     def arrays(self, name: str, key: str) -> dict[str, np.ndarray] | None:
         p = self.root / name / f"{key}.npz"
-        return load_npz(p) if p.exists() else None
+        if not p.exists():
+            return None
+        self._check_file(name, p.name)
+        return load_npz(p)

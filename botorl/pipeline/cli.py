@@ -14,11 +14,97 @@ $BOTORL_DOOR_DEMOS).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import sys
 import time
 from pathlib import Path
 
-from botorl.errors import ConfigError
+from botorl.errors import BotorlError, ConfigError
+
+# OSErrors that are the machine's state, not a bug: exit 2 with a message naming the directory.
+IO_FAULTS = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
+             errno.EROFS: "the file system is read-only", errno.EACCES: "permission denied",
+             errno.EPERM: "operation not permitted"}
+
+
+class RunIOError(BotorlError):
+    """The run directory cannot be written (disk full, read-only, no permission)."""
+
+
+def io_fault(err: OSError, where) -> RunIOError | None:
+    """The exit-2 error for an OSError that is a full / read-only / forbidden output, else None."""
+    if not isinstance(err, OSError) or err.errno not in IO_FAULTS:
+        return None
+    detail = f" ({err.filename})" if getattr(err, "filename", None) else ""
+    return RunIOError(
+        f"cannot write to {where}{detail}: {IO_FAULTS[err.errno]} ({err.strerror}). Free space or pick a "
+        f"writable --out; the run's checkpoints so far are kept, and `botorl resume {where}` continues it."
+    )
+
+
+def _mark_failed(run, reason: str) -> None:
+    """summary.json says ``failed`` with the reason, when it can still be written."""
+    from botorl.pipeline.rundir import atomic_write_json, read_json
+
+    try:
+        summary = read_json(run.summary) if run.summary.exists() else {}
+    except (OSError, ValueError):
+        summary = {}
+    summary.update(status="failed", error=reason)
+    try:
+        atomic_write_json(run.summary, summary)
+    except OSError:
+        pass  # the disk that failed the run may refuse this too
+
+
+def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None = None):
+    """``execute`` with I/O faults and corrupt checkpoints turned into exit 2 and a truthful status."""
+    from botorl.pipeline.checkpoint import CheckpointManager
+    from botorl.pipeline.runner import execute
+
+    try:
+        if resume_from is not None:
+            # latest.json is pointed at the chosen (verified) checkpoint; execute(resume=True)
+            # starts from ckpt.latest(), so the runner needs no argument for it.
+            CheckpointManager(run.checkpoints).select(resume_from)
+        return execute(cfg, run, d_raw, resume=resume)
+    except OSError as err:
+        fault = io_fault(err, run.root)
+        if fault is None:
+            raise
+        _mark_failed(run, str(fault))
+        raise fault from None
+    except BotorlError as err:
+        _mark_failed(run, str(err))
+        raise
+    except (ValueError, KeyError, TypeError) as err:
+        if not resume:
+            raise
+        # a damaged latest.json / state.json / buffer.npz read during the resume
+        msg = (f"{run.root}: a checkpoint file could not be read on resume ({type(err).__name__}: {err}). "
+               f"List the checkpoints with `ls {run.checkpoints}` and pick an older one with "
+               f"`botorl resume {run.root} --from NAME`.")
+        _mark_failed(run, msg)
+        raise BotorlError(msg) from None
+
+
+@contextlib.contextmanager
+def _owned(root: Path):
+    """Hold the run directory's lock; turn I/O faults while taking it into exit 2."""
+    from botorl.pipeline.rundir import RunLock
+
+    try:
+        lock = RunLock(root).acquire()
+    except OSError as err:
+        fault = io_fault(err, root)
+        if fault is None:
+            raise
+        raise fault from None
+    try:
+        yield lock
+    finally:
+        lock.release()
 
 _SHORTCUTS = {"--demos": "--data.demos", "--dataset": "--data.path"}
 
@@ -93,22 +179,34 @@ def run_main(argv: list[str]) -> int:
     from botorl.configs.schema import to_dict
     from botorl.envs.registry import get_task
     from botorl.pipeline.rundir import RunDir, atomic_write_json
-    from botorl.pipeline.runner import execute, format_summary, load_offline
+    from botorl.pipeline.runner import format_summary, load_offline
 
     out = Path(cfg.out) if cfg.out else _default_out(cfg)
-    if (out / "config.json").exists():
-        raise ConfigError(
-            f"--out {out} already holds a run (config.json). Continue it with `botorl resume {out}`, "
-            f"or pick another --out."
-        )
+
+    def already_a_run():
+        if (out / "config.json").exists():
+            raise ConfigError(
+                f"--out {out} already holds a run (config.json). Continue it with `botorl resume {out}`, "
+                f"or pick another --out."
+            )
+
+    already_a_run()
     cfg = replace(cfg, out=str(out))
     spec = get_task(cfg.task)
     d_raw = load_offline(cfg, spec)  # a missing dataset fails here, before the run directory exists
     run = RunDir(out)
-    run.create()
-    atomic_write_json(run.config, to_dict(cfg))
-    print(f"botorl: {cfg.method} on {cfg.task} (profile {cfg.profile}, seed {cfg.seed}) -> {out}", file=sys.stderr)
-    summary = execute(cfg, run, d_raw, resume=False)
+    with _owned(out):
+        already_a_run()  # again, under the lock: another `run` may have started meanwhile
+        try:
+            run.create()
+            atomic_write_json(run.config, to_dict(cfg))
+        except OSError as err:
+            fault = io_fault(err, out)
+            if fault is None:
+                raise
+            raise fault from None
+        print(f"botorl: {cfg.method} on {cfg.task} (profile {cfg.profile}, seed {cfg.seed}) -> {out}", file=sys.stderr)
+        summary = _execute_guarded(cfg, run, d_raw, resume=False)
     print(format_summary(summary))
     return 0
 
@@ -126,7 +224,7 @@ def _load_run_config(directory: str):
         )
     try:
         cfg = from_dict(RunConfig, read_json(run.config))
-    except (TypeError, ValueError, KeyError) as err:
+    except (TypeError, ValueError, KeyError, AttributeError) as err:
         raise ConfigError(f"{run.config} cannot be read as a run config ({err}); was it edited by hand?") from None
     validate(cfg)
     return run, cfg
@@ -136,6 +234,9 @@ def resume_main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="botorl resume", description="Continue a run directory from its last checkpoint.")
     p.add_argument("dir", help="the run directory (the --out of `botorl run`)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--from", dest="from_", metavar="NAME", default=None,
+                   help="resume from this checkpoint folder (default: the newest verified one)")
+    p.add_argument("--allow-pickle", action="store_true", help=ALLOW_PICKLE_HELP)
     args = p.parse_args(argv)
     from botorl.jaxsetup import setup_jax
 
@@ -143,23 +244,46 @@ def resume_main(argv: list[str]) -> int:
     from dataclasses import replace
 
     from botorl.envs.registry import get_task
+    from botorl.pipeline.checkpoint import CheckpointManager
     from botorl.pipeline.rundir import read_json
-    from botorl.pipeline.runner import execute, format_summary, load_offline
+    from botorl.pipeline.runner import format_summary
 
     run, cfg = _load_run_config(args.dir)
-    if args.no_progress:
-        cfg = replace(cfg, progress=False)
-    if run.summary.exists():
-        s = read_json(run.summary)
-        if s.get("status") == "finished":
-            print(f"botorl: {run.root} has finished already; nothing to resume.", file=sys.stderr)
-            print(format_summary(s))
-            return 0
-    spec = get_task(cfg.task)
-    d_raw = load_offline(cfg, spec)
-    summary = execute(cfg, run, d_raw, resume=True)
+    with _owned(run.root):
+        if args.no_progress:
+            cfg = replace(cfg, progress=False)
+        if args.from_ is not None:
+            CheckpointManager(run.checkpoints).verify_named(args.from_)  # exit 2 naming the choices
+            print(f"botorl: resuming from the chosen checkpoint {args.from_}", file=sys.stderr)
+        elif run.summary.exists():
+            try:
+                s = read_json(run.summary)
+            except (OSError, ValueError):
+                s = {}  # a damaged summary is rewritten by the resume
+            if isinstance(s, dict) and s.get("status") == "finished":
+                print(f"botorl: {run.root} has finished already; nothing to resume.", file=sys.stderr)
+                print(format_summary(s))
+                return 0
+        spec = get_task(cfg.task)
+        d_raw = _load_run_data(cfg, spec, run, args.allow_pickle)
+        summary = _execute_guarded(cfg, run, d_raw, resume=True, resume_from=args.from_)
     print(format_summary(summary))
     return 0
+
+
+ALLOW_PICKLE_HELP = ("open a pickle-based dataset (Cal-QL .npy, DAPG .pickle) named in the run's config.json; "
+                     "without it botorl refuses, as a pickle from a run directory could run code")
+
+
+def _load_run_data(cfg, spec, run, allow_pickle: bool):
+    """The offline data of a run read back from its config.json: no pickle unless allowed."""
+    from botorl.data.loaders import refuse_pickle
+    from botorl.pipeline.runner import load_offline
+
+    if allow_pickle:
+        return load_offline(cfg, spec)
+    with refuse_pickle(f"the run directory's {run.config}"):
+        return load_offline(cfg, spec)
 
 
 def eval_main(argv: list[str]) -> int:
@@ -167,29 +291,40 @@ def eval_main(argv: list[str]) -> int:
     p.add_argument("dir", help="the run directory")
     p.add_argument("--episodes", type=int, default=None, help="episodes (default: the run's eval.episodes)")
     p.add_argument("--checkpoint", default=None, help="checkpoint folder name (default: the latest)")
+    p.add_argument("--allow-pickle", action="store_true", help=ALLOW_PICKLE_HELP)
     args = p.parse_args(argv)
     from botorl.jaxsetup import setup_jax
 
     setup_jax()
+    run, cfg = _load_run_config(args.dir)
+    with _owned(run.root):
+        try:
+            return _eval(args, run, cfg)
+        except OSError as err:
+            fault = io_fault(err, run.root)
+            if fault is None:
+                raise
+            raise fault from None
+
+
+def _eval(args, run, cfg) -> int:
     from dataclasses import replace
 
+    from botorl.agents import checkpoint as agent_ckpt
     from botorl.envs.registry import get_task
     from botorl.pipeline import stages as S
     from botorl.pipeline.checkpoint import CheckpointManager
     from botorl.pipeline.evaluation import QProbe, run_episodes
     from botorl.pipeline.rundir import atomic_write_json
-    from botorl.pipeline.runner import load_offline, transform_dataset
+    from botorl.pipeline.runner import transform_dataset
 
-    run, cfg = _load_run_config(args.dir)
     if args.episodes is not None:
         if args.episodes < 1:
             raise ConfigError(f"--episodes {args.episodes}: give at least 1 episode.")
         cfg = replace(cfg, eval=replace(cfg.eval, episodes=args.episodes))
     ckpt = CheckpointManager(run.checkpoints)
     if args.checkpoint:
-        if not ckpt.exists(args.checkpoint):
-            names = sorted(q.name for q in run.checkpoints.iterdir() if q.is_dir() and not q.name.startswith("."))
-            raise ConfigError(f"--checkpoint {args.checkpoint} is not in {run.checkpoints}; there are: {', '.join(names) or 'none'}.")
+        ckpt.verify_named(args.checkpoint)
         name = args.checkpoint
     else:
         latest = ckpt.latest()
@@ -198,12 +333,10 @@ def eval_main(argv: list[str]) -> int:
         name = latest["name"]
     state = ckpt.state(name)
     spec = get_task(cfg.task)
-    d = transform_dataset(cfg, spec, load_offline(cfg, spec))
+    d = transform_dataset(cfg, spec, _load_run_data(cfg, spec, run, args.allow_pickle))
     stage = state["stage"]
     template = (S.make_online_agent_template if stage == "finetune" else S.make_pretrain_agent)(
         cfg, d.obs_dim, d.action_dim, cfg.seed)
-    from botorl.agents import checkpoint as agent_ckpt
-
     agent = agent_ckpt.load(ckpt.path(name) / "agent.ckpt", like=template)
     n = min(cfg.eval.num_envs, cfg.eval.episodes)
     envs = [spec.make_env(seed=10_000 + i, evaluation=True) for i in range(n)]

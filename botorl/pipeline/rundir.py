@@ -8,6 +8,7 @@
     DIR/curve.png             success against online env steps
     DIR/summary.json          task, method, seed, alpha, pretrain, success_initial,
                               success_10k, success_final, stage_seconds, status
+    DIR/.lock                 the owner's PID; flock-ed for the life of a run/resume/eval (RunLock)
 
 Every whole-file write is atomic (temp file in the same folder + os.replace), so a run killed
 at any moment leaves either the old or the new file, never half of one. The CSV/JSONL logs are
@@ -18,15 +19,22 @@ rows written after the last checkpoint do not appear twice.
 from __future__ import annotations
 
 import csv
+import errno
+import fcntl
 import io
 import json
 import math
 import os
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
+from botorl.errors import BotorlError
 from botorl.io import atomic_write_bytes
 from botorl.io import atomic_write_json as _atomic_write_json
+
+LOCK_FILE = ".lock"
 
 EVAL_COLUMNS = ["stage", "env_step", "success", "return", "q_data", "q_uniform"]
 
@@ -96,6 +104,67 @@ class RunDir:
         self.root.mkdir(parents=True, exist_ok=True)
         self.metrics.mkdir(exist_ok=True)
         self.checkpoints.mkdir(exist_ok=True)
+
+
+# ----------------------------------------------------------------------------- ownership
+class RunLockedError(BotorlError):
+    """Another live process owns the run directory."""
+
+
+class RunLock:
+    """One owner per run directory: an exclusive ``flock`` on ``DIR/.lock``, which holds the PID.
+
+    The kernel drops a flock when its process dies (kill -9 included), so a lock left by a
+    killed run is simply taken over by the next one; the file itself is never deleted (deleting
+    it would let two processes lock two different files). A second live process gets
+    ``RunLockedError`` (exit 2) naming the holder's PID.
+    """
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+        self.path = self.root / LOCK_FILE
+        self._fd: int | None = None
+
+    def holder(self) -> str:
+        try:
+            return self.path.read_text().strip() or "unknown"
+        except OSError:
+            return "unknown"
+
+    def acquire(self) -> "RunLock":
+        if self._fd is not None:
+            return self
+        self.root.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as err:
+            os.close(fd)
+            if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise RunLockedError(
+                    f"{self.root} is in use by another botorl process (PID {self.holder()}, lock file "
+                    f"{self.path}). Wait for it to finish or stop it, or give another --out."
+                ) from None
+            raise
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+        finally:
+            os.close(self._fd)
+            self._fd = None
+
+    def __enter__(self) -> "RunLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
 
 
 # ----------------------------------------------------------------------------- line logs
@@ -183,6 +252,85 @@ class JsonlLog:
         atomic_write_bytes(self.path, ("\n".join(out) + ("\n" if out else "")).encode())
 
 
+def _warn(msg: str) -> None:
+    print(f"botorl: warning: {msg}", file=sys.stderr)
+
+
+class TBWriter:
+    """TensorBoard scalars written synchronously in the caller's thread.
+
+    tensorboardX's ``SummaryWriter`` writes from a background thread through a bounded queue;
+    when that thread dies (ENOSPC, EROFS) the queue fills and the next ``add_scalar`` or
+    ``close`` blocks forever, so a full disk hung the whole run. Here every write happens in
+    the caller's thread (tensorboardX's ``EventsWriter``, same file format), the file is
+    flushed every ``flush_secs``, non-finite values are skipped (TensorBoard rejects them
+    with "NaN or Inf found in input tensor"), and the first I/O error turns TensorBoard off
+    with one warning: the run goes on, its CSV logs are the record.
+    """
+
+    def __init__(self, logdir: Path, flush_secs: float = 30.0):
+        from tensorboardX.event_file_writer import EventsWriter  # optional dependency
+
+        self.logdir = Path(logdir)
+        self.flush_secs = flush_secs
+        self._writer = None
+        self._next_flush = time.monotonic() + flush_secs
+        try:
+            self.logdir.mkdir(parents=True, exist_ok=True)
+            self._writer = EventsWriter(str(self.logdir / "events"))
+        except OSError as err:
+            self._disable(err)
+
+    @property
+    def enabled(self) -> bool:
+        return self._writer is not None
+
+    def _disable(self, err: BaseException) -> None:
+        _warn(f"TensorBoard logging to {self.logdir} turned off ({type(err).__name__}: {err}); "
+              "the CSV/JSONL logs in metrics/ go on.")
+        w, self._writer = self._writer, None
+        if w is not None:
+            try:
+                w.close()
+            except Exception:
+                pass
+
+    def add_scalar(self, tag: str, value: Any, step: int) -> None:
+        if self._writer is None:
+            return
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            return
+        if not math.isfinite(v):
+            return
+        try:
+            from tensorboardX.proto.event_pb2 import Event
+            from tensorboardX.summary import scalar
+
+            self._writer.write_event(Event(wall_time=time.time(), step=int(step), summary=scalar(tag, v)))
+            if time.monotonic() >= self._next_flush:
+                self._next_flush = time.monotonic() + self.flush_secs
+                self._writer.flush()
+        except OSError as err:
+            self._disable(err)
+
+    def flush(self) -> None:
+        if self._writer is not None:
+            try:
+                self._writer.flush()
+            except OSError as err:
+                self._disable(err)
+
+    def close(self) -> None:
+        if self._writer is not None:
+            w, self._writer = self._writer, None
+            try:
+                w.close()
+            except OSError as err:
+                _warn(f"TensorBoard events in {self.logdir} could not be closed ({err}).")
+
+
 class MetricsLogger:
     """metrics/<stage>.csv + .jsonl, and TensorBoard / W&B when available / asked."""
 
@@ -190,15 +338,21 @@ class MetricsLogger:
         self.run = run
         self._csv: dict[str, CsvLog] = {}
         self._jsonl: dict[str, JsonlLog] = {}
-        self._tb = None
+        self._tb: TBWriter | None = None
         self._wandb = wandb_run
         if tensorboard:
             try:
-                from tensorboardX import SummaryWriter  # optional dependency
-
-                self._tb = SummaryWriter(str(run.tb))
+                self._tb = TBWriter(run.tb)
             except ImportError:
                 self._tb = None
+
+    def _wandb_log(self, data: dict[str, Any]) -> None:
+        # W&B talks to its own service process; a failure there must not stop the run.
+        try:
+            self._wandb.log(data)
+        except Exception as err:
+            _warn(f"W&B logging turned off ({type(err).__name__}: {err}).")
+            self._wandb = None
 
     def _logs(self, stage: str) -> tuple[CsvLog, JsonlLog]:
         if stage not in self._csv:
@@ -217,16 +371,16 @@ class MetricsLogger:
                 if k != "step" and isinstance(v, (int, float)):
                     self._tb.add_scalar(f"{stage}/{k}", v, step)
         if self._wandb is not None:
-            self._wandb.log({f"{stage}/{k}": v for k, v in row.items() if k != "step"} | {f"{stage}/step": step})
+            self._wandb_log({f"{stage}/{k}": v for k, v in row.items() if k != "step"} | {f"{stage}/step": step})
 
     def log_eval(self, row: dict[str, Any]) -> None:
         if self._tb is not None:
             for k in ("success", "return", "q_data", "q_uniform"):
                 v = row.get(k)
-                if isinstance(v, (int, float)) and math.isfinite(v):
+                if isinstance(v, (int, float)):
                     self._tb.add_scalar(f"eval/{k}", v, row["env_step"])
         if self._wandb is not None:
-            self._wandb.log({f"eval/{k}": row[k] for k in ("success", "return", "q_data", "q_uniform")}
+            self._wandb_log({f"eval/{k}": row[k] for k in ("success", "return", "q_data", "q_uniform")}
                             | {"eval/env_step": row["env_step"]})
 
     def truncate(self, stage: str, max_step: int) -> None:
@@ -237,7 +391,6 @@ class MetricsLogger:
 
     def close(self) -> None:
         if self._tb is not None:
-            self._tb.flush()
             self._tb.close()
             self._tb = None
 
