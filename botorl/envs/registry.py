@@ -129,7 +129,7 @@ class TaskSpec:
                 return "found", str(folder)
             return "missing", loaders.download_hint(self.name)
         if src.kind == "calql_npy":
-            return "missing", "pass --data-path: " + loaders.download_hint(self.name)
+            return "missing", "pass --data.path: " + loaders.download_hint(self.name)
         try:
             from botorl.data.generate import cached_datasets
 
