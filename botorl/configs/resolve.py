@@ -103,6 +103,10 @@ def validate(cfg: RunConfig) -> None:
         if not cond:
             raise ConfigError(f"--{field} = {value!r} is invalid: {what}.")
 
+    for name, v in (("seed", cfg.seed), ("data.seed", cfg.data.seed)):
+        # NumPy's generators take only non-negative seeds; 2**31 keeps JAX keys in int32
+        need(isinstance(v, int) and 0 <= v < 2**31, name, v, "a seed must be an integer in [0, 2**31)")
+
     budgets = {
         "offline.steps": cfg.offline.steps,
         "warmup.steps": cfg.warmup.steps,
