@@ -22,13 +22,14 @@ import contextlib
 import contextvars
 import os
 import pickle
+import sys
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from botorl.data.dataset import Dataset, validate
-from botorl.data.minari_io import SPLIT_KEY, read_flat
+from botorl.data.minari_io import SPLIT_KEY, FlatCacheInvalid, read_flat, rebuild_flat
 from botorl.errors import DataFormatError, DatasetNotFoundError
 
 # ----------------------------------------------------------------------------- hints
@@ -282,6 +283,24 @@ def _minari_episodes(mds, data_path: Path):
                       "terminations": ep.terminations, "infos": ep.infos}
 
 
+def _checked_episodes(mds, data_path: Path):
+    """``_minari_episodes``, with a truncated or damaged file a DataFormatError (h5py raises OSError)."""
+    it = _minari_episodes(mds, data_path)
+    while True:
+        try:
+            item = next(it)
+        except StopIteration:
+            return
+        except DataFormatError:
+            raise
+        except Exception as err:
+            raise DataFormatError(
+                f"{data_path / 'main_data.hdf5'} cannot be read ({type(err).__name__}: {err}); the file is truncated "
+                "or damaged. Regenerate it (`botorl data generate TASK --overwrite`) or download the dataset again."
+            ) from None
+        yield item
+
+
 def load_minari(
     id_or_path: str | os.PathLike,
     *,
@@ -306,14 +325,30 @@ def load_minari(
     """
     data_path, as_path = _minari_data_path(id_or_path)
     name = str(id_or_path)
+    given = Path(id_or_path).expanduser()
+    if as_path and given.is_file() and given.name != "main_data.hdf5":
+        raise DataFormatError(
+            f"{given} exists, but it is a file and this task reads a Minari dataset: give the dataset's folder "
+            "(the one holding data/main_data.hdf5 and data/metadata.json) or its main_data.hdf5. A D4RL .hdf5 "
+            "file is read by `botorl data info FILE` / botorl.data.loaders.load_d4rl_hdf5, not as a Minari dataset."
+        )
+    rebuild = False
     if obs_keys is None and data_path.name == "data":
         try:
             flat = read_flat(data_path.parent)
-        except Exception:
-            flat = None  # unreadable flat copy: fall back to the Minari data
+        except FlatCacheInvalid as err:
+            flat = None
+            rebuild = True
+            print(f"botorl: warning: not using the flat cache: {err}; reading the Minari data in {data_path} "
+                  "and rebuilding the cache.", file=sys.stderr)
         if flat is not None:
             return validate(flat, obs_dim, action_dim, action_tolerance)
     if not (data_path / "metadata.json").exists() and not (data_path / "main_data.hdf5").exists():
+        if as_path and given.is_dir():
+            raise DataFormatError(
+                f"{given} exists but is not a Minari dataset folder: it has neither data/main_data.hdf5 nor "
+                "data/metadata.json. Pass the folder of a Minari dataset (or regenerate it with `botorl data generate`)."
+            )
         looked = [data_path]
         raise dataset_not_found(name, looked, None if not as_path else
                                 "Pass the folder of a Minari dataset (it contains data/main_data.hdf5 and data/metadata.json).")
@@ -328,7 +363,7 @@ def load_minari(
         ) from None
     obs_l, nobs_l, act_l, rew_l, term_l, end_l, succ_l = [], [], [], [], [], [], []
     have_success = True
-    for ep_id, ep in _minari_episodes(mds, data_path):
+    for ep_id, ep in _checked_episodes(mds, data_path):
         try:
             o = flatten_observation(ep["observations"], obs_keys)
         except KeyError as err:
@@ -379,6 +414,8 @@ def load_minari(
         infos={"success": np.concatenate(succ_l)} if have_success and succ_l else None,
         metadata=meta,
     )
+    if rebuild and "botorl" in meta:  # only botorl's own datasets carry a flat copy
+        rebuild_flat(ds, data_path.parent)
     return validate(ds, obs_dim, action_dim, action_tolerance)
 
 

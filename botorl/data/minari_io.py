@@ -51,6 +51,81 @@ SPLIT_KEY = "botorl_split"
 # flat, beside the Minari ``data`` folder (Minari ignores it), written in the same atomic
 # step; ``load_minari`` reads it when present and no ``obs_keys`` are asked for.
 FLAT_FILE = "botorl_flat.npz"
+# Temporary roots of write_minari: ``.botorl-tmp-<host>-<pid>-<random>``; one whose process is
+# gone (a `botorl data generate` killed with -9) is removed by the next write into the root.
+TMP_PREFIX = ".botorl-tmp-"
+# A temporary root of another host (or of the old unnamed form) is removed after this long.
+TMP_MAX_AGE_S = 24 * 3600
+
+
+class FlatCacheInvalid(BotorlError):
+    """The flat copy does not match its Minari source or its own recorded contents."""
+
+
+def _sha256_file(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _content_sha256(arrays: dict[str, np.ndarray]) -> str:
+    """Checksum of named arrays (name, dtype, shape and bytes, in name order)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for k in sorted(arrays):
+        a = np.ascontiguousarray(arrays[k])
+        h.update(f"{k}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _host() -> str:
+    import socket
+
+    return socket.gethostname().replace("-", "_") or "host"
+
+
+def clean_stale_tmp(root: Path) -> list[Path]:
+    """Remove temporary roots left under ``root`` by writers that died (kill -9); returns them."""
+    import time as _time
+
+    removed = []
+    try:
+        entries = list(Path(root).iterdir())
+    except OSError:
+        return removed
+    host = _host()
+    for p in entries:
+        if not p.name.startswith(TMP_PREFIX) or not p.is_dir():
+            continue
+        parts = p.name[len(TMP_PREFIX):].rsplit("-", 2)
+        stale = False
+        if len(parts) == 3 and parts[0] == host and parts[1].isdigit():
+            stale = not _pid_alive(int(parts[1]))
+        else:  # another host's, or the old unnamed form: only when clearly abandoned
+            try:
+                stale = _time.time() - p.stat().st_mtime > TMP_MAX_AGE_S
+            except OSError:
+                stale = False
+        if stale:
+            shutil.rmtree(p, ignore_errors=True)
+            removed.append(p)
+    return removed
 
 
 @contextlib.contextmanager
@@ -225,7 +300,8 @@ def write_minari(
             "replace it, or choose another id."
         )
     root_p.mkdir(parents=True, exist_ok=True)
-    tmp_root = root_p / f".botorl-tmp-{uuid.uuid4().hex[:12]}"
+    clean_stale_tmp(root_p)
+    tmp_root = root_p / f"{TMP_PREFIX}{_host()}-{os.getpid()}-{uuid.uuid4().hex[:12]}"
     import gymnasium as gym
 
     obs_space = gym.spaces.Box(-np.inf, np.inf, (dataset.obs_dim,), np.float32)
@@ -278,6 +354,13 @@ def _progress(buffers: list, show: bool, name: str):
 
 
 def _write_flat(ds: Dataset, path: Path, meta: dict) -> None:
+    """The flat copy, with the size and sha256 of its Minari source and a checksum of its own rows.
+
+    ``path`` sits in the dataset folder beside ``data/main_data.hdf5`` (the source). Written
+    through a temporary file, so a rebuild of an existing cache is atomic too.
+    """
+    from botorl.io import atomic_write_bytes
+
     arrays = {
         "observations": ds.observations, "actions": ds.actions, "rewards": ds.rewards,
         "next_observations": ds.next_observations, "terminals": ds.terminals,
@@ -285,20 +368,68 @@ def _write_flat(ds: Dataset, path: Path, meta: dict) -> None:
         "botorl_metadata": np.asarray(json.dumps(meta, default=_json_default)),
     }
     arrays.update({f"infos/{k}": v for k, v in ds.infos.items()})
-    with open(path, "wb") as fh:
-        np.savez(fh, **arrays)
+    source = Path(path).parent / "data" / "main_data.hdf5"
+    check = {"content_sha256": np.asarray(_content_sha256(arrays))}
+    if source.exists():
+        check.update(source_size=np.asarray(source.stat().st_size, np.int64),
+                     source_sha256=np.asarray(_sha256_file(source)))
+    import io as _io
+
+    buf = _io.BytesIO()
+    np.savez(buf, **arrays, **check)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+_CHECK_KEYS = ("content_sha256", "source_size", "source_sha256")
 
 
 def read_flat(folder: Path) -> Dataset | None:
-    """The flat copy written beside a botorl Minari dataset, or None if there is none."""
-    path = Path(folder) / FLAT_FILE
+    """The flat copy written beside a botorl Minari dataset, or None if there is none.
+
+    Trusted only after checks (``FlatCacheInvalid`` names the failed one): the size and sha256
+    of ``data/main_data.hdf5`` equal those recorded when the copy was made, the rows match
+    their recorded checksum, and the recorded action range is that of the stored actions.
+    """
+    from botorl.data.dataset import ACTION_CLIP
+
+    folder = Path(folder)
+    path = folder / FLAT_FILE
     if not path.exists():
         return None
-    with np.load(path, allow_pickle=False) as z:
-        infos = {k[6:]: z[k] for k in z.files if k.startswith("infos/")}
-        meta = {"source": str(folder), "format": "minari", "botorl": json.loads(str(z["botorl_metadata"]))}
-        return Dataset(z["observations"], z["actions"], z["rewards"], z["next_observations"], z["terminals"],
-                       z["episode_ends"], infos=infos, metadata=meta, raw_action_max=float(z["raw_action_max"]))
+    source = folder / "data" / "main_data.hdf5"
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except Exception as err:
+        raise FlatCacheInvalid(f"{path} cannot be read ({type(err).__name__}: {err})") from None
+    if any(k not in arrays for k in _CHECK_KEYS):
+        raise FlatCacheInvalid(f"{path} was written without checksums of its source (an older botorl)")
+    if not source.exists():
+        raise FlatCacheInvalid(f"{path}: its source {source} is missing")
+    if int(arrays["source_size"]) != source.stat().st_size or str(arrays["source_sha256"]) != _sha256_file(source):
+        raise FlatCacheInvalid(f"{path} was made from a different {source} (size or sha256 differ)")
+    body = {k: v for k, v in arrays.items() if k not in _CHECK_KEYS}
+    if _content_sha256(body) != str(arrays["content_sha256"]):
+        raise FlatCacheInvalid(f"{path}: its rows do not match their recorded sha256 (the file was changed)")
+    act = body["actions"]
+    raw = float(body["raw_action_max"])
+    amax = float(np.abs(act).max()) if act.size else 0.0
+    if abs(amax - min(raw, ACTION_CLIP)) > 1e-6:
+        raise FlatCacheInvalid(f"{path}: stored actions reach {amax:.6g}, but the recorded action range is {raw:.6g}")
+    infos = {k[6:]: v for k, v in body.items() if k.startswith("infos/")}
+    meta = {"source": str(folder), "format": "minari", "botorl": json.loads(str(body["botorl_metadata"]))}
+    return Dataset(body["observations"], act, body["rewards"], body["next_observations"], body["terminals"],
+                   body["episode_ends"], infos=infos, metadata=meta, raw_action_max=raw)
+
+
+def rebuild_flat(ds: Dataset, folder: Path) -> bool:
+    """Rewrite the flat copy of the Minari dataset in ``folder`` from ``ds`` (read from the source)."""
+    meta = dict(ds.metadata.get("botorl") or {})
+    try:
+        _write_flat(ds, Path(folder) / FLAT_FILE, meta)
+        return True
+    except OSError:
+        return False  # a read-only dataset folder: the Minari data are used each time
 
 
 def _json_default(obj):
