@@ -1,0 +1,175 @@
+"""Populations (botorl.pipeline.population): member parsing, stacking, the vmapped entry
+points, per-member sampling and replay, the memory check.
+
+Independence is the property everything rests on: member i of a population computes what a
+population of one (= the agent's own jitted function) computes for the same seed, to float
+tolerance (vmapped matmuls may sum in another order: rtol 1e-4 after 20 updates).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from botorl.errors import ConfigError
+from botorl.pipeline import population as P
+
+O, A = 4, 2
+
+
+@pytest.fixture(scope="module")
+def dataset():
+    from botorl.data.dataset import Dataset
+
+    rng = np.random.default_rng(0)
+    n = 300
+    return Dataset(rng.normal(size=(n, O)), rng.uniform(-1, 1, (n, A)), rng.normal(size=n), rng.normal(size=(n, O)),
+                   rng.random(n) < 0.05).with_mc_returns(0.99)
+
+
+def _calql(seed):
+    from botorl.agents.cql import CQLAgent, CQLConfig
+
+    cfg = CQLConfig(actor_hidden_dims=(16,), critic_hidden_dims=(16,), num_critics=2, cql_n_actions=2,
+                    num_backup_actions=2, cql_lagrange=False, calql=True)
+    return CQLAgent.create(cfg, O, A, seed)
+
+
+def _iql(seed):
+    from botorl.agents.iql import IQLAgent, IQLConfig
+
+    return IQLAgent.create(IQLConfig(actor_hidden_dims=(16,), critic_hidden_dims=(16,), value_hidden_dims=(16,)), O, A, seed)
+
+
+# ------------------------------------------------------------------ members
+def test_parse_seeds_and_alphas():
+    assert P.parse_seeds("0-3") == [0, 1, 2, 3]
+    assert P.parse_seeds("0-2,7") == [0, 1, 2, 7]
+    assert P.parse_alphas("-1:1:0.25") == [-1.0, -0.75, -0.5, -0.25, 0.0, 0.25, 0.5, 0.75, 1.0]
+    assert P.parse_alphas("-0.5,0,0.5") == [-0.5, 0.0, 0.5]
+    for bad in ("0-3,2", "1,1", "x", "3-1"):
+        with pytest.raises(ConfigError):
+            P.parse_seeds(bad)
+    for bad in ("0.5,0.5", "-1.5", "0,2", "1:-1:0.5", "a"):
+        with pytest.raises(ConfigError):
+            P.parse_alphas(bad)
+    ms = P.make_members([0, 1], [-0.5, 0.5], True)
+    assert [(m.seed, m.alpha) for m in ms] == [(0, -0.5), (1, -0.5), (0, 0.5), (1, 0.5)]
+    assert ms[0].name == "alpha-0.50-seed0" and P.Member(3).name == "seed3"
+    with pytest.raises(ConfigError, match="no BOTO phase"):
+        P.make_members([0], [0.5], False)
+
+
+# ------------------------------------------------------------------ stacking and vmapped updates
+def test_stack_unstack_roundtrip():
+    import jax
+
+    agents = [_iql(s) for s in (1, 2, 3)]
+    pop = P.stack(agents)
+    assert P.population_size(pop) == 3
+    for a, b in zip(agents, P.unstack(pop)):
+        for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+@pytest.mark.parametrize("make", [_calql, _iql], ids=["calql", "iql"])
+def test_member_equals_population_of_one(make, dataset):
+    """Member (seed 3) of a population of 3 and a population of one with seed 3 draw the same
+    batches and actions and reach the same losses; one compile per population size."""
+    seeds = [5, 3, 8]
+    pop, one = P.stack([make(s) for s in seeds]), P.stack([make(3)])
+    rngs = [np.random.default_rng([s, 1]) for s in seeds]
+    rng1 = [np.random.default_rng([3, 1])]
+    before = P._jit_update_many._cache_size()
+    for _ in range(4):
+        b, b1 = P.sample_members(dataset, rngs, 16, 5), P.sample_members(dataset, rng1, 16, 5)
+        np.testing.assert_array_equal(b["observations"][1], b1["observations"][0])
+        pop, m = P.pop_update_many(pop, b)
+        one, m1 = P.pop_update_many(one, b1)
+        np.testing.assert_allclose(np.asarray(m["critic_loss"])[1], np.asarray(m1["critic_loss"])[0], rtol=1e-4)
+    assert P._jit_update_many._cache_size() - before <= 2  # N = 3 and N = 1, each once
+    obs = dataset.observations[:3]
+    a, pop = P.pop_sample(pop, obs)
+    a1, one = P.pop_sample(one, obs[1:2])
+    np.testing.assert_allclose(np.asarray(a)[1], np.asarray(a1)[0], atol=1e-5)
+    np.testing.assert_allclose(np.asarray(P.pop_eval(pop, obs[None].repeat(3, 0)))[1],
+                               np.asarray(P.pop_eval(one, obs[None]))[0], atol=1e-5)
+    # a population of one is the agent's own jitted update, bit for bit
+    plain = make(3)
+    r = np.random.default_rng([3, 1])
+    for _ in range(4):
+        plain, mp = plain.update_many(dataset.sample(r, 16, num_batches=5))
+    np.testing.assert_array_equal(np.asarray(mp["critic_loss"]), np.asarray(m1["critic_loss"])[0])
+
+
+def test_boto_each_member_its_alpha(dataset):
+    from botorl.boto.config import BOTOConfig
+    from botorl.boto.objective import ObjectiveSettings, boto_update_many
+    from botorl.boto.phase import boto_dataset
+
+    seeds, alphas = [0, 1, 2], np.array([-1.0, 0.0, 0.5], np.float32)
+    agents = [_calql(s) for s in seeds]
+    settings = ObjectiveSettings.resolve(BOTOConfig(), agents[0])
+    warm = [None] * len(seeds)
+    rngs = [np.random.default_rng([s, 0]) for s in seeds]
+    b = P.sample_union_members(dataset, warm, rngs, 16, 3)
+    pop, m = P.pop_boto_update_many(P.stack(agents), b, alphas, settings)
+    for i, s in enumerate(seeds):
+        bi = boto_dataset(dataset, None).sample(np.random.default_rng([s, 0]), 16, num_batches=3)
+        np.testing.assert_array_equal(b["actions"][i], bi["actions"])
+        _, mi = boto_update_many(agents[i], bi, float(alphas[i]), settings)
+        np.testing.assert_allclose(np.asarray(m["critic_loss"])[i], float(mi["critic_loss"]), rtol=1e-4)
+        np.testing.assert_allclose(np.asarray(m["penalty"])[i], float(mi["penalty"]), rtol=1e-4, atol=1e-6)
+
+
+# ------------------------------------------------------------------ sampling and replay
+def test_union_sampling_matches_concat(dataset):
+    from botorl.boto.phase import boto_dataset
+    from botorl.data.dataset import Dataset
+
+    rng = np.random.default_rng(1)
+    warm = [Dataset(rng.normal(size=(40, O)), rng.uniform(-1, 1, (40, A)), rng.normal(size=40),
+                    rng.normal(size=(40, O)), rng.random(40) < 0.1) for _ in range(2)]
+    b = P.sample_union_members(dataset, warm, [np.random.default_rng([s, 7]) for s in (4, 9)], 64, 3)
+    for i, s in enumerate((4, 9)):
+        ref = boto_dataset(dataset, warm[i]).sample(np.random.default_rng([s, 7]), 64, num_batches=3)
+        for k in ("observations", "actions", "rewards", "next_observations", "dones"):
+            np.testing.assert_array_equal(b[k][i], ref[k])
+
+
+def test_member_replay_matches_replay_buffer(dataset):
+    from botorl.data.replay import ReplayBuffer, sample_mixed
+
+    rng = np.random.default_rng(2)
+    n, cap = 3, 50
+    pop = P.MemberReplay(n, cap, O, A)
+    singles = [ReplayBuffer(cap, O, A) for _ in range(n)]
+    for _ in range(70):  # wraps around
+        o, a, r, o2, d = rng.normal(size=(n, O)), rng.uniform(-1, 1, (n, A)), rng.normal(size=n), \
+            rng.normal(size=(n, O)), rng.random(n) < 0.1
+        pop.insert(o, a, r, o2, d)
+        for i, buf in enumerate(singles):
+            buf.insert(o[i], a[i], r[i], o2[i], d[i])
+    seeds = [11, 12, 13]
+    got = pop.sample_mixed(dataset, 0.5, [np.random.default_rng(s) for s in seeds], 20, num_batches=4)
+    got2 = pop.sample([np.random.default_rng(s) for s in seeds], 20)
+    for i, s in enumerate(seeds):
+        ref = sample_mixed([dataset, singles[i]], [0.5, 0.5], np.random.default_rng(s), 20, num_batches=4)
+        ref2 = singles[i].sample(np.random.default_rng(s), 20)
+        for k in ref:
+            np.testing.assert_array_equal(got[k][i], ref[k])
+            np.testing.assert_array_equal(got2[k][i], ref2[k])
+    back = P.MemberReplay.from_state_dict(pop.state_dict())
+    for k in ("observations", "dones"):
+        np.testing.assert_array_equal(getattr(back, k), getattr(pop, k))
+    assert (back.size, back.insert_index) == (pop.size, pop.insert_index)
+
+
+# ------------------------------------------------------------------ memory
+def test_memory_estimate_and_check():
+    parts = P.estimate_memory(num_members=8, agent_bytes=10**6, buffer_rows=1000, warmup_rows=100, obs_dim=4,
+                              action_dim=2, batch_rows=256, activation_floats=10**5, offline_bytes=10**7)
+    assert parts["total"] == sum(v for k, v in parts.items() if k != "total")
+    P.check_memory(parts, 8, available=(10**9, "test memory"))
+    with pytest.raises(ConfigError, match="fewer members"):
+        P.check_memory(parts, 8, available=(2 * 10**7, "test memory"))
