@@ -60,6 +60,9 @@ class SweepArgs:
     """existing Ray cluster (e.g. auto or ray://head:10001); default: start a local instance"""
     trial_command: Optional[str] = None
     """command that stands in for `python -m botorl.cli` (testing); gets run/resume arguments"""
+    population_size: int = 1
+    """train the trials of each (task, method, pre-training) K at a time as populations (one process,
+    one jitted update for all members); 1: one process per trial"""
     dry_run: bool = False
     """list the trials and what each would do (run / resume / done), launch nothing"""
     progress: bool = True
@@ -114,6 +117,7 @@ def sweep_main(argv: list[str]) -> int:
         ray_address=args.ray_address,
         command=command,
         progress=args.progress,
+        population_size=args.population_size,
     )
     sweep = Sweep(grid, options)
     if args.dry_run:

@@ -9,6 +9,7 @@ second invocation of the same command finds the trials the first one made.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -68,6 +69,91 @@ class Trial:
             "alpha": self.alpha,
             "seed": self.seed,
         }
+
+
+@dataclasses.dataclass(frozen=True)
+class PopulationJob:
+    """Trials of one (task, method, pre-training) trained as one population (`botorl run
+    --seeds ... [--alphas ...]`): the unit of work of `botorl sweep --population-size K`.
+
+    Its members are the product of ``seeds`` and ``alphas`` (a population is always a
+    product, so one `botorl run` command line describes it). Each member's run directory is
+    ``<relpath>/<member name>`` (botorl.pipeline.population.Member.name)."""
+
+    task: str
+    method: str
+    pretrain: str | None
+    seeds: tuple[int, ...]
+    alphas: tuple[float | None, ...] = (None,)
+
+    @property
+    def method_label(self) -> str:
+        return self.method if self.pretrain is None else f"{self.method}-{self.pretrain}"
+
+    @property
+    def trials(self) -> list[Trial]:
+        return [Trial(self.task, self.method, s, a, self.pretrain) for a in self.alphas for s in self.seeds]
+
+    @property
+    def relpath(self) -> str:
+        """`<task>/<method>[-<pretrain>]/pop-<members>m-<hash>`: the same members, the same name."""
+        import hashlib
+
+        key = json.dumps([list(self.seeds), [None if a is None else round(a, 6) for a in self.alphas]])
+        digest = hashlib.sha1(key.encode()).hexdigest()[:8]
+        return f"{self.task}/{self.method_label}/pop-{len(self.seeds) * len(self.alphas)}m-{digest}"
+
+    @property
+    def id(self) -> str:
+        return self.relpath
+
+    def member_dir(self, trial: Trial) -> str:
+        """A member's run directory, relative to the sweep directory."""
+        from botorl.pipeline.population import Member
+
+        return f"{self.relpath}/{Member(trial.seed, trial.alpha).name}"
+
+    def run_args(self, profile: str | None, overrides: dict[str, str]) -> list[str]:
+        args = ["--task", self.task, "--method", self.method, "--seeds", ",".join(str(s) for s in self.seeds)]
+        if any(a is not None for a in self.alphas):
+            args.append("--alphas=" + ",".join(format_alpha(a) for a in self.alphas))
+        if self.pretrain is not None:
+            args += ["--pretrain", self.pretrain]
+        if profile:
+            args += ["--profile", profile]
+        for key, value in overrides.items():
+            args += [f"--{key}={value}"] if value.startswith("-") else [f"--{key}", value]
+        return args
+
+    def to_json(self) -> dict[str, Any]:
+        return {"task": self.task, "method": self.method, "pretrain": self.pretrain, "seeds": list(self.seeds),
+                "alphas": list(self.alphas), "members": [t.relpath for t in self.trials]}
+
+
+def group_populations(trials: list[Trial], size: int) -> list[PopulationJob]:
+    """Trials grouped by (task, method, pretrain) into populations of at most ``size`` members.
+
+    Every population is a product seeds x alphas: with at least as many slots as seeds, a
+    population takes all seeds at ``size // len(seeds)`` alphas; otherwise one alpha and
+    ``size`` seeds."""
+    if size < 1:
+        raise ConfigError(f"--population-size must be >= 1, got {size}.")
+    groups: dict[tuple, list[Trial]] = {}
+    for t in trials:
+        groups.setdefault((t.task, t.method, t.pretrain), []).append(t)
+    jobs: list[PopulationJob] = []
+    for (task, method, pretrain), ts in groups.items():
+        seeds = list(dict.fromkeys(t.seed for t in ts))
+        alphas = list(dict.fromkeys(t.alpha for t in ts))
+        if len(seeds) <= size:
+            per = max(1, size // len(seeds))
+            for i in range(0, len(alphas), per):
+                jobs.append(PopulationJob(task, method, pretrain, tuple(seeds), tuple(alphas[i:i + per])))
+        else:
+            for a in alphas:
+                for i in range(0, len(seeds), size):
+                    jobs.append(PopulationJob(task, method, pretrain, tuple(seeds[i:i + size]), (a,)))
+    return jobs
 
 
 def format_alpha(alpha: float) -> str:
@@ -236,6 +322,10 @@ class Grid:
                     for seed in self.seeds:
                         out.append(Trial(task, method, seed, alpha, pretrain))
         return out
+
+    def populations(self, size: int) -> list[PopulationJob]:
+        """The trials as populations of at most ``size`` members (``group_populations``)."""
+        return group_populations(self.trials(), size)
 
     def to_json(self) -> dict[str, Any]:
         return {

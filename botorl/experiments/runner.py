@@ -13,6 +13,11 @@ Backends:
   (a 1-core trial with many threads only adds context switches);
 - ray: one Ray task (num_cpus=1) per trial on an existing cluster or a local instance.
 
+With ``population_size`` K > 1 the unit of work of every backend is a population: the
+trials of one (task, method, pre-training) grouped K at a time (grid.group_populations) and
+trained by one `botorl run --seeds ... [--alphas ...]` process, each member in its own run
+directory inside the population's.
+
 Trial processes get PR_SET_PDEATHSIG, so killing only the sweep process also stops them; a
 trial that still outlives its sweep (e.g. its pid was reparented before the signal was set)
 is found through the pid file in its run directory and stopped when the sweep restarts.
@@ -102,8 +107,12 @@ def read_json(path: Path) -> dict[str, Any] | None:
 # What a trial needs next, read from its run directory
 
 
+POPULATION_FILE = "population.json"  # a population directory's (botorl.pipeline.population_run)
+
+
 def run_status(run_dir: Path) -> str | None:
-    summary = read_json(Path(run_dir) / "summary.json")
+    """A run's summary.json status, or a population directory's population.json status."""
+    summary = read_json(Path(run_dir) / "summary.json") or read_json(Path(run_dir) / POPULATION_FILE)
     return None if summary is None else str(summary.get("status"))
 
 
@@ -114,7 +123,7 @@ def next_action(run_dir: Path) -> str:
     killed before its first checkpoint starts it over, so config.json decides."""
     if run_status(run_dir) == "finished":
         return "done"
-    if (Path(run_dir) / "config.json").exists():
+    if (Path(run_dir) / "config.json").exists() or (Path(run_dir) / POPULATION_FILE).exists():
         return "resume"
     return "run"
 
@@ -261,6 +270,7 @@ class SweepOptions:
     command: Sequence[str] | None = None  # trial command prefix; default `python -m botorl.cli`
     progress: bool = True
     poll_interval: float = 0.25
+    population_size: int = 1  # > 1: trials grouped into populations, one `botorl run --seeds` each
 
 
 @dataclasses.dataclass
@@ -282,7 +292,9 @@ class Sweep:
         self.grid = grid
         self.opt = options
         self.out = Path(options.out).resolve()
-        self.trials = grid.trials()
+        # the units of work: trials, or populations of trials (grid.PopulationJob) that
+        # quack like trials (id, relpath, run_args, to_json)
+        self.trials = grid.trials() if options.population_size <= 1 else grid.populations(options.population_size)
         self.manifest: dict[str, Any] = {}
         self._lock_file = None
         self._ray = None
