@@ -301,17 +301,35 @@ def test_iql_expectile_and_awr_losses():
     cfg = IQLConfig(actor_hidden_dims=(8, 8), critic_hidden_dims=(8, 8), value_hidden_dims=(8, 8), expectile=0.7, awr_beta=3.0)
     agent = IQLAgent.create(cfg, O, A, seed=5)
     batch = make_batch(4)
-    loss, _ = agent.value_loss(agent.value.params, _jnp_batch(batch))
     q = np_critic(agent.target_critic_params, batch["observations"], batch["actions"], 2, False).min(0)
+    # with two critics the random pair is both: IQL's twin-Q min
+    q_agent = agent.target_q(_jnp_batch(batch), jax.random.PRNGKey(3))
+    np.testing.assert_allclose(q_agent, q, **TOL)
+    loss, _ = agent.value_loss(agent.value.params, _jnp_batch(batch), q_agent)
     vp = agent.value.params
     v = (np_mlp(vp["MLP_0"], batch["observations"], 2, False) @ np.asarray(vp["Dense_0"]["kernel"]) + np.asarray(vp["Dense_0"]["bias"]))[:, 0]
     d = q - v
     want = np.mean(np.where(d < 0, 0.3, 0.7) * d**2)
     np.testing.assert_allclose(loss, want, **TOL)
 
-    a_loss, _ = agent.actor_loss(agent.actor.params, _jnp_batch(batch), jax.random.PRNGKey(0))
+    a_loss, _ = agent.actor_loss(agent.actor.params, _jnp_batch(batch), jax.random.PRNGKey(0), q_agent)
     mean, log_std = np_actor(agent.actor.params, batch["observations"], 2, False, -5, 2)
     u = np.arctanh(batch["actions"])
     logp = (-0.5 * ((u - mean) / np.exp(log_std)) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(-1) - np.log(1 - batch["actions"] ** 2).sum(-1)
     w = np.minimum(np.exp(3.0 * d), 100.0)
     np.testing.assert_allclose(a_loss, -np.mean(w * logp), rtol=1e-3, atol=1e-3)
+
+
+def test_iql_target_is_min_over_a_distinct_pair_of_a_larger_ensemble():
+    cfg = IQLConfig(actor_hidden_dims=(8, 8), critic_hidden_dims=(8, 8), value_hidden_dims=(8, 8), num_critics=4)
+    agent = IQLAgent.create(cfg, O, A, seed=6)
+    batch = make_batch(4)
+    per_member = np_critic(agent.target_critic_params, batch["observations"], batch["actions"], 2, False)  # (4, B)
+    pairs = {(i, j): np.minimum(per_member[i], per_member[j]) for i in range(4) for j in range(i + 1, 4)}
+    seen = set()
+    for k in range(12):
+        q = np.asarray(agent.target_q(_jnp_batch(batch), jax.random.PRNGKey(k)))
+        match = [p for p, v in pairs.items() if np.allclose(q, v, rtol=1e-4, atol=1e-5)]
+        assert match, "the target must be the min over two distinct members"
+        seen.update(match)
+    assert len(seen) >= 3, f"the pair must be drawn at random, saw only {seen}"

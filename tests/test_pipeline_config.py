@@ -122,6 +122,7 @@ def _run(capsys, tmp_path, *args):
         (["--method", "cql", "--pretrain", "iql"], ["--method cql pre-trains with cql"]),
         (["--pretrain", "bc"], ["unknown pre-training algorithm 'bc'"]),
         (["--eval.interval", "0"], ["--eval.interval = 0", "positive"]),
+        (["--online.steps", "5000"], ["leaves no fine-tuning after the 5000-step warm-up"]),
     ],
 )
 def test_bad_configuration_exit_2(capsys, tmp_path, args, needles):
@@ -147,6 +148,9 @@ def test_missing_door_demos_exit_2(capsys, tmp_path, monkeypatch):
     code, err = _run(capsys, tmp_path, "--task", "door-binary-local", "--profile", "smoke",
                      "--demos", str(tmp_path / "no-demos.npz"))
     assert code == 2 and "no-demos.npz" in err and "door_human_demos.npz" in err, err
+    from botorl.data.generators import door
+
+    monkeypatch.setattr(door, "SHIPPED_DEMOS", tmp_path / "not-installed.npz")  # an install without the asset
     code, err = _run(capsys, tmp_path, "--task", "door-binary-local", "--profile", "smoke")
     assert code == 2 and "BOTORL_DOOR_DEMOS" in err, err
 

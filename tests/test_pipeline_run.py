@@ -48,11 +48,16 @@ def test_run_directory_contract(boto_run):
 
     rows = _csv(d / "eval.csv")
     assert list(rows[0].keys()) == ["stage", "env_step", "success", "return", "q_data", "q_uniform"]
-    # smoke: 40 online steps, evaluations at 0, every 20, and the end
-    assert [int(r["env_step"]) for r in rows] == [0, 20, 40]
+    # smoke: 40 online steps of which the first 30 are the warm-up (WSRL's accounting): the
+    # pre-trained policy is evaluated at 0 and 20 during the warm-up, the BOTO-trained one when
+    # fine-tuning starts (30), then at 40 (the end)
+    assert [(r["stage"], int(r["env_step"])) for r in rows] == [
+        ("warmup", 0), ("warmup", 20), ("finetune", 30), ("finetune", 40)]
     for r in rows:
-        assert r["stage"] == "finetune" and 0.0 <= float(r["success"]) <= 1.0
+        assert 0.0 <= float(r["success"]) <= 1.0
         assert math.isfinite(float(r["q_data"])) and math.isfinite(float(r["q_uniform"]))
+    ft = _csv(d / "metrics" / "finetune.csv")
+    assert ft and all(30 < int(float(r["step"])) <= 40 for r in ft)
 
     for stage in ("pretrain", "warmup", "boto", "finetune"):
         assert (d / "metrics" / f"{stage}.csv").stat().st_size > 0
@@ -104,21 +109,22 @@ def test_resume_of_finished_run_is_a_no_op(boto_run, capsys):
 
 
 @pytest.mark.parametrize(
-    "method, stages, pretrain",
+    "method, stages, pretrain, eval_steps",
     [
-        ("wsrl", ["pretrain", "warmup", "finetune"], "calql"),
-        ("calql", ["pretrain", "finetune"], "calql"),
-        ("iql", ["pretrain", "finetune"], "iql"),
-        ("rlpd", ["finetune"], None),
+        # one online axis: wsrl's 30 warm-up steps are online steps, fine-tuning starts at 30
+        ("wsrl", ["pretrain", "warmup", "finetune"], "calql", [0, 20, 30, 40]),
+        ("calql", ["pretrain", "finetune"], "calql", [0, 20, 40]),
+        ("iql", ["pretrain", "finetune"], "iql", [0, 20, 40]),
+        ("rlpd", ["finetune"], None, [0, 20, 40]),
     ],
 )
-def test_methods_run_their_stages(tmp_path, method, stages, pretrain):
+def test_methods_run_their_stages(tmp_path, method, stages, pretrain, eval_steps):
     out = tmp_path / method
     assert _run(out, "--method", method) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["status"] == "finished" and s["method"] == method and s["pretrain"] == pretrain and s["alpha"] is None
     assert list(s["stage_seconds"]) == stages
-    assert [int(r["env_step"]) for r in _csv(out / "eval.csv")] == [0, 20, 40]
+    assert [int(r["env_step"]) for r in _csv(out / "eval.csv")] == eval_steps
     assert not (out / "checkpoints" / "boto-final").exists()
 
 
@@ -153,13 +159,13 @@ def test_divergence_stops_with_last_good_checkpoint(tmp_path, monkeypatch, capsy
 
     monkeypatch.setattr(SACAgent, "update", poisoned)
     out = tmp_path / "nan"
-    code = _run(out)
+    code = _run(out, "--online.steps", "80")  # fine-tuning from 30 (after the warm-up) to 80
     err = capsys.readouterr().err
     assert code == 2
     assert "diverged" in err and "critic_loss = nan" in err and "finetune" in err
     s = json.loads((out / "summary.json").read_text())
     assert s["status"] == "failed" and "diverged" in s["error"]
     latest = json.loads((out / "checkpoints" / "latest.json").read_text())
-    # the mid-stage checkpoint at step 20 was written before the NaN (update 25); nothing after
-    assert latest["name"] == "finetune-step000000020"
+    # the mid-stage checkpoint at step 40 was written before the NaN (update 25, step 55); nothing after
+    assert latest["name"] == "finetune-step000000040"
     assert not (out / "checkpoints" / "finetune-final").exists()

@@ -112,7 +112,8 @@ def test_paper_task_smoke(task, tmp_path):
     assert s["status"] == "finished" and s["alpha"] == spec.paper.alpha and s["pretrain"] == "calql"
     with open(out / "eval.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert [int(r["env_step"]) for r in rows] == [0, 20, 40]
+    # warm-up evaluations at 0 and 20, fine-tuning's at 30 (after the 30-step warm-up) and 40
+    assert [int(r["env_step"]) for r in rows] == [0, 20, 30, 40]
     assert all(0.0 <= float(r["success"]) <= 1.0 for r in rows)
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["boto"]["log_sigma"] == spec.paper.log_sigma

@@ -1,7 +1,8 @@
 """IQL (Kostrikov et al. 2021): expectile value, TD critic, AWR actor -- offline pre-training.
 
 One update, in the order of the IQL reference code (ikostrikov/implicit_q_learning):
-1. V: expectile regression of V(s) toward Q'(s, a) = min over the TARGET Q ensemble,
+1. V: expectile regression of V(s) toward Q'(s, a) = min over a random pair of TARGET Q members
+   (IQL's twin-Q min; a pair drawn from the larger ensemble fine-tuning carries over),
    ``L = mean |expectile - 1[Q' - V < 0]| (Q' - V)^2``;
 2. actor: AWR, ``L = -mean min(exp(awr_beta * (Q'(s,a) - V(s))), 100) log pi(a|s)``, with the
    V just updated and dropout active when ``actor_dropout`` is set;
@@ -40,7 +41,7 @@ from botorl.agents.common import (
 )
 from botorl.agents.sac import actor_def, critic_def
 from botorl.errors import ConfigError
-from botorl.networks import ValueNetwork, tanh_gaussian_log_prob
+from botorl.networks import ValueNetwork, subsample_ensemble, tanh_gaussian_log_prob
 
 import functools
 
@@ -59,7 +60,12 @@ class IQLConfig:
     state_dependent_std: bool = False
     log_std_min: float = -5.0
     log_std_max: float = 2.0
-    num_critics: int = 2  # target Q = min over all members
+    num_critics: int = 2
+    # Q'(s, a) in the value and actor losses = min over a random subset of this many distinct
+    # target members (IQL's min of its twin Qs when num_critics = 2). With the 10-critic
+    # ensemble that fine-tuning carries over, each member is trained, and the pessimism of
+    # the target stays IQL's rather than a min over all 10.
+    num_min_critics: int = 2
     actor_lr: float = 3e-4
     critic_lr: float = 3e-4
     value_lr: float = 3e-4
@@ -76,6 +82,11 @@ class IQLConfig:
             raise ConfigError(f"IQLConfig.awr_beta = {self.awr_beta} is invalid: must be >= 0.")
         if self.num_critics < 1:
             raise ConfigError(f"IQLConfig.num_critics = {self.num_critics} is invalid: need at least one.")
+        if not 1 <= self.num_min_critics <= self.num_critics:
+            raise ConfigError(
+                f"IQLConfig.num_min_critics = {self.num_min_critics} is invalid: must be in [1, num_critics = "
+                f"{self.num_critics}]."
+            )
         if self.actor_dropout is not None and not 0.0 <= self.actor_dropout < 1.0:
             raise ConfigError(f"IQLConfig.actor_dropout = {self.actor_dropout} is invalid: must be in [0, 1) or None.")
 
@@ -143,17 +154,22 @@ class IQLAgent(struct.PyTreeNode):
     def critic_values(self, params, observations, actions):
         return self.critic.apply_fn({"params": params}, observations, actions)
 
-    def value_loss(self, value_params, batch):
-        q = self.critic_values(self.target_critic_params, batch["observations"], batch["actions"]).min(axis=0)
+    def target_q(self, batch, key):
+        """Q'(s, a) on the batch: min over a random subset of distinct target members."""
+        cfg = self.config
+        sub = subsample_ensemble(key, self.target_critic_params, cfg.num_min_critics, cfg.num_critics, False)
+        sub_def = critic_def(cfg.critic_hidden_dims, cfg.num_min_critics, cfg.critic_layer_norm)
+        return sub_def.apply({"params": sub}, batch["observations"], batch["actions"]).min(axis=0)
+
+    def value_loss(self, value_params, batch, q):
         v = self.value.apply_fn({"params": value_params}, batch["observations"])
         loss = expectile_loss(jax.lax.stop_gradient(q) - v, self.config.expectile)
         return loss, {"value_loss": loss, "v": v.mean()}
 
-    def actor_loss(self, actor_params, batch, key):
+    def actor_loss(self, actor_params, batch, key, q):
         cfg = self.config
         obs = batch["observations"]
         v = self.value.apply_fn({"params": self.value.params}, obs)
-        q = self.critic_values(self.target_critic_params, obs, batch["actions"]).min(axis=0)
         weights = jnp.minimum(jnp.exp((q - v) * cfg.awr_beta), cfg.exp_adv_max)
         weights = jax.lax.stop_gradient(weights)
         use_dropout = cfg.actor_dropout is not None and cfg.actor_dropout > 0
@@ -171,11 +187,12 @@ class IQLAgent(struct.PyTreeNode):
         return loss, {"critic_loss": loss, "q_data": q.mean(), "target_q": target.mean()}
 
     def _update(self, batch):
-        rng, k_actor = jax.random.split(self.rng)
+        rng, k_actor, k_sub = jax.random.split(self.rng, 3)
         agent = self.replace(rng=rng)
-        g, v_info = jax.grad(agent.value_loss, has_aux=True)(agent.value.params, batch)
+        q = jax.lax.stop_gradient(agent.target_q(batch, k_sub))  # the same Q' for V and the AWR weights
+        g, v_info = jax.grad(agent.value_loss, has_aux=True)(agent.value.params, batch, q)
         agent = agent.replace(value=agent.value.apply_gradients(grads=g))
-        g, a_info = jax.grad(agent.actor_loss, has_aux=True)(agent.actor.params, batch, k_actor)
+        g, a_info = jax.grad(agent.actor_loss, has_aux=True)(agent.actor.params, batch, k_actor, q)
         agent = agent.replace(actor=agent.actor.apply_gradients(grads=g))
         g, c_info = jax.grad(agent.critic_loss, has_aux=True)(agent.critic.params, batch)
         critic = agent.critic.apply_gradients(grads=g)

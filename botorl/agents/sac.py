@@ -210,48 +210,39 @@ class SACAgent(struct.PyTreeNode):
     def from_pretrained(cls, agent, config: SACConfig | None = None, seed: int | None = None) -> "SACAgent":
         """WSRL warm start: the online SAC learner from a pre-trained agent.
 
-        Takes the actor parameters, the critic ensemble (and, for SAC/CQL/Cal-QL, the target
-        critics and the temperature) of ``agent``; optimiser states are fresh. From IQL, the
-        Q ensemble becomes both critic and target critic and the temperature starts at
-        ``config.init_temp`` (IQL has none). The networks in ``config`` must match the
-        pre-trained ones (same hidden sizes, LayerNorm, std parameterisation).
-
-        Ensemble size: if ``config.num_critics`` differs from the pre-trained ensemble size M,
-        and num_critics is a multiple of M, the M members are replicated (tiled) to fill the
-        ensemble (e.g. IQL's 2 Q networks -> 10 SAC critics, members 0,1,0,1,...); WSRL
-        itself pre-trains with the fine-tuning ensemble size, which is the better choice.
-        Any other mismatch is a ConfigError.
+        Takes the actor, the critic ensemble and its target critics (IQL keeps its target Q
+        under the same field name) and, where the agent has one (SAC, CQL, Cal-QL), the
+        temperature -- each with its optimiser state (Adam moments and count), as WSRL restores
+        the whole pre-trained agent. From IQL, which has no temperature, it starts at
+        ``config.init_temp``. The networks in ``config`` must be the pre-trained ones (hidden
+        sizes, LayerNorm, std parameterisation, ensemble size): an ensemble of N critics is N
+        pre-trained critics, never copies of fewer (copies given the same batches and targets
+        stay identical forever).
         """
         if config is None:
             # Default online settings, the pre-trained agent's network architecture.
             config = SACConfig(**{f: getattr(agent.config, f) for f in ARCHITECTURE_FIELDS if hasattr(agent.config, f)})
         obs_dim, action_dim = _dims_of(agent)
         fresh = cls.create(config, obs_dim, action_dim, seed=0)
-        src_critic = agent.critic.params
-        # IQL keeps its target Q parameters under the same field name.
-        src_target = getattr(agent, "target_critic_params", src_critic)
-        m = jax.tree_util.tree_leaves(src_critic)[0].shape[0]
-        n = config.num_critics
-        if m != n:
-            if n % m != 0:
-                raise ConfigError(
-                    f"from_pretrained: the pre-trained agent has {m} critics and SACConfig.num_critics is {n}; "
-                    f"num_critics must equal {m} or be a multiple of it (members are then replicated). "
-                    f"Pre-train with the fine-tuning ensemble size, or set num_critics={m}."
-                )
-            tile = lambda p: jnp.concatenate([p] * (n // m), axis=0)  # noqa: E731
-            src_critic = jax.tree_util.tree_map(tile, src_critic)
-            src_target = jax.tree_util.tree_map(tile, src_target)
+        m = jax.tree_util.tree_leaves(agent.critic.params)[0].shape[0]
+        if m != config.num_critics:
+            raise ConfigError(
+                f"from_pretrained: the pre-trained agent has {m} critics and SACConfig.num_critics is "
+                f"{config.num_critics}. Pre-train with the fine-tuning ensemble size (WSRL does; botorl's "
+                f"pipeline sets both from --network.num_critics), or set num_critics={m}."
+            )
         _check_same_shapes("actor", fresh.actor.params, agent.actor.params, config)
-        _check_same_shapes("critic", fresh.critic.params, src_critic, config)
-        actor = TrainState.create(apply_fn=fresh.actor.apply_fn, params=agent.actor.params, tx=fresh.actor.tx)
-        critic = TrainState.create(apply_fn=fresh.critic.apply_fn, params=src_critic, tx=fresh.critic.tx)
-        temp = fresh.temp
-        if hasattr(agent, "temp"):
-            temp = TrainState.create(apply_fn=fresh.temp.apply_fn, params=agent.temp.params, tx=fresh.temp.tx)
+        _check_same_shapes("critic", fresh.critic.params, agent.critic.params, config)
+        temp = _carry(fresh.temp, agent.temp) if hasattr(agent, "temp") else fresh.temp
         rng = agent.rng if seed is None else jax.random.PRNGKey(seed)
         rng = jax.random.fold_in(rng, 0x5AC)
-        return fresh.replace(actor=actor, critic=critic, target_critic_params=src_target, temp=temp, rng=rng)
+        return fresh.replace(
+            actor=_carry(fresh.actor, agent.actor),
+            critic=_carry(fresh.critic, agent.critic),
+            target_critic_params=getattr(agent, "target_critic_params", agent.critic.params),
+            temp=temp,
+            rng=rng,
+        )
 
     # ------------------------------------------------------------------ public API
     def update(self, batch):
@@ -402,6 +393,19 @@ def _dims_of(agent) -> tuple[int, int]:
             f"pass a SACAgent, CQLAgent or IQLAgent."
         ) from None
     return int(first.shape[1]) - action_dim, action_dim
+
+
+def _carry(fresh: TrainState, pre: TrainState) -> TrainState:
+    """``fresh``'s apply function and optimiser with ``pre``'s parameters, step and optimiser state.
+
+    The learning rate lives in the optimiser, not its state, so Adam's moments carry over to
+    another rate; a state of another structure (another optimiser) is a ConfigError."""
+    if jax.tree_util.tree_structure(fresh.opt_state) != jax.tree_util.tree_structure(pre.opt_state):
+        raise ConfigError(
+            "from_pretrained: the pre-trained optimiser state does not match the fine-tuning optimiser "
+            "(botorl's agents all use Adam); pass an agent trained by botorl."
+        )
+    return fresh.replace(step=pre.step, params=pre.params, opt_state=pre.opt_state)
 
 
 def _check_same_shapes(name, want, got, config) -> None:

@@ -10,8 +10,7 @@ Profiles
 - ``quick``: a whole run in minutes on 2 CPU cores (generated tasks; any task accepts it).
   OUR reductions, each for speed (measured: an update of the 10-critic, 2 x 128 SAC at UTD 4
   costs ~100 ms of CPU here, so 20k online steps alone would take over 30 minutes): 2 x 64
-  actor and critics; FOUR critics in fine-tuning instead of WSRL's 10, and 2 in Cal-QL/CQL
-  pre-training (tiled to 4, see NetworkConfig.pretrain_num_critics); 5 CQL action samples
+  actor and critics; FOUR critics (pre-training and fine-tuning) instead of WSRL's 10; 5 CQL action samples
   per kind; 10k pre-training steps (100k with IQL on pointmaze); 5k BOTO steps; 20k online steps with evaluations every
   2.5k; fixed CQL weight 5 (no Lagrange) on the maze tasks; no max-target backup on
   pointmaze; 200k-step pointmaze datasets; on pointmaze, BOTO and WSRL pre-train with IQL
@@ -97,7 +96,6 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
         actor_hidden_dims=tuple(spec.networks.actor),
         critic_hidden_dims=tuple(spec.networks.critic),
         num_critics=10,
-        pretrain_num_critics=None,
         layer_norm=True,
     )
     cql = replace(CQLConfig(), max_target_backup=True, backup_entropy=False, **_CQL[dom])
@@ -137,7 +135,6 @@ def _quick(cfg: RunConfig, spec) -> RunConfig:
     if spec.domain == "pointmaze":
         cql = replace(cql, max_target_backup=False)
         sac = replace(sac, max_target_backup=False)
-    iql = replace(cfg.offline.iql, actor_hidden_dims=(64, 64), critic_hidden_dims=(64, 64), value_hidden_dims=(64, 64))
     data = cfg.data
     offline_steps = 10_000
     if spec.domain == "pointmaze":
@@ -154,9 +151,8 @@ def _quick(cfg: RunConfig, spec) -> RunConfig:
     return replace(
         cfg,
         data=data,
-        network=replace(cfg.network, actor_hidden_dims=(64, 64), critic_hidden_dims=(64, 64), num_critics=4,
-                        pretrain_num_critics=2),
-        offline=replace(cfg.offline, steps=offline_steps, cql=cql, iql=iql, log_every=500),
+        network=replace(cfg.network, actor_hidden_dims=(64, 64), critic_hidden_dims=(64, 64), num_critics=4),
+        offline=replace(cfg.offline, steps=offline_steps, cql=cql, log_every=500),
         boto=replace(cfg.boto, boto_steps=5_000, steps_per_call=500),
         online=replace(cfg.online, steps=20_000, sac=sac, log_every=500),
         eval=replace(cfg.eval, interval=2_500),
@@ -167,7 +163,6 @@ def _quick(cfg: RunConfig, spec) -> RunConfig:
 def _smoke(cfg: RunConfig, spec) -> RunConfig:
     cql = replace(cfg.offline.cql, cql_n_actions=2, num_backup_actions=2, cql_lagrange=False)
     sac = replace(cfg.online.sac, num_backup_actions=2)
-    iql = replace(cfg.offline.iql, actor_hidden_dims=(16,), critic_hidden_dims=(16,), value_hidden_dims=(16,))
     data = cfg.data
     if spec.domain == "pointmaze":
         data = replace(data, steps=2_000)
@@ -176,8 +171,8 @@ def _smoke(cfg: RunConfig, spec) -> RunConfig:
     return replace(
         cfg,
         data=data,
-        network=replace(cfg.network, actor_hidden_dims=(16,), critic_hidden_dims=(16,), num_critics=2, pretrain_num_critics=2),
-        offline=replace(cfg.offline, steps=10, batch_size=32, updates_per_call=5, log_every=5, cql=cql, iql=iql),
+        network=replace(cfg.network, actor_hidden_dims=(16,), critic_hidden_dims=(16,), num_critics=2),
+        offline=replace(cfg.offline, steps=10, batch_size=32, updates_per_call=5, log_every=5, cql=cql),
         warmup=WarmupConfig(steps=30),
         boto=replace(cfg.boto, boto_steps=10, batch_size=32, steps_per_call=5),
         online=replace(cfg.online, steps=40, batch_size=16, log_every=10, sac=sac),

@@ -42,7 +42,7 @@ def resolve(cfg: RunConfig) -> RunConfig:
         critic_hidden_dims=tuple(net.critic_hidden_dims),
         actor_layer_norm=ln,
         critic_layer_norm=ln,
-        num_critics=net.pretrain_num_critics or net.num_critics,
+        num_critics=net.num_critics,
         calql=(pretrain == "calql"),
         # calql/cql continued online take utd x batch rows per env step (UTD 1 by default)
         utd_ratio=cfg.online.utd if method.online == "continue" else 1,
@@ -56,19 +56,22 @@ def resolve(cfg: RunConfig) -> RunConfig:
         num_critics=net.num_critics,
         utd_ratio=cfg.online.utd,
     )
+    # IQL pre-trains the networks fine-tuning takes over (the paper's: sizes, LayerNorm,
+    # ensemble, state-dependent std); its value network has the critic's hidden sizes. It keeps
+    # IQL's log-std range [-5, 2], which the SAC learner then inherits.
+    iql = replace(
+        cfg.offline.iql,
+        actor_hidden_dims=tuple(net.actor_hidden_dims),
+        critic_hidden_dims=tuple(net.critic_hidden_dims),
+        value_hidden_dims=tuple(net.critic_hidden_dims),
+        actor_layer_norm=ln,
+        critic_layer_norm=ln,
+        num_critics=net.num_critics,
+        num_min_critics=min(cfg.offline.iql.num_min_critics, net.num_critics),
+        state_dependent_std=sac.state_dependent_std,
+    )
     if pretrain == "iql" and method.online == "wsrl":
-        # WSRL's warm start copies IQL's networks: the SAC learner must have their shapes.
-        iql = cfg.offline.iql
-        sac = replace(
-            sac,
-            actor_hidden_dims=tuple(iql.actor_hidden_dims),
-            critic_hidden_dims=tuple(iql.critic_hidden_dims),
-            actor_layer_norm=iql.actor_layer_norm,
-            critic_layer_norm=iql.critic_layer_norm,
-            state_dependent_std=iql.state_dependent_std,
-            log_std_min=iql.log_std_min,
-            log_std_max=iql.log_std_max,
-        )
+        sac = replace(sac, log_std_min=iql.log_std_min, log_std_max=iql.log_std_max)
     if cfg.method == "rlpd" and sac.target_entropy is None:
         sac = replace(sac, target_entropy=-spec.action_dim / 2.0)
     return replace(
@@ -76,7 +79,7 @@ def resolve(cfg: RunConfig) -> RunConfig:
         pretrain=pretrain,
         alpha=alpha,
         boto=boto,
-        offline=replace(cfg.offline, cql=cql),
+        offline=replace(cfg.offline, cql=cql, iql=iql),
         online=replace(cfg.online, sac=sac),
     )
 
@@ -135,13 +138,15 @@ def validate(cfg: RunConfig) -> None:
     need(0.0 <= cfg.online.offline_ratio <= 1.0, "online.offline_ratio", cfg.online.offline_ratio, "must lie in [0, 1]")
     if cfg.online.buffer_capacity is not None:
         need(cfg.online.buffer_capacity >= 1, "online.buffer_capacity", cfg.online.buffer_capacity, "must be positive or None")
-    p = cfg.network.pretrain_num_critics
-    if p is not None:
-        need(p >= 1 and cfg.network.num_critics % p == 0, "network.pretrain_num_critics", p,
-             f"must divide network.num_critics ({cfg.network.num_critics}) so the pre-trained members can be tiled")
     for name, dims in (("network.actor_hidden_dims", cfg.network.actor_hidden_dims),
                        ("network.critic_hidden_dims", cfg.network.critic_hidden_dims)):
         need(len(dims) >= 1 and all(int(d) >= 1 for d in dims), name, dims, "give positive layer widths, e.g. 256 256")
+    if "warmup" in method.stages and cfg.online.steps <= cfg.warmup.steps:
+        raise ConfigError(
+            f"--online.steps = {cfg.online.steps} leaves no fine-tuning after the {cfg.warmup.steps}-step warm-up: "
+            f"the warm-up's env steps count as online steps (WSRL's accounting), so online.steps is the whole "
+            f"online budget. Raise --online.steps above --warmup.steps or lower --warmup.steps."
+        )
     if method.uses_alpha:
         _check_alpha(cfg.boto.alpha)
     try:

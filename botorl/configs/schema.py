@@ -53,13 +53,10 @@ class NetworkConfig:
     actor_hidden_dims: tuple[int, ...] = (256, 256)
     critic_hidden_dims: tuple[int, ...] = (256, 256, 256, 256)
     num_critics: int = 10
-    """Critic ensemble size of fine-tuning (WSRL: 10)."""
-    pretrain_num_critics: int | None = None
-    """Ensemble size during CQL/Cal-QL pre-training; None = num_critics (WSRL pre-trains with
-    the fine-tuning ensemble). A smaller divisor of num_critics is tiled (members repeated)
-    when fine-tuning starts (SACAgent.from_pretrained)."""
+    """Critic ensemble size, pre-training and fine-tuning alike (WSRL pre-trains with the
+    fine-tuning ensemble of 10, so every member carried over is a trained critic)."""
     layer_norm: bool = True
-    """LayerNorm after each hidden layer of actor and critic (WSRL/RLPD). IQL keeps its own."""
+    """LayerNorm after each hidden layer of actor and critic (WSRL/RLPD), whatever pre-trains them."""
 
 
 @dataclass

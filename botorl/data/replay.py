@@ -4,6 +4,12 @@
 ``Dataset``s) in fixed proportions, e.g. RLPD's and the Cal-QL/CQL/IQL fine-tuning baselines'
 50/50 offline/online batches. Counts are exact: ``ratios=(0.5, 0.5)`` with ``batch_size=256``
 gives exactly 128 rows from each source (largest-remainder rounding otherwise).
+
+Finished episodes: the buffer knows which rows belong to the episode still running (the
+newest ``open_rows``; ``end_episode()`` closes it). Cal-QL online needs each row's
+Monte-Carlo return-to-go, known only once its episode ends, so it samples
+``buffer.finished()``, a view of the closed rows only -- as WSRL does for Cal-QL, which
+samples finished trajectories and waits one episode before its first update.
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ class ReplayBuffer:
         self.size = 0
         self.insert_index = 0
         self.total_inserted = 0
+        self.open_rows = 0  # rows of the episode still running: the newest ones
 
     def __len__(self) -> int:
         return self.size
@@ -56,9 +63,19 @@ class ReplayBuffer:
         self.insert_index = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
         self.total_inserted += 1
+        self.open_rows = min(self.open_rows + 1, self.capacity)
+
+    def end_episode(self) -> None:
+        """The running episode has ended: its rows become finished (sampleable by ``finished()``)."""
+        self.open_rows = 0
+
+    def finished(self) -> "FinishedRows":
+        """A view of the rows whose episode has ended (for ``sample_mixed``/``sample``)."""
+        return FinishedRows(self)
 
     def insert_batch(self, observations, actions, rewards, next_observations, dones, mc_returns=None) -> None:
-        """Add n transitions at once (in order; if n > capacity only the last ``capacity`` stay)."""
+        """Add n transitions of finished episodes at once (in order; if n > capacity only the last
+        ``capacity`` stay)."""
         data = {
             "observations": np.asarray(observations, np.float32).reshape(-1, self.obs_dim),
             "actions": np.asarray(actions, np.float32).reshape(-1, self.action_dim),
@@ -88,6 +105,7 @@ class ReplayBuffer:
         self.insert_index = (start + m) % self.capacity
         self.size = min(self.size + n, self.capacity)
         self.total_inserted += n
+        self.open_rows = 0
 
     def insert_dataset(self, dataset: Dataset) -> None:
         """Copy all rows of a ``Dataset`` (with its MC returns if it has them)."""
@@ -127,6 +145,7 @@ class ReplayBuffer:
             size=np.asarray(self.size),
             insert_index=np.asarray(self.insert_index),
             total_inserted=np.asarray(self.total_inserted),
+            open_rows=np.asarray(self.open_rows),
         )
         return state
 
@@ -147,6 +166,7 @@ class ReplayBuffer:
         self.size = n
         self.insert_index = int(state["insert_index"])
         self.total_inserted = int(state["total_inserted"])
+        self.open_rows = int(state.get("open_rows", 0))
         return self
 
     @classmethod
@@ -156,7 +176,28 @@ class ReplayBuffer:
     sample_mixed = staticmethod(lambda *a, **k: sample_mixed(*a, **k))
 
 
-Source = Union[ReplayBuffer, Dataset]
+class FinishedRows:
+    """The rows of a ``ReplayBuffer`` whose episode has ended, oldest first (a live view)."""
+
+    def __init__(self, buffer: ReplayBuffer):
+        self.buffer = buffer
+
+    def __len__(self) -> int:
+        return self.buffer.size - self.buffer.open_rows
+
+    def batch_at(self, idx: np.ndarray) -> dict:
+        b = self.buffer
+        oldest = b.insert_index if b.size == b.capacity else 0
+        return b.batch_at((oldest + np.asarray(idx)) % b.capacity)
+
+    def sample(self, rng: np.random.Generator, batch_size: int, num_batches: int | None = None) -> dict:
+        if len(self) == 0:
+            raise BotorlError("no finished episode in the replay buffer yet; wait for one to end before sampling.")
+        shape = (batch_size,) if num_batches is None else (num_batches, batch_size)
+        return self.batch_at(rng.integers(0, len(self), size=shape))
+
+
+Source = Union[ReplayBuffer, Dataset, FinishedRows]
 
 
 def split_counts(ratios: Sequence[float], batch_size: int) -> list[int]:

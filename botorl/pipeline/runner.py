@@ -170,7 +170,7 @@ class RunContext:
             max_steps=self.spec.max_episode_steps,
         )
         q_data, q_uniform = self.q_stats(agent)
-        row = {"stage": "finetune", "env_step": int(env_step), "success": stats.success,
+        row = {"stage": self._stage or "finetune", "env_step": int(env_step), "success": stats.success,
                "return": stats.episode_return, "q_data": q_data, "q_uniform": q_uniform}
         self.eval_log.append(row)
         self.logger.log_eval(row)
@@ -346,7 +346,8 @@ def _truncate_logs(ctx: RunContext, stages: tuple[str, ...], mid: dict | None, d
         ctx.logger.truncate(stage, keep_to)
     ft_keep = int(mid["step"]) if (mid is not None and mid["stage"] == "finetune") else -1
     if "finetune" not in done:
-        ctx.eval_log.truncate(lambda r: num(r, "env_step") <= ft_keep)
+        # evaluations of finished stages (the warm-up's) stay; fine-tuning's up to its checkpoint
+        ctx.eval_log.truncate(lambda r: r.get("stage") in done or num(r, "env_step") <= ft_keep)
     ctx.q_log.truncate(lambda r: r.get("stage") in done)
 
 
@@ -372,10 +373,11 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
     label = cfg.method if cfg.alpha is None else f"{cfg.method} (alpha={cfg.alpha:+.2f})"
     ax.plot(x, y, marker="o", ms=3, label=label)
     method = get_method(cfg.method)
-    if "warmup" in method.stages and cfg.warmup.steps > 0:
-        ax.axvspan(-cfg.warmup.steps, 0, color="0.9", label="warm-up (no updates)")
-    ax.axvline(0, color="k", ls="--", lw=1, label="fine-tuning starts")
-    ax.set_xlabel("online env steps")
+    start = cfg.warmup.steps if "warmup" in method.stages else 0
+    if start > 0:
+        ax.axvspan(0, start, color="0.9", label="warm-up (frozen policy, no updates)")
+    ax.axvline(start, color="k", ls="--", lw=1, label="fine-tuning starts")
+    ax.set_xlabel("online env steps (warm-up included)")
     ax.set_ylabel("success")
     ax.set_ylim(-0.03, 1.03)
     ax.set_title(f"{cfg.task} / {cfg.method} / seed {cfg.seed}")

@@ -28,6 +28,7 @@ import numpy as np
 from botorl.agents.common import update_many_on_device
 from botorl.data.dataset import Dataset
 from botorl.errors import TrainingDivergedError
+from botorl.pipeline.methods import get_method
 
 STAGES = ("pretrain", "warmup", "boto", "finetune")
 
@@ -55,8 +56,6 @@ def make_pretrain_agent(cfg, obs_dim: int, action_dim: int, seed: int):
 
 def make_online_agent_template(cfg, obs_dim: int, action_dim: int, seed: int):
     """An agent with the structure of the fine-tuning learner (for checkpoint loading)."""
-    from botorl.pipeline.methods import get_method
-
     if get_method(cfg.method).online == "continue":
         return make_pretrain_agent(cfg, obs_dim, action_dim, seed)
     from botorl.agents.sac import SACAgent
@@ -182,7 +181,11 @@ def pretrain(ctx, resume: dict | None = None):
 
 # ---------------------------------------------------------------------------- stage 2a
 def warmup(ctx, agent) -> tuple[Dataset | None, Any]:
-    """D_warmup: ``warmup.steps`` env steps of the frozen pre-trained policy (stochastic)."""
+    """D_warmup: ``warmup.steps`` env steps of the frozen pre-trained policy (stochastic).
+
+    These are the first online env steps (WSRL's accounting): the online axis starts here,
+    with an evaluation of the pre-trained policy at step 0 and at every evaluation point the
+    warm-up passes (the policy is frozen, so those show it unchanged)."""
     cfg = ctx.cfg
     spec = ctx.spec
     n = cfg.warmup.steps
@@ -204,6 +207,8 @@ def warmup(ctx, agent) -> tuple[Dataset | None, Any]:
     bar = _bar(ctx, n, 0, "warm-up (frozen policy)", unit="env step")
     try:
         for t in range(n):
+            if t % cfg.eval.interval == 0:
+                ctx.evaluate(agent, t)
             action, agent = agent.sample_actions(obs)
             action = np.asarray(action, dtype=np.float32)
             next_obs, r, terminated, truncated, info = env.step(action)
@@ -266,11 +271,13 @@ def boto(ctx, agent, d_warmup: Dataset | None, resume: dict | None = None):
 
 # ---------------------------------------------------------------------------- stage 3
 def finetune(ctx, agent, d_warmup: Dataset | None, resume: dict | None = None):
-    """Online learning; evaluates at step 0, every ``eval.interval`` steps and at the end."""
+    """Online learning, from the online step after the warm-up (0 for methods without one) to
+    ``online.steps``; evaluates when it starts, every ``eval.interval`` steps and at the end.
+
+    One online axis for every method: the warm-up's env steps are online steps (WSRL), so a
+    method with a 5,000-step warm-up fine-tunes for ``online.steps - 5,000`` env steps."""
     from botorl.agents.sac import SACAgent
     from botorl.data.replay import ReplayBuffer, sample_mixed
-    from botorl.pipeline.methods import get_method
-
     cfg = ctx.cfg
     spec = ctx.spec
     oc = cfg.online
@@ -285,7 +292,8 @@ def finetune(ctx, agent, d_warmup: Dataset | None, resume: dict | None = None):
         agent = SACAgent.create(oc.sac, O, A, cfg.seed)
     # "continue": the pre-trained agent keeps its own loss
     buffer = ReplayBuffer(capacity, O, A)
-    step = 0
+    start = len(d_warmup) if d_warmup is not None else 0  # the warm-up's env steps came first
+    step = start
     rng = _rng_from(None, [cfg.seed, 3])
     extra: dict = {}
     if resume is not None:
@@ -295,18 +303,23 @@ def finetune(ctx, agent, d_warmup: Dataset | None, resume: dict | None = None):
         buf_state = ctx.ckpt.arrays(resume["name"], "buffer")
         buffer = ReplayBuffer.from_state_dict(buf_state)
         extra = resume.get("extra", {})
+        start = int(extra.get("start", start))
     elif d_warmup is not None and flavour == "wsrl":
         buffer.insert_dataset(d_warmup)  # WSRL: the online buffer starts with D_warmup
 
     is_iql = type(agent).__name__ == "IQLAgent"
     u, B = oc.utd, oc.batch_size
     offline = ctx.d_offline if oc.offline_ratio > 0 else None
+    # Cal-QL continued online bounds Q by each row's MC return, known once its episode ends
+    # (filled in then): it samples finished episodes only and waits for the first one (WSRL).
+    needs_mc = bool(getattr(agent.config, "calql", False))
+    online_rows = buffer.finished() if needs_mc else buffer
 
     def batch():
         if offline is not None:
-            b = sample_mixed([offline, buffer], [oc.offline_ratio, 1.0 - oc.offline_ratio], rng, B, num_batches=u)
+            b = sample_mixed([offline, online_rows], [oc.offline_ratio, 1.0 - oc.offline_ratio], rng, B, num_batches=u)
         else:
-            b = buffer.sample(rng, B, num_batches=u)
+            b = online_rows.sample(rng, B, num_batches=u)
         if is_iql:
             return b  # (u, B, ...) -> update_many
         # (u, B, ...) -> (u*B, ...): each critic minibatch keeps the offline/online mix
@@ -320,18 +333,15 @@ def finetune(ctx, agent, d_warmup: Dataset | None, resume: dict | None = None):
     tf = spec.reward_transform
     ep_ret, ep_succ, ep_len = 0.0, 0.0, 0
     ep_rows: list[int] = []
-    # Cal-QL continued online bounds Q by the MC return of the data, online rows included:
-    # their returns are filled in when the episode ends (zeros until then).
-    needs_mc = bool(getattr(agent.config, "calql", False))
     episodes = int(extra.get("episodes", 0))
     recent_success: list[float] = []
     window: list[dict] = []
     total = oc.steps
     last_eval = int(extra.get("last_eval", -1))
 
-    if step == 0 and last_eval < 0:
-        ctx.evaluate(agent, 0)
-        last_eval = 0
+    if step == start and last_eval < start:
+        ctx.evaluate(agent, start)
+        last_eval = start
     bar = _bar(ctx, total, step, f"fine-tune ({cfg.method})", unit="env step")
     t_last, n_last = time.perf_counter(), step
     try:
@@ -351,12 +361,13 @@ def finetune(ctx, agent, d_warmup: Dataset | None, resume: dict | None = None):
             if terminated or truncated:
                 if needs_mc:
                     _fill_mc_returns(ctx, buffer, ep_rows)
+                buffer.end_episode()
                 ep_rows = []
                 episodes += 1
                 recent_success.append(ep_succ)
                 obs, _ = env.reset()
                 ep_ret, ep_succ, ep_len = 0.0, 0.0, 0
-            if step >= oc.random_steps and (len(buffer) > 0 or offline is not None):
+            if step >= oc.random_steps and (len(online_rows) > 0 or (offline is not None and not needs_mc)):
                 b = batch()
                 agent, metrics = agent.update_many(b) if is_iql else agent.update(b)
                 window.append(metrics)
@@ -383,7 +394,7 @@ def finetune(ctx, agent, d_warmup: Dataset | None, resume: dict | None = None):
                 ctx.save_mid("finetune", step, agent, np_rng=_rng_state(rng),
                              arrays={"buffer": buffer.state_dict()},
                              extra={"episodes": episodes, "last_eval": last_eval,
-                                    "resumes": resumes})
+                                    "resumes": resumes, "start": start})
     finally:
         bar.close()
         env.close()
