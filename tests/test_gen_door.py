@@ -61,6 +61,7 @@ def test_drop_unsuccessful_keeps_only_successful_demos(door_demos_path):
 
 def test_missing_demos_say_how_to_point_at_them(monkeypatch, tmp_path):
     monkeypatch.delenv(door.ENV_VAR, raising=False)
+    monkeypatch.setattr(door, "SHIPPED_DEMOS", tmp_path / "not-installed.npz")  # an install without the asset
     with pytest.raises(DatasetNotFoundError, match="BOTORL_DOOR_DEMOS"):
         door.generate(10, 0, progress=False)
     with pytest.raises(DatasetNotFoundError, match="does not exist"):

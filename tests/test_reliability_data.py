@@ -176,3 +176,24 @@ def test_killed_writer_leaves_no_temp_dir_for_long(tmp_path):
     names = {p.name for p in root.iterdir() if p.name.startswith(".botorl-tmp-")}
     assert names == {live.name}
 
+
+
+def test_door_demos_ship_with_the_package(monkeypatch):
+    """door-binary-local finds its demos inside the package, with $BOTORL_DOOR_DEMOS unset."""
+    import hashlib
+
+    from botorl.data.generators import door
+
+    monkeypatch.delenv(door.ENV_VAR, raising=False)
+    path = door.find_demos()
+    assert path == door.SHIPPED_DEMOS and REPO / "botorl" in path.parents
+    assert hashlib.sha256(path.read_bytes()).hexdigest() == (
+        "028df28fe11c084228f0a31cee1a9792c371c3c98cce3061c8ebb79af3460cdd")  # /work/shared/data/README.md
+    demos = door.load_demos(path)  # plain .npz, no pickle
+    assert len(demos) == 25
+    assert (path.parent / "NOTICE").is_file() and "Apache" in (path.parent / "README.md").read_text()
+    pyproject = (REPO / "pyproject.toml").read_text()
+    assert '"assets/door_human_demos.npz"' in pyproject  # installed as package data
+    # an explicit path still wins
+    monkeypatch.setenv(door.ENV_VAR, str(path))
+    assert door.find_demos() == path

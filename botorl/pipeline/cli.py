@@ -8,7 +8,7 @@
 config can be set as ``--<dotted.path> VALUE`` (``botorl run --help`` lists them all). Bare
 ``botorl run`` is BOTO on pointmaze-large with the quick profile; its data are made on first
 use. ``--demos PATH`` is short for ``--data.demos PATH`` (door-binary-local; default
-$BOTORL_DOOR_DEMOS).
+$BOTORL_DOOR_DEMOS, else the copy shipped in botorl/data/assets).
 """
 
 from __future__ import annotations

@@ -56,21 +56,26 @@ HORIZON = 200
 HIDDEN = (256, 256)
 
 
+# The 25 demos ship inside the package (botorl/data/assets, Apache-2.0, see its README.md).
+SHIPPED_DEMOS = Path(__file__).resolve().parents[1] / "assets" / "door_human_demos.npz"
+
+
 def find_demos(demos_path: str | os.PathLike | None = None) -> Path:
-    """The demo file: the argument, else ``$BOTORL_DOOR_DEMOS``, else an explanatory error."""
+    """The demo file: the argument, else ``$BOTORL_DOOR_DEMOS``, else the copy shipped in the package."""
     where = demos_path or os.environ.get(ENV_VAR)
     if not where:
+        if SHIPPED_DEMOS.is_file():
+            return SHIPPED_DEMOS
         raise DatasetNotFoundError(
-            "door-binary-local needs the 25 DAPG door demonstrations (door_human_demos.npz) and "
-            f"no path was given. Set {ENV_VAR}=/path/to/door_human_demos.npz (in a botorl "
-            f"checkout: export {ENV_VAR}=../shared/data/adroit/door_human_demos.npz) or pass "
-            "demos_path to botorl.data.generators.door.generate."
+            f"door-binary-local needs the 25 DAPG door demonstrations (door_human_demos.npz); the copy that "
+            f"ships with botorl ({SHIPPED_DEMOS}) is missing from this install. Reinstall botorl, or set "
+            f"{ENV_VAR}=/path/to/door_human_demos.npz or pass --data.demos PATH."
         )
     path = Path(where).expanduser()
     if not path.is_file():
         raise DatasetNotFoundError(
-            f"door demos file {path} does not exist (from {'demos_path' if demos_path else ENV_VAR}). "
-            "Point it at door_human_demos.npz, e.g. ../shared/data/adroit/door_human_demos.npz."
+            f"door demos file {path} does not exist (from {'--data.demos / demos_path' if demos_path else ENV_VAR}). "
+            f"Point it at door_human_demos.npz, or unset it to use the copy shipped with botorl ({SHIPPED_DEMOS})."
         )
     return path
 
