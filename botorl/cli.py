@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("botorl.pipeline.cli:eval_main", "evaluate the last checkpoint of a run directory"),
     "data": ("botorl.data.cli:main", "generate datasets and show their statistics"),
     "tasks": ("botorl.envs.cli:main", "list the tasks, or check one's environment"),
+    "train-ant": ("botorl.data.generators.ant_train:main", "train the goal-reaching ant behind the antmaze data"),
     "bandit": ("botorl.boto.bandit:main", "reproduce the paper's bandit figures 2 and 3"),
     "bench": ("botorl.bench:main", "measure update speed (optionally against d3rlpy)"),
     "sweep": ("botorl.experiments.cli:sweep_main", "run a grid of tasks x methods x seeds x alphas"),

@@ -2,6 +2,7 @@
 
     botorl data generate TASK [--steps N] [--seed S] [--out PATH] [--overwrite] [--no-progress]
     botorl data info TASK|PATH [--steps N] [--seed S] [--json]
+    botorl data plot TASK|PATH [--steps N] [--seed S] [--out PNG]   (antmaze coverage picture)
 
 ``generate`` is deterministic for a seed and cached (``$BOTORL_DATA_DIR``, default
 ``~/.botorl/datasets``): a second call with the same task/steps/seed only reports the cached
@@ -54,6 +55,29 @@ class Info:
     """only the cached dataset of this seed"""
     json: bool = False
     """print JSON instead of a table"""
+
+
+@dataclasses.dataclass
+class Plot:
+    """Draw the visited (x, y) positions of an antmaze dataset over its maze map (PNG)."""
+
+    target: Annotated[str, tyro.conf.Positional]
+    """a task with generated antmaze data (its cached dataset), or a dataset path"""
+    steps: Optional[int] = None
+    """only the cached dataset of this size"""
+    seed: Optional[int] = None
+    """only the cached dataset of this seed"""
+    out: Optional[Path] = None
+    """the PNG to write (default: coverage_<task>.png in the current folder)"""
+
+
+def _plot(cfg: Plot) -> int:
+    from botorl.data.generators.antmaze import plot_coverage
+
+    name, ds = _load_for_info(Info(cfg.target, cfg.steps, cfg.seed))[0]
+    out = cfg.out or Path(f"coverage_{Path(cfg.target).name}.png")
+    print(f"{plot_coverage(ds, out)} ({name})")
+    return 0
 
 
 def _generate(cfg: Generate) -> int:
@@ -129,6 +153,11 @@ def _info(cfg: Info) -> int:
         for k in ("generator", "steps", "seed"):
             if k in meta:
                 st[f"meta_{k}"] = meta[k]
+        from botorl.data.generators.antmaze import maze_stats
+
+        maze = maze_stats(ds)  # generated antmaze data: coverage of the maze
+        if maze is not None:
+            st.update({f"maze_{k}": v for k, v in maze.items()})
         results.append(st)
     if cfg.json:
         print(json.dumps(results if len(results) > 1 else results[0], indent=2))
@@ -146,6 +175,10 @@ def _info(cfg: Info) -> int:
             ("reward range", f"[{st['reward_min']:.3f}, {st['reward_max']:.3f}]"),
             ("success rate", "unknown" if sr is None else f"{sr:.3f} (episodes reaching success)"),
         ]
+        if "maze_coverage" in st:
+            rows.append(("maze coverage", f"{st['maze_cells_covered']}/{st['maze_cells_free']} free cells of the "
+                         f"{st['maze_maze']} maze with >= 100 steps ({st['maze_coverage']:.2f}); "
+                         f"{st['maze_eval_goal_rows']:,} rows at the evaluation goal"))
         rows += [(k[5:], str(v)) for k, v in st.items() if k.startswith("meta_")]
         for k, v in rows:
             print(f"  {k:<18} {v}")
@@ -154,11 +187,13 @@ def _info(cfg: Info) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     cfg = tyro.extras.subcommand_cli_from_dict(
-        {"generate": Generate, "info": Info},
+        {"generate": Generate, "info": Info, "plot": Plot},
         args=argv,
         prog="botorl data",
         description="Generate botorl's own datasets and show dataset statistics.",
     )
     if isinstance(cfg, Generate):
         return _generate(cfg)
+    if isinstance(cfg, Plot):
+        return _plot(cfg)
     return _info(cfg)

@@ -159,8 +159,11 @@ def _episodes(ds: Dataset):
     info_keys = sorted(ds.infos)
     infos_all = {k: np.asarray(ds.infos[k]) for k in info_keys}
     split_any = bool(jump.any())
+    layout = ds.metadata.get("minari_dict_obs")
     for s, e in zip(starts.tolist(), ends.tolist()):
         obs = np.concatenate([ds.observations[s:e], ds.next_observations[e - 1 : e]])
+        if layout:
+            obs = _dict_obs(obs, layout, infos_all, s, e)
         term = ds.terminals[s:e]
         trunc = np.zeros(e - s, bool)
         trunc[-1] = not term[-1]
@@ -172,6 +175,37 @@ def _episodes(ds: Dataset):
             split[-1] = float(jump[e - 1])
             infos[SPLIT_KEY] = split
         yield obs, ds.actions[s:e], ds.rewards[s:e], term, trunc, infos
+
+
+def _dict_obs(flat: np.ndarray, layout: dict, infos: dict, s: int, e: int) -> dict:
+    """Dict observations of one episode (T + 1 rows) from the flat rows, as
+    ``Dataset.metadata["minari_dict_obs"]`` describes them: ``{key: [start, stop]}`` (a
+    slice of the flat observation) or ``{key: "infos:NAME"}`` (a per-row info, e.g. the
+    goal of generated antmaze data; the last observation repeats the last row's value).
+    Minari's D4RL/antmaze datasets store observation/achieved_goal/desired_goal so."""
+    out = {}
+    for key, spec in layout.items():
+        if isinstance(spec, str) and spec.startswith("infos:"):
+            v = infos[spec[6:]][s:e]
+            out[key] = np.concatenate([v, v[-1:]])
+        else:
+            out[key] = np.ascontiguousarray(flat[:, int(spec[0]) : int(spec[1])])
+    return out
+
+
+def _observation_space(ds: Dataset):
+    import gymnasium as gym
+
+    layout = ds.metadata.get("minari_dict_obs")
+    if not layout:
+        return gym.spaces.Box(-np.inf, np.inf, (ds.obs_dim,), np.float32)
+    dims = {}
+    for key, spec in layout.items():
+        if isinstance(spec, str):
+            dims[key] = int(np.prod(np.asarray(ds.infos[spec[6:]]).shape[1:]))
+        else:
+            dims[key] = int(spec[1]) - int(spec[0])
+    return gym.spaces.Dict({k: gym.spaces.Box(-np.inf, np.inf, (d,), np.float64) for k, d in dims.items()})
 
 
 def _episode_buffers(ds: Dataset):
@@ -228,7 +262,12 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
             g = h5g.create(root, f"episode_{ep_id}".encode())
             attr(g, b"id", ep_id)
             attr(g, b"total_steps", len(rew))
-            write(g, b"observations", obs)
+            if isinstance(obs, dict):
+                og = h5g.create(g, b"observations")
+                for k, v in obs.items():
+                    write(og, k.encode(), v)
+            else:
+                write(g, b"observations", obs)
             write(g, b"actions", act)
             write(g, b"rewards", rew)
             write(g, b"terminations", term)
@@ -304,7 +343,7 @@ def write_minari(
     tmp_root = root_p / f"{TMP_PREFIX}{_host()}-{os.getpid()}-{uuid.uuid4().hex[:12]}"
     import gymnasium as gym
 
-    obs_space = gym.spaces.Box(-np.inf, np.inf, (dataset.obs_dim,), np.float32)
+    obs_space = _observation_space(dataset)
     act_space = gym.spaces.Box(-1.0, 1.0, (dataset.action_dim,), np.float32)
     meta = {k: v for k, v in dataset.metadata.items() if k not in ("source",)}
     meta.update(metadata or {})

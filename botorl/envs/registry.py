@@ -174,6 +174,14 @@ def _antmaze(seed):
     return make_antmaze(seed)
 
 
+def _antmaze_local(maze, seed):
+    if maze == "large":  # the same env as the D4RL tasks
+        return _antmaze(seed)
+    from botorl.data.generators.antmaze import make_antmaze_task
+
+    return make_antmaze_task(maze, seed)
+
+
 def _kitchen(tasks, seed):
     from botorl.envs.kitchen import make_kitchen
 
@@ -265,6 +273,18 @@ def _build() -> dict[str, TaskSpec]:
             description="door-binary with data made here: the 25 DAPG demos + BC rollouts",
         ),
     ]
+    # antmaze with data made here (botorl.data.generators.antmaze, issue 16); D4RL's horizons.
+    for maze, kind, horizon in (("large", "diverse", 1000), ("large", "play", 1000), ("medium", "diverse", 1000),
+                                ("medium", "play", 1000), ("umaze", "diverse", 700)):
+        specs.append(
+            TaskSpec(
+                name=f"antmaze-{maze}-{kind}-local", domain="antmaze", env_factory=partial(_antmaze_local, maze),
+                max_episode_steps=horizon, success_mode="any", reward_scale=10.0, reward_bias=-5.0,
+                dataset_source=DatasetSource("generated", f"antmaze-{maze}-{kind}-local"),
+                generated=True, obs_dim=29, action_dim=8, networks=ANTMAZE_NET,
+                description=f"ant, {maze} maze, D4RL evaluation start/goal; {kind} data made here (waypoint ant)",
+            )
+        )
     # pointmaze: reward transform like antmaze (sparse goal reward, termination at the goal).
     for maze, horizon in (("umaze", 300), ("medium", 600), ("large", 800)):
         specs.append(

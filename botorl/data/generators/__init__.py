@@ -19,6 +19,11 @@ GENERATORS: dict[str, str] = {
     "door-binary-local": "botorl.data.generators.door:generate",
     "bandit-pinwheel": "botorl.data.generators.bandit:generate_pinwheel",
     "bandit-1d": "botorl.data.generators.bandit:generate_1d",
+    "antmaze-large-diverse-local": "botorl.data.generators.antmaze:generate_large_diverse",
+    "antmaze-large-play-local": "botorl.data.generators.antmaze:generate_large_play",
+    "antmaze-medium-diverse-local": "botorl.data.generators.antmaze:generate_medium_diverse",
+    "antmaze-medium-play-local": "botorl.data.generators.antmaze:generate_medium_play",
+    "antmaze-umaze-diverse-local": "botorl.data.generators.antmaze:generate_umaze_diverse",
 }
 
 # Default dataset sizes (transitions / env steps) when none is given; pointmaze as D4RL
@@ -32,6 +37,12 @@ DEFAULT_STEPS: dict[str, int] = {
     "door-binary-local": 100_000,
     "bandit-pinwheel": 5_000,
     "bandit-1d": 1_000,
+    # antmaze: D4RL's / Minari's 1M steps per dataset (create_antmaze_dataset.py)
+    "antmaze-large-diverse-local": 1_000_000,
+    "antmaze-large-play-local": 1_000_000,
+    "antmaze-medium-diverse-local": 1_000_000,
+    "antmaze-medium-play-local": 1_000_000,
+    "antmaze-umaze-diverse-local": 1_000_000,
 }
 
 

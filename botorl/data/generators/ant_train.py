@@ -1,0 +1,460 @@
+"""Train the goal-reaching ant (``botorl.envs.ant_goal``) with botorl's SAC; resumable.
+
+    botorl train-ant --out runs/ant_goal [--total-env-steps N] [--time-limit-s S] ...
+
+Layout: worker processes own the ants (``AntGoalSim``) and a numpy copy of the actor; each
+iteration they step ``rollout_len`` steps of their ants with the actor of the previous
+iteration while the accelerator runs ``updates_per_iter`` SAC updates (``SACAgent._update``
+under ``lax.scan``) on batches drawn from a replay buffer that lives on the device. So the
+CPU simulation and the gradient steps overlap; on a GPU machine with 16 cores the workers use
+the cores and the GPU the updates. On a CPU-only machine the same code runs (``num_workers``
+0 steps the ants in the main process).
+
+Resumable: every ``checkpoint_every_s`` seconds (and at the end, or when ``time_limit_s``
+is reached) the agent (``botorl.agents.checkpoint``: networks, optimisers, temperature, rng),
+the counters and the learning curve are written atomically under ``out``; a new call with
+the same ``out`` continues from them. The replay buffer is not saved (2M rows are ~0.5 GB);
+a resumed run refills it from the restored policy (``start_steps`` of fresh data before the
+first update), which costs a few seconds of simulation.
+
+Files under ``out``: ``agent.ckpt``, ``state.json``, ``curve.csv`` (one row per evaluation:
+env steps, updates, seconds, evaluation goals reached per 1,000 steps, mean return of
+finished training episodes, temperature, critic loss), ``actor.npz`` (the numpy actor,
+``NumpyActor``), ``curve.png``.
+
+SAC settings (ours unless noted): actor and critic 3 x 256 with LayerNorm, 2 critics,
+discount 0.99, learning rates 3e-4, initial temperature 0.1 (Minari's ``ent_coef
+"auto_0.1"``), target entropy -8, batch 1,024.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import multiprocessing as mp
+import os
+import time
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from botorl.envs.ant_goal import ACTION_DIM, HORIZON, OBS_DIM, AntGoalSim, NumpyActor, actor_arrays
+
+
+@dataclass
+class AntTrainConfig:
+    """Settings of ``botorl train-ant``."""
+
+    out: str = "runs/ant_goal"
+    """folder for the checkpoint, the learning curve and the exported actor (resumes from it)"""
+    total_env_steps: int = 20_000_000
+    """stop after this many environment steps (all ants together)"""
+    time_limit_s: float = 0.0
+    """stop (and checkpoint) after this many seconds of this call; 0 = no limit"""
+    seed: int = 0
+    num_workers: int = 0
+    """simulation processes; 0 = step the ants in this process"""
+    envs_per_worker: int = 4
+    rollout_len: int = 8
+    """env steps per ant per iteration"""
+    updates_per_iter: int = 16
+    batch_size: int = 1024
+    buffer_size: int = 2_000_000
+    start_steps: int = 50_000
+    """random-action steps before the first update (and after a resume: policy steps)"""
+    hidden: tuple[int, ...] = (256, 256, 256)
+    num_critics: int = 2
+    lr: float = 3e-4
+    discount: float = 0.99
+    tau: float = 0.005
+    init_temp: float = 0.1
+    eval_every_s: float = 30.0
+    checkpoint_every_s: float = 60.0
+    progress: bool = True
+    eval_maze: str = ""
+    """only evaluate: the waypoint controller with the actor (--actor, default the shipped one)
+    from the evaluation start to the evaluation goal of this maze (umaze, medium, large)"""
+    actor: str = ""
+    """actor .npz for --eval-maze (default: the shipped assets/ant_goal_actor.npz)"""
+    episodes: int = 20
+    """episodes for --eval-maze"""
+    action_noise: float = 0.0
+    """Gaussian action noise for --eval-maze (the data use 0.2)"""
+
+
+def sac_config(cfg: AntTrainConfig):
+    from botorl.agents.sac import SACConfig
+
+    return SACConfig(
+        actor_hidden_dims=tuple(cfg.hidden), critic_hidden_dims=tuple(cfg.hidden), actor_layer_norm=True,
+        critic_layer_norm=True, num_critics=cfg.num_critics, num_min_critics=cfg.num_critics,
+        subsample_replace=False, actor_objective="min", actor_lr=cfg.lr, critic_lr=cfg.lr, temp_lr=cfg.lr,
+        discount=cfg.discount, tau=cfg.tau, init_temp=cfg.init_temp, backup_entropy=True, utd_ratio=1,
+        chunk_rows=0,
+    )
+
+
+# ------------------------------------------------------------------ simulation workers
+
+
+class _Ants:
+    """Ants plus the per-ant episode bookkeeping; ``collect`` runs ``steps`` steps."""
+
+    def __init__(self, n: int, seed: int):
+        self.sim = AntGoalSim(n, seed)
+        self.rng = np.random.default_rng(seed + 7919)
+        self.ep_return = np.zeros(n)
+        self.finished: list[float] = []
+
+    def collect(self, params, steps: int, random: bool):
+        sim, n = self.sim, self.sim.n
+        actor = None if random else NumpyActor(params)
+        out = {k: np.empty((steps, n) + s, np.float32) for k, s in
+               (("observations", (OBS_DIM,)), ("actions", (ACTION_DIM,)), ("rewards", ()),
+                ("next_observations", (OBS_DIM,)), ("dones", ()))}
+        reached = 0
+        for t in range(steps):
+            obs = sim.obs.copy()
+            if actor is None:
+                act = self.rng.uniform(-1, 1, (n, ACTION_DIM))
+            else:
+                act = actor(obs, self.rng)
+            nobs, rew, term, trunc, got = sim.step(act)
+            out["observations"][t], out["actions"][t], out["rewards"][t] = obs, act, rew
+            out["next_observations"][t], out["dones"][t] = nobs, term
+            reached += int(got.sum())
+            self.ep_return += rew
+            for i in np.flatnonzero(term | trunc):
+                self.finished.append(float(self.ep_return[i]))
+                self.ep_return[i] = 0.0
+        flat = {k: v.reshape((steps * n,) + v.shape[2:]) for k, v in out.items()}
+        done_returns, self.finished = self.finished, []
+        return flat, reached, done_returns
+
+    def evaluate(self, params, episodes_steps: int, seed: int):
+        """Deterministic actor on fresh ants for ``episodes_steps`` steps: goals reached per
+        ant and the mean return per step."""
+        sim = AntGoalSim(self.sim.n, seed, horizon=episodes_steps + 1)
+        actor = NumpyActor(params)
+        reached = np.zeros(sim.n)
+        ret = 0.0
+        falls = 0
+        for _ in range(episodes_steps):
+            _, rew, term, _, got = sim.step(actor(sim.obs))
+            reached += got
+            ret += float(rew.sum())
+            falls += int(term.sum())
+        return reached.tolist(), ret / (episodes_steps * sim.n), falls
+
+
+def _worker(conn, n: int, seed: int):
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    ants = _Ants(n, seed)
+    while True:
+        msg = conn.recv()
+        if msg[0] == "stop":
+            return
+        if msg[0] == "collect":
+            conn.send(ants.collect(msg[1], msg[2], msg[3]))
+        elif msg[0] == "eval":
+            conn.send(ants.evaluate(msg[1], msg[2], msg[3]))
+
+
+class Collector:
+    def __init__(self, num_workers: int, envs_per_worker: int, seed: int):
+        self.procs, self.conns, self.local = [], [], None
+        if num_workers <= 0:
+            self.local = _Ants(envs_per_worker, seed)
+            return
+        ctx = mp.get_context("spawn")  # no fork of a process that holds a JAX runtime
+        for w in range(num_workers):
+            a, b = ctx.Pipe()
+            p = ctx.Process(target=_worker, args=(b, envs_per_worker, seed * 1000 + w), daemon=True)
+            p.start()
+            self.procs.append(p)
+            self.conns.append(a)
+
+    def send(self, *msg):
+        if self.local is None:
+            for c in self.conns:
+                c.send(msg)
+        else:
+            self._pending = msg
+
+    def recv(self):
+        if self.local is not None:
+            msg = self._pending
+            fn = self.local.collect if msg[0] == "collect" else self.local.evaluate
+            return [fn(*msg[1:])]
+        return [c.recv() for c in self.conns]
+
+    def close(self):
+        for c in self.conns:
+            try:
+                c.send(("stop",))
+            except (BrokenPipeError, OSError):
+                pass
+        for p in self.procs:
+            p.join(timeout=5)
+
+
+# ------------------------------------------------------------------ the device side
+
+
+def _make_train_step(batch_size: int, updates: int):
+    import jax
+    import jax.numpy as jnp
+
+    @partial(jax.jit, donate_argnums=0)  # the buffer is updated in place, not copied
+    def insert(buf, new, ptr):
+        return {k: jax.lax.dynamic_update_slice_in_dim(buf[k], new[k], ptr, 0) for k in buf}
+
+    @jax.jit
+    def train(agent, buf, size, key):
+        def body(a, k):
+            idx = jax.random.randint(k, (batch_size,), 0, size)
+            batch = {n: v[idx] for n, v in buf.items()}
+            batch["mc_returns"] = jnp.zeros_like(batch["rewards"])
+            return a._update(batch)
+
+        agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, updates))
+        return agent, {k: v[-1] for k, v in metrics.items()}
+
+    return insert, train
+
+
+def _host_actor(agent, cfg) -> dict:
+    import jax
+
+    return actor_arrays(jax.device_get(agent.actor.params), agent.config.log_std_min, agent.config.log_std_max)
+
+
+def _atomic_json(path: Path, obj) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=1))
+    os.replace(tmp, path)
+
+
+def export_actor(params: dict, path: str | os.PathLike, meta: dict | None = None) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = dict(params)
+    arrays["meta_json"] = np.asarray(json.dumps(meta or {}))
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+    return path
+
+
+CURVE_FIELDS = ["env_steps", "updates", "seconds", "eval_goals_per_1000", "eval_return_per_step", "eval_falls",
+                "train_episode_return", "temperature", "critic_loss"]
+
+
+def train(cfg: AntTrainConfig) -> dict:
+    """Train (or continue training) the goal-reaching ant; returns the final state dict."""
+    import jax
+    import jax.numpy as jnp
+
+    from botorl.agents import checkpoint
+    from botorl.agents.sac import SACAgent
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scfg = sac_config(cfg)
+    agent = SACAgent.create(scfg, OBS_DIM, ACTION_DIM, seed=cfg.seed)
+    state = {"env_steps": 0, "updates": 0, "seconds": 0.0, "calls": 0, "config": dataclasses.asdict(cfg)}
+    resumed = (out / "agent.ckpt").exists() and (out / "state.json").exists()
+    if resumed:
+        agent = checkpoint.load(out / "agent.ckpt", like=agent)
+        state.update({k: v for k, v in json.loads((out / "state.json").read_text()).items() if k != "config"})
+        print(f"resuming from {out}: {state['env_steps']:,} env steps, {state['updates']:,} updates", flush=True)
+    state["calls"] += 1
+    curve_path = out / "curve.csv"
+    if not curve_path.exists():
+        with open(curve_path, "w", newline="") as fh:
+            csv.writer(fh).writerow(CURVE_FIELDS)
+
+    n_envs = max(cfg.num_workers, 1) * cfg.envs_per_worker
+    chunk = n_envs * cfg.rollout_len
+    capacity = max(chunk, (cfg.buffer_size // chunk) * chunk)
+    buf = {
+        "observations": jnp.zeros((capacity, OBS_DIM), jnp.float32),
+        "actions": jnp.zeros((capacity, ACTION_DIM), jnp.float32),
+        "rewards": jnp.zeros((capacity,), jnp.float32),
+        "next_observations": jnp.zeros((capacity, OBS_DIM), jnp.float32),
+        "dones": jnp.zeros((capacity,), jnp.float32),
+    }
+    insert, train_step = _make_train_step(cfg.batch_size, cfg.updates_per_iter)
+    seed_call = cfg.seed * 7_919 + state["calls"]
+    collector = Collector(cfg.num_workers, cfg.envs_per_worker, seed_call)
+    key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["calls"])
+    ptr = size = 0
+    t0 = time.time()
+    base_seconds = state["seconds"]
+    last_ckpt = last_eval = time.time()
+    returns: list[float] = []
+    metrics = {}
+    params = _host_actor(agent, cfg)
+    bar = None
+    if cfg.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.total_env_steps, initial=state["env_steps"], unit="step", desc="train-ant",
+                   mininterval=5.0)
+
+    def save():
+        checkpoint.save(out / "agent.ckpt", agent)
+        state["seconds"] = base_seconds + time.time() - t0
+        _atomic_json(out / "state.json", state)
+        export_actor(params, out / "actor.npz", {"env_steps": state["env_steps"], "updates": state["updates"],
+                                                 "hidden": list(cfg.hidden)})
+
+    def evaluate():
+        collector.send("eval", params, HORIZON, 12345)
+        res = collector.recv()
+        goals = [g for r in res for g in r[0]]
+        ret = float(np.mean([r[1] for r in res]))
+        falls = int(sum(r[2] for r in res))
+        row = [state["env_steps"], state["updates"], round(base_seconds + time.time() - t0, 1),
+               round(float(np.mean(goals)), 3), round(ret, 3), falls,
+               round(float(np.mean(returns)), 1) if returns else "",
+               round(float(metrics.get("temperature", float("nan"))), 5) if metrics else "",
+               round(float(metrics.get("critic_loss", float("nan"))), 4) if metrics else ""]
+        with open(curve_path, "a", newline="") as fh:
+            csv.writer(fh).writerow(row)
+        print("eval " + " ".join(f"{k}={v}" for k, v in zip(CURVE_FIELDS, row)), flush=True)
+        returns.clear()
+
+    try:
+        warm = 0
+        collector.send("collect", params, cfg.rollout_len, not resumed)
+        pending = None
+        while state["env_steps"] < cfg.total_env_steps:
+            results = collector.recv()
+            new = {k: np.concatenate([r[0][k] for r in results]) for k in results[0][0]}
+            for r in results:
+                returns.extend(r[2])
+            state["env_steps"] += chunk
+            warm += chunk
+            if pending is not None:  # the updates dispatched last iteration are done by now
+                agent, metrics = pending
+                metrics = {k: float(v) for k, v in metrics.items()}
+                params = _host_actor(agent, cfg)
+                state["updates"] += cfg.updates_per_iter
+                pending = None
+            buf = insert(buf, {k: jnp.asarray(v) for k, v in new.items()}, ptr)
+            ptr = (ptr + chunk) % capacity
+            size = min(size + chunk, capacity)
+            ready = warm >= cfg.start_steps
+            # Next rollout with the current actor runs while the device updates.
+            collector.send("collect", params, cfg.rollout_len, (not ready) and not resumed)
+            if ready:
+                key, k = jax.random.split(key)
+                pending = train_step(agent, buf, size, k)
+            if bar is not None:
+                bar.update(chunk)
+            now = time.time()
+            if now - last_eval >= cfg.eval_every_s and metrics:
+                collector.recv()  # finish the rollout in flight before the evaluation
+                if pending is not None:
+                    agent, metrics = pending
+                    metrics = {k: float(v) for k, v in metrics.items()}
+                    params = _host_actor(agent, cfg)
+                    state["updates"] += cfg.updates_per_iter
+                    pending = None
+                evaluate()
+                last_eval = time.time()
+                collector.send("collect", params, cfg.rollout_len, False)
+            if now - last_ckpt >= cfg.checkpoint_every_s:
+                if pending is not None:
+                    agent, metrics = pending
+                    metrics = {k: float(v) for k, v in metrics.items()}
+                    params = _host_actor(agent, cfg)
+                    state["updates"] += cfg.updates_per_iter
+                    pending = None
+                save()
+                last_ckpt = time.time()
+            if cfg.time_limit_s and now - t0 >= cfg.time_limit_s:
+                print(f"time limit reached after {now - t0:.0f} s", flush=True)
+                break
+        collector.recv()
+        if pending is not None:
+            agent, metrics = pending
+            metrics = {k: float(v) for k, v in metrics.items()}
+            params = _host_actor(agent, cfg)
+            state["updates"] += cfg.updates_per_iter
+        evaluate()
+        save()
+    finally:
+        if bar is not None:
+            bar.close()
+        collector.close()
+    try:
+        plot_curve(curve_path, out / "curve.png")
+    except Exception as err:  # a missing matplotlib must not lose the training
+        print(f"(no curve.png: {err})")
+    return state
+
+
+def plot_curve(csv_path, png_path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = list(csv.DictReader(open(csv_path)))
+    if not rows:
+        return
+    x = np.array([float(r["env_steps"]) for r in rows]) / 1e6
+    g = np.array([float(r["eval_goals_per_1000"]) for r in rows])
+    u = np.array([float(r["updates"]) for r in rows]) / 1e6
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    ax.plot(x, g, marker=".")
+    ax.set_xlabel("environment steps (millions)")
+    ax.set_ylabel("goals reached per 1,000 steps\n(deterministic actor)")
+    ax.set_title(f"goal-reaching ant, SAC ({u[-1]:.2f}M updates, {float(rows[-1]['seconds']):.0f} s)")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    tmp = Path(str(png_path) + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    os.replace(tmp, png_path)
+
+
+def main(argv: list[str]) -> int:
+    import tyro
+
+    from botorl.jaxsetup import setup_jax
+
+    cfg = tyro.cli(AntTrainConfig, args=argv, prog="botorl train-ant",
+                   description="Train the goal-reaching ant with SAC (resumable: rerun with the same --out).")
+    if cfg.eval_maze:
+        from botorl.data.generators.antmaze import evaluate_controller, load_actor
+
+        t0 = time.time()
+        res = evaluate_controller(cfg.eval_maze, cfg.episodes, cfg.seed, actor=load_actor(cfg.actor or None),
+                                  action_noise=cfg.action_noise, progress=cfg.progress)
+        print(json.dumps(res))
+        print(f"success {res['success']:.2f} over {cfg.episodes} episodes ({time.time() - t0:.0f} s)")
+        return 0
+    setup_jax()
+    state = train(cfg)
+    print(f"done: {state['env_steps']:,} env steps, {state['updates']:,} updates, {state['seconds']:.0f} s; "
+          f"actor: {Path(cfg.out) / 'actor.npz'}")
+    return 0
+
+
+if __name__ == "__main__":  # used on machines without the botorl CLI's dependencies
+    import sys
+
+    kw = {}
+    for a in sys.argv[1:]:
+        k, v = a.lstrip("-").split("=", 1)
+        f = {f.name: f for f in dataclasses.fields(AntTrainConfig)}[k.replace("-", "_")]
+        kw[f.name] = (tuple(int(x) for x in v.split(",")) if f.name == "hidden" else
+                      (v.lower() in ("1", "true")) if f.type in (bool, "bool") else type(f.default)(v))
+    print(json.dumps(train(AntTrainConfig(**kw)), default=str)[:2000])

@@ -1,0 +1,502 @@
+"""AntMaze data made here, in the D4RL recipe (tasks ``antmaze-<maze>-<diverse|play>-local``).
+
+Facts (Farama-Foundation/minari-dataset-generation-scripts, ``scripts/antmaze/``, which made
+Minari's ``D4RL/antmaze/*``; D4RL, Fu et al. 2020, section 5):
+
+- the robot is Gymnasium-Robotics' AntMaze ant (maze cells of 4 x 4 units,
+  ``maze_size_scaling=4``); its low-level policy is a goal-reaching SAC ant whose observation
+  is AntMaze's 27-dim ``observation`` followed by ``waypoint - achieved_goal``
+  (``create_antmaze_dataset.py: wrap_maze_obs``); here the ant of ``botorl train-ant``,
+  shipped as ``assets/ant_goal_actor.npz``;
+- a waypoint controller (``controller.py``) follows a maze planner's path of cells: the
+  waypoint is the centre of the next cell of the path, minus U(0, 1) * 0.2 in x and y
+  (intermediate waypoints only), and the controller moves to the following cell when the
+  ant's (x, y) is within 0.45 of the waypoint; in the goal cell the waypoint is the goal;
+- Gaussian action noise: ``a + 0.2 * N(0, 1)``, clipped to [-1, 1] (``--action-noise 0.2``);
+- 1M steps per dataset; episodes of 1,000 steps (the AntMaze envs' ``max_episode_steps``);
+  at each episode's start the goal and the start are drawn from the maze's goal and reset
+  cells, each with uniform noise of +-0.25 cells (Gymnasium-Robotics ``position_noise_range``),
+  the start at least half a cell (2 units) from the goal; the ant starts at rest in its
+  default pose (AntMaze: ``reset_noise_scale=0``); the goal stays fixed for the episode
+  (``reset_target=False``);
+- stored per step: dict observations ``observation`` (27), ``achieved_goal`` (x, y),
+  ``desired_goal`` (the episode's goal), and infos ``qpos`` (15), ``qvel`` (14), ``goal``,
+  ``success`` (within 0.45 of ``desired_goal``), as Minari's ``AntMazeStepDataCallback``.
+
+"diverse" and "play" follow D4RL's description: "diverse" draws goals and starts from every
+free cell; "play" from a hand-picked set of locations (here the cells that Gymnasium-
+Robotics marks 'c' in ``LARGE_MAZE_DIVERSE_GR`` / ``MEDIUM_MAZE_DIVERSE_GR``). (Minari's v1
+data used those two maps the other way round.)
+
+Rewards and terminals are those of the evaluation task (``botorl.envs.antmaze``: start cell
+(1, 1), goal cell (7, 9) on the large map), as D4RL's antmaze rewards are for its evaluation
+goal and as botorl's pointmaze data do: reward 1 where the next (x, y) is within 0.45 of the
+evaluation goal's centre, and such rows are terminal (the evaluation env ends there), so an
+episode is cut there and the trajectory goes on in a new episode with the same goal.
+
+Speed: the MuJoCo model is the one ``AntMazeEnv`` builds (ant + walls), stepped with
+``mujoco.mj_step(nstep=5)`` as ``AntEnv.step`` does (``ctrl = action``, 5 substeps; AntMaze
+ignores the ant's own termination), so the data follow the env's dynamics without
+Gymnasium's per-step cost (tests replay the actions in the env). Deterministic for a seed.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from botorl.data.dataset import Dataset
+
+ACTION_NOISE = 0.2  # create_antmaze_dataset.py --action-noise
+WAYPOINT_THRESHOLD = 0.45  # controller.py waypoint_threshold
+WAYPOINT_JITTER = 0.2  # controller.py: cell centre - U(0, 1) * 0.2
+SCALE = 4.0  # AntMaze maze_size_scaling
+POSITION_NOISE = 0.25  # Gymnasium-Robotics position_noise_range (cells)
+SUCCESS_RADIUS = 0.45
+EPISODE_STEPS = 1000
+FRAME_SKIP = 5
+
+ASSET = Path(__file__).parent / "assets" / "ant_goal_actor.npz"
+
+
+@dataclass(frozen=True)
+class AntMazeLayout:
+    name: str
+    maze_map: tuple[tuple[int, ...], ...]  # 1 = wall, 0 = free
+    locations: tuple[tuple[int, int], ...]  # "play": hand-picked goal/start cells
+    eval_start: tuple[int, int]
+    eval_goal: tuple[int, int]
+
+
+def _layouts() -> dict[str, AntMazeLayout]:
+    from gymnasium_robotics.envs.maze import maps
+
+    def parse(m):
+        walls = tuple(tuple(1 if c == 1 else 0 for c in row) for row in m)
+        picked = tuple((r, c) for r, row in enumerate(m) for c, v in enumerate(row) if v in ("c", "g", "r"))
+        return walls, picked
+
+    out = {}
+    # evaluation start/goal: D4RL's (Minari EVAL_ENV_MAPS 'r'/'g' cells)
+    for name, grid, picked_grid, start, goal in (
+        ("umaze", maps.U_MAZE, None, (3, 1), (1, 1)),
+        ("medium", maps.MEDIUM_MAZE, maps.MEDIUM_MAZE_DIVERSE_GR, (1, 1), (6, 6)),
+        ("large", maps.LARGE_MAZE, maps.LARGE_MAZE_DIVERSE_GR, (1, 1), (7, 9)),
+    ):
+        walls, _ = parse(grid)
+        picked = parse(picked_grid)[1] if picked_grid is not None else (start, goal)
+        out[name] = AntMazeLayout(name, walls, picked, start, goal)
+    return out
+
+
+def layout(maze: str) -> AntMazeLayout:
+    layouts = _layouts()
+    if maze not in layouts:
+        raise ValueError(f"unknown maze {maze!r}; one of {sorted(layouts)}")
+    return layouts[maze]
+
+
+def cell_xy(maze_map, cell) -> np.ndarray:
+    """Centre of a cell in AntMaze coordinates (Maze.cell_rowcol_to_xy)."""
+    rows, cols = len(maze_map), len(maze_map[0])
+    return np.array([(cell[1] + 0.5) * SCALE - cols * SCALE / 2, rows * SCALE / 2 - (cell[0] + 0.5) * SCALE])
+
+
+def xy_cell(maze_map, xy) -> tuple[int, int]:
+    """Maze.cell_xy_to_rowcol."""
+    rows, cols = len(maze_map), len(maze_map[0])
+    return (math.floor((rows * SCALE / 2 - xy[1]) / SCALE), math.floor((xy[0] + cols * SCALE / 2) / SCALE))
+
+
+class WaypointController:
+    """Follows the planner's path of cells to ``goal_xy`` (controller.py's rule).
+
+    ``policy(obs29) -> action``: the goal-reaching ant. ``table``: ``next_cell_table`` of the
+    maze (botorl.envs.pointmaze's BFS planner). The path is re-planned from the ant's cell if
+    the ant leaves it (pushed off by a wall, say).
+    """
+
+    def __init__(self, maze_map, table, policy, rng: np.random.Generator | None = None,
+                 threshold: float = WAYPOINT_THRESHOLD, jitter: float = WAYPOINT_JITTER):
+        self.maze_map, self.table, self.policy = maze_map, table, policy
+        self.rng = rng if rng is not None else np.random.default_rng(0)
+        self.threshold, self.jitter = threshold, jitter
+        self.goal_cell = None
+
+    def set_goal(self, goal_xy, xy) -> None:
+        self.goal_xy = np.asarray(goal_xy, float)
+        self.goal_cell = xy_cell(self.maze_map, self.goal_xy)
+        self._plan(xy_cell(self.maze_map, xy))
+
+    def _plan(self, cell) -> None:
+        nxt = self.table[self.goal_cell]
+        if cell not in nxt:  # in a wall cell (numerically): aim at the goal's path from the nearest
+            cell = self.goal_cell
+        path = [cell]
+        while path[-1] != self.goal_cell:
+            path.append(nxt[path[-1]])
+        self.path = path
+        self.index = 0
+        self._advance()
+
+    def _advance(self) -> None:
+        """Aim at path[index + 1] (or the goal once in the goal cell)."""
+        if self.index + 1 >= len(self.path):
+            self.index = len(self.path) - 1
+            self.waypoint = self.goal_xy
+            return
+        self.index += 1
+        if self.path[self.index] == self.goal_cell:
+            self.waypoint = self.goal_xy
+        else:
+            self.waypoint = cell_xy(self.maze_map, self.path[self.index]) - self.rng.uniform(size=2) * self.jitter
+
+    def waypoint_for(self, xy) -> np.ndarray:
+        cell = xy_cell(self.maze_map, xy)
+        lo = max(self.index - 1, 0)
+        if cell not in self.path[lo: self.index + 1]:
+            self._plan(cell)
+        if self.path[self.index] != self.goal_cell and np.sum((self.waypoint - xy) ** 2) <= self.threshold**2:
+            self._advance()
+        return self.waypoint
+
+    def act(self, observation27, xy, rng=None):
+        wp = self.waypoint_for(xy)
+        obs = np.concatenate([observation27, wp - xy]).astype(np.float32)
+        return self.policy(obs[None], rng)[0] if rng is not None else self.policy(obs[None])[0]
+
+
+def make_maze_env(maze: str, *, continuing_task: bool = True):
+    """Gymnasium-Robotics' AntMazeEnv on the maze's wall map (no goal/reset marks)."""
+    from botorl.envs.wrappers import import_robotics
+
+    import_robotics()
+    from gymnasium_robotics.envs.maze.ant_maze_v4 import AntMazeEnv
+
+    spec = layout(maze)
+    return AntMazeEnv(maze_map=[list(r) for r in spec.maze_map], reward_type="sparse",
+                      continuing_task=continuing_task, reset_target=False)
+
+
+def load_actor(path=None):
+    from botorl.envs.ant_goal import NumpyActor
+
+    path = Path(path or os.environ.get("BOTORL_ANT_ACTOR") or ASSET)
+    if not path.exists():
+        from botorl.errors import BotorlError
+
+        raise BotorlError(
+            f"the goal-reaching ant's weights are missing ({path}); train them with `botorl train-ant "
+            f"--out runs/ant_goal` and point BOTORL_ANT_ACTOR at runs/ant_goal/actor.npz."
+        )
+    return NumpyActor.load(path)
+
+
+class _Sim:
+    """The AntMaze model stepped directly (see module docstring)."""
+
+    def __init__(self, maze: str):
+        import mujoco
+
+        env = make_maze_env(maze)
+        self.model = env.ant_env.model
+        self.data = mujoco.MjData(self.model)
+        self.qpos0 = env.ant_env.init_qpos.copy()
+        self._step = mujoco.mj_step
+        self._forward = mujoco.mj_forward
+        self._reset = mujoco.mj_resetData
+        env.close()
+
+    def reset(self, xy) -> None:
+        d = self.data
+        self._reset(self.model, d)
+        d.qpos[:] = self.qpos0
+        d.qpos[:2] = xy
+        d.qvel[:] = 0.0
+        self._forward(self.model, d)
+
+    def step(self, action) -> None:
+        self.data.ctrl[:] = action
+        self._step(self.model, self.data, FRAME_SKIP)
+
+
+def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True, *, actor=None,
+             action_noise: float = ACTION_NOISE, episode_steps: int = EPISODE_STEPS) -> Dataset:
+    """``steps`` transitions of the waypoint-following ant; see the module docstring."""
+    from botorl.envs.pointmaze import free_cells, next_cell_table
+
+    if kind not in ("diverse", "play"):
+        raise ValueError(f"kind must be 'diverse' or 'play', not {kind!r}")
+    if steps <= 0:
+        raise ValueError("steps must be positive")
+    spec = layout(maze)
+    maze_map = [list(r) for r in spec.maze_map]
+    cells = free_cells(maze_map) if kind == "diverse" else list(spec.locations)
+    table = next_cell_table(maze_map)
+    policy = actor if actor is not None else load_actor()
+    sim = _Sim(maze)
+    rng = np.random.default_rng(seed)
+    ctl = WaypointController(maze_map, table, policy, rng)
+    eval_goal = cell_xy(maze_map, spec.eval_goal)
+    noise = POSITION_NOISE * SCALE
+
+    qpos_all = np.empty((steps + 1, 15))
+    qvel_all = np.empty((steps + 1, 14))
+    goals = np.empty((steps, 2))
+    actions = np.empty((steps, 8))
+    ends = np.zeros(steps, bool)
+    starts_row = np.zeros(steps, bool)  # a row whose state is an episode's reset state
+    resets = []  # (row, qpos, qvel) of reset states other than row 0's predecessor
+
+    def new_episode():
+        while True:
+            g = cells[rng.integers(len(cells))]
+            s = cells[rng.integers(len(cells))]
+            if np.linalg.norm(cell_xy(maze_map, g) - cell_xy(maze_map, s)) > 0.5 * SCALE:
+                break
+        gxy = cell_xy(maze_map, g) + rng.uniform(-noise, noise, 2)
+        sxy = cell_xy(maze_map, s) + rng.uniform(-noise, noise, 2)
+        sim.reset(sxy)
+        ctl.set_goal(gxy, sxy)
+        return gxy
+
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps, desc=f"antmaze-{maze}-{kind}", unit="step", mininterval=1.0)
+    d = sim.data
+    goal = new_episode()
+    prev_qpos, prev_qvel = d.qpos.copy(), d.qvel.copy()
+    obs_qpos = np.empty((steps, 15))
+    obs_qvel = np.empty((steps, 14))
+    t_ep = 0
+    for t in range(steps):
+        if t_ep == 0 and t > 0:
+            goal = new_episode()
+            prev_qpos, prev_qvel = d.qpos.copy(), d.qvel.copy()
+            starts_row[t] = True
+        obs_qpos[t], obs_qvel[t] = prev_qpos, prev_qvel
+        xy = prev_qpos[:2]
+        a = ctl.act(np.concatenate([prev_qpos[2:], prev_qvel]), xy)
+        if action_noise > 0:
+            a = a + action_noise * rng.standard_normal(8)
+        a = np.clip(a, -1.0, 1.0)
+        sim.step(a)
+        actions[t] = a
+        goals[t] = goal
+        prev_qpos, prev_qvel = d.qpos.copy(), d.qvel.copy()
+        qpos_all[t + 1], qvel_all[t + 1] = prev_qpos, prev_qvel
+        t_ep += 1
+        if t_ep >= episode_steps:
+            ends[t] = True
+            t_ep = 0
+        if bar is not None and (t + 1) % 10000 == 0:
+            bar.update(10000)
+    if bar is not None:
+        bar.update(steps - bar.n)
+        bar.close()
+
+    next_qpos, next_qvel = qpos_all[1:], qvel_all[1:]
+    next_xy = next_qpos[:, :2]
+    rewards = (np.sum((next_xy - eval_goal) ** 2, axis=1) <= SUCCESS_RADIUS**2).astype(np.float32)
+    success = (np.sum((next_xy - goals) ** 2, axis=1) <= SUCCESS_RADIUS**2).astype(np.float32)
+    terminals = rewards > 0
+    # The 29-dim layout of the antmaze tasks: achieved_goal (x, y) then observation (27).
+    observations = np.concatenate([obs_qpos, obs_qvel], axis=1)
+    next_observations = np.concatenate([next_qpos, next_qvel], axis=1)
+    return Dataset(
+        observations=observations,
+        actions=actions,
+        rewards=rewards,
+        next_observations=next_observations,
+        terminals=terminals,
+        episode_ends=ends | terminals,
+        infos={"success": success, "qpos": next_qpos.astype(np.float32), "qvel": next_qvel.astype(np.float32),
+               "goal": goals.astype(np.float32)},
+        metadata={
+            "source": f"generated: antmaze-{maze}-{kind}-local (steps={steps}, seed={seed})",
+            "task": f"antmaze-{maze}-{kind}-local",
+            "generator": "botorl.data.generators.antmaze",
+            "steps": int(steps),
+            "seed": int(seed),
+            "maze": maze,
+            "kind": kind,
+            "action_noise": float(action_noise),
+            "eval_start_cell": list(spec.eval_start),
+            "eval_goal_cell": list(spec.eval_goal),
+            "observation_layout": "achieved_goal (x, y), observation (qpos[2:], qvel)",
+            # write_minari stores these slices of the flat rows as Minari dict observations
+            # (D4RL/antmaze/* keys); desired_goal comes from infos["goal"].
+            "minari_dict_obs": {"achieved_goal": [0, 2], "observation": [2, 29], "desired_goal": "infos:goal"},
+        },
+    )
+
+
+def _gen(maze, kind):
+    def f(steps: int, seed: int, progress: bool = True) -> Dataset:
+        return generate(maze, kind, steps, seed, progress)
+
+    f.__name__ = f"generate_{maze}_{kind}"
+    return f
+
+
+generate_large_diverse = _gen("large", "diverse")
+generate_large_play = _gen("large", "play")
+generate_medium_diverse = _gen("medium", "diverse")
+generate_medium_play = _gen("medium", "play")
+generate_umaze_diverse = _gen("umaze", "diverse")
+
+
+# ------------------------------------------------------------------ the quality check
+
+
+def evaluate_controller(maze: str = "large", episodes: int = 20, seed: int = 0, *, actor=None,
+                        action_noise: float = 0.0, max_steps: int = EPISODE_STEPS, progress: bool = False) -> dict:
+    """The waypoint controller from the evaluation start to the evaluation goal (D4RL's pair;
+    both with the evaluation env's +-0.25-cell noise), no action noise by default: success
+    (within 0.45 of the goal within ``max_steps``) and steps to success."""
+    from botorl.envs.pointmaze import next_cell_table
+
+    spec = layout(maze)
+    maze_map = [list(r) for r in spec.maze_map]
+    table = next_cell_table(maze_map)
+    policy = actor if actor is not None else load_actor()
+    sim = _Sim(maze)
+    rng = np.random.default_rng(seed)
+    ctl = WaypointController(maze_map, table, policy, rng)
+    noise = POSITION_NOISE * SCALE
+    results = []
+    for ep in range(episodes):
+        gxy = cell_xy(maze_map, spec.eval_goal) + rng.uniform(-noise, noise, 2)
+        sxy = cell_xy(maze_map, spec.eval_start) + rng.uniform(-noise, noise, 2)
+        sim.reset(sxy)
+        ctl.set_goal(gxy, sxy)
+        d = sim.data
+        steps = None
+        for t in range(max_steps):
+            a = ctl.act(np.concatenate([d.qpos[2:], d.qvel]), d.qpos[:2].copy())
+            if action_noise > 0:
+                a = a + action_noise * rng.standard_normal(8)
+            sim.step(np.clip(a, -1, 1))
+            if np.sum((d.qpos[:2] - gxy) ** 2) <= SUCCESS_RADIUS**2:
+                steps = t + 1
+                break
+        results.append(steps)
+        if progress:
+            print(f"episode {ep}: {'reached in ' + str(steps) + ' steps' if steps else 'failed'}", flush=True)
+    ok = [s for s in results if s is not None]
+    return {"maze": maze, "episodes": episodes, "success": len(ok) / episodes,
+            "mean_steps_to_goal": float(np.mean(ok)) if ok else None, "steps": results,
+            "action_noise": action_noise}
+
+
+# ------------------------------------------------------------------ evaluation envs of the other mazes
+
+
+def make_antmaze_task(maze: str, seed: int | None = None):
+    """The D4RL-style evaluation env on the medium or umaze map (the large map's is
+    ``botorl.envs.antmaze.make_antmaze``): the same wrapper, this maze's start and goal."""
+    from botorl.envs.antmaze import OBS_DIM as ANT_OBS_DIM
+    from botorl.envs.antmaze import AntMazeTask
+    from botorl.envs.wrappers import import_robotics
+
+    import_robotics()
+    from gymnasium_robotics.envs.maze.ant_maze_v4 import AntMazeEnv
+
+    spec = layout(maze)
+
+    class _Task(AntMazeTask):
+        def _reset_options(self):
+            return {"reset_cell": np.array(spec.eval_start), "goal_cell": np.array(spec.eval_goal)}
+
+    inner = AntMazeEnv(maze_map=[list(r) for r in spec.maze_map], reward_type="sparse", continuing_task=False,
+                       reset_target=False)
+    return _Task(inner, ANT_OBS_DIM, seed)
+
+
+# ------------------------------------------------------------------ statistics and the coverage picture
+
+
+def maze_of(ds) -> str | None:
+    """The maze of a generated antmaze dataset (fresh or loaded from the cache), else None."""
+    meta = ds.metadata.get("botorl") or ds.metadata
+    gen = str(meta.get("generator", ""))
+    if "antmaze" in gen and meta.get("maze") in ("umaze", "medium", "large"):
+        return meta["maze"]
+    return None
+
+
+def visited_cells(maze: str, xy: np.ndarray) -> np.ndarray:
+    """Steps per cell, (rows, cols)."""
+    spec = layout(maze)
+    rows, cols = len(spec.maze_map), len(spec.maze_map[0])
+    r = np.floor((rows * SCALE / 2 - xy[:, 1]) / SCALE).astype(int)
+    c = np.floor((xy[:, 0] + cols * SCALE / 2) / SCALE).astype(int)
+    ok = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
+    counts = np.zeros((rows, cols), np.int64)
+    np.add.at(counts, (r[ok], c[ok]), 1)
+    return counts
+
+
+def maze_stats(ds, maze: str | None = None) -> dict | None:
+    """Coverage of the maze (free cells with at least 100 steps; our threshold, so a cell
+    crossed once does not count) and the evaluation-goal rows of an antmaze dataset."""
+    maze = maze or maze_of(ds)
+    if maze is None:
+        return None
+    spec = layout(maze)
+    free = np.array(spec.maze_map) == 0
+    counts = visited_cells(maze, np.asarray(ds.observations[:, :2]))
+    covered = int(((counts >= 100) & free).sum())
+    return {"maze": maze, "cells_free": int(free.sum()), "cells_covered": covered,
+            "coverage": covered / int(free.sum()), "eval_goal_rows": int((ds.rewards > 0).sum())}
+
+
+def plot_coverage(ds, path, maze: str | None = None, title: str | None = None, max_points: int = 200_000) -> Path:
+    """The visited (x, y) over the maze map (walls grey), written atomically as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    maze = maze or maze_of(ds)
+    if maze is None:
+        from botorl.errors import BotorlError
+
+        raise BotorlError("`data plot` draws antmaze datasets made by botorl (their metadata name the maze); "
+                          "this dataset names none.")
+    spec = layout(maze)
+    rows, cols = len(spec.maze_map), len(spec.maze_map[0])
+    fig, ax = plt.subplots(figsize=(cols * 0.55 + 1, rows * 0.55 + 0.6))
+    for r in range(rows):
+        for c in range(cols):
+            if spec.maze_map[r][c] == 1:
+                x, y = cell_xy(spec.maze_map, (r, c))
+                ax.add_patch(plt.Rectangle((x - SCALE / 2, y - SCALE / 2), SCALE, SCALE, color="0.55", lw=0))
+    xy = np.asarray(ds.observations[:, :2])
+    if len(xy) > max_points:
+        xy = xy[np.random.default_rng(0).choice(len(xy), max_points, replace=False)]
+    ax.scatter(xy[:, 0], xy[:, 1], s=0.2, alpha=0.15, color="tab:blue", rasterized=True)
+    for cell, mark, colour in ((spec.eval_start, "o", "tab:green"), (spec.eval_goal, "*", "tab:red")):
+        x, y = cell_xy(spec.maze_map, cell)
+        ax.plot(x, y, mark, color=colour, ms=12, mec="k")
+    ax.set_xlim(-cols * SCALE / 2, cols * SCALE / 2)
+    ax.set_ylim(-rows * SCALE / 2, rows * SCALE / 2)
+    ax.set_aspect("equal")
+    ax.set_xticks([])
+    ax.set_yticks([])
+    st = maze_stats(ds, maze)
+    ax.set_title(title or f"{len(ds):,} steps, {st['cells_covered']}/{st['cells_free']} cells covered", fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    os.replace(tmp, path)
+    return path
