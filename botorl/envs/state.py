@@ -1,0 +1,208 @@
+"""The full state of a botorl env mid-episode, as plain JSON, for an exact resume.
+
+``get_env_state(env) -> dict`` and ``set_env_state(env, state)`` work on every env
+``TaskSpec.make_env`` builds (pointmaze, adroit door/pen, antmaze, kitchen, bandit): the
+wrapper chain (``TimeLimit`` -> the task's ``TaskEnv`` -> the Gymnasium(-Robotics) env and the
+MuJoCo envs it holds, e.g. ``point_env``, ``ant_env``, ``robot_env``). What is captured:
+
+* MuJoCo, per model: ``mj_getState(..., mjSTATE_INTEGRATION)`` -- time, qpos, qvel, act,
+  the solver's warm start, ctrl, applied forces, mocap poses, userdata, plugin state -- which
+  MuJoCo documents as everything ``mj_step`` reads; plus the model fields the envs move at
+  reset (``body_pos``, ``body_quat``, ``site_pos``, ``site_quat``: the door's position, the pen's
+  target orientation, the maze's target marker).
+* Every layer's plain attributes: counters, flags, goals and targets (``TimeLimit``'s
+  ``_elapsed_steps``, ``TaskEnv``'s pending seed, the maze's ``goal`` and ``reset_pos``,
+  the kitchen's completed sub-tasks, ...): every attribute whose value is a number, string,
+  bool, None, NumPy array, or a list / tuple / set / dict of those. Objects (models, spaces,
+  renderers) are not state and are left alone.
+* Every random generator: each layer's ``np_random`` and its action space's generator.
+
+The result is JSON (arrays as ``{"__ndarray__": [...], "dtype": ..., "shape": ...}``, exact for
+float64/float32 since Python's float repr round-trips). ``set_env_state`` restores it into an
+env built the same way (same task; it need not have been reset): stepping both with the same
+actions then gives bit-identical observations, rewards and infos (tests/test_envs_state.py).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+FORMAT = "botorl-env-state-v1"
+_MODEL_FIELDS = ("body_pos", "body_quat", "site_pos", "site_quat")
+# Attributes that are configuration of this process, not of the episode.
+_SKIP = {"render_mode", "tmp_xml_file_path", "fullpath", "camera_name", "camera_id", "width", "height",
+         "_np_random", "np_random"}
+
+
+class _Skip(Exception):
+    pass
+
+
+def _encode(v: Any, depth: int = 0) -> Any:
+    if depth > 6:
+        raise _Skip
+    if v is None or isinstance(v, (bool, str)):
+        return v
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v)
+    if isinstance(v, np.bool_):
+        return bool(v)
+    if isinstance(v, np.ndarray):
+        if v.dtype == object or v.dtype.kind not in "biuf":
+            raise _Skip
+        return {"__ndarray__": v.ravel().tolist(), "dtype": v.dtype.str, "shape": list(v.shape)}
+    if type(v) is list:
+        return {"__list__": [_encode(x, depth + 1) for x in v]}
+    if type(v) is tuple:
+        return {"__tuple__": [_encode(x, depth + 1) for x in v]}
+    if isinstance(v, (set, frozenset)):
+        items = [_encode(x, depth + 1) for x in v]
+        return {"__set__": sorted(items, key=repr), "frozen": isinstance(v, frozenset)}
+    if isinstance(v, dict):
+        if not all(isinstance(k, str) for k in v):
+            raise _Skip
+        return {"__dict__": {k: _encode(x, depth + 1) for k, x in v.items()}}
+    raise _Skip
+
+
+def _decode(v: Any) -> Any:
+    if not isinstance(v, dict):
+        return v
+    if "__ndarray__" in v:
+        return np.asarray(v["__ndarray__"], dtype=np.dtype(v["dtype"])).reshape(v["shape"])
+    if "__list__" in v:
+        return [_decode(x) for x in v["__list__"]]
+    if "__tuple__" in v:
+        return tuple(_decode(x) for x in v["__tuple__"])
+    if "__set__" in v:
+        items = [_decode(x) for x in v["__set__"]]
+        return frozenset(items) if v.get("frozen") else set(items)
+    if "__dict__" in v:
+        return {k: _decode(x) for k, x in v["__dict__"].items()}
+    raise ValueError(f"not an encoded env-state value: {sorted(v)}")
+
+
+def _layers(env: gym.Env) -> list[tuple[str, Any]]:
+    """(path, object) of every part that holds state: wrappers outside-in, the env, its sub-envs."""
+    out = []
+    e, i = env, 0
+    while isinstance(e, gym.Wrapper):
+        out.append((f"wrapper{i}", e))
+        e, i = e.env, i + 1
+    out.append(("env", e))
+    for name, val in sorted(vars(e).items()):
+        if isinstance(val, gym.Env) and val is not e:
+            out.append((f"env.{name}", val))
+    return out
+
+
+def _rng_state(obj) -> dict | None:
+    rng = getattr(obj, "_np_random", None)
+    if isinstance(rng, np.random.Generator):
+        return _encode_rng(rng)
+    return None
+
+
+def _encode_rng(rng: np.random.Generator) -> dict:
+    st = rng.bit_generator.state
+    return {"bit_generator": st["bit_generator"], "state": _encode(st)}
+
+
+def _decode_rng(d: dict) -> np.random.Generator:
+    bg = getattr(np.random, d["bit_generator"])()
+    bg.state = _decode(d["state"])
+    return np.random.Generator(bg)
+
+
+def _mujoco(obj):
+    """(model, data) if ``obj`` holds a MuJoCo simulation of its own, else None."""
+    try:
+        import mujoco
+    except ImportError:  # pragma: no cover - mujoco is a dependency
+        return None
+    model, data = obj.__dict__.get("model"), obj.__dict__.get("data")
+    if isinstance(model, mujoco.MjModel) and isinstance(data, mujoco.MjData):
+        return model, data
+    return None
+
+
+def get_env_state(env: gym.Env) -> dict[str, Any]:
+    """Everything that decides the env's future, as a JSON-serialisable dict."""
+    import mujoco
+
+    layers, sims, seen = {}, {}, set()
+    for path, obj in _layers(env):
+        attrs = {}
+        for name, val in vars(obj).items():
+            if name in _SKIP or name == "env" or isinstance(val, gym.Env):
+                continue
+            try:
+                attrs[name] = _encode(val)
+            except _Skip:
+                continue
+        space = getattr(obj, "action_space", None)
+        space_rng = getattr(space, "_np_random", None) if space is not None else None
+        layers[path] = {
+            "class": type(obj).__name__,
+            "attrs": attrs,
+            "np_random": _rng_state(obj),
+            "action_space_rng": _encode_rng(space_rng) if isinstance(space_rng, np.random.Generator) else None,
+        }
+        sim = _mujoco(obj)
+        if sim is not None and id(sim[1]) not in seen:
+            seen.add(id(sim[1]))
+            model, data = sim
+            spec = mujoco.mjtState.mjSTATE_INTEGRATION
+            buf = np.empty(mujoco.mj_stateSize(model, spec), np.float64)
+            mujoco.mj_getState(model, data, buf, spec)
+            sims[path] = {"integration": _encode(buf),
+                          **{f: _encode(np.array(getattr(model, f))) for f in _MODEL_FIELDS}}
+    return {"format": FORMAT, "layers": layers, "mujoco": sims}
+
+
+def set_env_state(env: gym.Env, state: dict[str, Any]) -> None:
+    """Restore ``get_env_state``'s dict into ``env`` (built the same way: same task and wrappers)."""
+    import mujoco
+
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise ValueError(f"not an env state of format {FORMAT!r}")
+    layers = dict(_layers(env))
+    if set(layers) != set(state["layers"]):
+        raise ValueError(f"env state of layers {sorted(state['layers'])} does not fit this env ({sorted(layers)})")
+    for path, saved in state["layers"].items():
+        obj = layers[path]
+        if type(obj).__name__ != saved["class"]:
+            raise ValueError(f"env state: {path} is a {type(obj).__name__} here, a {saved['class']} in the state")
+        for name, enc in saved["attrs"].items():
+            val = _decode(enc)
+            cur = obj.__dict__.get(name)
+            if isinstance(cur, np.ndarray) and isinstance(val, np.ndarray) and cur.shape == val.shape \
+                    and cur.dtype == val.dtype and cur.flags.writeable:
+                cur[...] = val  # in place: other objects may hold a view of it
+            else:
+                obj.__dict__[name] = val
+        if saved["np_random"] is not None:
+            obj._np_random = _decode_rng(saved["np_random"])
+        space = getattr(obj, "action_space", None)
+        if saved["action_space_rng"] is not None and space is not None:
+            space._np_random = _decode_rng(saved["action_space_rng"])
+    for path, sim_state in state["mujoco"].items():
+        sim = _mujoco(layers[path])
+        if sim is None:
+            raise ValueError(f"env state: {path} has no MuJoCo simulation here")
+        model, data = sim
+        for f in _MODEL_FIELDS:
+            getattr(model, f)[...] = _decode(sim_state[f])
+        spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        buf = _decode(sim_state["integration"])
+        if buf.size != mujoco.mj_stateSize(model, spec):
+            raise ValueError(f"env state: {path}'s MuJoCo state has {buf.size} numbers, this model needs "
+                             f"{mujoco.mj_stateSize(model, spec)}")
+        mujoco.mj_setState(model, data, buf, spec)
+        # derived quantities (positions, sensors) for code that reads them before the next step
+        mujoco.mj_forward(model, data)
