@@ -248,3 +248,10 @@ def test_tensorboard_skips_non_finite(tmp_path):
     log.log("finetune", 5, {"train_success": float("nan"), "loss": 0.5, "q": float("inf")})
     log.close()
     assert _tb_events(run.tb) == [("finetune/loss", 5, 0.5)]
+
+
+def test_report_on_empty_directory_exits_2(tmp_path, capsys):
+    assert botorl_main(["report", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "no finished run" in err and str(tmp_path) in err
+    assert not (tmp_path / "report").exists()

@@ -220,6 +220,13 @@ def report_main(argv: list[str]) -> int:
     for d in args.dirs:
         if not Path(d).is_dir():
             raise ConfigError(f"botorl report: {d} is not a directory; give run or sweep directories.")
+    from botorl.experiments.report import find_runs
+
+    runs, skipped = find_runs([Path(d) for d in args.dirs])
+    if not runs:  # an empty report would look like a result; say why there is none
+        why = "; ".join(f"{s.path}: {s.reason}" for s in skipped[:5]) or "no run directory (summary.json) under them"
+        raise ConfigError(f"botorl report: no finished run in {', '.join(map(str, args.dirs))} ({why}). Give the "
+                          f"--out of `botorl run` or a `botorl sweep` folder whose runs have finished.")
     out = Path(args.out) if args.out else Path(args.dirs[0]) / "report"
     result = make_report(
         [Path(d) for d in args.dirs],
