@@ -55,7 +55,18 @@ def _mark_failed(run, reason: str) -> None:
     try:
         atomic_write_json(run.summary, summary)
     except OSError:
-        pass  # the disk that failed the run may refuse this too
+        # A full disk has no room for the temp file of an atomic write; rewriting the old
+        # summary in place reuses its blocks. Not atomic, so only as the fallback.
+        try:
+            import json
+
+            text = json.dumps(summary, indent=2, default=str) + "\n"
+            with open(run.summary, "r+" if run.summary.exists() else "w") as f:
+                f.seek(0)
+                f.truncate()
+                f.write(text)
+        except OSError:
+            pass  # read-only or gone: the exit code and the message still say it
 
 
 def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None = None):
