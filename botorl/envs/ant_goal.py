@@ -139,8 +139,9 @@ class AntGoalSim:
             mj_step(self.model, d, FRAME_SKIP)
             after = d.xpos[torso, :2]
             v = (after - before) / DT
-            reward[i] = goal_reward(v, self.goals[i] - after, actions[i])
             qpos, qvel = d.qpos, d.qvel
+            # direction from the achieved goal (qpos x, y), as reach_goal_ant.py
+            reward[i] = goal_reward(v, self.goals[i] - qpos[:2], actions[i])
             self.t[i] += 1
             terminated[i] = not healthy(qpos, qvel)
             truncated[i] = self.t[i] >= self.horizon and not terminated[i]
