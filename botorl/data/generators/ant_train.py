@@ -104,7 +104,8 @@ def sac_config(cfg: AntTrainConfig):
 class _Ants:
     """Ants plus the per-ant episode bookkeeping; ``collect`` runs ``steps`` steps."""
 
-    def __init__(self, n: int, seed: int):
+    def __init__(self, n: int, seed: int, index: int = 0):
+        self.index = index  # worker index: each worker evaluates different ants
         self.sim = AntGoalSim(n, seed)
         self.rng = np.random.default_rng(seed + 7919)
         self.ep_return = np.zeros(n)
@@ -138,7 +139,7 @@ class _Ants:
     def evaluate(self, params, episodes_steps: int, seed: int):
         """Deterministic actor on fresh ants for ``episodes_steps`` steps: goals reached per
         ant and the mean return per step."""
-        sim = AntGoalSim(self.sim.n, seed, horizon=episodes_steps + 1)
+        sim = AntGoalSim(self.sim.n, seed + 1_000 * self.index, horizon=episodes_steps + 1)
         actor = NumpyActor(params)
         reached = np.zeros(sim.n)
         ret = 0.0
@@ -151,9 +152,9 @@ class _Ants:
         return reached.tolist(), ret / (episodes_steps * sim.n), falls
 
 
-def _worker(conn, n: int, seed: int):
+def _worker(conn, n: int, seed: int, index: int):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    ants = _Ants(n, seed)
+    ants = _Ants(n, seed, index)
     while True:
         msg = conn.recv()
         if msg[0] == "stop":
@@ -173,7 +174,7 @@ class Collector:
         ctx = mp.get_context("spawn")  # no fork of a process that holds a JAX runtime
         for w in range(num_workers):
             a, b = ctx.Pipe()
-            p = ctx.Process(target=_worker, args=(b, envs_per_worker, seed * 1000 + w), daemon=True)
+            p = ctx.Process(target=_worker, args=(b, envs_per_worker, seed * 1000 + w, w), daemon=True)
             p.start()
             self.procs.append(p)
             self.conns.append(a)
