@@ -124,6 +124,7 @@ def test_truncated_and_empty_minari_file_exit_2(written, capsys):
     with pytest.raises(DataFormatError, match="truncated or damaged|not a readable Minari"):
         load_minari(path)
     assert botorl_main(["data", "info", str(path)]) == 2
+    assert botorl_main(["run", "--task", "pointmaze-umaze", "--profile", "smoke", "--data.path", str(path)]) == 2
     main.write_bytes(b"")
     assert botorl_main(["data", "info", str(path)]) == 2
     assert botorl_main(["data", "info", str(main)]) == 2
