@@ -57,3 +57,4 @@ def test_disk_full_mid_run_exits_2_quickly(tmp_path):
     assert summary, "summary.json was not written at all"
     s = json.loads(summary)
     assert s["status"] == "failed" and "disk is full" in s["error"]
+

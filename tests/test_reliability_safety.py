@@ -171,8 +171,11 @@ def test_unwritable_out_at_start_exits_2(tmp_path, capsys):
     assert str(out) in err and "Traceback" not in err
 
 
-def test_disk_full_mid_run_exits_2_and_marks_failed(tmp_path, capsys, monkeypatch):
-    """ENOSPC while a checkpoint is written: exit 2 naming the directory; summary.json says failed."""
+@pytest.mark.parametrize("code, words", [(errno.ENOSPC, "disk is full"), (errno.EROFS, "read-only")])
+def test_disk_full_mid_run_exits_2_and_marks_failed(tmp_path, capsys, monkeypatch, code, words):
+    """ENOSPC / EROFS while a checkpoint is written: exit 2 naming the directory; summary.json says failed.
+    (A real read-only remount under a running process is refused by the kernel while files are
+    open for writing, so the fault is injected; test_reliability_diskfull fills a real disk.)"""
     from botorl.pipeline import checkpoint as ck
 
     real_save = ck.CheckpointManager.save
@@ -181,7 +184,7 @@ def test_disk_full_mid_run_exits_2_and_marks_failed(tmp_path, capsys, monkeypatc
     def full_disk(self, name, **kw):
         calls["n"] += 1
         if calls["n"] >= 2:  # the first checkpoint lands, the second finds the disk full
-            raise OSError(errno.ENOSPC, "No space left on device")
+            raise OSError(code, os.strerror(code))
         return real_save(self, name, **kw)
 
     monkeypatch.setattr(ck.CheckpointManager, "save", full_disk)
@@ -189,9 +192,9 @@ def test_disk_full_mid_run_exits_2_and_marks_failed(tmp_path, capsys, monkeypatc
     rc = botorl_main(["run", "--task", "pointmaze-umaze", "--profile", "smoke", "--no-progress", "--out", str(out)])
     err = capsys.readouterr().err
     assert rc == 2, err
-    assert "disk is full" in err and str(out) in err
+    assert words in err and str(out) in err
     s = json.loads((out / "summary.json").read_text())
-    assert s["status"] == "failed" and "disk is full" in s["error"]
+    assert s["status"] == "failed" and words in s["error"]
 
 
 def test_tensorboard_io_error_turns_tb_off(tmp_path, capsys):
