@@ -187,3 +187,18 @@ def test_resume_buffer_truncated_without_manifest_exits_2(finished_run, tmp_path
     assert "buffer.npz" in err and "Traceback" not in err
     s = json.loads((d / "summary.json").read_text())
     assert s["status"] == "failed" and "buffer.npz" in s["error"]
+
+
+def test_latest_json_cannot_point_outside(tmp_path, capsys):
+    m = CheckpointManager(tmp_path / "ck")
+    a = _save(m, "finetune", 10)
+    other = CheckpointManager(tmp_path / "other")
+    _save(other, "finetune", 99)
+    (tmp_path / "ck" / "latest.json").write_text(json.dumps({"name": "../other/finetune-step000000099"}))
+    assert m.latest()["name"] == a
+    assert "does not exist" in capsys.readouterr().err
+    man = tmp_path / "ck" / a / "MANIFEST.json"
+    d = json.loads(man.read_text())
+    d["files"]["../../other/latest.json"] = {"size": 1, "sha256": "0"}
+    man.write_text(json.dumps(d))
+    assert "not a file of the folder" in m.verify(a)

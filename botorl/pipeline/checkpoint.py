@@ -202,6 +202,8 @@ class CheckpointManager:
     def _check_file(self, name: str, fname: str) -> None:
         """Raise CheckpointCorrupt unless ``name/fname`` matches the manifest (no manifest: accepted)."""
         m = self._manifest(name)
+        if Path(fname).name != fname or fname in ("", ".", ".."):
+            raise CheckpointCorrupt(f"checkpoint {name}: {MANIFEST} lists {fname!r}, which is not a file of the folder.")
         path = self.root / name / fname
         if m is None:
             return
@@ -276,7 +278,7 @@ class CheckpointManager:
         if p.exists() and named is None:
             bad.append(f"{p} cannot be read")
         if named is not None:
-            if not (self.root / named).is_dir():
+            if named not in self.names():  # also refuses "../elsewhere": only folders of this run
                 bad.append(f"{p} names {named}, which does not exist")
             else:
                 reason = self.verify(named)
