@@ -43,14 +43,23 @@ def io_fault(err: OSError, where) -> RunIOError | None:
     )
 
 
-def _mark_failed(run, reason: str) -> None:
+def _mark_failed(run, reason: str, cfg=None) -> None:
     """summary.json says ``failed`` with the reason, when it can still be written."""
     from botorl.pipeline.rundir import atomic_write_json, read_json
 
     try:
-        summary = read_json(run.summary) if run.summary.exists() else {}
+        summary = read_json(run.summary) if run.summary.exists() else None
     except (OSError, ValueError):
+        summary = None
+    if not isinstance(summary, dict):
         summary = {}
+        if cfg is not None:  # no usable summary yet: one with every contract key
+            try:
+                from botorl.pipeline.runner import build_summary
+
+                summary = build_summary(cfg, run, "failed", {}, reason)
+            except Exception:
+                summary = {}
     summary.update(status="failed", error=reason)
     try:
         atomic_write_json(run.summary, summary)
@@ -84,19 +93,19 @@ def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None =
         fault = io_fault(err, run.root)
         if fault is None:
             raise
-        _mark_failed(run, str(fault))
+        _mark_failed(run, str(fault), cfg)
         raise fault from None
     except BotorlError as err:
-        _mark_failed(run, str(err))
+        _mark_failed(run, str(err), cfg)
         raise
-    except (ValueError, KeyError, TypeError) as err:
+    except (ValueError, KeyError) as err:
         if not resume:
             raise
         # a damaged latest.json / state.json / buffer.npz read during the resume
         msg = (f"{run.root}: a checkpoint file could not be read on resume ({type(err).__name__}: {err}). "
                f"List the checkpoints with `ls {run.checkpoints}` and pick an older one with "
                f"`botorl resume {run.root} --from NAME`.")
-        _mark_failed(run, msg)
+        _mark_failed(run, msg, cfg)
         raise BotorlError(msg) from None
 
 
@@ -181,6 +190,10 @@ def _default_out(cfg) -> Path:
 
 
 def run_main(argv: list[str]) -> int:
+    from botorl.pipeline.population_cli import is_population, run_population_main
+
+    if is_population(argv):  # --seeds / --alphas: a population (botorl/pipeline/population_cli.py)
+        return run_population_main(argv)
     from botorl.jaxsetup import setup_jax
 
     setup_jax()
@@ -249,6 +262,10 @@ def resume_main(argv: list[str]) -> int:
                    help="resume from this checkpoint folder (default: the newest verified one)")
     p.add_argument("--allow-pickle", action="store_true", help=ALLOW_PICKLE_HELP)
     args = p.parse_args(argv)
+    if (Path(args.dir) / "population.json").exists():  # a population (botorl/pipeline/population_cli.py)
+        from botorl.pipeline.population_cli import resume_population_main
+
+        return resume_population_main(args.dir, no_progress=args.no_progress)
     from botorl.jaxsetup import setup_jax
 
     setup_jax()
