@@ -2,7 +2,7 @@
 
     botorl run                                   # BOTO on pointmaze-large, quick profile, data made here
     botorl run --task door-binary-v0 --method boto --profile full --data.path ~/calql-data
-    botorl run --task door-binary-local --profile quick --demos ../shared/data/adroit/door_human_demos.npz
+    botorl run --task door-binary-local --profile quick        # demos shipped in botorl/data/assets
     botorl run --task pointmaze-large --method wsrl --seed 1 --online.steps 50000
     botorl resume runs/pointmaze-large-boto-s0-20260101-120000
     botorl eval runs/pointmaze-large-boto-s0-20260101-120000 --episodes 50
