@@ -58,3 +58,18 @@ def test_disk_full_mid_run_exits_2_quickly(tmp_path):
     s = json.loads(summary)
     assert s["status"] == "failed" and "disk is full" in s["error"]
 
+
+
+def test_read_only_out_at_start_exits_2(tmp_path):
+    """--out on a file system mounted read-only (EROFS): exit 2 naming the directory."""
+    if not _can_mount(tmp_path):
+        pytest.skip("needs unshare -m and tmpfs mounts (root)")
+    d = tmp_path / "ro"
+    d.mkdir()
+    script = ('mount -t tmpfs -o ro,size=64k tmpfs "$D" && exec "$PY" -m botorl.cli run --task pointmaze-umaze '
+              '--profile smoke --no-progress --out "$D/run"')
+    env = dict(os.environ, D=str(d), PY=sys.executable,
+               PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    r = subprocess.run(["unshare", "-m", "sh", "-c", script], env=env, capture_output=True, text=True, timeout=240)
+    assert r.returncode == 2, r.stderr[-3000:]
+    assert "read-only" in r.stderr and f"{d}/run" in r.stderr and "Traceback" not in r.stderr
