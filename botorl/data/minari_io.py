@@ -159,7 +159,7 @@ def _episodes(ds: Dataset):
     info_keys = sorted(ds.infos)
     infos_all = {k: np.asarray(ds.infos[k]) for k in info_keys}
     split_any = bool(jump.any())
-    layout = ds.metadata.get("minari_dict_obs")
+    layout = _dict_layout(ds)
     for s, e in zip(starts.tolist(), ends.tolist()):
         obs = np.concatenate([ds.observations[s:e], ds.next_observations[e - 1 : e]])
         if layout:
@@ -193,10 +193,15 @@ def _dict_obs(flat: np.ndarray, layout: dict, infos: dict, s: int, e: int) -> di
     return out
 
 
+def _dict_layout(ds: Dataset):
+    """The dict-observation layout of a fresh generated dataset, or of one read back."""
+    return ds.metadata.get("minari_dict_obs") or (ds.metadata.get("botorl") or {}).get("minari_dict_obs")
+
+
 def _observation_space(ds: Dataset):
     import gymnasium as gym
 
-    layout = ds.metadata.get("minari_dict_obs")
+    layout = _dict_layout(ds)
     if not layout:
         return gym.spaces.Box(-np.inf, np.inf, (ds.obs_dim,), np.float32)
     dims = {}
