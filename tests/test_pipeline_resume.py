@@ -73,7 +73,8 @@ def test_sigkill_mid_stage_then_resume(tmp_path):
     assert s["status"] == "finished"
     assert set(s["stage_seconds"]) == {"pretrain", "warmup", "boto", "finetune"}
     steps = [int(r["env_step"]) for r in _csv(out / "eval.csv")]
-    assert steps == [0, 100, 200, 300, 400]
+    # the warm-up's evaluation at 0, fine-tuning's when it starts (30, after the warm-up), then every 100
+    assert steps == [0, 30, 100, 200, 300, 400]
     logged = [int(r["step"]) for r in _csv(out / "metrics" / "finetune.csv")]
     assert logged == sorted(set(logged)) and logged[-1] == 400
     jsonl = [json.loads(x)["step"] for x in (out / "metrics" / "finetune.jsonl").read_text().splitlines()]

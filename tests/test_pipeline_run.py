@@ -145,19 +145,21 @@ def test_pretrain_can_sample_on_the_device(tmp_path):
 
 def test_divergence_stops_with_last_good_checkpoint(tmp_path, monkeypatch, capsys):
     """A NaN loss in fine-tuning: exit 2, status failed, the checkpoint before it kept."""
-    from botorl.agents.sac import SACAgent
+    from botorl.pipeline import population
 
-    real_update = SACAgent.update
+    # every fine-tuning update of SAC goes through the population's batched update (a run is a
+    # population of one)
+    real_update = population.pop_update
     calls = {"n": 0}
 
-    def poisoned(self, batch):
-        agent, metrics = real_update(self, batch)
+    def poisoned(agents, batches):
+        agents, metrics = real_update(agents, batches)
         calls["n"] += 1
         if calls["n"] >= 25:
-            metrics = dict(metrics, critic_loss=np.float32("nan"))
-        return agent, metrics
+            metrics = dict(metrics, critic_loss=np.full((1,), np.nan, np.float32))
+        return agents, metrics
 
-    monkeypatch.setattr(SACAgent, "update", poisoned)
+    monkeypatch.setattr(population, "pop_update", poisoned)
     out = tmp_path / "nan"
     code = _run(out, "--online.steps", "80")  # fine-tuning from 30 (after the warm-up) to 80
     err = capsys.readouterr().err

@@ -233,7 +233,18 @@ def _boto_p(agents, batches, alphas, settings):
     return _per_member(lambda a, b, al: boto_many(a, b, al, settings), (0, 0, 0), agents, batches, alphas)
 
 
+def _update_masked_p(agents, batches, mask, many: bool):
+    """Members with ``mask`` False keep their agent (rng included): they did not update."""
+    new, metrics = (_update_many_p if many else _update_p)(agents, batches)
+
+    def pick(n, o):
+        return jnp.where(mask.reshape(mask.shape + (1,) * (n.ndim - 1)), n, o)
+
+    return jax.tree_util.tree_map(pick, new, agents), metrics
+
+
 _jit_update = jax.jit(_update_p)
+_jit_update_masked = jax.jit(_update_masked_p, static_argnames=("many",))
 _jit_update_many = jax.jit(_update_many_p)
 _jit_sample = jax.jit(_sample_p)
 _jit_eval = jax.jit(_eval_p)
@@ -251,6 +262,12 @@ def _f32(batch: dict) -> dict:
 def pop_update(agents, batches):
     """One ``update`` per member; ``batches`` (N, B, ...). Returns (agents, metrics (N,))."""
     return _jit_update(agents, _f32(batches))
+
+
+def pop_update_masked(agents, batches, mask, *, many: bool = False):
+    """``pop_update`` (or ``pop_update_many``) where only the members with ``mask`` True update;
+    the others keep their agent exactly (their rows of ``batches`` are ignored)."""
+    return _jit_update_masked(agents, _f32(batches), jnp.asarray(mask, bool), many=many)
 
 
 def pop_update_many(agents, batches):
@@ -356,9 +373,18 @@ class MemberReplay:
         self.size = 0
         self.insert_index = 0
         self.total_inserted = 0
+        # rows of each member's running episode (the newest ones), as ReplayBuffer.open_rows
+        self.open_rows = np.zeros(self.n, np.int64)
 
     def __len__(self) -> int:
         return self.size
+
+    def end_episode(self, i: int) -> None:
+        """Member i's running episode has ended: its rows become finished."""
+        self.open_rows[i] = 0
+
+    def finished_len(self, i: int) -> int:
+        return int(self.size - self.open_rows[i])
 
     def insert(self, observations, actions, rewards, next_observations, dones) -> None:
         """One row per member: observations (N, O), actions (N, A), rewards (N,), dones (N,)."""
@@ -372,6 +398,7 @@ class MemberReplay:
         self.insert_index = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
         self.total_inserted += 1
+        self.open_rows = np.minimum(self.open_rows + 1, self.capacity)
 
     def insert_datasets(self, datasets: Sequence[Dataset]) -> None:
         """Member i gets all rows of ``datasets[i]`` (equal lengths: D_warmup of each member)."""
@@ -393,6 +420,7 @@ class MemberReplay:
         self.insert_index = (self.insert_index + m) % self.capacity
         self.size = min(self.size + m, self.capacity)
         self.total_inserted += m
+        self.open_rows[:] = 0
 
     def _gather(self, idx: np.ndarray) -> dict:
         """idx (N, ...) of row indices per member -> Batch (N, ..., ...)."""
@@ -401,6 +429,66 @@ class MemberReplay:
 
     def member_rows(self, i: int, rows) -> dict:
         return {k: getattr(self, k)[i, rows] for k in _FIELDS}
+
+    def _row_index(self, i: int, rng: np.random.Generator, shape, finished: bool) -> np.ndarray:
+        """Member i's row indices as ``ReplayBuffer.sample`` (all rows) or ``FinishedRows.sample``
+        (closed episodes, oldest first) draws them."""
+        if not finished:
+            return rng.integers(0, self.size, size=shape)
+        oldest = self.insert_index if self.size == self.capacity else 0
+        return (oldest + rng.integers(0, self.finished_len(i), size=shape)) % self.capacity
+
+    def sample_active(self, rngs: Sequence[np.random.Generator], active: Sequence[bool], batch_size: int,
+                      num_batches: int | None, *, finished: bool = False, offline: Dataset | None = None,
+                      offline_ratio: float = 0.0) -> dict:
+        """One batch per member, drawn as the single-run pipeline draws it for that member
+        (``sample_mixed([offline, rows], [r, 1 - r], ...)`` or ``rows.sample``, with ``rows``
+        the buffer or its finished rows); members not ``active`` draw nothing (their generator
+        is not advanced) and get zeros. Stacked (N, [K,] B, ...)."""
+        from botorl.data.replay import split_counts
+
+        lead = () if num_batches is None else (num_batches,)
+        out = {k: np.zeros((self.n,) + lead + (batch_size,) + tail, np.float32)
+               for k, tail in (("observations", (self.obs_dim,)), ("actions", (self.action_dim,)),
+                               ("rewards", ()), ("next_observations", (self.obs_dim,)), ("dones", ()),
+                               ("mc_returns", ()))}
+        m_idx, r_idx, members, off_parts = [], [], [], []
+        counts = None
+        for i, (rng, on) in enumerate(zip(rngs, active)):
+            if not on:
+                continue
+            n_rows = self.finished_len(i) if finished else self.size
+            if offline is not None:
+                ratios = [offline_ratio if len(offline) > 0 else 0.0, (1.0 - offline_ratio) if n_rows > 0 else 0.0]
+                if sum(ratios) <= 0:
+                    raise BotorlError("sample_mixed: every source with a positive ratio is empty; nothing to sample.")
+                c_off, c_on = split_counts(ratios, batch_size)
+            else:
+                if n_rows == 0:
+                    raise BotorlError("cannot sample from an empty replay buffer; insert transitions first.")
+                c_off, c_on = 0, batch_size
+            if counts is not None and counts != (c_off, c_on):
+                raise AssertionError("members of one population drew batches of different compositions")
+            counts = (c_off, c_on)
+            # the order of sample_mixed: the offline rows, then the buffer's
+            off_parts.append(rng.integers(0, len(offline), size=lead + (c_off,)) if c_off else None)
+            r_idx.append(self._row_index(i, rng, lead + (c_on,), finished) if c_on else None)
+            members.append(i)
+        if not members:
+            return out
+        c_off, c_on = counts
+        parts = []
+        sel = np.asarray(members)
+        if c_off:
+            parts.append(offline.batch_at(np.stack(off_parts)))
+        if c_on:
+            idx = np.stack(r_idx)
+            mm = sel.reshape((len(sel),) + (1,) * (idx.ndim - 1))
+            parts.append({k: getattr(self, k)[mm, idx] for k in _FIELDS})
+        axis = idx.ndim - 1 if c_on else np.stack(off_parts).ndim - 1
+        for k in BATCH_KEYS:
+            out[k][sel] = np.concatenate([p[k] for p in parts], axis=axis)
+        return out
 
     def sample(self, rngs: Sequence[np.random.Generator], batch_size: int, num_batches: int | None = None) -> dict:
         if self.size == 0:
@@ -439,7 +527,7 @@ class MemberReplay:
         state.update(num_members=np.asarray(self.n), capacity=np.asarray(self.capacity),
                      obs_dim=np.asarray(self.obs_dim), action_dim=np.asarray(self.action_dim),
                      size=np.asarray(self.size), insert_index=np.asarray(self.insert_index),
-                     total_inserted=np.asarray(self.total_inserted))
+                     total_inserted=np.asarray(self.total_inserted), open_rows=self.open_rows.copy())
         return state
 
     @classmethod
@@ -451,6 +539,8 @@ class MemberReplay:
         buf.size = n
         buf.insert_index = int(state["insert_index"])
         buf.total_inserted = int(state["total_inserted"])
+        if "open_rows" in state:
+            buf.open_rows = np.asarray(state["open_rows"], np.int64).copy()
         return buf
 
 
@@ -518,3 +608,53 @@ def check_memory(parts: dict[str, int], num_members: int, *, available: tuple[in
             f"--seeds/--alphas, or --population-size for a sweep), a smaller --online.buffer_capacity, or a "
             f"smaller --offline.updates_per_call."
         )
+
+
+# ============================================================================ evaluation
+def run_population_episodes(policy, envs: Sequence[Sequence[Any]], *, episodes: int, success_mode: str,
+                            seeds: Sequence[int], max_steps: int | None = None):
+    """``evaluation.run_episodes`` for every member at once: member i runs ``episodes``
+    episodes on its own ``envs[i]`` (reset seeds ``seeds[i] + episode index``), all members'
+    envs stepped in lockstep with ONE policy call per step on (N, E, O) observations
+    (``policy`` -> (N, E, A)). Member i's episodes are exactly those ``run_episodes`` runs
+    for it alone. Returns one ``EpisodeStats`` per member."""
+    from botorl.pipeline.evaluation import EpisodeStats
+
+    if success_mode not in ("any", "last"):
+        raise ValueError(f"success_mode must be 'any' or 'last', not {success_mode!r}")
+    n_mem, n_envs = len(envs), len(envs[0])
+    per = [{"successes": [], "returns": [], "lengths": []} for _ in range(n_mem)]
+    episode_index = 0
+    while episode_index < episodes:
+        n = min(n_envs, episodes - episode_index)
+        rows = []
+        for m in range(n_mem):
+            rows.append(np.stack([np.asarray(envs[m][i].reset(seed=int(seeds[m]) + episode_index + i)[0], np.float32)
+                                  for i in range(n_envs)]))
+        obs = np.stack(rows)
+        active = np.zeros((n_mem, n_envs), dtype=bool)
+        active[:, :n] = True
+        ret = np.zeros((n_mem, n_envs))
+        length = np.zeros((n_mem, n_envs), dtype=np.int64)
+        succ_any = np.zeros((n_mem, n_envs))
+        succ_last = np.zeros((n_mem, n_envs))
+        while active.any():
+            actions = np.asarray(policy(obs))
+            for m, i in zip(*np.nonzero(active)):
+                o, r, terminated, truncated, info = envs[m][i].step(actions[m, i])
+                s = float(info.get("success", 0.0))
+                succ_any[m, i] = max(succ_any[m, i], s)
+                succ_last[m, i] = s
+                ret[m, i] += float(r)
+                length[m, i] += 1
+                obs[m, i] = np.asarray(o, dtype=np.float32)
+                if terminated or truncated or (max_steps is not None and length[m, i] >= max_steps):
+                    active[m, i] = False
+        got = succ_any if success_mode == "any" else succ_last
+        for m in range(n_mem):
+            per[m]["successes"] += got[m, :n].tolist()
+            per[m]["returns"] += ret[m, :n].tolist()
+            per[m]["lengths"] += length[m, :n].tolist()
+        episode_index += n
+    return [EpisodeStats(success=float(np.mean(p["successes"])), episode_return=float(np.mean(p["returns"])),
+                         length=float(np.mean(p["lengths"])), successes=p["successes"]) for p in per]

@@ -20,9 +20,10 @@ import numpy as np
 from botorl.configs.schema import RunConfig, to_dict
 from botorl.data.dataset import Dataset
 from botorl.errors import ConfigError, TrainingDivergedError
+from botorl.pipeline import population as P
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_name
-from botorl.pipeline.evaluation import QProbe, run_episodes
+from botorl.pipeline.evaluation import QProbe
 from botorl.pipeline.methods import get_method
 from botorl.pipeline.rundir import EVAL_COLUMNS, CsvLog, MetricsLogger, RunDir, atomic_write_json
 
@@ -79,23 +80,61 @@ def _dataset_from_arrays(arrays: dict[str, np.ndarray], source: str) -> Dataset:
 
 
 # ---------------------------------------------------------------------------- context
-class RunContext:
-    """What the stages share: config, task, data, run directory, loggers, checkpoints."""
+class MemberRun:
+    """One member of a population: its own config (seed, alpha), run directory and logs."""
 
-    def __init__(self, cfg: RunConfig, spec, run: RunDir, d_offline: Dataset, state: dict, wandb_run=None):
+    def __init__(self, cfg: RunConfig, run: RunDir, wandb_run=None):
         self.cfg = cfg
-        self.spec = spec
         self.run = run
-        self.d_offline = d_offline
-        self.ckpt = CheckpointManager(run.checkpoints)
+        run.create()
         self.logger = MetricsLogger(run, tensorboard=cfg.tensorboard, wandb_run=wandb_run)
         self.eval_log = CsvLog(run.eval_csv, EVAL_COLUMNS)
         self.q_log = CsvLog(run.metrics / "q_probe.csv", ["stage", "step", "q_data", "q_uniform"])
+        self.error: str | None = None  # set when this member diverged (the others go on)
+
+
+class RunContext:
+    """What the stages share: the population's members (a single run: one), the task, the
+    offline data (held once), the checkpoints of the whole population, evaluation.
+
+    ``cfg`` is the population's config (its members' configs differ in seed and alpha only);
+    ``members[i].cfg`` is member i's. A population of one (``single``) keeps the run
+    directory layout of CONTRACTS.md "Runs" exactly: its checkpoints hold the member's own
+    agent. A larger one keeps one checkpoint of the stacked population in ``root``, and at
+    every stage end also each member's own agent in the member's run directory (so `botorl
+    eval MEMBER_DIR` reads it)."""
+
+    def __init__(self, cfg: RunConfig, spec, root: Path, members: list[MemberRun], d_offline: Dataset, state: dict,
+                 *, single: bool):
+        self.cfg = cfg
+        self.spec = spec
+        self.root = Path(root)
+        self.members = members
+        self.n = len(members)
+        self.single = single
+        self.run = members[0].run if single else RunDir(root)  # where the checkpoints live
+        self.d_offline = d_offline
+        self.ckpt = CheckpointManager(self.run.checkpoints)
         self.probe = QProbe(d_offline.observations, d_offline.actions, seed=12345, size=cfg.eval.q_pairs)
         self.state = state  # done_stages, stage_seconds
+        self.failed: set[int] = {i for i, m in enumerate(members) if m.error}
         self._envs = None
         self._stage = None
         self._stage_t0 = 0.0
+
+    @property
+    def logger(self):  # a single run's logger (kept for callers that know one run)
+        return self.members[0].logger
+
+    def live(self, ms: list):
+        """(member, its item of ``ms``) for the members that have not failed."""
+        return [(mc, m) for i, (mc, m) in enumerate(zip(self.members, ms)) if i not in self.failed]
+
+    def fail_member(self, i: int, error: str) -> None:
+        self.failed.add(i)
+        self.members[i].error = error
+        self.write_member_summary(i, "failed")
+        print(f"botorl: member {self.members[i].run.root.name} failed: {error}", file=sys.stderr)
 
     # -- time
     def begin_stage(self, stage: str) -> None:
@@ -121,12 +160,16 @@ class RunContext:
         return with_mc_returns(self.cfg, self.spec, ds).mc_returns
 
     # -- checkpoints
-    def load_agent(self, name: str, like):
+    def load_agents(self, name: str, like):
+        """The population's agents saved under ``name`` (``like``: a stacked template)."""
         from botorl.agents import checkpoint as agent_ckpt
 
-        return agent_ckpt.load(self.ckpt.path(name) / "agent.ckpt", like=like)
+        path = self.ckpt.path(name) / "agent.ckpt"
+        if self.single:  # the member's own agent (CONTRACTS.md layout)
+            return P.stack([agent_ckpt.load(path, like=P.member_of(like, 0))])
+        return agent_ckpt.load(path, like=like)
 
-    def _save(self, name: str, stage: str, step: int | None, done: bool, agent, np_rng=None, arrays=None, extra=None):
+    def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None):
         from botorl.agents import checkpoint as agent_ckpt
 
         state = {
@@ -135,58 +178,121 @@ class RunContext:
             "stage_done": done,
             "done_stages": list(self.state["done_stages"]),
             "stage_seconds": self.stage_seconds(),
-            "np_rng": np_rng,
-            "extra": extra or {},
+            "np_rng": (np_rng[0] if self.single else np_rng) if isinstance(np_rng, list) else np_rng,
+            "extra": _single_extra(extra) if self.single else (extra or {}),
+            "failed": {str(i): self.members[i].error for i in sorted(self.failed)},
             "time": time.time(),
         }
+        agent = P.member_of(agents, 0) if self.single else agents
         self.ckpt.save(name, state=state, agent=agent, save_agent=agent_ckpt.save, arrays=arrays)
+        if not self.single and done:
+            # each member's own agent in its run directory, for `botorl eval MEMBER_DIR`
+            for i, mc in enumerate(self.members):
+                CheckpointManager(mc.run.checkpoints).save(
+                    name, state={**state, "np_rng": None, "extra": {}, "member": i},
+                    agent=P.member_of(agents, i), save_agent=agent_ckpt.save)
         self.write_summary("running")
 
-    def save_mid(self, stage: str, step: int, agent, *, np_rng=None, arrays=None, extra=None) -> None:
-        self._save(checkpoint_name(stage, step), stage, int(step), False, agent, np_rng, arrays, extra)
+    def save_mid(self, stage: str, step: int, agents, *, np_rng=None, arrays=None, extra=None) -> None:
+        self._save(checkpoint_name(stage, step), stage, int(step), False, agents, np_rng, arrays, extra)
 
-    def save_stage_end(self, stage: str, agent, arrays=None) -> None:
-        self._save(checkpoint_name(stage, None), stage, None, True, agent, arrays=arrays)
+    def save_stage_end(self, stage: str, agents, arrays=None) -> None:
+        self._save(checkpoint_name(stage, None), stage, None, True, agents, arrays=arrays)
 
     # -- evaluation
     def envs(self):
+        """``eval.num_envs`` evaluation envs per member (the same seeds for every member)."""
         if self._envs is None:
             n = min(self.cfg.eval.num_envs, self.cfg.eval.episodes)
-            self._envs = [self.spec.make_env(seed=10_000 + i, evaluation=True) for i in range(n)]
+            self._envs = [[self.spec.make_env(seed=10_000 + i, evaluation=True) for i in range(n)]
+                          for _ in self.members]
         return self._envs
 
-    def q_stats(self, agent) -> tuple[float, float]:
-        return self.probe(S.q_fn(agent))
+    def q_stats(self, agents) -> list[tuple[float, float]]:
+        """(q_data, q_uniform) per member on the probe's pairs (one call for all members)."""
+        q_d = np.asarray(P.pop_q_mean(agents, self.probe.observations, self.probe.actions))
+        q_u = np.asarray(P.pop_q_mean(agents, self.probe.observations, self.probe.uniform))
+        return [(float(q_d[i].mean()), float(q_u[i].mean())) for i in range(self.n)]
 
-    def log_q(self, stage: str, step: int, agent) -> None:
-        q_data, q_uniform = self.q_stats(agent)
-        self.q_log.append({"stage": stage, "step": step, "q_data": q_data, "q_uniform": q_uniform})
+    def log_q(self, stage: str, step: int, agents) -> None:
+        for i, (q_data, q_uniform) in enumerate(self.q_stats(agents)):
+            if i not in self.failed:
+                self.members[i].q_log.append({"stage": stage, "step": step, "q_data": q_data, "q_uniform": q_uniform})
 
-    def evaluate(self, agent, env_step: int) -> dict[str, Any]:
+    def evaluate(self, agents, env_step: int) -> list[dict[str, Any]]:
+        """All members' evaluation episodes, one batched policy call per env step; a row per member."""
         cfg = self.cfg
-        stats = run_episodes(
-            lambda o: np.asarray(agent.eval_actions(o)), self.envs(), episodes=cfg.eval.episodes,
-            success_mode=self.spec.success_mode, seed=100_000 + 1_000 * cfg.seed,
+        stats = P.run_population_episodes(
+            lambda o: P.pop_eval(agents, o), self.envs(), episodes=cfg.eval.episodes,
+            success_mode=self.spec.success_mode, seeds=[100_000 + 1_000 * mc.cfg.seed for mc in self.members],
             max_steps=self.spec.max_episode_steps,
         )
-        q_data, q_uniform = self.q_stats(agent)
-        row = {"stage": self._stage or "finetune", "env_step": int(env_step), "success": stats.success,
-               "return": stats.episode_return, "q_data": q_data, "q_uniform": q_uniform}
-        self.eval_log.append(row)
-        self.logger.log_eval(row)
-        return row
+        qs = self.q_stats(agents)
+        rows = []
+        for i, (mc, st, (q_data, q_uniform)) in enumerate(zip(self.members, stats, qs)):
+            row = {"stage": self._stage or "finetune", "env_step": int(env_step), "success": st.success,
+                   "return": st.episode_return, "q_data": q_data, "q_uniform": q_uniform}
+            if i not in self.failed:
+                mc.eval_log.append(row)
+                mc.logger.log_eval(row)
+            rows.append(row)
+        return rows
 
     def close(self) -> None:
-        for e in self._envs or []:
-            e.close()
+        for es in self._envs or []:
+            for e in es:
+                e.close()
         self._envs = None
-        self.logger.close()
+        for mc in self.members:
+            mc.logger.close()
 
     # -- summary
-    def write_summary(self, status: str, error: str | None = None) -> dict[str, Any]:
-        summary = build_summary(self.cfg, self.run, status, self.stage_seconds(), error)
-        atomic_write_json(self.run.summary, summary)
+    def write_member_summary(self, i: int, status: str, error: str | None = None) -> dict[str, Any]:
+        mc = self.members[i]
+        if i in self.failed:
+            status, error = "failed", mc.error
+        summary = build_summary(mc.cfg, mc.run, status, self.stage_seconds(), error)
+        if not self.single:
+            summary["population"] = str(self.root)
+        atomic_write_json(mc.run.summary, summary)
         return summary
+
+    def write_summary(self, status: str, error: str | None = None) -> dict[str, Any]:
+        """Every member's summary.json (and a population's population.json); returns member 0's."""
+        out = [self.write_member_summary(i, status, error) for i in range(self.n)]
+        if not self.single:
+            write_population_file(self.root, self.cfg, [mc.cfg for mc in self.members], status,
+                                  [s["status"] for s in out], self.stage_seconds(), error)
+        return out[0]
+
+
+def _single_extra(extra: dict | None) -> dict:
+    """A population of one stores its counters as a single run did (episodes: a number)."""
+    extra = dict(extra or {})
+    if isinstance(extra.get("episodes"), list):
+        extra["episodes"] = int(extra["episodes"][0])
+    return extra
+
+
+POPULATION_FILE = "population.json"
+
+
+def write_population_file(root: Path, cfg: RunConfig, member_cfgs: list[RunConfig], status: str,
+                          member_status: list[str], stage_seconds: dict, error: str | None = None) -> None:
+    from botorl.pipeline.population import Member
+
+    members = []
+    for mcfg, st in zip(member_cfgs, member_status):
+        m = Member(mcfg.seed, mcfg.alpha if get_method(cfg.method).uses_alpha else None)
+        members.append({**m.to_json(), "status": st})
+    if status == "finished" and any(st != "finished" for st in member_status):
+        status = "finished" if any(st == "finished" for st in member_status) else "failed"
+    data = {"task": cfg.task, "method": cfg.method, "pretrain": cfg.pretrain, "profile": cfg.profile,
+            "status": status, "members": members, "stage_seconds": {k: round(v, 3) for k, v in stage_seconds.items()},
+            "total_seconds": round(sum(stage_seconds.values()), 3), "config": to_dict(cfg)}
+    if error:
+        data["error"] = error
+    atomic_write_json(Path(root) / POPULATION_FILE, data)
 
 
 def _eval_rows(run: RunDir) -> list[dict[str, float]]:
@@ -241,6 +347,10 @@ def _template(cfg, stage: str, d: Dataset):
     return S.make_pretrain_agent(cfg, d.obs_dim, d.action_dim, cfg.seed)
 
 
+def _templates(member_cfgs: list[RunConfig], stage: str, d: Dataset):
+    return P.stack([_template(c, stage, d) for c in member_cfgs])
+
+
 def _wandb(cfg: RunConfig, run: RunDir):
     if not cfg.wandb:
         return None
@@ -252,39 +362,65 @@ def _wandb(cfg: RunConfig, run: RunDir):
                       config=to_dict(cfg), resume="allow", id=run.root.name)
 
 
+def member_config(cfg: RunConfig, seed: int, alpha: float | None, out: Path | str | None = None) -> RunConfig:
+    """The config of the member (seed, alpha) of a population made from ``cfg``."""
+    from dataclasses import replace
+
+    if alpha is None or not get_method(cfg.method).uses_alpha:
+        alpha = cfg.alpha
+    boto = replace(cfg.boto, seed=int(seed), alpha=float(alpha) if alpha is not None else cfg.boto.alpha)
+    return replace(cfg, seed=int(seed), alpha=alpha, boto=boto, out=str(out) if out is not None else cfg.out)
+
+
 def execute(cfg: RunConfig, run: RunDir, d_offline_raw: Dataset, *, resume: bool = False) -> dict[str, Any]:
+    """One run: a population of one member, in the run directory ``run``. Returns its summary."""
+    return execute_population(cfg, [cfg], run.root, [run], d_offline_raw, resume=resume, single=True)[0]
+
+
+def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_runs: list[RunDir],
+                       d_offline_raw: Dataset, *, resume: bool = False, single: bool = False) -> list[dict[str, Any]]:
+    """Train the members (configs that differ in seed and alpha only) as one population.
+
+    ``root`` holds the population's checkpoints (a single run: its own run directory);
+    ``member_runs[i]`` is member i's ordinary run directory. Returns every member's summary."""
     from botorl.envs.registry import get_task
 
     spec = get_task(cfg.task)
     method = get_method(cfg.method)
-    run.create()
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
     d_offline = transform_dataset(cfg, spec, d_offline_raw)
-    ckpt = CheckpointManager(run.checkpoints)
+    ckpt = CheckpointManager((member_runs[0] if single else RunDir(root)).checkpoints)
     latest = ckpt.latest() if resume else None
     state = {"done_stages": [], "stage_seconds": {}}
     mid = None
+    failed: dict = {}
     if latest is not None:
         st = ckpt.state(latest["name"])
         state = {"done_stages": list(st["done_stages"]), "stage_seconds": dict(st["stage_seconds"])}
+        failed = st.get("failed") or {}
         if not st["stage_done"]:
             mid = {"name": latest["name"], "stage": st["stage"], "step": st["step"], "np_rng": st.get("np_rng"),
                    "extra": st.get("extra", {})}
-    wandb_run = _wandb(cfg, run)
-    ctx = RunContext(cfg, spec, run, d_offline, state, wandb_run)
-    _truncate_logs(ctx, method.stages, mid, state["done_stages"])
+    wandb_run = _wandb(cfg, member_runs[0]) if single else None
+    members = [MemberRun(c, r, wandb_run) for c, r in zip(member_cfgs, member_runs)]
+    for i, err in failed.items():
+        members[int(i)].error = err
+    ctx = RunContext(cfg, spec, root, members, d_offline, state, single=single)
+    for mc in members:
+        _truncate_logs(mc, method.stages, mid, state["done_stages"])
     if latest is not None:
         where = f"{mid['stage']} step {mid['step']}" if mid else f"the end of {state['done_stages'][-1]}"
-        print(f"botorl: resuming {run.root} from {where} (checkpoint {latest['name']})", file=sys.stderr)
+        print(f"botorl: resuming {root} from {where} (checkpoint {latest['name']})", file=sys.stderr)
     ctx.write_summary("running")
 
-    agent = None
-    d_warmup = None
+    agents = None
+    d_warmups = None
     if state["done_stages"]:
         last = state["done_stages"][-1]
-        agent = ctx.load_agent(checkpoint_name(last, None), _template(cfg, last, d_offline))
+        agents = ctx.load_agents(checkpoint_name(last, None), _templates(member_cfgs, last, d_offline))
     if "warmup" in state["done_stages"]:
-        arrays = ckpt.arrays(checkpoint_name("warmup", None), "warmup")
-        d_warmup = _dataset_from_arrays(arrays, "D_warmup (checkpoint)") if arrays else None
+        d_warmups = _load_warmups(ckpt, len(members), single)
 
     try:
         for stage in method.stages:
@@ -294,23 +430,25 @@ def execute(cfg: RunConfig, run: RunDir, d_offline_raw: Dataset, *, resume: bool
             ctx.begin_stage(stage)
             arrays = None
             if stage == "pretrain":
-                agent = S.pretrain(ctx, resume_here)
-                ctx.log_q("pretrain", cfg.offline.steps, agent)
+                agents = S.pretrain(ctx, resume_here)
+                ctx.log_q("pretrain", cfg.offline.steps, agents)
             elif stage == "warmup":
-                d_warmup, agent = S.warmup(ctx, agent)
-                arrays = {"warmup": _dataset_arrays(d_warmup)} if d_warmup is not None else None
+                d_warmups, agents = S.warmup(ctx, agents)
+                if d_warmups is not None:
+                    arrays = ({"warmup": _dataset_arrays(d_warmups[0])} if single else
+                              {f"warmup-m{i}": _dataset_arrays(d) for i, d in enumerate(d_warmups)})
             elif stage == "boto":
-                if resume_here is not None and agent is None:
-                    agent = _template(cfg, "boto", d_offline)
-                agent = S.boto(ctx, agent, d_warmup, resume_here)
-                ctx.log_q("boto", cfg.boto.boto_steps, agent)
+                if resume_here is not None and agents is None:
+                    agents = _templates(member_cfgs, "boto", d_offline)
+                agents = S.boto(ctx, agents, d_warmups, resume_here)
+                ctx.log_q("boto", cfg.boto.boto_steps, agents)
             elif stage == "finetune":
-                if agent is None:  # rlpd, or a resume inside fine-tuning of a method without pre-training
-                    agent = _template(cfg, "pretrain", d_offline) if "pretrain" in method.stages else None
-                agent = S.finetune(ctx, agent, d_warmup, resume_here)
+                if agents is None:  # rlpd, or a resume inside fine-tuning of a method without pre-training
+                    agents = _templates(member_cfgs, "pretrain", d_offline) if "pretrain" in method.stages else None
+                agents = S.finetune(ctx, agents, d_warmups, resume_here)
             ctx.end_stage()
             state["done_stages"].append(stage)
-            ctx.save_stage_end(stage, agent, arrays=arrays)
+            ctx.save_stage_end(stage, agents, arrays=arrays)
     except TrainingDivergedError as err:
         ctx.end_stage()
         ctx.write_summary("failed", error=str(err))
@@ -323,16 +461,35 @@ def execute(cfg: RunConfig, run: RunDir, d_offline_raw: Dataset, *, resume: bool
         ctx.write_summary(status, error=None if status == "running" else f"{type(err).__name__}: {err}")
         ctx.close()
         raise
-    summary = ctx.write_summary("finished")
+    ctx.write_summary("finished")
+    summaries = [read_summary(mc.run) for mc in members]
     _finish_outputs(ctx)
     ctx.close()
     if wandb_run is not None:
         wandb_run.finish()
-    return summary
+    return summaries
 
 
-def _truncate_logs(ctx: RunContext, stages: tuple[str, ...], mid: dict | None, done: list[str]) -> None:
-    """Forget log rows written after the checkpoint a resume starts from."""
+def read_summary(run: RunDir) -> dict[str, Any]:
+    import json
+
+    with open(run.summary) as f:
+        return json.load(f)
+
+
+def _load_warmups(ckpt: CheckpointManager, n: int, single: bool) -> list[Dataset] | None:
+    keys = ["warmup"] if single else [f"warmup-m{i}" for i in range(n)]
+    out = []
+    for key in keys:
+        arrays = ckpt.arrays(checkpoint_name("warmup", None), key)
+        if not arrays:
+            return None
+        out.append(_dataset_from_arrays(arrays, "D_warmup (checkpoint)"))
+    return out
+
+
+def _truncate_logs(mc: "MemberRun", stages: tuple[str, ...], mid: dict | None, done: list[str]) -> None:
+    """Forget a member's log rows written after the checkpoint a resume starts from."""
     def num(r, key):
         try:
             return float(r.get(key))
@@ -343,19 +500,20 @@ def _truncate_logs(ctx: RunContext, stages: tuple[str, ...], mid: dict | None, d
         if stage in done:
             continue
         keep_to = int(mid["step"]) if (mid is not None and mid["stage"] == stage) else -1
-        ctx.logger.truncate(stage, keep_to)
+        mc.logger.truncate(stage, keep_to)
     ft_keep = int(mid["step"]) if (mid is not None and mid["stage"] == "finetune") else -1
     if "finetune" not in done:
         # evaluations of finished stages (the warm-up's) stay; fine-tuning's up to its checkpoint
-        ctx.eval_log.truncate(lambda r: r.get("stage") in done or num(r, "env_step") <= ft_keep)
-    ctx.q_log.truncate(lambda r: r.get("stage") in done)
+        mc.eval_log.truncate(lambda r: r.get("stage") in done or num(r, "env_step") <= ft_keep)
+    mc.q_log.truncate(lambda r: r.get("stage") in done)
 
 
 def _finish_outputs(ctx: RunContext) -> None:
-    try:
-        plot_curve(ctx.run, ctx.cfg)
-    except Exception as err:  # a plot must never fail a run
-        print(f"botorl: could not draw curve.png ({err})", file=sys.stderr)
+    for mc in ctx.members:
+        try:
+            plot_curve(mc.run, mc.cfg)
+        except Exception as err:  # a plot must never fail a run
+            print(f"botorl: could not draw {mc.run.curve} ({err})", file=sys.stderr)
 
 
 def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:

@@ -1,18 +1,27 @@
 """The four stages of a run. Each is a function from its config and inputs to its outputs.
 
-    pretrain(ctx)                       -> agent      Cal-QL / CQL / IQL on D_offline
-    warmup(ctx, agent)                  -> D_warmup   frozen policy, stochastic actions, no updates
-    boto(ctx, agent, d_warmup)          -> agent      BOTO critic training on D_offline u D_warmup
-    finetune(ctx, agent, d_warmup)      -> agent      online learning (WSRL / continued / scratch)
+    pretrain(ctx)                       -> agents     Cal-QL / CQL / IQL on D_offline
+    warmup(ctx, agents)                 -> D_warmups  frozen policy, stochastic actions, no updates
+    boto(ctx, agents, d_warmups)        -> agents     BOTO critic training on D_offline u D_warmup
+    finetune(ctx, agents, d_warmups)    -> agents     online learning (WSRL / continued / scratch)
+
+Every stage runs a population (botorl.pipeline.population): ``agents`` is the members' agent
+pytrees stacked on a leading axis, ``d_warmups`` one D_warmup per member, and every update,
+policy call and evaluation is ONE jitted call for all members. A single run is a population
+of one, on this same path (its calls are then the agent's own jitted functions). Members run
+in lockstep on the same step counts; each draws its batches, actions, env seeds and noise
+from streams seeded by its own seed only (``ctx.members[i].cfg``), so a member's numbers do
+not depend on the others.
 
 ``ctx`` (RunContext, runner.py) holds the config, task, run directory, loggers, the
 transformed offline data and the checkpoint helpers. Each stage checkpoints at its end (the
 runner does that) and the long ones every ``checkpoint_every`` steps inside; given ``resume``
 (the state of a mid-stage checkpoint) a stage continues from it.
 
-Divergence: every stage checks its losses for NaN/inf before each checkpoint and at each log
-point; on one it raises TrainingDivergedError without writing a checkpoint, so the last good
-one stays.
+Divergence: every stage checks each member's losses for NaN/inf before each checkpoint and
+at each log point. A population of one raises TrainingDivergedError there without writing a
+checkpoint, so the last good one stays; in a larger population that member is marked failed
+(its summary says why) and the others go on, unless none is left.
 """
 
 from __future__ import annotations
@@ -25,8 +34,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from botorl.agents.common import update_many_on_device
 from botorl.data.dataset import Dataset
+from botorl.pipeline import population as P
 from botorl.errors import TrainingDivergedError
 from botorl.pipeline.methods import get_method
 
@@ -94,6 +103,31 @@ def _mean_metrics(rows: list[dict]) -> dict[str, float]:
     return {k: float(np.mean([np.asarray(r[k]).mean() for r in rows])) for k in keys if np.asarray(rows[0][k]).size == 1}
 
 
+def _check_members(stage: str, step: int, ms: list[dict[str, float]], ctx) -> None:
+    """Each live member's metrics must be finite: a population of one raises (the last good
+    checkpoint stays); in a larger one a diverged member is marked failed and the rest go on."""
+    if ctx.n == 1:
+        _finite_or_raise(stage, step, ms[0] if ms else {}, ctx)
+        return
+    for i, m in enumerate(ms):
+        bad = {k: v for k, v in m.items() if not math.isfinite(v)}
+        if bad and i not in ctx.failed:
+            ctx.fail_member(i, f"training diverged in stage {stage!r} near step {step}: "
+                            + ", ".join(f"{k} = {v}" for k, v in sorted(bad.items()))
+                            + ". The other members went on. Lower the learning rates or run another seed.")
+    if len(ctx.failed) == ctx.n:
+        raise TrainingDivergedError(f"every member of the population diverged (stage {stage!r}, near step {step}); "
+                                    f"each member's summary.json says how. Lower the learning rates "
+                                    f"(e.g. --online.sac.critic_lr) or check the data's reward scale.")
+
+
+def _per_member(metrics) -> list[dict]:
+    """Stacked metrics {name: (N,)} -> one dict of floats per member (one host transfer)."""
+    host = jax.device_get(metrics)
+    n = len(next(iter(host.values())))
+    return [{k: float(np.asarray(v)[i]) for k, v in host.items() if np.asarray(v)[i].size == 1} for i in range(n)]
+
+
 def _bar(ctx, total: int, initial: int, desc: str, unit: str = "step"):
     from tqdm.auto import tqdm
 
@@ -112,28 +146,40 @@ def _rng_from(state: dict | None, seed_seq) -> np.random.Generator:
     return rng
 
 
-def _fill_mc_returns(ctx, buffer, rows: list[int]) -> None:
-    """Monte-Carlo returns of one finished online episode, by the offline data's rule."""
+def _fill_mc_returns(ctx, buffer, rows: list[int], member: int | None = None) -> None:
+    """Monte-Carlo returns of one finished online episode, by the offline data's rule
+    (``member``: that member's rows of a ``MemberReplay``)."""
     if not rows:
         return
-    idx = np.asarray(rows)
+    idx = np.asarray(rows) if member is None else (member, np.asarray(rows))
     ep = Dataset(buffer.observations[idx], buffer.actions[idx], buffer.rewards[idx], buffer.next_observations[idx],
                  buffer.dones[idx] > 0.5, metadata={"source": "online episode"})
     buffer.mc_returns[idx] = ctx.mc_returns(ep)
 
 
+def _rngs(ctx, stream: int, states=None) -> list[np.random.Generator]:
+    """Each member's generator of one stream, from its own seed (restored from ``states``)."""
+    states = states if isinstance(states, list) else [states] * ctx.n
+    return [_rng_from(st, [mc.cfg.seed, stream]) for mc, st in zip(ctx.members, states)]
+
+
+def _rng_states(rngs) -> list[dict]:
+    return [_rng_state(r) for r in rngs]
+
+
 # ---------------------------------------------------------------------------- stage 1
 def pretrain(ctx, resume: dict | None = None):
-    """Offline pre-training with the configured algorithm on the transformed D_offline."""
+    """Offline pre-training with the configured algorithm on the transformed D_offline (held
+    once; each member samples its own batches)."""
     cfg = ctx.cfg
     d = ctx.d_offline
-    agent = make_pretrain_agent(cfg, d.obs_dim, d.action_dim, cfg.seed)
+    agents = P.stack([make_pretrain_agent(mc.cfg, d.obs_dim, d.action_dim, mc.cfg.seed) for mc in ctx.members])
     step = 0
-    rng = _rng_from(None, [cfg.seed, 1])
+    rngs = _rngs(ctx, 1)
     if resume is not None:
-        agent = ctx.load_agent(resume["name"], agent)
+        agents = ctx.load_agents(resume["name"], agents)
         step = int(resume["step"])
-        rng = _rng_from(resume.get("np_rng"), [cfg.seed, 1])
+        rngs = _rngs(ctx, 1, resume.get("np_rng"))
     total = cfg.offline.steps
     K = cfg.offline.updates_per_call
     B = cfg.offline.batch_size
@@ -146,42 +192,56 @@ def pretrain(ctx, resume: dict | None = None):
     if on_device:
         arrays = d.to_device()
         # the key of each call follows from (seed, step), so a resumed run draws the same batches
-        base_key = jax.random.PRNGKey(cfg.seed * 1_000_003 + 1)
-    bar = _bar(ctx, total, step, f"pretrain ({cfg.pretrain})")
+        base_keys = [jax.random.PRNGKey(mc.cfg.seed * 1_000_003 + 1) for mc in ctx.members]
+    bar = _bar(ctx, total, step, f"pretrain ({cfg.pretrain})" + (f" x {ctx.n} members" if ctx.n > 1 else ""))
     t_last, n_last = time.perf_counter(), step
     try:
         while step < total:
             # chunk ends at the next checkpoint boundary so that checkpoints land on multiples
             k = min(K, total - step, every - step % every)
             if on_device:
-                agent, metrics = update_many_on_device(agent, arrays, jax.random.fold_in(base_key, step), k, B)
+                keys = jnp.stack([jax.random.fold_in(bk, step) for bk in base_keys])
+                agents, metrics = P.pop_update_many_on_device(agents, arrays, keys, k, B)
             else:
-                agent, metrics = agent.update_many(d.sample(rng, B, num_batches=k))
+                agents, metrics = P.pop_update_many(agents, P.sample_members(d, rngs, B, k))
             window.append(metrics)
             prev, step = step, step + k
             bar.update(k)
             crossed_log = step // log_every > prev // log_every or step == total
             crossed_ckpt = step % every == 0 and step < total
             if crossed_log or crossed_ckpt:
-                m = _mean_metrics(window)
+                ms = _window_means(window)
                 window = []
-                _finite_or_raise("pretrain", step, m, ctx)
+                _check_members("pretrain", step, ms, ctx)
                 if crossed_log:
                     now = time.perf_counter()
-                    m["steps_per_s"] = (step - n_last) / max(now - t_last, 1e-9)
+                    for mc, m in ctx.live(ms):
+                        m["steps_per_s"] = (step - n_last) / max(now - t_last, 1e-9)
+                        mc.logger.log("pretrain", step, m)
                     t_last, n_last = now, step
-                    ctx.logger.log("pretrain", step, m)
+                    m = ms[0]
                     bar.set_postfix(loss=f"{m.get('critic_loss', float('nan')):.3g}", q=f"{m.get('q_data', float('nan')):.3g}")
             if crossed_ckpt:
-                ctx.save_mid("pretrain", step, agent, np_rng=_rng_state(rng))
+                ctx.save_mid("pretrain", step, agents, np_rng=_rng_states(rngs))
     finally:
         bar.close()
-    return agent
+    return agents
+
+
+def _window_means(window: list[dict]) -> list[dict[str, float]]:
+    """Per member, the mean over the window of each scalar metric (one host transfer)."""
+    if not window:
+        return []
+    host = jax.device_get(window)
+    n = len(next(iter(host[0].values())))
+    keys = [k for k, v in host[0].items() if np.asarray(v).shape == (n,)]
+    return [{k: float(np.mean([np.asarray(w[k])[i] for w in host])) for k in keys} for i in range(n)]
 
 
 # ---------------------------------------------------------------------------- stage 2a
-def warmup(ctx, agent) -> tuple[Dataset | None, Any]:
-    """D_warmup: ``warmup.steps`` env steps of the frozen pre-trained policy (stochastic).
+def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
+    """D_warmup: ``warmup.steps`` env steps of the frozen pre-trained policy (stochastic), one
+    env per member, stepped together with one policy call per step for all members.
 
     These are the first online env steps (WSRL's accounting): the online axis starts here,
     with an evaluation of the pre-trained policy at step 0 and at every evaluation point the
@@ -190,212 +250,275 @@ def warmup(ctx, agent) -> tuple[Dataset | None, Any]:
     spec = ctx.spec
     n = cfg.warmup.steps
     if n == 0:
-        return None, agent
-    env = spec.make_env(seed=cfg.seed * 1000 + 7)
-    obs, _ = env.reset(seed=cfg.seed * 1000 + 7)
+        return None, agents
+    N = ctx.n
+    envs = [spec.make_env(seed=mc.cfg.seed * 1000 + 7) for mc in ctx.members]
+    obs = np.stack([np.asarray(e.reset(seed=mc.cfg.seed * 1000 + 7)[0], np.float32) for e, mc in zip(envs, ctx.members)])
     O, A = ctx.d_offline.obs_dim, ctx.d_offline.action_dim
     rows = {
-        "observations": np.zeros((n, O), np.float32),
-        "actions": np.zeros((n, A), np.float32),
-        "rewards": np.zeros((n,), np.float32),
-        "next_observations": np.zeros((n, O), np.float32),
-        "terminals": np.zeros((n,), bool),
-        "episode_ends": np.zeros((n,), bool),
+        "observations": np.zeros((N, n, O), np.float32),
+        "actions": np.zeros((N, n, A), np.float32),
+        "rewards": np.zeros((N, n), np.float32),
+        "next_observations": np.zeros((N, n, O), np.float32),
+        "terminals": np.zeros((N, n), bool),
+        "episode_ends": np.zeros((N, n), bool),
     }
-    successes: list[float] = []
-    ep_success = 0.0
+    successes: list[list[float]] = [[] for _ in range(N)]
+    ep_success = np.zeros(N)
     bar = _bar(ctx, n, 0, "warm-up (frozen policy)", unit="env step")
     try:
         for t in range(n):
             if t % cfg.eval.interval == 0:
-                ctx.evaluate(agent, t)
-            action, agent = agent.sample_actions(obs)
-            action = np.asarray(action, dtype=np.float32)
-            next_obs, r, terminated, truncated, info = env.step(action)
-            ep_success = max(ep_success, float(info.get("success", 0.0)))
-            rows["observations"][t] = obs
-            rows["actions"][t] = action
-            rows["rewards"][t] = r
-            rows["next_observations"][t] = next_obs
-            rows["terminals"][t] = terminated
-            rows["episode_ends"][t] = terminated or truncated
-            obs = next_obs
-            if terminated or truncated:
-                successes.append(ep_success)
-                ep_success = 0.0
-                obs, _ = env.reset()
+                ctx.evaluate(agents, t)
+            actions, agents = P.pop_sample(agents, obs)
+            actions = np.asarray(actions, dtype=np.float32)
+            for i, env in enumerate(envs):
+                next_obs, r, terminated, truncated, info = env.step(actions[i])
+                ep_success[i] = max(ep_success[i], float(info.get("success", 0.0)))
+                rows["observations"][i, t] = obs[i]
+                rows["actions"][i, t] = actions[i]
+                rows["rewards"][i, t] = r
+                rows["next_observations"][i, t] = next_obs
+                rows["terminals"][i, t] = terminated
+                rows["episode_ends"][i, t] = terminated or truncated
+                obs[i] = next_obs
+                if terminated or truncated:
+                    successes[i].append(ep_success[i])
+                    ep_success[i] = 0.0
+                    obs[i] = env.reset()[0]
             if t % 200 == 0:
                 bar.update(min(200, n - bar.n))
         bar.update(n - bar.n)
     finally:
         bar.close()
-        env.close()
-    d_raw = Dataset(**rows, metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})
-    d_warmup = ctx.transform(d_raw)
-    ctx.logger.log("warmup", n, {
-        "episodes": len(successes),
-        "success_rate": float(np.mean(successes)) if successes else float("nan"),
-        "reward_mean": float(np.mean(rows["rewards"])) if n else float("nan"),
-    })
-    return d_warmup, agent
+        for env in envs:
+            env.close()
+    d_warmups = []
+    for i, mc in enumerate(ctx.members):
+        d_raw = Dataset(**{k: v[i] for k, v in rows.items()},
+                        metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})
+        d_warmups.append(ctx.transform(d_raw))
+        if i not in ctx.failed:
+            mc.logger.log("warmup", n, {
+                "episodes": len(successes[i]),
+                "success_rate": float(np.mean(successes[i])) if successes[i] else float("nan"),
+                "reward_mean": float(np.mean(rows["rewards"][i])) if n else float("nan"),
+            })
+    return d_warmups, agents
 
 
 # ---------------------------------------------------------------------------- stage 2b
-def boto(ctx, agent, d_warmup: Dataset | None, resume: dict | None = None):
-    """BOTO critic training on D_offline u D_warmup (botorl.boto.phase.run_boto)."""
-    from botorl.boto.phase import run_boto
+def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = None):
+    """BOTO critic training on D_offline u D_warmup, each member with its own alpha and its own
+    D_warmup (the loop of botorl.boto.phase.run_boto, all members per jitted call)."""
+    from botorl.boto.objective import ObjectiveSettings
 
     cfg = ctx.cfg
+    bc = cfg.boto
     start = 0
     if resume is not None:
-        agent = ctx.load_agent(resume["name"], agent)
+        agents = ctx.load_agents(resume["name"], agents)
         start = int(resume["step"])
     every = cfg.checkpoint_every
-    log_every = max(cfg.offline.log_every, cfg.boto.steps_per_call)
-    state = {"last_ckpt": start, "last_log": start}
-
-    def callback(step: int, a, record: dict) -> None:
-        m = {k: v for k, v in record.items() if k != "step"}
-        _finite_or_raise("boto", step, m, ctx)
-        if step - state["last_log"] >= log_every or step == cfg.boto.boto_steps:
-            ctx.logger.log("boto", step, m)
-            state["last_log"] = step
-        if step - state["last_ckpt"] >= every and step < cfg.boto.boto_steps:
-            ctx.save_mid("boto", step, a)
-            state["last_ckpt"] = step
-
-    agent, _ = run_boto(agent, ctx.d_offline, d_warmup, cfg.boto, start_step=start, callback=callback,
-                        progress=cfg.progress)
-    return agent
+    log_every = max(cfg.offline.log_every, bc.steps_per_call)
+    last_ckpt, last_log = start, start
+    settings = ObjectiveSettings.resolve(bc, P.member_of(agents, 0))
+    alphas = np.asarray([mc.cfg.boto.alpha for mc in ctx.members], np.float32)
+    warm = d_warmups if d_warmups is not None else [None] * ctx.n
+    end = bc.boto_steps
+    t0 = time.perf_counter()
+    step = start
+    label = f"BOTO alpha={alphas[0]:+.2f}" if ctx.n == 1 else f"BOTO x {ctx.n} members"
+    bar = _bar(ctx, end, start, label)
+    try:
+        while step < end:
+            k = min(bc.steps_per_call, end - step)
+            call_index = step // bc.steps_per_call
+            # the batches of call c come from default_rng([seed, c]) (run_boto's rule): a
+            # resumed phase draws the same data stream
+            rngs = [np.random.default_rng([mc.cfg.boto.seed, call_index]) for mc in ctx.members]
+            batches = P.sample_union_members(ctx.d_offline, warm, rngs, bc.batch_size, k)
+            new_agents, metrics = P.pop_boto_update_many(agents, batches, alphas, settings)
+            ms = _per_member(metrics)
+            _check_members("boto", step + k, ms, ctx)
+            agents = new_agents
+            step += k
+            bar.update(k)
+            m0 = ms[0]
+            bar.set_postfix(loss=f"{m0['critic_loss']:.3g}", q_data=f"{m0['q_data']:.3g}", q_unif=f"{m0['q_uniform']:.3g}")
+            if step - last_log >= log_every or step == end:
+                secs = time.perf_counter() - t0
+                for mc, m in ctx.live(ms):
+                    mc.logger.log("boto", step, {"seconds": secs, **m})
+                last_log = step
+            if step - last_ckpt >= every and step < end:
+                ctx.save_mid("boto", step, agents)
+                last_ckpt = step
+    finally:
+        bar.close()
+    return agents
 
 
 # ---------------------------------------------------------------------------- stage 3
-def finetune(ctx, agent, d_warmup: Dataset | None, resume: dict | None = None):
+def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = None):
     """Online learning, from the online step after the warm-up (0 for methods without one) to
     ``online.steps``; evaluates when it starts, every ``eval.interval`` steps and at the end.
 
     One online axis for every method: the warm-up's env steps are online steps (WSRL), so a
-    method with a 5,000-step warm-up fine-tunes for ``online.steps - 5,000`` env steps."""
+    method with a 5,000-step warm-up fine-tunes for ``online.steps - 5,000`` env steps.
+
+    Members step their own envs in lockstep: one policy call for all per env step, one
+    replay buffer with a member axis (each member's rows its own), one batched UTD update."""
     from botorl.agents.sac import SACAgent
-    from botorl.data.replay import ReplayBuffer, sample_mixed
+
     cfg = ctx.cfg
     spec = ctx.spec
     oc = cfg.online
+    N = ctx.n
     flavour = get_method(cfg.method).online
     O, A = ctx.d_offline.obs_dim, ctx.d_offline.action_dim
-    capacity = oc.buffer_capacity or (oc.steps + (len(d_warmup) if d_warmup is not None else 0) + 1)
+    n_warm = len(d_warmups[0]) if d_warmups is not None else 0
+    capacity = oc.buffer_capacity or (oc.steps + n_warm + 1)
 
     if flavour == "wsrl":
         # WSRL's warm start: SAC (10 critics) from the pre-trained (or BOTO-trained) networks.
-        agent = SACAgent.from_pretrained(agent, oc.sac, seed=cfg.seed * 7919 + 3)
+        agents = P.stack([SACAgent.from_pretrained(P.member_of(agents, i), oc.sac, seed=mc.cfg.seed * 7919 + 3)
+                          for i, mc in enumerate(ctx.members)])
     elif flavour == "scratch":
-        agent = SACAgent.create(oc.sac, O, A, cfg.seed)
+        agents = P.stack([SACAgent.create(oc.sac, O, A, mc.cfg.seed) for mc in ctx.members])
     # "continue": the pre-trained agent keeps its own loss
-    buffer = ReplayBuffer(capacity, O, A)
-    start = len(d_warmup) if d_warmup is not None else 0  # the warm-up's env steps came first
+    buffer = P.MemberReplay(N, capacity, O, A)
+    start = n_warm  # the warm-up's env steps came first
     step = start
-    rng = _rng_from(None, [cfg.seed, 3])
+    rngs = _rngs(ctx, 3)
     extra: dict = {}
     if resume is not None:
-        agent = ctx.load_agent(resume["name"], agent)
+        agents = ctx.load_agents(resume["name"], agents)
         step = int(resume["step"])
-        rng = _rng_from(resume.get("np_rng"), [cfg.seed, 3])
-        buf_state = ctx.ckpt.arrays(resume["name"], "buffer")
-        buffer = ReplayBuffer.from_state_dict(buf_state)
+        rngs = _rngs(ctx, 3, resume.get("np_rng"))
+        buffer = P.MemberReplay.from_state_dict(ctx.ckpt.arrays(resume["name"], "buffer"))
         extra = resume.get("extra", {})
         start = int(extra.get("start", start))
-    elif d_warmup is not None and flavour == "wsrl":
-        buffer.insert_dataset(d_warmup)  # WSRL: the online buffer starts with D_warmup
+    elif d_warmups is not None and flavour == "wsrl":
+        buffer.insert_datasets(d_warmups)  # WSRL: the online buffer starts with D_warmup
 
-    is_iql = type(agent).__name__ == "IQLAgent"
+    first = P.member_of(agents, 0)
+    is_iql = type(first).__name__ == "IQLAgent"
     u, B = oc.utd, oc.batch_size
     offline = ctx.d_offline if oc.offline_ratio > 0 else None
     # Cal-QL continued online bounds Q by each row's MC return, known once its episode ends
     # (filled in then): it samples finished episodes only and waits for the first one (WSRL).
-    needs_mc = bool(getattr(agent.config, "calql", False))
-    online_rows = buffer.finished() if needs_mc else buffer
+    needs_mc = bool(getattr(first.config, "calql", False))
 
-    def batch():
-        if offline is not None:
-            b = sample_mixed([offline, online_rows], [oc.offline_ratio, 1.0 - oc.offline_ratio], rng, B, num_batches=u)
-        else:
-            b = online_rows.sample(rng, B, num_batches=u)
+    def batch(active):
+        b = buffer.sample_active(rngs, active, B, u, finished=needs_mc, offline=offline,
+                                 offline_ratio=oc.offline_ratio)
         if is_iql:
-            return b  # (u, B, ...) -> update_many
-        # (u, B, ...) -> (u*B, ...): each critic minibatch keeps the offline/online mix
-        return {k: v.reshape((u * B,) + v.shape[2:]) for k, v in b.items()}
+            return b  # (N, u, B, ...) -> update_many
+        # (N, u, B, ...) -> (N, u*B, ...): each critic minibatch keeps the offline/online mix
+        return {k: v.reshape((N, u * B) + v.shape[3:]) for k, v in b.items()}
 
     resumes = int(extra.get("resumes", 0)) + (1 if resume is not None else 0)
     # a resumed run starts a new episode (env state is not checkpointed) with fresh seeds
-    env_seed = cfg.seed * 1000 + 11 + 100_003 * resumes
-    env = spec.make_env(seed=env_seed)
-    obs, _ = env.reset(seed=env_seed)
+    env_seeds = [mc.cfg.seed * 1000 + 11 + 100_003 * resumes for mc in ctx.members]
+    envs = [spec.make_env(seed=s) for s in env_seeds]
+    obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(envs, env_seeds)])
     tf = spec.reward_transform
-    ep_ret, ep_succ, ep_len = 0.0, 0.0, 0
-    ep_rows: list[int] = []
-    episodes = int(extra.get("episodes", 0))
-    recent_success: list[float] = []
-    window: list[dict] = []
+    ep_succ = np.zeros(N)
+    ep_rows: list[list[int]] = [[] for _ in range(N)]
+    episodes = extra.get("episodes", 0)
+    episodes = list(episodes) if isinstance(episodes, list) else [int(episodes)] * N
+    recent_success: list[list[float]] = [[] for _ in range(N)]
+    window: list[tuple[dict, np.ndarray]] = []  # (metrics (N,), which members updated)
     total = oc.steps
     last_eval = int(extra.get("last_eval", -1))
 
     if step == start and last_eval < start:
-        ctx.evaluate(agent, start)
+        ctx.evaluate(agents, start)
         last_eval = start
-    bar = _bar(ctx, total, step, f"fine-tune ({cfg.method})", unit="env step")
+    bar = _bar(ctx, total, step, f"fine-tune ({cfg.method})" + (f" x {N} members" if N > 1 else ""), unit="env step")
     t_last, n_last = time.perf_counter(), step
+    rewards = np.zeros(N, np.float32)
+    dones = np.zeros(N, np.float32)
+    next_obs = np.zeros_like(obs)
     try:
         while step < total:
-            if step < oc.random_steps:
-                action = rng.uniform(-1.0, 1.0, size=A).astype(np.float32)
-            else:
-                action, agent = agent.sample_actions(obs)
-                action = np.asarray(action, dtype=np.float32)
-            next_obs, r, terminated, truncated, info = env.step(action)
-            ep_rows.append(buffer.insert_index)
-            buffer.insert(obs, action, tf(float(r)), next_obs, terminated)
-            ep_ret += float(r)
-            ep_len += 1
-            ep_succ = max(ep_succ, float(info.get("success", 0.0))) if spec.success_mode == "any" else float(info.get("success", 0.0))
-            obs = next_obs
-            if terminated or truncated:
+            actions, agents = P.pop_sample(agents, obs)
+            actions = np.asarray(actions, dtype=np.float32)
+            ended = []
+            for i, env in enumerate(envs):
+                o2, r, terminated, truncated, info = env.step(actions[i])
+                next_obs[i] = o2
+                rewards[i] = tf(float(r))
+                dones[i] = float(terminated)
+                s = float(info.get("success", 0.0))
+                ep_succ[i] = max(ep_succ[i], s) if spec.success_mode == "any" else s
+                if terminated or truncated:
+                    ended.append(i)
+            for i in range(N):
+                ep_rows[i].append(buffer.insert_index)
+            buffer.insert(obs, actions, rewards, next_obs, dones)
+            obs[:] = next_obs
+            for i in ended:
                 if needs_mc:
-                    _fill_mc_returns(ctx, buffer, ep_rows)
-                buffer.end_episode()
-                ep_rows = []
-                episodes += 1
-                recent_success.append(ep_succ)
-                obs, _ = env.reset()
-                ep_ret, ep_succ, ep_len = 0.0, 0.0, 0
-            if step >= oc.random_steps and (len(online_rows) > 0 or (offline is not None and not needs_mc)):
-                b = batch()
-                agent, metrics = agent.update_many(b) if is_iql else agent.update(b)
-                window.append(metrics)
+                    _fill_mc_returns(ctx, buffer, ep_rows[i], member=i)
+                buffer.end_episode(i)
+                ep_rows[i] = []
+                episodes[i] += 1
+                recent_success[i].append(ep_succ[i])
+                obs[i] = envs[i].reset()[0]
+                ep_succ[i] = 0.0
+            if step >= oc.random_steps:
+                online_len = [buffer.finished_len(i) if needs_mc else len(buffer) for i in range(N)]
+                active = [n_i > 0 or (offline is not None and not needs_mc) for n_i in online_len]
+                if all(active):
+                    agents, metrics = (P.pop_update_many if is_iql else P.pop_update)(agents, batch(active))
+                elif any(active):
+                    agents, metrics = P.pop_update_masked(agents, batch(active), np.asarray(active), many=is_iql)
+                if any(active):
+                    window.append((metrics, np.asarray(active)))
             step += 1
             bar.update(1)
             at_ckpt = step % cfg.checkpoint_every == 0 and step < total
             if step % oc.log_every == 0 or at_ckpt or step == total:
-                m = _mean_metrics(window)
+                ms = _masked_means(window, N)
                 window = []
-                _finite_or_raise("finetune", step, m, ctx)
+                _check_members("finetune", step, ms, ctx)
                 if step % oc.log_every == 0 or step == total:
                     now = time.perf_counter()
-                    m.update(episodes=episodes, env_steps_per_s=(step - n_last) / max(now - t_last, 1e-9),
-                             train_success=float(np.mean(recent_success)) if recent_success else float("nan"),
-                             buffer_size=len(buffer))
+                    for mc, m in ctx.live(ms):
+                        i = ctx.members.index(mc)
+                        m.update(episodes=episodes[i], env_steps_per_s=(step - n_last) / max(now - t_last, 1e-9),
+                                 train_success=float(np.mean(recent_success[i])) if recent_success[i] else float("nan"),
+                                 buffer_size=len(buffer))
+                        mc.logger.log("finetune", step, m)
                     t_last, n_last = now, step
-                    recent_success = []
-                    ctx.logger.log("finetune", step, m)
+                    recent_success = [[] for _ in range(N)]
             if step % cfg.eval.interval == 0 or step == total:
-                row = ctx.evaluate(agent, step)
+                rows = ctx.evaluate(agents, step)
                 last_eval = step
-                bar.set_postfix(success=f"{row['success']:.2f}")
+                bar.set_postfix(success=f"{rows[0]['success']:.2f}")
             if at_ckpt:
-                ctx.save_mid("finetune", step, agent, np_rng=_rng_state(rng),
+                ctx.save_mid("finetune", step, agents, np_rng=_rng_states(rngs),
                              arrays={"buffer": buffer.state_dict()},
                              extra={"episodes": episodes, "last_eval": last_eval,
                                     "resumes": resumes, "start": start})
     finally:
         bar.close()
-        env.close()
-    return agent
+        for env in envs:
+            env.close()
+    return agents
+
+
+def _masked_means(window: list[tuple[dict, np.ndarray]], n: int) -> list[dict[str, float]]:
+    """Per member, the mean of each scalar metric over the updates it took part in."""
+    if not window:
+        return [{} for _ in range(n)]
+    host = jax.device_get([w for w, _ in window])
+    masks = np.stack([m for _, m in window])  # (T, N)
+    keys = [k for k, v in host[0].items() if np.asarray(v).ndim == 1]
+    out = []
+    for i in range(n):
+        rows = np.flatnonzero(masks[:, i])
+        out.append({k: float(np.mean([np.asarray(host[t][k])[i] for t in rows])) for k in keys} if len(rows) else {})
+    return out

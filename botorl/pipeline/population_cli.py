@@ -1,0 +1,250 @@
+"""``botorl run --seeds ... [--alphas ...]`` and ``botorl resume POPDIR``: a population.
+
+    botorl run --seeds 0-7                                  # 8 seeds of BOTO, quick, one program
+    botorl run --method boto --seeds 0-3 --alphas -1:1:0.5  # 4 seeds x 5 alphas = 20 members
+    botorl resume runs/pointmaze-large-boto-pop8-...        # after a crash or kill -9
+
+The members are every (seed, alpha) pair; all other settings are shared (any config field
+may be set as for `botorl run`). The population directory holds ``population.json``
+(members, status, the shared config), ``checkpoints/`` (one checkpoint of the whole
+population) and one ordinary run directory per member, named ``seed<k>`` or
+``alpha<+0.50>-seed<k>`` (botorl.pipeline.population.Member.name), which `botorl report` and
+`botorl eval` read like any run. Before any work the population's memory is estimated and
+compared with what the machine has (exit 2 if it does not fit).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from botorl.errors import ConfigError
+
+POPULATION_FLAGS = ("--seeds", "--alphas")
+
+
+def is_population(argv: list[str]) -> bool:
+    return any(a.split("=", 1)[0] in POPULATION_FLAGS for a in argv)
+
+
+def split_population_args(argv: list[str]) -> tuple[dict[str, str], list[str]]:
+    """--seeds/--alphas (``--x V`` or ``--x=V``) out of argv; each may be given once."""
+    found: dict[str, str] = {}
+    rest: list[str] = []
+    i = 0
+    while i < len(argv):
+        a = argv[i]
+        key, eq, val = a.partition("=")
+        if key in POPULATION_FLAGS:
+            if not eq:
+                if i + 1 >= len(argv):
+                    raise ConfigError(f"{key} needs a value, e.g. {key} 0-7.")
+                val = argv[i + 1]
+                i += 1
+            if key in found:
+                raise ConfigError(f"{key} is given twice ({found[key]!r} and {val!r}); give it once.")
+            found[key] = val
+        else:
+            rest.append(a)
+        i += 1
+    return found, rest
+
+
+def _given(rest: list[str], flag: str) -> bool:
+    return any(a.split("=", 1)[0] == flag for a in rest)
+
+
+def build_population(argv: list[str]):
+    """(shared config, member configs, Member list) from a `botorl run` command line."""
+    from botorl.pipeline.cli import build_config
+    from botorl.pipeline.methods import get_method
+    from botorl.pipeline.population import make_members, parse_alphas, parse_seeds
+    from botorl.pipeline.runner import member_config
+
+    found, rest = split_population_args(list(argv))
+    if "--seeds" in found and _given(rest, "--seed"):
+        raise ConfigError("--seed and --seeds are both given; a population takes --seeds (e.g. --seeds 0-7) only.")
+    if "--alphas" in found and _given(rest, "--alpha"):
+        raise ConfigError("--alpha and --alphas are both given; a population takes --alphas (e.g. --alphas -1:1:0.25) only.")
+    seeds = parse_seeds(found["--seeds"]) if "--seeds" in found else None
+    alphas = parse_alphas(found["--alphas"]) if "--alphas" in found else None
+    extra = []
+    if seeds is None:
+        cfg0 = build_config(rest)
+        seeds = [cfg0.seed]
+    else:
+        extra += ["--seed", str(seeds[0])]
+    if alphas is not None:
+        extra.append(f"--alpha={alphas[0]}")
+    cfg = build_config(rest + extra)  # validates everything shared, and the first member's alpha
+    uses_alpha = get_method(cfg.method).uses_alpha
+    if alphas is not None and not uses_alpha:
+        raise ConfigError(f"--alphas sets BOTO's bias controller; --method {cfg.method} has no BOTO phase. "
+                          f"Drop --alphas, or use --method boto.")
+    members = make_members(seeds, alphas or [None], uses_alpha)
+    return cfg, members, [member_config(cfg, m.seed, m.alpha) for m in members]
+
+
+def estimate(cfg, n: int, d_raw) -> dict[str, int]:
+    """The population's memory by part (population.estimate_memory), from one template member."""
+    from botorl.pipeline import population as P
+    from botorl.pipeline import stages as S
+    from botorl.pipeline.methods import get_method
+
+    method = get_method(cfg.method)
+    O, A = d_raw.obs_dim, d_raw.action_dim
+    agent_bytes = P.tree_bytes(S.make_online_agent_template(cfg, O, A, 0))
+    if "pretrain" in method.stages:
+        agent_bytes += P.tree_bytes(S.make_pretrain_agent(cfg, O, A, 0))
+    oc = cfg.online
+    warm = cfg.warmup.steps if "warmup" in method.stages else 0
+    rows = oc.buffer_capacity or (oc.steps + warm + 1)
+    cql = cfg.offline.cql
+    width = max(max(cfg.network.critic_hidden_dims), max(cfg.network.actor_hidden_dims))
+    layers = len(cfg.network.critic_hidden_dims)
+    act = max(cfg.offline.batch_size * (3 * cql.cql_n_actions + 1) * cql.num_critics,
+              oc.utd * oc.batch_size * cfg.network.num_critics) * width * layers * 2
+    batch_rows = max(cfg.offline.updates_per_call * cfg.offline.batch_size, cfg.boto.steps_per_call * cfg.boto.batch_size,
+                     oc.utd * oc.batch_size)
+    offline_bytes = 3 * sum(getattr(d_raw, k).nbytes for k in ("observations", "actions", "rewards",
+                                                             "next_observations", "terminals"))
+    return P.estimate_memory(num_members=n, agent_bytes=agent_bytes, buffer_rows=rows, warmup_rows=warm, obs_dim=O,
+                             action_dim=A, batch_rows=batch_rows, activation_floats=act, offline_bytes=offline_bytes)
+
+
+def _default_out(cfg, n: int) -> Path:
+    return Path("runs") / f"{cfg.task}-{cfg.method}-pop{n}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def run_population_main(argv: list[str]) -> int:
+    from botorl.configs.schema import to_dict
+    from botorl.envs.registry import get_task
+    from botorl.jaxsetup import setup_jax
+    from botorl.pipeline import population as P
+    from botorl.pipeline.cli import _owned, io_fault
+    from botorl.pipeline.rundir import RunDir, atomic_write_json
+    from botorl.pipeline.runner import POPULATION_FILE, load_offline, write_population_file
+
+    setup_jax()
+    cfg, members, member_cfgs = build_population(argv)
+    out = Path(cfg.out) if cfg.out else _default_out(cfg, len(members))
+
+    def already():
+        if (out / POPULATION_FILE).exists() or (out / "config.json").exists():
+            raise ConfigError(f"--out {out} already holds a run or population. Continue it with `botorl resume {out}`, "
+                              f"or pick another --out.")
+
+    already()
+    cfg = replace(cfg, out=str(out))
+    spec = get_task(cfg.task)
+    d_raw = load_offline(cfg, spec)  # a missing dataset fails here, before any directory exists
+    P.check_memory(estimate(cfg, len(members), d_raw), len(members))
+    runs = [RunDir(out / m.name) for m in members]
+    member_cfgs = [replace(c, out=str(r.root)) for c, r in zip(member_cfgs, runs)]
+    with _owned(out):
+        already()
+        try:
+            for c, r in zip(member_cfgs, runs):
+                r.create()
+                atomic_write_json(r.config, to_dict(c))
+            write_population_file(out, cfg, member_cfgs, "running", ["running"] * len(members), {})
+        except OSError as err:
+            fault = io_fault(err, out)
+            if fault is None:
+                raise
+            raise fault from None
+        print(f"botorl: {cfg.method} on {cfg.task} (profile {cfg.profile}), a population of {len(members)}: "
+              f"{', '.join(m.name for m in members)} -> {out}", file=sys.stderr)
+        summaries = _execute(cfg, member_cfgs, out, runs, d_raw, resume=False)
+    print(format_population(summaries))
+    return 0
+
+
+def _execute(cfg, member_cfgs, out: Path, runs, d_raw, *, resume: bool):
+    """execute_population with I/O faults turned into exit 2 and a truthful population status."""
+    from botorl.errors import BotorlError
+    from botorl.pipeline.cli import io_fault
+    from botorl.pipeline.runner import execute_population
+
+    try:
+        return execute_population(cfg, member_cfgs, out, runs, d_raw, resume=resume, single=False)
+    except OSError as err:
+        fault = io_fault(err, out)
+        if fault is None:
+            raise
+        _mark_population_failed(out, str(fault))
+        raise fault from None
+    except BotorlError as err:
+        _mark_population_failed(out, str(err))
+        raise
+
+
+def _mark_population_failed(out: Path, reason: str) -> None:
+    from botorl.pipeline.rundir import atomic_write_json, read_json
+    from botorl.pipeline.runner import POPULATION_FILE
+
+    try:
+        data = read_json(out / POPULATION_FILE)
+        data.update(status="failed", error=reason)
+        atomic_write_json(out / POPULATION_FILE, data)
+    except (OSError, ValueError):
+        pass
+
+
+def load_population(directory: str | Path):
+    """(shared config, member configs, member run dirs) of a population directory."""
+    from botorl.configs.resolve import validate
+    from botorl.configs.schema import RunConfig, from_dict
+    from botorl.pipeline.rundir import RunDir, read_json
+    from botorl.pipeline.runner import POPULATION_FILE
+
+    root = Path(directory)
+    try:
+        data = read_json(root / POPULATION_FILE)
+        cfg = from_dict(RunConfig, data["config"])
+        runs = [RunDir(root / m["name"]) for m in data["members"]]
+        member_cfgs = [from_dict(RunConfig, read_json(r.config)) for r in runs]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise ConfigError(f"{root / POPULATION_FILE} (or a member's config.json) cannot be read ({err}); "
+                          f"was it edited by hand?") from None
+    validate(cfg)
+    return cfg, member_cfgs, runs, data
+
+
+def resume_population_main(directory: str, *, no_progress: bool = False) -> int:
+    from botorl.envs.registry import get_task
+    from botorl.jaxsetup import setup_jax
+    from botorl.pipeline.cli import _owned
+    from botorl.pipeline.runner import load_offline, read_summary
+
+    setup_jax()
+    cfg, member_cfgs, runs, data = load_population(directory)
+    root = Path(directory)
+    with _owned(root):
+        if no_progress:
+            cfg = replace(cfg, progress=False)
+            member_cfgs = [replace(c, progress=False) for c in member_cfgs]
+        if data.get("status") == "finished":
+            print(f"botorl: {root} has finished already; nothing to resume.", file=sys.stderr)
+            print(format_population([read_summary(r) for r in runs]))
+            return 0
+        d_raw = load_offline(cfg, get_task(cfg.task))
+        summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True)
+    print(format_population(summaries))
+    return 0
+
+
+def format_population(summaries: list[dict]) -> str:
+    def f(v):
+        return "-" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))
+
+    lines = [f"{'member':<22} {'status':<9} {'initial':>8} {'10k':>8} {'final':>8}  run directory"]
+    for s in summaries:
+        name = Path(s["run_dir"]).name
+        lines.append(f"{name:<22} {s['status']:<9} {f(s['success_initial']):>8} {f(s['success_10k']):>8} "
+                     f"{f(s['success_final']):>8}  {s['run_dir']}")
+    secs = summaries[0].get("stage_seconds", {}) if summaries else {}
+    lines.append("stage seconds (whole population): " + ", ".join(f"{k} {v:.1f}" for k, v in secs.items()))
+    return "\n".join(lines)

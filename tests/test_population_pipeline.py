@@ -1,0 +1,171 @@
+"""Populations through the real pipeline (`botorl run --seeds ... --alphas ...`, smoke profile).
+
+- Independence: member (seed 3, alpha 0.5) of a 4-member population and a 1-member
+  population (seed 3, alpha 0.5) draw the same warm-up actions and reach the same losses
+  (rtol 1e-3: vmapped matmuls may sum in another order) at every logged point of >= 200
+  updates of each stage (pre-training, BOTO, fine-tuning), and the same evaluations.
+- Layout: each member an ordinary run directory; population.json; one population checkpoint.
+- Bad input exits 2 before any work; a kill -9 inside fine-tuning continues with
+  `botorl resume POPDIR` for every member.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from botorl.cli import main as botorl_main
+
+REPO = Path(__file__).resolve().parents[1]
+TASK = "pointmaze-umaze"
+# >= 200 updates of every stage: 200 pre-training steps, 200 BOTO steps, 200 fine-tuning
+# steps after the 30-step warm-up
+LONG = ["--offline.steps", "200", "--boto.boto_steps", "200", "--online.steps", "230", "--checkpoint_every", "1000",
+        "--eval.interval", "115"]
+
+
+def _run(out: Path, *args: str) -> int:
+    return botorl_main(["run", "--task", TASK, "--profile", "smoke", "--no-progress", "--no-tensorboard",
+                        "--out", str(out), *args])
+
+
+def _csv(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def pops(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pop")
+    assert _run(root / "four", "--seeds", "3,4", "--alphas=-0.5,0.5", *LONG) == 0
+    assert _run(root / "one", "--seeds", "3", "--alphas", "0.5", *LONG) == 0
+    return root / "four", root / "one"
+
+
+def test_member_independent_of_its_population(pops):
+    four, one = pops
+    a, b = four / "alpha+0.50-seed3", one / "alpha+0.50-seed3"
+    for d in (a, b):
+        cfg = json.loads((d / "config.json").read_text())
+        assert (cfg["seed"], cfg["alpha"], cfg["boto"]["alpha"], cfg["boto"]["seed"]) == (3, 0.5, 0.5, 3)
+    # the same warm-up (actions of the frozen stochastic policy, env transitions)
+    w4 = np.load(four / "checkpoints" / "warmup-final" / "warmup-m2.npz")
+    w1 = np.load(one / "checkpoints" / "warmup-final" / "warmup-m0.npz")
+    np.testing.assert_allclose(w4["actions"], w1["actions"], atol=1e-5)
+    np.testing.assert_allclose(w4["observations"], w1["observations"], atol=1e-4)
+    counted = {}
+    for stage in ("pretrain", "boto", "finetune"):
+        ra, rb = _csv(a / "metrics" / f"{stage}.csv"), _csv(b / "metrics" / f"{stage}.csv")
+        assert [r["step"] for r in ra] == [r["step"] for r in rb] and ra
+        for x, y in zip(ra, rb):
+            for k in ("critic_loss", "q_data", "actor_loss", "target", "penalty"):
+                if k in x and x[k] not in ("", None):
+                    assert math.isclose(float(x[k]), float(y[k]), rel_tol=1e-3, abs_tol=1e-4), (stage, x["step"], k)
+        counted[stage] = int(float(ra[-1]["step"]))
+    assert counted["pretrain"] >= 200 and counted["boto"] >= 200 and counted["finetune"] - 30 >= 200
+    ea, eb = _csv(a / "eval.csv"), _csv(b / "eval.csv")
+    assert [(r["stage"], r["env_step"], r["success"]) for r in ea] == [(r["stage"], r["env_step"], r["success"]) for r in eb]
+    for x, y in zip(ea, eb):
+        assert math.isclose(float(x["q_data"]), float(y["q_data"]), rel_tol=1e-3, abs_tol=1e-4)
+    # another seed is another member
+    other = _csv(four / "alpha+0.50-seed4" / "metrics" / "pretrain.csv")
+    assert other[-1]["critic_loss"] != _csv(a / "metrics" / "pretrain.csv")[-1]["critic_loss"]
+
+
+def test_population_layout(pops):
+    four, _ = pops
+    pop = json.loads((four / "population.json").read_text())
+    assert pop["status"] == "finished" and [m["name"] for m in pop["members"]] == [
+        "alpha-0.50-seed3", "alpha-0.50-seed4", "alpha+0.50-seed3", "alpha+0.50-seed4"]
+    assert (four / "checkpoints" / "finetune-final" / "agent.ckpt").exists()
+    for m in pop["members"]:
+        d = four / m["name"]
+        s = json.loads((d / "summary.json").read_text())
+        assert s["status"] == "finished" and (s["seed"], s["alpha"]) == (m["seed"], m["alpha"])
+        assert (d / "curve.png").exists() and (d / "checkpoints" / "finetune-final" / "agent.ckpt").exists()
+    # `botorl eval` reads a member's run directory as any run's
+    assert botorl_main(["eval", str(four / "alpha-0.50-seed4"), "--episodes", "1"]) == 0
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--seeds", "0,1,1"], "given twice"),
+    (["--seeds", "0-1", "--alphas=0.5,1.5"], "outside [-1, 1]"),
+    (["--seeds", "0-1", "--alphas=0.5,0.5"], "given twice"),
+    (["--method", "wsrl", "--seeds", "0-1", "--alphas", "0.5"], "no BOTO phase"),
+    (["--seeds", "0-63", "--online.buffer_capacity", "1000000000"], "fewer members"),
+])
+def test_bad_population_exit_2(tmp_path, capsys, args, message):
+    out = tmp_path / "bad"
+    assert _run(out, *args) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def _env():
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+@pytest.mark.timeout(900)
+def test_population_sigkill_then_resume(tmp_path):
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "botorl.cli", "run", "--task", TASK, "--profile", "smoke", "--no-progress",
+           "--no-tensorboard", "--method", "wsrl", "--seeds", "0,1", "--online.steps", "400",
+           "--checkpoint_every", "50", "--eval.interval", "100", "--out", str(out)]
+    proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    latest = out / "checkpoints" / "latest.json"
+    killed_at = None
+    deadline = time.time() + 600
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if latest.exists():
+                info = json.loads(latest.read_text())
+                if info["stage"] == "finetune" and not info["stage_done"]:
+                    os.kill(proc.pid, signal.SIGKILL)
+                    killed_at = info["step"]
+                    break
+            time.sleep(0.02)
+    finally:
+        if proc.poll() is None and killed_at is None:
+            os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert killed_at is not None, proc.stderr.read().decode()[-2000:]
+    assert json.loads((out / "population.json").read_text())["status"] == "running"
+
+    res = subprocess.run([sys.executable, "-m", "botorl.cli", "resume", str(out), "--no-progress"], env=_env(),
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert f"resuming {out} from finetune step {killed_at}" in res.stderr
+    assert json.loads((out / "population.json").read_text())["status"] == "finished"
+    for name in ("seed0", "seed1"):
+        d = out / name
+        assert json.loads((d / "summary.json").read_text())["status"] == "finished"
+        steps = [(r["stage"], int(r["env_step"])) for r in _csv(d / "eval.csv")]
+        assert steps == [("warmup", 0), ("finetune", 30), ("finetune", 100), ("finetune", 200), ("finetune", 300),
+                         ("finetune", 400)]
+        logged = [int(r["step"]) for r in _csv(d / "metrics" / "finetune.csv")]
+        assert logged == sorted(set(logged)) and logged[-1] == 400
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["calql", "cql", "iql", "rlpd", "wsrl"])
+def test_every_method_as_a_population(tmp_path, method):
+    """Each method trains as a population of 2 (boto: the fixture above). Cal-QL online
+    updates a member only once its first episode has ended (masked batched updates)."""
+    out = tmp_path / method
+    assert _run(out, "--method", method, "--seeds", "0,1", "--online.steps", "120") == 0
+    for name in ("seed0", "seed1"):
+        s = json.loads((out / name / "summary.json").read_text())
+        assert s["status"] == "finished" and s["method"] == method
+        assert _csv(out / name / "metrics" / "finetune.csv")
