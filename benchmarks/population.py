@@ -16,12 +16,12 @@ Workloads (batch 256 per critic step, as the pipeline's profiles):
   online  the online SAC step at UTD 4 (4 critic minibatches of 256 + actor on 1,024 rows)
 
 Sizes:
-  quick   the quick profile on pointmaze (obs 4, action 2): actor and critics 2 x 64;
-          Cal-QL/BOTO 2 critics with 5 CQL samples per kind and no max-target backup; IQL
-          2 critics; online SAC 4 critics.
-  full    the paper's antmaze settings (obs 29, action 8): Cal-QL and BOTO with WSRL's
-          10 critics of 4 x 256 and actor 2 x 256, 10 CQL samples per kind and the
-          max-target backup over 10; IQL 2 x (256, 256); online SAC 10 x 4 x 256.
+  quick   the quick profile on pointmaze (obs 4, action 2): actor and 4 critics of 2 x 64
+          with LayerNorm in every algorithm; Cal-QL/BOTO with 5 CQL samples per kind and no
+          max-target backup.
+  full    the paper's antmaze settings (obs 29, action 8): WSRL's 10 critics of 4 x 256 and
+          actor 2 x 256 in every algorithm (IQL's value net 4 x 256); Cal-QL with 10 CQL
+          samples per kind and the max-target backup over 10.
 
 `--whole-run` also times whole quick pointmaze-large runs (`botorl run` subprocesses) as one
 member and as N members (`--seeds 0-(N-1)`), and prints the ratio of wall times.
@@ -56,28 +56,36 @@ from botorl.boto.config import BOTOConfig  # noqa: E402
 from botorl.boto.objective import ObjectiveSettings  # noqa: E402
 from botorl.pipeline import population as P  # noqa: E402
 
+# Sizes of the pipeline's presets (botorl/configs/presets.py + resolve.py; written out here so
+# the script needs no environment packages, e.g. on a GPU machine without gymnasium). Every
+# offline algorithm pre-trains the networks and the ensemble that fine-tuning takes over.
 SIZES = {
-    "quick": dict(obs=4, act=2, hidden=(64, 64), actor=(64, 64), pre_critics=2, online_critics=4, n_actions=5,
-                  backup=False, iql_hidden=(64, 64)),
-    "full": dict(obs=29, act=8, hidden=(256, 256, 256, 256), actor=(256, 256), pre_critics=10, online_critics=10,
-                 n_actions=10, backup=True, iql_hidden=(256, 256)),
+    "quick": dict(obs=4, act=2, hidden=(64, 64), actor=(64, 64), critics=4, n_actions=5, backup=False),
+    "full": dict(obs=29, act=8, hidden=(256, 256, 256, 256), actor=(256, 256), critics=10, n_actions=10,
+                 backup=True),
 }
 K_PER_CALL = {"calql": 10, "iql": 50, "boto": 50, "online": 1}
 
 
+def _fields(cls, **kw):
+    import dataclasses
+
+    names = {f.name for f in dataclasses.fields(cls)}
+    return cls(**{k: v for k, v in kw.items() if k in names})
+
+
 def _agents(workload: str, size: str, n: int):
     s = SIZES[size]
+    net = dict(actor_hidden_dims=s["actor"], critic_hidden_dims=s["hidden"], num_critics=s["critics"],
+               actor_layer_norm=True, critic_layer_norm=True)
     if workload in ("calql", "boto"):
-        cfg = CQLConfig(actor_hidden_dims=s["actor"], critic_hidden_dims=s["hidden"], num_critics=s["pre_critics"],
-                        cql_n_actions=s["n_actions"], max_target_backup=s["backup"], num_backup_actions=s["n_actions"],
-                        cql_lagrange=False, calql=True)
+        cfg = _fields(CQLConfig, **net, cql_n_actions=s["n_actions"], max_target_backup=s["backup"],
+                      num_backup_actions=s["n_actions"], cql_lagrange=False, calql=True)
         return [CQLAgent.create(cfg, s["obs"], s["act"], seed) for seed in range(n)]
     if workload == "iql":
-        h = s["iql_hidden"]
-        cfg = IQLConfig(actor_hidden_dims=h, critic_hidden_dims=h, value_hidden_dims=h)
+        cfg = _fields(IQLConfig, **net, value_hidden_dims=s["hidden"])
         return [IQLAgent.create(cfg, s["obs"], s["act"], seed) for seed in range(n)]
-    cfg = SACConfig(actor_hidden_dims=s["actor"], critic_hidden_dims=s["hidden"], num_critics=s["online_critics"],
-                    utd_ratio=4, max_target_backup=s["backup"], num_backup_actions=s["n_actions"])
+    cfg = _fields(SACConfig, **net, utd_ratio=4, max_target_backup=s["backup"], num_backup_actions=s["n_actions"])
     return [SACAgent.create(cfg, s["obs"], s["act"], seed) for seed in range(n)]
 
 
@@ -154,6 +162,7 @@ def main(argv=None) -> int:
     p.add_argument("--members", default="1,2,4,8,16")
     p.add_argument("--workloads", default="calql,iql,boto,online")
     p.add_argument("--min-time", type=float, default=2.0, help="seconds of timed calls per row (3 rounds)")
+    p.add_argument("--k", type=int, default=None, help="updates per call for every workload (default: per workload)")
     p.add_argument("--json", default=None)
     p.add_argument("--whole-run", default=None, help="also time whole quick runs: member counts, e.g. 1,8")
     p.add_argument("--whole-run-args", default="", help="extra `botorl run` arguments for --whole-run")
@@ -168,7 +177,7 @@ def main(argv=None) -> int:
         for w in args.workloads.split(","):
             base = None
             for n in members:
-                r = measure(w, size, n, args.min_time)
+                r = measure(w, size, n, args.min_time, args.k)
                 if base is None:
                     base = r["member_updates_per_s"] if n == 1 else None
                 r["ratio_vs_1"] = (r["member_updates_per_s"] / base) if base else None
@@ -176,6 +185,9 @@ def main(argv=None) -> int:
                 ratio = f"{r['ratio_vs_1']:.2f}" if r["ratio_vs_1"] else "-"
                 print(f"{w:<8} {size:<6} {n:>3} {r['updates_per_call']:>3} {r['member_updates_per_s']:>13.1f} "
                       f"{ratio:>7} {r['compile_s']:>9.1f}", flush=True)
+                if args.json:  # after every row: a run cut short keeps what it measured
+                    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+                    Path(args.json).write_text(json.dumps({"device": dev.device_kind, "rows": rows}, indent=1))
     whole = []
     if args.whole_run:
         extra = args.whole_run_args.split()
