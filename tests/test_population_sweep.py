@@ -86,6 +86,12 @@ def test_sweep_runs_populations(tmp_path, backend):
         assert (d / "starts.txt").read_text().split() == ["run"]
         for t in job.trials:
             assert json.loads((tmp_path / "sw" / job.member_dir(t) / "summary.json").read_text())["seed"] == t.seed
+    # `botorl report` finds every member's run directory inside the population directories
+    from botorl.experiments.report import find_runs
+
+    runs, skipped = find_runs([tmp_path / "sw"])
+    found = sorted(str(r.path) for r in [*runs, *skipped])
+    assert len(found) == 9 and not any("never started" in x.reason for x in skipped)
     # the same command again: nothing reruns
     Sweep(grid, opts).run()
     assert all((sweep.run_dir(j) / "starts.txt").read_text().split() == ["run"] for j in sweep.trials)

@@ -237,6 +237,8 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
                 if root_p not in seen:
                     seen.add(root_p)
                     skipped.append(Skipped(Path(root), "no summary.json (the run never got far enough to write one)"))
+            elif "population.json" in files:  # a population: its members are run directories
+                subdirs[:] = sorted(d for d in subdirs if not d.startswith(".") and d != "checkpoints")
             elif "sweep-trial.log" in files:  # a sweep trial whose `botorl run` failed before starting
                 subdirs[:] = []
                 if root_p not in seen:
