@@ -333,3 +333,31 @@ def test_iql_target_is_min_over_a_distinct_pair_of_a_larger_ensemble():
         assert match, "the target must be the min over two distinct members"
         seen.update(match)
     assert len(seen) >= 3, f"the pair must be drawn at random, saw only {seen}"
+
+
+def test_cql_penalty_on_a_random_subset_of_members():
+    # WSRL's Cal-QL with a 10-critic ensemble penalises a random pair each step: the penalty of
+    # the subset must be the full ensemble's penalty at the drawn members, the Bellman term
+    # still every member's.
+    from dataclasses import replace as dc_replace
+
+    cfg = CQLConfig(**{**TINY, "num_critics": 4}, cql_n_actions=2, calql=True, cql_lagrange=False, cql_weight=2.0)
+    full = CQLAgent.create(cfg, O, A, seed=3)
+    sub = full.replace(config=dc_replace(cfg, cql_penalty_critics=2))
+    batch = _jnp_batch(make_batch(2, mc=np.array([-5.0, 5.0, 0.0, 10.0, -1.0])))
+    members = np.asarray(sub.penalty_members(jax.random.PRNGKey(7)))
+    assert members.shape == (2,) and ((0 <= members) & (members < 4)).all()
+    d_full, q_full, _ = full.cql_penalty(full.critic.params, batch, jax.random.PRNGKey(7))
+    d_sub, q_sub, _ = sub.cql_penalty(sub.critic.params, batch, jax.random.PRNGKey(7))
+    np.testing.assert_allclose(d_sub, np.asarray(d_full)[members], **TOL)
+    np.testing.assert_allclose(q_sub, q_full, **TOL)
+    target = jnp.asarray(make_batch(9)["rewards"])
+    loss, _ = sub.critic_loss(sub.critic.params, batch, target, jax.random.PRNGKey(7))
+    bellman = ((np.asarray(q_full) - np.asarray(target)[None]) ** 2).mean(-1)
+    np.testing.assert_allclose(loss, bellman.mean() + 2.0 * np.asarray(d_full)[members].sum() / 4, **TOL)
+    # chunked gradient == whole-batch gradient with the subset too
+    g_whole = jax.grad(lambda p: sub.critic_loss(p, batch, target, jax.random.PRNGKey(7))[0])(sub.critic.params)
+    chunked = sub.replace(config=dc_replace(sub.config, chunk_rows=7))
+    g_chunk, _ = chunked.critic_grads(sub.critic.params, batch, target, jax.random.PRNGKey(7))
+    for a, b in zip(jax.tree_util.tree_leaves(g_whole), jax.tree_util.tree_leaves(g_chunk)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)

@@ -53,18 +53,37 @@ def test_every_generated_preset_validates(task, profile):
 
 def test_method_table_settings():
     base = "pointmaze-umaze"
+    adim = get_task(base).action_dim
     for m in ("calql", "cql", "iql"):
+        # the baselines as WSRL ran them: their own 2 critics without LayerNorm, UTD 1, 50/50
         cfg = resolve(make_preset(base, "full", m))
         assert cfg.pretrain == m and cfg.online.utd == 1 and cfg.online.offline_ratio == 0.5 and cfg.alpha is None
+        agent_cfg = cfg.offline.iql if m == "iql" else cfg.offline.cql
+        assert agent_cfg.num_critics == 2 and not agent_cfg.critic_layer_norm and not agent_cfg.actor_layer_norm
+    assert resolve(make_preset("kitchen-mixed-v0", "full", "calql")).online.offline_ratio == 0.25
     rlpd = resolve(make_preset(base, "full", "rlpd"))
     assert rlpd.pretrain is None and rlpd.online.random_steps == 5_000 and rlpd.online.offline_ratio == 0.5
-    assert rlpd.online.utd == 4 and rlpd.online.sac.target_entropy == -get_task(base).action_dim / 2
+    assert rlpd.online.utd == 4 and rlpd.online.sac.target_entropy == -adim / 2
     assert rlpd.online.sac.actor_objective == "mean" and not rlpd.online.sac.subsample_replace
+    assert rlpd.online.sac.num_critics == 10 and rlpd.online.sac.critic_layer_norm
+    # antmaze (and pointmaze, which takes its settings): one critic in RLPD's target, max backup
+    assert rlpd.online.sac.num_min_critics == 1 and rlpd.online.sac.max_target_backup
+    assert resolve(make_preset("door-binary-v0", "full", "rlpd")).online.sac.num_min_critics == 2
+    for m in ("boto", "wsrl"):
+        cfg = resolve(make_preset(base, "full", m))
+        # WSRL: 10 critics pre-trained and fine-tuned, penalty on a random pair, target entropy -|A|/2
+        assert cfg.offline.cql.num_critics == cfg.online.sac.num_critics == 10
+        assert cfg.offline.cql.cql_penalty_critics == 2 and cfg.online.sac.target_entropy == -adim / 2
+        assert cfg.online.offline_ratio == 0.0 and cfg.online.utd == 4
+        # antmaze's actor has a state-independent std (WSRL), pre-training and fine-tuning alike
+        assert not cfg.offline.cql.state_dependent_std and not cfg.online.sac.state_dependent_std
+    assert resolve(make_preset("door-binary-v0", "full", "wsrl")).online.sac.state_dependent_std
     boto_iql = resolve(make_preset(base, "quick", "boto", "iql"))
-    # the SAC learner takes over IQL's networks
+    # IQL pre-trains the networks the SAC learner takes over: the paper's, LayerNorm included
     iql = boto_iql.offline.iql
     assert boto_iql.online.sac.critic_hidden_dims == iql.critic_hidden_dims
     assert boto_iql.online.sac.state_dependent_std == iql.state_dependent_std
+    assert iql.critic_layer_norm and iql.num_critics == boto_iql.online.sac.num_critics == 4
 
 
 def test_dict_round_trip():
@@ -74,9 +93,9 @@ def test_dict_round_trip():
 
 
 def test_dotted_overrides_and_shortcuts():
-    cfg = build_config(["--task", "pointmaze-umaze", "--online.steps", "2000", "--offline.cql.cql_weight", "2.5",
+    cfg = build_config(["--task", "pointmaze-umaze", "--online.steps", "7000", "--offline.cql.cql_weight", "2.5",
                         "--network.critic_hidden_dims", "64", "64", "--alpha", "0.3", "--demos", "/x/demos.npz"])
-    assert cfg.online.steps == 2000 and cfg.offline.cql.cql_weight == 2.5
+    assert cfg.online.steps == 7000 and cfg.offline.cql.cql_weight == 2.5
     assert cfg.online.sac.critic_hidden_dims == (64, 64) == cfg.offline.cql.critic_hidden_dims
     assert cfg.alpha == 0.3 == cfg.boto.alpha and cfg.data.demos == "/x/demos.npz"
     bare = build_config([])
@@ -122,7 +141,7 @@ def _run(capsys, tmp_path, *args):
         (["--method", "cql", "--pretrain", "iql"], ["--method cql pre-trains with cql"]),
         (["--pretrain", "bc"], ["unknown pre-training algorithm 'bc'"]),
         (["--eval.interval", "0"], ["--eval.interval = 0", "positive"]),
-        (["--online.steps", "5000"], ["leaves no fine-tuning after the 5000-step warm-up"]),
+        (["--warmup.steps", "50"], ["--online.steps = 40 leaves no fine-tuning after the 50-step warm-up"]),
     ],
 )
 def test_bad_configuration_exit_2(capsys, tmp_path, args, needles):

@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 
 from botorl.agents.common import TrainState, adam, chunk_size, polyak, summed_value_and_grad
-from botorl.agents.sac import SACAgent, SACConfig, temp_def
+from botorl.agents.sac import SACAgent, SACConfig, critic_def, temp_def
 from botorl.networks import sample_tanh_gaussian
 
 
@@ -58,6 +58,10 @@ class CQLConfig(SACConfig):
     cql_clip_diff_min: float = -math.inf
     cql_clip_diff_max: float = math.inf
     calql: bool = False
+    # Members the conservative penalty applies to: a random subset of this many, drawn with
+    # replacement each critic step (WSRL's Cal-QL with its 10-critic "redq" ensemble penalises
+    # 2; every member still gets its Bellman error). None: all members (Cal-QL's own 2 critics).
+    cql_penalty_critics: int | None = None
 
     def validate(self) -> None:
         super().validate()
@@ -67,6 +71,11 @@ class CQLConfig(SACConfig):
             raise ConfigError(f"CQLConfig.cql_n_actions = {self.cql_n_actions} is invalid: need at least 1 sample.")
         if self.cql_temp <= 0:
             raise ConfigError(f"CQLConfig.cql_temp = {self.cql_temp} is invalid: must be positive.")
+        if self.cql_penalty_critics is not None and self.cql_penalty_critics < 1:
+            raise ConfigError(
+                f"CQLConfig.cql_penalty_critics = {self.cql_penalty_critics} is invalid: give a member count >= 1, "
+                f"or None to penalise every member."
+            )
 
 
 class CQLAgent(SACAgent):
@@ -103,16 +112,34 @@ class CQLAgent(SACAgent):
         acts = jnp.concatenate([data_a[:, None], unif, cur_a, next_a], axis=1)
         return jax.lax.stop_gradient({"cql_actions": acts, "cur_logp": cur_logp, "next_logp": next_logp})
 
-    def _penalty_rows(self, params, rows) -> tuple[jax.Array, jax.Array, dict]:
-        """Per member and state: clip(ood - Q(s, a_data)) (N, b) and Q(s, a_data) (N, b), plus
-        sums for logging. ``rows`` holds per-state arrays (observations, cql_actions, cur_logp,
-        next_logp, mc_returns) of any number b of states."""
+    def penalty_members(self, key) -> jax.Array | None:
+        """Indices of the members the penalty applies to in this step (None: all); drawn from a
+        key of their own, so the penalty's action samples do not depend on them."""
+        k = self.config.cql_penalty_critics
+        if k is None:
+            return None
+        return jax.random.randint(jax.random.fold_in(key, 0x9E), (k,), 0, self.config.num_critics)
+
+    def _penalty_rows(self, params, rows, members=None) -> tuple[jax.Array, jax.Array, dict]:
+        """Per penalised member and state: clip(ood - Q(s, a_data)) (K, b), and Q(s, a_data) of
+        every member (N, b), plus sums for logging. ``rows`` holds per-state arrays
+        (observations, cql_actions, cur_logp, next_logp, mc_returns) of any number b of
+        states; ``members`` (K,) picks the penalised members (None: all, K = N)."""
         cfg = self.config
         n = cfg.cql_n_actions
         obs, acts = rows["observations"], rows["cql_actions"]
         bsz, m, adim = acts.shape
-        q_all = self.critic_values(params, jnp.repeat(obs, m, axis=0), acts.reshape(bsz * m, adim))
-        q_all = q_all.reshape(q_all.shape[0], bsz, m)  # (N, b, m)
+        if members is None:
+            q_all = self.critic_values(params, jnp.repeat(obs, m, axis=0), acts.reshape(bsz * m, adim))
+            q_all = q_all.reshape(q_all.shape[0], bsz, m)  # (N, b, m)
+            q_data_all = q_all[:, :, 0]
+        else:
+            # every member on the data actions (Bellman error), the picked ones on all 3n + 1
+            q_data_all = self.critic_values(params, obs, acts[:, 0])
+            sub = jax.tree_util.tree_map(lambda p: p[members], params)
+            sub_def = critic_def(cfg.critic_hidden_dims, members.shape[0], cfg.critic_layer_norm)
+            q_all = sub_def.apply({"params": sub}, jnp.repeat(obs, m, axis=0), acts.reshape(bsz * m, adim))
+            q_all = q_all.reshape(q_all.shape[0], bsz, m)  # (K, b, m)
         q_data = q_all[:, :, 0]
         q_unif = q_all[:, :, 1 : 1 + n]
         q_cur = q_all[:, :, 1 + n : 1 + 2 * n]
@@ -133,7 +160,7 @@ class CQLAgent(SACAgent):
             cat = jnp.concatenate([q_unif, q_data[..., None], q_next, q_cur], axis=-1)
         ood = jax.scipy.special.logsumexp(cat / cfg.cql_temp, axis=-1) * cfg.cql_temp  # (N, b)
         diff_rows = jnp.clip(ood - q_data, cfg.cql_clip_diff_min, cfg.cql_clip_diff_max)
-        return diff_rows, q_data, sums
+        return diff_rows, q_data_all, sums
 
     def _sums_to_info(self, sums: dict, bsz: int, num: int) -> dict:
         """Means over the whole batch from the sums of its chunks."""
@@ -153,11 +180,11 @@ class CQLAgent(SACAgent):
         return rows
 
     def cql_penalty(self, params, batch, key) -> tuple[jax.Array, jax.Array, dict]:
-        """Per-member ``diff`` (N,), the data Q values (N, B), and logging info."""
+        """Per penalised member ``diff`` (K,), the data Q values (N, B), and logging info."""
         rows = self._rows(batch, key)
-        diff_rows, q_data, sums = self._penalty_rows(params, rows)
+        diff_rows, q_data, sums = self._penalty_rows(params, rows, self.penalty_members(key))
         diff = diff_rows.mean(axis=-1)
-        info = self._sums_to_info(sums, q_data.shape[1], q_data.shape[0])
+        info = self._sums_to_info(sums, q_data.shape[1], diff.shape[0])
         info["cql_diff"] = diff.mean()
         return diff, q_data, info
 
@@ -168,18 +195,22 @@ class CQLAgent(SACAgent):
             return jax.lax.stop_gradient(self.lagrange_value()) * cfg.cql_weight
         return cfg.cql_weight
 
-    def _loss_sum(self, params, rows, bsz: int):
+    def _loss_sum(self, params, rows, bsz: int, members=None):
         """These states' share of the critic loss (their terms over the whole batch size,
         without the constant Lagrange offset), and the sums they contribute to the info."""
-        diff_rows, q_data, sums = self._penalty_rows(params, rows)
+        diff_rows, q_data, sums = self._penalty_rows(params, rows, members)
         bellman_sum = jnp.sum((q_data - rows["target"][None]) ** 2, axis=-1)  # (N,)
-        diff_sum = diff_rows.sum(axis=-1)  # (N,)
-        loss = jnp.mean(bellman_sum + self._penalty_weight() * diff_sum) / bsz
+        diff_sum = diff_rows.sum(axis=-1)  # (K,)
+        # mean over members of [Bellman + weight * diff], the penalised members' diffs counted
+        # as the whole ensemble's would be (K = N: the plain mean)
+        num = bellman_sum.shape[0]
+        loss = (jnp.mean(bellman_sum) + self._penalty_weight() * diff_sum.sum() / num) / bsz
         return loss, {**sums, "bellman_sum": bellman_sum, "diff_sum": diff_sum, "q_data": q_data.sum()}
 
     def _loss_info(self, loss_part, sums, bsz: int) -> tuple[jax.Array, dict]:
         cfg = self.config
         num = sums["diff_sum"].shape[0]
+        num_all = sums["bellman_sum"].shape[0]
         diff = sums["diff_sum"] / bsz
         bellman = sums["bellman_sum"] / bsz
         weight = self._penalty_weight()
@@ -188,13 +219,13 @@ class CQLAgent(SACAgent):
         penalty = weight * diff - offset
         info = self._sums_to_info(sums, bsz, num)
         info.update(critic_loss=loss, bellman_loss=bellman.mean(), cql_loss=penalty.mean(), cql_diff=diff.mean(),
-                    q_data=sums["q_data"] / (num * bsz), _diff=diff)
+                    q_data=sums["q_data"] / (num_all * bsz), _diff=diff)
         return loss, info
 
     def critic_loss(self, params, batch, target, key):
         """mean over members of [Bellman error + weight * (diff - gap)] on the whole batch."""
         bsz = batch["rewards"].shape[0]
-        loss_part, sums = self._loss_sum(params, self._rows(batch, key, target), bsz)
+        loss_part, sums = self._loss_sum(params, self._rows(batch, key, target), bsz, self.penalty_members(key))
         return self._loss_info(loss_part, sums, bsz)
 
     def chunk_states(self, bsz: int) -> int:
@@ -212,8 +243,9 @@ class CQLAgent(SACAgent):
         """
         bsz = batch["rewards"].shape[0]
         rows = self._rows(batch, key, target)
+        members = self.penalty_members(key)  # the same members in every chunk
         (loss_part, sums), grads = summed_value_and_grad(
-            lambda p, r: self._loss_sum(p, r, bsz), params, rows, self.chunk_states(bsz)
+            lambda p, r: self._loss_sum(p, r, bsz, members), params, rows, self.chunk_states(bsz)
         )
         _, info = self._loss_info(loss_part, sums, bsz)
         return grads, info

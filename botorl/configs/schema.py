@@ -101,7 +101,8 @@ class OnlineConfig:
     """Share of each batch drawn from D_offline (WSRL/BOTO: 0, the offline data are dropped;
     baselines and RLPD: 0.5)."""
     random_steps: int = 0
-    """Env steps with uniform random actions and no updates at the start (RLPD: 5,000)."""
+    """Env steps at the start with no updates, acting with the untrained policy (RLPD as WSRL
+    ran it: 5,000)."""
     log_every: int = 1_000
     sac: SACConfig = field(default_factory=SACConfig)
     """The SAC learner of the WSRL protocol (boto, wsrl, rlpd)."""
