@@ -122,19 +122,19 @@ def test_sample_and_eval_actions_shapes_and_rng(stepped):
 def test_from_pretrained_takes_actor_and_critic(stepped):
     _, agent, _ = stepped
     n = agent.critic.params["members"]["Dense_0"]["kernel"].shape[0]
-    cfg_fields = dict(actor_hidden_dims=(16,), critic_hidden_dims=(16,), num_critics=2 * n)
+    cfg_fields = dict(actor_hidden_dims=(16,), critic_hidden_dims=(16,), num_critics=n)
     for f in ("actor_layer_norm", "critic_layer_norm", "state_dependent_std", "log_std_min", "log_std_max"):
         cfg_fields[f] = getattr(agent.config, f)
     sac = SACAgent.from_pretrained(agent, SACConfig(**cfg_fields, utd_ratio=1))
-    # Members replicated: critic i and i + n are the same network.
-    k = sac.critic.params["members"]["Dense_0"]["kernel"]
-    np.testing.assert_array_equal(k[:n], k[n:])
-    np.testing.assert_array_equal(k[:n], agent.critic.params["members"]["Dense_0"]["kernel"])
+    np.testing.assert_array_equal(sac.critic.params["members"]["Dense_0"]["kernel"],
+                                  agent.critic.params["members"]["Dense_0"]["kernel"])
     for x, y in zip(jax.tree_util.tree_leaves(sac.actor.params), jax.tree_util.tree_leaves(agent.actor.params)):
         np.testing.assert_array_equal(x, y)
-    assert int(sac.critic.step) == 0  # fresh optimiser
-    with pytest.raises(ConfigError):
-        SACAgent.from_pretrained(agent, SACConfig(**{**cfg_fields, "num_critics": 2 * n + 1}))
+    # the pre-trained optimiser goes on (WSRL restores the whole agent)
+    assert int(sac.critic.step) == int(agent.critic.step) > 0
+    # an ensemble is never filled with copies of fewer pre-trained critics
+    with pytest.raises(ConfigError, match="Pre-train with the fine-tuning ensemble size"):
+        SACAgent.from_pretrained(agent, SACConfig(**{**cfg_fields, "num_critics": 2 * n}))
     with pytest.raises(ConfigError):
         SACAgent.from_pretrained(agent, SACConfig(**{**cfg_fields, "critic_hidden_dims": (8,)}))
 
