@@ -40,6 +40,7 @@ import numpy as np
 
 from botorl.data.dataset import Dataset
 from botorl.errors import BotorlError, ConfigError
+from botorl.io import pid_alive
 
 # Marks an episode split that botorl had to make because next_observation[i] !=
 # observation[i + 1] inside one episode (Minari stores one observation sequence per
@@ -84,16 +85,6 @@ def _content_sha256(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def _host() -> str:
     import socket
 
@@ -116,7 +107,7 @@ def clean_stale_tmp(root: Path) -> list[Path]:
         parts = p.name[len(TMP_PREFIX):].rsplit("-", 2)
         stale = False
         if len(parts) == 3 and parts[0] == host and parts[1].isdigit():
-            stale = not _pid_alive(int(parts[1]))
+            stale = not pid_alive(int(parts[1]))
         else:  # another host's, or the old unnamed form: only when clearly abandoned
             try:
                 stale = _time.time() - p.stat().st_mtime > TMP_MAX_AGE_S

@@ -43,7 +43,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from botorl.io import atomic_write_json
+from botorl.io import atomic_write_json, pid_alive
 from botorl.errors import BotorlError, ConfigError
 from botorl.experiments.grid import Grid, Trial
 
@@ -160,16 +160,6 @@ def _child_setup(cpu: int | None, parent_pid: int) -> Callable[[], None]:
     return setup
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def _cmdline(pid: int) -> str:
     try:
         return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
@@ -183,16 +173,16 @@ def stop_orphan(run_dir: Path, timeout: float = 15.0) -> bool:
     if not info or info.get("host") != socket.gethostname():
         return False
     pid = int(info.get("pid", 0) or 0)
-    if pid <= 0 or pid == os.getpid() or not _pid_alive(pid):
+    if pid <= 0 or pid == os.getpid() or not pid_alive(pid):
         return False
     if str(Path(run_dir).resolve()) not in _cmdline(pid):  # pid reused by something else
         return False
     with contextlib.suppress(ProcessLookupError):
         os.kill(pid, signal.SIGTERM)
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and _pid_alive(pid) and str(Path(run_dir).resolve()) in _cmdline(pid):
+    while time.monotonic() < deadline and pid_alive(pid) and str(Path(run_dir).resolve()) in _cmdline(pid):
         time.sleep(0.1)
-    if _pid_alive(pid) and str(Path(run_dir).resolve()) in _cmdline(pid):
+    if pid_alive(pid) and str(Path(run_dir).resolve()) in _cmdline(pid):
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
     return True
@@ -217,10 +207,10 @@ def stop_processes_mentioning(needle: str, timeout: float = 10.0) -> int:
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.kill(pid, signal.SIGTERM)
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and any(_pid_alive(p) and _mentions(p, needle) for p in victims):
+    while time.monotonic() < deadline and any(pid_alive(p) and _mentions(p, needle) for p in victims):
         time.sleep(0.1)
     for pid in victims:
-        if _pid_alive(pid) and _mentions(pid, needle):
+        if pid_alive(pid) and _mentions(pid, needle):
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.kill(pid, signal.SIGKILL)
     return len(victims)
