@@ -53,13 +53,7 @@ class Trial:
         args = ["--task", self.task, "--method", self.method, "--seed", str(self.seed)]
         if self.alpha is not None:
             args.append(f"--alpha={format_alpha(self.alpha)}")  # "=": a leading '-' is no flag
-        if self.pretrain is not None:
-            args += ["--pretrain", self.pretrain]
-        if profile:
-            args += ["--profile", profile]
-        for key, value in overrides.items():
-            args += [f"--{key}={value}"] if value.startswith("-") else [f"--{key}", value]
-        return args
+        return args + _shared_args(self.pretrain, profile, overrides)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -117,13 +111,7 @@ class PopulationJob:
         args = ["--task", self.task, "--method", self.method, "--seeds", ",".join(str(s) for s in self.seeds)]
         if any(a is not None for a in self.alphas):
             args.append("--alphas=" + ",".join(format_alpha(a) for a in self.alphas))
-        if self.pretrain is not None:
-            args += ["--pretrain", self.pretrain]
-        if profile:
-            args += ["--profile", profile]
-        for key, value in overrides.items():
-            args += [f"--{key}={value}"] if value.startswith("-") else [f"--{key}", value]
-        return args
+        return args + _shared_args(self.pretrain, profile, overrides)
 
     def to_json(self) -> dict[str, Any]:
         return {"task": self.task, "method": self.method, "pretrain": self.pretrain, "seeds": list(self.seeds),
@@ -422,3 +410,13 @@ def build_grid(
     grid.tasks = list(dict.fromkeys(grid.tasks))
     grid.validate()
     return grid
+
+
+def _shared_args(pretrain: str | None, profile: str | None, overrides: dict[str, str]) -> list[str]:
+    """The `botorl run` arguments a trial and a population have alike."""
+    args = [] if pretrain is None else ["--pretrain", pretrain]
+    if profile:
+        args += ["--profile", profile]
+    for key, value in overrides.items():
+        args += [f"--{key}={value}"] if value.startswith("-") else [f"--{key}", value]  # "=": a leading '-' is no flag
+    return args

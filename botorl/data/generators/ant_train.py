@@ -330,6 +330,12 @@ def train(cfg: AntTrainConfig) -> dict:
         print("eval " + " ".join(f"{k}={v}" for k, v in zip(CURVE_FIELDS, row)), flush=True)
         returns.clear()
 
+    def settle(pending):
+        """The updates dispatched last: wait for them, count them, and take their actor."""
+        agent, metrics = pending
+        state["updates"] += cfg.updates_per_iter
+        return agent, {k: float(v) for k, v in metrics.items()}, _host_actor(agent, cfg)
+
     try:
         warm = 0
         collector.send("collect", params, cfg.rollout_len, not resumed)
@@ -342,10 +348,7 @@ def train(cfg: AntTrainConfig) -> dict:
             state["env_steps"] += chunk
             warm += chunk
             if pending is not None:  # the updates dispatched last iteration are done by now
-                agent, metrics = pending
-                metrics = {k: float(v) for k, v in metrics.items()}
-                params = _host_actor(agent, cfg)
-                state["updates"] += cfg.updates_per_iter
+                agent, metrics, params = settle(pending)
                 pending = None
             buf = insert(buf, {k: jnp.asarray(v) for k, v in new.items()}, ptr)
             ptr = (ptr + chunk) % capacity
@@ -362,20 +365,14 @@ def train(cfg: AntTrainConfig) -> dict:
             if now - last_eval >= cfg.eval_every_s and metrics:
                 collector.recv()  # finish the rollout in flight before the evaluation
                 if pending is not None:
-                    agent, metrics = pending
-                    metrics = {k: float(v) for k, v in metrics.items()}
-                    params = _host_actor(agent, cfg)
-                    state["updates"] += cfg.updates_per_iter
+                    agent, metrics, params = settle(pending)
                     pending = None
                 evaluate()
                 last_eval = time.time()
                 collector.send("collect", params, cfg.rollout_len, False)
             if now - last_ckpt >= cfg.checkpoint_every_s:
                 if pending is not None:
-                    agent, metrics = pending
-                    metrics = {k: float(v) for k, v in metrics.items()}
-                    params = _host_actor(agent, cfg)
-                    state["updates"] += cfg.updates_per_iter
+                    agent, metrics, params = settle(pending)
                     pending = None
                 save()
                 last_ckpt = time.time()
@@ -384,10 +381,7 @@ def train(cfg: AntTrainConfig) -> dict:
                 break
         collector.recv()
         if pending is not None:
-            agent, metrics = pending
-            metrics = {k: float(v) for k, v in metrics.items()}
-            params = _host_actor(agent, cfg)
-            state["updates"] += cfg.updates_per_iter
+            agent, metrics, params = settle(pending)
         evaluate()
         save()
     finally:
