@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,6 +44,7 @@ from botorl.agents.common import (
     polyak,
     summed_value_and_grad,
 )
+from botorl.agents.temperature import INIT_TEMP_RULES, log_temp_params, stationary_temperature
 from botorl.errors import ConfigError
 from botorl.networks import (
     CriticEnsemble,
@@ -75,6 +77,10 @@ class SACConfig:
     discount: float = 0.99
     tau: float = 0.005
     init_temp: float = 1.0
+    # A warm start from an agent without a temperature (IQL): "stationary" starts it where
+    # SAC's actor objective keeps the pre-trained actor's std (agents/temperature.py; needs
+    # probe observations, else init_temp), "fixed" at init_temp. Also the rule's upper clip.
+    init_temp_rule: str = "stationary"
     target_entropy: float | None = None  # None -> -action_dim
     backup_entropy: bool = False
     max_target_backup: bool = False
@@ -104,6 +110,9 @@ class SACConfig:
             bad("discount", "must be in [0, 1]")
         if self.init_temp <= 0:
             bad("init_temp", "the temperature must be positive")
+        if self.init_temp_rule not in INIT_TEMP_RULES:
+            bad("init_temp_rule", 'use "stationary" (the temperature at which SAC keeps the pre-trained actor\'s std) '
+                'or "fixed" (init_temp)')
         if self.num_backup_actions < 1:
             bad("num_backup_actions", "must be >= 1")
         if self.chunk_rows is not None and (not isinstance(self.chunk_rows, int) or self.chunk_rows < 0):
@@ -207,14 +216,21 @@ class SACAgent(struct.PyTreeNode):
         return {}
 
     @classmethod
-    def from_pretrained(cls, agent, config: SACConfig | None = None, seed: int | None = None) -> "SACAgent":
+    def from_pretrained(
+        cls, agent, config: SACConfig | None = None, seed: int | None = None, observations=None
+    ) -> "SACAgent":
         """WSRL warm start: the online SAC learner from a pre-trained agent.
 
         Takes the actor, the critic ensemble and its target critics (IQL keeps its target Q
         under the same field name) and, where the agent has one (SAC, CQL, Cal-QL), the
         temperature -- each with its optimiser state (Adam moments and count), as WSRL restores
-        the whole pre-trained agent. From IQL, which has no temperature, it starts at
-        ``config.init_temp``. The networks in ``config`` must be the pre-trained ones (hidden
+        the whole pre-trained agent. From IQL, which has no temperature, it starts with
+        ``config.init_temp_rule == "stationary"`` and ``observations`` given (a probe of
+        ~1,000 offline states) at the value where SAC's actor objective is stationary in the
+        pre-trained actor's std (``stationary_temperature``, agents/temperature.py: the mean of
+        Q's action curvature times the squashed policy's variance, clipped to
+        ``[1e-4, init_temp]``), else (rule "fixed", no observations, or a critic without
+        curvature, with a warning) at ``config.init_temp``; its Adam state is fresh. The networks in ``config`` must be the pre-trained ones (hidden
         sizes, LayerNorm, std parameterisation, ensemble size): an ensemble of N critics is N
         pre-trained critics, never copies of fewer (copies given the same batches and targets
         stay identical forever).
@@ -233,7 +249,15 @@ class SACAgent(struct.PyTreeNode):
             )
         _check_same_shapes("actor", fresh.actor.params, agent.actor.params, config)
         _check_same_shapes("critic", fresh.critic.params, agent.critic.params, config)
-        temp = _carry(fresh.temp, agent.temp) if hasattr(agent, "temp") else fresh.temp
+        if hasattr(agent, "temp"):
+            temp = _carry(fresh.temp, agent.temp)
+        elif config.init_temp_rule == "stationary" and observations is not None:
+            tau0, info = stationary_temperature(agent, observations, init_temp=config.init_temp)
+            if info["rule"] == "fallback":
+                warnings.warn(f"SACAgent.from_pretrained: {info['reason']}.", stacklevel=2)
+            temp = fresh.temp.replace(params=log_temp_params(tau0))
+        else:
+            temp = fresh.temp
         rng = agent.rng if seed is None else jax.random.PRNGKey(seed)
         rng = jax.random.fold_in(rng, 0x5AC)
         return fresh.replace(

@@ -1,0 +1,128 @@
+"""The SAC temperature at which a pre-trained actor's spread is already optimal.
+
+A warm start from IQL carries an actor and critics but no temperature. Starting SAC's at an
+arbitrary 1.0 while IQL's actor is narrow (entropy about -3 on antmaze) makes the entropy
+bonus widen the policy for thousands of steps before the temperature loss has brought the
+temperature down. ``stationary_temperature`` instead picks the temperature at which SAC's
+actor objective, under the pre-trained critic, does not want to change the actor's spread.
+
+Derivation. SAC's actor maximises, per state, ``J = E_{a~pi}[Q(s, a)] + tau H(pi(.|s))``.
+Take a Gaussian policy with std ``sigma_d`` per action dimension around the mean action
+``mu`` and ``Q`` locally quadratic there with curvature ``-k_d`` along dimension d
+(``k_d = -d^2 Q / da_d^2``). Then ``E[Q] ~ Q(mu) - sum_d k_d sigma_d^2 / 2`` and
+``H = sum_d log sigma_d + const``, so ``dJ / dlog sigma_d = -k_d sigma_d^2 + tau``: the
+spread along d is stationary exactly when ``tau = k_d sigma_d^2`` (a maximum when k_d > 0).
+One temperature cannot satisfy every (state, dimension) pair; the mean of ``k_d sigma_d^2``
+over them is the one at which the derivative along a common rescaling of all stds,
+``sum_{s,d} dJ/dlog sigma_d``, is zero -- for a state-independent std (IQL's on antmaze),
+whose log-std is shared across states, it is exactly that parameter's gradient direction.
+
+botorl's actor is a tanh-squashed Gaussian (networks/actor.py): ``a = tanh(u)``,
+``u ~ N(mean, exp(log_std)^2)``. To first order in the std, ``a`` is Gaussian around
+``tanh(mean)`` with std ``sigma_eff = (1 - tanh(mean)^2) exp(log_std)``, and its entropy is
+``sum_d log sigma_eff_d + const`` (the tanh Jacobian depends on the mean only at this order),
+so the rule holds in action space with ``sigma_eff`` and Q's curvature in ``a``. The
+remaining terms are O(sigma^2) relative (the tanh's own curvature).
+
+What is measured: ``k_d(s)`` is minus the diagonal of the Hessian, w.r.t. the action, of the
+mean over the ensemble of the agent's (online) critics at the deterministic action
+``tanh(mean)``. Where ``k_d(s) <= 0`` (Q flat or convex along d) no temperature makes the
+spread stationary, so that pair is left out. ``tau0 = mean of k sigma_eff^2`` over the
+remaining pairs, clipped to ``[min_temp, init_temp]``; with no pair left (e.g. a critic
+without LayerNorm: a ReLU network is piecewise linear in the action, Hessian 0) it falls back
+to ``init_temp`` and says so in ``info``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from botorl.errors import ConfigError
+
+__all__ = ["stationary_temperature", "curvature_and_spread", "log_temp_params", "MIN_TEMP", "INIT_TEMP_RULES"]
+
+# SACConfig.init_temp_rule: how a warm start without a temperature (from IQL) sets it.
+INIT_TEMP_RULES = ("stationary", "fixed")
+
+MIN_TEMP = 1e-4
+# States per vmapped Hessian chunk: bounds the memory of the A tangents through N critics.
+_CHUNK = 128
+
+
+def _q_mean(critic, observation, action):
+    """Ensemble-mean Q of one (observation, action) pair: a scalar."""
+    return critic.apply_fn({"params": critic.params}, observation[None], action[None]).mean()
+
+
+@jax.jit
+def curvature_and_spread(actor, critic, observations):
+    """``(k, sigma_eff)``, each (B, A): ``k = -diag d^2 Q / da^2`` of the ensemble-mean Q at
+    ``a = tanh(mean)``, and the tanh-squashed policy's std in action space there.
+
+    ``actor``/``critic`` are the agent's TrainStates (their ``apply_fn`` give ``(mean,
+    log_std)`` and the (N, B) critic values), so any botorl agent (IQL, SAC, CQL) works."""
+    mean, log_std = actor.apply_fn({"params": actor.params}, observations)
+    a0 = jnp.tanh(mean)
+    sigma_eff = (1.0 - a0 * a0) * jnp.exp(log_std)
+
+    def one(xs):
+        obs, act = xs
+        hess = jax.hessian(lambda a: _q_mean(critic, obs, a))(act)
+        return -jnp.diagonal(hess)
+
+    k = jax.lax.map(one, (observations, a0), batch_size=min(_CHUNK, observations.shape[0]))
+    return k, sigma_eff
+
+
+def stationary_temperature(agent, observations, init_temp: float = 1.0, min_temp: float = MIN_TEMP):
+    """The temperature at which SAC's actor objective is stationary in the pre-trained actor's
+    std (module docstring): ``(tau0, info)``.
+
+    ``observations``: (B, O) probe states, e.g. ~1,000 rows of the offline data. ``info``:
+    ``rule`` ("stationary" or "fallback"), ``tau_raw`` (before clipping; None on fallback),
+    ``used`` (fraction of (state, dim) pairs with positive curvature), ``tau_per_dim`` (the
+    rule per action dimension, NaN where no state has positive curvature), ``mean_sigma_eff``,
+    ``clipped`` and ``reason``. Pure: the agent is not changed."""
+    obs = np.asarray(observations, np.float32)
+    if obs.ndim != 2 or obs.shape[0] < 1 or not np.all(np.isfinite(obs)):
+        raise ConfigError(
+            f"stationary_temperature: observations must be a finite (B, obs_dim) array with B >= 1 "
+            f"(a probe of dataset states), got shape {obs.shape}."
+        )
+    if not (0 < min_temp <= init_temp):
+        raise ConfigError(f"stationary_temperature: need 0 < min_temp <= init_temp, got {min_temp}, {init_temp}.")
+    k, sigma = curvature_and_spread(agent.actor, agent.critic, jnp.asarray(obs))
+    k, sigma = np.asarray(k, np.float64), np.asarray(sigma, np.float64)
+    tau_sd = k * sigma * sigma
+    ok = (k > 0) & np.isfinite(tau_sd)
+    with np.errstate(invalid="ignore"):
+        per_dim = np.where(ok.any(0), np.where(ok, tau_sd, 0.0).sum(0) / ok.sum(0), np.nan)
+    info = {
+        "used": float(ok.mean()),
+        "tau_per_dim": per_dim.tolist(),
+        "mean_sigma_eff": float(sigma.mean()),
+        "mean_curvature": float(k.mean()),
+    }
+    if not ok.any():
+        return float(init_temp), {
+            **info, "rule": "fallback", "tau_raw": None, "clipped": False,
+            "reason": (f"the critic has no positive curvature in the action at any probe state and dimension "
+                       f"(flat or convex, e.g. a ReLU critic without LayerNorm); the temperature starts at "
+                       f"init_temp = {init_temp}"),
+        }
+    raw = float(tau_sd[ok].mean())
+    tau0 = float(min(max(raw, min_temp), init_temp))
+    return tau0, {
+        **info, "rule": "stationary", "tau_raw": raw, "clipped": tau0 != raw,
+        "reason": f"mean of k * sigma_eff^2 over {int(ok.sum())} of {ok.size} (state, dim) pairs"
+                  + (f", clipped to [{min_temp}, {init_temp}]" if tau0 != raw else ""),
+    }
+
+
+def log_temp_params(tau: float) -> dict:
+    """The ``Temperature`` module's parameters for a temperature ``tau``."""
+    return {"log_temp": jnp.asarray(math.log(tau), jnp.float32)}
