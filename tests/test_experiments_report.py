@@ -175,13 +175,16 @@ def test_select_alpha_and_cli(runs_dir, tmp_path, capsys):
     (choice,) = sel.choices
     assert choice.task == "t1" and choice.label == "boto+calql"
     assert choice.alpha == 0.0  # ties with 0.5 (0.7 vs 0.7000000000000001): smaller |alpha|
-    assert choice.score == pytest.approx(0.7) and choice.n == 2
+    # 2 seeds per alpha: seed 0 selects, seed 1 reports
+    assert choice.score == pytest.approx(0.7) and choice.n == 1
+    assert (choice.select_seeds, choice.report_seeds) == ([0], [1])
     assert [a for a, _, _ in choice.ranking] == [0.0, 0.5, -0.5]
 
     out = tmp_path / "cli"
     assert report_main([str(runs_dir), "--out", str(out), "--select-alpha", "--bootstrap", "100"]) == 0
     printed = capsys.readouterr().out
-    assert "t1: alpha = 0  # score 0.700 over 2 seeds, 3 alphas tried" in printed
+    assert ("t1: alpha = 0  # chosen on seeds 0, reported on seeds 1: held-out score 0.700, no CI from 1 seed "
+            "(n=1); in-sample 0.700 (n=1); 3 alphas tried") in printed
     assert "skipped" in printed and "status is 'failed'" in printed
     assert (out / "alpha_selection.txt").read_text().startswith("# alpha per task, criterion")
 
@@ -191,3 +194,200 @@ def test_report_bad_dir_is_user_error(tmp_path):
 
     with pytest.raises(BotorlError, match="not a directory"):
         report_main([str(tmp_path / "nope")])
+
+
+# ---------------------------------------------------------------------------------------------
+# The dip
+
+
+def _dip_run(root: Path, seed: int, curve: list[tuple[int, float]], *, method: str = "wsrl",
+             warmup: list[tuple[int, float]] = (), task: str = "d1") -> Path:
+    rows = [f"warmup,{step},{succ},0,0,0" for step, succ in warmup]  # the warm-up's evaluations
+    succ = dict(list(warmup) + list(curve))
+    return write_run(root, task=task, method=method, seed=seed, initial=succ.get(0, 0.0), s10k=0.0,
+                     final=curve[-1][1], curve=curve, extra_rows=rows)
+
+
+def test_dip_by_hand(tmp_path):
+    # 1.0 at 0, 0.4 at 2.5k (a warm-up evaluation), 0.0 at 5k, 1.0 at 12.5k
+    d = _dip_run(tmp_path, 0, [(0, 1.0), (5000, 0.0), (12500, 1.0)], warmup=[(2500, 0.4)])
+    runs, _ = R.find_runs([tmp_path])
+    (run,) = runs
+    dip = R.run_dip(run, 10_000)
+    assert dip.value == pytest.approx(-1.0, abs=1e-12)
+    assert (dip.initial, dip.lowest, dip.lowest_step, dip.evals, dip.last_step) == (1.0, 0.0, 5000.0, 3, 5000.0)
+    # a 3k window sees only step 0 and the warm-up's 2.5k evaluation
+    assert R.run_dip(run, 3000).value == pytest.approx(-0.6, abs=1e-12)
+    assert R.run_dip(run, 2500).value == pytest.approx(-0.6, abs=1e-12)  # the window's end is inside
+    # no fall: the dip is 0, not the rise to 1.0 at 12.5k
+    assert R.run_dip(R.find_runs([_dip_run(tmp_path / "flat", 1, [(0, 0.5), (5000, 0.5), (12500, 1.0)])])[0][0],
+                     10_000).value == 0.0
+
+    out = tmp_path / "cli"
+    assert report_main([str(d), "--out", str(out), "--dip-window", "3000", "--bootstrap", "50"]) == 0
+    with open(out / "dip_runs.csv", newline="") as f:
+        (row,) = list(csv.DictReader(f))
+    assert float(row["dip"]) == pytest.approx(-0.6, abs=1e-12) and row["lowest_step"] == "2500"
+    with open(out / "table1.csv", newline="") as f:
+        (row,) = list(csv.DictReader(f))
+    assert float(row["dip_mean"]) == pytest.approx(-0.6, abs=1e-12) and row["dip_n"] == "1"
+    assert row["dip_lo"] == "" and row["dip_se"] == ""  # one run: no spread, no CI
+    assert "## The dip (first 3000 online env steps)" in (out / "report.md").read_text()
+
+
+def test_runs_without_a_dip_are_listed(tmp_path, capsys):
+    _dip_run(tmp_path, 0, [(0, 1.0), (5000, 0.0), (20000, 1.0)])
+    late = _dip_run(tmp_path, 1, [(2500, 1.0), (5000, 0.0), (20000, 1.0)])  # no evaluation at step 0
+    sparse = _dip_run(tmp_path, 2, [(0, 1.0), (15000, 0.0)])  # none after 0 inside the window
+    out = tmp_path / "rep"
+    assert report_main([str(tmp_path), "--out", str(out), "--bootstrap", "50"]) == 0
+    printed = capsys.readouterr().out
+    assert f"no dip for {late}: eval.csv has no evaluation at env_step 0 (the first is at 2500)" in printed
+    assert (f"no dip for {sparse}: eval.csv has no evaluation after env_step 0 within the 10000-step dip "
+            "window (the next is at 15000)") in printed
+    with open(out / "table1.csv", newline="") as f:
+        (row,) = list(csv.DictReader(f))
+    assert row["initial_n"] == "3" and row["dip_n"] == "1"  # they still count in Table 1
+    assert float(row["dip_mean"]) == -1.0
+    md = (out / "report.md").read_text()
+    assert "Finished runs without a dip:" in md and f"- `{late}`: eval.csv has no evaluation at env_step 0" in md
+
+
+# five runs of wsrl and three of boto on d1; wsrl's dips by hand
+WSRL_DIPS = [-1.0, -0.6, -0.2, 0.0, -0.4]  # mean -0.44; sorted, cut 1 each end: IQM -0.4
+
+
+@pytest.fixture(scope="module")
+def dip_dir(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("dips")
+    for seed, dip in enumerate(WSRL_DIPS):
+        _dip_run(root, seed, [(0, 1.0), (5000, 1.0 + dip), (10000, 1.0), (20000, 1.0)])
+    for seed, dip in enumerate([0.0, -0.1, -0.2]):
+        _dip_run(root, seed, [(0, 0.9), (5000, 0.9 + dip), (20000, 1.0)], method="boto")
+    _dip_run(root, 0, [(0, 0.5), (2500, 0.0), (20000, 0.0)], task="d2")
+    return root
+
+
+def test_dip_group_statistics(dip_dir, tmp_path):
+    result = R.make_report([dip_dir], tmp_path / "a", n_boot=2000, seed=3)
+    cell = next(c for c in result.dip_cells if (c.task, c.label) == ("d1", "wsrl"))
+    st = cell.stats
+    x = np.asarray(WSRL_DIPS)
+    assert st["n"] == 5 and st["mean"] == pytest.approx(-0.44, abs=1e-12)
+    assert st["se"] == pytest.approx(x.std(ddof=1) / math.sqrt(5), abs=1e-12)
+    assert st["iqm"] == pytest.approx(-0.4, abs=1e-12)
+    assert st["lo"] < st["mean"] < st["hi"] and st["iqm_lo"] <= st["iqm"] <= st["iqm_hi"]
+    # the percentile bootstrap of a mean is close to mean +- 1.96 sd/sqrt(n) (sd with ddof=0);
+    # 20% is wide enough for 2000 resamples of 5 values and narrow enough to catch a wrong scale
+    assert st["hi"] - st["lo"] == pytest.approx(2 * 1.96 * x.std() / math.sqrt(5), rel=0.2)
+    # reproducible for a seed, and the seed matters
+    again = R.make_report([dip_dir], tmp_path / "b", n_boot=2000, seed=3)
+    assert (tmp_path / "a" / "table1.csv").read_text() == (tmp_path / "b" / "table1.csv").read_text()
+    assert next(c for c in again.dip_cells if (c.task, c.label) == ("d1", "wsrl")).stats == st
+    assert R.bootstrap_mean_ci(WSRL_DIPS, n_boot=2000, seed=3) == pytest.approx((st["lo"], st["hi"]), abs=1e-12)
+    spread = np.linspace(-1.0, 0.0, 7) ** 3  # 7 distinct values: resampled means rarely coincide
+    assert R.bootstrap_mean_ci(spread, n_boot=500, seed=3) == R.bootstrap_mean_ci(spread, n_boot=500, seed=3)
+    assert R.bootstrap_mean_ci(spread, n_boot=500, seed=3) != R.bootstrap_mean_ci(spread, n_boot=500, seed=4)
+
+    md = (tmp_path / "a" / "report.md").read_text()
+    assert "2000 resamples of the runs, seed 3" in md
+    assert f"| d1 | wsrl |  | 5 | 1.00 | 0.56 | -0.44 ± {x.std(ddof=1) / math.sqrt(5):.2f} | " in md
+    boto = next(c for c in result.dip_cells if (c.task, c.label) == ("d1", "boto"))
+    assert boto.stats["mean"] == pytest.approx(-0.1, abs=1e-12) and boto.initial == pytest.approx(0.9)
+
+
+def test_dip_figure_is_an_image(dip_dir, tmp_path):
+    import matplotlib.image as mpimg
+
+    result = R.make_report([dip_dir], tmp_path, n_boot=50)
+    assert tmp_path / "dip.png" in result.files
+    img = mpimg.imread(tmp_path / "dip.png")
+    assert img.ndim == 3 and img.shape[0] >= 300 and img.shape[1] >= 500, img.shape
+    assert float(np.std(img[..., :3])) > 0.05, "dip.png looks blank"
+    assert "![the dip](dip.png)" in (tmp_path / "report.md").read_text()
+
+
+def test_bad_dip_window_is_user_error(dip_dir, tmp_path):
+    from botorl.errors import BotorlError
+
+    with pytest.raises(BotorlError, match="--dip-window must be a positive"):
+        report_main([str(dip_dir), "--out", str(tmp_path / "x"), "--dip-window", "0"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Held-out alpha selection
+
+# score = (success_10k + success_final) / 2, here both equal the score. Seeds 0-1 select, 2-3
+# report (the default split of 4 seeds). On seeds 0-1 alpha 0.5 wins; on seeds 2-3, and on all
+# four seeds, alpha 0 wins: choosing on all seeds, or on the report seeds, gives alpha 0.
+HELD_OUT = {-0.5: [0.3, 0.3, 0.3, 0.3], 0.0: [0.6, 0.6, 1.0, 1.0], 0.5: [0.9, 0.9, 0.0, 0.2]}
+
+
+@pytest.fixture(scope="module")
+def sweep_dir(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("sweep")
+    for alpha, scores in HELD_OUT.items():
+        for seed, v in enumerate(scores):
+            write_run(root, task="t1", method="boto", pretrain="calql", alpha=alpha, seed=seed,
+                      initial=0.5, s10k=v, final=v)
+    return root
+
+
+def test_held_out_selection_chooses_on_selection_seeds(sweep_dir):
+    runs, _ = R.find_runs([sweep_dir])
+    (c,) = R.select_alpha(runs, n_boot=1000, seed=0).choices
+    assert c.alpha == 0.5 and (c.select_seeds, c.report_seeds) == ([0, 1], [2, 3])
+    assert c.in_sample == pytest.approx(0.9, abs=1e-12)
+    assert c.score == pytest.approx(0.1, abs=1e-12) and c.n == 2  # seeds 2, 3: 0.0 and 0.2
+    assert c.se == pytest.approx(0.1, abs=1e-12)
+    assert c.lo == pytest.approx(0.0, abs=1e-12) and c.hi == pytest.approx(0.2, abs=1e-12)
+    assert [a for a, _, _ in c.ranking] == [0.5, 0.0, -0.5]
+
+    # the other way round: seeds 2-3 choose alpha 0, seeds 0-1 report it
+    (c,) = R.select_alpha(runs, select_seeds=[2, 3]).choices
+    assert c.alpha == 0.0 and c.report_seeds == [0, 1]
+    assert c.score == pytest.approx(0.6, abs=1e-12) and c.in_sample == pytest.approx(1.0, abs=1e-12)
+    # an explicit report set smaller than the rest
+    (c,) = R.select_alpha(runs, select_seeds=[0, 1], report_seeds=[3]).choices
+    assert c.alpha == 0.5 and c.report_seeds == [3] and c.score == pytest.approx(0.2, abs=1e-12)
+
+
+def test_held_out_selection_cli(sweep_dir, tmp_path, capsys):
+    out = tmp_path / "rep"
+    assert report_main([str(sweep_dir), "--out", str(out), "--select-alpha", "--select-seeds", "2-3",
+                        "--bootstrap", "200"]) == 0
+    printed = capsys.readouterr().out
+    assert "Seeds: 2-3 select (--select-seeds), every other seed reports." in printed
+    assert ("t1: alpha = 0  # chosen on seeds 2-3, reported on seeds 0-1: held-out score 0.600 ± 0.000, "
+            "95% CI [0.600, 0.600] (n=2); in-sample 1.000 (n=2); 3 alphas tried; next alpha = -0.5") in printed
+    text = (out / "alpha_selection.txt").read_text()
+    assert "chosen on seeds 2-3, reported on seeds 0-1" in text
+    assert "held-out score 0.600" in (out / "report.md").read_text()
+
+
+def test_held_out_selection_refuses(sweep_dir, tmp_path):
+    from botorl.cli import main
+    from botorl.errors import BotorlError
+
+    args = [str(sweep_dir), "--out", str(tmp_path / "x"), "--select-alpha", "--bootstrap", "20"]
+    with pytest.raises(BotorlError, match="share seeds 2"):
+        report_main(args + ["--select-seeds", "0-2", "--report-seeds", "2-3"])
+    with pytest.raises(BotorlError, match="none of them in the report set"):
+        report_main(args + ["--select-seeds", "0-3"])
+    with pytest.raises(BotorlError, match="none of them in the selection set"):
+        report_main(args + ["--select-seeds", "7"])
+    with pytest.raises(BotorlError, match="--select-seeds 'a-b' is not a seed set"):
+        report_main(args + ["--select-seeds", "a-b"])
+    assert not (tmp_path / "x").exists()  # refused before writing anything
+
+    # an alpha with one seed: refused by --select-alpha (exit 2), a note in a plain report
+    lone = tmp_path / "lone"
+    write_run(lone, task="t1", method="boto", alpha=0.0, seed=0, initial=0.5, s10k=1.0, final=1.0)
+    for seed in range(2):
+        write_run(lone, task="t1", method="boto", alpha=0.5, seed=seed, initial=0.5, s10k=1.0, final=1.0)
+    with pytest.raises(BotorlError, match=r"t1 / boto alpha \+0.00 has 1 finished seed\(s\) \(0\); held-out"):
+        R.select_alpha(R.find_runs([lone])[0])
+    assert main(["report", str(lone), "--out", str(tmp_path / "y"), "--select-alpha", "--bootstrap", "20"]) == 2
+    result = R.make_report([lone], tmp_path / "z", n_boot=20)
+    assert result.selection is None and not (tmp_path / "z" / "alpha_selection.txt").exists()
+    assert any(n.startswith("no held-out alpha selection: botorl report: t1 / boto alpha +0.00 has 1") for n in result.notes)

@@ -3,7 +3,8 @@
     botorl sweep --tasks pointmaze-umaze,pointmaze-medium --methods boto,wsrl --seeds 0-4 \
         --alphas -1:1:0.1 --profile quick --set online.steps=2000 --out sweeps/alpha
     botorl sweep --grid grid.yaml --out sweeps/table1 --backend ray --ray-address auto
-    botorl report sweeps/alpha [more dirs] [--out DIR] [--select-alpha]
+    botorl report sweeps/alpha [more dirs] [--out DIR] [--select-alpha [--select-seeds 0-3]]
+        [--dip-window 10000]
 
 Starting the same `botorl sweep` command again after it was killed finishes the grid:
 finished trials are never rerun, the others resume from their checkpoints. A sweep directory
@@ -14,6 +15,12 @@ on a shared file system: each trial is `python -m botorl.cli run ... --out <dir>
 
 `botorl report --select-alpha` criterion: the highest mean over seeds of
 (success_10k + success_final) / 2; ties go to the smaller |alpha| (the less biased critic).
+It ranks the alphas on selection seeds and reports the chosen alpha's score on other,
+held-out seeds (default: each alpha's seeds sorted, the first half selects, the rest reports).
+
+The dip (report.md, table1.csv's dip_* columns, dip_runs.csv, dip.png): per run, the lowest
+success over the evaluations with 0 <= env_step <= --dip-window (warm-up ones included)
+minus the success at env_step 0.
 """
 
 from __future__ import annotations
@@ -209,6 +216,12 @@ class ReportArgs:
     """seed of the bootstrap"""
     grid_points: int = 101
     """points of the common env-step grid of Figure 5"""
+    dip_window: int = 10_000
+    """the dip: lowest success over evaluations with 0 <= env_step <= this, minus success at step 0"""
+    select_seeds: Optional[str] = None
+    """seeds that choose alpha (e.g. 0-3 or 0,2,4); default: the first half of each alpha's sorted seeds"""
+    report_seeds: Optional[str] = None
+    """seeds on which the chosen alpha's score is reported (default: every seed not in --select-seeds)"""
 
 
 def report_main(argv: list[str]) -> int:
@@ -227,16 +240,38 @@ def report_main(argv: list[str]) -> int:
         why = "; ".join(f"{s.path}: {s.reason}" for s in skipped[:5]) or "no run directory (summary.json) under them"
         raise ConfigError(f"botorl report: no finished run in {', '.join(map(str, args.dirs))} ({why}). Give the "
                           f"--out of `botorl run` or a `botorl sweep` folder whose runs have finished.")
+    select_seeds = _seed_flag("--select-seeds", args.select_seeds)
+    report_seeds = _seed_flag("--report-seeds", args.report_seeds)
+    if args.dip_window <= 0:
+        raise ConfigError(f"botorl report: --dip-window must be a positive number of online env steps, got {args.dip_window}.")
+    stats = dict(n_boot=args.bootstrap, confidence=args.confidence, seed=args.seed)
+    if args.select_alpha:  # refuse before writing anything when held-out selection is impossible
+        select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **stats)
     out = Path(args.out) if args.out else Path(args.dirs[0]) / "report"
     result = make_report(
         [Path(d) for d in args.dirs],
         out,
-        n_boot=args.bootstrap,
-        confidence=args.confidence,
-        seed=args.seed,
         grid_points=args.grid_points,
+        dip_window=args.dip_window,
+        select_seeds=select_seeds,
+        report_seeds=report_seeds,
+        **stats,
     )
     print(result.summary_text())
-    if args.select_alpha:
-        print(select_alpha(result.runs).text())
+    if args.select_alpha and result.selection is not None:
+        print(result.selection.text())
     return 0
+
+
+def _seed_flag(flag: str, value: Optional[str]) -> Optional[list[int]]:
+    from botorl.experiments.grid import parse_seeds
+
+    if value is None:
+        return None
+    try:
+        return parse_seeds(value)
+    except ConfigError:
+        raise ConfigError(
+            f"botorl report: {flag} {value!r} is not a seed set; use a range like 0-3 (inclusive), a list "
+            "like 0,2,4, or both (0-2,7); seeds are >= 0."
+        ) from None

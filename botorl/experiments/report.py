@@ -9,6 +9,12 @@ Statistics:
   (scipy.stats.trim_mean(x, 0.25), which rliable uses); the bootstrap resamples runs with
   replacement within each task (strata) and recomputes the IQM of all resampled scores.
   Written here from that description; no rliable code is used.
+- the dip (issue 14): per run, the lowest success over every evaluation with
+  0 <= env_step <= window (default 10,000; warm-up evaluations and step 0 included) minus the
+  success at env_step 0, so 0 is no drop and -1 a fall from always to never solving the task.
+  Per group: mean +- SE, a percentile bootstrap CI of the mean (runs resampled with
+  replacement) and the IQM with its CI as above. Runs without an evaluation at step 0, or
+  with none after it inside the window, get no dip and are listed with the reason.
 
 Only runs with summary.json status "finished" count; every other run directory found is
 listed as skipped, with the reason, in the report and on stdout.
@@ -28,10 +34,12 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from botorl.errors import BotorlError
+from botorl.errors import BotorlError, ConfigError, DataFormatError
 from botorl.io import atomic_save_figure, atomic_write_text
 
 POINTS = (("initial", "success_initial"), ("10k", "success_10k"), ("final", "success_final"))
+DIP_WINDOW = 10_000
+DIP_KEYS = ("mean", "se", "n", "lo", "hi", "iqm", "iqm_lo", "iqm_hi")  # lo/hi: CI of the mean
 SELECT_ALPHA_CRITERION = (
     "highest mean over seeds of (success_10k + success_final) / 2; ties (within 1e-9) go to "
     "the smaller |alpha|, then to the smaller alpha"
@@ -85,6 +93,21 @@ def stratified_bootstrap_iqm(
     boot = iqm(np.concatenate(resampled, axis=1), axis=1)
     lo, hi = np.quantile(boot, [(1 - confidence) / 2, 1 - (1 - confidence) / 2])
     return point, float(lo), float(hi)
+
+
+def bootstrap_mean_ci(
+    values: Sequence[float], *, n_boot: int = 2000, confidence: float = 0.95, seed: int = 0
+) -> tuple[float, float]:
+    """Percentile bootstrap CI of the mean: resample the runs with replacement n_boot times.
+
+    (nan, nan) for fewer than 2 finite values: one run says nothing about its spread."""
+    x = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
+    if x.size < 2 or n_boot <= 0:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    boot = x[rng.integers(0, x.size, size=(n_boot, x.size))].mean(axis=1)
+    lo, hi = np.quantile(boot, [(1 - confidence) / 2, 1 - (1 - confidence) / 2])
+    return float(lo), float(hi)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -252,6 +275,183 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
 
 
 # ---------------------------------------------------------------------------------------------
+# The dip: how far success falls early in fine-tuning
+
+
+@dataclasses.dataclass
+class Dip:
+    run: Run
+    initial: float  # success at env_step 0
+    lowest: float  # lowest success over 0 <= env_step <= window
+    lowest_step: float  # the first env_step where it is reached
+    evals: int  # evaluations inside the window, step 0 included
+    last_step: float  # the last evaluation inside the window
+
+    @property
+    def value(self) -> float:
+        return self.lowest - self.initial
+
+
+def run_dip(run: Run, window: float = DIP_WINDOW) -> Dip | str:
+    """The run's dip, or the reason it has none.
+
+    Uses the run's evaluations as Figure 5 does (one per env_step, the last row written for a
+    step), so the step-0 value is summary.json's success_initial."""
+    steps, success = run.steps, run.success
+    if steps.size == 0:
+        return "eval.csv has no evaluations"
+    if not np.any(steps == 0):
+        return f"eval.csv has no evaluation at env_step 0 (the first is at {steps[0]:g}), so there is no start to dip from"
+    inside = (steps >= 0) & (steps <= window)
+    if int(inside.sum()) < 2:
+        after = steps[steps > window]
+        nxt = f" (the next is at {after[0]:g})" if after.size else ""
+        return f"eval.csv has no evaluation after env_step 0 within the {window:g}-step dip window{nxt}"
+    s_in, v_in = steps[inside], success[inside]
+    k = int(np.argmin(v_in))
+    return Dip(run, float(success[steps == 0][0]), float(v_in[k]), float(s_in[k]), int(inside.sum()), float(s_in[-1]))
+
+
+def dips_of(runs: Sequence[Run], window: float) -> tuple[list[Dip], list[Skipped]]:
+    dips: list[Dip] = []
+    no_dip: list[Skipped] = []
+    for r in runs:
+        d = run_dip(r, window)
+        if isinstance(d, Dip):
+            dips.append(d)
+        else:
+            no_dip.append(Skipped(r.path, d))
+    return dips, no_dip
+
+
+def dip_stats(values: Sequence[float], *, n_boot: int, confidence: float, seed: int) -> dict[str, float]:
+    mean, se, n = mean_se(values)
+    lo, hi = bootstrap_mean_ci(values, n_boot=n_boot, confidence=confidence, seed=seed)
+    point_iqm, iqm_lo, iqm_hi = stratified_bootstrap_iqm([values], n_boot=n_boot, confidence=confidence, seed=seed)
+    if n < 2:  # resampling one run gives a zero-width interval, which would read as certainty
+        iqm_lo = iqm_hi = math.nan
+    return {"mean": mean, "se": se, "n": n, "lo": lo, "hi": hi, "iqm": point_iqm, "iqm_lo": iqm_lo, "iqm_hi": iqm_hi}
+
+
+@dataclasses.dataclass
+class DipCell:
+    task: str
+    label: str
+    alpha: float | None
+    seeds: list[int | None]
+    values: list[float]
+    initial: float  # mean success at step 0 of these runs
+    lowest: float  # mean lowest success in the window
+    stats: dict[str, float]  # mean, se, n, lo, hi (CI of the mean), iqm, iqm_lo, iqm_hi
+
+
+def _key_order(key: tuple[str, str, float | None]) -> tuple:
+    return (key[0], key[1], -99 if key[2] is None else key[2])
+
+
+def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int) -> list[DipCell]:
+    groups: dict[tuple[str, str, float | None], list[Dip]] = defaultdict(list)
+    for d in dips:
+        groups[d.run.key].append(d)
+    cells = []
+    for key in sorted(groups, key=_key_order):
+        group = groups[key]
+        values = [d.value for d in group]
+        cells.append(DipCell(
+            *key, [d.run.seed for d in group], values,
+            float(np.mean([d.initial for d in group])), float(np.mean([d.lowest for d in group])),
+            dip_stats(values, n_boot=n_boot, confidence=confidence, seed=seed),
+        ))
+    return cells
+
+
+def dip_runs_csv(dips: Sequence[Dip]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["task", "method", "alpha", "seed", "success_0", "lowest", "lowest_step", "evals_in_window",
+                "last_step_in_window", "dip", "path"])
+    for d in dips:
+        r = d.run
+        w.writerow([r.task, r.label, "" if r.alpha is None else repr(r.alpha), "" if r.seed is None else r.seed,
+                    _f(d.initial), _f(d.lowest), f"{d.lowest_step:g}", d.evals, f"{d.last_step:g}", _f(d.value),
+                    str(r.path)])
+    return buf.getvalue()
+
+
+def _fmt_ci(lo: float, hi: float) -> str:
+    return "-" if not math.isfinite(lo) else f"[{lo:+.2f}, {hi:+.2f}]"
+
+
+def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> str:
+    pct = f"{100 * confidence:g}%"
+    lines = [
+        f"| task | method | alpha | runs | success at 0 | lowest (0..{window:g}) | dip mean ± s.e. | "
+        f"{pct} CI of the mean | IQM [{pct} CI] |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in cells:
+        st = c.stats
+        ms = "-" if st["n"] == 0 else (f"{st['mean']:+.2f} (n=1)" if not math.isfinite(st["se"])
+                                       else f"{st['mean']:+.2f} ± {st['se']:.2f}")
+        iq = "-" if not math.isfinite(st["iqm"]) else (f"{st['iqm']:+.2f}" + (
+            f" {_fmt_ci(st['iqm_lo'], st['iqm_hi'])}" if math.isfinite(st["iqm_lo"]) else ""))
+        lines.append(
+            f"| {c.task} | {c.label} | {_alpha_text(c.alpha)} | {int(st['n'])} | {c.initial:.2f} | {c.lowest:.2f} | "
+            f"{ms} | {_fmt_ci(st['lo'], st['hi'])} | {iq} |"
+        )
+    return "\n".join(lines)
+
+
+def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidence: float) -> None:
+    """Per task, one point per method (and alpha): the mean dip with its bootstrap CI, and
+    each run's dip as a small dot beside it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = sorted({c.task for c in cells})
+    ncols = min(3, max(1, len(tasks)))
+    nrows = math.ceil(len(tasks) / ncols)
+    most = max(sum(1 for c in cells if c.task == t) for t in tasks)
+    width = max(3.6, 1.0 + 0.55 * most)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(width * ncols, 3.8 * nrows), squeeze=False)
+    labels = sorted({c.label for c in cells})
+    colors = {lab: plt.cm.tab10(i % 10) for i, lab in enumerate(labels)}
+    for ax, task in zip(axes.flat, tasks):
+        row = [c for c in cells if c.task == task]
+        multi = {lab: sum(1 for c in row if c.label == lab) > 1 for lab in {c.label for c in row}}
+        for x, c in enumerate(row):
+            st = c.stats
+            color = plt.cm.coolwarm((c.alpha + 1.0) / 2.0) if multi[c.label] and c.alpha is not None else colors[c.label]
+            # the runs, spread a little sideways (fixed offsets: the figure is reproducible)
+            offsets = np.linspace(-0.18, 0.18, len(c.values)) if len(c.values) > 1 else np.zeros(1)
+            ax.plot(x + 0.25 + offsets * 0.5, c.values, ".", color="0.55", ms=3, zorder=2)
+            if math.isfinite(st["lo"]):
+                yerr = [[max(st["mean"] - st["lo"], 0.0)], [max(st["hi"] - st["mean"], 0.0)]]
+                ax.errorbar([x], [st["mean"]], yerr=yerr, fmt="o", color=color, ms=6, mec="0.2", capsize=4, lw=1.6,
+                            ecolor="0.2" if multi[c.label] else color, zorder=3)
+            else:
+                ax.plot([x], [st["mean"]], "o", color=color, ms=6, mec="0.2", zorder=3)
+        ax.axhline(0.0, color="0.3", lw=0.8)
+        ax.set_xticks(range(len(row)))
+        ax.set_xticklabels([_line_label(c.label, c.alpha, multi[c.label]) + f"\n(n={int(c.stats['n'])})" for c in row],
+                           rotation=45 if len(row) > 4 else 0, ha="right" if len(row) > 4 else "center", fontsize=7)
+        ax.set_xlim(-0.6, len(row) - 0.4)
+        ax.set_ylim(-1.05, 0.08)
+        ax.set_title(task)
+        ax.set_ylabel(f"dip (lowest success in 0..{window / 1000:g}k − success at 0)", fontsize=8)
+        ax.grid(alpha=0.3, axis="y")
+    for ax in list(axes.flat)[len(tasks):]:
+        ax.set_visible(False)
+    fig.suptitle(f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs",
+                 fontsize=10)
+    fig.tight_layout()
+    atomic_save_figure(fig, path, dpi=120)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------------
 # Tables
 
 
@@ -262,6 +462,7 @@ class Cell:
     alpha: float | None
     seeds: list[int | None]
     stats: dict[str, dict[str, float]]  # point -> mean, se, n, iqm, iqm_lo, iqm_hi
+    dip: dict[str, float] | None = None  # dip_stats of the runs that have a dip
 
 
 def _alpha_text(alpha: float | None) -> str:
@@ -283,7 +484,10 @@ def _group(runs: Sequence[Run]) -> dict[tuple[str, str, float | None], list[Run]
     return dict(groups)
 
 
-def table1(runs: Sequence[Run], *, n_boot: int, confidence: float, seed: int) -> list[Cell]:
+def table1(
+    runs: Sequence[Run], *, n_boot: int, confidence: float, seed: int, dips: Sequence[DipCell] = ()
+) -> list[Cell]:
+    dip_by_key = {(d.task, d.label, d.alpha): d.stats for d in dips}
     cells = []
     for (task, label, alpha), group in sorted(
         _group(runs).items(), key=lambda kv: (kv[0][0], kv[0][1], -99 if kv[0][2] is None else kv[0][2])
@@ -294,7 +498,7 @@ def table1(runs: Sequence[Run], *, n_boot: int, confidence: float, seed: int) ->
             mean, se, n = mean_se(values)
             point_iqm, lo, hi = stratified_bootstrap_iqm([values], n_boot=n_boot, confidence=confidence, seed=seed)
             stats[point] = {"mean": mean, "se": se, "n": n, "iqm": point_iqm, "iqm_lo": lo, "iqm_hi": hi}
-        cells.append(Cell(task, label, alpha, [r.seed for r in group], stats))
+        cells.append(Cell(task, label, alpha, [r.seed for r in group], stats, dip_by_key.get((task, label, alpha))))
     return cells
 
 
@@ -342,12 +546,15 @@ def cells_csv(cells: Sequence[Cell]) -> str:
     header = ["task", "method", "alpha", "seeds"]
     for point, _ in POINTS:
         header += [f"{point}_{k}" for k in ("mean", "se", "n", "iqm", "iqm_lo", "iqm_hi")]
+    header += [f"dip_{k}" for k in DIP_KEYS]
     w.writerow(header)
     for c in cells:
         row = [c.task, c.label, "" if c.alpha is None else repr(c.alpha), " ".join(str(s) for s in c.seeds)]
         for point, _ in POINTS:
             st = c.stats[point]
             row += [_f(st["mean"]), _f(st["se"]), st["n"], _f(st["iqm"]), _f(st["iqm_lo"]), _f(st["iqm_hi"])]
+        dip = c.dip or {"n": 0}
+        row += [dip["n"] if k == "n" else _f(dip.get(k, math.nan)) for k in DIP_KEYS]
         w.writerow(row)
     return buf.getvalue()
 
@@ -543,6 +750,24 @@ def alpha_figure(runs: Sequence[Run], path: Path) -> bool:
 
 # ---------------------------------------------------------------------------------------------
 # Alpha selection
+#
+# Choosing the best of many alphas and reporting its score on the same runs overstates it (the
+# winner is partly the luckiest). So each alpha's seeds are split: the selection seeds rank
+# the alphas, and the chosen alpha's score is reported on its other, held-out seeds.
+
+
+def seeds_text(seeds: Iterable[int]) -> str:
+    """[0, 1, 2, 3, 6] -> '0-3,6'."""
+    out: list[str] = []
+    ordered = sorted(set(seeds))
+    i = 0
+    while i < len(ordered):
+        j = i
+        while j + 1 < len(ordered) and ordered[j + 1] == ordered[j] + 1:
+            j += 1
+        out.append(str(ordered[i]) if i == j else f"{ordered[i]}-{ordered[j]}")
+        i = j + 1
+    return ",".join(out) or "none"
 
 
 @dataclasses.dataclass
@@ -550,14 +775,24 @@ class AlphaChoice:
     task: str
     label: str
     alpha: float
-    score: float
-    n: int
-    ranking: list[tuple[float, float, int]]  # (alpha, score, n), best first
+    score: float  # held-out: mean score of the chosen alpha on its report seeds
+    se: float
+    lo: float  # bootstrap CI of that mean
+    hi: float
+    n: int  # held-out runs
+    select_seeds: list[int]  # the chosen alpha's seeds that took part in choosing
+    report_seeds: list[int]  # its held-out seeds, whose score is reported
+    in_sample: float  # its score on its selection seeds (what picked it; flattering)
+    in_sample_n: int
+    ranking: list[tuple[float, float, int]]  # (alpha, selection score, n), best first
 
 
 @dataclasses.dataclass
 class AlphaSelection:
     choices: list[AlphaChoice]
+    split: str = ""  # how the seeds were split, in words
+    confidence: float = 0.95
+    n_boot: int = 2000
 
     def text(self) -> str:
         if not self.choices:
@@ -565,7 +800,14 @@ class AlphaSelection:
                 "# select-alpha: no finished boto runs with an explicit alpha were found; run an "
                 "alpha sweep first (botorl sweep --methods boto --alphas -1:1:0.1 ...)."
             )
-        lines = [f"# alpha per task, criterion: {SELECT_ALPHA_CRITERION}"]
+        pct = f"{100 * self.confidence:g}%"
+        lines = [
+            f"# alpha per task, criterion: {SELECT_ALPHA_CRITERION}",
+            f"# held out: the criterion ranks the alphas on the selection seeds only; the chosen alpha's score "
+            f"is then reported on its report seeds (disjoint). {self.split}",
+            f"# held-out score: mean ± s.e. with a {pct} percentile-bootstrap CI of the mean "
+            f"({self.n_boot} resamples); in-sample: the same alpha on the seeds that chose it",
+        ]
         labels_per_task = defaultdict(set)
         for c in self.choices:
             labels_per_task[c.task].add(c.label)
@@ -573,32 +815,115 @@ class AlphaSelection:
             runner_up = ""
             if len(c.ranking) > 1:
                 a2, s2, _ = c.ranking[1]
-                runner_up = f"; next alpha = {a2:g} ({s2:.3f})"
+                runner_up = f"; next alpha = {a2:g} ({s2:.3f} in selection)"
             which = f"{c.label}: " if len(labels_per_task[c.task]) > 1 else ""
+            se = f" ± {c.se:.3f}" if math.isfinite(c.se) else ""
+            ci = f", {pct} CI [{c.lo:.3f}, {c.hi:.3f}]" if math.isfinite(c.lo) else f", no CI from {c.n} seed"
             lines.append(
-                f"{c.task}: alpha = {c.alpha:g}  # {which}score {c.score:.3f} over {c.n} seeds, "
-                f"{len(c.ranking)} alphas tried{runner_up}"
+                f"{c.task}: alpha = {c.alpha:g}  # {which}chosen on seeds {seeds_text(c.select_seeds)}, "
+                f"reported on seeds {seeds_text(c.report_seeds)}: held-out score {c.score:.3f}{se}{ci} (n={c.n}); "
+                f"in-sample {c.in_sample:.3f} (n={c.in_sample_n}); {len(c.ranking)} alphas tried{runner_up}"
             )
         return "\n".join(lines)
 
 
-def select_alpha(runs: Sequence[Run]) -> AlphaSelection:
-    by: dict[tuple[str, str], dict[float, list[float]]] = defaultdict(lambda: defaultdict(list))
+def _score(r: Run) -> float:
+    return (r.success_10k + r.success_final) / 2
+
+
+def select_alpha(
+    runs: Sequence[Run],
+    *,
+    select_seeds: Sequence[int] | None = None,
+    report_seeds: Sequence[int] | None = None,
+    n_boot: int = 2000,
+    confidence: float = 0.95,
+    seed: int = 0,
+) -> AlphaSelection:
+    """Choose alpha per (task, boto label) on selection seeds, report it on held-out seeds.
+
+    `select_seeds` None: each alpha's distinct seeds, sorted, split into a first half
+    (len // 2, for selection) and the rest (for reporting). Given: those seeds select and
+    `report_seeds` (default: every other seed) report. Raises BotorlError when an alpha has
+    fewer than 2 seeds, when the two sets overlap, or when one of them is empty for an alpha.
+    """
+    if select_seeds is None and report_seeds is not None:
+        raise ConfigError("botorl report: --report-seeds needs --select-seeds (the seeds that choose alpha).")
+    sel_set = None if select_seeds is None else set(int(x) for x in select_seeds)
+    rep_set = None if report_seeds is None else set(int(x) for x in report_seeds)
+    if sel_set is not None and rep_set is not None and sel_set & rep_set:
+        raise ConfigError(
+            f"botorl report: --select-seeds and --report-seeds share seeds {seeds_text(sel_set & rep_set)}; a seed "
+            "that chooses alpha cannot also report its score. Give disjoint sets (e.g. --select-seeds 0-3 "
+            "--report-seeds 4-7) or leave out --report-seeds to report on every other seed."
+        )
+    if sel_set is None:
+        split = "Seeds: each alpha's seeds sorted by value, the first half (n // 2) selects and the rest reports."
+    else:
+        split = (f"Seeds: {seeds_text(sel_set)} select (--select-seeds), "
+                 + (f"{seeds_text(rep_set)} report (--report-seeds)." if rep_set is not None
+                    else "every other seed reports."))
+    by: dict[tuple[str, str], dict[float, list[Run]]] = defaultdict(lambda: defaultdict(list))
     for r in runs:
         if r.method != "boto" or r.alpha is None:
             continue
         if math.isfinite(r.success_10k) and math.isfinite(r.success_final):
-            by[(r.task, r.label)][r.alpha].append((r.success_10k + r.success_final) / 2)
+            by[(r.task, r.label)][r.alpha].append(r)
+
+    def where(task: str, label: str, alpha: float) -> str:
+        return f"{task} / {label} alpha {alpha:+.2f}"
+
     choices = []
     for (task, label), per_alpha in sorted(by.items()):
-        scored = [(a, float(np.mean(v)), len(v)) for a, v in per_alpha.items() if v]
-        best = max(s for _, s, _ in scored)
+        sel_runs: dict[float, list[Run]] = {}
+        rep_runs: dict[float, list[Run]] = {}
+        for a, rs in sorted(per_alpha.items()):
+            unseeded = [str(r.path) for r in rs if r.seed is None]
+            if unseeded:
+                raise DataFormatError(
+                    f"botorl report: {where(task, label, a)}: run(s) {', '.join(unseeded)} name no seed in "
+                    "summary.json or config.json, so they cannot be split into selection and report seeds."
+                )
+            seeds = sorted({r.seed for r in rs})
+            if len(seeds) < 2:
+                raise ConfigError(
+                    f"botorl report: {where(task, label, a)} has {len(seeds)} finished seed(s) "
+                    f"({seeds_text(seeds)}); held-out alpha selection needs at least 2 per alpha (some seeds choose "
+                    "alpha, others report its score). Run more seeds of every alpha (botorl sweep ... --seeds 0-7) "
+                    "or leave the under-seeded alpha's runs out of the report directories."
+                )
+            if sel_set is None:
+                chosen = set(seeds[: len(seeds) // 2])
+                held = set(seeds) - chosen
+            else:
+                chosen = set(seeds) & sel_set
+                held = set(seeds) & rep_set if rep_set is not None else set(seeds) - sel_set
+            if chosen & held:  # cannot happen with the rules above; a guard against future edits
+                raise ConfigError(f"botorl report: {where(task, label, a)}: seeds {seeds_text(chosen & held)} would both "
+                                  "select and report.")
+            for name, got in (("selection", chosen), ("report", held)):
+                if not got:
+                    raise ConfigError(
+                        f"botorl report: {where(task, label, a)} has seeds {seeds_text(seeds)}, none of them in the "
+                        f"{name} set ({split}) Choose --select-seeds/--report-seeds so that every alpha has seeds "
+                        "in both."
+                    )
+            sel_runs[a] = [r for r in rs if r.seed in chosen]
+            rep_runs[a] = [r for r in rs if r.seed in held]
+        scored = [(a, float(np.mean([_score(r) for r in rs])), len(rs)) for a, rs in sel_runs.items()]
+        best = max(x[1] for x in scored)
         # exact ties are common (success rates are multiples of 1/episodes): prefer small |alpha|,
         # i.e. the least biased critic among equally good ones
         scored.sort(key=lambda x: (0 if best - x[1] <= 1e-9 else 1, -x[1], abs(x[0]), x[0]))
-        a, s, n = scored[0]
-        choices.append(AlphaChoice(task, label, a, s, n, scored))
-    return AlphaSelection(choices)
+        a, in_sample, in_sample_n = scored[0]
+        held_scores = [_score(r) for r in rep_runs[a]]
+        mean, se, n = mean_se(held_scores)
+        lo, hi = bootstrap_mean_ci(held_scores, n_boot=n_boot, confidence=confidence, seed=seed)
+        choices.append(AlphaChoice(
+            task, label, a, mean, se, lo, hi, n,
+            sorted({r.seed for r in sel_runs[a]}), sorted({r.seed for r in rep_runs[a]}), in_sample, in_sample_n, scored,
+        ))
+    return AlphaSelection(choices, split, confidence, n_boot)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -614,11 +939,17 @@ class ReportResult:
     aggregates: list[Aggregate]
     files: list[Path]
     notes: list[str]
+    dip_cells: list[DipCell] = dataclasses.field(default_factory=list)
+    dips: list[Dip] = dataclasses.field(default_factory=list)
+    no_dip: list[Skipped] = dataclasses.field(default_factory=list)  # finished runs without a dip
+    selection: AlphaSelection | None = None  # None when held-out selection was impossible (see notes)
 
     def summary_text(self) -> str:
         lines = [f"botorl report: {len(self.runs)} finished runs, {len(self.skipped)} skipped -> {self.out}"]
         for s in self.skipped:
             lines.append(f"  skipped {s.path}: {s.reason}")
+        for s in self.no_dip:
+            lines.append(f"  no dip for {s.path}: {s.reason}")
         for note in self.notes:
             lines.append(f"  note: {note}")
         for f in self.files:
@@ -634,13 +965,26 @@ def make_report(
     confidence: float = 0.95,
     seed: int = 0,
     grid_points: int = 101,
+    dip_window: float = DIP_WINDOW,
+    select_seeds: Sequence[int] | None = None,
+    report_seeds: Sequence[int] | None = None,
 ) -> ReportResult:
+    if not (isinstance(dip_window, (int, float)) and math.isfinite(dip_window) and dip_window > 0):
+        raise ConfigError(f"botorl report: --dip-window must be a positive number of online env steps, got {dip_window!r}.")
     runs, skipped = find_runs(dirs)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     files: list[Path] = []
     notes: list[str] = []
-    cells = table1(runs, n_boot=n_boot, confidence=confidence, seed=seed)
+    dips, no_dip = dips_of(runs, dip_window)
+    dip_cells = dip_table(dips, n_boot=n_boot, confidence=confidence, seed=seed)
+    short = sorted({d.run.path for d in dips if d.run.steps[-1] < dip_window})
+    if short:
+        notes.append(
+            f"{len(short)} run(s) end before the {dip_window:g}-step dip window (their dip covers only the steps "
+            f"they evaluated): {', '.join(str(x) for x in short[:5])}{' ...' if len(short) > 5 else ''}"
+        )
+    cells = table1(runs, n_boot=n_boot, confidence=confidence, seed=seed, dips=dip_cells)
     aggs, agg_notes = aggregate_iqm(runs, n_boot=n_boot, confidence=confidence, seed=seed)
     notes += agg_notes
     for (task, label, alpha), group in sorted(_group(runs).items(), key=lambda kv: str(kv[0])):
@@ -654,17 +998,30 @@ def make_report(
             )
     atomic_write_text(out / "table1.csv", cells_csv(cells))
     atomic_write_text(out / "aggregate_iqm.csv", aggregate_csv(aggs))
-    files += [out / "table1.csv", out / "aggregate_iqm.csv"]
+    atomic_write_text(out / "dip_runs.csv", dip_runs_csv(dips))
+    files += [out / "table1.csv", out / "aggregate_iqm.csv", out / "dip_runs.csv"]
     if runs:
         figure5(runs, out / "figure5.png", grid_points=grid_points)
         files.append(out / "figure5.png")
+        if dip_cells:
+            dip_figure(dip_cells, out / "dip.png", window=dip_window, confidence=confidence)
+            files.append(out / "dip.png")
+        else:
+            notes.append("no run has a dip (see the reasons): no dip figure")
         if alpha_figure(runs, out / "alpha_sensitivity.png"):
             files.append(out / "alpha_sensitivity.png")
         else:
             notes.append("no alpha sweep among the runs (boto with >= 2 alphas on a task): no alpha figure")
     else:
         notes.append("no finished runs: no figures")
-    selection = select_alpha(runs)
+    selection: AlphaSelection | None
+    try:
+        selection = select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds,
+                                 n_boot=n_boot, confidence=confidence, seed=seed)
+    except BotorlError as err:
+        selection = None
+        notes.append(f"no held-out alpha selection: {err}")
+    pct = f"{100 * confidence:g}%"
     md = [
         "# botorl report",
         "",
@@ -677,19 +1034,34 @@ def make_report(
         "",
         cells_markdown(cells),
         "",
-        f"## Interquartile mean with {100 * confidence:g}% stratified-bootstrap CI",
+        f"## Interquartile mean with {pct} stratified-bootstrap CI",
         "",
         f"IQM and percentile bootstrap ({n_boot} resamples of runs within each task, seed {seed}) "
         "after Agarwal et al. 2021 (rliable). Rows in bold aggregate all tasks of a method.",
         "",
         iqm_markdown(cells, aggs, confidence),
         "",
+        f"## The dip (first {dip_window:g} online env steps)",
+        "",
+        f"Per run: the lowest success over every evaluation with 0 <= env_step <= {dip_window:g} (warm-up "
+        "evaluations and step 0 included) minus the success at env_step 0; 0 = no drop, -1 = from always to "
+        f"never solved. Per method: mean ± s.e., the {pct} percentile-bootstrap CI of the mean ({n_boot} "
+        f"resamples of the runs, seed {seed}) and the IQM with its CI. Per-run values: `dip_runs.csv`; the "
+        "group values are also the `dip_*` columns of `table1.csv`.",
+        "",
+        dip_markdown(dip_cells, dip_window, confidence) if dip_cells else "No run has a dip.",
+        "",
     ]
+    if no_dip:
+        md += ["Finished runs without a dip:", ""] + [f"- `{s.path}`: {s.reason}" for s in no_dip] + [""]
+    if (out / "dip.png") in files:
+        md += ["![the dip](dip.png)", ""]
     if (out / "figure5.png") in files:
         md += ["## Figure 5", "", "![figure 5](figure5.png)", ""]
     if (out / "alpha_sensitivity.png") in files:
         md += ["## Alpha sensitivity", "", "![alpha sensitivity](alpha_sensitivity.png)", ""]
-        md += ["Selected alpha (`botorl report --select-alpha`):", "", "```", selection.text(), "```", ""]
+        if selection is not None:
+            md += ["Selected alpha, held out (`botorl report --select-alpha`):", "", "```", selection.text(), "```", ""]
     if skipped:
         md += ["## Skipped run directories", ""]
         md += [f"- `{s.path}`: {s.reason}" for s in skipped]
@@ -698,7 +1070,12 @@ def make_report(
         md += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]
     atomic_write_text(out / "report.md", "\n".join(md))
     files.insert(0, out / "report.md")
-    if selection.choices:
+    if selection is not None and selection.choices:
         atomic_write_text(out / "alpha_selection.txt", selection.text() + "\n")
         files.append(out / "alpha_selection.txt")
-    return ReportResult(out, runs, skipped, cells, aggs, files, notes)
+    # outputs of an earlier report into the same folder that this one does not replace would
+    # read as this report's
+    for stale in ("alpha_selection.txt", "dip.png", "alpha_sensitivity.png", "figure5.png"):
+        if (out / stale) not in files:
+            (out / stale).unlink(missing_ok=True)
+    return ReportResult(out, runs, skipped, cells, aggs, files, notes, dip_cells, dips, no_dip, selection)
