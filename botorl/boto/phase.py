@@ -10,7 +10,8 @@ tanh-Gaussian actor and no SAC temperature, the target's next action a~ comes fr
 actor and tau = 0 (no entropy term); the IQL fields (value network included) are returned
 unchanged except the critic, its target and the rng, so ``SACAgent.from_pretrained`` then
 takes the BOTO-trained critic into online fine-tuning. (Converting first with
-``SACAgent.from_pretrained`` would instead put a fresh, untrained temperature (init 1.0) into
+``SACAgent.from_pretrained`` would instead put a fresh temperature -- ``init_temp``, or the
+stationary rule's value when probe observations are given (agents/temperature.py) -- into
 the target; set ``backup_entropy=False`` if you do that.)
 
 Resumable: ``start_step`` says how many steps were done before (e.g. restored from a
