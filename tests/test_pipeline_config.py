@@ -9,7 +9,7 @@ from __future__ import annotations
 import pytest
 
 from botorl.cli import main as botorl_main
-from botorl.configs.presets import PROFILES, make_preset
+from botorl.configs.presets import PROFILES, QUICK_POINTMAZE_PRETRAIN, make_preset
 from botorl.configs.resolve import resolve, validate
 from botorl.configs.schema import RunConfig, from_dict, to_dict
 from botorl.envs.registry import get_task
@@ -99,20 +99,25 @@ def test_dotted_overrides_and_shortcuts():
     assert cfg.online.sac.critic_hidden_dims == (64, 64) == cfg.offline.cql.critic_hidden_dims
     assert cfg.alpha == 0.3 == cfg.boto.alpha and cfg.data.demos == "/x/demos.npz"
     bare = build_config([])
-    assert (bare.task, bare.method, bare.profile, bare.pretrain) == ("pointmaze-large", "boto", "quick", "iql")
-    assert bare.offline.steps == 100_000
+    assert (bare.task, bare.method, bare.profile, bare.pretrain) == ("pointmaze-medium", "boto", "quick", "calql")
+    assert bare.offline.steps == QUICK_POINTMAZE_PRETRAIN
 
 
 def test_quick_pointmaze_pretrain_default_and_budget():
-    # quick pointmaze: IQL by default with the 100k steps the large maze needs; an explicit
-    # Cal-QL/CQL keeps the 10k its ~9x costlier step affords; other domains keep Cal-QL.
-    assert build_config(["--method", "wsrl"]).pretrain == "iql"
-    calql = build_config(["--pretrain", "calql"])
-    assert calql.pretrain == "calql" and calql.offline.steps == 10_000 and calql.offline.cql.calql
-    assert build_config(["--method", "iql"]).offline.steps == 100_000
-    assert build_config(["--method", "cql"]).offline.steps == 10_000
+    # The paper's pipeline on every profile: BOTO and WSRL pre-train with Cal-QL; on quick
+    # pointmaze with 2 action samples per kind, 128-row batches and one budget for every
+    # pre-training algorithm; other domains keep 5 samples, 256 rows and 10k steps.
+    for method in ("boto", "wsrl"):
+        cfg = build_config(["--method", method])
+        assert cfg.pretrain == "calql" and cfg.offline.cql.calql
+        assert cfg.offline.steps == QUICK_POINTMAZE_PRETRAIN
+        assert (cfg.offline.cql.cql_n_actions, cfg.offline.batch_size) == (2, 128)
+    assert build_config(["--pretrain", "iql"]).offline.steps == QUICK_POINTMAZE_PRETRAIN
+    assert build_config(["--method", "iql"]).offline.steps == QUICK_POINTMAZE_PRETRAIN
+    assert build_config(["--method", "cql"]).offline.steps == QUICK_POINTMAZE_PRETRAIN
     door = build_config(["--task", "door-binary-local"])
     assert door.pretrain == "calql" and door.offline.steps == 10_000
+    assert (door.offline.cql.cql_n_actions, door.offline.batch_size) == (5, 256)
     assert build_config(["--profile", "full"]).pretrain == "calql"
 
 

@@ -41,7 +41,8 @@ class DataConfig:
     seed: int = 0
     """Generated tasks only: the dataset's seed (independent of the run seed, like a D4RL file)."""
     demos: str | None = None
-    """door-binary-local: the DAPG demos (door_human_demos.npz); default $BOTORL_DOOR_DEMOS."""
+    """door-binary-local: the DAPG demos (door_human_demos.npz); default $BOTORL_DOOR_DEMOS, else the copy
+    shipped in botorl (botorl/data/assets)."""
     action_tolerance: float = 1e-3
     """Largest |action| - 1 accepted in the data before the clip to the box (else an error)."""
 
@@ -128,7 +129,7 @@ class EvalConfig:
 class RunConfig:
     """One run of one method on one task."""
 
-    task: str = "pointmaze-large"
+    task: str = "pointmaze-medium"
     method: Literal["boto", "wsrl", "calql", "cql", "iql", "rlpd"] = "boto"
     seed: int = 0
     alpha: float | None = None
