@@ -23,7 +23,7 @@ Sizes:
           actor 2 x 256 in every algorithm (IQL's value net 4 x 256); Cal-QL with 10 CQL
           samples per kind and the max-target backup over 10.
 
-`--whole-run` also times whole quick pointmaze-large runs (`botorl run` subprocesses) as one
+`--whole-run` also times whole quick runs of the main job (pointmaze-medium BOTO) (`botorl run` subprocesses) as one
 member and as N members (`--seeds 0-(N-1)`), and prints the ratio of wall times.
 """
 
@@ -149,7 +149,7 @@ def measure(workload: str, size: str, n: int, min_time: float, k: int | None = N
 def whole_run(n: int, extra: list[str], out_root: Path) -> float:
     out = out_root / f"whole-{n}-{int(time.time())}"
     seeds = "0" if n == 1 else f"0-{n - 1}"
-    cmd = [sys.executable, "-m", "botorl.cli", "run", "--task", "pointmaze-large", "--method", "boto",
+    cmd = [sys.executable, "-m", "botorl.cli", "run", "--task", "pointmaze-medium", "--method", "boto",
            "--profile", "quick", "--seeds", seeds, "--no-progress", "--out", str(out), *extra]
     t = time.perf_counter()
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
