@@ -390,4 +390,4 @@ def test_held_out_selection_refuses(sweep_dir, tmp_path):
     assert main(["report", str(lone), "--out", str(tmp_path / "y"), "--select-alpha", "--bootstrap", "20"]) == 2
     result = R.make_report([lone], tmp_path / "z", n_boot=20)
     assert result.selection is None and not (tmp_path / "z" / "alpha_selection.txt").exists()
-    assert any(n.startswith("no held-out alpha selection: botorl report: t1 / boto alpha +0.00 has 1") for n in result.notes)
+    assert any(n.startswith("no held-out alpha selection: t1 / boto alpha +0.00 has 1") for n in result.notes)

@@ -232,18 +232,18 @@ def report_main(argv: list[str]) -> int:
         raise ConfigError("botorl report needs at least one run or sweep directory.")
     for d in args.dirs:
         if not Path(d).is_dir():
-            raise ConfigError(f"botorl report: {d} is not a directory; give run or sweep directories.")
+            raise ConfigError(f"{d} is not a directory; give run or sweep directories.")
     from botorl.experiments.report import find_runs
 
     runs, skipped = find_runs([Path(d) for d in args.dirs])
     if not runs:  # an empty report would look like a result; say why there is none
         why = "; ".join(f"{s.path}: {s.reason}" for s in skipped[:5]) or "no run directory (summary.json) under them"
-        raise ConfigError(f"botorl report: no finished run in {', '.join(map(str, args.dirs))} ({why}). Give the "
+        raise ConfigError(f"no finished run in {', '.join(map(str, args.dirs))} ({why}). Give the "
                           f"--out of `botorl run` or a `botorl sweep` folder whose runs have finished.")
     select_seeds = _seed_flag("--select-seeds", args.select_seeds)
     report_seeds = _seed_flag("--report-seeds", args.report_seeds)
     if args.dip_window <= 0:
-        raise ConfigError(f"botorl report: --dip-window must be a positive number of online env steps, got {args.dip_window}.")
+        raise ConfigError(f"--dip-window must be a positive number of online env steps, got {args.dip_window}.")
     stats = dict(n_boot=args.bootstrap, confidence=args.confidence, seed=args.seed)
     if args.select_alpha:  # refuse before writing anything when held-out selection is impossible
         select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **stats)
@@ -272,6 +272,6 @@ def _seed_flag(flag: str, value: Optional[str]) -> Optional[list[int]]:
         return parse_seeds(value)
     except ConfigError:
         raise ConfigError(
-            f"botorl report: {flag} {value!r} is not a seed set; use a range like 0-3 (inclusive), a list "
+            f"{flag} {value!r} is not a seed set; use a range like 0-3 (inclusive), a list "
             "like 0,2,4, or both (0-2,7); seeds are >= 0."
         ) from None

@@ -242,7 +242,7 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
     for top in dirs:
         top = Path(top)
         if not top.is_dir():
-            raise BotorlError(f"botorl report: {top} is not a directory.")
+            raise BotorlError(f"{top} is not a directory.")
         for root, subdirs, files in os.walk(top):
             root_p = Path(root).resolve()
             if "summary.json" in files or ("config.json" in files and "eval.csv" in files):
@@ -848,12 +848,12 @@ def select_alpha(
     fewer than 2 seeds, when the two sets overlap, or when one of them is empty for an alpha.
     """
     if select_seeds is None and report_seeds is not None:
-        raise ConfigError("botorl report: --report-seeds needs --select-seeds (the seeds that choose alpha).")
+        raise ConfigError("--report-seeds needs --select-seeds (the seeds that choose alpha).")
     sel_set = None if select_seeds is None else set(int(x) for x in select_seeds)
     rep_set = None if report_seeds is None else set(int(x) for x in report_seeds)
     if sel_set is not None and rep_set is not None and sel_set & rep_set:
         raise ConfigError(
-            f"botorl report: --select-seeds and --report-seeds share seeds {seeds_text(sel_set & rep_set)}; a seed "
+            f"--select-seeds and --report-seeds share seeds {seeds_text(sel_set & rep_set)}; a seed "
             "that chooses alpha cannot also report its score. Give disjoint sets (e.g. --select-seeds 0-3 "
             "--report-seeds 4-7) or leave out --report-seeds to report on every other seed."
         )
@@ -881,13 +881,13 @@ def select_alpha(
             unseeded = [str(r.path) for r in rs if r.seed is None]
             if unseeded:
                 raise DataFormatError(
-                    f"botorl report: {where(task, label, a)}: run(s) {', '.join(unseeded)} name no seed in "
+                    f"{where(task, label, a)}: run(s) {', '.join(unseeded)} name no seed in "
                     "summary.json or config.json, so they cannot be split into selection and report seeds."
                 )
             seeds = sorted({r.seed for r in rs})
             if len(seeds) < 2:
                 raise ConfigError(
-                    f"botorl report: {where(task, label, a)} has {len(seeds)} finished seed(s) "
+                    f"{where(task, label, a)} has {len(seeds)} finished seed(s) "
                     f"({seeds_text(seeds)}); held-out alpha selection needs at least 2 per alpha (some seeds choose "
                     "alpha, others report its score). Run more seeds of every alpha (botorl sweep ... --seeds 0-7) "
                     "or leave the under-seeded alpha's runs out of the report directories."
@@ -899,12 +899,12 @@ def select_alpha(
                 chosen = set(seeds) & sel_set
                 held = set(seeds) & rep_set if rep_set is not None else set(seeds) - sel_set
             if chosen & held:  # cannot happen with the rules above; a guard against future edits
-                raise ConfigError(f"botorl report: {where(task, label, a)}: seeds {seeds_text(chosen & held)} would both "
+                raise ConfigError(f"{where(task, label, a)}: seeds {seeds_text(chosen & held)} would both "
                                   "select and report.")
             for name, got in (("selection", chosen), ("report", held)):
                 if not got:
                     raise ConfigError(
-                        f"botorl report: {where(task, label, a)} has seeds {seeds_text(seeds)}, none of them in the "
+                        f"{where(task, label, a)} has seeds {seeds_text(seeds)}, none of them in the "
                         f"{name} set ({split}) Choose --select-seeds/--report-seeds so that every alpha has seeds "
                         "in both."
                     )
@@ -970,7 +970,7 @@ def make_report(
     report_seeds: Sequence[int] | None = None,
 ) -> ReportResult:
     if not (isinstance(dip_window, (int, float)) and math.isfinite(dip_window) and dip_window > 0):
-        raise ConfigError(f"botorl report: --dip-window must be a positive number of online env steps, got {dip_window!r}.")
+        raise ConfigError(f"--dip-window must be a positive number of online env steps, got {dip_window!r}.")
     runs, skipped = find_runs(dirs)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
