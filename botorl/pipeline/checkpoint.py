@@ -5,6 +5,7 @@
     checkpoints/<stage>-step000012000/    every N steps inside a long stage
         agent.ckpt                        botorl.agents.checkpoint.save (bit-identical restore)
         <name>.npz                        arrays: replay buffer state_dict, D_warmup, ...
+        <name>.json                       JSON documents: the envs' state mid-episode, ...
         state.json                        stage, step, numpy rng state, counters, stage_seconds
         MANIFEST.json                     size and sha256 of every file above, and a sequence number
 
@@ -36,6 +37,7 @@ from typing import Any, Callable
 import numpy as np
 
 from botorl.errors import ConfigError, DataFormatError
+from botorl.io import atomic_write_json as _atomic_write_json_exact
 from botorl.pipeline.rundir import atomic_write_json, read_json
 
 LATEST = "latest.json"
@@ -115,7 +117,10 @@ class CheckpointManager:
         agent: Any = None,
         save_agent: Callable[[str, Any], None] | None = None,
         arrays: dict[str, dict[str, Any]] | None = None,
+        documents: dict[str, Any] | None = None,
     ) -> Path:
+        from botorl.pipeline import faults
+
         tmp = self.root / f".tmp-{name}-{os.getpid()}"
         if tmp.exists():
             shutil.rmtree(tmp)
@@ -123,8 +128,14 @@ class CheckpointManager:
         if agent is not None:
             assert save_agent is not None
             save_agent(str(tmp / "agent.ckpt"), agent)
+        faults.checkpoint(name, "files")
         for key, group in (arrays or {}).items():
             _save_npz(tmp / f"{key}.npz", group)
+        for key, doc in (documents or {}).items():
+            if key in ("state", "MANIFEST"):
+                raise ValueError(f"checkpoint document name {key!r} is reserved")
+            # plain json (NaN / Infinity kept as such: an env's state must come back exactly)
+            _atomic_write_json_exact(tmp / f"{key}.json", doc, indent=None)
         atomic_write_json(tmp / "state.json", state)
         files = {q.name: _describe(q) for q in sorted(tmp.iterdir()) if q.is_file() and not q.name.startswith(".")}
         atomic_write_json(tmp / MANIFEST, {"name": name, "seq": self._next_seq(), "time": time.time(), "files": files})
@@ -140,6 +151,7 @@ class CheckpointManager:
         else:
             os.replace(tmp, final)
         _fsync_dir(self.root)
+        faults.checkpoint(name, "renamed")
         previous = self._latest_name()
         self._point_latest(name, state)
         self._prune(keep={name, previous} - {None})
@@ -328,6 +340,18 @@ class CheckpointManager:
         if not isinstance(st, dict):
             raise CheckpointCorrupt(f"checkpoint {name}: {path} does not hold a state object.")
         return st
+
+    def document(self, name: str, key: str) -> Any:
+        """The JSON document ``key`` of checkpoint ``name`` (checked), or None if it has none."""
+        p = self.root / name / f"{key}.json"
+        if not p.exists():
+            return None
+        self._check_file(name, p.name)
+        try:
+            return read_json(p)
+        except (OSError, ValueError) as err:
+            raise CheckpointCorrupt(f"checkpoint {name}: {p} cannot be read ({err}). Resume from an earlier "
+                                    f"one with `botorl resume RUN_DIR --from NAME`.") from None
 
     def arrays(self, name: str, key: str) -> dict[str, np.ndarray] | None:
         p = self.root / name / f"{key}.npz"

@@ -41,8 +41,9 @@ def load_offline(cfg: RunConfig, spec) -> Dataset:
             demos = Path(cfg.data.demos).expanduser()
             if not demos.is_file():
                 raise ConfigError(
-                    f"--data.demos {cfg.data.demos}: no such file. Point it at door_human_demos.npz "
-                    f"(in a botorl checkout: ../shared/data/adroit/door_human_demos.npz)."
+                    f"--data.demos {cfg.data.demos}: no such file. Point it at a door_human_demos.npz (the DAPG "
+                    f"door demos), or leave --demos out: botorl then uses the copy it ships "
+                    f"(botorl/data/assets/door_human_demos.npz)."
                 )
             os.environ["BOTORL_DOOR_DEMOS"] = str(demos.resolve())
         ds = spec.load_dataset(None, steps=cfg.data.steps, seed=cfg.data.seed, progress=cfg.progress)
@@ -169,7 +170,8 @@ class RunContext:
             return P.stack([agent_ckpt.load(path, like=P.member_of(like, 0))])
         return agent_ckpt.load(path, like=like)
 
-    def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None):
+    def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None,
+              documents=None):
         from botorl.agents import checkpoint as agent_ckpt
 
         state = {
@@ -184,7 +186,7 @@ class RunContext:
             "time": time.time(),
         }
         agent = P.member_of(agents, 0) if self.single else agents
-        self.ckpt.save(name, state=state, agent=agent, save_agent=agent_ckpt.save, arrays=arrays)
+        self.ckpt.save(name, state=state, agent=agent, save_agent=agent_ckpt.save, arrays=arrays, documents=documents)
         if not self.single and done:
             # each member's own agent in its run directory, for `botorl eval MEMBER_DIR`
             for i, mc in enumerate(self.members):
@@ -193,8 +195,11 @@ class RunContext:
                     agent=P.member_of(agents, i), save_agent=agent_ckpt.save)
         self.write_summary("running")
 
-    def save_mid(self, stage: str, step: int, agents, *, np_rng=None, arrays=None, extra=None) -> None:
-        self._save(checkpoint_name(stage, step), stage, int(step), False, agents, np_rng, arrays, extra)
+    def save_mid(self, stage: str, step: int, agents, *, np_rng=None, arrays=None, extra=None, documents=None) -> None:
+        """A mid-stage checkpoint: the agents, ``np_rng`` (each member's generator state), ``arrays``
+        (npz groups: the replay buffer, ...), ``extra`` (counters, in state.json) and ``documents``
+        (JSON files: the envs' state mid-episode, ...)."""
+        self._save(checkpoint_name(stage, step), stage, int(step), False, agents, np_rng, arrays, extra, documents)
 
     def save_stage_end(self, stage: str, agents, arrays=None) -> None:
         self._save(checkpoint_name(stage, None), stage, None, True, agents, arrays=arrays)
@@ -284,7 +289,12 @@ def write_population_file(root: Path, cfg: RunConfig, member_cfgs: list[RunConfi
     members = []
     for mcfg, st in zip(member_cfgs, member_status):
         m = Member(mcfg.seed, mcfg.alpha if get_method(cfg.method).uses_alpha else None)
-        members.append({**m.to_json(), "status": st})
+        entry = {**m.to_json(), "status": st}
+        if mcfg.out:
+            # the member's run directory as it was made: without --alphas a BOTO member takes the
+            # preset's alpha but its directory is seed<k> (`botorl resume POPDIR` reads this name)
+            entry["name"] = Path(mcfg.out).name
+        members.append(entry)
     if status == "finished" and any(st != "finished" for st in member_status):
         status = "finished" if any(st == "finished" for st in member_status) else "failed"
     data = {"task": cfg.task, "method": cfg.method, "pretrain": cfg.pretrain, "profile": cfg.profile,
@@ -351,15 +361,74 @@ def _templates(member_cfgs: list[RunConfig], stage: str, d: Dataset):
     return P.stack([_template(c, stage, d) for c in member_cfgs])
 
 
+def _wandb_timeout() -> float:
+    try:
+        return float(os.environ.get("BOTORL_WANDB_TIMEOUT", "120"))
+    except ValueError:
+        return 120.0
+
+
+def _bounded(fn, seconds: float):
+    """``fn()`` in a daemon thread: (True, its result) if it returned within ``seconds``, else
+    (False, None) and the thread is left behind (it cannot hold the process: daemon)."""
+    import threading
+
+    box: dict = {}
+
+    def target():
+        try:
+            box["value"] = fn()
+        except BaseException as err:  # handed to the caller
+            box["error"] = err
+
+    t = threading.Thread(target=target, name="botorl-wandb", daemon=True)
+    t.start()
+    t.join(seconds)
+    if t.is_alive():
+        return False, None
+    if "error" in box:
+        raise box["error"]
+    return True, box.get("value")
+
+
 def _wandb(cfg: RunConfig, run: RunDir):
+    """The W&B run, or None: W&B is optional, so a W&B that fails or does not answer within
+    $BOTORL_WANDB_TIMEOUT seconds (default 120) is turned off with a warning, not the run."""
     if not cfg.wandb:
         return None
     try:
         import wandb
     except ImportError:
         raise ConfigError("--wandb needs the wandb package: `pip install wandb` (or drop --wandb).") from None
-    return wandb.init(project=os.environ.get("WANDB_PROJECT", "botorl"), name=run.root.name, dir=str(run.root),
-                      config=to_dict(cfg), resume="allow", id=run.root.name)
+    timeout = _wandb_timeout()
+    try:
+        ok, wb = _bounded(lambda: wandb.init(project=os.environ.get("WANDB_PROJECT", "botorl"), name=run.root.name,
+                                             dir=str(run.root), config=to_dict(cfg), resume="allow",
+                                             id=run.root.name), timeout)
+    except Exception as err:
+        print(f"botorl: warning: W&B did not start ({type(err).__name__}: {err}); the run goes on without it.",
+              file=sys.stderr)
+        return None
+    if not ok:
+        print(f"botorl: warning: W&B did not start within {timeout:g} s (no network? WANDB_MODE=offline logs "
+              f"locally); the run goes on without it.", file=sys.stderr)
+        return None
+    return wb
+
+
+def _finish_wandb(wandb_run, exit_code: int = 0) -> None:
+    """``wandb_run.finish`` that cannot hang the process (it uploads what is left)."""
+    if wandb_run is None:
+        return
+    timeout = _wandb_timeout()
+    try:
+        ok, _ = _bounded(lambda: wandb_run.finish(exit_code=exit_code), timeout)
+    except Exception as err:
+        print(f"botorl: warning: W&B finish failed ({type(err).__name__}: {err}).", file=sys.stderr)
+        return
+    if not ok:
+        print(f"botorl: warning: W&B did not finish within {timeout:g} s; its last data may not be uploaded "
+              f"(`wandb sync` the run's wandb folder to send them).", file=sys.stderr)
 
 
 def member_config(cfg: RunConfig, seed: int, alpha: float | None, out: Path | str | None = None) -> RunConfig:
@@ -454,19 +523,20 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
         ctx.write_summary("failed", error=str(err))
         _finish_outputs(ctx)
         ctx.close()
+        _finish_wandb(wandb_run, 1)
         raise
     except BaseException as err:  # an interrupt or a bug: the run can be resumed
         ctx.end_stage()
         status = "running" if isinstance(err, KeyboardInterrupt) else "failed"
         ctx.write_summary(status, error=None if status == "running" else f"{type(err).__name__}: {err}")
         ctx.close()
+        _finish_wandb(wandb_run, 1)
         raise
     ctx.write_summary("finished")
     summaries = [read_summary(mc.run) for mc in members]
     _finish_outputs(ctx)
     ctx.close()
-    if wandb_run is not None:
-        wandb_run.finish()
+    _finish_wandb(wandb_run)
     return summaries
 
 

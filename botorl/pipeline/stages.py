@@ -15,8 +15,16 @@ not depend on the others.
 
 ``ctx`` (RunContext, runner.py) holds the config, task, run directory, loggers, the
 transformed offline data and the checkpoint helpers. Each stage checkpoints at its end (the
-runner does that) and the long ones every ``checkpoint_every`` steps inside; given ``resume``
-(the state of a mid-stage checkpoint) a stage continues from it.
+runner does that) and pre-training, BOTO and fine-tuning every ``checkpoint_every`` steps
+inside; given ``resume`` (the state of a mid-stage checkpoint) a stage continues from it
+exactly: a mid-stage checkpoint holds everything that decides the stage's future (agents
+with their JAX keys, every NumPy generator, the replay buffer, each env's full state
+mid-episode, the episode counters, the metric windows, the evaluation schedule), and log
+and checkpoint points are functions of the step alone. The warm-up has no mid-stage
+checkpoint: it is short, and a resume after a kill inside it runs it again from its start,
+which gives the same D_warmup (its envs, seeds and the policy's key come from the
+pre-training checkpoint and the member's seed). tests/test_reliability_resume.py checks
+that a resumed run's eval.csv, summary and metrics equal an uninterrupted run's.
 
 Divergence: every stage checks each member's losses for NaN/inf before each checkpoint and
 at each log point. A population of one raises TrainingDivergedError there without writing a
@@ -27,6 +35,7 @@ checkpoint, so the last good one stays; in a larger population that member is ma
 from __future__ import annotations
 
 import math
+import sys
 import time
 from typing import Any
 
@@ -35,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from botorl.data.dataset import Dataset
+from botorl.pipeline import faults
 from botorl.pipeline import population as P
 from botorl.errors import TrainingDivergedError
 from botorl.pipeline.methods import get_method
@@ -223,6 +233,7 @@ def pretrain(ctx, resume: dict | None = None):
                     bar.set_postfix(loss=f"{m.get('critic_loss', float('nan')):.3g}", q=f"{m.get('q_data', float('nan')):.3g}")
             if crossed_ckpt:
                 ctx.save_mid("pretrain", step, agents, np_rng=_rng_states(rngs))
+            faults.step("pretrain", step)
     finally:
         bar.close()
     return agents
@@ -245,7 +256,11 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
 
     These are the first online env steps (WSRL's accounting): the online axis starts here,
     with an evaluation of the pre-trained policy at step 0 and at every evaluation point the
-    warm-up passes (the policy is frozen, so those show it unchanged)."""
+    warm-up passes (the policy is frozen, so those show it unchanged).
+
+    No mid-stage checkpoint: a run killed here starts the warm-up again from its beginning on
+    resume, which is exact (the same env seeds, and the policy's key from the pre-training
+    checkpoint), and costs at most ``warmup.steps`` env steps of a frozen policy."""
     cfg = ctx.cfg
     spec = ctx.spec
     n = cfg.warmup.steps
@@ -288,6 +303,7 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
                     obs[i] = env.reset()[0]
             if t % 200 == 0:
                 bar.update(min(200, n - bar.n))
+            faults.step("warmup", t + 1)
         bar.update(n - bar.n)
     finally:
         bar.close()
@@ -321,7 +337,6 @@ def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = Non
         start = int(resume["step"])
     every = cfg.checkpoint_every
     log_every = max(cfg.offline.log_every, bc.steps_per_call)
-    last_ckpt, last_log = start, start
     settings = ObjectiveSettings.resolve(bc, P.member_of(agents, 0))
     alphas = np.asarray([mc.cfg.boto.alpha for mc in ctx.members], np.float32)
     warm = d_warmups if d_warmups is not None else [None] * ctx.n
@@ -342,18 +357,18 @@ def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = Non
             ms = _per_member(metrics)
             _check_members("boto", step + k, ms, ctx)
             agents = new_agents
-            step += k
+            prev, step = step, step + k
             bar.update(k)
             m0 = ms[0]
             bar.set_postfix(loss=f"{m0['critic_loss']:.3g}", q_data=f"{m0['q_data']:.3g}", q_unif=f"{m0['q_uniform']:.3g}")
-            if step - last_log >= log_every or step == end:
+            # log and checkpoint points follow from the step alone, so a resumed phase keeps them
+            if step // log_every > prev // log_every or step == end:
                 secs = time.perf_counter() - t0
                 for mc, m in ctx.live(ms):
                     mc.logger.log("boto", step, {"seconds": secs, **m})
-                last_log = step
-            if step - last_ckpt >= every and step < end:
+            if step // every > prev // every and step < end:
                 ctx.save_mid("boto", step, agents)
-                last_ckpt = step
+            faults.step("boto", step)
     finally:
         bar.close()
     return agents
@@ -382,7 +397,9 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
 
     if flavour == "wsrl":
         # WSRL's warm start: SAC (10 critics) from the pre-trained (or BOTO-trained) networks.
-        agents = P.stack([SACAgent.from_pretrained(P.member_of(agents, i), oc.sac, seed=mc.cfg.seed * 7919 + 3)
+        # From IQL (no temperature) the initial one comes from the probe states (agents/temperature.py).
+        agents = P.stack([SACAgent.from_pretrained(P.member_of(agents, i), oc.sac, seed=mc.cfg.seed * 7919 + 3,
+                                                   observations=ctx.probe.observations)
                           for i, mc in enumerate(ctx.members)])
     elif flavour == "scratch":
         agents = P.stack([SACAgent.create(oc.sac, O, A, mc.cfg.seed) for mc in ctx.members])
@@ -419,16 +436,27 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
         return {k: v.reshape((N, u * B) + v.shape[3:]) for k, v in b.items()}
 
     resumes = int(extra.get("resumes", 0)) + (1 if resume is not None else 0)
-    # a resumed run starts a new episode (env state is not checkpointed) with fresh seeds
-    env_seeds = [mc.cfg.seed * 1000 + 11 + 100_003 * resumes for mc in ctx.members]
+    env_seeds = [mc.cfg.seed * 1000 + 11 for mc in ctx.members]
     envs = [spec.make_env(seed=s) for s in env_seeds]
-    obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(envs, env_seeds)])
-    tf = spec.reward_transform
     ep_succ = np.zeros(N)
     ep_rows: list[list[int]] = [[] for _ in range(N)]
+    recent_success: list[list[float]] = [[] for _ in range(N)]
+    online = _load_online_state(ctx, resume, envs) if resume is not None else None
+    if online is not None:  # continue every member's episode where the checkpoint left it
+        obs, ep_succ, ep_rows, recent_success = online
+    elif resume is not None:
+        # a checkpoint written before env states were saved: each member starts a new episode,
+        # with seeds not used before (the run is then not exact)
+        print("botorl: warning: this checkpoint has no env state (written by an older botorl); fine-tuning "
+              "continues with new episodes, so the run will not repeat an uninterrupted one exactly.",
+              file=sys.stderr)
+        env_seeds = [s + 100_003 * resumes for s in env_seeds]
+        obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(envs, env_seeds)])
+    else:
+        obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(envs, env_seeds)])
+    tf = spec.reward_transform
     episodes = extra.get("episodes", 0)
     episodes = list(episodes) if isinstance(episodes, list) else [int(episodes)] * N
-    recent_success: list[list[float]] = [[] for _ in range(N)]
     window: list[tuple[dict, np.ndarray]] = []  # (metrics (N,), which members updated)
     total = oc.steps
     last_eval = int(extra.get("last_eval", -1))
@@ -500,14 +528,54 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
                 bar.set_postfix(success=f"{rows[0]['success']:.2f}")
             if at_ckpt:
                 ctx.save_mid("finetune", step, agents, np_rng=_rng_states(rngs),
-                             arrays={"buffer": buffer.state_dict()},
+                             arrays={"buffer": buffer.state_dict(), "online": {"obs": obs, "ep_succ": ep_succ}},
                              extra={"episodes": episodes, "last_eval": last_eval,
-                                    "resumes": resumes, "start": start})
+                                    "resumes": resumes, "start": start},
+                             documents={"envs": _online_document(envs, ep_rows, recent_success)})
+            faults.step("finetune", step)
     finally:
         bar.close()
         for env in envs:
             env.close()
     return agents
+
+
+def _online_document(envs, ep_rows, recent_success) -> dict:
+    """What of fine-tuning's running episodes is not in arrays: each member's env state
+    (botorl.envs.state), the buffer rows of its running episode (their Monte-Carlo returns
+    are filled when it ends) and the episode successes since the last log point."""
+    from botorl.envs.state import get_env_state
+
+    return {"envs": [get_env_state(e) for e in envs],
+            "ep_rows": [[int(r) for r in rows] for rows in ep_rows],
+            "recent_success": [[float(x) for x in xs] for xs in recent_success]}
+
+
+def _load_online_state(ctx, resume: dict, envs):
+    """(obs, ep_succ, ep_rows, recent_success) from a fine-tuning checkpoint, with each env set
+    to its saved state; None for a checkpoint without env states (older botorl)."""
+    from botorl.envs.state import set_env_state
+    from botorl.pipeline.checkpoint import CheckpointCorrupt
+
+    doc = ctx.ckpt.document(resume["name"], "envs")
+    arrays = ctx.ckpt.arrays(resume["name"], "online")
+    if doc is None or arrays is None:
+        return None
+    try:
+        if len(doc["envs"]) != len(envs) or arrays["obs"].shape[0] != len(envs):
+            raise ValueError(f"it holds {len(doc['envs'])} envs, the run has {len(envs)} members")
+        for env, st in zip(envs, doc["envs"]):
+            set_env_state(env, st)
+        obs = np.array(arrays["obs"], np.float32)
+        ep_succ = np.array(arrays["ep_succ"], np.float64)
+        ep_rows = [[int(r) for r in rows] for rows in doc["ep_rows"]]
+        recent = [[float(x) for x in xs] for xs in doc["recent_success"]]
+    except (KeyError, TypeError, ValueError, IndexError) as err:
+        raise CheckpointCorrupt(
+            f"checkpoint {resume['name']}: its env state (envs.json, online.npz) does not fit this run "
+            f"({type(err).__name__}: {err}). Resume from another checkpoint: `botorl resume RUN_DIR --from NAME`."
+        ) from None
+    return obs, ep_succ, ep_rows, recent
 
 
 def _masked_means(window: list[tuple[dict, np.ndarray]], n: int) -> list[dict[str, float]]:
