@@ -169,3 +169,43 @@ def test_every_method_as_a_population(tmp_path, method):
         s = json.loads((out / name / "summary.json").read_text())
         assert s["status"] == "finished" and s["method"] == method
         assert _csv(out / name / "metrics" / "finetune.csv")
+
+
+@pytest.mark.timeout(900)
+def test_alphas_of_one_seed_share_one_pretraining(tmp_path, monkeypatch):
+    """BOTO at two alphas from one seed pre-trains once (one agent in every pre-training call
+    and in the mid-stage checkpoint); both members get that agent, and a kill -9 inside the
+    shared pre-training resumes to the numbers of the uninterrupted run."""
+    from botorl.pipeline import population as P
+
+    sizes = []
+    real = P.pop_update_many
+
+    def counting(agents, batches):
+        sizes.append(P.population_size(agents))
+        return real(agents, batches)
+
+    monkeypatch.setattr(P, "pop_update_many", counting)
+    args = ["--seeds", "0", "--alphas=-0.5,0.5", "--offline.steps", "20", "--checkpoint_every", "10"]
+    whole = tmp_path / "whole"
+    assert _run(whole, *args) == 0
+    assert sizes and set(sizes) == {1}  # pre-training's calls, one agent for both members
+    pre = [_csv(whole / m / "metrics" / "pretrain.csv") for m in ("alpha-0.50-seed0", "alpha+0.50-seed0")]
+    assert pre[0] == pre[1] and pre[0]
+
+    out = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "botorl.cli", "run", "--task", TASK, "--profile", "smoke", "--no-progress",
+           "--no-tensorboard", *args, "--out", str(out)]
+    proc = subprocess.run(cmd, env={**_env(), "BOTORL_KILL_AT": "pretrain:10"}, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+    assert json.loads((out / "checkpoints" / "latest.json").read_text())["stage"] == "pretrain"
+    res = subprocess.run([sys.executable, "-m", "botorl.cli", "resume", str(out), "--no-progress"], env=_env(),
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "from pretrain step 10" in res.stderr
+    for m in ("alpha-0.50-seed0", "alpha+0.50-seed0"):
+        a, b = _csv(whole / m / "eval.csv"), _csv(out / m / "eval.csv")
+        assert [(r["env_step"], r["success"], r["return"]) for r in a] == [(r["env_step"], r["success"], r["return"]) for r in b]
+        for x, y in zip(a, b):
+            assert math.isclose(float(x["q_data"]), float(y["q_data"]), rel_tol=1e-6, abs_tol=1e-6)

@@ -46,7 +46,7 @@ import numpy as np
 from botorl.data.dataset import Dataset
 from botorl.pipeline import faults
 from botorl.pipeline import population as P
-from botorl.errors import TrainingDivergedError
+from botorl.errors import ConfigError, TrainingDivergedError
 from botorl.pipeline.methods import get_method
 
 STAGES = ("pretrain", "warmup", "boto", "finetune")
@@ -183,13 +183,27 @@ def pretrain(ctx, resume: dict | None = None):
     once; each member samples its own batches)."""
     cfg = ctx.cfg
     d = ctx.d_offline
-    agents = P.stack([make_pretrain_agent(mc.cfg, d.obs_dim, d.action_dim, mc.cfg.seed) for mc in ctx.members])
+    # Members of one seed differ only in BOTO's alpha, which pre-training does not read: they
+    # share one pre-training (computed once, by the first of them; mid-stage checkpoints hold
+    # one agent per seed) and each gets its copy at the end.
+    reps, group = pretrain_groups(ctx.members)
+    seeds = [ctx.members[r].cfg.seed for r in reps]
+    agents = P.stack([make_pretrain_agent(ctx.members[r].cfg, d.obs_dim, d.action_dim, ctx.members[r].cfg.seed)
+                      for r in reps])
     step = 0
-    rngs = _rngs(ctx, 1)
+    rngs = [_rng_from(None, [s, 1]) for s in seeds]
     if resume is not None:
         agents = ctx.load_agents(resume["name"], agents)
         step = int(resume["step"])
-        rngs = _rngs(ctx, 1, resume.get("np_rng"))
+        states = resume.get("np_rng")
+        states = states if isinstance(states, list) else [states] * len(reps)
+        if len(states) != len(reps):
+            raise ConfigError(
+                f"checkpoint {resume['name']!r} holds {len(states)} pre-training generators for {len(reps)} seeds: it was "
+                f"written by a botorl that pre-trained every member separately. Resume from a checkpoint of another "
+                f"stage (botorl resume DIR --from NAME) or start the population again."
+            )
+        rngs = [_rng_from(st, [s, 1]) for s, st in zip(seeds, states)]
     total = cfg.offline.steps
     K = cfg.offline.updates_per_call
     B = cfg.offline.batch_size
@@ -202,8 +216,9 @@ def pretrain(ctx, resume: dict | None = None):
     if on_device:
         arrays = d.to_device()
         # the key of each call follows from (seed, step), so a resumed run draws the same batches
-        base_keys = [jax.random.PRNGKey(mc.cfg.seed * 1_000_003 + 1) for mc in ctx.members]
-    bar = _bar(ctx, total, step, f"pretrain ({cfg.pretrain})" + (f" x {ctx.n} members" if ctx.n > 1 else ""))
+        base_keys = [jax.random.PRNGKey(s * 1_000_003 + 1) for s in seeds]
+    shared = f" x {len(reps)} seeds for {ctx.n} members" if len(reps) < ctx.n else f" x {ctx.n} members"
+    bar = _bar(ctx, total, step, f"pretrain ({cfg.pretrain})" + (shared if ctx.n > 1 else ""))
     t_last, n_last = time.perf_counter(), step
     try:
         while step < total:
@@ -220,7 +235,7 @@ def pretrain(ctx, resume: dict | None = None):
             crossed_log = step // log_every > prev // log_every or step == total
             crossed_ckpt = step % every == 0 and step < total
             if crossed_log or crossed_ckpt:
-                ms = _window_means(window)
+                ms = [_window_means(window)[g] for g in group]
                 window = []
                 _check_members("pretrain", step, ms, ctx)
                 if crossed_log:
@@ -236,7 +251,17 @@ def pretrain(ctx, resume: dict | None = None):
             faults.step("pretrain", step)
     finally:
         bar.close()
+    if len(reps) < ctx.n:
+        agents = jax.tree_util.tree_map(lambda x: x[np.asarray(group)], agents)
     return agents
+
+
+def pretrain_groups(members) -> tuple[list[int], list[int]]:
+    """(the first member of each seed, each member's index into that list)."""
+    first: dict[int, int] = {}
+    group = [first.setdefault(mc.cfg.seed, len(first)) for mc in members]
+    reps = [next(i for i, mc in enumerate(members) if mc.cfg.seed == s) for s in first]
+    return reps, group
 
 
 def _window_means(window: list[dict]) -> list[dict[str, float]]:
