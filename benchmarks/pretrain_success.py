@@ -1,0 +1,74 @@
+"""Success of the pre-trained policy along offline pre-training: how many steps a task needs.
+
+    python benchmarks/pretrain_success.py --task pointmaze-medium --steps 30000 --seed 1
+    python benchmarks/pretrain_success.py --task pointmaze-large --steps 30000 --set cql_n_actions=5 --batch 256
+
+Pre-trains the quick profile's agent for ``--pretrain`` (Cal-QL by default) on the task's data
+and evaluates the deterministic policy (the run's evaluation: ``eval.episodes`` episodes from
+the evaluation seeds) every ``--every`` steps, printing success, return, the mean Q on the
+batch's data actions and the wall time per step. This is how the quick profile's pre-training
+budget on pointmaze was chosen (README "Results"). It uses the pipeline's own pieces (the
+preset, the data, the agent, the population's batched calls) with a population of one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from botorl.configs.presets import make_preset
+from botorl.configs.resolve import resolve
+from botorl.envs.registry import get_task
+from botorl.pipeline import population as P
+from botorl.pipeline.runner import load_offline, transform_dataset
+from botorl.pipeline.stages import make_pretrain_agent
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--task", default="pointmaze-medium")
+    p.add_argument("--pretrain", default="calql", choices=["calql", "cql", "iql"])
+    p.add_argument("--steps", type=int, default=30_000)
+    p.add_argument("--every", type=int, default=5_000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--batch", type=int, default=None, help="offline batch size (default: the preset's)")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="a CQLConfig field, e.g. cql_n_actions=5 or cql_weight=1.0 (repeatable)")
+    args = p.parse_args(argv)
+
+    cfg = make_preset(args.task, "quick", "wsrl", args.pretrain)
+    cql = cfg.offline.cql
+    for item in args.set:
+        field, _, value = item.partition("=")
+        cql = replace(cql, **{field: type(getattr(cql, field))(value)})
+    offline = replace(cfg.offline, steps=args.steps, cql=cql, batch_size=args.batch or cfg.offline.batch_size)
+    cfg = resolve(replace(cfg, seed=args.seed, offline=offline, progress=False))
+    spec = get_task(args.task)
+    d = transform_dataset(cfg, spec, load_offline(cfg, spec))
+    agents = P.stack([make_pretrain_agent(cfg, d.obs_dim, d.action_dim, args.seed)])
+    # batches from default_rng(seed), not the pipeline's stream ([seed, 1]): the README's table was
+    # measured so; the policy at a step is therefore not the one `botorl run` evaluates at 0
+    rngs = [np.random.default_rng(args.seed)]
+    envs = [[spec.make_env(seed=10_000 + i, evaluation=True) for i in range(min(cfg.eval.num_envs, cfg.eval.episodes))]]
+    print(f"{args.task} {args.pretrain} seed {args.seed}: {len(d.observations)} rows, batch {offline.batch_size}, "
+          f"cql_n_actions {cfg.offline.cql.cql_n_actions}, {cfg.network.num_critics} critics", flush=True)
+    K, step, t0 = 50, 0, time.perf_counter()
+    while step < args.steps:
+        agents, metrics = P.pop_update_many(agents, P.sample_members(d, rngs, offline.batch_size, K))
+        step += K
+        if step % args.every == 0 or step >= args.steps:
+            train_s = time.perf_counter() - t0
+            st = P.run_population_episodes(lambda o: P.pop_eval(agents, o), envs, episodes=cfg.eval.episodes,
+                                           success_mode=spec.success_mode, seeds=[100_000 + 1000 * args.seed],
+                                           max_steps=spec.max_episode_steps)[0]
+            q = float(np.mean(np.asarray(metrics["q_data"]))) if "q_data" in metrics else float("nan")
+            print(f"step {step:>7}  success {st.success:.2f}  return {st.episode_return:7.2f}  q_data {q:8.1f}  "
+                  f"{1000 * train_s / step:.2f} ms/step", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
