@@ -88,10 +88,10 @@ def _extra_args(task: str, tmp: Path) -> list[str]:
 class Reference:
     """One uninterrupted run of ``task`` and the copies of its directory at the kill points."""
 
-    def __init__(self, task: str, root: Path):
+    def __init__(self, task: str, root: Path, method_args: tuple[str, ...] = ()):
         self.task, self.root = task, root
         self.points = kill_points(task)
-        self.extra = _extra_args(task, root)
+        self.extra = [*_extra_args(task, root), *method_args]
         self.out = root / "reference"
         self.snaps: dict[str, Path] = {}
         want = {**{f"step:{s}": (s, n) for s, n in self.points.items()}, "corrupt": CORRUPT_AT}
@@ -151,7 +151,8 @@ def assert_same_run(ref: Path, got: Path, what: str) -> None:
     assert names == sorted(p.name for p in (got / "metrics").glob("*.jsonl")), what
     for name in names:
         assert _jsonl(got / "metrics" / name) == _jsonl(ref / "metrics" / name), f"{what}: metrics/{name}"
-    assert (got / "metrics" / "q_probe.csv").read_text() == (ref / "metrics" / "q_probe.csv").read_text(), what
+    if (ref / "metrics" / "q_probe.csv").exists():  # RLPD has no offline stage to probe
+        assert (got / "metrics" / "q_probe.csv").read_text() == (ref / "metrics" / "q_probe.csv").read_text(), what
     warm = Path("checkpoints") / "warmup-final" / "warmup.npz"
     if (ref / warm).exists():  # a population keeps D_warmup in its own checkpoints
         with np.load(ref / warm) as a, np.load(got / warm) as b:
@@ -185,6 +186,38 @@ def test_kill_in_stage_resumes_exactly(reference, family, stage, tmp_path, capsy
     if stage != "warmup":  # the warm-up has no mid-stage checkpoint: it starts again
         assert f"from {stage} step" in err, err[-2000:]
     assert_same_run(ref.out, d, f"{ref.task}: killed at {snap.name}")
+
+
+def test_control_without_env_state_the_run_differs(reference, tmp_path, capsys):
+    """The comparison can fail: the same fine-tuning snapshot resumed without its env state (as
+    a checkpoint of an older botorl) starts new episodes and ends elsewhere."""
+    ref = reference(FAMILIES["pointmaze"])
+    d = ref.resume_copy("step:finetune", tmp_path)
+    latest = json.loads((d / "checkpoints" / "latest.json").read_text())["name"]
+    man = d / "checkpoints" / latest / "MANIFEST.json"
+    m = json.loads(man.read_text())
+    for f in ("envs.json", "online.npz"):
+        (d / "checkpoints" / latest / f).unlink()
+        del m["files"][f]
+    man.write_text(json.dumps(m))
+    err = _resume(d, capsys)
+    assert "has no env state" in err
+    with pytest.raises(AssertionError):
+        assert_same_run(ref.out, d, "control")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["calql", "iql", "rlpd"])
+def test_other_methods_resume_exactly_in_finetuning(method, tmp_path, capsys):
+    """Fine-tuning's other paths: Cal-QL continued online (Monte-Carlo returns of the running
+    episode's rows, updates that wait for the first finished episode, offline mixing), IQL
+    (its own update), RLPD (from scratch, random first steps)."""
+    ref = Reference(FAMILIES["pointmaze"], tmp_path / "ref", ("--method", method))
+    for stage in ("boto", "finetune") if method == "boto" else ("finetune",):
+        d = ref.resume_copy(f"step:{stage}", tmp_path / stage)
+        err = _resume(d, capsys)
+        assert f"from {stage} step" in err, err[-2000:]
+        assert_same_run(ref.out, d, f"{method}: killed at {ref.snaps[f'step:{stage}'].name}")
 
 
 @pytest.mark.parametrize("name, phase", CKPT_KILLS)
