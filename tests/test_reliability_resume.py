@@ -20,9 +20,10 @@ a corrupted newest checkpoint. Two ways to kill:
   step) and resumed after each kill; slow: killed in every stage in turn (four kills), per
   family. (tests/test_pipeline_resume.py kills from a watching thread, at no chosen step.)
 
-Default: every stage on pointmaze, fine-tuning on door, the checkpoint-writer and corruption
-cases, the twice-killed subprocess run (~1.5 min on 2 cores). ``-m slow`` adds the other
-families' stages, the four-kill runs per family and a population of two.
+Default: every stage on pointmaze, the checkpoint-writer and corruption cases, a control (the
+same resume without the env state differs), the twice-killed subprocess run (~1.5 min on 2
+loaded cores). ``-m slow`` adds every stage of door, antmaze and kitchen, the four-kill runs
+per family, a population of two, and Cal-QL / IQL / RLPD fine-tuning.
 
 Equal means: eval.csv byte for byte (success, return, Q as written, 6 digits); summary.json
 except the wall-clock fields (stage_seconds, total_seconds) and run_dir; every metrics/*.jsonl
@@ -168,10 +169,10 @@ def _resume(d: Path, capsys) -> str:
 
 
 # ----------------------------------------------------------------------------- in-process kills
-# each stage on pointmaze and fine-tuning (where the env state matters) on adroit door; the rest
-# is slow (each family's reference costs ~25 s of compilation on a 2-core CPU); the env state
-# itself is checked exactly per family in tests/test_envs_state.py
-FAST = [("pointmaze", s) for s in ("pretrain", "warmup", "boto", "finetune")] + [("door", "finetune")]
+# each stage on pointmaze; the other families are slow (each family's reference costs ~25 s,
+# mostly compilation, on a 2-core CPU); the env state itself is checked exactly per family in
+# tests/test_envs_state.py
+FAST = [("pointmaze", s) for s in ("pretrain", "warmup", "boto", "finetune")]
 SLOW = [(f, s) for f in ("door", "antmaze", "kitchen") for s in ("pretrain", "warmup", "boto", "finetune")
         if (f, s) not in FAST]
 
