@@ -385,3 +385,41 @@ def test_wandb_that_hangs_is_turned_off(tmp_path, monkeypatch, capsys):
     assert runner._wandb(cfg, RunDir(tmp_path / "run")) is None
     assert "ConnectionError: no network" in capsys.readouterr().err
     never.set()
+
+
+def test_population_file_names_the_member_directories(tmp_path):
+    """BOTO without --alphas: members take the preset's alpha but their directories are seed<k>;
+    population.json must name those (`botorl resume POPDIR` reads them)."""
+    from botorl.pipeline.cli import build_config
+    from botorl.pipeline.runner import member_config, write_population_file
+
+    cfg = build_config(["--task", FAMILIES["pointmaze"], "--profile", "smoke"])
+    assert cfg.alpha is not None
+    members = [member_config(cfg, s, None, tmp_path / f"seed{s}") for s in (0, 1)]
+    write_population_file(tmp_path, cfg, members, "running", ["running"] * 2, {})
+    pop = json.loads((tmp_path / "population.json").read_text())
+    assert [(m["name"], m["alpha"]) for m in pop["members"]] == [("seed0", cfg.alpha), ("seed1", cfg.alpha)]
+
+
+def test_generated_data_with_wide_actions_reads_back_from_its_cache(monkeypatch, tmp_path):
+    """door-binary-local's data hold the DAPG demos' actions (up to |a| = 1.37, accepted by the
+    task's action_tolerance): read back from the cache (a second run, any resume) they must not be
+    rejected with the default tolerance. A tiny stand-in generator with actions up to 1.3."""
+    from botorl.data import generate as G
+    from botorl.data.dataset import Dataset
+
+    def fake(steps, seed, progress=True):
+        rng = np.random.default_rng(seed)
+        obs = rng.normal(size=(steps + 1, 3)).astype(np.float32)
+        ends = np.zeros(steps, bool)
+        ends[-1] = True
+        return Dataset(obs[:-1], rng.uniform(-1.3, 1.3, (steps, 2)).astype(np.float32), np.zeros(steps, np.float32),
+                       obs[1:], np.zeros(steps, bool), ends, metadata={"source": "test"})
+
+    monkeypatch.setenv("BOTORL_DATA_DIR", str(tmp_path))
+    monkeypatch.setattr(G, "get_generator", lambda task: fake)
+    monkeypatch.setattr(G, "get_generator_name", lambda task: "test")
+    first = G.ensure_dataset("door-binary-local", 40, 0, progress=False)
+    again = G.ensure_dataset("door-binary-local", 40, 0, progress=False)  # from the cache
+    assert first.raw_action_max > 1.2 and np.isclose(again.raw_action_max, first.raw_action_max)
+    assert np.array_equal(first.actions, again.actions)
