@@ -444,8 +444,7 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
         ax.grid(alpha=0.3, axis="y")
     for ax in list(axes.flat)[len(tasks):]:
         ax.set_visible(False)
-    fig.suptitle(f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs",
-                 fontsize=10)
+    _suptitle(fig, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs")
     fig.tight_layout()
     atomic_save_figure(fig, path, dpi=120)
     plt.close(fig)
@@ -617,6 +616,14 @@ def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: f
 # Figures
 
 
+def _suptitle(fig, text: str) -> None:
+    """A figure title wrapped to the figure's width (a one-task figure is narrower than the line)."""
+    import textwrap
+
+    chars = max(20, int(fig.get_figwidth() * 11))  # ~11 characters an inch at 10 pt
+    fig.suptitle("\n".join(textwrap.wrap(text, chars)), fontsize=10)
+
+
 def curve_on_grid(run: Run, grid: np.ndarray) -> np.ndarray:
     """Linear interpolation of one run's eval curve; nan outside the steps it evaluated."""
     out = np.full(grid.shape, np.nan)
@@ -693,7 +700,7 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
             ax.legend(fontsize=7, loc="best")
     for ax in list(axes.flat)[len(tasks):]:
         ax.set_visible(False)
-    fig.suptitle("Success during online fine-tuning (mean ± standard error over seeds)", fontsize=10)
+    _suptitle(fig, "Success during online fine-tuning (mean ± standard error over seeds)")
     fig.tight_layout()
     atomic_save_figure(fig, path, dpi=120)
     plt.close(fig)
@@ -741,7 +748,7 @@ def alpha_figure(runs: Sequence[Run], path: Path) -> bool:
         ax.legend(fontsize=7)
     for ax in list(axes.flat)[len(tasks):]:
         ax.set_visible(False)
-    fig.suptitle("Alpha sensitivity (mean ± standard error over seeds)", fontsize=10)
+    _suptitle(fig, "Alpha sensitivity (mean ± standard error over seeds)")
     fig.tight_layout()
     atomic_save_figure(fig, path, dpi=120)
     plt.close(fig)
