@@ -230,8 +230,9 @@ class SACAgent(struct.PyTreeNode):
         pre-trained actor's std (``stationary_temperature``, agents/temperature.py: the mean of
         Q's action curvature times the squashed policy's variance, clipped to
         ``[1e-4, init_temp]``), else (rule "fixed", no observations, or a critic without
-        curvature, with a warning) at ``config.init_temp``; its Adam state is fresh. The networks in ``config`` must be the pre-trained ones (hidden
-        sizes, LayerNorm, std parameterisation, ensemble size): an ensemble of N critics is N
+        curvature, with a warning) at ``config.init_temp``; its Adam state is fresh. The
+        networks in ``config`` must be the pre-trained ones (hidden sizes, LayerNorm, std
+        parameterisation, ensemble size): an ensemble of N critics is N
         pre-trained critics, never copies of fewer (copies given the same batches and targets
         stay identical forever).
         """

@@ -235,7 +235,8 @@ def pretrain(ctx, resume: dict | None = None):
             crossed_log = step // log_every > prev // log_every or step == total
             crossed_ckpt = step % every == 0 and step < total
             if crossed_log or crossed_ckpt:
-                ms = [_window_means(window)[g] for g in group]
+                per_seed = _window_means(window)
+                ms = [per_seed[g] for g in group]
                 window = []
                 _check_members("pretrain", step, ms, ctx)
                 if crossed_log:
@@ -260,8 +261,7 @@ def pretrain_groups(members) -> tuple[list[int], list[int]]:
     """(the first member of each seed, each member's index into that list)."""
     first: dict[int, int] = {}
     group = [first.setdefault(mc.cfg.seed, len(first)) for mc in members]
-    reps = [next(i for i, mc in enumerate(members) if mc.cfg.seed == s) for s in first]
-    return reps, group
+    return [group.index(g) for g in range(len(first))], group
 
 
 def _window_means(window: list[dict]) -> list[dict[str, float]]:
@@ -469,15 +469,14 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
     online = _load_online_state(ctx, resume, envs) if resume is not None else None
     if online is not None:  # continue every member's episode where the checkpoint left it
         obs, ep_succ, ep_rows, recent_success = online
-    elif resume is not None:
-        # a checkpoint written before env states were saved: each member starts a new episode,
-        # with seeds not used before (the run is then not exact)
-        print("botorl: warning: this checkpoint has no env state (written by an older botorl); fine-tuning "
-              "continues with new episodes, so the run will not repeat an uninterrupted one exactly.",
-              file=sys.stderr)
-        env_seeds = [s + 100_003 * resumes for s in env_seeds]
-        obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(envs, env_seeds)])
     else:
+        if resume is not None:
+            # a checkpoint written before env states were saved: each member starts a new episode,
+            # with seeds not used before (the run is then not exact)
+            print("botorl: warning: this checkpoint has no env state (written by an older botorl); fine-tuning "
+                  "continues with new episodes, so the run will not repeat an uninterrupted one exactly.",
+                  file=sys.stderr)
+            env_seeds = [s + 100_003 * resumes for s in env_seeds]
         obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(envs, env_seeds)])
     tf = spec.reward_transform
     episodes = extra.get("episodes", 0)
