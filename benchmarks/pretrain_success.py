@@ -23,6 +23,7 @@ from botorl.configs.presets import make_preset
 from botorl.configs.resolve import resolve
 from botorl.envs.registry import get_task
 from botorl.pipeline import population as P
+from botorl.pipeline.population import parse_seeds
 from botorl.pipeline.runner import load_offline, transform_dataset
 from botorl.pipeline.stages import make_pretrain_agent
 
@@ -34,6 +35,9 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=30_000)
     p.add_argument("--every", type=int, default=5_000)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seeds", default=None, metavar="A-B|A,B,..",
+                   help="several seeds as one population, with the pipeline's batch streams ([seed, 1]), so the "
+                        "policy at --steps is the one `botorl run` evaluates at online step 0")
     p.add_argument("--batch", type=int, default=None, help="offline batch size (default: the preset's)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="a CQLConfig field, e.g. cql_n_actions=5 or cql_weight=1.0 (repeatable)")
@@ -48,12 +52,18 @@ def main(argv=None) -> int:
     cfg = resolve(replace(cfg, seed=args.seed, offline=offline, progress=False))
     spec = get_task(args.task)
     d = transform_dataset(cfg, spec, load_offline(cfg, spec))
-    agents = P.stack([make_pretrain_agent(cfg, d.obs_dim, d.action_dim, args.seed)])
-    # batches from default_rng(seed), not the pipeline's stream ([seed, 1]): the README's table was
-    # measured so; the policy at a step is therefore not the one `botorl run` evaluates at 0
-    rngs = [np.random.default_rng(args.seed)]
-    envs = [[spec.make_env(seed=10_000 + i, evaluation=True) for i in range(min(cfg.eval.num_envs, cfg.eval.episodes))]]
-    print(f"{args.task} {args.pretrain} seed {args.seed}: {len(d.observations)} rows, batch {offline.batch_size}, "
+    if args.seeds is None:
+        seeds = [args.seed]
+        # batches from default_rng(seed), not the pipeline's stream ([seed, 1]): the README's first table
+        # was measured so; the policy at a step is therefore not the one `botorl run` evaluates at 0
+        rngs = [np.random.default_rng(args.seed)]
+    else:
+        seeds = parse_seeds(args.seeds)
+        rngs = [np.random.default_rng([s, 1]) for s in seeds]
+    agents = P.stack([make_pretrain_agent(cfg, d.obs_dim, d.action_dim, s) for s in seeds])
+    n_env = min(cfg.eval.num_envs, cfg.eval.episodes)
+    envs = [[spec.make_env(seed=10_000 + i, evaluation=True) for i in range(n_env)] for _ in seeds]
+    print(f"{args.task} {args.pretrain} seeds {seeds}: {len(d.observations)} rows, batch {offline.batch_size}, "
           f"cql_n_actions {cfg.offline.cql.cql_n_actions}, {cfg.network.num_critics} critics", flush=True)
     K, step, t0 = 50, 0, time.perf_counter()
     while step < args.steps:
@@ -61,12 +71,14 @@ def main(argv=None) -> int:
         step += K
         if step % args.every == 0 or step >= args.steps:
             train_s = time.perf_counter() - t0
-            st = P.run_population_episodes(lambda o: P.pop_eval(agents, o), envs, episodes=cfg.eval.episodes,
-                                           success_mode=spec.success_mode, seeds=[100_000 + 1000 * args.seed],
-                                           max_steps=spec.max_episode_steps)[0]
+            sts = P.run_population_episodes(lambda o: P.pop_eval(agents, o), envs, episodes=cfg.eval.episodes,
+                                            success_mode=spec.success_mode, seeds=[100_000 + 1000 * s for s in seeds],
+                                            max_steps=spec.max_episode_steps)
+            succ = np.array([st.success for st in sts])
             q = float(np.mean(np.asarray(metrics["q_data"]))) if "q_data" in metrics else float("nan")
-            print(f"step {step:>7}  success {st.success:.2f}  return {st.episode_return:7.2f}  q_data {q:8.1f}  "
-                  f"{1000 * train_s / step:.2f} ms/step", flush=True)
+            per = " ".join(f"{x:.2f}" for x in succ) if len(seeds) > 1 else ""
+            print(f"step {step:>7}  success {succ.mean():.2f}  {per}  return {np.mean([st.episode_return for st in sts]):7.2f}"
+                  f"  q_data {q:8.1f}  {1000 * train_s / step:.2f} ms/step", flush=True)
     return 0
 
 
