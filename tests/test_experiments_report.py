@@ -352,6 +352,26 @@ def test_held_out_selection_chooses_on_selection_seeds(sweep_dir):
     assert c.alpha == 0.5 and c.report_seeds == [3] and c.score == pytest.approx(0.2, abs=1e-12)
 
 
+def test_alpha_table_by_hand(sweep_dir, tmp_path):
+    """Per alpha, mean ± s.e. over seeds of the success and of the dip (the runs' curves are
+    0 -> 10k -> 20k, so the dip is min(0.5, v) - 0.5)."""
+    runs, _ = R.find_runs([sweep_dir])
+    rows = {r.alpha: r for r in R.alpha_table(runs, window=10_000)}
+    assert sorted(rows) == [-0.5, 0.0, 0.5] and all(r.n == 4 and r.label == "boto+calql" for r in rows.values())
+    # alpha 0.5: v = 0.9, 0.9, 0, 0.2 -> dips 0, 0, -0.5, -0.3: mean -0.2, var (.04+.04+.09+.01)/3 = .06
+    m, se = rows[0.5].stats["dip"]
+    assert m == pytest.approx(-0.2, abs=1e-12) and se == pytest.approx(math.sqrt(0.06 / 4), abs=1e-12)
+    assert rows[0.0].stats["dip"] == (pytest.approx(0.0, abs=1e-12), pytest.approx(0.0, abs=1e-12))
+    assert rows[-0.5].stats["dip"][0] == pytest.approx(-0.2, abs=1e-12)
+    assert rows[0.0].stats["success_10k"][0] == pytest.approx(0.8, abs=1e-12)
+    out = tmp_path / "rep"
+    R.make_report([sweep_dir], out, n_boot=50)
+    with open(out / "alpha_sensitivity.csv") as f:
+        table = {float(r["alpha"]): r for r in csv.DictReader(f)}
+    assert float(table[0.5]["dip_mean"]) == pytest.approx(-0.2, abs=1e-6) and table[0.5]["n"] == "4"
+    assert "alpha_sensitivity.csv" in (out / "report.md").read_text()
+
+
 def test_held_out_selection_cli(sweep_dir, tmp_path, capsys):
     out = tmp_path / "rep"
     assert report_main([str(sweep_dir), "--out", str(out), "--select-alpha", "--select-seeds", "2-3",

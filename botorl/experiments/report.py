@@ -715,39 +715,81 @@ def alpha_runs(runs: Sequence[Run]) -> dict[tuple[str, str], dict[float, list[Ru
     return {k: dict(v) for k, v in out.items() if len(v) >= 2}
 
 
-def alpha_figure(runs: Sequence[Run], path: Path) -> bool:
-    """Success at 10k and final against alpha, one panel per task; False if no alpha sweep."""
-    swept = alpha_runs(runs)
-    if not swept:
+@dataclasses.dataclass
+class AlphaRow:
+    task: str
+    label: str
+    alpha: float
+    n: int
+    stats: dict[str, tuple[float, float]]  # field -> (mean, s.e.) over seeds
+
+
+ALPHA_FIELDS = ("success_initial", "success_10k", "success_final", "dip")
+
+
+def alpha_table(runs: Sequence[Run], window: float = DIP_WINDOW) -> list[AlphaRow]:
+    """Per (task, boto label, alpha) of a sweep: mean ± s.e. over seeds of the success at 0,
+    10k and final and of the dip (run_dip with ``window``; a run without one counts as nan)."""
+    rows = []
+    for (task, label), by_alpha in sorted(alpha_runs(runs).items()):
+        for a in sorted(by_alpha):
+            rs = by_alpha[a]
+            vals = {f: [r.value(f) for r in rs] for f in ALPHA_FIELDS[:3]}
+            vals["dip"] = [d.value if isinstance(d := run_dip(r, window), Dip) else float("nan") for r in rs]
+            rows.append(AlphaRow(task, label, a, len(rs), {f: mean_se(v)[:2] for f, v in vals.items()}))
+    return rows
+
+
+def alpha_csv(rows: Sequence[AlphaRow]) -> str:
+    head = ["task", "method", "alpha", "n"] + [f"{f}_{k}" for f in ALPHA_FIELDS for k in ("mean", "se")]
+    lines = [",".join(head)]
+    for r in rows:
+        vals = [f"{x:.6g}" for f in ALPHA_FIELDS for x in r.stats[f]]
+        lines.append(",".join([r.task, r.label, f"{r.alpha:g}", str(r.n)] + vals))
+    return "\n".join(lines) + "\n"
+
+
+def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WINDOW) -> bool:
+    """Per task of a sweep: success at 10k and final against alpha (top) and the dip (bottom);
+    False if there is no sweep. A sweep whose runs end at 10k plots one success curve."""
+    if not rows:
         return False
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    tasks = sorted({t for t, _ in swept})
-    ncols = min(3, len(tasks))
-    nrows = math.ceil(len(tasks) / ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(4.6 * ncols, 3.5 * nrows), squeeze=False)
-    for ax, task in zip(axes.flat, tasks):
-        for (t, label), by_alpha in sorted(swept.items()):
-            if t != task:
-                continue
-            alphas = sorted(by_alpha)
-            for fieldname, point, style in (("success_10k", "10k", "--"), ("success_final", "final", "-")):
-                stats = [mean_se([r.value(fieldname) for r in by_alpha[a]]) for a in alphas]
-                mean = np.array([s[0] for s in stats])
-                se = np.array([0.0 if not math.isfinite(s[1]) else s[1] for s in stats])
-                ax.errorbar(alphas, mean, yerr=se, fmt="o" + style, ms=3, capsize=2, label=f"{label} @ {point}")
-        ax.set_title(task)
-        ax.set_xlabel("alpha")
-        ax.set_ylabel("success rate")
-        ax.set_xlim(-1.05, 1.05)
-        ax.set_ylim(-0.03, 1.03)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    for ax in list(axes.flat)[len(tasks):]:
-        ax.set_visible(False)
+    tasks = sorted({r.task for r in rows})
+    fig, axes = plt.subplots(2, len(tasks), figsize=(4.6 * len(tasks), 6.4), squeeze=False, sharex=True)
+    for col, task in enumerate(tasks):
+        top, bottom = axes[0, col], axes[1, col]
+        for label in sorted({r.label for r in rows if r.task == task}):
+            rs = [r for r in rows if r.task == task and r.label == label]
+            alphas = [r.alpha for r in rs]
+
+            def series(field):
+                m = np.array([r.stats[field][0] for r in rs])
+                se = np.array([r.stats[field][1] for r in rs])
+                return m, np.where(np.isfinite(se), se, 0.0)
+
+            points = [("success_10k", "10k", "--"), ("success_final", "final", "-")]
+            if np.allclose(series("success_10k")[0], series("success_final")[0], equal_nan=True):
+                points = [("success_final", "10k = final", "-")]
+            for field, point, style in points:
+                m, se = series(field)
+                top.errorbar(alphas, m, yerr=se, fmt="o" + style, ms=3, capsize=2, label=f"{label} @ {point}")
+            m, se = series("dip")
+            bottom.errorbar(alphas, m, yerr=se, fmt="o-", ms=3, capsize=2, label=label)
+        top.set_title(task)
+        top.set_ylabel("success rate")
+        top.set_ylim(-0.03, 1.03)
+        bottom.set_ylabel(f"dip (lowest in 0..{window:g} - at 0)")
+        bottom.set_ylim(-1.03, 0.03)
+        bottom.set_xlabel("alpha")
+        for ax in (top, bottom):
+            ax.set_xlim(-1.05, 1.05)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
     _suptitle(fig, "Alpha sensitivity (mean ± standard error over seeds)")
     fig.tight_layout()
     atomic_save_figure(fig, path, dpi=120)
@@ -1015,8 +1057,10 @@ def make_report(
             files.append(out / "dip.png")
         else:
             notes.append("no run has a dip (see the reasons): no dip figure")
-        if alpha_figure(runs, out / "alpha_sensitivity.png"):
-            files.append(out / "alpha_sensitivity.png")
+        alpha_rows = alpha_table(runs, dip_window)
+        if alpha_figure(alpha_rows, out / "alpha_sensitivity.png", window=dip_window):
+            atomic_write_text(out / "alpha_sensitivity.csv", alpha_csv(alpha_rows))
+            files += [out / "alpha_sensitivity.png", out / "alpha_sensitivity.csv"]
         else:
             notes.append("no alpha sweep among the runs (boto with >= 2 alphas on a task): no alpha figure")
     else:
@@ -1066,7 +1110,8 @@ def make_report(
     if (out / "figure5.png") in files:
         md += ["## Figure 5", "", "![figure 5](figure5.png)", ""]
     if (out / "alpha_sensitivity.png") in files:
-        md += ["## Alpha sensitivity", "", "![alpha sensitivity](alpha_sensitivity.png)", ""]
+        md += ["## Alpha sensitivity", "", "Per alpha, mean ± s.e. over seeds (`alpha_sensitivity.csv`): success at "
+               "0, 10k and final, and the dip.", "", "![alpha sensitivity](alpha_sensitivity.png)", ""]
         if selection is not None:
             md += ["Selected alpha, held out (`botorl report --select-alpha`):", "", "```", selection.text(), "```", ""]
     if skipped:
@@ -1082,7 +1127,7 @@ def make_report(
         files.append(out / "alpha_selection.txt")
     # outputs of an earlier report into the same folder that this one does not replace would
     # read as this report's
-    for stale in ("alpha_selection.txt", "dip.png", "alpha_sensitivity.png", "figure5.png"):
+    for stale in ("alpha_selection.txt", "dip.png", "alpha_sensitivity.png", "alpha_sensitivity.csv", "figure5.png"):
         if (out / stale) not in files:
             (out / stale).unlink(missing_ok=True)
     return ReportResult(out, runs, skipped, cells, aggs, files, notes, dip_cells, dips, no_dip, selection)
