@@ -99,7 +99,7 @@ def test_dotted_overrides_and_shortcuts():
     assert cfg.online.sac.critic_hidden_dims == (64, 64) == cfg.offline.cql.critic_hidden_dims
     assert cfg.alpha == 0.3 == cfg.boto.alpha and cfg.data.demos == "/x/demos.npz"
     bare = build_config([])
-    assert (bare.task, bare.method, bare.profile, bare.pretrain) == ("pointmaze-medium", "boto", "quick", "calql")
+    assert (bare.task, bare.method, bare.profile, bare.pretrain) == ("pointmaze-umaze", "boto", "quick", "calql")
     assert bare.offline.steps == QUICK_POINTMAZE_PRETRAIN
 
 

@@ -129,7 +129,7 @@ class EvalConfig:
 class RunConfig:
     """One run of one method on one task."""
 
-    task: str = "pointmaze-medium"
+    task: str = "pointmaze-umaze"
     method: Literal["boto", "wsrl", "calql", "cql", "iql", "rlpd"] = "boto"
     seed: int = 0
     alpha: float | None = None

@@ -1,6 +1,6 @@
 """The offline-to-online pipeline: what ``botorl run`` / ``resume`` / ``eval`` do.
 
-    botorl run                                   # BOTO on pointmaze-medium, quick profile, data made here
+    botorl run                                   # BOTO on pointmaze-umaze, quick profile, data made here
     botorl run --task door-binary-v0 --method boto --profile full --data.path ~/calql-data
     botorl run --task door-binary-local --profile quick        # demos shipped in botorl/data/assets
     botorl run --task pointmaze-large --method wsrl --seed 1 --online.steps 50000

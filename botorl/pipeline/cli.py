@@ -6,7 +6,7 @@
 ``run`` first reads --task, --method, --profile and --pretrain to pick the preset
 (botorl.configs.presets), then tyro parses every argument over it, so any field of the
 config can be set as ``--<dotted.path> VALUE`` (``botorl run --help`` lists them all). Bare
-``botorl run`` is BOTO on pointmaze-medium with the quick profile; its data are made on first
+``botorl run`` is BOTO on pointmaze-umaze with the quick profile; its data are made on first
 use. ``--demos PATH`` is short for ``--data.demos PATH`` (door-binary-local; default
 $BOTORL_DOOR_DEMOS, else the copy shipped in botorl/data/assets).
 """
@@ -142,7 +142,7 @@ def _expand_shortcuts(argv: list[str]) -> list[str]:
 
 def _pre_parse(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(add_help=False)
-    p.add_argument("--task", default="pointmaze-medium")
+    p.add_argument("--task", default="pointmaze-umaze")
     p.add_argument("--method", default="boto")
     p.add_argument("--profile", default="quick")
     p.add_argument("--pretrain", default=None)

@@ -2,7 +2,7 @@
 
     botorl run --seeds 0-7                                  # 8 seeds of BOTO, quick, one program
     botorl run --method boto --seeds 0-3 --alphas -1:1:0.5  # 4 seeds x 5 alphas = 20 members
-    botorl resume runs/pointmaze-medium-boto-pop8-...        # after a crash or kill -9
+    botorl resume runs/pointmaze-umaze-boto-pop8-...        # after a crash or kill -9
 
 The members are every (seed, alpha) pair; all other settings are shared (any config field
 may be set as for `botorl run`). The population directory holds ``population.json``
