@@ -173,3 +173,25 @@ def test_memory_estimate_and_check():
     P.check_memory(parts, 8, available=(10**9, "test memory"))
     with pytest.raises(ConfigError, match="fewer members"):
         P.check_memory(parts, 8, available=(2 * 10**7, "test memory"))
+    # each member's environments count: 8 x 100 MB does not fit in 0.5 GB, and the message names them
+    with_envs = P.estimate_memory(num_members=8, agent_bytes=10**6, buffer_rows=1000, warmup_rows=100, obs_dim=4,
+                                  action_dim=2, batch_rows=256, activation_floats=10**5, offline_bytes=10**7,
+                                  env_bytes_per_member=10**8)
+    assert with_envs["environments"] == 8 * 10**8 and with_envs["total"] == parts["total"] + 8 * 10**8
+    with pytest.raises(ConfigError, match="eval.num_envs"):
+        P.check_memory(with_envs, 8, available=(5 * 10**8, "test memory"))
+
+
+def test_env_bytes_measures_what_an_env_holds():
+    class Heavy:  # an env that holds 16 MiB once made and reset
+        def __init__(self):
+            self.state = None
+
+        def reset(self, seed=None):
+            self.state = np.ones(2**21, np.float64)
+
+        def close(self):
+            pass
+
+    per = P.env_bytes(lambda i: Heavy(), probes=4)
+    assert 15 * 2**20 <= per <= 20 * 2**20, per / 2**20

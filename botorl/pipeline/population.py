@@ -29,6 +29,7 @@ Pieces:
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 from dataclasses import dataclass
@@ -560,6 +561,10 @@ def available_memory() -> tuple[int, str]:
                 return limit, f"{jax.devices()[0].device_kind} memory"
         except Exception:
             pass
+    return host_memory()
+
+
+def host_memory() -> tuple[int, str]:
     try:
         with open("/proc/meminfo") as f:
             for line in f:
@@ -570,15 +575,46 @@ def available_memory() -> tuple[int, str]:
     return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")), "free host memory"
 
 
+def _rss_bytes() -> int | None:
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def env_bytes(make_env, probes: int = 4) -> int:
+    """Host memory one more environment takes: the resident-size growth of making and resetting
+    ``probes`` envs after a first one (which pays for imports and shared model caches); 0 where
+    the resident size cannot be read. A pointmaze env measured 12 MB, so a 44-member population
+    with 20 evaluation envs a member holds ~11 GB of environments."""
+    first = make_env(0)
+    first.reset(seed=0)
+    before = _rss_bytes()
+    if before is None:
+        return 0
+    envs = [make_env(i + 1) for i in range(probes)]
+    for e in envs:
+        e.reset(seed=0)
+    grown = (_rss_bytes() or before) - before
+    for e in [first, *envs]:
+        with contextlib.suppress(Exception):
+            e.close()
+    return max(0, grown // probes)
+
+
 def estimate_memory(*, num_members: int, agent_bytes: int, buffer_rows: int, warmup_rows: int, obs_dim: int,
-                    action_dim: int, batch_rows: int, activation_floats: int, offline_bytes: int) -> dict[str, int]:
+                    action_dim: int, batch_rows: int, activation_floats: int, offline_bytes: int,
+                    env_bytes_per_member: int = 0) -> dict[str, int]:
     """Bytes the population needs, by part (an estimate made before any work).
 
     agent_bytes: one member's agent pytree (parameters, target parameters, Adam moments);
     buffer_rows: replay capacity per member; warmup_rows: D_warmup per member; batch_rows:
     rows of one call's batches per member (K x B); activation_floats: floats the largest update
-    keeps for its backward pass per member; offline_bytes: D_offline (held once). The agent
-    counts three times (the state, the update's output and the checkpoint copy on the host).
+    keeps for its backward pass per member; offline_bytes: D_offline (held once);
+    env_bytes_per_member: host memory of one member's environments (its training env and its
+    evaluation envs). The agent counts three times (the state, the update's output and the
+    checkpoint copy on the host).
     """
     row = 4 * (2 * obs_dim + action_dim + 3)
     parts = {
@@ -588,6 +624,7 @@ def estimate_memory(*, num_members: int, agent_bytes: int, buffer_rows: int, war
         "batches": 2 * num_members * batch_rows * row,
         "activations": 4 * num_members * activation_floats,
         "offline data": offline_bytes,
+        "environments": num_members * env_bytes_per_member,
     }
     parts["total"] = sum(parts.values())
     return parts
@@ -606,7 +643,8 @@ def check_memory(parts: dict[str, int], num_members: int, *, available: tuple[in
             f"a population of {num_members} members needs about {need / 2**30:.1f} GiB ({detail}), more than "
             f"{headroom:.0%} of the {have / 2**30:.1f} GiB of {what}. Use fewer members (about {fit} fit: fewer "
             f"--seeds/--alphas, or --population-size for a sweep), a smaller --online.buffer_capacity, or a "
-            f"smaller --offline.updates_per_call."
+            f"smaller --offline.updates_per_call" + (", or fewer --eval.num_envs (each member holds that many "
+            f"evaluation envs)" if parts.get("environments") else "") + "."
         )
 
 

@@ -87,8 +87,10 @@ def build_population(argv: list[str]):
     return cfg, members, [member_config(cfg, m.seed, m.alpha) for m in members]
 
 
-def estimate(cfg, n: int, d_raw) -> dict[str, int]:
-    """The population's memory by part (population.estimate_memory), from one template member."""
+def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
+    """The population's memory by part (population.estimate_memory), from one template member;
+    with the task's ``spec``, its environments measured (one training env and
+    min(eval.num_envs, eval.episodes) evaluation envs per member)."""
     from botorl.pipeline import population as P
     from botorl.pipeline import stages as S
     from botorl.pipeline.methods import get_method
@@ -110,8 +112,12 @@ def estimate(cfg, n: int, d_raw) -> dict[str, int]:
                      oc.utd * oc.batch_size)
     offline_bytes = 3 * sum(getattr(d_raw, k).nbytes for k in ("observations", "actions", "rewards",
                                                              "next_observations", "terminals"))
+    # measured only for populations: one member's envs are a few hundred MB at most
+    per_env = 0 if spec is None or n < 2 else P.env_bytes(lambda i: spec.make_env(seed=i, evaluation=True))
+    envs = 1 + min(cfg.eval.num_envs, cfg.eval.episodes)
     return P.estimate_memory(num_members=n, agent_bytes=agent_bytes, buffer_rows=rows, warmup_rows=warm, obs_dim=O,
-                             action_dim=A, batch_rows=batch_rows, activation_floats=act, offline_bytes=offline_bytes)
+                             action_dim=A, batch_rows=batch_rows, activation_floats=act, offline_bytes=offline_bytes,
+                             env_bytes_per_member=envs * per_env)
 
 
 def _default_out(cfg, n: int) -> Path:
@@ -140,7 +146,16 @@ def run_population_main(argv: list[str]) -> int:
     cfg = replace(cfg, out=str(out))
     spec = get_task(cfg.task)
     d_raw = load_offline(cfg, spec)  # a missing dataset fails here, before any directory exists
-    P.check_memory(estimate(cfg, len(members), d_raw), len(members))
+    parts = estimate(cfg, len(members), d_raw, spec)
+    import jax
+
+    if jax.default_backend() == "cpu":
+        P.check_memory(parts, len(members))
+    else:  # environments live in host memory, the rest on the accelerator
+        envs = parts.pop("environments")
+        parts["total"] -= envs
+        P.check_memory(parts, len(members))
+        P.check_memory({"environments": envs, "total": envs}, len(members), available=P.host_memory())
     runs = [RunDir(out / m.name) for m in members]
     member_cfgs = [replace(c, out=str(r.root)) for c, r in zip(member_cfgs, runs)]
     with _owned(out):
