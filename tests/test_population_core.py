@@ -193,5 +193,5 @@ def test_env_bytes_measures_what_an_env_holds():
         def close(self):
             pass
 
-    per = P.env_bytes(lambda i: Heavy(), probes=4)
+    per = P.env_bytes(lambda i: Heavy(), probes=5)
     assert 15 * 2**20 <= per <= 20 * 2**20, per / 2**20

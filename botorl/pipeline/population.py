@@ -583,24 +583,30 @@ def _rss_bytes() -> int | None:
         return None
 
 
-def env_bytes(make_env, probes: int = 4) -> int:
-    """Host memory one more environment takes: the resident-size growth of making and resetting
-    ``probes`` envs after a first one (which pays for imports and shared model caches); 0 where
-    the resident size cannot be read. A pointmaze env measured 12 MB, so a 44-member population
-    with 20 evaluation envs a member holds ~11 GB of environments."""
-    first = make_env(0)
-    first.reset(seed=0)
-    before = _rss_bytes()
-    if before is None:
-        return 0
-    envs = [make_env(i + 1) for i in range(probes)]
-    for e in envs:
+def env_bytes(make_env, probes: int = 6) -> int:
+    """Host memory one more environment takes: the median resident-size growth over ``probes``
+    envs made and reset one after another, after two that pay for imports, shared model caches
+    and the allocator's first arenas (the second pointmaze env grows the process by 23 MB, each
+    later one by 11.7); 0 where the resident size cannot be read. So a 44-member population
+    with 20 evaluation envs a member holds ~11 GB of pointmaze environments."""
+    envs = []
+
+    def one():
+        e = make_env(len(envs))
         e.reset(seed=0)
-    grown = (_rss_bytes() or before) - before
-    for e in [first, *envs]:
+        envs.append(e)
+
+    one(), one()
+    sizes = [_rss_bytes()]
+    if sizes[0] is None:
+        return 0
+    for _ in range(probes):
+        one()
+        sizes.append(_rss_bytes() or sizes[-1])
+    for e in envs:
         with contextlib.suppress(Exception):
             e.close()
-    return max(0, grown // probes)
+    return max(0, int(np.median(np.diff(sizes))))
 
 
 def estimate_memory(*, num_members: int, agent_bytes: int, buffer_rows: int, warmup_rows: int, obs_dim: int,

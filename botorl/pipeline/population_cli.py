@@ -95,6 +95,10 @@ def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
     from botorl.pipeline import stages as S
     from botorl.pipeline.methods import get_method
 
+    # envs first: made after JAX has built its first arrays, the first ~16 pointmaze envs grow the
+    # process by twice what each later one does (allocator arenas), which would double the estimate.
+    # Measured only for populations: one member's envs are a few hundred MB at most.
+    per_env = 0 if spec is None or n < 2 else P.env_bytes(lambda i: spec.make_env(seed=i, evaluation=True))
     method = get_method(cfg.method)
     O, A = d_raw.obs_dim, d_raw.action_dim
     agent_bytes = P.tree_bytes(S.make_online_agent_template(cfg, O, A, 0))
@@ -112,8 +116,6 @@ def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
                      oc.utd * oc.batch_size)
     offline_bytes = 3 * sum(getattr(d_raw, k).nbytes for k in ("observations", "actions", "rewards",
                                                              "next_observations", "terminals"))
-    # measured only for populations: one member's envs are a few hundred MB at most
-    per_env = 0 if spec is None or n < 2 else P.env_bytes(lambda i: spec.make_env(seed=i, evaluation=True))
     envs = 1 + min(cfg.eval.num_envs, cfg.eval.episodes)
     return P.estimate_memory(num_members=n, agent_bytes=agent_bytes, buffer_rows=rows, warmup_rows=warm, obs_dim=O,
                              action_dim=A, batch_rows=batch_rows, activation_floats=act, offline_bytes=offline_bytes,
