@@ -2,6 +2,7 @@
 not reduce unlearning here), from the members of the study's populations.
 
     python docs/results/pointmaze-medium/why.py study/pm-medium-boto study/pm-medium-wsrl
+    python docs/results/pointmaze-medium/why.py --by-alpha study/alpha-medium/pointmaze-medium/boto/pop-44m-*
 
 Per method, means over members (and the per-member values where they differ):
 - q_data / q_uniform at step 0 (probe states of D_offline; after pre-training) and at the
@@ -48,7 +49,27 @@ def member(d: Path) -> dict:
     return out
 
 
+BY_ALPHA = ("success0", "dip_low", "final", "q_data0", "q_unif0", "q_data_ft0", "q_unif_ft0", "qd_ft_first", "qd_ft_5k")
+
+
+def by_alpha(dirs: list[str]) -> None:
+    """One row per alpha of a sweep: means over its seeds (Q after BOTO = q_*_ft0)."""
+    import json
+
+    groups: dict[float, list[dict]] = {}
+    for pop in map(Path, dirs):
+        for m in sorted(p for p in pop.iterdir() if (p / "eval.csv").exists()):
+            alpha = json.loads((m / "config.json").read_text())["boto"]["alpha"]
+            groups.setdefault(float(alpha), []).append(member(m))
+    print(f"{'alpha':>6} {'n':>2} " + " ".join(f"{k:>11}" for k in BY_ALPHA))
+    for a in sorted(groups):
+        vals = [np.mean([s[k] for s in groups[a]]) for k in BY_ALPHA]
+        print(f"{a:6.2f} {len(groups[a]):2d} " + " ".join(f"{v:11.2f}" for v in vals))
+
+
 def main(dirs: list[str]) -> None:
+    if dirs and dirs[0] == "--by-alpha":
+        return by_alpha(dirs[1:])
     for pop in map(Path, dirs):
         members = sorted(p for p in pop.iterdir() if (p / "eval.csv").exists())
         stats = [member(m) for m in members]
