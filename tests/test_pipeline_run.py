@@ -32,10 +32,23 @@ def _csv(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+EVAL_CALLS: list[int] = []
+
+
 @pytest.fixture(scope="module")
 def boto_run(tmp_path_factory):
+    from botorl.pipeline import population as P
+
     out = tmp_path_factory.mktemp("pipeline") / "boto"
-    assert _run(out, "--seed", "3", "--alpha", "-0.5") == 0
+    run_episodes = P.run_population_episodes
+
+    def counted(*args, **kwargs):
+        EVAL_CALLS.append(1)
+        return run_episodes(*args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(P, "run_population_episodes", counted)
+        assert _run(out, "--seed", "3", "--alpha", "-0.5") == 0
     return out
 
 
@@ -53,6 +66,9 @@ def test_run_directory_contract(boto_run):
     # fine-tuning starts (30), then at 40 (the end)
     assert [(r["stage"], int(r["env_step"])) for r in rows] == [
         ("warmup", 0), ("warmup", 20), ("finetune", 30), ("finetune", 40)]
+    # the frozen policy's evaluation at 20 is the one at 0, logged again, not run again
+    assert len(EVAL_CALLS) == 3
+    assert {k: v for k, v in rows[1].items() if k != "env_step"} == {k: v for k, v in rows[0].items() if k != "env_step"}
     for r in rows:
         assert 0.0 <= float(r["success"]) <= 1.0
         assert math.isfinite(float(r["q_data"])) and math.isfinite(float(r["q_uniform"]))

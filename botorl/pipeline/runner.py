@@ -233,14 +233,20 @@ class RunContext:
             max_steps=self.spec.max_episode_steps,
         )
         qs = self.q_stats(agents)
-        rows = []
-        for i, (mc, st, (q_data, q_uniform)) in enumerate(zip(self.members, stats, qs)):
-            row = {"stage": self._stage or "finetune", "env_step": int(env_step), "success": st.success,
-                   "return": st.episode_return, "q_data": q_data, "q_uniform": q_uniform}
+        rows = [{"stage": self._stage or "finetune", "env_step": int(env_step), "success": st.success,
+                 "return": st.episode_return, "q_data": q_data, "q_uniform": q_uniform}
+                for st, (q_data, q_uniform) in zip(stats, qs)]
+        return self.log_evaluation(rows)
+
+    def log_evaluation(self, rows: list[dict[str, Any]], env_step: int | None = None) -> list[dict[str, Any]]:
+        """Log one row per member (at ``env_step`` if given: an earlier evaluation of the same,
+        unchanged policies, which deterministic episodes from the same seeds would repeat)."""
+        if env_step is not None:
+            rows = [dict(r, env_step=int(env_step)) for r in rows]
+        for i, (mc, row) in enumerate(zip(self.members, rows)):
             if i not in self.failed:
                 mc.eval_log.append(row)
                 mc.logger.log_eval(row)
-            rows.append(row)
         return rows
 
     def close(self) -> None:

@@ -281,7 +281,8 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
 
     These are the first online env steps (WSRL's accounting): the online axis starts here,
     with an evaluation of the pre-trained policy at step 0 and at every evaluation point the
-    warm-up passes (the policy is frozen, so those show it unchanged).
+    warm-up passes (the policy is frozen and its evaluation deterministic, so the step-0
+    evaluation is logged again there instead of being run again).
 
     No mid-stage checkpoint: a run killed here starts the warm-up again from its beginning on
     resume, which is exact (the same env seeds, and the policy's key from the pre-training
@@ -306,10 +307,11 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
     successes: list[list[float]] = [[] for _ in range(N)]
     ep_success = np.zeros(N)
     bar = _bar(ctx, n, 0, "warm-up (frozen policy)", unit="env step")
+    first_eval = None
     try:
         for t in range(n):
             if t % cfg.eval.interval == 0:
-                ctx.evaluate(agents, t)
+                first_eval = ctx.evaluate(agents, t) if first_eval is None else ctx.log_evaluation(first_eval, t)
             actions, agents = P.pop_sample(agents, obs)
             actions = np.asarray(actions, dtype=np.float32)
             for i, env in enumerate(envs):
