@@ -221,6 +221,26 @@ def test_local_workers_are_pinned_single_threaded(tmp_path, fake):
     assert worker["cpus"] == cores  # the sequential backend leaves the whole machine to its trial
 
 
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs at least 2 cores")
+def test_fewer_workers_than_cores_get_blocks_of_cores(tmp_path, fake):
+    """One worker on a C-core machine gets all C cores and its thread pools (pinning it to one
+    core, as before, left the others idle)."""
+    cores = sorted(os.sched_getaffinity(0))
+    sweep = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0-1"),
+                  SweepOptions(out=tmp_path / "one", backend="local", workers=1, command=fake, progress=False))
+    manifest = sweep.run()
+    for trial in sweep.trials:
+        worker = json.loads((sweep.run_dir(trial) / "worker.json").read_text())
+        assert worker["cpus"] == cores and worker["omp"] is None
+        assert manifest["trials"][trial.id]["cpus"] == cores and manifest["trials"][trial.id]["cpu"] is None
+    # two workers, two trials launched together (slots 0 and 1): disjoint blocks covering every core
+    sweep = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0-1"),
+                  SweepOptions(out=tmp_path / "two", backend="local", workers=2, command=fake, progress=False))
+    sweep.run()
+    blocks = [json.loads((sweep.run_dir(t) / "worker.json").read_text())["cpus"] for t in sweep.trials]
+    assert sorted(c for b in blocks for c in b) == cores
+
+
 def test_ray_backend_without_ray_is_a_clear_error(tmp_path, fake, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
     sweep = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0"),

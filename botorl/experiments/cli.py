@@ -58,9 +58,9 @@ class SweepArgs:
     set: tuple[str, ...] = ()
     """config overrides dotted.path=value, passed as --dotted.path value to every trial"""
     backend: Literal["sequential", "local", "ray"] = "local"
-    """sequential: one at a time; local: one pinned process per core; ray: Ray tasks"""
+    """sequential: one at a time; local: --workers pinned processes (default one per core); ray: Ray tasks"""
     workers: Optional[int] = None
-    """parallel trials (local: pinned to cores round-robin; ray: CPUs of a local instance); default: the usable cores"""
+    """parallel trials (local: each pinned to its own block of cores, C // workers of them; ray: CPUs of a local instance); default: the usable cores"""
     max_retries: int = 2
     """a failed trial is resumed from its checkpoint at most this many times per invocation"""
     ray_address: Optional[str] = None

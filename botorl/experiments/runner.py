@@ -9,8 +9,10 @@ per trial, its state, how many times it was launched and how it last ended.
 
 Backends:
 - sequential: one trial at a time with the machine's full thread pools;
-- local: one process per core, each pinned to its core, XLA/BLAS limited to one thread
-  (a 1-core trial with many threads only adds context switches);
+- local: ``--workers`` processes (default: one per core), each pinned to its own block of
+  the cores (C // W of them); a worker with one core has XLA/BLAS limited to one thread
+  (a 1-core trial with many threads only adds context switches), one with several keeps
+  the thread pools;
 - ray: one Ray task (num_cpus=1) per trial on an existing cluster or a local instance.
 
 With ``population_size`` K > 1 the unit of work of every backend is a population: the
@@ -144,8 +146,8 @@ def trial_command(
 # Child processes
 
 
-def _child_setup(cpu: int | None, parent_pid: int) -> Callable[[], None]:
-    """Runs in the forked child before exec: die with the sweep, stay on one core."""
+def _child_setup(cpus: Sequence[int] | None, parent_pid: int) -> Callable[[], None]:
+    """Runs in the forked child before exec: die with the sweep, stay on its cores."""
 
     def setup() -> None:
         with contextlib.suppress(Exception):
@@ -153,9 +155,9 @@ def _child_setup(cpu: int | None, parent_pid: int) -> Callable[[], None]:
             libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
         if os.getppid() != parent_pid:  # the sweep died before prctl: do not run orphaned
             os._exit(1)
-        if cpu is not None:
+        if cpus:
             with contextlib.suppress(OSError):
-                os.sched_setaffinity(0, {cpu})
+                os.sched_setaffinity(0, set(cpus))
 
     return setup
 
@@ -391,9 +393,19 @@ class Sweep:
         except AttributeError:
             return list(range(os.cpu_count() or 1))
 
-    def _trial_env(self) -> dict[str, str]:
+    def _core_block(self, slot: int) -> list[int]:
+        """The cores of worker slot ``slot``: the sweep's cores split into one contiguous block
+        per worker, so W workers on C cores get C // W cores each (one when W >= C). Pinning
+        every worker to a single core instead left cores idle when W < C (one worker on a
+        2-core machine used one core)."""
+        cores = self._cores()
+        w = min(self._workers(), len(cores))
+        k = slot % w
+        return cores[k * len(cores) // w:(k + 1) * len(cores) // w]
+
+    def _trial_env(self, threads: int = 1) -> dict[str, str]:
         env = dict(os.environ)
-        if self.opt.backend != "sequential":
+        if self.opt.backend != "sequential" and threads == 1:
             env = single_thread_env(env)
         env.setdefault("PYTHONUNBUFFERED", "1")
         return env
@@ -414,21 +426,23 @@ class Sweep:
 
     def _launch_local(self, trial: Trial, slot: int | None) -> subprocess.Popen:
         run_dir, cmd, log = self._prepare(trial)
-        cores = self._cores()
-        cpu = cores[slot % len(cores)] if (slot is not None and self.opt.backend == "local") else None
+        block = self._core_block(slot) if (slot is not None and self.opt.backend == "local") else None
+        # "cpu": the one core of a single-core block (the manifest's field before blocks), else None
+        cpu = block[0] if block and len(block) == 1 else None
         with open(log, "ab") as logf:
             proc = subprocess.Popen(
                 cmd,
                 stdout=logf,
                 stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL,
-                env=self._trial_env(),
+                env=self._trial_env(len(block) if block else 1),
                 cwd=str(self.out),
-                preexec_fn=_child_setup(cpu, os.getpid()),
+                preexec_fn=_child_setup(block, os.getpid()),
             )
-        atomic_write_json(run_dir / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": cpu})
+        atomic_write_json(run_dir / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": cpu,
+                                                "cpus": block})
         entry = self._entry(trial)
-        entry.update(pid=proc.pid, cpu=cpu)
+        entry.update(pid=proc.pid, cpu=cpu, cpus=block)
         self._save()
         return proc
 
