@@ -637,8 +637,9 @@ def load_dapg_demos(
 ) -> Dataset:
     """DAPG human demos: the original list-of-dicts pickle or botorl's ``.npz``.
 
-    ``.npz`` (no pickle): ``observations, actions, rewards, episode_lengths`` (the arrays of the copy
-    botorl ships, botorl/data/assets/door_human_demos.npz; its README.md describes them). ``.pickle``/``.pkl``: the DAPG file, a list of dicts with
+    ``.npz`` (no pickle): ``observations, actions, rewards, episode_lengths`` (the arrays of
+    the copy botorl ships, botorl/data/assets/door_human_demos.npz; its README.md describes
+    them). ``.pickle``/``.pkl``: the DAPG file, a list of dicts with
     ``observations, actions, rewards`` (``init_state_dict`` etc. are ignored); opened only
     because the user named it.
 

@@ -26,7 +26,6 @@ the start of the resume. Checkpoints written before manifests existed are accept
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import shutil
 import sys

@@ -453,7 +453,7 @@ class MemberReplay:
                for k, tail in (("observations", (self.obs_dim,)), ("actions", (self.action_dim,)),
                                ("rewards", ()), ("next_observations", (self.obs_dim,)), ("dones", ()),
                                ("mc_returns", ()))}
-        m_idx, r_idx, members, off_parts = [], [], [], []
+        r_idx, members, off_parts = [], [], []
         counts = None
         for i, (rng, on) in enumerate(zip(rngs, active)):
             if not on:
@@ -648,9 +648,9 @@ def check_memory(parts: dict[str, int], num_members: int, *, available: tuple[in
         raise ConfigError(
             f"a population of {num_members} members needs about {need / 2**30:.1f} GiB ({detail}), more than "
             f"{headroom:.0%} of the {have / 2**30:.1f} GiB of {what}. Use fewer members (about {fit} fit: fewer "
-            f"--seeds/--alphas, or --population-size for a sweep), a smaller --online.buffer_capacity, or a "
-            f"smaller --offline.updates_per_call" + (", or fewer --eval.num_envs (each member holds that many "
-            f"evaluation envs)" if parts.get("environments") else "") + "."
+            "--seeds/--alphas, or --population-size for a sweep), a smaller --online.buffer_capacity, or a "
+            "smaller --offline.updates_per_call" + (", or fewer --eval.num_envs (each member holds that many "
+            "evaluation envs)" if parts.get("environments") else "") + "."
         )
 
 

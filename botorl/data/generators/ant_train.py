@@ -32,7 +32,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import math
 import multiprocessing as mp
 import os
 import time

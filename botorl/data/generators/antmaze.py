@@ -250,7 +250,6 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
     actions = np.empty((steps, 8))
     ends = np.zeros(steps, bool)
     starts_row = np.zeros(steps, bool)  # a row whose state is an episode's reset state
-    resets = []  # (row, qpos, qvel) of reset states other than row 0's predecessor
 
     def new_episode():
         while True:
