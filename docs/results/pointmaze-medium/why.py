@@ -38,6 +38,9 @@ def member(d: Path) -> dict:
            "final": ev[-1]["success"], "q_data0": ev[0]["q_data"], "q_unif0": ev[0]["q_uniform"]}
     first_ft = next(r for r in ev if r["stage"] == "finetune")
     out |= {"q_data_ft0": first_ft["q_data"], "q_unif_ft0": first_ft["q_uniform"]}
+    for step in (5_000, 7_500, 10_000):  # success at the sweep's evaluation points (nan if not reached)
+        out[f"s_{step}"] = next((r["success"] for r in reversed(ev) if r["env_step"] == step), float("nan"))
+    out["dip"] = out["dip_low"] - out["success0"]
     start = ft[0]["step"]
     for name, s in (("ft_first", start), ("ft_2k5", start + 2_500), ("ft_5k", start + 5_000)):
         r = at(ft, s)
@@ -49,7 +52,8 @@ def member(d: Path) -> dict:
     return out
 
 
-BY_ALPHA = ("success0", "dip_low", "final", "q_data0", "q_unif0", "q_data_ft0", "q_unif_ft0", "qd_ft_first", "qd_ft_5k")
+BY_ALPHA = ("success0", "s_5000", "s_7500", "s_10000", "dip", "q_data0", "q_data_ft0", "q_unif_ft0", "qd_ft_first",
+            "qd_ft_5k")
 
 
 def by_alpha(dirs: list[str]) -> None:
@@ -61,10 +65,12 @@ def by_alpha(dirs: list[str]) -> None:
         for m in sorted(p for p in pop.iterdir() if (p / "eval.csv").exists()):
             alpha = json.loads((m / "config.json").read_text())["boto"]["alpha"]
             groups.setdefault(float(alpha), []).append(member(m))
-    print(f"{'alpha':>6} {'n':>2} " + " ".join(f"{k:>11}" for k in BY_ALPHA))
+    print(f"{'alpha':>6} {'n':>2} " + " ".join(f"{k:>11}" for k in BY_ALPHA) + "   dip s.e.")
     for a in sorted(groups):
         vals = [np.mean([s[k] for s in groups[a]]) for k in BY_ALPHA]
-        print(f"{a:6.2f} {len(groups[a]):2d} " + " ".join(f"{v:11.2f}" for v in vals))
+        dips = np.array([s["dip"] for s in groups[a]])
+        se = dips.std(ddof=1) / np.sqrt(len(dips)) if len(dips) > 1 else float("nan")
+        print(f"{a:6.2f} {len(groups[a]):2d} " + " ".join(f"{v:11.2f}" for v in vals) + f"   {se:8.2f}")
 
 
 def main(dirs: list[str]) -> None:
