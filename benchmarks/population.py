@@ -23,7 +23,7 @@ Sizes:
           actor 2 x 256 in every algorithm (IQL's value net 4 x 256); Cal-QL with 10 CQL
           samples per kind and the max-target backup over 10.
 
-`--whole-run` also times whole quick runs of the main job (pointmaze-medium BOTO) (`botorl run` subprocesses) as one
+`--whole-run` also times whole quick runs of the main job (BOTO on MAIN_TASK) (`botorl run` subprocesses) as one
 member and as N members (`--seeds 0-(N-1)`), and prints the ratio of wall times.
 """
 
@@ -145,10 +145,13 @@ def measure(workload: str, size: str, n: int, min_time: float, k: int | None = N
             "member_updates_per_s": float(np.median(rates)), "calls_timed": 3 * calls, "compile_s": compile_s}
 
 
+MAIN_TASK = "pointmaze-umaze"  # botorl run's default task
+
+
 def whole_run(n: int, extra: list[str], out_root: Path) -> float:
     out = out_root / f"whole-{n}-{int(time.time())}"
     seeds = "0" if n == 1 else f"0-{n - 1}"
-    cmd = [sys.executable, "-m", "botorl.cli", "run", "--task", "pointmaze-medium", "--method", "boto",
+    cmd = [sys.executable, "-m", "botorl.cli", "run", "--task", MAIN_TASK, "--method", "boto",
            "--profile", "quick", "--seeds", seeds, "--no-progress", "--out", str(out), *extra]
     t = time.perf_counter()
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
@@ -194,7 +197,7 @@ def main(argv=None) -> int:
         for n in [int(x) for x in args.whole_run.split(",")]:
             times[n] = whole_run(n, extra, Path(args.whole_run_out))
             whole.append({"members": n, "wall_s": times[n], "ratio_vs_1": times[n] / times[min(times)]})
-            print(f"whole quick pointmaze-large run, {n} member(s): {times[n]:.1f} s "
+            print(f"whole quick {MAIN_TASK} run, {n} member(s): {times[n]:.1f} s "
                   f"({times[n] / times[min(times)]:.2f}x the wall time of {min(times)})", flush=True)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
