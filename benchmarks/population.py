@@ -53,6 +53,7 @@ from botorl.agents.sac import SACAgent, SACConfig  # noqa: E402
 from botorl.benchmarks.workloads import make_batch  # noqa: E402
 from botorl.boto.config import BOTOConfig  # noqa: E402
 from botorl.boto.objective import ObjectiveSettings  # noqa: E402
+from botorl.configs.schema import RunConfig  # noqa: E402
 from botorl.pipeline import population as P  # noqa: E402
 
 # Sizes of the pipeline's presets (botorl/configs/presets.py + resolve.py; written out here so
@@ -145,7 +146,7 @@ def measure(workload: str, size: str, n: int, min_time: float, k: int | None = N
             "member_updates_per_s": float(np.median(rates)), "calls_timed": 3 * calls, "compile_s": compile_s}
 
 
-MAIN_TASK = "pointmaze-umaze"  # botorl run's default task
+MAIN_TASK = RunConfig().task  # botorl run's default task
 
 
 def whole_run(n: int, extra: list[str], out_root: Path) -> float:

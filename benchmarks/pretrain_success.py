@@ -23,6 +23,7 @@ from botorl.configs.presets import make_preset
 from botorl.configs.resolve import resolve
 from botorl.envs.registry import get_task
 from botorl.pipeline import population as P
+from botorl.pipeline.evaluation import make_eval_envs
 from botorl.pipeline.population import parse_seeds
 from botorl.pipeline.runner import load_offline, transform_dataset
 from botorl.pipeline.stages import make_pretrain_agent
@@ -61,8 +62,7 @@ def main(argv=None) -> int:
         seeds = parse_seeds(args.seeds)
         rngs = [np.random.default_rng([s, 1]) for s in seeds]
     agents = P.stack([make_pretrain_agent(cfg, d.obs_dim, d.action_dim, s) for s in seeds])
-    n_env = min(cfg.eval.num_envs, cfg.eval.episodes)
-    envs = [[spec.make_env(seed=10_000 + i, evaluation=True) for i in range(n_env)] for _ in seeds]
+    envs = [make_eval_envs(spec, cfg.eval) for _ in seeds]
     print(f"{args.task} {args.pretrain} seeds {seeds}: {len(d.observations)} rows, batch {offline.batch_size}, "
           f"cql_n_actions {cfg.offline.cql.cql_n_actions}, {cfg.network.num_critics} critics", flush=True)
     K, step, t0 = 50, 0, time.perf_counter()

@@ -124,6 +124,11 @@ class EvalConfig:
     q_pairs: int = 1_000
     """Dataset (s, a) pairs for the q_data / q_uniform statistics."""
 
+    @property
+    def envs_per_member(self) -> int:
+        """Evaluation envs one member holds: no more than it has episodes to run."""
+        return min(self.num_envs, self.episodes)
+
 
 @dataclass
 class RunConfig:

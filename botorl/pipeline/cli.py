@@ -342,7 +342,7 @@ def _eval(args, run, cfg) -> int:
     from botorl.envs.registry import get_task
     from botorl.pipeline import stages as S
     from botorl.pipeline.checkpoint import CheckpointManager
-    from botorl.pipeline.evaluation import QProbe, run_episodes
+    from botorl.pipeline.evaluation import QProbe, make_eval_envs, run_episodes
     from botorl.pipeline.rundir import atomic_write_json
     from botorl.pipeline.runner import transform_dataset
 
@@ -366,8 +366,7 @@ def _eval(args, run, cfg) -> int:
     template = (S.make_online_agent_template if stage == "finetune" else S.make_pretrain_agent)(
         cfg, d.obs_dim, d.action_dim, cfg.seed)
     agent = agent_ckpt.load(ckpt.path(name) / "agent.ckpt", like=template)
-    n = min(cfg.eval.num_envs, cfg.eval.episodes)
-    envs = [spec.make_env(seed=10_000 + i, evaluation=True) for i in range(n)]
+    envs = make_eval_envs(spec, cfg.eval)
     t0 = time.perf_counter()
     stats = run_episodes(lambda o: agent.eval_actions(o), envs, episodes=cfg.eval.episodes,
                          success_mode=spec.success_mode, seed=200_000 + cfg.seed, max_steps=spec.max_episode_steps)

@@ -33,6 +33,12 @@ class EpisodeStats:
     successes: list[float]
 
 
+def make_eval_envs(spec, eval_cfg) -> list[Any]:
+    """One member's evaluation envs (``eval_cfg.envs_per_member`` of them, the same env seeds
+    for every member and run; episodes are seeded by their reset seeds, not by the envs)."""
+    return [spec.make_env(seed=10_000 + i, evaluation=True) for i in range(eval_cfg.envs_per_member)]
+
+
 def run_episodes(
     policy: Callable[[np.ndarray], np.ndarray],
     envs: Sequence[Any],

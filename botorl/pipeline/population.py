@@ -596,7 +596,8 @@ def env_bytes(make_env, probes: int = 6) -> int:
         e.reset(seed=0)
         envs.append(e)
 
-    one(), one()
+    one()
+    one()
     sizes = [_rss_bytes()]
     if sizes[0] is None:
         return 0

@@ -90,7 +90,7 @@ def build_population(argv: list[str]):
 def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
     """The population's memory by part (population.estimate_memory), from one template member;
     with the task's ``spec``, its environments measured (one training env and
-    min(eval.num_envs, eval.episodes) evaluation envs per member)."""
+    eval.envs_per_member evaluation envs per member)."""
     from botorl.pipeline import population as P
     from botorl.pipeline import stages as S
     from botorl.pipeline.methods import get_method
@@ -116,7 +116,7 @@ def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
                      oc.utd * oc.batch_size)
     offline_bytes = 3 * sum(getattr(d_raw, k).nbytes for k in ("observations", "actions", "rewards",
                                                              "next_observations", "terminals"))
-    envs = 1 + min(cfg.eval.num_envs, cfg.eval.episodes)
+    envs = 1 + cfg.eval.envs_per_member
     return P.estimate_memory(num_members=n, agent_bytes=agent_bytes, buffer_rows=rows, warmup_rows=warm, obs_dim=O,
                              action_dim=A, batch_rows=batch_rows, activation_floats=act, offline_bytes=offline_bytes,
                              env_bytes_per_member=envs * per_env)

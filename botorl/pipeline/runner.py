@@ -23,7 +23,7 @@ from botorl.errors import ConfigError, TrainingDivergedError
 from botorl.pipeline import population as P
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_name
-from botorl.pipeline.evaluation import QProbe
+from botorl.pipeline.evaluation import QProbe, make_eval_envs
 from botorl.pipeline.methods import get_method
 from botorl.pipeline.rundir import EVAL_COLUMNS, CsvLog, MetricsLogger, RunDir, atomic_write_json
 
@@ -206,11 +206,9 @@ class RunContext:
 
     # -- evaluation
     def envs(self):
-        """``eval.num_envs`` evaluation envs per member (the same seeds for every member)."""
+        """``eval.envs_per_member`` evaluation envs per member (the same seeds for every member)."""
         if self._envs is None:
-            n = min(self.cfg.eval.num_envs, self.cfg.eval.episodes)
-            self._envs = [[self.spec.make_env(seed=10_000 + i, evaluation=True) for i in range(n)]
-                          for _ in self.members]
+            self._envs = [make_eval_envs(self.spec, self.cfg.eval) for _ in self.members]
         return self._envs
 
     def q_stats(self, agents) -> list[tuple[float, float]]:
