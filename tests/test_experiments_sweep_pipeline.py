@@ -110,6 +110,11 @@ def test_sequential_backend(tmp_path):
         "pointmaze-umaze/boto/alpha+0.50/seed0", "pointmaze-umaze/wsrl/seed0"]
     summary = json.loads((out / "pointmaze-umaze/boto/alpha+0.50/seed0/summary.json").read_text())
     assert summary["alpha"] == 0.5 and summary["profile"] == "smoke"
+    # BOTO ran second and started from WSRL's pre-training of seed 0 (the same Cal-QL settings)
+    boto, wsrl = out / "pointmaze-umaze/boto/alpha+0.50/seed0", out / "pointmaze-umaze/wsrl/seed0"
+    assert json.loads((boto / "config.json").read_text())["pretrained"] == str(out.resolve())
+    assert json.loads((wsrl / "config.json").read_text())["pretrained"] is None
+    assert (boto / "metrics/pretrain.csv").read_text() == (wsrl / "metrics/pretrain.csv").read_text()
     manifest = json.loads((out / "sweep.json").read_text())
     first, second = sorted(manifest["trials"].values(), key=lambda e: e["started"])
     assert first["ended"] <= second["started"]  # one at a time

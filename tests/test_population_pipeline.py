@@ -209,3 +209,42 @@ def test_alphas_of_one_seed_share_one_pretraining(tmp_path, monkeypatch):
         assert [(r["env_step"], r["success"], r["return"]) for r in a] == [(r["env_step"], r["success"], r["return"]) for r in b]
         for x, y in zip(a, b):
             assert math.isclose(float(x["q_data"]), float(y["q_data"]), rel_tol=1e-6, abs_tol=1e-6)
+
+
+def test_wsrl_starts_from_botos_pretraining(pops, tmp_path, monkeypatch):
+    """`--pretrained DIR`: WSRL at seed 3 takes the BOTO population's pre-trained seed-3 agent
+    (no pre-training update runs) and so collects the same warm-up and scores the same step-0
+    evaluation as the BOTO member of that seed; its pre-training logs are the source's."""
+    from botorl.pipeline import population as P
+
+    four, _ = pops
+    calls = []
+    monkeypatch.setattr(P, "pop_update_many", lambda *a: calls.append(1))
+    out = tmp_path / "wsrl"
+    assert _run(out, "--method", "wsrl", "--seeds", "3", "--pretrained", str(four), *LONG) == 0
+    assert not calls
+    src, member = four / "alpha+0.50-seed3", out / "seed3"
+    assert json.loads((member / "config.json").read_text())["pretrained"] == str(four)
+    assert _csv(member / "metrics" / "pretrain.csv") == _csv(src / "metrics" / "pretrain.csv")
+    w_src = np.load(four / "checkpoints" / "warmup-final" / "warmup-m2.npz")
+    w_new = np.load(out / "checkpoints" / "warmup-final" / "warmup-m0.npz")
+    np.testing.assert_allclose(w_src["actions"], w_new["actions"], atol=1e-5)  # vmapped over 4 vs 1: float order
+    e_src, e_new = _csv(src / "eval.csv")[0], _csv(member / "eval.csv")[0]
+    assert (e_src["stage"], e_src["env_step"]) == (e_new["stage"], e_new["env_step"]) == ("warmup", "0")
+    assert e_src["success"] == e_new["success"]
+    assert math.isclose(float(e_src["q_data"]), float(e_new["q_data"]), rel_tol=1e-4)
+    assert _csv(member / "metrics" / "finetune.csv")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--method", "wsrl", "--seeds", "3,5"], "at seed 5"),
+    (["--method", "wsrl", "--seed", "3", "--offline.steps", "100"], "offline.steps (200 there, 100 here)"),
+    (["--method", "rlpd", "--seed", "3"], "no pre-training to skip"),
+])
+def test_pretrained_mismatch_exit_2(pops, tmp_path, capsys, args, message):
+    four, _ = pops
+    long = LONG[2:] if "--offline.steps" in args else LONG
+    out = tmp_path / "bad"
+    assert _run(out, *args, "--pretrained", str(four), *long) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()

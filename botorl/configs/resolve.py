@@ -106,6 +106,9 @@ def validate(cfg: RunConfig) -> None:
         if not cond:
             raise ConfigError(f"--{field} = {value!r} is invalid: {what}.")
 
+    if cfg.pretrained is not None and "pretrain" not in method.stages:
+        raise ConfigError(f"--pretrained {cfg.pretrained}: --method {cfg.method} has no pre-training to skip; "
+                          f"drop --pretrained.")
     for name, v in (("seed", cfg.seed), ("data.seed", cfg.data.seed)):
         # NumPy's generators take only non-negative seeds; 2**31 keeps JAX keys in int32
         need(isinstance(v, int) and 0 <= v < 2**31, name, v, "a seed must be an integer in [0, 2**31)")

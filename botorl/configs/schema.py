@@ -141,6 +141,10 @@ class RunConfig:
     """BOTO's bias controller in [-1, 1]; None = the preset's (the paper's per-task value)."""
     pretrain: Literal["calql", "cql", "iql"] | None = None
     """Offline algorithm of boto/wsrl (default calql); calql/cql/iql use themselves; rlpd none."""
+    pretrained: str | None = None
+    """Skip pre-training: start each member from the finished pre-training of the run under this
+    directory (a run, population or sweep) with the same seed and pre-training settings (e.g. WSRL
+    from the BOTO runs' pre-training; botorl/pipeline/shared_pretrain.py)."""
     profile: Literal["quick", "full", "smoke"] = "quick"
     out: str | None = None
     """Run directory; default runs/<task>-<method>-s<seed>-<timestamp>."""

@@ -70,6 +70,10 @@ class SweepArgs:
     population_size: int = 1
     """train the trials of each (task, method, pre-training) K at a time as populations (one process,
     one jitted update for all members); 1: one process per trial"""
+    share_pretraining: bool = True
+    """a trial whose members' pre-training (same task, seed and settings) finished in --out starts
+    from it, e.g. WSRL from BOTO's Cal-QL (the same numbers, computed once); --no-share-pretraining
+    pre-trains every trial itself"""
     dry_run: bool = False
     """list the trials and what each would do (run / resume / done), launch nothing"""
     progress: bool = True
@@ -125,6 +129,7 @@ def sweep_main(argv: list[str]) -> int:
         command=command,
         progress=args.progress,
         population_size=args.population_size,
+        share_pretraining=args.share_pretraining,
     )
     sweep = Sweep(grid, options)
     if args.dry_run:

@@ -131,15 +131,39 @@ def next_action(run_dir: Path) -> str:
 
 
 def trial_command(
-    trial: Trial, run_dir: Path, grid: Grid, command: Sequence[str] | None = None
+    trial: Trial, run_dir: Path, grid: Grid, command: Sequence[str] | None = None, share_in: Path | None = None
 ) -> tuple[str, list[str]]:
+    """The command that runs (or resumes) ``trial``; with ``share_in`` (the sweep's directory) a
+    new trial whose every member's pre-training already finished there starts from it."""
     prefix = list(command) if command else default_command()
     action = next_action(run_dir)
     # no progress bars: a trial's output goes to its log file, where tqdm's redraws pile up
     if action == "resume":
         return action, prefix + ["resume", str(run_dir), "--no-progress"]
     args = trial.run_args(grid.profile, grid.overrides)
+    if share_in is not None:
+        args += shared_pretraining_args(args, share_in)
     return action, prefix + ["run", *args, "--out", str(run_dir), "--no-progress"]
+
+
+def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:
+    """``["--pretrained", directory]`` when every member of the run ``args`` describe has a
+    finished pre-training with its own settings under ``directory`` (BOTO's, for WSRL at the
+    same seeds), else ``[]``: the trial then pre-trains itself."""
+    from botorl.errors import BotorlError
+    from botorl.pipeline import shared_pretrain
+    from botorl.pipeline.methods import get_method
+    from botorl.pipeline.population_cli import build_population
+
+    try:
+        cfg, _, member_cfgs = build_population(args)
+    except BotorlError:  # not a botorl run (a stand-in command's task): nothing to share
+        return []
+    if cfg.pretrained is not None or "pretrain" not in get_method(cfg.method).stages:
+        return []
+    if shared_pretrain.match(member_cfgs, directory, strict=False) is None:
+        return []
+    return ["--pretrained", str(directory)]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -263,6 +287,7 @@ class SweepOptions:
     progress: bool = True
     poll_interval: float = 0.25
     population_size: int = 1  # > 1: trials grouped into populations, one `botorl run --seeds` each
+    share_pretraining: bool = True  # a new trial starts from pre-training finished in `out` (shared_pretrain.py)
 
 
 @dataclasses.dataclass
@@ -413,7 +438,8 @@ class Sweep:
     def _prepare(self, trial: Trial) -> tuple[Path, list[str], Path]:
         run_dir = self.run_dir(trial)
         stop_orphan(run_dir)
-        action, cmd = trial_command(trial, run_dir, self.grid, self.opt.command)
+        action, cmd = trial_command(trial, run_dir, self.grid, self.opt.command,
+                                    self.out if self.opt.share_pretraining else None)
         run_dir.mkdir(parents=True, exist_ok=True)
         log = run_dir / TRIAL_LOG
         entry = self._entry(trial)

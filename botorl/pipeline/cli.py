@@ -218,6 +218,10 @@ def run_main(argv: list[str]) -> int:
     cfg = replace(cfg, out=str(out))
     spec = get_task(cfg.task)
     d_raw = load_offline(cfg, spec)  # a missing dataset fails here, before the run directory exists
+    if cfg.pretrained is not None:  # so does a --pretrained without this seed's pre-training
+        from botorl.pipeline import shared_pretrain
+
+        shared_pretrain.match([cfg], cfg.pretrained)
     run = RunDir(out)
     with _owned(out):
         already_a_run()  # again, under the lock: another `run` may have started meanwhile

@@ -148,6 +148,10 @@ def run_population_main(argv: list[str]) -> int:
     cfg = replace(cfg, out=str(out))
     spec = get_task(cfg.task)
     d_raw = load_offline(cfg, spec)  # a missing dataset fails here, before any directory exists
+    if cfg.pretrained is not None:  # so does a --pretrained without every seed's pre-training
+        from botorl.pipeline import shared_pretrain
+
+        shared_pretrain.match(member_cfgs, cfg.pretrained)
     parts = estimate(cfg, len(members), d_raw, spec)
     import jax
 

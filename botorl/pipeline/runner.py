@@ -21,6 +21,7 @@ from botorl.configs.schema import RunConfig, to_dict
 from botorl.data.dataset import Dataset
 from botorl.errors import ConfigError, TrainingDivergedError
 from botorl.pipeline import population as P
+from botorl.pipeline import shared_pretrain
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_name
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
@@ -503,7 +504,10 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
             ctx.begin_stage(stage)
             arrays = None
             if stage == "pretrain":
-                agents = S.pretrain(ctx, resume_here)
+                if cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
+                    agents = shared_pretrain.load(ctx, member_cfgs, shared_pretrain.match(member_cfgs, cfg.pretrained))
+                else:
+                    agents = S.pretrain(ctx, resume_here)
                 ctx.log_q("pretrain", cfg.offline.steps, agents)
             elif stage == "warmup":
                 d_warmups, agents = S.warmup(ctx, agents)

@@ -1,0 +1,122 @@
+"""Start from pre-training that another run already did (``--pretrained DIR``).
+
+BOTO and WSRL pre-train with the same Cal-QL on the same data from the same seed, so their
+pre-trained agents are the same numbers; the paper compares them from one checkpoint
+(section 5). A study of both at 8 seeds would otherwise do that work twice (20 minutes of
+this 2-core CPU on pointmaze-medium). ``DIR`` may be a run, a population or a sweep
+directory: every run directory under it whose pre-training finished (its
+``checkpoints/pretrain-final``) is a candidate, and each member takes the candidate whose
+*pre-training fingerprint* equals its own: the settings that decide the pre-trained
+numbers (task, seed, algorithm, data, networks, offline settings, checkpoint spacing, which
+cuts the update chunks). A member with no such candidate is an error that names the closest
+one and the first setting in which it differs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+from botorl.errors import ConfigError
+
+PRETRAIN_FINAL = "pretrain-final"
+# settings that change what is logged, not what is learned
+_NOT_LEARNED = {("offline", "log_every")}
+
+
+def fingerprint(cfg) -> dict[str, Any]:
+    """The settings that decide a member's pre-trained agent."""
+    from botorl.configs.schema import to_dict
+
+    d = to_dict(cfg)
+    offline = {k: v for k, v in d["offline"].items() if ("offline", k) not in _NOT_LEARNED}
+    return {"task": d["task"], "seed": d["seed"], "pretrain": d["pretrain"], "data": d["data"],
+            "network": d["network"], "offline": offline, "checkpoint_every": d["checkpoint_every"]}
+
+
+def _key(fp: dict) -> str:
+    return hashlib.sha256(json.dumps(fp, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _first_difference(a: Any, b: Any, path: str = "") -> str | None:
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            d = _first_difference(a.get(k), b.get(k), f"{path}.{k}" if path else k)
+            if d is not None:
+                return d
+        return None
+    return None if a == b else f"{path} ({b!r} there, {a!r} here)"
+
+
+def candidates(directory: str | Path) -> list[tuple[Path, dict]]:
+    """(run directory, its fingerprint) for every run under ``directory`` with a finished pre-training."""
+    from botorl.configs.schema import RunConfig, from_dict
+    from botorl.pipeline.rundir import read_json
+
+    root = Path(directory).expanduser()
+    if not root.is_dir():
+        raise ConfigError(f"--pretrained {directory}: no such directory. Point it at a run, population or sweep "
+                          f"directory whose pre-training has finished.")
+    found = []
+    for config in sorted(root.rglob("config.json")):
+        run = config.parent
+        if "checkpoints" in run.relative_to(root).parts:
+            continue
+        if not (run / "checkpoints" / PRETRAIN_FINAL / "agent.ckpt").is_file():
+            continue
+        try:
+            cfg = from_dict(RunConfig, read_json(config))
+        except (OSError, ValueError, TypeError):
+            continue
+        found.append((run, fingerprint(cfg)))
+    return found
+
+
+def match(member_cfgs, directory: str | Path, *, strict: bool = True) -> list[Path] | None:
+    """The run directory each member takes its pre-training from; with ``strict=False`` None
+    when any member has no match (the caller then pre-trains), else a ConfigError naming the
+    closest candidate and how it differs."""
+    found = candidates(directory)
+    index = {_key(fp): run for run, fp in found}
+    out = []
+    for cfg in member_cfgs:
+        fp = fingerprint(cfg)
+        run = index.get(_key(fp))
+        if run is None:
+            if not strict:
+                return None
+            same_seed = [(r, f) for r, f in found if f["seed"] == fp["seed"] and f["task"] == fp["task"]]
+            if not same_seed:
+                raise ConfigError(
+                    f"--pretrained {directory}: no finished pre-training of {fp['task']} at seed {fp['seed']} "
+                    f"there ({len(found)} finished pre-trainings found). Pre-train that seed (drop --pretrained) or "
+                    f"point --pretrained at the runs that did.")
+            r, f = same_seed[0]
+            raise ConfigError(
+                f"--pretrained {directory}: {r} pre-trained seed {fp['seed']} with other settings: "
+                f"{_first_difference(fp, f)}. Use the same pre-training settings, or drop --pretrained.")
+        out.append(run)
+    return out
+
+
+def load(ctx, member_cfgs, sources: list[Path]):
+    """The members' pre-trained agents (stacked), with each source's pre-training logs copied
+    into the member's run directory so its metrics read as if it had pre-trained itself."""
+    from botorl.agents import checkpoint as agent_ckpt
+    from botorl.pipeline import population as P
+    from botorl.pipeline.stages import make_pretrain_agent
+
+    d = ctx.d_offline
+    agents = []
+    for cfg, src, mc in zip(member_cfgs, sources, ctx.members):
+        like = make_pretrain_agent(cfg, d.obs_dim, d.action_dim, cfg.seed)
+        agents.append(agent_ckpt.load(str(src / "checkpoints" / PRETRAIN_FINAL / "agent.ckpt"), like=like))
+        for name in ("pretrain.csv", "pretrain.jsonl"):
+            if (src / "metrics" / name).is_file() and src.resolve() != mc.run.root.resolve():
+                tmp = mc.run.metrics / f".{name}.tmp"
+                shutil.copyfile(src / "metrics" / name, tmp)
+                tmp.replace(mc.run.metrics / name)
+    return P.stack(agents)
