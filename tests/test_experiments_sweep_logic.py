@@ -14,6 +14,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -239,6 +240,30 @@ def test_fewer_workers_than_cores_get_blocks_of_cores(tmp_path, fake):
     sweep.run()
     blocks = [json.loads((sweep.run_dir(t) / "worker.json").read_text())["cpus"] for t in sweep.trials]
     assert sorted(c for b in blocks for c in b) == cores
+
+
+def test_trials_start_without_forking_the_sweep(tmp_path, fake, monkeypatch):
+    """The sweep process may hold JAX's threads (it builds each trial's config); a trial starts
+    by spawn + exec of the launcher (botorl.experiments.child), which pins and arms the
+    parent-death signal itself: no os.fork of the sweep, no Python run in a forked child."""
+    import jax.numpy as jnp
+
+    jnp.zeros(1).block_until_ready()  # JAX's backend threads are up, as in a sweep that built configs
+    seen = []
+    real = subprocess.Popen.__init__
+
+    def spy(self, args, *a, **kw):
+        seen.append((list(args), kw.get("preexec_fn")))
+        real(self, args, *a, **kw)
+
+    monkeypatch.setattr(subprocess.Popen, "__init__", spy)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # JAX warns (RuntimeWarning) when os.fork() runs under it
+        Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0-1"),
+              SweepOptions(out=tmp_path / "sw", backend="local", workers=1, command=fake, progress=False)).run()
+    assert len(seen) == 2 and all(pre is None for _, pre in seen)
+    assert all(cmd[1:3] == ["-m", "botorl.experiments.child"] and cmd[cmd.index("--") + 1:][:2] == fake
+               for cmd, _ in seen)
 
 
 def test_ray_backend_without_ray_is_a_clear_error(tmp_path, fake, monkeypatch):

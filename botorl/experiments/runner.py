@@ -28,7 +28,6 @@ is found through the pid file in its run directory and stopped when the sweep re
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import dataclasses
 import datetime as _dt
 import json
@@ -43,10 +42,11 @@ import threading
 import time
 from collections import deque
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 from botorl.io import atomic_write_json, pid_alive
 from botorl.errors import BotorlError, ConfigError
+from botorl.experiments.child import launcher
 from botorl.experiments.grid import Grid, Trial
 
 MANIFEST = "sweep.json"
@@ -168,22 +168,6 @@ def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:
 
 # ---------------------------------------------------------------------------------------------
 # Child processes
-
-
-def _child_setup(cpus: Sequence[int] | None, parent_pid: int) -> Callable[[], None]:
-    """Runs in the forked child before exec: die with the sweep, stay on its cores."""
-
-    def setup() -> None:
-        with contextlib.suppress(Exception):
-            libc = ctypes.CDLL("libc.so.6", use_errno=True)
-            libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
-        if os.getppid() != parent_pid:  # the sweep died before prctl: do not run orphaned
-            os._exit(1)
-        if cpus:
-            with contextlib.suppress(OSError):
-                os.sched_setaffinity(0, set(cpus))
-
-    return setup
 
 
 def _cmdline(pid: int) -> str:
@@ -457,13 +441,12 @@ class Sweep:
         cpu = block[0] if block and len(block) == 1 else None
         with open(log, "ab") as logf:
             proc = subprocess.Popen(
-                cmd,
+                launcher(cmd, os.getpid(), block),
                 stdout=logf,
                 stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL,
                 env=self._trial_env(len(block) if block else 1),
                 cwd=str(self.out),
-                preexec_fn=_child_setup(block, os.getpid()),
             )
         atomic_write_json(run_dir / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": cpu,
                                                 "cpus": block})
@@ -698,8 +681,8 @@ def _ray_trial(cmd: list[str], env: dict[str, str], log: str, run_dir: str, cwd:
     full_env.update(env)
     with open(log, "ab") as logf:
         proc = subprocess.Popen(
-            cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            env=full_env, cwd=cwd, preexec_fn=_child_setup(None, os.getpid()),
+            launcher(cmd, os.getpid()), stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            env=full_env, cwd=cwd,
         )
     atomic_write_json(Path(run_dir) / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": None})
     try:
