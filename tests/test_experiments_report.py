@@ -411,3 +411,27 @@ def test_held_out_selection_refuses(sweep_dir, tmp_path):
     result = R.make_report([lone], tmp_path / "z", n_boot=20)
     assert result.selection is None and not (tmp_path / "z" / "alpha_selection.txt").exists()
     assert any(n.startswith("no held-out alpha selection: t1 / boto alpha +0.00 has 1") for n in result.notes)
+
+
+def test_variants_of_a_method_are_not_pooled(tmp_path, capsys):
+    """BOTO runs that differ in a setting (the actor trained during BOTO) are two rows, not 4
+    seeds of one; runs that differ only in where they log or took their pre-training from are one."""
+    def boto(seed, train_actor, **cfg):
+        d = write_run(tmp_path, task="t1", method="boto", seed=seed, alpha=-1.0, pretrain="calql",
+                      initial=1.0, s10k=1.0, final=1.0 if train_actor else 0.5)
+        meta = json.loads((d / "config.json").read_text())
+        meta.update(boto={"train_actor": train_actor, "seed": seed, "alpha": -1.0}, out=str(d), **cfg)
+        (d / "config.json").write_text(json.dumps(meta))
+
+    boto(0, False)
+    boto(1, False, pretrained="/elsewhere", progress=False)
+    boto(2, True)
+    boto(3, True, checkpoint_every=7)
+    runs, _ = R.find_runs([tmp_path])
+    assert sorted({r.label for r in runs}) == ["boto+calql [boto.train_actor=false]",
+                                               "boto+calql [boto.train_actor=true]"]
+    assert report_main([str(tmp_path), "--out", str(tmp_path / "rep"), "--bootstrap", "20"]) == 0
+    with open(tmp_path / "rep" / "table1.csv", newline="") as f:
+        rows = {r["method"]: r for r in csv.DictReader(f)}
+    assert rows["boto+calql [boto.train_actor=false]"]["seeds"] == "0 1"
+    assert float(rows["boto+calql [boto.train_actor=true]"]["final_mean"]) == 1.0

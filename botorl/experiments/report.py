@@ -128,12 +128,13 @@ class Run:
     success_final: float
     steps: np.ndarray  # online env steps of the evaluations (sorted, unique)
     success: np.ndarray
+    settings: dict[str, Any] = dataclasses.field(default_factory=dict)  # config.json, flattened (_settings)
+    variant: str = ""  # the settings in which this run differs from others of its method (label_variants)
 
     @property
     def label(self) -> str:
-        if self.method == "boto" and self.pretrain:
-            return f"boto+{self.pretrain}"
-        return self.method
+        base = f"boto+{self.pretrain}" if self.method == "boto" and self.pretrain else self.method
+        return f"{base} [{self.variant}]" if self.variant else base
 
     @property
     def key(self) -> tuple[str, str, float | None]:
@@ -175,6 +176,45 @@ def read_eval_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
                 by_step[step] = succ
     steps = np.asarray(sorted(by_step), dtype=np.float64)
     return steps, np.asarray([by_step[s] for s in steps], dtype=np.float64)
+
+
+# Config fields that differ between runs of one method without making them another method:
+# the member's identity (seed, alpha and their copies), where and how it logs, how updates are
+# chunked into calls, and where its pre-training came from (the same numbers either way).
+_SAME_METHOD = {"seed", "alpha", "out", "pretrained", "progress", "tensorboard", "wandb", "checkpoint_every",
+                "boto.alpha", "boto.seed", "eval.num_envs", "offline.updates_per_call", "boto.steps_per_call",
+                "offline.sample_on_device"}
+
+
+def _settings(config: dict, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in config.items():
+        key = prefix + str(k)
+        if isinstance(v, dict):
+            out.update(_settings(v, key + "."))
+        elif key not in _SAME_METHOD and not key.endswith("log_every"):
+            out[key] = json.dumps(v, sort_keys=True)
+    return out
+
+
+def label_variants(runs: list[Run]) -> None:
+    """Runs of one method on one task that differ in a setting (``--boto.train-actor``, another
+    ``online.steps``) are different variants, not more seeds of one: each gets the settings in
+    which its method's runs differ (on any task) appended to its label, e.g.
+    ``boto+calql [boto.train_actor=true]``, so tables, curves and dips keep them apart."""
+    by_method: dict[tuple[str, str], list[Run]] = defaultdict(list)
+    for r in runs:
+        by_method[(r.method, r.pretrain or "")].append(r)
+    for group in by_method.values():
+        varying: set[str] = set()
+        by_task: dict[str, list[Run]] = defaultdict(list)
+        for r in group:
+            by_task[r.task].append(r)
+        for same_task in by_task.values():
+            keys = set().union(*(r.settings for r in same_task))
+            varying |= {k for k in keys if len({r.settings.get(k) for r in same_task}) > 1}
+        for r in group:
+            r.variant = ", ".join(f"{k}={r.settings.get(k, 'null')}" for k in sorted(varying))
 
 
 def _load_run(run_dir: Path) -> Run | Skipped:
@@ -222,6 +262,7 @@ def _load_run(run_dir: Path) -> Run | Skipped:
         success_final=_num(summary.get("success_final")),
         steps=steps,
         success=success,
+        settings=_settings(config),
     )
 
 
@@ -270,6 +311,7 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
                     skipped.append(Skipped(Path(root), f"the run never started; sweep-trial.log ends: {last}"))
             else:
                 subdirs[:] = sorted(d for d in subdirs if not d.startswith("."))
+    label_variants(runs)
     runs.sort(key=lambda r: (r.task, r.label, -99 if r.alpha is None else r.alpha, r.seed or 0))
     return runs, skipped
 
