@@ -150,7 +150,6 @@ def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:
     """``["--pretrained", directory]`` when every member of the run ``args`` describe has a
     finished pre-training with its own settings under ``directory`` (BOTO's, for WSRL at the
     same seeds), else ``[]``: the trial then pre-trains itself."""
-    from botorl.errors import BotorlError
     from botorl.pipeline import shared_pretrain
     from botorl.pipeline.methods import get_method
     from botorl.pipeline.population_cli import build_population
