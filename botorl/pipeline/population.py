@@ -30,6 +30,7 @@ Pieces:
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import os
 from dataclasses import dataclass
@@ -38,6 +39,7 @@ from typing import Any, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from botorl.agents import common as C
 from botorl.data.dataset import BATCH_KEYS, Dataset
@@ -198,12 +200,84 @@ def _per_member(fn, axes, *args):
     return jax.vmap(fn, in_axes=axes)(*args)
 
 
+def host_shards(n: int) -> int:
+    """CPU devices a population of ``n`` members trains on: one per core that the process may
+    use (``jaxsetup.setup_jax`` makes them), at most ``n``; 1 off the CPU, where one device's
+    vmapped kernels are the faster layout."""
+    if n <= 1 or jax.default_backend() != "cpu":
+        return 1
+    return min(n, jax.local_device_count())
+
+
+def _member_loop(fn, axes, *args):
+    """``fn`` on each member in turn (``lax.map``): every member runs the single run's own
+    program, so its numbers are a 1-member population's."""
+    mapped = tuple(a for a, ax in zip(args, axes) if ax == 0)
+
+    def one(ms):
+        it = iter(ms)
+        return fn(*[next(it) if ax == 0 else a for a, ax in zip(args, axes)])
+
+    return jax.lax.map(one, mapped)
+
+
+def _across_cores(fn, axes, *args):
+    """An update of every member, for the heavy entry points (the updates; not the per-step
+    policy calls). On a CPU with several cores the members are split over one JAX CPU device
+    per core (``shard_map``) and each device runs its members one after another: measured on
+    2 cores (README "What it buys"), a vmapped batch of members is slower per member than one
+    member alone (its activations, N times larger, fall out of the caches), while members in
+    turn keep the single run's speed on each core. The member axis is padded with copies of
+    member 0 to a multiple of the devices; their results are dropped."""
+    n = next(jax.tree_util.tree_leaves(a)[0].shape[0] for a, ax in zip(args, axes) if ax == 0)
+    d = host_shards(n)
+    if d == 1:
+        return _per_member(fn, axes, *args)
+    pad = (-n) % d
+
+    def padded(x):
+        return x if pad == 0 else jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)])
+
+    args = [jax.tree_util.tree_map(padded, a) if ax == 0 else a for a, ax in zip(args, axes)]
+    mesh = _mesh(d)
+    specs = tuple(PartitionSpec("members") if ax == 0 else PartitionSpec() for ax in axes)
+    out = jax.shard_map(lambda *a: _member_loop(fn, axes, *a), mesh=mesh, in_specs=specs,
+                        out_specs=PartitionSpec("members"), check_vma=False)(*args)
+    if pad:
+        out = jax.tree_util.tree_map(lambda x: x[:n], out)
+    return jax.lax.with_sharding_constraint(out, member_sharding(n))
+
+
+@functools.lru_cache(maxsize=None)
+def _mesh(d: int) -> Mesh:
+    return Mesh(np.array(jax.local_devices()[:d]), ("members",))
+
+
+def member_sharding(n: int):
+    """Where a population of ``n`` members keeps its stacked arrays between updates: split
+    over the devices along the member axis (replicated when ``n`` does not divide, as JAX
+    shards only evenly). None for one device."""
+    d = host_shards(n)
+    if d == 1:
+        return None
+    return NamedSharding(_mesh(d), PartitionSpec("members") if n % d == 0 else PartitionSpec())
+
+
+def _placed(n: int, *trees):
+    """The member-axis inputs of an update where its outputs will be, so that every call
+    (the first, with fresh arrays, and the later ones) compiles to one program."""
+    sharding = member_sharding(n)
+    if sharding is None:
+        return trees
+    return tuple(jax.device_put(t, sharding) for t in trees)
+
+
 def _update_p(agents, batches):
-    return _per_member(C._update, (0, 0), agents, batches)
+    return _across_cores(C._update, (0, 0), agents, batches)
 
 
 def _update_many_p(agents, batches):
-    return _per_member(C._update_many, (0, 0), agents, batches)
+    return _across_cores(C._update_many, (0, 0), agents, batches)
 
 
 def _sample_p(agents, observations):
@@ -231,7 +305,7 @@ def _q_mean_p(agents, observations, actions):
 def _boto_p(agents, batches, alphas, settings):
     from botorl.boto.objective import _update_many as boto_many
 
-    return _per_member(lambda a, b, al: boto_many(a, b, al, settings), (0, 0, 0), agents, batches, alphas)
+    return _across_cores(lambda a, b, al: boto_many(a, b, al, settings), (0, 0, 0), agents, batches, alphas)
 
 
 def _update_masked_p(agents, batches, mask, many: bool):
@@ -257,23 +331,26 @@ _jit_boto = jax.jit(_boto_p, static_argnames=("settings",))
 def _f32(batch: dict) -> dict:
     C.check_batch(batch)
     batch = C.ensure_mc_returns(batch)
-    return {k: jnp.asarray(batch[k], jnp.float32) for k in BATCH_KEYS}
+    # host arrays stay on the host until the update places them (one copy, to their devices)
+    return {k: batch[k].astype(jnp.float32) if isinstance(batch[k], jax.Array) else np.asarray(batch[k], np.float32)
+            for k in BATCH_KEYS}
 
 
 def pop_update(agents, batches):
     """One ``update`` per member; ``batches`` (N, B, ...). Returns (agents, metrics (N,))."""
-    return _jit_update(agents, _f32(batches))
+    return _jit_update(*_placed(population_size(agents), agents, _f32(batches)))
 
 
 def pop_update_masked(agents, batches, mask, *, many: bool = False):
     """``pop_update`` (or ``pop_update_many``) where only the members with ``mask`` True update;
     the others keep their agent exactly (their rows of ``batches`` are ignored)."""
-    return _jit_update_masked(agents, _f32(batches), jnp.asarray(mask, bool), many=many)
+    placed = _placed(population_size(agents), agents, _f32(batches), np.asarray(mask, bool))
+    return _jit_update_masked(*placed, many=many)
 
 
 def pop_update_many(agents, batches):
     """K updates per member under one ``lax.scan``; ``batches`` (N, K, B, ...)."""
-    return _jit_update_many(agents, _f32(batches))
+    return _jit_update_many(*_placed(population_size(agents), agents, _f32(batches)))
 
 
 def pop_update_many_on_device(agents, arrays: dict, keys, num_updates: int, batch_size: int):
@@ -303,8 +380,9 @@ def pop_boto_update_many(agents, batches, alphas, settings):
     from botorl.boto.objective import _BATCH_KEYS, check_alpha
 
     check_alpha(np.asarray(alphas))
-    b = {k: jnp.asarray(batches[k], jnp.float32) for k in _BATCH_KEYS}
-    return _jit_boto(agents, b, jnp.asarray(alphas, jnp.float32), settings)
+    b = {k: np.asarray(batches[k], np.float32) for k in _BATCH_KEYS}
+    placed = _placed(population_size(agents), agents, b, np.asarray(alphas, np.float32))
+    return _jit_boto(*placed, settings)
 
 
 # ============================================================================ batches per member
