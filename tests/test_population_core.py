@@ -72,6 +72,51 @@ def test_stack_unstack_roundtrip():
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
+def test_updates_split_members_over_the_cpu_devices(dataset):
+    """conftest gives the process 2 CPU devices: a population's update runs its members on
+    both (even split for 4 members; 3 members padded to 4 and kept on both), the agents stay
+    where the update put them (one compile per population size), and member 1 is still the
+    1-member population's member."""
+    import jax
+
+    assert len(jax.local_devices()) == 2 and P.host_shards(1) == 1 and P.host_shards(3) == 2
+    one = P.stack([_calql(3)])
+    b1 = P.sample_members(dataset, [np.random.default_rng([3, 1])], 16, 5)
+    one, m1 = P.pop_update_many(one, b1)
+    for seeds in ([5, 3, 8, 9], [5, 3, 8]):
+        pop = P.stack([_calql(s) for s in seeds])
+        rngs = [np.random.default_rng([s, 1]) for s in seeds]
+        before = P._jit_update_many._cache_size()
+        for _ in range(2):
+            pop, m = P.pop_update_many(pop, P.sample_members(dataset, rngs, 16, 5))
+        assert P._jit_update_many._cache_size() - before == 1
+        leaf = jax.tree_util.tree_leaves(pop)[0]
+        assert len(leaf.sharding.device_set) == 2
+        if len(seeds) == 4:  # split, not copied: each device holds 2 members
+            assert {s.data.shape[0] for s in leaf.addressable_shards} == {2}
+        pop_first = P.stack([_calql(s) for s in seeds])
+        pop_first, m = P.pop_update_many(pop_first, P.sample_members(
+            dataset, [np.random.default_rng([s, 1]) for s in seeds], 16, 5))
+        np.testing.assert_allclose(np.asarray(m["critic_loss"])[1], np.asarray(m1["critic_loss"])[0], rtol=1e-5)
+        for x, y in zip(jax.tree_util.tree_leaves(P.member_of(pop_first, 1)), jax.tree_util.tree_leaves(one)):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y)[0], rtol=1e-5, atol=1e-6)
+
+
+def test_cpu_device_count_setting(monkeypatch):
+    from botorl.jaxsetup import cpu_device_count
+
+    monkeypatch.setenv("BOTORL_CPU_DEVICES", "3")
+    assert cpu_device_count() == 3
+    for bad in ("two", "0"):
+        monkeypatch.setenv("BOTORL_CPU_DEVICES", bad)
+        with pytest.raises(ConfigError, match="BOTORL_CPU_DEVICES"):
+            cpu_device_count()
+    monkeypatch.delenv("BOTORL_CPU_DEVICES")
+    import os
+
+    assert cpu_device_count() == len(os.sched_getaffinity(0))
+
+
 @pytest.mark.parametrize("make", [_calql, _iql], ids=["calql", "iql"])
 def test_member_equals_population_of_one(make, dataset):
     """Member (seed 3) of a population of 3 and a population of one with seed 3 draw the same
