@@ -213,7 +213,8 @@ def host_shards(n: int) -> int:
 
 def _member_loop(fn, axes, *args):
     """``fn`` on each member in turn (``lax.map``): every member runs the single run's own
-    program, so its numbers are a 1-member population's."""
+    unbatched program (XLA may still fuse it another way inside the loop: parameters equal a
+    1-member population's to ~1e-8 after 3 Cal-QL updates, against ~1e-7 vmapped)."""
     mapped = tuple(a for a, ax in zip(args, axes) if ax == 0)
 
     def one(ms):
