@@ -210,6 +210,42 @@ def test_member_replay_matches_replay_buffer(dataset):
     assert (back.size, back.insert_index) == (pop.size, pop.insert_index)
 
 
+def test_sample_active_draws_each_active_member_as_a_single_run(dataset):
+    """The fine-tuning batch of a population with an inactive member (Cal-QL online before its
+    first episode ends): each active member draws exactly what its single run draws, from
+    its own rows (the flat gather must index the right member), the inactive one nothing."""
+    from botorl.data.replay import ReplayBuffer, sample_mixed
+
+    rng = np.random.default_rng(4)
+    n, cap = 3, 40
+    pop = P.MemberReplay(n, cap, O, A)
+    singles = [ReplayBuffer(cap, O, A) for _ in range(n)]
+    for t in range(55):  # wraps around; member i ends an episode every 7 + i steps
+        o, a, r, o2, d = rng.normal(size=(n, O)), rng.uniform(-1, 1, (n, A)), rng.normal(size=n), \
+            rng.normal(size=(n, O)), np.zeros(n)
+        pop.insert(o, a, r, o2, d)
+        for i, buf in enumerate(singles):
+            buf.insert(o[i], a[i], r[i], o2[i], d[i])
+            if (t + 1) % (7 + i) == 0:
+                buf.end_episode()
+                pop.end_episode(i)
+    active = [True, False, True]
+    seeds = [21, 22, 23]
+    for offline, ratio, finished in ((dataset, 0.5, False), (None, 0.0, True)):
+        rngs = [np.random.default_rng(s) for s in seeds]
+        got = pop.sample_active(rngs, active, 16, 3, finished=finished, offline=offline, offline_ratio=ratio)
+        for i, s in enumerate(seeds):
+            if not active[i]:
+                assert all(not got[k][i].any() for k in got)
+                assert rngs[i].integers(0, 10**9) == np.random.default_rng(s).integers(0, 10**9)  # not advanced
+                continue
+            rows = singles[i].finished() if finished else singles[i]
+            ref = (sample_mixed([offline, rows], [ratio, 1 - ratio], np.random.default_rng(s), 16, num_batches=3)
+                   if offline is not None else rows.sample(np.random.default_rng(s), 16, num_batches=3))
+            for k in ref:
+                np.testing.assert_array_equal(got[k][i], ref[k])
+
+
 # ------------------------------------------------------------------ memory
 def test_memory_estimate_and_check():
     parts = P.estimate_memory(num_members=8, agent_bytes=10**6, buffer_rows=1000, warmup_rows=100, obs_dim=4,
