@@ -188,15 +188,15 @@ def unstack(agents) -> list:
 
 
 # ============================================================================ vmapped entry points
+def _member_count(axes, args) -> int:
+    """Members in the first argument mapped over its leading axis."""
+    return next(jax.tree_util.tree_leaves(a)[0].shape[0] for a, ax in zip(args, axes) if ax == 0)
+
+
 def _per_member(fn, axes, *args):
     """``vmap(fn, in_axes=axes)(*args)``; for a population of one, ``fn`` on the member itself
     (no batch dimension in any op: the single run's program) with the axis put back."""
-    n = None
-    for a, ax in zip(args, axes):
-        if ax == 0:
-            n = jax.tree_util.tree_leaves(a)[0].shape[0]
-            break
-    if n == 1:
+    if _member_count(axes, args) == 1:
         sq = [jax.tree_util.tree_map(lambda x: x[0], a) if ax == 0 else a for a, ax in zip(args, axes)]
         return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], fn(*sq))
     return jax.vmap(fn, in_axes=axes)(*args)
@@ -232,7 +232,7 @@ def _across_cores(fn, axes, *args):
     member alone (its activations, N times larger, fall out of the caches), while members in
     turn keep the single run's speed on each core. The member axis is padded with copies of
     member 0 to a multiple of the devices; their results are dropped."""
-    n = next(jax.tree_util.tree_leaves(a)[0].shape[0] for a, ax in zip(args, axes) if ax == 0)
+    n = _member_count(axes, args)
     d = host_shards(n)
     if d == 1:
         return _per_member(fn, axes, *args)
@@ -338,12 +338,16 @@ _jit_q_mean = jax.jit(_q_mean_p)
 _jit_boto = jax.jit(_boto_p, static_argnames=("settings",))
 
 
+def _as_f32(x):
+    # host arrays stay on the host until the update places them (one copy, to their devices);
+    # device arrays stay on their device
+    return x.astype(jnp.float32) if isinstance(x, jax.Array) else np.asarray(x, np.float32)
+
+
 def _f32(batch: dict) -> dict:
     C.check_batch(batch)
     batch = C.ensure_mc_returns(batch)
-    # host arrays stay on the host until the update places them (one copy, to their devices)
-    return {k: batch[k].astype(jnp.float32) if isinstance(batch[k], jax.Array) else np.asarray(batch[k], np.float32)
-            for k in BATCH_KEYS}
+    return {k: _as_f32(batch[k]) for k in BATCH_KEYS}
 
 
 def pop_update(agents, batches):
@@ -390,8 +394,8 @@ def pop_boto_update_many(agents, batches, alphas, settings):
     from botorl.boto.objective import _BATCH_KEYS, check_alpha
 
     check_alpha(np.asarray(alphas))
-    b = {k: np.asarray(batches[k], np.float32) for k in _BATCH_KEYS}
-    placed = _placed(population_size(agents), agents, b, np.asarray(alphas, np.float32))
+    b = {k: _as_f32(batches[k]) for k in _BATCH_KEYS}
+    placed = _placed(population_size(agents), agents, b, _as_f32(alphas))
     return _jit_boto(*placed, settings)
 
 
