@@ -16,7 +16,7 @@ Layouts:
   vmap                all N vmapped on device 0 (botorl before it split members)
   in turn             lax.map over the N members on device 0
   groups of g         lax.map over N/g groups, each vmapped, on device 0
-  D devices, in turn  shard_map over D CPU devices, lax.map within (what botorl does)
+  D devices, in turn  what botorl does: the pipeline's pop_update / pop_update_many
   D devices, groups   shard_map over D devices, groups of g within
 """
 
@@ -117,11 +117,15 @@ def main(argv=None) -> int:
         mesh = Mesh(np.array(devices[:d]), ("members",))
         sh = NamedSharding(mesh, PartitionSpec("members"))
         placed_agents, placed_batch = jax.device_put(agents, sh), jax.device_put(batch, sh)
-        for g in [g for g in groups if (n // d) % g == 0]:
+        # in turn on every device: the pipeline's own entry point (botorl.pipeline.population)
+        update = P.pop_update if w == "online" else P.pop_update_many
+        rate = _timed(lambda a: update(a, placed_batch)[0], placed_agents, n * per_member, args.min_time)
+        rows.append((f"{d} devices, in turn (botorl)", rate))
+        for g in [g for g in groups if g > 1 and (n // d) % g == 0]:
             run = jax.jit(jax.shard_map(_grouped(fn, g), mesh=mesh, in_specs=PartitionSpec("members"),
                                         out_specs=PartitionSpec("members"), check_vma=False))
             rate = _timed(lambda a: run(a, placed_batch)[0], placed_agents, n * per_member, args.min_time)
-            rows.append((f"{d} devices, " + ("in turn" if g == 1 else f"groups of {g}"), rate))
+            rows.append((f"{d} devices, groups of {g}", rate))
     for name, rate in rows:
         print(f"  {name:<26} {rate:9.1f}   {rate / base:5.2f}x", flush=True)
     return 0
