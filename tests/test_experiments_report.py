@@ -435,3 +435,16 @@ def test_variants_of_a_method_are_not_pooled(tmp_path, capsys):
         rows = {r["method"]: r for r in csv.DictReader(f)}
     assert rows["boto+calql [boto.train_actor=false]"]["seeds"] == "0 1"
     assert float(rows["boto+calql [boto.train_actor=true]"]["final_mean"]) == 1.0
+
+
+def test_dip_of_a_method_without_pretraining_is_marked(tmp_path):
+    # rlpd starts from an untrained policy: a lucky 0.7 at step 0 is not unlearning
+    _dip_run(tmp_path, 0, [(0, 0.7), (2500, 0.0), (20000, 1.0)], method="rlpd")
+    _dip_run(tmp_path, 0, [(0, 1.0), (2500, 0.0), (20000, 1.0)], method="wsrl")
+    result = R.make_report([tmp_path], tmp_path / "rep", n_boot=50)
+    by_label = {c.label: c for c in result.dip_cells}
+    assert by_label["rlpd"].from_scratch and not by_label["wsrl"].from_scratch
+    assert by_label["rlpd"].stats["mean"] == pytest.approx(-0.7, abs=1e-12)  # still computed, only marked
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert "rlpd on d1 trains from scratch (no pre-training)" in md
+    assert "wsrl on d1 trains from scratch" not in md

@@ -36,6 +36,7 @@ import numpy as np
 
 from botorl.errors import BotorlError, ConfigError, DataFormatError
 from botorl.io import atomic_save_figure, atomic_write_text
+from botorl.pipeline.methods import METHODS
 
 POINTS = (("initial", "success_initial"), ("10k", "success_10k"), ("final", "success_final"))
 DIP_WINDOW = 10_000
@@ -385,6 +386,14 @@ class DipCell:
     initial: float  # mean success at step 0 of these runs
     lowest: float  # mean lowest success in the window
     stats: dict[str, float]  # mean, se, n, lo, hi (CI of the mean), iqm, iqm_lo, iqm_hi
+    # a method without pre-training (rlpd): its step 0 is an untrained policy, so its "dip" is
+    # that policy's luck at step 0, not unlearning, and the report says so beside the number
+    from_scratch: bool = False
+
+
+def _from_scratch(method: str) -> bool:
+    m = METHODS.get(method)
+    return m is not None and "pretrain" not in m.stages
 
 
 def _key_order(key: tuple[str, str, float | None]) -> tuple:
@@ -403,6 +412,7 @@ def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int)
             *key, [d.run.seed for d in group], values,
             float(np.mean([d.initial for d in group])), float(np.mean([d.lowest for d in group])),
             dip_stats(values, n_boot=n_boot, confidence=confidence, seed=seed),
+            from_scratch=all(_from_scratch(d.run.method) for d in group),
         ))
     return cells
 
@@ -441,6 +451,11 @@ def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> 
             f"| {c.task} | {c.label} | {_alpha_text(c.alpha)} | {int(st['n'])} | {c.initial:.2f} | {c.lowest:.2f} | "
             f"{ms} | {_fmt_ci(st['lo'], st['hi'])} | {iq} |"
         )
+    scratch = sorted({(c.task, c.label) for c in cells if c.from_scratch})
+    if scratch:
+        lines.append("")
+        lines += [f"{label} on {task} trains from scratch (no pre-training): its step-0 success is an untrained "
+                  "policy's, so its dip is that policy's luck at step 0, not unlearning." for task, label in scratch]
     return "\n".join(lines)
 
 
@@ -477,7 +492,8 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
                 ax.plot([x], [st["mean"]], "o", color=color, ms=6, mec="0.2", zorder=3)
         ax.axhline(0.0, color="0.3", lw=0.8)
         ax.set_xticks(range(len(row)))
-        ax.set_xticklabels([_line_label(c.label, c.alpha, multi[c.label]) + f"\n(n={int(c.stats['n'])})" for c in row],
+        ax.set_xticklabels([_line_label(c.label, c.alpha, multi[c.label]) + ("\n(no pre-training)" if c.from_scratch else "")
+                            + f"\n(n={int(c.stats['n'])})" for c in row],
                            rotation=45 if len(row) > 4 else 0, ha="right" if len(row) > 4 else "center", fontsize=7)
         ax.set_xlim(-0.6, len(row) - 0.4)
         ax.set_ylim(-1.05, 0.08)
