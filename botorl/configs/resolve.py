@@ -153,7 +153,7 @@ def validate(cfg: RunConfig) -> None:
     if method.uses_alpha:
         _check_alpha(cfg.boto.alpha)
     try:
-        if "pretrain" in method.stages:
+        if method.pretrains:
             (cfg.offline.iql if cfg.pretrain == "iql" else cfg.offline.cql).validate()
         if method.online in ("wsrl", "scratch"):
             cfg.online.sac.validate()

@@ -393,7 +393,7 @@ class DipCell:
 
 def _from_scratch(method: str) -> bool:
     m = METHODS.get(method)
-    return m is not None and "pretrain" not in m.stages
+    return m is not None and not m.pretrains
 
 
 def _key_order(key: tuple[str, str, float | None]) -> tuple:

@@ -35,6 +35,11 @@ class Method:
     uses_alpha: bool = False
     description: str = ""
 
+    @property
+    def pretrains(self) -> bool:
+        """Starts from an offline pre-training (every method but RLPD, which starts from nothing)."""
+        return "pretrain" in self.stages
+
 
 METHODS: dict[str, Method] = {
     "boto": Method("boto", ("pretrain", "warmup", "boto", "finetune"), "wsrl", uses_alpha=True,

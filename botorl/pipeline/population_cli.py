@@ -102,7 +102,7 @@ def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
     method = get_method(cfg.method)
     O, A = d_raw.obs_dim, d_raw.action_dim
     agent_bytes = P.tree_bytes(S.make_online_agent_template(cfg, O, A, 0))
-    if "pretrain" in method.stages:
+    if method.pretrains:
         agent_bytes += P.tree_bytes(S.make_pretrain_agent(cfg, O, A, 0))
     oc = cfg.online
     warm = cfg.warmup.steps if "warmup" in method.stages else 0

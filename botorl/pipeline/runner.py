@@ -521,7 +521,7 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
                 ctx.log_q("boto", cfg.boto.boto_steps, agents)
             elif stage == "finetune":
                 if agents is None:  # rlpd, or a resume inside fine-tuning of a method without pre-training
-                    agents = _templates(member_cfgs, "pretrain", d_offline) if "pretrain" in method.stages else None
+                    agents = _templates(member_cfgs, "pretrain", d_offline) if method.pretrains else None
                 agents = S.finetune(ctx, agents, d_warmups, resume_here)
             ctx.end_stage()
             state["done_stages"].append(stage)
