@@ -467,8 +467,8 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    tasks = sorted({c.task for c in cells})
-    ncols = min(3, max(1, len(tasks)))
+    tasks = list(dict.fromkeys(c.task for c in cells))  # in the cells' order (dip_table sorts them)
+    ncols = 2 if len(tasks) == 4 else min(3, max(1, len(tasks)))
     nrows = math.ceil(len(tasks) / ncols)
     most = max(sum(1 for c in cells if c.task == t) for t in tasks)
     width = max(3.6, 1.0 + 0.55 * most)
