@@ -664,7 +664,7 @@ def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: f
         )
     for a in aggs:
         lines.append(
-            f"| **all ({len(a.tasks)} tasks)** | {a.label} | | "
+            f"| **all ({len(a.tasks)} task{'s' if len(a.tasks) != 1 else ''})** | {a.label} | | "
             + " | ".join(_fmt_iqm(a.stats[p]) for p, _ in POINTS) + " |"
         )
     return "\n".join(lines)
