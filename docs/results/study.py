@@ -3,9 +3,9 @@ together from the per-task reports `botorl report` wrote under docs/results/.
 
     python docs/results/study.py            # writes docs/results/study/{overview.md,dip.png}
 
-Nothing is recomputed by hand: the success means come from each report's table1.csv, and the
-dip's CIs are recomputed from each report's dip_runs.csv (one row per run) with the report's
-own `dip_stats` (same bootstrap, same seed) and drawn with its own `dip_figure`. The study's
+Nothing is recomputed: the success means and the dip's statistics (mean, s.e., bootstrap CI,
+IQM) are the `table1.csv` columns each report wrote, each run's dip (the figure's grey dots)
+comes from the report's `dip_runs.csv`, and the figure is the report's own `dip_figure`. The study's
 run directories of the medium and umaze BOTO/WSRL rows did not survive the machine they ran
 on, so one `botorl report` over all of them cannot be rerun here; `botorl sweep ... --out
 study/all && botorl report study/all` (README) is that single report for a fresh study.
@@ -17,11 +17,11 @@ import csv
 from collections import defaultdict
 from pathlib import Path
 
-from botorl.experiments.report import DipCell, _from_scratch, dip_figure, dip_stats
+from botorl.experiments.report import DipCell, _from_scratch, dip_figure
 from botorl.io import atomic_write_text
 
 HERE = Path(__file__).resolve().parent
-# (report directory, task) for every cell of the study; a report may hold several tasks' rows
+# the reports that hold the study's cells; each (task, method) is in exactly one of them
 REPORTS = [
     "pointmaze-umaze", "pointmaze-umaze-baselines",
     "pointmaze-medium", "pointmaze-medium-cql-iql",
@@ -60,7 +60,7 @@ def main() -> None:
                 continue
             t, rs = table[(task, method)], runs[(task, method)]
             values = [float(r["dip"]) for r in rs]
-            st = dip_stats(values, n_boot=2000, confidence=0.95, seed=0)
+            st = {k: float(t[f"dip_{k}"]) for k in ("mean", "se", "n", "lo", "hi", "iqm", "iqm_lo", "iqm_hi")}
             scratch = _from_scratch(method.split("+")[0])
             cells.append(DipCell(task, NAMES[method], None, [int(r["seed"]) for r in rs], values,
                                  sum(float(r["success_0"]) for r in rs) / len(rs),
