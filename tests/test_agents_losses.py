@@ -131,6 +131,32 @@ def test_subset_min_target(replace):
     np.testing.assert_allclose(target, want, **TOL)
 
 
+def test_two_critic_baseline_target_is_min_of_both_and_penalises_both():
+    # Cal-QL / CQL as WSRL runs them as baselines (resolved presets): 2 critics, no subset. The
+    # target must be the min of both target critics for every key (a pair drawn with
+    # replacement would be one critic in half of the draws) and the penalty covers both.
+    from botorl.configs.presets import make_preset
+    from botorl.configs.resolve import resolve
+
+    base = resolve(make_preset("pointmaze-umaze", "quick", "calql")).offline.cql
+    from dataclasses import replace as dc_replace
+
+    cfg = dc_replace(base, actor_hidden_dims=(8, 8), critic_hidden_dims=(8, 8), actor_layer_norm=False,
+                     critic_layer_norm=False, max_target_backup=False, backup_entropy=False)
+    agent = CQLAgent.create(cfg, O, A, seed=2)
+    agent = agent.replace(target_critic_params=jax.tree_util.tree_map(lambda x: x * 1.3 + 0.01, agent.critic.params))
+    batch = make_batch(4)
+    mean, log_std = np_actor(agent.actor.params, batch["next_observations"], 2, False, cfg.log_std_min, cfg.log_std_max)
+    for k in range(8):
+        key = jax.random.PRNGKey(k)
+        assert agent.penalty_members(key) is None
+        target, _ = agent.target_values(_jnp_batch(batch), key)
+        k_act, _ = jax.random.split(key)
+        a, _ = np_tanh_sample(mean, log_std, np.asarray(jax.random.normal(k_act, (B, A))))
+        q = np_critic(agent.target_critic_params, batch["next_observations"], a, 2, False).min(0)
+        np.testing.assert_allclose(target, batch["rewards"] + 0.99 * (1 - batch["dones"]) * q, **TOL)
+
+
 def test_max_target_backup():
     n = 3
     cfg = SACConfig(**TINY, num_min_critics=3, max_target_backup=True, num_backup_actions=n, backup_entropy=True, utd_ratio=1)
@@ -337,8 +363,8 @@ def test_iql_target_is_min_over_a_distinct_pair_of_a_larger_ensemble():
 
 def test_cql_penalty_on_a_random_subset_of_members():
     # WSRL's Cal-QL with a 10-critic ensemble penalises a random pair each step: the penalty of
-    # the subset must be the full ensemble's penalty at the drawn members, the Bellman term
-    # still every member's.
+    # the subset must be the full ensemble's penalty at the drawn members, averaged over them
+    # (WSRL's cql_loss is a mean), the Bellman term still every member's.
     from dataclasses import replace as dc_replace
 
     cfg = CQLConfig(**{**TINY, "num_critics": 4}, cql_n_actions=2, calql=True, cql_lagrange=False, cql_weight=2.0)
@@ -354,7 +380,9 @@ def test_cql_penalty_on_a_random_subset_of_members():
     target = jnp.asarray(make_batch(9)["rewards"])
     loss, _ = sub.critic_loss(sub.critic.params, batch, target, jax.random.PRNGKey(7))
     bellman = ((np.asarray(q_full) - np.asarray(target)[None]) ** 2).mean(-1)
-    np.testing.assert_allclose(loss, bellman.mean() + 2.0 * np.asarray(d_full)[members].sum() / 4, **TOL)
+    # WSRL's scale: the mean penalty over the K penalised members (not their sum over N), so the
+    # weight means the same against the Bellman error whatever K / N is
+    np.testing.assert_allclose(loss, bellman.mean() + 2.0 * np.asarray(d_full)[members].mean(), **TOL)
     # chunked gradient == whole-batch gradient with the subset too
     g_whole = jax.grad(lambda p: sub.critic_loss(p, batch, target, jax.random.PRNGKey(7))[0])(sub.critic.params)
     chunked = sub.replace(config=dc_replace(sub.config, chunk_rows=7))

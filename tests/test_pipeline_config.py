@@ -61,6 +61,13 @@ def test_method_table_settings():
         agent_cfg = cfg.offline.iql if m == "iql" else cfg.offline.cql
         assert agent_cfg.num_critics == 2 and not agent_cfg.critic_layer_norm and not agent_cfg.actor_layer_norm
     assert resolve(make_preset("kitchen-mixed-v0", "full", "calql")).online.offline_ratio == 0.25
+    for m in ("calql", "cql"):
+        for profile in ("quick", "full"):
+            # WSRL runs its 2-critic baselines without a critic subset: the penalty on both
+            # critics, the target the min of both (not a pair drawn with replacement)
+            cql = resolve(make_preset(base, profile, m)).offline.cql
+            assert cql.cql_penalty_critics is None and cql.num_critics == 2
+            assert cql.num_min_critics == 2 and not cql.subsample_replace
     rlpd = resolve(make_preset(base, "full", "rlpd"))
     assert rlpd.pretrain is None and rlpd.online.random_steps == 5_000 and rlpd.online.offline_ratio == 0.5
     assert rlpd.online.utd == 4 and rlpd.online.sac.target_entropy == -adim / 2
@@ -71,9 +78,12 @@ def test_method_table_settings():
     assert resolve(make_preset("door-binary-v0", "full", "rlpd")).online.sac.num_min_critics == 2
     for m in ("boto", "wsrl"):
         cfg = resolve(make_preset(base, "full", m))
-        # WSRL: 10 critics pre-trained and fine-tuned, penalty on a random pair, target entropy -|A|/2
+        # WSRL: 10 critics pre-trained and fine-tuned, penalty on a random pair, target entropy
+        # -|A|/2 in fine-tuning (its sac_config's 0.0, which its SAC agent turns into -|A|/2) and
+        # -|A| in pre-training (its CQL agent's rule)
         assert cfg.offline.cql.num_critics == cfg.online.sac.num_critics == 10
         assert cfg.offline.cql.cql_penalty_critics == 2 and cfg.online.sac.target_entropy == -adim / 2
+        assert cfg.offline.cql.target_entropy is None  # -> -|A| when the agent is created
         assert cfg.online.offline_ratio == 0.0 and cfg.online.utd == 4
         # antmaze's actor has a state-independent std (WSRL), pre-training and fine-tuning alike
         assert not cfg.offline.cql.state_dependent_std and not cfg.online.sac.state_dependent_std

@@ -22,7 +22,10 @@ Our choice: all 3n + 1 actions per state (data, uniform, pi(s), pi(s')) of every
 member are evaluated in ONE critic call -- the observations are repeated 3n + 1 times into
 the batch and the vmapped ensemble evaluates all members at once -- since this step
 dominates pre-training time. Members' losses are averaged (Cal-QL sums its two critics'
-losses; with Adam the scale does not matter).
+losses; with Adam the scale does not matter). With a penalised subset of K members
+(``cql_penalty_critics``, WSRL's 10-critic Cal-QL) the loss is the mean Bellman error over all
+N members plus weight x the mean penalty over the K: the penalty's weight against the Bellman
+error is WSRL's whatever K / N is.
 """
 
 from __future__ import annotations
@@ -201,10 +204,10 @@ class CQLAgent(SACAgent):
         diff_rows, q_data, sums = self._penalty_rows(params, rows, members)
         bellman_sum = jnp.sum((q_data - rows["target"][None]) ** 2, axis=-1)  # (N,)
         diff_sum = diff_rows.sum(axis=-1)  # (K,)
-        # mean over members of [Bellman + weight * diff], the penalised members' diffs counted
-        # as the whole ensemble's would be (K = N: the plain mean)
-        num = bellman_sum.shape[0]
-        loss = (jnp.mean(bellman_sum) + self._penalty_weight() * diff_sum.sum() / num) / bsz
+        # mean over all members of the Bellman error + weight * mean over the K penalised
+        # members of diff: WSRL's scale (its CQL loss is the mean of the penalty over the
+        # subset), so a weight means the same whatever K and N are
+        loss = (jnp.mean(bellman_sum) + self._penalty_weight() * jnp.mean(diff_sum)) / bsz
         return loss, {**sums, "bellman_sum": bellman_sum, "diff_sum": diff_sum, "q_data": q_data.sum()}
 
     def _loss_info(self, loss_part, sums, bsz: int) -> tuple[jax.Array, dict]:

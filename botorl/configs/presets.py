@@ -203,6 +203,13 @@ def _method_defaults(cfg: RunConfig, spec) -> RunConfig:
         # leave its mixing ratio at 0 (offline data loaded, not sampled); we follow Cal-QL's.
         network = replace(network, num_critics=2, layer_norm=False)
         online = replace(online, utd=1, offline_ratio=0.25 if dom == "kitchen" else 0.5, random_steps=0)
+        # WSRL runs them without a critic subset (critic_subsample_size None): the penalty on
+        # both critics and the target the min of both. The 10-critic subset of BOTO/WSRL's
+        # pre-training (a pair drawn with replacement) would penalise one critic twice and take
+        # one critic as the target in half of the steps.
+        cql = replace(cfg.offline.cql, cql_penalty_critics=None, num_min_critics=network.num_critics,
+                      subsample_replace=False)
+        cfg = replace(cfg, offline=replace(cfg.offline, cql=cql))
     elif m == "rlpd":
         # RLPD from scratch as WSRL ran it: 10 critics (LayerNorm), 50/50 offline/online, UTD 4
         # with WSRL's batch layout (4 x 256 critic rows, actor on 1,024), target entropy -|A|/2,
@@ -213,7 +220,12 @@ def _method_defaults(cfg: RunConfig, spec) -> RunConfig:
                       target_entropy=-spec.action_dim / 2.0, num_min_critics=1 if dom == "antmaze" else 2)
         random_steps = 5_000 if cfg.profile == "full" else min(5_000, max(1, online.steps // 10))
         online = replace(online, offline_ratio=0.5, random_steps=random_steps, sac=sac)
-    else:  # boto, wsrl: WSRL's SAC, target entropy -|A|/2 (WSRL's sac agent), offline data dropped
+    else:  # boto, wsrl: WSRL's SAC, offline data dropped
+        # Target entropy -|A|/2: WSRL's sac_config passes target_entropy = 0.0 and its SAC agent
+        # replaces any value >= 0 by -|A|/2 (zhouzypaul/wsrl, wsrl/agents/sac.py, _create_common:
+        # "if target_entropy is None or target_entropy >= 0.0: target_entropy =
+        # -actions.shape[-1] / 2"); -|A| is the CQL agent's rule (wsrl/agents/cql.py, create),
+        # which pre-training keeps (SACConfig.target_entropy None -> -|A|).
         sac = replace(online.sac, target_entropy=-spec.action_dim / 2.0)
         online = replace(online, utd=4, offline_ratio=0.0, random_steps=0, sac=sac)
     return replace(cfg, network=network, online=online)
