@@ -163,7 +163,8 @@ def _quick(cfg: RunConfig, spec) -> RunConfig:
         offline=replace(cfg.offline, steps=offline_steps, batch_size=batch, cql=cql, log_every=500),
         boto=replace(cfg.boto, boto_steps=5_000, steps_per_call=500),
         online=replace(cfg.online, steps=20_000, sac=sac, log_every=500),
-        eval=replace(cfg.eval, interval=2_500),
+        # the dip is read over evaluations every 500 steps from the warm-up's end to 10k
+        eval=replace(cfg.eval, interval=2_500, dense_interval=500),
         checkpoint_every=5_000,
     )
 

@@ -31,7 +31,7 @@ def resolve(cfg: RunConfig) -> RunConfig:
     if method.uses_alpha:
         alpha = cfg.boto.alpha if cfg.alpha is None else cfg.alpha
         _check_alpha(alpha)
-        boto = replace(boto, alpha=float(alpha), seed=cfg.seed)
+        boto = replace(boto, alpha=float(alpha), seed=cfg.online_seed)
         alpha = float(alpha)
 
     net = cfg.network
@@ -109,7 +109,7 @@ def validate(cfg: RunConfig) -> None:
     if cfg.pretrained is not None and "pretrain" not in method.stages:
         raise ConfigError(f"--pretrained {cfg.pretrained}: --method {cfg.method} has no pre-training to skip; "
                           f"drop --pretrained.")
-    for name, v in (("seed", cfg.seed), ("data.seed", cfg.data.seed)):
+    for name, v in (("seed", cfg.seed), ("data.seed", cfg.data.seed), ("online_reseed", cfg.online_reseed)):
         # NumPy's generators take only non-negative seeds; 2**31 keeps JAX keys in int32
         need(isinstance(v, int) and 0 <= v < 2**31, name, v, "a seed must be an integer in [0, 2**31)")
 
@@ -133,11 +133,14 @@ def validate(cfg: RunConfig) -> None:
         "eval.interval": cfg.eval.interval,
         "eval.num_envs": cfg.eval.num_envs,
         "eval.q_pairs": cfg.eval.q_pairs,
+        "eval.dense_until": cfg.eval.dense_until,
         "checkpoint_every": cfg.checkpoint_every,
         "network.num_critics": cfg.network.num_critics,
     }
     for name, v in positive.items():
         need(isinstance(v, int) and v >= 1, name, v, "must be a positive integer")
+    need(isinstance(cfg.eval.dense_interval, int) and cfg.eval.dense_interval >= 0, "eval.dense_interval",
+         cfg.eval.dense_interval, "give the env steps between dense evaluations, or 0 for none")
     need(0.0 <= cfg.online.offline_ratio <= 1.0, "online.offline_ratio", cfg.online.offline_ratio, "must lie in [0, 1]")
     if cfg.online.buffer_capacity is not None:
         need(cfg.online.buffer_capacity >= 1, "online.buffer_capacity", cfg.online.buffer_capacity, "must be positive or None")

@@ -22,6 +22,8 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+import numpy as np
+
 from botorl.agents.cql import CQLConfig
 from botorl.agents.iql import IQLConfig
 from botorl.agents.sac import SACConfig
@@ -123,6 +125,19 @@ class EvalConfig:
     """Envs stepped in lockstep (one batched policy call per step)."""
     q_pairs: int = 1_000
     """Dataset (s, a) pairs for the q_data / q_uniform statistics."""
+    dense_interval: int = 0
+    """Env steps between the extra evaluations of the dip window: every dense_interval steps
+    from the warm-up's end (warmup.steps, for every method, so all share the same points) to
+    dense_until; 0 = none (the quick profile: 500)."""
+    dense_until: int = 10_000
+    """Last env step of the dense window (the paper's 'unlearning' step)."""
+
+    def due(self, step: int, total: int, dense_from: int) -> bool:
+        """Whether fine-tuning evaluates after ``step`` online env steps of ``total``."""
+        if step % self.interval == 0 or step == total:
+            return True
+        return (self.dense_interval > 0 and dense_from <= step <= self.dense_until
+                and (step - dense_from) % self.dense_interval == 0)
 
     @property
     def envs_per_member(self) -> int:
@@ -137,6 +152,10 @@ class RunConfig:
     task: str = "pointmaze-umaze"
     method: Literal["boto", "wsrl", "calql", "cql", "iql", "rlpd"] = "boto"
     seed: int = 0
+    online_reseed: int = 0
+    """0: the online phase (warm-up, BOTO's batches and noise, fine-tuning) draws from `seed`.
+    k > 0: from another seed made of (seed, k), the pre-training unchanged, so two runs from one
+    pre-training differ only online: the noise floor a paired comparison is read against."""
     alpha: float | None = None
     """BOTO's bias controller in [-1, 1]; None = the preset's (the paper's per-task value)."""
     pretrain: Literal["calql", "cql", "iql"] | None = None
@@ -164,6 +183,13 @@ class RunConfig:
     boto: BOTOConfig = field(default_factory=BOTOConfig)
     online: OnlineConfig = field(default_factory=OnlineConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+
+    @property
+    def online_seed(self) -> int:
+        """The seed of the online phase (see ``online_reseed``)."""
+        if not self.online_reseed:
+            return self.seed
+        return int(np.random.SeedSequence([self.seed, self.online_reseed]).generate_state(1)[0] % 2**31)
 
 
 # ------------------------------------------------------------------ dict round trip

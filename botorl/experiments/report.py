@@ -9,9 +9,10 @@ Statistics:
   (scipy.stats.trim_mean(x, 0.25), which rliable uses); the bootstrap resamples runs with
   replacement within each task (strata) and recomputes the IQM of all resampled scores.
   Written here from that description; no rliable code is used.
-- the dip (issue 14): per run, the lowest success over every evaluation with
-  0 <= env_step <= window (default 10,000; warm-up evaluations and step 0 included) minus the
-  success at env_step 0, so 0 is no drop and -1 a fall from always to never solving the task.
+- the dip: per run, the lowest success over every evaluation with
+  0 <= env_step <= window (default 10,000; warm-up evaluations and step 0 included; for a run
+  that evaluated densely (eval.dense_interval > 0), step 0 and the dense points from the
+  warm-up's end only, the same points for every method) minus the success at env_step 0, so 0 is no drop and -1 a fall from always to never solving the task.
   Per group: mean +- SE, a percentile bootstrap CI of the mean (runs resampled with
   replacement) and the IQM with its CI as above. Runs without an evaluation at step 0, or
   with none after it inside the window, get no dip and are listed with the reason.
@@ -130,6 +131,10 @@ class Run:
     steps: np.ndarray  # online env steps of the evaluations (sorted, unique)
     success: np.ndarray
     settings: dict[str, Any] = dataclasses.field(default_factory=dict)  # config.json, flattened (_settings)
+    # the first step of the dense dip window (the warm-up's end) when the run evaluated densely
+    # there (eval.dense_interval > 0), else None
+    dense_from: float | None = None
+    config: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)  # config.json as read
     variant: str = ""  # the settings in which this run differs from others of its method (label_variants)
 
     @property
@@ -264,7 +269,17 @@ def _load_run(run_dir: Path) -> Run | Skipped:
         steps=steps,
         success=success,
         settings=_settings(config),
+        dense_from=_dense_from(config),
+        config=config,
     )
+
+
+def _dense_from(config: dict) -> float | None:
+    ev, wu = config.get("eval"), config.get("warmup")
+    if not isinstance(ev, dict) or not isinstance(wu, dict) or not _num(ev.get("dense_interval")) > 0:
+        return None
+    start = _num(wu.get("steps"))
+    return start if math.isfinite(start) and start >= 0 else None
 
 
 def _last_line(path: Path) -> str:
@@ -346,6 +361,10 @@ def run_dip(run: Run, window: float = DIP_WINDOW) -> Dip | str:
     if not np.any(steps == 0):
         return f"eval.csv has no evaluation at env_step 0 (the first is at {steps[0]:g}), so there is no start to dip from"
     inside = (steps >= 0) & (steps <= window)
+    if run.dense_from is not None:
+        # over step 0 and the dense points only, which every method shares (a baseline's
+        # evaluations before the warm-up's end would give it more chances to dip)
+        inside &= (steps == 0) | (steps >= run.dense_from)
     if int(inside.sum()) < 2:
         after = steps[steps > window]
         nxt = f" (the next is at {after[0]:g})" if after.size else ""

@@ -167,10 +167,23 @@ def _fill_mc_returns(ctx, buffer, rows: list[int], member: int | None = None) ->
     buffer.mc_returns[idx] = ctx.mc_returns(ep)
 
 
-def _rngs(ctx, stream: int, states=None) -> list[np.random.Generator]:
-    """Each member's generator of one stream, from its own seed (restored from ``states``)."""
+def _rngs(ctx, stream: int, states=None, online: bool = False) -> list[np.random.Generator]:
+    """Each member's generator of one stream, from its own seed (``online``: its online seed;
+    restored from ``states``)."""
     states = states if isinstance(states, list) else [states] * ctx.n
-    return [_rng_from(st, [mc.cfg.seed, stream]) for mc, st in zip(ctx.members, states)]
+    return [_rng_from(st, [mc.cfg.online_seed if online else mc.cfg.seed, stream])
+            for mc, st in zip(ctx.members, states)]
+
+
+def _reseed_online(ctx, agents):
+    """The pre-trained agents' keys, folded with ``online_reseed`` for the members that set it,
+    so their warm-up (and BOTO) draws differ from the runs they share the pre-training with."""
+    reseeds = [mc.cfg.online_reseed for mc in ctx.members]
+    if not any(reseeds):
+        return agents
+    keys = [jax.random.fold_in(P.member_of(agents, i).rng, k) if k else P.member_of(agents, i).rng
+            for i, k in enumerate(reseeds)]
+    return agents.replace(rng=jnp.stack(keys))
 
 
 def _rng_states(rngs) -> list[dict]:
@@ -293,8 +306,10 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
     if n == 0:
         return None, agents
     N = ctx.n
-    envs = [spec.make_env(seed=mc.cfg.seed * 1000 + 7) for mc in ctx.members]
-    obs = np.stack([np.asarray(e.reset(seed=mc.cfg.seed * 1000 + 7)[0], np.float32) for e, mc in zip(envs, ctx.members)])
+    envs = [spec.make_env(seed=mc.cfg.online_seed * 1000 + 7) for mc in ctx.members]
+    obs = np.stack([np.asarray(e.reset(seed=mc.cfg.online_seed * 1000 + 7)[0], np.float32)
+                    for e, mc in zip(envs, ctx.members)])
+    agents = _reseed_online(ctx, agents)
     O, A = ctx.d_offline.obs_dim, ctx.d_offline.action_dim
     rows = {
         "observations": np.zeros((N, n, O), np.float32),
@@ -425,21 +440,21 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
     if flavour == "wsrl":
         # WSRL's warm start: SAC (10 critics) from the pre-trained (or BOTO-trained) networks.
         # From IQL (no temperature) the initial one comes from the probe states (agents/temperature.py).
-        agents = P.stack([SACAgent.from_pretrained(P.member_of(agents, i), oc.sac, seed=mc.cfg.seed * 7919 + 3,
+        agents = P.stack([SACAgent.from_pretrained(P.member_of(agents, i), oc.sac, seed=mc.cfg.online_seed * 7919 + 3,
                                                    observations=ctx.probe.observations)
                           for i, mc in enumerate(ctx.members)])
     elif flavour == "scratch":
-        agents = P.stack([SACAgent.create(oc.sac, O, A, mc.cfg.seed) for mc in ctx.members])
+        agents = P.stack([SACAgent.create(oc.sac, O, A, mc.cfg.online_seed) for mc in ctx.members])
     # "continue": the pre-trained agent keeps its own loss
     buffer = P.MemberReplay(N, capacity, O, A)
     start = n_warm  # the warm-up's env steps came first
     step = start
-    rngs = _rngs(ctx, 3)
+    rngs = _rngs(ctx, 3, online=True)
     extra: dict = {}
     if resume is not None:
         agents = ctx.load_agents(resume["name"], agents)
         step = int(resume["step"])
-        rngs = _rngs(ctx, 3, resume.get("np_rng"))
+        rngs = _rngs(ctx, 3, resume.get("np_rng"), online=True)
         buffer = P.MemberReplay.from_state_dict(ctx.ckpt.arrays(resume["name"], "buffer"))
         extra = resume.get("extra", {})
         start = int(extra.get("start", start))
@@ -463,7 +478,7 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
         return {k: v.reshape((N, u * B) + v.shape[3:]) for k, v in b.items()}
 
     resumes = int(extra.get("resumes", 0)) + (1 if resume is not None else 0)
-    env_seeds = [mc.cfg.seed * 1000 + 11 for mc in ctx.members]
+    env_seeds = [mc.cfg.online_seed * 1000 + 11 for mc in ctx.members]
     envs = [spec.make_env(seed=s) for s in env_seeds]
     ep_succ = np.zeros(N)
     ep_rows: list[list[int]] = [[] for _ in range(N)]
@@ -548,7 +563,7 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
                         mc.logger.log("finetune", step, m)
                     t_last, n_last = now, step
                     recent_success = [[] for _ in range(N)]
-            if step % cfg.eval.interval == 0 or step == total:
+            if cfg.eval.due(step, total, cfg.warmup.steps):
                 rows = ctx.evaluate(agents, step)
                 last_eval = step
                 bar.set_postfix(success=f"{rows[0]['success']:.2f}")
