@@ -10,7 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from botorl.experiments import dip as D
 from botorl.experiments import report as R
+from botorl.experiments import runs as RN
+from botorl.experiments import stats as S
 from botorl.experiments.cli import report_main
 
 
@@ -87,21 +90,21 @@ def runs_dir(tmp_path_factory) -> Path:
 
 
 def test_statistics_by_hand():
-    mean, se, n = R.mean_se(WSRL_INITIAL)
+    mean, se, n = S.mean_se(WSRL_INITIAL)
     assert n == 4
     assert mean == pytest.approx(0.3, abs=1e-12)
     assert se == pytest.approx(math.sqrt(0.14 / 3) / 2, abs=1e-12)
-    assert math.isnan(R.mean_se([0.5])[1])  # SE of one seed is undefined, not 0
-    assert R.iqm(CALQL_FINAL) == pytest.approx(0.4, abs=1e-12)
-    assert R.iqm([3.0, 1.0, 2.0, 10.0]) == pytest.approx(2.5, abs=1e-12)  # cut 1 each end
-    assert R.iqm([5.0, 1.0, 2.0]) == pytest.approx(8.0 / 3, abs=1e-12)  # n < 4 cuts nothing
+    assert math.isnan(S.mean_se([0.5])[1])  # SE of one seed is undefined, not 0
+    assert S.iqm(CALQL_FINAL) == pytest.approx(0.4, abs=1e-12)
+    assert S.iqm([3.0, 1.0, 2.0, 10.0]) == pytest.approx(2.5, abs=1e-12)  # cut 1 each end
+    assert S.iqm([5.0, 1.0, 2.0]) == pytest.approx(8.0 / 3, abs=1e-12)  # n < 4 cuts nothing
     # IQM over tasks pools the runs: 10 scores, cut 2 each end, mean of the middle 6
     t1, t2 = [0.0, 0.1, 0.2, 0.9, 1.0], [0.3, 0.3, 0.5, 0.6, 0.7]
-    point, lo, hi = R.stratified_bootstrap_iqm([t1, t2], n_boot=500, seed=1)
+    point, lo, hi = S.stratified_bootstrap_iqm([t1, t2], n_boot=500, seed=1)
     assert point == pytest.approx((0.2 + 0.3 + 0.3 + 0.5 + 0.6 + 0.7) / 6, abs=1e-12)
     assert lo <= point <= hi and hi - lo > 0.05
     # stratified: each task keeps its number of runs, so one run per task never varies
-    point, lo, hi = R.stratified_bootstrap_iqm([[0.0], [1.0]], n_boot=300, seed=0)
+    point, lo, hi = S.stratified_bootstrap_iqm([[0.0], [1.0]], n_boot=300, seed=0)
     assert (point, lo, hi) == (0.5, 0.5, 0.5)
 
 
@@ -144,7 +147,7 @@ def test_report_tables_exact(runs_dir, tmp_path):
 
 
 def test_curves_on_common_grid(runs_dir):
-    runs, _ = R.find_runs([runs_dir])
+    runs, _ = RN.find_runs([runs_dir])
     wsrl = [r for r in runs if r.task == "t1" and r.method == "wsrl"]
     assert wsrl[0].steps.tolist() == [0, 10000, 20000]
     assert wsrl[0].success[0] == pytest.approx(WSRL_INITIAL[0])  # not the earlier 0.99 row
@@ -170,7 +173,7 @@ def test_figures_are_images(runs_dir, tmp_path):
 
 
 def test_select_alpha_and_cli(runs_dir, tmp_path, capsys):
-    runs, _ = R.find_runs([runs_dir])
+    runs, _ = RN.find_runs([runs_dir])
     sel = R.select_alpha(runs)
     (choice,) = sel.choices
     assert choice.task == "t1" and choice.label == "boto+calql"
@@ -211,16 +214,16 @@ def _dip_run(root: Path, seed: int, curve: list[tuple[int, float]], *, method: s
 def test_dip_by_hand(tmp_path):
     # 1.0 at 0, 0.4 at 2.5k (a warm-up evaluation), 0.0 at 5k, 1.0 at 12.5k
     d = _dip_run(tmp_path, 0, [(0, 1.0), (5000, 0.0), (12500, 1.0)], warmup=[(2500, 0.4)])
-    runs, _ = R.find_runs([tmp_path])
+    runs, _ = RN.find_runs([tmp_path])
     (run,) = runs
-    dip = R.run_dip(run, 10_000)
+    dip = D.run_dip(run, 10_000)
     assert dip.value == pytest.approx(-1.0, abs=1e-12)
     assert (dip.initial, dip.lowest, dip.lowest_step, dip.evals, dip.last_step) == (1.0, 0.0, 5000.0, 3, 5000.0)
     # a 3k window sees only step 0 and the warm-up's 2.5k evaluation
-    assert R.run_dip(run, 3000).value == pytest.approx(-0.6, abs=1e-12)
-    assert R.run_dip(run, 2500).value == pytest.approx(-0.6, abs=1e-12)  # the window's end is inside
+    assert D.run_dip(run, 3000).value == pytest.approx(-0.6, abs=1e-12)
+    assert D.run_dip(run, 2500).value == pytest.approx(-0.6, abs=1e-12)  # the window's end is inside
     # no fall: the dip is 0, not the rise to 1.0 at 12.5k
-    assert R.run_dip(R.find_runs([_dip_run(tmp_path / "flat", 1, [(0, 0.5), (5000, 0.5), (12500, 1.0)])])[0][0],
+    assert D.run_dip(RN.find_runs([_dip_run(tmp_path / "flat", 1, [(0, 0.5), (5000, 0.5), (12500, 1.0)])])[0][0],
                      10_000).value == 0.0
 
     out = tmp_path / "cli"
@@ -284,10 +287,10 @@ def test_dip_group_statistics(dip_dir, tmp_path):
     again = R.make_report([dip_dir], tmp_path / "b", n_boot=2000, seed=3)
     assert (tmp_path / "a" / "table1.csv").read_text() == (tmp_path / "b" / "table1.csv").read_text()
     assert next(c for c in again.dip_cells if (c.task, c.label) == ("d1", "wsrl")).stats == st
-    assert R.bootstrap_mean_ci(WSRL_DIPS, n_boot=2000, seed=3) == pytest.approx((st["lo"], st["hi"]), abs=1e-12)
+    assert S.bootstrap_mean_ci(WSRL_DIPS, n_boot=2000, seed=3) == pytest.approx((st["lo"], st["hi"]), abs=1e-12)
     spread = np.linspace(-1.0, 0.0, 7) ** 3  # 7 distinct values: resampled means rarely coincide
-    assert R.bootstrap_mean_ci(spread, n_boot=500, seed=3) == R.bootstrap_mean_ci(spread, n_boot=500, seed=3)
-    assert R.bootstrap_mean_ci(spread, n_boot=500, seed=3) != R.bootstrap_mean_ci(spread, n_boot=500, seed=4)
+    assert S.bootstrap_mean_ci(spread, n_boot=500, seed=3) == S.bootstrap_mean_ci(spread, n_boot=500, seed=3)
+    assert S.bootstrap_mean_ci(spread, n_boot=500, seed=3) != S.bootstrap_mean_ci(spread, n_boot=500, seed=4)
 
     md = (tmp_path / "a" / "report.md").read_text()
     assert "2000 resamples of the runs, seed 3" in md
@@ -334,7 +337,7 @@ def sweep_dir(tmp_path_factory) -> Path:
 
 
 def test_held_out_selection_chooses_on_selection_seeds(sweep_dir):
-    runs, _ = R.find_runs([sweep_dir])
+    runs, _ = RN.find_runs([sweep_dir])
     (c,) = R.select_alpha(runs, n_boot=1000, seed=0).choices
     assert c.alpha == 0.5 and (c.select_seeds, c.report_seeds) == ([0, 1], [2, 3])
     assert c.in_sample == pytest.approx(0.9, abs=1e-12)
@@ -355,7 +358,7 @@ def test_held_out_selection_chooses_on_selection_seeds(sweep_dir):
 def test_alpha_table_by_hand(sweep_dir, tmp_path):
     """Per alpha, mean ± s.e. over seeds of the success and of the dip (the runs' curves are
     0 -> 10k -> 20k, so the dip is min(0.5, v) - 0.5)."""
-    runs, _ = R.find_runs([sweep_dir])
+    runs, _ = RN.find_runs([sweep_dir])
     rows = {r.alpha: r for r in R.alpha_table(runs, window=10_000)}
     assert sorted(rows) == [-0.5, 0.0, 0.5] and all(r.n == 4 and r.label == "boto+calql" for r in rows.values())
     # alpha 0.5: v = 0.9, 0.9, 0, 0.2 -> dips 0, 0, -0.5, -0.3: mean -0.2, var (.04+.04+.09+.01)/3 = .06
@@ -406,7 +409,7 @@ def test_held_out_selection_refuses(sweep_dir, tmp_path):
     for seed in range(2):
         write_run(lone, task="t1", method="boto", alpha=0.5, seed=seed, initial=0.5, s10k=1.0, final=1.0)
     with pytest.raises(BotorlError, match=r"t1 / boto alpha \+0.00 has 1 finished seed\(s\) \(0\); held-out"):
-        R.select_alpha(R.find_runs([lone])[0])
+        R.select_alpha(RN.find_runs([lone])[0])
     assert main(["report", str(lone), "--out", str(tmp_path / "y"), "--select-alpha", "--bootstrap", "20"]) == 2
     result = R.make_report([lone], tmp_path / "z", n_boot=20)
     assert result.selection is None and not (tmp_path / "z" / "alpha_selection.txt").exists()
@@ -427,7 +430,7 @@ def test_variants_of_a_method_are_not_pooled(tmp_path, capsys):
     boto(1, False, pretrained="/elsewhere", progress=False)
     boto(2, True)
     boto(3, True, checkpoint_every=7)
-    runs, _ = R.find_runs([tmp_path])
+    runs, _ = RN.find_runs([tmp_path])
     assert sorted({r.label for r in runs}) == ["boto+calql [boto.train_actor=false]",
                                                "boto+calql [boto.train_actor=true]"]
     assert report_main([str(tmp_path), "--out", str(tmp_path / "rep"), "--bootstrap", "20"]) == 0

@@ -86,7 +86,7 @@ def test_sweep_runs_populations(tmp_path, backend):
         for t in job.trials:
             assert json.loads((tmp_path / "sw" / job.member_dir(t) / "summary.json").read_text())["seed"] == t.seed
     # `botorl report` finds every member's run directory inside the population directories
-    from botorl.experiments.report import find_runs
+    from botorl.experiments.runs import find_runs
 
     runs, skipped = find_runs([tmp_path / "sw"])
     found = sorted(str(r.path) for r in [*runs, *skipped])

@@ -238,7 +238,7 @@ def report_main(argv: list[str]) -> int:
     for d in args.dirs:
         if not Path(d).is_dir():
             raise ConfigError(f"{d} is not a directory; give run or sweep directories.")
-    from botorl.experiments.report import find_runs
+    from botorl.experiments.runs import find_runs
 
     runs, skipped = find_runs([Path(d) for d in args.dirs])
     if not runs:  # an empty report would look like a result; say why there is none

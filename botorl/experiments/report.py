@@ -1,24 +1,11 @@
-"""Table 1, Figure 5 and the alpha-sensitivity figure from finished run directories.
+"""The report of finished run directories: Table 1, the IQM table, Figure 5, the dip, paired
+comparisons, alpha sensitivity and held-out alpha selection (``botorl report``).
 
-Statistics:
-- mean +- standard error over seeds, SE = sample standard deviation (ddof=1) / sqrt(n), as
-  the paper's Table 1 and Figure 5 report them ("standard error across five random seeds");
-- the interquartile mean (IQM) with a percentile stratified-bootstrap confidence interval,
-  following Agarwal et al. 2021, "Deep RL at the Edge of the Statistical Precipice" (rliable):
-  IQM = mean of the scores left after cutting floor(n/4) from each end of the sorted scores
-  (scipy.stats.trim_mean(x, 0.25), which rliable uses); the bootstrap resamples runs with
-  replacement within each task (strata) and recomputes the IQM of all resampled scores.
-  Written here from that description; no rliable code is used.
-- the dip: per run, the lowest success over every evaluation with
-  0 <= env_step <= window (default 10,000; warm-up evaluations and step 0 included; for a run
-  that evaluated densely (eval.dense_interval > 0), step 0 and the dense points from the
-  warm-up's end only, the same points for every method) minus the success at env_step 0, so 0 is no drop and -1 a fall from always to never solving the task.
-  Per group: mean +- SE, a percentile bootstrap CI of the mean (runs resampled with
-  replacement) and the IQM with its CI as above. Runs without an evaluation at step 0, or
-  with none after it inside the window, get no dip and are listed with the reason.
-
-Only runs with summary.json status "finished" count; every other run directory found is
-listed as skipped, with the reason, in the report and on stdout.
+What each number means lives beside the code that computes it: ``stats`` (mean +- s.e., IQM
+and bootstrap CIs, paired statistics), ``runs`` (which run directories count), ``dip`` (the
+dip), ``pairs`` (runs that share a pre-training, compared pair by pair). Only runs with
+summary.json status "finished" count; every other run directory found is listed as skipped,
+with the reason, in the report and on stdout.
 """
 
 from __future__ import annotations
@@ -26,505 +13,45 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
-import json
 import math
 import os
 from collections import defaultdict
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Iterable, Sequence
 
 import numpy as np
 
 from botorl.errors import BotorlError, ConfigError, DataFormatError
+from botorl.experiments.dip import (
+    DIP_KEYS,
+    DIP_WINDOW,
+    Dip,
+    DipCell,
+    dip_figure,
+    dip_markdown,
+    dip_runs_csv,
+    dip_table,
+    dips_of,
+    run_dip,
+)
+from botorl.experiments.pairs import Pair, PairedCell, find_pairs, write_paired
+from botorl.experiments.runs import Run, Skipped, find_runs
+from botorl.experiments.stats import (
+    alpha_text,
+    bootstrap_mean_ci,
+    fmt_float,
+    line_label,
+    mean_se,
+    stratified_bootstrap_iqm,
+    suptitle,
+)
 from botorl.io import atomic_save_figure, atomic_write_text
-from botorl.pipeline.methods import METHODS
 
 POINTS = (("initial", "success_initial"), ("10k", "success_10k"), ("final", "success_final"))
-DIP_WINDOW = 10_000
-DIP_KEYS = ("mean", "se", "n", "lo", "hi", "iqm", "iqm_lo", "iqm_hi")  # lo/hi: CI of the mean
 SELECT_ALPHA_CRITERION = (
     "highest mean over seeds of (success_10k + success_final) / 2; ties (within 1e-9) go to "
     "the smaller |alpha|, then to the smaller alpha"
 )
-
-
-# ---------------------------------------------------------------------------------------------
-# Statistics
-
-
-def mean_se(values: Sequence[float]) -> tuple[float, float, int]:
-    """Mean and standard error (ddof=1) of the finite values; SE is nan for n < 2."""
-    x = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
-    n = int(x.size)
-    if n == 0:
-        return math.nan, math.nan, 0
-    mean = float(x.mean())
-    se = float(x.std(ddof=1) / math.sqrt(n)) if n >= 2 else math.nan
-    return mean, se, n
-
-
-def iqm(values: Sequence[float] | np.ndarray, axis: int = -1) -> Any:
-    """Interquartile mean: drop floor(n/4) scores from each end, average the rest."""
-    x = np.sort(np.asarray(values, dtype=np.float64), axis=axis)
-    n = x.shape[axis]
-    if n == 0:
-        return math.nan
-    cut = int(0.25 * n)
-    kept = np.take(x, np.arange(cut, n - cut), axis=axis)
-    out = kept.mean(axis=axis)
-    return float(out) if np.ndim(out) == 0 else out
-
-
-def stratified_bootstrap_iqm(
-    scores_per_task: Sequence[Sequence[float]],
-    *,
-    n_boot: int = 2000,
-    confidence: float = 0.95,
-    seed: int = 0,
-) -> tuple[float, float, float]:
-    """IQM of all scores, and a percentile CI resampling runs within each task."""
-    strata = [np.asarray([v for v in s if v is not None and math.isfinite(v)], dtype=np.float64) for s in scores_per_task]
-    strata = [s for s in strata if s.size]
-    if not strata:
-        return math.nan, math.nan, math.nan
-    point = iqm(np.concatenate(strata))
-    if n_boot <= 0:
-        return point, math.nan, math.nan
-    rng = np.random.default_rng(seed)
-    resampled = [s[rng.integers(0, s.size, size=(n_boot, s.size))] for s in strata]
-    boot = iqm(np.concatenate(resampled, axis=1), axis=1)
-    lo, hi = np.quantile(boot, [(1 - confidence) / 2, 1 - (1 - confidence) / 2])
-    return point, float(lo), float(hi)
-
-
-def bootstrap_mean_ci(
-    values: Sequence[float], *, n_boot: int = 2000, confidence: float = 0.95, seed: int = 0
-) -> tuple[float, float]:
-    """Percentile bootstrap CI of the mean: resample the runs with replacement n_boot times.
-
-    (nan, nan) for fewer than 2 finite values: one run says nothing about its spread."""
-    x = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
-    if x.size < 2 or n_boot <= 0:
-        return math.nan, math.nan
-    rng = np.random.default_rng(seed)
-    boot = x[rng.integers(0, x.size, size=(n_boot, x.size))].mean(axis=1)
-    lo, hi = np.quantile(boot, [(1 - confidence) / 2, 1 - (1 - confidence) / 2])
-    return float(lo), float(hi)
-
-
-# ---------------------------------------------------------------------------------------------
-# Reading run directories
-
-
-@dataclasses.dataclass
-class Run:
-    path: Path
-    task: str
-    method: str
-    pretrain: str | None
-    alpha: float | None
-    seed: int | None
-    profile: str | None
-    success_initial: float
-    success_10k: float
-    success_final: float
-    steps: np.ndarray  # online env steps of the evaluations (sorted, unique)
-    success: np.ndarray
-    settings: dict[str, Any] = dataclasses.field(default_factory=dict)  # config.json, flattened (_settings)
-    # the first step of the dense dip window (the warm-up's end) when the run evaluated densely
-    # there (eval.dense_interval > 0), else None
-    dense_from: float | None = None
-    config: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)  # config.json as read
-    variant: str = ""  # the settings in which this run differs from others of its method (label_variants)
-
-    @property
-    def label(self) -> str:
-        base = f"boto+{self.pretrain}" if self.method == "boto" and self.pretrain else self.method
-        return f"{base} [{self.variant}]" if self.variant else base
-
-    @property
-    def key(self) -> tuple[str, str, float | None]:
-        return (self.task, self.label, self.alpha if self.method == "boto" else None)
-
-    def value(self, field: str) -> float:
-        return getattr(self, field)
-
-
-@dataclasses.dataclass
-class Skipped:
-    path: Path
-    reason: str
-
-
-def _num(v: Any) -> float:
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        return math.nan
-    return f
-
-
-def read_eval_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(env_step, success) with one value per step: the last row written for that step.
-
-    Several stages may evaluate at env_step 0 (end of pre-training, end of BOTO); the last
-    one is what fine-tuning starts from.
-    """
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        if reader.fieldnames is None or not {"env_step", "success"} <= set(reader.fieldnames):
-            raise ValueError(f"{path.name} has no env_step/success columns (header {reader.fieldnames})")
-        by_step: dict[float, float] = {}
-        for row in reader:
-            step, succ = _num(row.get("env_step")), _num(row.get("success"))
-            if math.isfinite(step) and step >= 0 and math.isfinite(succ):
-                by_step.pop(step, None)
-                by_step[step] = succ
-    steps = np.asarray(sorted(by_step), dtype=np.float64)
-    return steps, np.asarray([by_step[s] for s in steps], dtype=np.float64)
-
-
-# Config fields that differ between runs of one method without making them another method:
-# the member's identity (seed, alpha and their copies), where and how it logs, how updates are
-# chunked into calls, and where its pre-training came from (the same numbers either way).
-_SAME_METHOD = {"seed", "alpha", "out", "pretrained", "progress", "tensorboard", "wandb", "checkpoint_every",
-                "boto.alpha", "boto.seed", "eval.num_envs", "offline.updates_per_call", "boto.steps_per_call",
-                "offline.sample_on_device"}
-
-
-def _settings(config: dict, prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in config.items():
-        key = prefix + str(k)
-        if isinstance(v, dict):
-            out.update(_settings(v, key + "."))
-        elif key not in _SAME_METHOD and not key.endswith("log_every"):
-            out[key] = json.dumps(v, sort_keys=True)
-    return out
-
-
-def label_variants(runs: list[Run]) -> None:
-    """Runs of one method on one task that differ in a setting (``--boto.train-actor``, another
-    ``online.steps``) are different variants, not more seeds of one: each gets the settings in
-    which its method's runs differ (on any task) appended to its label, e.g.
-    ``boto+calql [boto.train_actor=true]``, so tables, curves and dips keep them apart."""
-    by_method: dict[tuple[str, str], list[Run]] = defaultdict(list)
-    for r in runs:
-        by_method[(r.method, r.pretrain or "")].append(r)
-    for group in by_method.values():
-        varying: set[str] = set()
-        by_task: dict[str, list[Run]] = defaultdict(list)
-        for r in group:
-            by_task[r.task].append(r)
-        for same_task in by_task.values():
-            keys = set().union(*(r.settings for r in same_task))
-            varying |= {k for k in keys if len({r.settings.get(k) for r in same_task}) > 1}
-        for r in group:
-            r.variant = ", ".join(f"{k}={r.settings.get(k, 'null')}" for k in sorted(varying))
-
-
-def _load_run(run_dir: Path) -> Run | Skipped:
-    try:
-        summary = json.loads((run_dir / "summary.json").read_text())
-        if not isinstance(summary, dict):
-            raise ValueError("not a JSON object")
-    except (OSError, ValueError) as err:
-        return Skipped(run_dir, f"summary.json unreadable ({err})")
-    status = summary.get("status")
-    if status != "finished":
-        error = f" ({summary['error']})" if summary.get("error") else ""
-        return Skipped(run_dir, f"status is {status!r}, not 'finished'{error}")
-    config: dict[str, Any] = {}
-    try:
-        loaded = json.loads((run_dir / "config.json").read_text())
-        config = loaded if isinstance(loaded, dict) else {}
-    except (OSError, ValueError):
-        pass
-
-    def field(name: str) -> Any:
-        return summary[name] if summary.get(name) is not None else config.get(name)
-
-    if not field("task") or not field("method"):
-        return Skipped(run_dir, "summary.json and config.json name no task/method")
-    eval_path = run_dir / "eval.csv"
-    if not eval_path.exists():
-        return Skipped(run_dir, "finished but eval.csv is missing")
-    try:
-        steps, success = read_eval_csv(eval_path)
-    except (OSError, ValueError) as err:
-        return Skipped(run_dir, f"eval.csv unreadable ({err})")
-    alpha = field("alpha")
-    seed = field("seed")
-    return Run(
-        path=run_dir,
-        task=str(field("task")),
-        method=str(field("method")),
-        pretrain=None if field("pretrain") in (None, "") else str(field("pretrain")),
-        alpha=None if alpha is None or not math.isfinite(_num(alpha)) else round(float(alpha), 6),
-        seed=None if seed is None else int(seed),
-        profile=field("profile"),
-        success_initial=_num(summary.get("success_initial")),
-        success_10k=_num(summary.get("success_10k")),
-        success_final=_num(summary.get("success_final")),
-        steps=steps,
-        success=success,
-        settings=_settings(config),
-        dense_from=_dense_from(config),
-        config=config,
-    )
-
-
-def _dense_from(config: dict) -> float | None:
-    ev, wu = config.get("eval"), config.get("warmup")
-    if not isinstance(ev, dict) or not isinstance(wu, dict) or not _num(ev.get("dense_interval")) > 0:
-        return None
-    start = _num(wu.get("steps"))
-    return start if math.isfinite(start) and start >= 0 else None
-
-
-def _last_line(path: Path) -> str:
-    try:
-        lines = [ln.strip() for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
-    except OSError:
-        return "(unreadable)"
-    return lines[-1][:300] if lines else "(empty)"
-
-
-def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
-    """Every run directory under `dirs` (a folder with summary.json, or with config.json and
-    no summary yet), recursively; run directories are not searched further down."""
-    runs: list[Run] = []
-    skipped: list[Skipped] = []
-    seen: set[Path] = set()
-    for top in dirs:
-        top = Path(top)
-        if not top.is_dir():
-            raise BotorlError(f"{top} is not a directory.")
-        for root, subdirs, files in os.walk(top):
-            root_p = Path(root).resolve()
-            if "summary.json" in files or ("config.json" in files and "eval.csv" in files):
-                subdirs[:] = []
-                if root_p in seen:
-                    continue
-                seen.add(root_p)
-                if "summary.json" not in files:
-                    skipped.append(Skipped(Path(root), "no summary.json (the run never got far enough to write one)"))
-                    continue
-                loaded = _load_run(Path(root))
-                (runs if isinstance(loaded, Run) else skipped).append(loaded)
-            elif "config.json" in files and "checkpoints" in subdirs:
-                subdirs[:] = []
-                if root_p not in seen:
-                    seen.add(root_p)
-                    skipped.append(Skipped(Path(root), "no summary.json (the run never got far enough to write one)"))
-            elif "population.json" in files:  # a population: its members are run directories
-                subdirs[:] = sorted(d for d in subdirs if not d.startswith(".") and d != "checkpoints")
-            elif "sweep-trial.log" in files:  # a sweep trial whose `botorl run` failed before starting
-                subdirs[:] = []
-                if root_p not in seen:
-                    seen.add(root_p)
-                    last = _last_line(Path(root) / "sweep-trial.log")
-                    skipped.append(Skipped(Path(root), f"the run never started; sweep-trial.log ends: {last}"))
-            else:
-                subdirs[:] = sorted(d for d in subdirs if not d.startswith("."))
-    label_variants(runs)
-    runs.sort(key=lambda r: (r.task, r.label, -99 if r.alpha is None else r.alpha, r.seed or 0))
-    return runs, skipped
-
-
-# ---------------------------------------------------------------------------------------------
-# The dip: how far success falls early in fine-tuning
-
-
-@dataclasses.dataclass
-class Dip:
-    run: Run
-    initial: float  # success at env_step 0
-    lowest: float  # lowest success over 0 <= env_step <= window
-    lowest_step: float  # the first env_step where it is reached
-    evals: int  # evaluations inside the window, step 0 included
-    last_step: float  # the last evaluation inside the window
-
-    @property
-    def value(self) -> float:
-        return self.lowest - self.initial
-
-
-def run_dip(run: Run, window: float = DIP_WINDOW) -> Dip | str:
-    """The run's dip, or the reason it has none.
-
-    Uses the run's evaluations as Figure 5 does (one per env_step, the last row written for a
-    step), so the step-0 value is summary.json's success_initial."""
-    steps, success = run.steps, run.success
-    if steps.size == 0:
-        return "eval.csv has no evaluations"
-    if not np.any(steps == 0):
-        return f"eval.csv has no evaluation at env_step 0 (the first is at {steps[0]:g}), so there is no start to dip from"
-    inside = (steps >= 0) & (steps <= window)
-    if run.dense_from is not None:
-        # over step 0 and the dense points only, which every method shares (a baseline's
-        # evaluations before the warm-up's end would give it more chances to dip)
-        inside &= (steps == 0) | (steps >= run.dense_from)
-    if int(inside.sum()) < 2:
-        after = steps[steps > window]
-        nxt = f" (the next is at {after[0]:g})" if after.size else ""
-        return f"eval.csv has no evaluation after env_step 0 within the {window:g}-step dip window{nxt}"
-    s_in, v_in = steps[inside], success[inside]
-    k = int(np.argmin(v_in))
-    return Dip(run, float(success[steps == 0][0]), float(v_in[k]), float(s_in[k]), int(inside.sum()), float(s_in[-1]))
-
-
-def dips_of(runs: Sequence[Run], window: float) -> tuple[list[Dip], list[Skipped]]:
-    dips: list[Dip] = []
-    no_dip: list[Skipped] = []
-    for r in runs:
-        d = run_dip(r, window)
-        if isinstance(d, Dip):
-            dips.append(d)
-        else:
-            no_dip.append(Skipped(r.path, d))
-    return dips, no_dip
-
-
-def dip_stats(values: Sequence[float], *, n_boot: int, confidence: float, seed: int) -> dict[str, float]:
-    mean, se, n = mean_se(values)
-    lo, hi = bootstrap_mean_ci(values, n_boot=n_boot, confidence=confidence, seed=seed)
-    point_iqm, iqm_lo, iqm_hi = stratified_bootstrap_iqm([values], n_boot=n_boot, confidence=confidence, seed=seed)
-    if n < 2:  # resampling one run gives a zero-width interval, which would read as certainty
-        iqm_lo = iqm_hi = math.nan
-    return {"mean": mean, "se": se, "n": n, "lo": lo, "hi": hi, "iqm": point_iqm, "iqm_lo": iqm_lo, "iqm_hi": iqm_hi}
-
-
-@dataclasses.dataclass
-class DipCell:
-    task: str
-    label: str
-    alpha: float | None
-    seeds: list[int | None]
-    values: list[float]
-    initial: float  # mean success at step 0 of these runs
-    lowest: float  # mean lowest success in the window
-    stats: dict[str, float]  # mean, se, n, lo, hi (CI of the mean), iqm, iqm_lo, iqm_hi
-    # a method without pre-training (rlpd): its step 0 is an untrained policy, so its "dip" is
-    # that policy's luck at step 0, not unlearning, and the report says so beside the number
-    from_scratch: bool = False
-
-
-def _from_scratch(method: str) -> bool:
-    m = METHODS.get(method)
-    return m is not None and not m.pretrains
-
-
-def _key_order(key: tuple[str, str, float | None]) -> tuple:
-    return (key[0], key[1], -99 if key[2] is None else key[2])
-
-
-def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int) -> list[DipCell]:
-    groups: dict[tuple[str, str, float | None], list[Dip]] = defaultdict(list)
-    for d in dips:
-        groups[d.run.key].append(d)
-    cells = []
-    for key in sorted(groups, key=_key_order):
-        group = groups[key]
-        values = [d.value for d in group]
-        cells.append(DipCell(
-            *key, [d.run.seed for d in group], values,
-            float(np.mean([d.initial for d in group])), float(np.mean([d.lowest for d in group])),
-            dip_stats(values, n_boot=n_boot, confidence=confidence, seed=seed),
-            from_scratch=all(_from_scratch(d.run.method) for d in group),
-        ))
-    return cells
-
-
-def dip_runs_csv(dips: Sequence[Dip]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["task", "method", "alpha", "seed", "success_0", "lowest", "lowest_step", "evals_in_window",
-                "last_step_in_window", "dip", "path"])
-    for d in dips:
-        r = d.run
-        w.writerow([r.task, r.label, "" if r.alpha is None else repr(r.alpha), "" if r.seed is None else r.seed,
-                    _f(d.initial), _f(d.lowest), f"{d.lowest_step:g}", d.evals, f"{d.last_step:g}", _f(d.value),
-                    str(r.path)])
-    return buf.getvalue()
-
-
-def _fmt_ci(lo: float, hi: float) -> str:
-    return "-" if not math.isfinite(lo) else f"[{lo:+.2f}, {hi:+.2f}]"
-
-
-def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> str:
-    pct = f"{100 * confidence:g}%"
-    lines = [
-        f"| task | method | alpha | runs | success at 0 | lowest (0..{window:g}) | dip mean ± s.e. | "
-        f"{pct} CI of the mean | IQM [{pct} CI] |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for c in cells:
-        st = c.stats
-        ms = "-" if st["n"] == 0 else (f"{st['mean']:+.2f} (n=1)" if not math.isfinite(st["se"])
-                                       else f"{st['mean']:+.2f} ± {st['se']:.2f}")
-        iq = "-" if not math.isfinite(st["iqm"]) else (f"{st['iqm']:+.2f}" + (
-            f" {_fmt_ci(st['iqm_lo'], st['iqm_hi'])}" if math.isfinite(st["iqm_lo"]) else ""))
-        lines.append(
-            f"| {c.task} | {c.label} | {_alpha_text(c.alpha)} | {int(st['n'])} | {c.initial:.2f} | {c.lowest:.2f} | "
-            f"{ms} | {_fmt_ci(st['lo'], st['hi'])} | {iq} |"
-        )
-    scratch = sorted({(c.task, c.label) for c in cells if c.from_scratch})
-    if scratch:
-        lines.append("")
-        lines += [f"{label} on {task} trains from scratch (no pre-training): its step-0 success is an untrained "
-                  "policy's, so its dip is that policy's luck at step 0, not unlearning." for task, label in scratch]
-    return "\n".join(lines)
-
-
-def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidence: float) -> None:
-    """Per task, one point per method (and alpha): the mean dip with its bootstrap CI, and
-    each run's dip as a small dot beside it."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    tasks = list(dict.fromkeys(c.task for c in cells))  # in the cells' order (dip_table sorts them)
-    ncols = 2 if len(tasks) == 4 else min(3, max(1, len(tasks)))
-    nrows = math.ceil(len(tasks) / ncols)
-    most = max(sum(1 for c in cells if c.task == t) for t in tasks)
-    width = max(3.6, 1.0 + 0.55 * most)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(width * ncols, 3.8 * nrows), squeeze=False)
-    labels = sorted({c.label for c in cells})
-    colors = {lab: plt.cm.tab10(i % 10) for i, lab in enumerate(labels)}
-    for ax, task in zip(axes.flat, tasks):
-        row = [c for c in cells if c.task == task]
-        multi = {lab: sum(1 for c in row if c.label == lab) > 1 for lab in {c.label for c in row}}
-        for x, c in enumerate(row):
-            st = c.stats
-            color = plt.cm.coolwarm((c.alpha + 1.0) / 2.0) if multi[c.label] and c.alpha is not None else colors[c.label]
-            # the runs, spread a little sideways (fixed offsets: the figure is reproducible)
-            offsets = np.linspace(-0.18, 0.18, len(c.values)) if len(c.values) > 1 else np.zeros(1)
-            ax.plot(x + 0.25 + offsets * 0.5, c.values, ".", color="0.55", ms=3, zorder=2)
-            if math.isfinite(st["lo"]):
-                yerr = [[max(st["mean"] - st["lo"], 0.0)], [max(st["hi"] - st["mean"], 0.0)]]
-                ax.errorbar([x], [st["mean"]], yerr=yerr, fmt="o", color=color, ms=6, mec="0.2", capsize=4, lw=1.6,
-                            ecolor="0.2" if multi[c.label] else color, zorder=3)
-            else:
-                ax.plot([x], [st["mean"]], "o", color=color, ms=6, mec="0.2", zorder=3)
-        ax.axhline(0.0, color="0.3", lw=0.8)
-        ax.set_xticks(range(len(row)))
-        ax.set_xticklabels([_line_label(c.label, c.alpha, multi[c.label]) + ("\n(no pre-training)" if c.from_scratch else "")
-                            + f"\n(n={int(c.stats['n'])})" for c in row],
-                           rotation=45 if len(row) > 4 else 0, ha="right" if len(row) > 4 else "center", fontsize=7)
-        ax.set_xlim(-0.6, len(row) - 0.4)
-        ax.set_ylim(-1.05, 0.08)
-        ax.set_title(task)
-        ax.set_ylabel(f"dip (lowest success in 0..{window / 1000:g}k − success at 0)", fontsize=8)
-        ax.grid(alpha=0.3, axis="y")
-    for ax in list(axes.flat)[len(tasks):]:
-        ax.set_visible(False)
-    _suptitle(fig, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs")
-    fig.tight_layout()
-    atomic_save_figure(fig, path, dpi=120)
-    plt.close(fig)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -541,8 +68,6 @@ class Cell:
     dip: dict[str, float] | None = None  # dip_stats of the runs that have a dip
 
 
-def _alpha_text(alpha: float | None) -> str:
-    return "" if alpha is None else f"{alpha:+.2f}"
 
 
 def _fmt_ms(mean: float, se: float, n: int) -> str:
@@ -612,8 +137,6 @@ def aggregate_iqm(runs: Sequence[Run], *, n_boot: int, confidence: float, seed: 
     return out, notes
 
 
-def _f(x: float) -> str:
-    return "" if x is None or (isinstance(x, float) and not math.isfinite(x)) else repr(float(x))
 
 
 def cells_csv(cells: Sequence[Cell]) -> str:
@@ -628,9 +151,9 @@ def cells_csv(cells: Sequence[Cell]) -> str:
         row = [c.task, c.label, "" if c.alpha is None else repr(c.alpha), " ".join(str(s) for s in c.seeds)]
         for point, _ in POINTS:
             st = c.stats[point]
-            row += [_f(st["mean"]), _f(st["se"]), st["n"], _f(st["iqm"]), _f(st["iqm_lo"]), _f(st["iqm_hi"])]
+            row += [fmt_float(st["mean"]), fmt_float(st["se"]), st["n"], fmt_float(st["iqm"]), fmt_float(st["iqm_lo"]), fmt_float(st["iqm_hi"])]
         dip = c.dip or {"n": 0}
-        row += [dip["n"] if k == "n" else _f(dip.get(k, math.nan)) for k in DIP_KEYS]
+        row += [dip["n"] if k == "n" else fmt_float(dip.get(k, math.nan)) for k in DIP_KEYS]
         w.writerow(row)
     return buf.getvalue()
 
@@ -646,7 +169,7 @@ def aggregate_csv(aggs: Sequence[Aggregate]) -> str:
         row = [a.label, " ".join(a.tasks)]
         for point, _ in POINTS:
             st = a.stats[point]
-            row += [_f(st["iqm"]), _f(st["iqm_lo"]), _f(st["iqm_hi"]), st["n"]]
+            row += [fmt_float(st["iqm"]), fmt_float(st["iqm_lo"]), fmt_float(st["iqm_hi"]), st["n"]]
         w.writerow(row)
     return buf.getvalue()
 
@@ -658,7 +181,7 @@ def cells_markdown(cells: Sequence[Cell]) -> str:
     ]
     for c in cells:
         parts = [_fmt_ms(c.stats[p]["mean"], c.stats[p]["se"], int(c.stats[p]["n"])) for p, _ in POINTS]
-        lines.append(f"| {c.task} | {c.label} | {_alpha_text(c.alpha)} | {len(c.seeds)} | " + " | ".join(parts) + " |")
+        lines.append(f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {len(c.seeds)} | " + " | ".join(parts) + " |")
     return "\n".join(lines)
 
 
@@ -678,7 +201,7 @@ def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: f
     ]
     for c in cells:
         lines.append(
-            f"| {c.task} | {c.label} | {_alpha_text(c.alpha)} | "
+            f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | "
             + " | ".join(_fmt_iqm(c.stats[p]) for p, _ in POINTS) + " |"
         )
     for a in aggs:
@@ -693,12 +216,6 @@ def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: f
 # Figures
 
 
-def _suptitle(fig, text: str) -> None:
-    """A figure title wrapped to the figure's width (a one-task figure is narrower than the line)."""
-    import textwrap
-
-    chars = max(20, int(fig.get_figwidth() * 11))  # ~11 characters an inch at 10 pt
-    fig.suptitle("\n".join(textwrap.wrap(text, chars)), fontsize=10)
 
 
 def curve_on_grid(run: Run, grid: np.ndarray) -> np.ndarray:
@@ -722,10 +239,6 @@ def mean_se_curves(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return mean, se, count
 
 
-def _line_label(label: str, alpha: float | None, multi_alpha: bool) -> str:
-    if not multi_alpha:
-        return label
-    return f"{label} α=preset" if alpha is None else f"{label} α={alpha:+.2f}"
 
 
 def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
@@ -762,7 +275,7 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
                 color = colors[key[1]]
                 if len(per_label) < len(keys):  # beside a sweep: dashed, to tell them apart
                     style = "--"
-            name = _line_label(key[1], key[2], len(siblings) > 1) + f" (n={len(groups[key])})"
+            name = line_label(key[1], key[2], len(siblings) > 1) + f" (n={len(groups[key])})"
             ax.plot(grid[ok], mean[ok], style, color=color, label=name, lw=1.6)
             ax.fill_between(grid[ok], (mean - se)[ok], (mean + se)[ok], color=color, alpha=0.2, lw=0)
         ax.set_title(task)
@@ -777,7 +290,7 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
             ax.legend(fontsize=7, loc="best")
     for ax in list(axes.flat)[len(tasks):]:
         ax.set_visible(False)
-    _suptitle(fig, "Success during online fine-tuning (mean ± standard error over seeds)")
+    suptitle(fig, "Success during online fine-tuning (mean ± standard error over seeds)")
     fig.tight_layout()
     atomic_save_figure(fig, path, dpi=120)
     plt.close(fig)
@@ -867,7 +380,7 @@ def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WI
             ax.set_xlim(-1.05, 1.05)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
-    _suptitle(fig, "Alpha sensitivity (mean ± standard error over seeds)")
+    suptitle(fig, "Alpha sensitivity (mean ± standard error over seeds)")
     fig.tight_layout()
     atomic_save_figure(fig, path, dpi=120)
     plt.close(fig)
@@ -1067,6 +580,8 @@ class ReportResult:
     notes: list[str]
     dip_cells: list[DipCell] = dataclasses.field(default_factory=list)
     dips: list[Dip] = dataclasses.field(default_factory=list)
+    pairs: list[Pair] = dataclasses.field(default_factory=list)
+    paired: list[PairedCell] = dataclasses.field(default_factory=list)
     no_dip: list[Skipped] = dataclasses.field(default_factory=list)  # finished runs without a dip
     selection: AlphaSelection | None = None  # None when held-out selection was impossible (see notes)
 
@@ -1100,6 +615,11 @@ def make_report(
     runs, skipped = find_runs(dirs)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+
+    def rel(path) -> str:
+        # committed reports hold no path of the machine that made them: paths relative to the report
+        return os.path.relpath(Path(path).resolve(), out.resolve())
+
     files: list[Path] = []
     notes: list[str] = []
     dips, no_dip = dips_of(runs, dip_window)
@@ -1108,23 +628,31 @@ def make_report(
     if short:
         notes.append(
             f"{len(short)} run(s) end before the {dip_window:g}-step dip window (their dip covers only the steps "
-            f"they evaluated): {', '.join(str(x) for x in short[:5])}{' ...' if len(short) > 5 else ''}"
+            f"they evaluated): {', '.join(rel(x) for x in short[:5])}{' ...' if len(short) > 5 else ''}"
         )
     cells = table1(runs, n_boot=n_boot, confidence=confidence, seed=seed, dips=dip_cells)
+    pairs, pair_notes = find_pairs(runs, window=dip_window, relative_to=out)
+    notes += pair_notes
+    paired_md: list[str] = []
+    paired_cells: list[PairedCell] = []
+    if pairs:
+        paired_files, paired_md, paired_cells = write_paired(pairs, out, n_boot=n_boot, confidence=confidence,
+                                                             seed=seed)
+        files += paired_files
     aggs, agg_notes = aggregate_iqm(runs, n_boot=n_boot, confidence=confidence, seed=seed)
     notes += agg_notes
     for (task, label, alpha), group in sorted(_group(runs).items(), key=lambda kv: str(kv[0])):
         seeds = [r.seed for r in group]
         dupes = sorted({s for s in seeds if seeds.count(s) > 1}, key=str)
         if dupes:
-            where = ", ".join(str(r.path) for r in group if r.seed in dupes)
+            where = ", ".join(rel(r.path) for r in group if r.seed in dupes)
             notes.append(
                 f"{task} / {label}{'' if alpha is None else f' alpha {alpha:+.2f}'}: seed(s) "
                 f"{dupes} appear more than once ({where}); each run counts as one sample"
             )
     atomic_write_text(out / "table1.csv", cells_csv(cells))
     atomic_write_text(out / "aggregate_iqm.csv", aggregate_csv(aggs))
-    atomic_write_text(out / "dip_runs.csv", dip_runs_csv(dips))
+    atomic_write_text(out / "dip_runs.csv", dip_runs_csv(dips, relative_to=out))
     files += [out / "table1.csv", out / "aggregate_iqm.csv", out / "dip_runs.csv"]
     if runs:
         figure5(runs, out / "figure5.png", grid_points=grid_points)
@@ -1153,7 +681,7 @@ def make_report(
     md = [
         "# botorl report",
         "",
-        f"{len(runs)} finished runs from {', '.join(str(d) for d in dirs)}; {len(skipped)} skipped.",
+        f"{len(runs)} finished runs from {', '.join(rel(d) for d in dirs)}; {len(skipped)} skipped.",
         "",
         "## Table 1: success rate, mean ± standard error over seeds",
         "",
@@ -1181,9 +709,10 @@ def make_report(
         "",
     ]
     if no_dip:
-        md += ["Finished runs without a dip:", ""] + [f"- `{s.path}`: {s.reason}" for s in no_dip] + [""]
+        md += ["Finished runs without a dip:", ""] + [f"- `{rel(s.path)}`: {s.reason}" for s in no_dip] + [""]
     if (out / "dip.png") in files:
         md += ["![the dip](dip.png)", ""]
+    md += paired_md
     if (out / "figure5.png") in files:
         md += ["## Figure 5", "", "![figure 5](figure5.png)", ""]
     if (out / "alpha_sensitivity.png") in files:
@@ -1193,7 +722,7 @@ def make_report(
             md += ["Selected alpha, held out (`botorl report --select-alpha`):", "", "```", selection.text(), "```", ""]
     if skipped:
         md += ["## Skipped run directories", ""]
-        md += [f"- `{s.path}`: {s.reason}" for s in skipped]
+        md += [f"- `{rel(s.path)}`: {s.reason}" for s in skipped]
         md.append("")
     if notes:
         md += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]
@@ -1207,4 +736,5 @@ def make_report(
     for stale in ("alpha_selection.txt", "dip.png", "alpha_sensitivity.png", "alpha_sensitivity.csv", "figure5.png"):
         if (out / stale) not in files:
             (out / stale).unlink(missing_ok=True)
-    return ReportResult(out, runs, skipped, cells, aggs, files, notes, dip_cells, dips, no_dip, selection)
+    return ReportResult(out, runs, skipped, cells, aggs, files, notes, dip_cells, dips, pairs, paired_cells, no_dip,
+                        selection)

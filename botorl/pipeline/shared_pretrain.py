@@ -31,7 +31,11 @@ def fingerprint(cfg) -> dict[str, Any]:
     """The settings that decide a member's pre-trained agent."""
     from botorl.configs.schema import to_dict
 
-    d = to_dict(cfg)
+    return fingerprint_of(to_dict(cfg))
+
+
+def fingerprint_of(d: dict[str, Any]) -> dict[str, Any]:
+    """``fingerprint`` of a config as ``to_dict`` writes it (a run's config.json)."""
     offline = {k: v for k, v in d["offline"].items() if ("offline", k) not in _NOT_LEARNED}
     return {"task": d["task"], "seed": d["seed"], "pretrain": d["pretrain"], "data": d["data"],
             "network": d["network"], "offline": offline, "checkpoint_every": d["checkpoint_every"]}

@@ -17,7 +17,8 @@ import csv
 from collections import defaultdict
 from pathlib import Path
 
-from botorl.experiments.report import DipCell, _from_scratch, dip_figure
+from botorl.experiments.dip import DipCell, dip_figure
+from botorl.experiments.runs import from_scratch
 from botorl.io import atomic_write_text
 
 HERE = Path(__file__).resolve().parent
@@ -61,7 +62,7 @@ def main() -> None:
             t, rs = table[(task, method)], runs[(task, method)]
             values = [float(r["dip"]) for r in rs]
             st = {k: float(t[f"dip_{k}"]) for k in ("mean", "se", "n", "lo", "hi", "iqm", "iqm_lo", "iqm_hi")}
-            scratch = _from_scratch(method.split("+")[0])
+            scratch = from_scratch(method.split("+")[0])
             cells.append(DipCell(task, NAMES[method], None, [int(r["seed"]) for r in rs], values,
                                  sum(float(r["success_0"]) for r in rs) / len(rs),
                                  sum(float(r["lowest"]) for r in rs) / len(rs), st, from_scratch=scratch))

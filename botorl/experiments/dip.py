@@ -1,0 +1,225 @@
+"""The dip: how far success falls early in fine-tuning.
+
+Per run, the lowest success over every evaluation with 0 <= env_step <= window (default
+10,000; warm-up evaluations and step 0 included; for a run that evaluated densely
+(eval.dense_interval > 0), step 0 and the dense points from the warm-up's end only, the same
+points for every method) minus the success at env_step 0, so 0 is no drop and -1 a fall from
+always to never solving the task. Per group: mean +- SE, a percentile bootstrap CI of the mean
+(runs resampled with replacement) and the IQM with its CI. Runs without an evaluation at step
+0, or with none after it inside the window, get no dip and are listed with the reason.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import math
+import os
+from collections import defaultdict
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from botorl.experiments.runs import Run, Skipped, from_scratch, key_order
+from botorl.experiments.stats import (
+    alpha_text,
+    line_label,
+    bootstrap_mean_ci,
+    fmt_float,
+    mean_se,
+    stratified_bootstrap_iqm,
+    suptitle,
+)
+from botorl.io import atomic_save_figure
+
+DIP_WINDOW = 10_000
+DIP_KEYS = ("mean", "se", "n", "lo", "hi", "iqm", "iqm_lo", "iqm_hi")  # lo/hi: CI of the mean
+
+@dataclasses.dataclass
+class Dip:
+    run: Run
+    initial: float  # success at env_step 0
+    lowest: float  # lowest success over 0 <= env_step <= window
+    lowest_step: float  # the first env_step where it is reached
+    evals: int  # evaluations inside the window, step 0 included
+    last_step: float  # the last evaluation inside the window
+
+    @property
+    def value(self) -> float:
+        return self.lowest - self.initial
+
+
+def run_dip(run: Run, window: float = DIP_WINDOW) -> Dip | str:
+    """The run's dip, or the reason it has none.
+
+    Uses the run's evaluations as Figure 5 does (one per env_step, the last row written for a
+    step), so the step-0 value is summary.json's success_initial."""
+    steps, success = run.steps, run.success
+    if steps.size == 0:
+        return "eval.csv has no evaluations"
+    if not np.any(steps == 0):
+        return f"eval.csv has no evaluation at env_step 0 (the first is at {steps[0]:g}), so there is no start to dip from"
+    inside = (steps >= 0) & (steps <= window)
+    if run.dense_from is not None:
+        # over step 0 and the dense points only, which every method shares (a baseline's
+        # evaluations before the warm-up's end would give it more chances to dip)
+        inside &= (steps == 0) | (steps >= run.dense_from)
+    if int(inside.sum()) < 2:
+        after = steps[steps > window]
+        nxt = f" (the next is at {after[0]:g})" if after.size else ""
+        return f"eval.csv has no evaluation after env_step 0 within the {window:g}-step dip window{nxt}"
+    s_in, v_in = steps[inside], success[inside]
+    k = int(np.argmin(v_in))
+    return Dip(run, float(success[steps == 0][0]), float(v_in[k]), float(s_in[k]), int(inside.sum()), float(s_in[-1]))
+
+
+def dips_of(runs: Sequence[Run], window: float) -> tuple[list[Dip], list[Skipped]]:
+    dips: list[Dip] = []
+    no_dip: list[Skipped] = []
+    for r in runs:
+        d = run_dip(r, window)
+        if isinstance(d, Dip):
+            dips.append(d)
+        else:
+            no_dip.append(Skipped(r.path, d))
+    return dips, no_dip
+
+
+def dip_stats(values: Sequence[float], *, n_boot: int, confidence: float, seed: int) -> dict[str, float]:
+    mean, se, n = mean_se(values)
+    lo, hi = bootstrap_mean_ci(values, n_boot=n_boot, confidence=confidence, seed=seed)
+    point_iqm, iqm_lo, iqm_hi = stratified_bootstrap_iqm([values], n_boot=n_boot, confidence=confidence, seed=seed)
+    if n < 2:  # resampling one run gives a zero-width interval, which would read as certainty
+        iqm_lo = iqm_hi = math.nan
+    return {"mean": mean, "se": se, "n": n, "lo": lo, "hi": hi, "iqm": point_iqm, "iqm_lo": iqm_lo, "iqm_hi": iqm_hi}
+
+
+@dataclasses.dataclass
+class DipCell:
+    task: str
+    label: str
+    alpha: float | None
+    seeds: list[int | None]
+    values: list[float]
+    initial: float  # mean success at step 0 of these runs
+    lowest: float  # mean lowest success in the window
+    stats: dict[str, float]  # mean, se, n, lo, hi (CI of the mean), iqm, iqm_lo, iqm_hi
+    # a method without pre-training (rlpd): its step 0 is an untrained policy, so its "dip" is
+    # that policy's luck at step 0, not unlearning, and the report says so beside the number
+    from_scratch: bool = False
+
+
+
+
+
+
+def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int) -> list[DipCell]:
+    groups: dict[tuple[str, str, float | None], list[Dip]] = defaultdict(list)
+    for d in dips:
+        groups[d.run.key].append(d)
+    cells = []
+    for key in sorted(groups, key=key_order):
+        group = groups[key]
+        values = [d.value for d in group]
+        cells.append(DipCell(
+            *key, [d.run.seed for d in group], values,
+            float(np.mean([d.initial for d in group])), float(np.mean([d.lowest for d in group])),
+            dip_stats(values, n_boot=n_boot, confidence=confidence, seed=seed),
+            from_scratch=all(from_scratch(d.run.method) for d in group),
+        ))
+    return cells
+
+
+def dip_runs_csv(dips: Sequence[Dip], relative_to: Path | None = None) -> str:
+    """One row per run; paths relative to ``relative_to`` (the report's folder) when given."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["task", "method", "alpha", "seed", "success_0", "lowest", "lowest_step", "evals_in_window",
+                "last_step_in_window", "dip", "path"])
+    for d in dips:
+        r = d.run
+        w.writerow([r.task, r.label, "" if r.alpha is None else repr(r.alpha), "" if r.seed is None else r.seed,
+                    fmt_float(d.initial), fmt_float(d.lowest), f"{d.lowest_step:g}", d.evals, f"{d.last_step:g}", fmt_float(d.value),
+                    str(r.path) if relative_to is None else os.path.relpath(r.path.resolve(), relative_to.resolve())])
+    return buf.getvalue()
+
+
+def _fmt_ci(lo: float, hi: float) -> str:
+    return "-" if not math.isfinite(lo) else f"[{lo:+.2f}, {hi:+.2f}]"
+
+
+def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> str:
+    pct = f"{100 * confidence:g}%"
+    lines = [
+        f"| task | method | alpha | runs | success at 0 | lowest (0..{window:g}) | dip mean ± s.e. | "
+        f"{pct} CI of the mean | IQM [{pct} CI] |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in cells:
+        st = c.stats
+        ms = "-" if st["n"] == 0 else (f"{st['mean']:+.2f} (n=1)" if not math.isfinite(st["se"])
+                                       else f"{st['mean']:+.2f} ± {st['se']:.2f}")
+        iq = "-" if not math.isfinite(st["iqm"]) else (f"{st['iqm']:+.2f}" + (
+            f" {_fmt_ci(st['iqm_lo'], st['iqm_hi'])}" if math.isfinite(st["iqm_lo"]) else ""))
+        lines.append(
+            f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {int(st['n'])} | {c.initial:.2f} | {c.lowest:.2f} | "
+            f"{ms} | {_fmt_ci(st['lo'], st['hi'])} | {iq} |"
+        )
+    scratch = sorted({(c.task, c.label) for c in cells if c.from_scratch})
+    if scratch:
+        lines.append("")
+        lines += [f"{label} on {task} trains from scratch (no pre-training): its step-0 success is an untrained "
+                  "policy's, so its dip is that policy's luck at step 0, not unlearning." for task, label in scratch]
+    return "\n".join(lines)
+
+
+def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidence: float) -> None:
+    """Per task, one point per method (and alpha): the mean dip with its bootstrap CI, and
+    each run's dip as a small dot beside it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tasks = list(dict.fromkeys(c.task for c in cells))  # in the cells' order (dip_table sorts them)
+    ncols = 2 if len(tasks) == 4 else min(3, max(1, len(tasks)))
+    nrows = math.ceil(len(tasks) / ncols)
+    most = max(sum(1 for c in cells if c.task == t) for t in tasks)
+    width = max(3.6, 1.0 + 0.55 * most)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(width * ncols, 3.8 * nrows), squeeze=False)
+    labels = sorted({c.label for c in cells})
+    colors = {lab: plt.cm.tab10(i % 10) for i, lab in enumerate(labels)}
+    for ax, task in zip(axes.flat, tasks):
+        row = [c for c in cells if c.task == task]
+        multi = {lab: sum(1 for c in row if c.label == lab) > 1 for lab in {c.label for c in row}}
+        for x, c in enumerate(row):
+            st = c.stats
+            color = plt.cm.coolwarm((c.alpha + 1.0) / 2.0) if multi[c.label] and c.alpha is not None else colors[c.label]
+            # the runs, spread a little sideways (fixed offsets: the figure is reproducible)
+            offsets = np.linspace(-0.18, 0.18, len(c.values)) if len(c.values) > 1 else np.zeros(1)
+            ax.plot(x + 0.25 + offsets * 0.5, c.values, ".", color="0.55", ms=3, zorder=2)
+            if math.isfinite(st["lo"]):
+                yerr = [[max(st["mean"] - st["lo"], 0.0)], [max(st["hi"] - st["mean"], 0.0)]]
+                ax.errorbar([x], [st["mean"]], yerr=yerr, fmt="o", color=color, ms=6, mec="0.2", capsize=4, lw=1.6,
+                            ecolor="0.2" if multi[c.label] else color, zorder=3)
+            else:
+                ax.plot([x], [st["mean"]], "o", color=color, ms=6, mec="0.2", zorder=3)
+        ax.axhline(0.0, color="0.3", lw=0.8)
+        ax.set_xticks(range(len(row)))
+        ax.set_xticklabels([line_label(c.label, c.alpha, multi[c.label]) + ("\n(no pre-training)" if c.from_scratch else "")
+                            + f"\n(n={int(c.stats['n'])})" for c in row],
+                           rotation=45 if len(row) > 4 else 0, ha="right" if len(row) > 4 else "center", fontsize=7)
+        ax.set_xlim(-0.6, len(row) - 0.4)
+        ax.set_ylim(-1.05, 0.08)
+        ax.set_title(task)
+        ax.set_ylabel(f"dip (lowest success in 0..{window / 1000:g}k − success at 0)", fontsize=8)
+        ax.grid(alpha=0.3, axis="y")
+    for ax in list(axes.flat)[len(tasks):]:
+        ax.set_visible(False)
+    suptitle(fig, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs")
+    fig.tight_layout()
+    atomic_save_figure(fig, path, dpi=120)
+    plt.close(fig)
+

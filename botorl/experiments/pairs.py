@@ -1,0 +1,394 @@
+"""Paired comparisons: runs that start from the same pre-training, compared pair by pair.
+
+Two runs whose pre-training fingerprints are equal (task, seed, pre-training algorithm, data,
+networks, offline settings: ``botorl.pipeline.shared_pretrain.fingerprint``) start from the
+same pre-trained numbers (``--pretrained`` and the sweep's sharing make it so), so their
+difference is the online phase alone. Pairing removes the spread between pre-trainings, which
+at 8-32 seeds of a nearly binary success is most of the spread between runs.
+
+A *pair* is a run of the reference method (WSRL, with ``online_reseed`` 0) and any other
+finished run with the same fingerprint: BOTO at each alpha, and WSRL again with only its
+online seed changed (``online_reseed`` > 0). The last gives the *noise floor*: the
+difference chance alone makes between two fine-tunings of one pre-training.
+
+Per group (task, the other run's label, alpha) and per quantity (success at 0, the lowest
+success in the dip window, the dip, success at 10k and final), over the pairs' differences
+d = other - reference:
+- mean of d with a percentile bootstrap CI (pairs resampled with replacement) and a
+  t-interval, mean +- t_{(1+c)/2, n-1} * s.e.;
+- counts better / equal / worse (d > 0, d = 0 within 1e-9, d < 0: higher is better for
+  every quantity, a dip closer to 0 included);
+- the two-sided Wilcoxon signed-rank p-value (scipy.stats.wilcoxon; zero differences are
+  dropped, Wilcoxon's rule; nan when every difference is zero).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import math
+import os
+from collections import defaultdict
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from botorl.experiments.dip import DIP_WINDOW, run_dip
+from botorl.experiments.runs import Run
+from botorl.experiments.stats import alpha_text, bootstrap_mean_ci, fmt_float, mean_se, suptitle
+from botorl.io import atomic_save_figure
+
+REFERENCE = "wsrl"
+# quantities compared, in the order of paired.csv (each: the reference's, the other's, other - reference)
+QUANTITIES = ("success_0", "lowest", "dip", "success_10k", "success_final")
+TABLE_QUANTITIES = ("dip", "success_10k", "success_final")  # shown in report.md
+EQUAL = 1e-9
+
+
+@dataclasses.dataclass
+class Pair:
+    task: str
+    seed: int | None
+    label: str  # the other run's label (boto+calql, wsrl [online_reseed=1], ...)
+    alpha: float | None
+    reference: str  # the reference run's label
+    ref: dict[str, float]  # QUANTITIES of the reference run
+    other: dict[str, float]  # QUANTITIES of the other run
+    ref_path: str = ""
+    other_path: str = ""
+
+    def diff(self, q: str) -> float:
+        return self.other[q] - self.ref[q]
+
+    @property
+    def group(self) -> tuple[str, str, float | None]:
+        return (self.task, self.label, self.alpha)
+
+    @property
+    def noise_floor(self) -> bool:
+        """WSRL against WSRL: the two differ only in their online seed."""
+        return self.label.split(" ")[0] == self.reference.split(" ")[0]
+
+
+def _pretraining_key(run: Run) -> str | None:
+    """The run's pre-training fingerprint as a string, or None when its config.json does not
+    record the pre-training settings (then it is never paired)."""
+    from botorl.pipeline.shared_pretrain import fingerprint_of
+
+    cfg = run.config
+    if not run.pretrain or not all(isinstance(cfg.get(k), dict) for k in ("offline", "network", "data")):
+        return None
+    try:
+        return json.dumps(fingerprint_of(cfg), sort_keys=True, default=str)
+    except KeyError:
+        return None
+
+
+def _reseed(run: Run) -> int:
+    v = run.config.get("online_reseed", 0)
+    return v if isinstance(v, int) else 0
+
+
+def _quantities(run: Run, window: float) -> dict[str, float] | None:
+    d = run_dip(run, window)
+    if isinstance(d, str):
+        return None
+    return {"success_0": d.initial, "lowest": d.lowest, "dip": d.value,
+            "success_10k": run.success_10k, "success_final": run.success_final}
+
+
+def find_pairs(runs: Sequence[Run], *, reference: str = REFERENCE, window: float = DIP_WINDOW,
+               relative_to: Path | None = None) -> tuple[list[Pair], list[str]]:
+    """Every (reference run, other run) with the same pre-training fingerprint, and notes."""
+    notes: list[str] = []
+    by_key: dict[str, list[Run]] = defaultdict(list)
+    for r in runs:
+        k = _pretraining_key(r)
+        if k is not None:
+            by_key[k].append(r)
+    pairs: list[Pair] = []
+    for group in by_key.values():
+        refs = [r for r in group if r.method == reference and _reseed(r) == 0]
+        if not refs:
+            continue
+        ref = refs[0]
+        if len(refs) > 1:
+            notes.append(f"{len(refs)} {reference} runs share one pre-training ({', '.join(_rel(r.path, relative_to) for r in refs)}); "
+                         f"the others are paired with the first")
+        ref_q = _quantities(ref, window)
+        if ref_q is None:
+            continue
+        for other in group:
+            if other in refs:
+                continue
+            q = _quantities(other, window)
+            if q is None:
+                continue
+            pairs.append(Pair(ref.task, ref.seed, other.label, other.alpha if other.method == "boto" else None,
+                              ref.label, ref_q, q, _rel(ref.path, relative_to), _rel(other.path, relative_to)))
+    pairs.sort(key=lambda p: (p.task, p.noise_floor, p.label, -99 if p.alpha is None else p.alpha,
+                              -1 if p.seed is None else p.seed))
+    return pairs, notes
+
+
+def _rel(path: Path, base: Path | None) -> str:
+    return str(path) if base is None else os.path.relpath(Path(path).resolve(), Path(base).resolve())
+
+
+# ------------------------------------------------------------------------------------ statistics
+def t_interval(values: Sequence[float], confidence: float = 0.95) -> tuple[float, float]:
+    """mean +- t_{(1+c)/2, n-1} * s.e.; (nan, nan) for n < 2."""
+    from scipy import stats
+
+    mean, se, n = mean_se(values)
+    if n < 2:
+        return math.nan, math.nan
+    half = float(stats.t.ppf((1 + confidence) / 2, n - 1)) * se
+    return mean - half, mean + half
+
+
+def wilcoxon_p(values: Sequence[float]) -> float:
+    """Two-sided Wilcoxon signed-rank p-value; zero differences dropped; nan if none is left."""
+    from scipy import stats
+
+    d = np.asarray([v for v in values if math.isfinite(v) and abs(v) > EQUAL], dtype=np.float64)
+    if d.size == 0:
+        return math.nan
+    return float(stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
+
+
+@dataclasses.dataclass
+class PairedCell:
+    task: str
+    label: str
+    alpha: float | None
+    reference: str
+    quantity: str
+    n: int
+    ref_mean: float
+    other_mean: float
+    mean: float  # mean difference other - reference
+    se: float
+    boot_lo: float
+    boot_hi: float
+    t_lo: float
+    t_hi: float
+    better: int
+    equal: int
+    worse: int
+    wilcoxon_p: float
+
+    @property
+    def noise_floor(self) -> bool:
+        return self.label.split(" ")[0] == self.reference.split(" ")[0]
+
+
+def paired_table(pairs: Sequence[Pair], *, quantities: Sequence[str] = QUANTITIES, n_boot: int = 2000,
+                 confidence: float = 0.95, seed: int = 0) -> list[PairedCell]:
+    groups: dict[tuple, list[Pair]] = defaultdict(list)
+    for p in pairs:
+        groups[(p.task, p.noise_floor, p.label, -99 if p.alpha is None else p.alpha, p.reference)].append(p)
+    cells = []
+    for key in sorted(groups):
+        group = groups[key]
+        first = group[0]
+        for q in quantities:
+            d = [p.diff(q) for p in group]
+            mean, se, n = mean_se(d)
+            lo, hi = bootstrap_mean_ci(d, n_boot=n_boot, confidence=confidence, seed=seed)
+            t_lo, t_hi = t_interval(d, confidence)
+            fin = [v for v in d if math.isfinite(v)]
+            cells.append(PairedCell(
+                first.task, first.label, first.alpha, first.reference, q, n,
+                mean_se([p.ref[q] for p in group])[0], mean_se([p.other[q] for p in group])[0],
+                mean, se, lo, hi, t_lo, t_hi,
+                sum(v > EQUAL for v in fin), sum(abs(v) <= EQUAL for v in fin), sum(v < -EQUAL for v in fin),
+                wilcoxon_p(d),
+            ))
+    return cells
+
+
+# ------------------------------------------------------------------------------------ files
+def pairs_csv(pairs: Sequence[Pair]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["task", "seed", "method", "alpha", "reference"]
+               + [f"{q}_{side}" for q in QUANTITIES for side in ("reference", "method", "diff")]
+               + ["reference_path", "path"])
+    for p in pairs:
+        w.writerow([p.task, "" if p.seed is None else p.seed, p.label, "" if p.alpha is None else repr(p.alpha),
+                    p.reference]
+                   + [fmt_float(v) for q in QUANTITIES for v in (p.ref[q], p.other[q], p.diff(q))]
+                   + [p.ref_path, p.other_path])
+    return buf.getvalue()
+
+
+def read_pairs_csv(path: Path) -> list[Pair]:
+    """The pairs a report wrote (``paired.csv``), to combine several reports' pairs."""
+    def num(v: str) -> float:
+        try:
+            return float(v)
+        except ValueError:
+            return math.nan
+
+    pairs = []
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            pairs.append(Pair(
+                row["task"], int(row["seed"]) if row["seed"] else None, row["method"],
+                float(row["alpha"]) if row["alpha"] else None, row["reference"],
+                {q: num(row[f"{q}_reference"]) for q in QUANTITIES}, {q: num(row[f"{q}_method"]) for q in QUANTITIES},
+                row.get("reference_path", ""), row.get("path", ""),
+            ))
+    return pairs
+
+
+def paired_cells_csv(cells: Sequence[PairedCell]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    fields = [f.name for f in dataclasses.fields(PairedCell)]
+    w.writerow(fields)
+    for c in cells:
+        w.writerow([fmt_float(v) if isinstance(v, float) else ("" if v is None else v)
+                    for v in (getattr(c, f) for f in fields)])
+    return buf.getvalue()
+
+
+_NAMES = {"success_0": "success at 0", "lowest": "lowest in window", "dip": "dip", "success_10k": "success at 10k",
+          "success_final": "final success"}
+
+
+def paired_markdown(cells: Sequence[PairedCell], confidence: float, *,
+                    quantities: Sequence[str] = TABLE_QUANTITIES) -> str:
+    pct = f"{100 * confidence:g}%"
+    lines = [
+        f"| task | method − reference | alpha | quantity | pairs | reference | method | mean difference | "
+        f"{pct} bootstrap CI | {pct} t-interval | better / equal / worse | Wilcoxon p |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in cells:
+        if c.quantity not in quantities:
+            continue
+        label = f"{c.label} − {c.reference}" + (" (noise floor)" if c.noise_floor else "")
+        p = "-" if not math.isfinite(c.wilcoxon_p) else f"{c.wilcoxon_p:.3f}"
+        lines.append(
+            f"| {c.task} | {label} | {alpha_text(c.alpha)} | {_NAMES[c.quantity]} | {c.n} | {c.ref_mean:.2f} | "
+            f"{c.other_mean:.2f} | {c.mean:+.3f} | {_ci(c.boot_lo, c.boot_hi)} | {_ci(c.t_lo, c.t_hi)} | "
+            f"{c.better} / {c.equal} / {c.worse} | {p} |"
+        )
+    return "\n".join(lines)
+
+
+def _ci(lo: float, hi: float) -> str:
+    return "-" if not math.isfinite(lo) else f"[{lo:+.3f}, {hi:+.3f}]"
+
+
+def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") -> None:
+    """One panel per (task, method, alpha): each pair a line from the reference run's value to
+    the other run's (jittered a little so that equal pairs stay visible)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups: dict[tuple, list[Pair]] = defaultdict(list)
+    for p in pairs:
+        groups[(p.task, p.noise_floor, p.label, -99 if p.alpha is None else p.alpha)].append(p)
+    keys = sorted(groups)
+    cols = min(4, len(keys))
+    rows = math.ceil(len(keys) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False, sharey=True)
+    rng = np.random.default_rng(0)
+    for ax, key in zip(axes.flat, keys):
+        group = groups[key]
+        for p in group:
+            j = rng.uniform(-0.015, 0.015)
+            ax.plot([0, 1], [p.ref[quantity] + j, p.other[quantity] + j], "-o", ms=3, lw=0.8, alpha=0.6,
+                    color="tab:green" if p.diff(quantity) > EQUAL else "tab:red" if p.diff(quantity) < -EQUAL
+                    else "grey")
+        d = [p.diff(quantity) for p in group]
+        mean, _, n = mean_se(d)
+        ax.set_xticks([0, 1], [group[0].reference, group[0].label.replace(" [", "\n[")], fontsize=7)
+        a = "" if group[0].alpha is None else f" α={group[0].alpha:+.2f}"
+        ax.set_title(f"{group[0].task}{a}\nmean difference {mean:+.3f} (n={n})", fontsize=8)
+        ax.set_xlim(-0.3, 1.3)
+    for ax in list(axes.flat)[len(keys):]:
+        ax.axis("off")
+    axes[0][0].set_ylabel(_NAMES[quantity], fontsize=8)
+    suptitle(fig, f"Paired runs (same pre-training): {_NAMES[quantity]}, one line per pair; "
+                  "green: the method above the reference, red: below")
+    fig.tight_layout()
+    atomic_save_figure(fig, path)
+    plt.close(fig)
+
+
+def difference_figure(cells: Sequence[PairedCell], path: Path, *, confidence: float = 0.95,
+                      quantities: Sequence[str] = TABLE_QUANTITIES) -> None:
+    """Per quantity, each group's mean paired difference with its bootstrap CI (thick) and
+    t-interval (thin); the noise floor's rows in grey."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [c for c in cells if c.quantity == quantities[0]]
+    labels = [f"{c.task} {c.label}{'' if c.alpha is None else f' α={c.alpha:+.1f}'}" for c in rows]
+    fig, axes = plt.subplots(1, len(quantities), figsize=(3.6 * len(quantities), 0.45 * len(rows) + 1.4),
+                             squeeze=False, sharey=True)
+    for ax, q in zip(axes[0], quantities):
+        qc = {(c.task, c.label, c.alpha): c for c in cells if c.quantity == q}
+        for y, r in enumerate(rows):
+            c = qc[(r.task, r.label, r.alpha)]
+            color = "grey" if c.noise_floor else "tab:blue"
+            if math.isfinite(c.t_lo):
+                ax.plot([c.t_lo, c.t_hi], [y, y], color=color, lw=1)
+            if math.isfinite(c.boot_lo):
+                ax.plot([c.boot_lo, c.boot_hi], [y, y], color=color, lw=4, alpha=0.6)
+            ax.plot([c.mean], [y], "o", color=color)
+        ax.axvline(0, color="black", lw=0.6)
+        ax.set_title(f"{_NAMES[q]}, difference", fontsize=9)
+        ax.tick_params(labelsize=7)
+    axes[0][0].set_yticks(range(len(rows)), labels, fontsize=7)
+    axes[0][0].invert_yaxis()
+    reference = rows[0].reference if rows else "the reference"
+    suptitle(fig, f"Paired differences, method − {reference}: mean, {100 * confidence:g}% bootstrap CI (thick) and "
+                  "t-interval (thin); grey: the noise floor (the reference against itself, another online seed)")
+    fig.tight_layout()
+    atomic_save_figure(fig, path)
+    plt.close(fig)
+
+
+def write_paired(pairs: Sequence[Pair], out: Path, *, n_boot: int, confidence: float, seed: int
+                 ) -> tuple[list[Path], list[str], list[PairedCell]]:
+    """paired.csv, paired_table.csv, the two figures and the markdown section's lines."""
+    from botorl.io import atomic_write_text
+
+    cells = paired_table(pairs, n_boot=n_boot, confidence=confidence, seed=seed)
+    atomic_write_text(out / "paired.csv", pairs_csv(pairs))
+    atomic_write_text(out / "paired_table.csv", paired_cells_csv(cells))
+    pairs_figure(pairs, out / "paired_dips.png")
+    difference_figure(cells, out / "paired_differences.png", confidence=confidence)
+    files = [out / "paired.csv", out / "paired_table.csv", out / "paired_dips.png", out / "paired_differences.png"]
+    pct = f"{100 * confidence:g}%"
+    md = [
+        "## Paired comparison (runs from the same pre-training)",
+        "",
+        "Each pair is a reference run and another run with the same pre-training fingerprint (task, seed, "
+        "pre-training algorithm, data, networks, offline settings), so they differ only online. Differences are "
+        f"method − reference: higher is better for every quantity. Mean with a {pct} percentile bootstrap CI "
+        f"({n_boot} resamples of the pairs, seed {seed}) and a t-interval; counts of pairs better / equal / worse; "
+        "two-sided Wilcoxon signed-rank p (zero differences dropped). The noise floor is the reference against "
+        "itself with another online seed: a difference inside it is what chance alone makes. Per pair: "
+        "`paired.csv`; every quantity: `paired_table.csv`.",
+        "",
+        paired_markdown(cells, confidence),
+        "",
+        "![paired differences](paired_differences.png)",
+        "",
+        "![paired dips](paired_dips.png)",
+        "",
+    ]
+    return files, md, cells

@@ -1,0 +1,246 @@
+"""Finished run directories as the report reads them: their config, summary and evaluations.
+
+Only runs with summary.json status "finished" count; every other run directory found is
+listed as skipped, with the reason.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from botorl.errors import BotorlError
+from botorl.pipeline.methods import METHODS
+
+@dataclasses.dataclass
+class Run:
+    path: Path
+    task: str
+    method: str
+    pretrain: str | None
+    alpha: float | None
+    seed: int | None
+    profile: str | None
+    success_initial: float
+    success_10k: float
+    success_final: float
+    steps: np.ndarray  # online env steps of the evaluations (sorted, unique)
+    success: np.ndarray
+    settings: dict[str, Any] = dataclasses.field(default_factory=dict)  # config.json, flattened (_settings)
+    # the first step of the dense dip window (the warm-up's end) when the run evaluated densely
+    # there (eval.dense_interval > 0), else None
+    dense_from: float | None = None
+    config: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)  # config.json as read
+    variant: str = ""  # the settings in which this run differs from others of its method (label_variants)
+
+    @property
+    def label(self) -> str:
+        base = f"boto+{self.pretrain}" if self.method == "boto" and self.pretrain else self.method
+        return f"{base} [{self.variant}]" if self.variant else base
+
+    @property
+    def key(self) -> tuple[str, str, float | None]:
+        return (self.task, self.label, self.alpha if self.method == "boto" else None)
+
+    def value(self, field: str) -> float:
+        return getattr(self, field)
+
+
+@dataclasses.dataclass
+class Skipped:
+    path: Path
+    reason: str
+
+
+def _num(v: Any) -> float:
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return math.nan
+    return f
+
+
+def read_eval_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(env_step, success) with one value per step: the last row written for that step.
+
+    Several stages may evaluate at env_step 0 (end of pre-training, end of BOTO); the last
+    one is what fine-tuning starts from.
+    """
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        if reader.fieldnames is None or not {"env_step", "success"} <= set(reader.fieldnames):
+            raise ValueError(f"{path.name} has no env_step/success columns (header {reader.fieldnames})")
+        by_step: dict[float, float] = {}
+        for row in reader:
+            step, succ = _num(row.get("env_step")), _num(row.get("success"))
+            if math.isfinite(step) and step >= 0 and math.isfinite(succ):
+                by_step.pop(step, None)
+                by_step[step] = succ
+    steps = np.asarray(sorted(by_step), dtype=np.float64)
+    return steps, np.asarray([by_step[s] for s in steps], dtype=np.float64)
+
+
+# Config fields that differ between runs of one method without making them another method:
+# the member's identity (seed, alpha and their copies), where and how it logs, how updates are
+# chunked into calls, and where its pre-training came from (the same numbers either way).
+_SAME_METHOD = {"seed", "alpha", "out", "pretrained", "progress", "tensorboard", "wandb", "checkpoint_every",
+                "boto.alpha", "boto.seed", "eval.num_envs", "offline.updates_per_call", "boto.steps_per_call",
+                "offline.sample_on_device"}
+
+
+def _settings(config: dict, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in config.items():
+        key = prefix + str(k)
+        if isinstance(v, dict):
+            out.update(_settings(v, key + "."))
+        elif key not in _SAME_METHOD and not key.endswith("log_every"):
+            out[key] = json.dumps(v, sort_keys=True)
+    return out
+
+
+def label_variants(runs: list[Run]) -> None:
+    """Runs of one method on one task that differ in a setting (``--boto.train-actor``, another
+    ``online.steps``) are different variants, not more seeds of one: each gets the settings in
+    which its method's runs differ (on any task) appended to its label, e.g.
+    ``boto+calql [boto.train_actor=true]``, so tables, curves and dips keep them apart."""
+    by_method: dict[tuple[str, str], list[Run]] = defaultdict(list)
+    for r in runs:
+        by_method[(r.method, r.pretrain or "")].append(r)
+    for group in by_method.values():
+        varying: set[str] = set()
+        by_task: dict[str, list[Run]] = defaultdict(list)
+        for r in group:
+            by_task[r.task].append(r)
+        for same_task in by_task.values():
+            keys = set().union(*(r.settings for r in same_task))
+            varying |= {k for k in keys if len({r.settings.get(k) for r in same_task}) > 1}
+        for r in group:
+            r.variant = ", ".join(f"{k}={r.settings.get(k, 'null')}" for k in sorted(varying))
+
+
+def _load_run(run_dir: Path) -> Run | Skipped:
+    try:
+        summary = json.loads((run_dir / "summary.json").read_text())
+        if not isinstance(summary, dict):
+            raise ValueError("not a JSON object")
+    except (OSError, ValueError) as err:
+        return Skipped(run_dir, f"summary.json unreadable ({err})")
+    status = summary.get("status")
+    if status != "finished":
+        error = f" ({summary['error']})" if summary.get("error") else ""
+        return Skipped(run_dir, f"status is {status!r}, not 'finished'{error}")
+    config: dict[str, Any] = {}
+    try:
+        loaded = json.loads((run_dir / "config.json").read_text())
+        config = loaded if isinstance(loaded, dict) else {}
+    except (OSError, ValueError):
+        pass
+
+    def field(name: str) -> Any:
+        return summary[name] if summary.get(name) is not None else config.get(name)
+
+    if not field("task") or not field("method"):
+        return Skipped(run_dir, "summary.json and config.json name no task/method")
+    eval_path = run_dir / "eval.csv"
+    if not eval_path.exists():
+        return Skipped(run_dir, "finished but eval.csv is missing")
+    try:
+        steps, success = read_eval_csv(eval_path)
+    except (OSError, ValueError) as err:
+        return Skipped(run_dir, f"eval.csv unreadable ({err})")
+    alpha = field("alpha")
+    seed = field("seed")
+    return Run(
+        path=run_dir,
+        task=str(field("task")),
+        method=str(field("method")),
+        pretrain=None if field("pretrain") in (None, "") else str(field("pretrain")),
+        alpha=None if alpha is None or not math.isfinite(_num(alpha)) else round(float(alpha), 6),
+        seed=None if seed is None else int(seed),
+        profile=field("profile"),
+        success_initial=_num(summary.get("success_initial")),
+        success_10k=_num(summary.get("success_10k")),
+        success_final=_num(summary.get("success_final")),
+        steps=steps,
+        success=success,
+        settings=_settings(config),
+        dense_from=_dense_from(config),
+        config=config,
+    )
+
+
+def _dense_from(config: dict) -> float | None:
+    ev, wu = config.get("eval"), config.get("warmup")
+    if not isinstance(ev, dict) or not isinstance(wu, dict) or not _num(ev.get("dense_interval")) > 0:
+        return None
+    start = _num(wu.get("steps"))
+    return start if math.isfinite(start) and start >= 0 else None
+
+
+def _last_line(path: Path) -> str:
+    try:
+        lines = [ln.strip() for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return "(unreadable)"
+    return lines[-1][:300] if lines else "(empty)"
+
+
+def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
+    """Every run directory under `dirs` (a folder with summary.json, or with config.json and
+    no summary yet), recursively; run directories are not searched further down."""
+    runs: list[Run] = []
+    skipped: list[Skipped] = []
+    seen: set[Path] = set()
+    for top in dirs:
+        top = Path(top)
+        if not top.is_dir():
+            raise BotorlError(f"{top} is not a directory.")
+        for root, subdirs, files in os.walk(top):
+            root_p = Path(root).resolve()
+            if "summary.json" in files or ("config.json" in files and "eval.csv" in files):
+                subdirs[:] = []
+                if root_p in seen:
+                    continue
+                seen.add(root_p)
+                if "summary.json" not in files:
+                    skipped.append(Skipped(Path(root), "no summary.json (the run never got far enough to write one)"))
+                    continue
+                loaded = _load_run(Path(root))
+                (runs if isinstance(loaded, Run) else skipped).append(loaded)
+            elif "config.json" in files and "checkpoints" in subdirs:
+                subdirs[:] = []
+                if root_p not in seen:
+                    seen.add(root_p)
+                    skipped.append(Skipped(Path(root), "no summary.json (the run never got far enough to write one)"))
+            elif "population.json" in files:  # a population: its members are run directories
+                subdirs[:] = sorted(d for d in subdirs if not d.startswith(".") and d != "checkpoints")
+            elif "sweep-trial.log" in files:  # a sweep trial whose `botorl run` failed before starting
+                subdirs[:] = []
+                if root_p not in seen:
+                    seen.add(root_p)
+                    last = _last_line(Path(root) / "sweep-trial.log")
+                    skipped.append(Skipped(Path(root), f"the run never started; sweep-trial.log ends: {last}"))
+            else:
+                subdirs[:] = sorted(d for d in subdirs if not d.startswith("."))
+    label_variants(runs)
+    runs.sort(key=lambda r: (r.task, r.label, -99 if r.alpha is None else r.alpha, r.seed or 0))
+    return runs, skipped
+
+
+
+def from_scratch(method: str) -> bool:
+    m = METHODS.get(method)
+    return m is not None and not m.pretrains
+
+
+def key_order(key: tuple[str, str, float | None]) -> tuple:
+    return (key[0], key[1], -99 if key[2] is None else key[2])

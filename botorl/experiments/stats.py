@@ -1,0 +1,105 @@
+"""Statistics of the report: mean and standard error, the interquartile mean with a stratified
+bootstrap CI, the bootstrap CI of a mean, and paired comparisons; and the number formats the
+report's files share.
+
+- mean +- standard error over seeds, SE = sample standard deviation (ddof=1) / sqrt(n), as
+  the paper's Table 1 and Figure 5 report them ("standard error across five random seeds");
+- the interquartile mean (IQM) with a percentile stratified-bootstrap confidence interval,
+  following Agarwal et al. 2021, "Deep RL at the Edge of the Statistical Precipice" (rliable):
+  IQM = mean of the scores left after cutting floor(n/4) from each end of the sorted scores
+  (scipy.stats.trim_mean(x, 0.25), which rliable uses); the bootstrap resamples runs with
+  replacement within each task (strata) and recomputes the IQM of all resampled scores.
+  Written here from that description; no rliable code is used.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import numpy as np
+
+def mean_se(values: Sequence[float]) -> tuple[float, float, int]:
+    """Mean and standard error (ddof=1) of the finite values; SE is nan for n < 2."""
+    x = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
+    n = int(x.size)
+    if n == 0:
+        return math.nan, math.nan, 0
+    mean = float(x.mean())
+    se = float(x.std(ddof=1) / math.sqrt(n)) if n >= 2 else math.nan
+    return mean, se, n
+
+
+def iqm(values: Sequence[float] | np.ndarray, axis: int = -1) -> Any:
+    """Interquartile mean: drop floor(n/4) scores from each end, average the rest."""
+    x = np.sort(np.asarray(values, dtype=np.float64), axis=axis)
+    n = x.shape[axis]
+    if n == 0:
+        return math.nan
+    cut = int(0.25 * n)
+    kept = np.take(x, np.arange(cut, n - cut), axis=axis)
+    out = kept.mean(axis=axis)
+    return float(out) if np.ndim(out) == 0 else out
+
+
+def stratified_bootstrap_iqm(
+    scores_per_task: Sequence[Sequence[float]],
+    *,
+    n_boot: int = 2000,
+    confidence: float = 0.95,
+    seed: int = 0,
+) -> tuple[float, float, float]:
+    """IQM of all scores, and a percentile CI resampling runs within each task."""
+    strata = [np.asarray([v for v in s if v is not None and math.isfinite(v)], dtype=np.float64) for s in scores_per_task]
+    strata = [s for s in strata if s.size]
+    if not strata:
+        return math.nan, math.nan, math.nan
+    point = iqm(np.concatenate(strata))
+    if n_boot <= 0:
+        return point, math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    resampled = [s[rng.integers(0, s.size, size=(n_boot, s.size))] for s in strata]
+    boot = iqm(np.concatenate(resampled, axis=1), axis=1)
+    lo, hi = np.quantile(boot, [(1 - confidence) / 2, 1 - (1 - confidence) / 2])
+    return point, float(lo), float(hi)
+
+
+def bootstrap_mean_ci(
+    values: Sequence[float], *, n_boot: int = 2000, confidence: float = 0.95, seed: int = 0
+) -> tuple[float, float]:
+    """Percentile bootstrap CI of the mean: resample the runs with replacement n_boot times.
+
+    (nan, nan) for fewer than 2 finite values: one run says nothing about its spread."""
+    x = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
+    if x.size < 2 or n_boot <= 0:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    boot = x[rng.integers(0, x.size, size=(n_boot, x.size))].mean(axis=1)
+    lo, hi = np.quantile(boot, [(1 - confidence) / 2, 1 - (1 - confidence) / 2])
+    return float(lo), float(hi)
+
+
+
+# Formats shared by the report's files
+
+
+def fmt_float(x: float) -> str:
+    return "" if x is None or (isinstance(x, float) and not math.isfinite(x)) else repr(float(x))
+
+
+def alpha_text(alpha: float | None) -> str:
+    return "" if alpha is None else f"{alpha:+.2f}"
+
+
+def suptitle(fig, text: str) -> None:
+    """A figure title wrapped to the figure's width (a one-task figure is narrower than the line)."""
+    import textwrap
+
+    chars = max(20, int(fig.get_figwidth() * 11))  # ~11 characters an inch at 10 pt
+    fig.suptitle("\n".join(textwrap.wrap(text, chars)), fontsize=10)
+
+
+def line_label(label: str, alpha: float | None, multi_alpha: bool) -> str:
+    if not multi_alpha:
+        return label
+    return f"{label} α=preset" if alpha is None else f"{label} α={alpha:+.2f}"
