@@ -144,6 +144,35 @@ def test_methods_run_their_stages(tmp_path, method, stages, pretrain, eval_steps
     assert not (out / "checkpoints" / "boto-final").exists()
 
 
+def test_dense_window_and_online_reseed_over_one_pretraining(boto_run, tmp_path):
+    # WSRL from the BOTO run's pre-training: the dense window evaluates every 5 steps from the
+    # warm-up's end (30) on; --online-reseed 1 changes the online phase only, so the step-0
+    # evaluation (the shared pre-trained policy) agrees and the fine-tuning numbers do not.
+    def wsrl(name, *flags):
+        out = tmp_path / name
+        assert _run(out, "--method", "wsrl", "--seed", "3", "--pretrained", str(boto_run),
+                    "--eval.dense-interval", "5", *flags) == 0
+        return _csv(out / "eval.csv"), _csv(out / "metrics" / "finetune.csv")
+
+    (evals, ft), (evals_r, ft_r) = wsrl("same"), wsrl("reseeded", "--online-reseed", "1")
+    assert [int(r["env_step"]) for r in evals] == [0, 20, 30, 35, 40] == [int(r["env_step"]) for r in evals_r]
+    assert evals[0]["success"] == evals_r[0]["success"] and evals[0]["q_data"] == evals_r[0]["q_data"]
+    assert [r["critic_loss"] for r in ft] != [r["critic_loss"] for r in ft_r]
+
+
+def test_quick_profile_evaluates_densely_in_the_dip_window():
+    from botorl.configs.presets import make_preset
+    from botorl.configs.resolve import resolve
+
+    for method in ("boto", "wsrl", "calql", "rlpd"):
+        cfg = resolve(make_preset("pointmaze-medium", "quick", method))
+        start = cfg.warmup.steps
+        points = [t for t in range(start, cfg.online.steps + 1) if cfg.eval.due(t, cfg.online.steps, start)]
+        # every method is evaluated at the same points from the warm-up's end to 10k, >= 10 of them
+        assert [t for t in points if t <= 10_000] == list(range(5_000, 10_001, 500)), method
+        assert points[-1] == cfg.online.steps
+
+
 def test_pretrain_can_sample_on_the_device(tmp_path):
     # --offline.sample_on_device: the batches are drawn inside the jitted call from a key
     # that follows from (seed, step): two runs agree, and differ from numpy sampling.
