@@ -119,3 +119,17 @@ def test_report_writes_paired_csv_and_table_with_relative_paths(paired_dir, tmp_
     for name in ("paired.csv", "dip_runs.csv", "report.md"):
         assert str(paired_dir) not in (out / name).read_text(), f"{name} holds an absolute path"
     assert (out / row["path"]).resolve() == (paired_dir / "boto/seed0").resolve()
+
+
+def test_pairs_of_earlier_reports_combine_without_their_runs(paired_dir, tmp_path):
+    # a study reported block by block: the blocks' paired.csv alone give the study's statistics
+    from botorl.experiments.cli import report_main
+
+    first = tmp_path / "block"
+    assert report_main([str(paired_dir), "--out", str(first), "--bootstrap", "200"]) == 0
+    combined = tmp_path / "study"
+    assert report_main(["--pairs-from", str(first / "paired.csv"), "--out", str(combined), "--bootstrap", "200"]) == 0
+    assert (combined / "paired_table.csv").read_text() == (first / "paired_table.csv").read_text()
+    assert "8 pairs from" in (combined / "report.md").read_text()
+    with pytest.raises(Exception, match="paired.csv"):
+        report_main(["--pairs-from", str(first / "table1.csv"), "--out", str(tmp_path / "bad")])

@@ -227,14 +227,27 @@ class ReportArgs:
     """seeds that choose alpha (e.g. 0-3 or 0,2,4); default: the first half of each alpha's sorted seeds"""
     report_seeds: Optional[str] = None
     """seeds on which the chosen alpha's score is reported (default: every seed not in --select-seeds)"""
+    pairs_from: tuple[str, ...] = ()
+    """paired.csv files of earlier reports: their pairs join the pairs of DIRS (a study reported
+    population by population, whose run directories are gone); DIRS may then be empty"""
 
 
 def report_main(argv: list[str]) -> int:
     from botorl.experiments.report import make_report, select_alpha
 
     args = tyro.cli(ReportArgs, args=list(argv), prog="botorl report")
+    extra_pairs = _read_pairs(args.pairs_from)
+    if not args.dirs and not extra_pairs:
+        raise ConfigError("botorl report needs at least one run or sweep directory (or --pairs-from paired.csv files).")
+    stats = dict(n_boot=args.bootstrap, confidence=args.confidence, seed=args.seed)
     if not args.dirs:
-        raise ConfigError("botorl report needs at least one run or sweep directory.")
+        from botorl.experiments.pairs import write_paired_report
+
+        if not args.out:
+            raise ConfigError("botorl report --pairs-from without run directories needs --out.")
+        for f in write_paired_report(extra_pairs, Path(args.out), sources=args.pairs_from, **stats):
+            print(f"  wrote {f}")
+        return 0
     for d in args.dirs:
         if not Path(d).is_dir():
             raise ConfigError(f"{d} is not a directory; give run or sweep directories.")
@@ -249,7 +262,6 @@ def report_main(argv: list[str]) -> int:
     report_seeds = _seed_flag("--report-seeds", args.report_seeds)
     if args.dip_window <= 0:
         raise ConfigError(f"--dip-window must be a positive number of online env steps, got {args.dip_window}.")
-    stats = dict(n_boot=args.bootstrap, confidence=args.confidence, seed=args.seed)
     if args.select_alpha:  # refuse before writing anything when held-out selection is impossible
         select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **stats)
     out = Path(args.out) if args.out else Path(args.dirs[0]) / "report"
@@ -260,12 +272,25 @@ def report_main(argv: list[str]) -> int:
         dip_window=args.dip_window,
         select_seeds=select_seeds,
         report_seeds=report_seeds,
+        extra_pairs=extra_pairs,
         **stats,
     )
     print(result.summary_text())
     if args.select_alpha and result.selection is not None:
         print(result.selection.text())
     return 0
+
+
+def _read_pairs(paths: tuple[str, ...]) -> list:
+    from botorl.experiments.pairs import read_pairs_csv
+
+    pairs = []
+    for p in paths:
+        try:
+            pairs += read_pairs_csv(Path(p))
+        except (OSError, KeyError, ValueError) as err:
+            raise ConfigError(f"--pairs-from {p}: not a paired.csv that `botorl report` wrote ({err}).") from None
+    return pairs
 
 
 def _seed_flag(flag: str, value: Optional[str]) -> Optional[list[int]]:

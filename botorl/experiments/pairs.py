@@ -392,3 +392,22 @@ def write_paired(pairs: Sequence[Pair], out: Path, *, n_boot: int, confidence: f
         "",
     ]
     return files, md, cells
+
+
+def merge_pairs(pairs: Sequence[Pair], extra: Sequence[Pair]) -> list[Pair]:
+    """``pairs`` and the ``extra`` ones (read from earlier reports) that are not among them."""
+    have = {(p.task, p.seed, p.label, p.alpha, p.reference) for p in pairs}
+    return list(pairs) + [p for p in extra if (p.task, p.seed, p.label, p.alpha, p.reference) not in have]
+
+
+def write_paired_report(pairs: Sequence[Pair], out: Path, *, sources: Sequence[str] = (), n_boot: int = 2000,
+                        confidence: float = 0.95, seed: int = 0) -> list[Path]:
+    """A report of pairs alone (``botorl report --pairs-from``): the paired files and report.md."""
+    from botorl.io import atomic_write_text
+
+    out.mkdir(parents=True, exist_ok=True)
+    files, md, _ = write_paired(pairs, out, n_boot=n_boot, confidence=confidence, seed=seed)
+    head = ["# botorl report: pairs", "", f"{len(pairs)} pairs from "
+            + ", ".join(f"`{os.path.relpath(Path(s).resolve(), out.resolve())}`" for s in sources) + ".", ""]
+    atomic_write_text(out / "report.md", "\n".join(head + md))
+    return files + [out / "report.md"]

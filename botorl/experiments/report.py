@@ -34,7 +34,7 @@ from botorl.experiments.dip import (
     dips_of,
     run_dip,
 )
-from botorl.experiments.pairs import Pair, PairedCell, find_pairs, write_paired
+from botorl.experiments.pairs import Pair, PairedCell, find_pairs, merge_pairs, write_paired
 from botorl.experiments.runs import Run, Skipped, find_runs
 from botorl.experiments.stats import (
     alpha_text,
@@ -609,6 +609,7 @@ def make_report(
     dip_window: float = DIP_WINDOW,
     select_seeds: Sequence[int] | None = None,
     report_seeds: Sequence[int] | None = None,
+    extra_pairs: Sequence[Pair] = (),
 ) -> ReportResult:
     if not (isinstance(dip_window, (int, float)) and math.isfinite(dip_window) and dip_window > 0):
         raise ConfigError(f"--dip-window must be a positive number of online env steps, got {dip_window!r}.")
@@ -632,6 +633,7 @@ def make_report(
         )
     cells = table1(runs, n_boot=n_boot, confidence=confidence, seed=seed, dips=dip_cells)
     pairs, pair_notes = find_pairs(runs, window=dip_window, relative_to=out)
+    pairs = merge_pairs(pairs, extra_pairs)
     notes += pair_notes
     paired_md: list[str] = []
     paired_cells: list[PairedCell] = []
