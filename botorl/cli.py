@@ -37,15 +37,19 @@ def _usage() -> str:
     lines = ["usage: botorl <command> [options]", "", "commands:"]
     for name, (_, help_) in COMMANDS.items():
         lines.append(f"  {name.ljust(width)}  {help_}")
-    lines += ["", "`botorl <command> --help` shows the options of a command."]
+    lines += ["", "`botorl <command> --help` shows the options of a command.", "",
+              "Start here (README):",
+              "  pip install -e . && botorl run                      # a whole BOTO run on pointmaze-umaze",
+              '  pip install -e ".[test]" && python3 -m pytest -q    # the tests']
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv:
-        # Bare `botorl` is the README's main job: BOTO on a task whose data botorl makes.
-        argv = ["run"]
+        # a bare `botorl` trains nothing: it says what there is (the main job is `botorl run`)
+        print(_usage())
+        return 0
     if argv[0] in ("-h", "--help", "help"):
         print(_usage())
         return 0

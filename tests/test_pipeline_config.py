@@ -226,3 +226,13 @@ def test_online_mc_returns_follow_the_offline_rule():
     g1 = -5.0 + 0.99 * g2
     g0 = -5.0 + 0.99 * g1
     np.testing.assert_allclose(buf.mc_returns[:5], [g0, g1, g2, -500.0, -500.0], rtol=1e-5)
+
+
+def test_bare_botorl_trains_nothing_and_says_what_there_is(capsys, tmp_path, monkeypatch):
+    from botorl.cli import main as botorl_main
+
+    monkeypatch.chdir(tmp_path)
+    assert botorl_main([]) == 0
+    out = capsys.readouterr().out
+    assert "usage: botorl <command>" in out and "botorl run" in out and "python3 -m pytest -q" in out
+    assert not any(tmp_path.iterdir()), "a bare `botorl` must not start a run (no run directory)"
