@@ -115,6 +115,8 @@ def test_eval_command(boto_run, capsys):
     assert "success" in out and "q_uniform" in out
     res = json.loads((boto_run / "eval-finetune-final.json").read_text())
     assert res["episodes"] == 2 and 0.0 <= res["success"] <= 1.0 and res["stage"] == "finetune"
+    # a stage's final checkpoint is at the stage's last step (the smoke profile's 40 online steps)
+    assert res["step"] == 40 and "None" not in out
 
 
 def test_resume_of_finished_run_is_a_no_op(boto_run, capsys):
@@ -216,3 +218,10 @@ def test_divergence_stops_with_last_good_checkpoint(tmp_path, monkeypatch, capsy
     # the mid-stage checkpoint at step 40 was written before the NaN (update 25, step 55); nothing after
     assert latest["name"] == "finetune-step000000040"
     assert not (out / "checkpoints" / "finetune-final").exists()
+
+
+def test_summary_text_of_a_run_shorter_than_10k(boto_run):
+    from botorl.pipeline.runner import format_summary
+
+    text = format_summary(json.loads((boto_run / "summary.json").read_text()))
+    assert "env step -" not in text and "no evaluation at 10k: the run ends at env step 40" in text

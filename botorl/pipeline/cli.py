@@ -377,7 +377,11 @@ def _eval(args, run, cfg) -> int:
     q_data, q_uniform = QProbe(d.observations, d.actions, seed=12345, size=cfg.eval.q_pairs)(S.q_fn(agent))
     for e in envs:
         e.close()
-    result = {"checkpoint": name, "stage": stage, "step": state.get("step"), "episodes": cfg.eval.episodes,
+    step = state.get("step")
+    if step is None and state.get("stage_done"):  # a stage's final checkpoint: the stage's whole budget
+        step = {"pretrain": cfg.offline.steps, "warmup": cfg.warmup.steps, "boto": cfg.boto.boto_steps,
+                "finetune": cfg.online.steps}.get(stage)
+    result = {"checkpoint": name, "stage": stage, "step": step, "episodes": cfg.eval.episodes,
               "success": stats.success, "return": stats.episode_return, "episode_length": stats.length,
               "q_data": q_data, "q_uniform": q_uniform, "seconds": round(time.perf_counter() - t0, 2)}
     atomic_write_json(run.root / f"eval-{name}.json", result)

@@ -647,7 +647,9 @@ def format_summary(summary: dict) -> str:
         "",
         f"{'success':<10} {'initial':>8} {'10k':>8} {'final':>8}",
         f"{'':<10} {f(summary['success_initial']):>8} {f(summary['success_10k']):>8} {f(summary['success_final']):>8}",
-        f"(10k = eval at env step {f(summary.get('env_step_10k'))}, final = {f(summary.get('env_step_final'))})",
+        (f"(10k = eval at env step {summary['env_step_10k']}, final = {f(summary.get('env_step_final'))})"
+         if summary.get("env_step_10k") is not None else
+         f"(no evaluation at 10k: the run ends at env step {f(summary.get('env_step_final'))})"),
         f"run directory: {summary['run_dir']}",
     ]
     return "\n".join(lines)
