@@ -7,7 +7,7 @@ Pre-trains the quick profile's agent for ``--pretrain`` (Cal-QL by default) on t
 and evaluates the deterministic policy (the run's evaluation: ``eval.episodes`` episodes from
 the evaluation seeds) every ``--every`` steps, printing success, return, the mean Q on the
 batch's data actions and the wall time per step. This is how the quick profile's pre-training
-budget on pointmaze was chosen (README "Results"). It uses the pipeline's own pieces (the
+budget on pointmaze was chosen (docs/results/pretraining.md). It uses the pipeline's own pieces (the
 preset, the data, the agent, the population's batched calls) with a population of one.
 """
 
@@ -55,8 +55,8 @@ def main(argv=None) -> int:
     d = transform_dataset(cfg, spec, load_offline(cfg, spec))
     if args.seeds is None:
         seeds = [args.seed]
-        # batches from default_rng(seed), not the pipeline's stream ([seed, 1]): the README's first table
-        # was measured so; the policy at a step is therefore not the one `botorl run` evaluates at 0
+        # batches from default_rng(seed), not the pipeline's stream ([seed, 1]): the first single-seed probe
+        # table (git history) was measured so; the policy at a step is therefore not the one `botorl run` evaluates at 0
         rngs = [np.random.default_rng(args.seed)]
     else:
         seeds = parse_seeds(args.seeds)

@@ -1,7 +1,7 @@
 """JAX process settings botorl applies before its first jit.
 
-XLA needs 2.5-5 s to compile each new function on a 2-core CPU (performance.md), which is
-most of a short run or test. The persistent compilation cache keeps compiled executables on
+XLA needs 2.5-5 s to compile each new function on a 2-core CPU (docs/performance.md), which
+is most of a short run or test. The persistent compilation cache keeps compiled executables on
 disk so a second process with the same shapes skips compilation.
 
 JAX sees one CPU device per core the process may use, so a population's updates can run

@@ -43,7 +43,7 @@ def adam(lr: float) -> optax.GradientTransformation:
 # On a CPU, computing it chunk by chunk is ~1.4-2x faster once a layer's activations
 # outgrow the caches (e.g. the CQL penalty's 2 x 7,936 x 256 floats, or the actor's pass
 # through 10 critics on 1,024 rows): each chunk's forward and backward run on data still in
-# cache. Measured (benchmarks/README.md): the best chunk held ~256k floats per layer
+# cache. Measured (docs/performance.md): the best chunk held ~256k floats per layer
 # (rows x members x width: 2 x 256 critics ~500 rows, 10 x 256 ~250, 2 x 512 ~250-500,
 # 2 x 64 ~2,000); below ~128 rows the per-chunk overhead wins. On an accelerator one big
 # batch is faster: no chunking there.

@@ -3,8 +3,8 @@
 d3rlpy 2.8.1 pins gymnasium 1.0 and needs PyTorch; botorl has neither as a dependency, so
 the comparison runs d3rlpy in its own venv (default ``~/.cache/botorl/d3rlpy-venv``,
 ``BOTORL_D3RLPY_VENV`` to move it), made on first use with ``python -m venv`` and pip.
-torch is pinned to the CPU build the reference figures used (performance.md): an unpinned
-``torch`` would pull a multi-GB CUDA build.
+torch is pinned to the CPU build the reference figures used (docs/performance.md): an
+unpinned ``torch`` would pull a multi-GB CUDA build.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Each ``Workload`` is one kind of update at fixed shapes, with the matching d3rlpy update
 (``d3rlpy_spec``, run by ``d3rlpy_worker.py``) where d3rlpy has one. Sizes are the reference
-ones of algorithms.md section 5: 2 critics of (256, 256) for offline pre-training as in the
+ones of docs/methods.md: 2 critics of (256, 256) for offline pre-training as in the
 d3rlpy reference figures; WSRL's 10 critics of 4 x 256 (antmaze, obs 29 / action 8) for the
 online SAC step and BOTO; adroit's 3 x 512 critic / 2 x 512 actor (door: obs 39 /
 action 28) for one Cal-QL row. Batch 256 per critic step everywhere.

@@ -294,7 +294,7 @@ def _offline_agents(ds, cfg: BanditConfig):
         "actor_hidden_dims", "critic_hidden_dims", "actor_layer_norm", "critic_layer_norm", "num_critics",
         "num_min_critics", "subsample_replace", "discount", "utd_ratio")}
     # CQL weight 5 with a fixed weight (no Lagrange): the one-step problem has no bootstrapping, so
-    # the penalty is what shapes Q off the data (Cal-QL's kitchen setting, algorithms.md s5).
+    # the penalty is what shapes Q off the data (Cal-QL's kitchen setting).
     # 5 (not 10) penalty samples of each kind keep `botorl bandit` within its time budget.
     cql_common = dict(base, max_target_backup=False, cql_lagrange=False, cql_weight=5.0, cql_n_actions=5)
     makers = {

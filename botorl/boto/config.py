@@ -33,8 +33,8 @@ class BOTOConfig:
         target critics. None -> the agent's own setting (SAC/CQL: ``num_min_critics``,
         ``subsample_replace``); an agent without one (IQL) uses all its members.
     backup_entropy: subtract ``tau * log pi(a~|s')`` in the target (SAC's soft value; the paper
-        prints ``+``, algorithms.md s2 -- we use the SAC sign). Agents without a SAC
-        temperature (IQL) use tau = 0.
+        prints ``+`` in section 4.1's target -- we use the SAC sign; docs/methods.md). Agents
+        without a SAC temperature (IQL) use tau = 0.
     discount, tau: None -> the agent's ``config.discount`` / ``config.tau`` (Polyak rate).
     train_actor: also train the actor and temperature with the SAC losses after every critic
         step (SAC-family agents only). Default False: Theorem 1 is stated for a fixed policy.

@@ -1,4 +1,4 @@
-"""The BOTO critic update (paper eq. 1-2 and section 4.1; algorithms.md section 2).
+"""The BOTO critic update (paper eq. 1-2 and section 4.1).
 
 For a batch (s, a, r, s', done) of D_BOTO and a perturbed action a_bar ~ q_sigma(.|a):
 
@@ -8,7 +8,8 @@ For a batch (s, a, r, s', done) of D_BOTO and a perturbed action a_bar ~ q_sigma
 
 followed by a Polyak update of the target critics after every step.
 
-Decisions (algorithms.md s2, ours where the paper is silent):
+Decisions (ours where the paper is silent; docs/methods.md, "BOTO: the choices the paper leaves
+open"):
 - Entropy sign: the paper prints ``+ tau log pi``; we use SAC's soft value ``- tau log pi``
   (``backup_entropy=False`` drops the term).
 - The actor and the SAC temperature are frozen by default (Theorem 1 is stated for a fixed

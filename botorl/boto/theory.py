@@ -2,7 +2,7 @@
 
 In a bandit (gamma = 0) with dataset actions a_i, rewards r_i (the empirical dataset
 distribution p_D puts weight 1/N on each row) and a noise density q(a_bar | a), the minimiser
-of the BOTO loss is (paper Theorem 1, eq. 8; algorithms.md section 4)
+of the BOTO loss is (paper Theorem 1, eq. 8)
 
     Q*(a_bar) = sum_i q(a_bar|a_i) (r_i - alpha ||a_i - a_bar||^2) / sum_i q(a_bar|a_i)
 

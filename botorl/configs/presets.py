@@ -2,20 +2,24 @@
 
 Profiles
 - ``full``: the paper's settings on its six tasks (Table 2 / B.1: alpha, BOTO steps,
-  log sigma) with WSRL's and Cal-QL's (algorithms.md sections 5 and 7): networks per domain,
-  pre-training steps (antmaze 1M, adroit 20k, kitchen 250k), CQL weights, reward transforms,
-  10-critic SAC fine-tuning at UTD 4, 300k online steps, 20 evaluation episodes every 5k.
+  log sigma) with WSRL's and Cal-QL's public code (docs/methods.md, "Reference settings"):
+  networks per domain, pre-training steps (antmaze 1M, adroit 20k, kitchen 250k), CQL
+  weights, reward transforms, 10-critic SAC fine-tuning at UTD 4, 300k online steps, 20
+  evaluation episodes every 5k.
   Generated tasks get the settings of the paper domain they stand in for (pointmaze ->
   antmaze, door-binary-local -> door-binary).
 - ``quick``: a whole run in minutes on 2 CPU cores (generated tasks; any task accepts it).
   OUR reductions, each for speed (measured: an update of the 10-critic, 2 x 128 SAC at UTD 4
   costs ~100 ms of CPU here, so 20k online steps alone would take over 30 minutes): 2 x 64
-  actor and critics; FOUR critics (pre-training and fine-tuning) instead of WSRL's 10; 5 CQL action samples
-  per kind; 10k pre-training steps (100k with IQL on pointmaze); 5k BOTO steps; 20k online steps with evaluations every
-  2.5k; fixed CQL weight 5 (no Lagrange) on the maze tasks; no max-target backup on
-  pointmaze; 200k-step pointmaze datasets; on pointmaze, BOTO and WSRL pre-train with IQL
-  unless `--pretrain` says otherwise (Cal-QL's 10k steps in the budget do not learn the large
-  maze: 0 success; IQL's 100k do, in ~90 s). `--profile full` restores the paper's sizes.
+  actor and critics; FOUR critics (pre-training and fine-tuning) instead of WSRL's 10; 5 CQL
+  action samples per kind; fixed CQL weight 5 (no Lagrange) on the maze tasks; 10k
+  pre-training steps; 5k BOTO steps; 20k online steps (the 5k warm-up included) with
+  evaluations every 2.5k, and every 500 from the warm-up's end to 10k (the dip window);
+  checkpoints every 5k. On pointmaze: 200k-step datasets, no max-target backup, and 20k
+  pre-training steps (Cal-QL, BOTO's and WSRL's default, with 2 action samples per kind and
+  128-row batches: ~3x cheaper a step than 5 and 256; success on the umaze 0.99 over 8 seeds
+  at 15k, 1.00 at 20k); every pre-training algorithm gets that budget. door-binary-local:
+  20k BC-rollout steps besides the 25 demos. `--profile full` restores the paper's sizes.
 - ``smoke``: tiny networks and a few steps of every stage (tests; says nothing about
   learning).
 
@@ -48,7 +52,7 @@ PROFILES = ("quick", "full", "smoke")
 # Paper domain each task's settings come from.
 _STANDS_IN = {"pointmaze": "antmaze"}
 
-# algorithms.md section 5 (Cal-QL / CQL pre-training per domain).
+# Cal-QL / CQL pre-training per domain (Cal-QL's and WSRL's code; docs/methods.md).
 _PRETRAIN_STEPS = {"antmaze": 1_000_000, "adroit": 20_000, "kitchen": 250_000, "bandit": 20_000}
 _CQL = {
     "antmaze": dict(cql_weight=5.0, cql_lagrange=True, cql_target_action_gap=0.8, cql_importance_sample=True),
@@ -149,7 +153,8 @@ def _quick(cfg: RunConfig, spec) -> RunConfig:
         # Cal-QL (the paper's pre-training, the default here too) with 2 action samples per
         # kind and 128-row batches: ~3x cheaper a step than 5 samples and 256 rows. 20k steps
         # solve the umaze (the main job; 0.99 over 8 seeds at 15k) and bring the medium maze to
-        # where more steps stop helping (0.6 over 8 seeds from 20k to 40k; README "Results").
+        # where more steps stop helping (0.6 over 8 seeds from 20k to 40k;
+        # docs/results/pretraining.md).
         # Every pre-training algorithm gets the same budget.
         cql = replace(cql, cql_n_actions=2)
         batch = 128
@@ -191,8 +196,8 @@ def _smoke(cfg: RunConfig, spec) -> RunConfig:
 
 
 def _method_defaults(cfg: RunConfig, spec) -> RunConfig:
-    """Settings that depend on the method, as WSRL's code runs each (algorithms.md section 5;
-    WSRL's launch scripts and configs, zhouzypaul/wsrl)."""
+    """Settings that depend on the method, as WSRL's code runs each (WSRL's launch scripts and
+    configs, zhouzypaul/wsrl; docs/methods.md)."""
     m = cfg.method
     online = cfg.online
     network = cfg.network

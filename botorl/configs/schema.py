@@ -51,7 +51,7 @@ class DataConfig:
 
 @dataclass
 class NetworkConfig:
-    """Network sizes used by pre-training and fine-tuning alike (algorithms.md section 5)."""
+    """Network sizes used by pre-training and fine-tuning alike (docs/methods.md)."""
 
     actor_hidden_dims: tuple[int, ...] = (256, 256)
     critic_hidden_dims: tuple[int, ...] = (256, 256, 256, 256)
@@ -115,7 +115,7 @@ class OnlineConfig:
 
 @dataclass
 class EvalConfig:
-    """Evaluation (algorithms.md section 6)."""
+    """Evaluation (as WSRL and Cal-QL evaluate; docs/methods.md, "Evaluation")."""
 
     episodes: int = 20
     """Deterministic episodes per evaluation."""

@@ -1,7 +1,7 @@
 """Network building blocks shared by every agent (flax linen, pure functions).
 
 - ``MLP``: Dense layers, optional dropout and LayerNorm after each hidden layer (RLPD/WSRL
-  put LayerNorm after every hidden layer of actor and critic; algorithms.md section 5).
+  put LayerNorm after every hidden layer of actor and critic; docs/methods.md).
 - ``QNetwork`` / ``CriticEnsemble``: Q(s, a); the ensemble is an ``nn.vmap`` over N members,
   so every parameter has leading axis N and the output is (N, B).
 - ``ValueNetwork``: V(s) for IQL.

@@ -17,7 +17,7 @@ def default_init(scale: float = 1.0):
 # ------------------------------------------------------------------------------ LayerNorm
 # XLA on the CPU runs LayerNorm's row reductions (mean, variance, and in the backward pass
 # mean(dy), mean(dy * y)) far slower than PyTorch's fused kernel: a third of a Cal-QL step
-# (benchmarks/README.md). As matmuls with a 1/n column they run ~3x faster (forward +
+# (docs/performance.md). As matmuls with a 1/n column they run ~3x faster (forward +
 # backward on (2, 7936, 256): 12.4 ms against flax's 38.7 ms, one run on 2 cores), and a
 # hand-written backward spares XLA from differentiating the reductions. Two-pass variance
 # (centre, then mean of squares) is also more accurate than flax's E[x^2] - E[x]^2 when the

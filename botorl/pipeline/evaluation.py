@@ -1,11 +1,12 @@
 """Evaluation: deterministic episodes and the Q statistics that show the estimation bias.
 
-Episodes (algorithms.md section 6): ``episodes`` (20) deterministic episodes, tanh of the mean
-action (``agent.eval_actions``). The envs are stepped in lockstep and the policy is called
-once per step on the whole batch of observations, so an evaluation costs one jitted call per
-env step, not one per env step per episode (a single-row call costs ~140 us here,
-performance.md). Finished envs keep their last observation in the batch (the batch shape,
-and so the compiled function, never changes) and their actions are discarded.
+Episodes (as WSRL and Cal-QL evaluate; docs/methods.md, "Evaluation"): ``episodes`` (20)
+deterministic episodes, tanh of the mean action (``agent.eval_actions``). The envs are
+stepped in lockstep and the policy is called once per step on the whole batch of
+observations, so an evaluation costs one jitted call per env step, not one per env step per
+episode (a single-row call costs ~140 us here). Finished envs keep their last observation in
+the batch (the batch shape, and so the compiled function, never changes) and their actions
+are discarded.
 
 Success per episode follows the task's ``success_mode``: "any" = the maximum of
 ``info["success"]`` over the episode, "last" = its value at the final step.

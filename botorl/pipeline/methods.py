@@ -9,7 +9,7 @@ One table (``METHODS``) maps a method to its stages; the stage functions are in 
 | wsrl   | pretrain, warmup, finetune           | WSRL, from the pre-trained nets                      |
 | calql  | pretrain, finetune                   | Cal-QL's own loss continued, 50/50 offline/online,   |
 | cql    |                                      | UTD 1, offline data kept (as in the paper's          |
-| iql    |                                      | baselines, algorithms.md section 5)                  |
+| iql    |                                      | baselines; docs/methods.md)                          |
 | rlpd   | finetune                             | SAC from scratch, 10 critics, 50/50 offline/online,  |
 |        |                                      | UTD 4 with WSRL's batch layout, 5,000 random steps   |
 

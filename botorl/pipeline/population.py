@@ -228,10 +228,10 @@ def _across_cores(fn, axes, *args):
     """An update of every member, for the heavy entry points (the updates; not the per-step
     policy calls). On a CPU with several cores the members are split over one JAX CPU device
     per core (``shard_map``) and each device runs its members one after another: measured on
-    2 cores (README "What it buys"), a vmapped batch of members is slower per member than one
-    member alone (its activations, N times larger, fall out of the caches), while members in
-    turn keep the single run's speed on each core. The member axis is padded with copies of
-    member 0 to a multiple of the devices; their results are dropped."""
+    2 cores (docs/populations.md, "What it buys"), a vmapped batch of members is slower per
+    member than one member alone (its activations, N times larger, fall out of the caches),
+    while members in turn keep the single run's speed on each core. The member axis is padded
+    with copies of member 0 to a multiple of the devices; their results are dropped."""
     n = _member_count(axes, args)
     d = host_shards(n)
     if d == 1:

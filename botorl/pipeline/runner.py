@@ -60,7 +60,7 @@ def transform_dataset(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
 
 
 def with_mc_returns(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
-    """MC returns of already-transformed rewards (Cal-QL's rule; algorithms.md section 5)."""
+    """MC returns of already-transformed rewards (Cal-QL's rule; docs/methods.md)."""
     r_neg = cfg.offline.mc_sparse_negative_reward
     gamma = cfg.offline.iql.discount if cfg.pretrain == "iql" else cfg.offline.cql.discount
     return ds.with_mc_returns(

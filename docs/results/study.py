@@ -8,7 +8,7 @@ IQM) are the `table1.csv` columns each report wrote, each run's dip (the figure'
 comes from the report's `dip_runs.csv`, and the figure is the report's own `dip_figure`. The study's
 run directories of the medium and umaze BOTO/WSRL rows did not survive the machine they ran
 on, so one `botorl report` over all of them cannot be rerun here; `botorl sweep ... --out
-study/all && botorl report study/all` (README) is that single report for a fresh study.
+study/all && botorl report study/all` (docs/results/index.md) is that single report for a fresh study.
 """
 
 from __future__ import annotations

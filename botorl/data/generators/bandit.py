@@ -2,7 +2,7 @@
 
 Both tasks have one step per episode (gamma = 0 semantics: every transition is terminal), a
 constant observation ``zeros(1)``, and rewards that are a deterministic function R(a) of the
-action, so the BOTO fixed point can be computed exactly (algorithms.md section 4):
+action, so the BOTO fixed point can be computed exactly (paper Theorem 1):
 ``Q*(a_bar) = ∫ p_D(a) q(a_bar|a) (R(a) - alpha ||a - a_bar||^2) da / ∫ p_D(a) q(a_bar|a) da``.
 
 * ``bandit-pinwheel`` (Figure 2): 2-D actions from a pinwheel density, the standard toy

@@ -1,6 +1,6 @@
 """PointMaze data in the style of D4RL maze2d (tasks ``pointmaze-umaze|medium|large``).
 
-Recipe (docs: ../shared/reference/tasks-and-data.md, "Data that can be made here"):
+Recipe (docs/tasks.md, "Generated data"):
 
 - one long trajectory; a planner goal is a random free cell (centre + uniform +-0.25 noise);
   when the point is within 0.45 of it, a new one is drawn;

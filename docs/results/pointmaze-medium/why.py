@@ -1,5 +1,5 @@
-"""The Q, entropy and temperature statistics behind README "Results" (why BOTO does or does
-not reduce unlearning here), from the members of the study's populations.
+"""The Q, entropy and temperature statistics behind the result pages in docs/results/ (why BOTO
+does or does not reduce unlearning here), from the members of the study's populations.
 
     python docs/results/pointmaze-medium/why.py study/pm-medium-boto study/pm-medium-wsrl
     python docs/results/pointmaze-medium/why.py --by-alpha study/alpha-medium/pointmaze-medium/boto/pop-44m-*
