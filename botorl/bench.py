@@ -118,6 +118,11 @@ WORKLOADS: dict[str, tuple[str, Callable[[int, int], dict]]] = {
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    if "--paper" in argv:
+        # what a whole paper run costs, from the real pipeline's stages (issue 25)
+        from botorl.benchmarks.paper import main as paper_main
+
+        return paper_main(argv)
     if any(a == "--against" or a.startswith("--against=") for a in argv):
         # The side-by-side comparison (issue 7) lives in botorl/benchmarks/.
         from botorl.benchmarks.suite import main as against_main
@@ -128,6 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats per workload (median reported)")
     parser.add_argument("--steps", type=int, default=20, help="updates per repeat (CQL workloads use a quarter)")
     parser.add_argument("--only", nargs="*", default=None, help=f"workload names: {', '.join(WORKLOADS)}")
+    parser.add_argument("--paper", action="store_true", help="project a whole paper run per task from short windows of the real pipeline (`botorl bench --paper --help`)")
     parser.add_argument("--against", choices=["d3rlpy"], help="compare with d3rlpy in the same run; its own options (--threads, --quick, --min-time, ...): `botorl bench --against d3rlpy --help`")
     args = parser.parse_args(argv)
     from botorl.errors import ConfigError

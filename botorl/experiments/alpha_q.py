@@ -141,16 +141,24 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
     scales: list[dict] = []
+    done: set[tuple[int, str]] = set()
+    if (out / "alpha_q.csv").exists():  # resume: keep the arms already measured
+        rows = [{k: (v if k == "arm" else float(v)) for k, v in r.items()} for r in csv.DictReader(open(out / "alpha_q.csv"))]
+        for r in rows:
+            r["seed"], r["step"] = int(r["seed"]), int(r["step"])
+        done = {(r["seed"], r["arm"]) for r in rows if r["step"] == steps[-1]}
+        rows = [r for r in rows if (r["seed"], r["arm"]) in done or r["arm"] == "pre-trained"]
     for seed in seeds:
         cfg, agent0, d_off, d_warm = _pretrained(args.task, seed, out / "runs", args.profile)
         rng = np.random.default_rng(seed)
         pick = rng.choice(len(d_off), size=min(args.states, len(d_off)), replace=False)
         obs, acts = d_off.observations[pick], d_off.actions[pick]
         scales.append({"seed": seed, **noise_scale(agent0, cfg, d_off, np.random.default_rng(seed))})
-        rows.append({"seed": seed, "arm": "pre-trained", "alpha": math.nan, "step": 0,
-                     **q_profile(agent0, obs, acts, np.random.default_rng(7))})
+        if not any(r["seed"] == seed and r["arm"] == "pre-trained" for r in rows):
+            rows.append({"seed": seed, "arm": "pre-trained", "alpha": math.nan, "step": 0,
+                         **q_profile(agent0, obs, acts, np.random.default_rng(7))})
         for name, arm in arms(cfg.boto.alpha).items():
-            if args.arms and name not in args.arms.split(","):
+            if (args.arms and name not in args.arms.split(",")) or (seed, name) in done:
                 continue
             boto = dataclasses.replace(cfg.boto, alpha=arm["alpha"], boto_steps=steps[-1],
                                        backup_entropy=arm.get("backup_entropy", cfg.boto.backup_entropy))
@@ -163,6 +171,7 @@ def main(argv: list[str] | None = None) -> int:
             run_boto(agent0, d_off, d_warm if arm.get("warmup", True) else None, boto, callback=measure,
                      progress=False)
             print(f"seed {seed} {name}: done", flush=True)
+            _write(out, rows, scales, steps, atomic_write_text, atomic_save_figure)
         _write(out, rows, scales, steps, atomic_write_text, atomic_save_figure)
     return 0
 

@@ -1,0 +1,247 @@
+"""``botorl bench --paper``: what a whole paper run costs, projected from short timed windows
+of the real pipeline at the ``full`` profile.
+
+For each task, one `botorl run --profile full` (a population of N members for each N of
+``--members``) with every stage cut to a short window -- ``--pretrain-steps`` Cal-QL updates,
+``--warmup-steps`` env steps of the frozen policy, ``--boto-steps`` BOTO updates,
+``--finetune-steps`` env steps of WSRL fine-tuning at UTD 4 with 10 critics -- and one
+`botorl eval` of its checkpoint. The rates are the pipeline's own: the steady state of each
+stage's metrics rows after the first (which holds the compilation), read from the run's
+``metrics/*.csv``; evaluation env steps/s from `botorl eval` (episodes x mean length /
+seconds). Peak host memory is each process's maximum resident size (``wait4``).
+
+Projection of a paper run (``projected_hours``): the ``full`` preset's budgets (pre-training
+steps, the 5,000-step warm-up, Table 2's BOTO steps, 300k online steps of which the warm-up's
+are the first) divided by these rates, plus every evaluation (one at step 0 and every
+``eval.interval``, ``eval.episodes`` episodes of the task's horizon: the worst case, a policy
+that never ends an episode early) at the measured evaluation rate, plus each stage's compile
+time once. Tasks whose data cannot be made here (kitchen, pen) run on synthetic data of their
+shapes (random rows in a D4RL hdf5 file), marked ``"data": "synthetic"``: their rates are the
+real networks' and envs', their learning means nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+# the paper's tasks as they can be run here: task -> where its data comes from
+PAPER_TASKS = {
+    "antmaze-large-diverse-local": "generated",
+    "antmaze-large-play-local": "generated",
+    "door-binary-local": "generated",
+    "kitchen-partial-v0": "synthetic",
+    "kitchen-mixed-v0": "synthetic",
+    "pen-binary-v0": "synthetic",
+}
+# the paper's Table 3 (wall-clock per run, one RTX 3090), hours, by the task each stands for
+PAPER_TABLE3_HOURS = {
+    "antmaze-large-diverse": 2 + 48 / 60, "antmaze-large-play": 2 + 40 / 60, "kitchen-partial": 5 + 53 / 60,
+    "kitchen-mixed": 4 + 51 / 60, "door-binary": 5 + 49 / 60, "pen-binary": 4 + 45 / 60,
+}
+STAGES = ("pretrain", "warmup", "boto", "finetune", "eval")
+
+
+def paper_name(task: str) -> str:
+    return task.removesuffix("-local").removesuffix("-v0").removesuffix("-v2")
+
+
+def _synthetic_hdf5(spec, path: Path, rows: int, seed: int = 0) -> Path:
+    """Random rows of the task's shapes in D4RL's hdf5 layout (episodes of its horizon)."""
+    import h5py
+
+    rng = np.random.default_rng(seed)
+    ends = (np.arange(rows) + 1) % spec.max_episode_steps == 0
+    with h5py.File(path, "w") as f:
+        f["observations"] = rng.normal(size=(rows, spec.obs_dim)).astype(np.float32)
+        f["next_observations"] = rng.normal(size=(rows, spec.obs_dim)).astype(np.float32)
+        f["actions"] = rng.uniform(-1, 1, (rows, spec.action_dim)).astype(np.float32)
+        f["rewards"] = (rng.uniform(size=rows) < 0.05).astype(np.float32)
+        f["terminals"] = np.zeros(rows, bool)
+        f["timeouts"] = ends
+    return path
+
+
+def _run(cmd: list[str], log: Path) -> tuple[int, float, float]:
+    """(exit code, wall seconds, peak resident MB) of one botorl process."""
+    t0 = time.perf_counter()
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "botorl.cli", *cmd], stdout=out, stderr=subprocess.STDOUT)
+        _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return proc.returncode, time.perf_counter() - t0, usage.ru_maxrss / 1024  # Linux: KiB
+
+
+def _rows(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _steady(rows: list[dict], step_key: str, rate_key: str | None, seconds_key: str | None = None) -> tuple[float, float]:
+    """(steady-state rate, compile seconds) from a stage's metrics rows: the rows after the
+    first give the rate; the first row's excess time over that rate is the compilation."""
+    if len(rows) < 2:
+        raise RuntimeError("a stage logged fewer than 2 rows: raise its window")
+    steps = [float(r[step_key]) for r in rows]
+    if seconds_key is not None:  # cumulative seconds (BOTO)
+        secs = [float(r[seconds_key]) for r in rows]
+        rate = (steps[-1] - steps[0]) / max(secs[-1] - secs[0], 1e-9)
+        return rate, max(secs[0] - steps[0] / rate, 0.0)
+    rates = [float(r[rate_key]) for r in rows]
+    rate = float(np.median(rates[1:]))
+    first_s = steps[0] / rates[0] if rates[0] > 0 else 0.0
+    return rate, max(first_s - steps[0] / rate, 0.0)
+
+
+def measure(task: str, members: int, work: Path, windows: dict, data_steps: int) -> dict:
+    """One task at one population size: each stage's rate, compile time, memory, projection."""
+    from botorl.configs.presets import make_preset
+    from botorl.configs.resolve import resolve
+    from botorl.envs.registry import get_task
+
+    spec = get_task(task)
+    cfg = resolve(make_preset(task, "full", "boto"))
+    out = work / f"{task}-n{members}"
+    shutil.rmtree(out, ignore_errors=True)
+    data_args = ["--data.steps", str(data_steps)]
+    if PAPER_TASKS.get(task) == "synthetic":
+        data_args = ["--data.path", str(_synthetic_hdf5(spec, work / f"{task}-synthetic.hdf5", data_steps))]
+    p, w, b, f = (windows[k] for k in ("pretrain", "warmup", "boto", "finetune"))
+    seeds = ["--seeds", f"0-{members - 1}"] if members > 1 else ["--seed", "0"]
+    cmd = ["run", "--task", task, "--method", "boto", "--profile", "full", *seeds, "--out", str(out),
+           "--no-progress", "--no-tensorboard", *data_args,
+           "--offline.steps", str(p), "--offline.log-every", str(max(1, p // 4)),
+           "--offline.updates-per-call", str(max(1, p // 4)),
+           "--warmup.steps", str(w), "--boto.boto-steps", str(b), "--boto.steps-per-call", str(max(1, b // 4)),
+           "--online.steps", str(w + f), "--online.log-every", str(max(1, f // 4)),
+           "--eval.episodes", "1", "--eval.interval", str(10 * (w + f)),
+           "--checkpoint-every", str(10 * (w + f + p + b))]
+    code, wall, rss = _run(cmd, work / f"{task}-n{members}.log")
+    if code != 0:
+        raise RuntimeError(f"{task}: `botorl run` exited {code}; see {work / f'{task}-n{members}.log'}")
+    member = out if members == 1 else next(d for d in sorted(out.iterdir()) if (d / "summary.json").exists())
+    summary = json.loads((member / "summary.json").read_text())
+    stages: dict[str, dict] = {}
+    rate, comp = _steady(_rows(member / "metrics" / "pretrain.csv"), "step", "steps_per_s")
+    stages["pretrain"] = {"rate": rate, "unit": "updates/s", "compile_s": comp}
+    rate, comp = _steady(_rows(member / "metrics" / "boto.csv"), "step", None, "seconds")
+    stages["boto"] = {"rate": rate, "unit": "updates/s", "compile_s": comp}
+    ft = _rows(member / "metrics" / "finetune.csv")
+    rate, comp = _steady(ft, "step", "env_steps_per_s")
+    stages["finetune"] = {"rate": rate, "unit": "env steps/s (UTD 4)", "compile_s": comp}
+    # evaluation: `botorl eval` of the run's last checkpoint (a single run's or member 0's)
+    eval_dir = out if members == 1 else member
+    ecode, _, ers = _run(["eval", str(eval_dir), "--episodes", str(windows["eval_episodes"])],
+                         work / f"{task}-n{members}-eval.log")
+    ev = json.loads(next(eval_dir.glob("eval-*.json")).read_text()) if ecode == 0 else None
+    if ev is None:
+        raise RuntimeError(f"{task}: `botorl eval` exited {ecode}; see {work / f'{task}-n{members}-eval.log'}")
+    eval_rate = ev["episodes"] * ev["episode_length"] / max(ev["seconds"], 1e-9)
+    stages["eval"] = {"rate": eval_rate, "unit": f"env steps/s ({ev['episodes']} envs in lockstep, one member)",
+                      "compile_s": 0.0}
+    # the warm-up stage also ran one evaluation episode at step 0: take it out
+    warm_s = summary["stage_seconds"]["warmup"] - ev["episode_length"] / eval_rate
+    stages["warmup"] = {"rate": w / max(warm_s, 1e-9), "unit": "env steps/s (frozen policy)", "compile_s": 0.0}
+
+    budget = {"pretrain": cfg.offline.steps, "warmup": cfg.warmup.steps, "boto": cfg.boto.boto_steps,
+              "finetune": cfg.online.steps - cfg.warmup.steps,
+              "eval": (1 + cfg.online.steps // cfg.eval.interval) * cfg.eval.episodes * spec.max_episode_steps}
+    seconds = {s: budget[s] / stages[s]["rate"] + stages[s]["compile_s"] for s in STAGES}
+    seconds["eval"] *= members  # `botorl eval` timed one member's episodes; a population evaluates each
+    total = sum(seconds.values())
+    return {
+        "task": task, "paper_task": paper_name(task), "data": PAPER_TASKS.get(task, "as configured"),
+        "members": members, "stages": stages, "budget": budget,
+        # the wall time of a population of `members` paper runs, and its share per run
+        "projected_hours": total / 3600, "hours_per_run": total / 3600 / members,
+        "share": {s: seconds[s] / total for s in STAGES},
+        "peak_host_mb": max(rss, ers), "device_memory_mb": None, "measure_wall_s": wall,
+        "paper_table3_hours": PAPER_TABLE3_HOURS.get(paper_name(task)),
+    }
+
+
+def table(results: list[dict]) -> str:
+    head = (f"{'task':30s} {'N':>3s} {'pretrain':>10s} {'warm-up':>9s} {'BOTO':>9s} {'fine-tune':>10s} "
+            f"{'eval':>9s} {'hours':>8s} {'paper':>6s}  largest share")
+    lines = [head, f"{'':30s} {'':>3s} {'upd/s':>10s} {'env st/s':>9s} {'upd/s':>9s} {'env st/s':>10s} "
+                   f"{'env st/s':>9s} {'proj.':>8s} {'T3 h':>6s}"]
+    for r in results:
+        st = r["stages"]
+        big = max(r["share"], key=r["share"].get)
+        paper = r["paper_table3_hours"]
+        lines.append(
+            f"{r['task']:30s} {r['members']:3d} {st['pretrain']['rate']:10.1f} {st['warmup']['rate']:9.0f} "
+            f"{st['boto']['rate']:9.1f} {st['finetune']['rate']:10.2f} {st['eval']['rate']:9.0f} "
+            f"{r['projected_hours']:8.1f} {'-' if paper is None else f'{paper:.1f}':>6s}  "
+            f"{big} {100 * r['share'][big]:.0f}%" + ("  (synthetic data)" if r["data"] == "synthetic" else ""))
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> int:
+    from botorl.errors import ConfigError
+
+    p = argparse.ArgumentParser(prog="botorl bench --paper", description=__doc__.split("\n\n")[0])
+    p.add_argument("--paper", action="store_true", help="(this benchmark)")
+    p.add_argument("--tasks", default=",".join(PAPER_TASKS), help="comma-separated tasks")
+    p.add_argument("--members", default="1", help="population sizes, e.g. 1,4,16")
+    p.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
+    p.add_argument("--pretrain-steps", type=int, default=40)
+    p.add_argument("--warmup-steps", type=int, default=1000)
+    p.add_argument("--boto-steps", type=int, default=400)
+    p.add_argument("--finetune-steps", type=int, default=200)
+    p.add_argument("--eval-episodes", type=int, default=20, help="episodes of the timed evaluation (the paper's 20)")
+    p.add_argument("--data-steps", type=int, default=20_000, help="rows of the (generated or synthetic) data")
+    p.add_argument("--work", type=Path, default=None, help="folder for the runs (default: a temporary one)")
+    args = p.parse_args(argv)
+    try:
+        members = [int(m) for m in args.members.split(",")]
+    except ValueError:
+        raise ConfigError(f"--members {args.members!r}: give population sizes like 1,4,16.") from None
+    tasks = [t for t in args.tasks.split(",") if t]
+    windows = {"pretrain": args.pretrain_steps, "warmup": args.warmup_steps, "boto": args.boto_steps,
+               "finetune": args.finetune_steps, "eval_episodes": args.eval_episodes}
+    for name, v in [*windows.items(), ("data-steps", args.data_steps), *(("members", m) for m in members)]:
+        if v < 1 or (name in ("pretrain", "boto", "finetune") and v < 8):
+            raise ConfigError(f"botorl bench --paper: --{name.replace('_', '-')} {v} is too small (>= 8 for "
+                              "the stage windows, each logs 4 rows; >= 1 otherwise).")
+    from botorl.envs.registry import get_task
+
+    for t in tasks:
+        get_task(t)  # an unknown task fails here, before any run
+    work = args.work or Path(tempfile.mkdtemp(prefix="botorl-paper-bench-"))
+    work.mkdir(parents=True, exist_ok=True)
+    results = []
+    for t in tasks:
+        for n in members:
+            print(f"botorl bench --paper: {t}, {n} member(s) ...", flush=True)
+            results.append(measure(t, n, work, windows, args.data_steps))
+            print(table(results[-1:]).splitlines()[-1], flush=True)
+    print()
+    print(table(results))
+    doc = {"machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count()},
+           "windows": windows, "how": __doc__.split("\n\n", 1)[1], "results": results}
+    try:
+        import jax
+
+        doc["machine"]["device"] = str(jax.devices()[0])
+        doc["machine"]["jax"] = jax.__version__
+    except Exception:  # noqa: BLE001 - the machine description is best effort
+        pass
+    if args.json is not None:
+        from botorl.io import atomic_write_bytes
+
+        atomic_write_bytes(args.json, json.dumps(doc, indent=2).encode())
+    if args.work is None:
+        shutil.rmtree(work, ignore_errors=True)
+    return 0
