@@ -154,21 +154,31 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
     warm_s = summary["stage_seconds"]["warmup"] - ev["episode_length"] / eval_rate
     stages["warmup"] = {"rate": w / max(warm_s, 1e-9), "unit": "env steps/s (frozen policy)", "compile_s": 0.0}
 
-    budget = {"pretrain": cfg.offline.steps, "warmup": cfg.warmup.steps, "boto": cfg.boto.boto_steps,
-              "finetune": cfg.online.steps - cfg.warmup.steps,
-              "eval": (1 + cfg.online.steps // cfg.eval.interval) * cfg.eval.episodes * spec.max_episode_steps}
-    seconds = {s: budget[s] / stages[s]["rate"] + stages[s]["compile_s"] for s in STAGES}
-    seconds["eval"] *= members  # `botorl eval` timed one member's episodes; a population evaluates each
-    total = sum(seconds.values())
+    budget = paper_budget(cfg, spec.max_episode_steps)
     return {
         "task": task, "paper_task": paper_name(task), "data": PAPER_TASKS.get(task, "as configured"),
-        "members": members, "stages": stages, "budget": budget,
-        # the wall time of a population of `members` paper runs, and its share per run
-        "projected_hours": total / 3600, "hours_per_run": total / 3600 / members,
-        "share": {s: seconds[s] / total for s in STAGES},
+        "members": members, "stages": stages, "budget": budget, **project(stages, budget, members),
         "peak_host_mb": max(rss, ers), "device_memory_mb": None, "measure_wall_s": wall,
         "paper_table3_hours": PAPER_TABLE3_HOURS.get(paper_name(task)),
     }
+
+
+def paper_budget(cfg, horizon: int) -> dict[str, int]:
+    """A paper run's work per stage: updates (pre-training, BOTO) or env steps (warm-up,
+    fine-tuning after the warm-up, and every evaluation's episodes at the full horizon)."""
+    return {"pretrain": cfg.offline.steps, "warmup": cfg.warmup.steps, "boto": cfg.boto.boto_steps,
+            "finetune": cfg.online.steps - cfg.warmup.steps,
+            "eval": (1 + cfg.online.steps // cfg.eval.interval) * cfg.eval.episodes * horizon}
+
+
+def project(stages: dict[str, dict], budget: dict[str, int], members: int = 1) -> dict:
+    """Hours of the whole budget at the measured rates, each stage compiled once; the
+    population's wall time (its evaluation timed for one member, so counted once per member)."""
+    seconds = {s: budget[s] / stages[s]["rate"] + stages[s]["compile_s"] for s in STAGES}
+    seconds["eval"] *= members
+    total = sum(seconds.values())
+    return {"projected_hours": total / 3600, "hours_per_run": total / 3600 / members,
+            "share": {s: seconds[s] / total for s in STAGES}}
 
 
 def table(results: list[dict]) -> str:
@@ -196,10 +206,10 @@ def main(argv: list[str]) -> int:
     p.add_argument("--tasks", default=",".join(PAPER_TASKS), help="comma-separated tasks")
     p.add_argument("--members", default="1", help="population sizes, e.g. 1,4,16")
     p.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
-    p.add_argument("--pretrain-steps", type=int, default=40)
-    p.add_argument("--warmup-steps", type=int, default=1000)
-    p.add_argument("--boto-steps", type=int, default=400)
-    p.add_argument("--finetune-steps", type=int, default=200)
+    p.add_argument("--pretrain-steps", type=int, default=24)
+    p.add_argument("--warmup-steps", type=int, default=500)
+    p.add_argument("--boto-steps", type=int, default=200)
+    p.add_argument("--finetune-steps", type=int, default=100)
     p.add_argument("--eval-episodes", type=int, default=20, help="episodes of the timed evaluation (the paper's 20)")
     p.add_argument("--data-steps", type=int, default=20_000, help="rows of the (generated or synthetic) data")
     p.add_argument("--work", type=Path, default=None, help="folder for the runs (default: a temporary one)")
@@ -211,10 +221,14 @@ def main(argv: list[str]) -> int:
     tasks = [t for t in args.tasks.split(",") if t]
     windows = {"pretrain": args.pretrain_steps, "warmup": args.warmup_steps, "boto": args.boto_steps,
                "finetune": args.finetune_steps, "eval_episodes": args.eval_episodes}
-    for name, v in [*windows.items(), ("data-steps", args.data_steps), *(("members", m) for m in members)]:
-        if v < 1 or (name in ("pretrain", "boto", "finetune") and v < 8):
-            raise ConfigError(f"botorl bench --paper: --{name.replace('_', '-')} {v} is too small (>= 8 for "
-                              "the stage windows, each logs 4 rows; >= 1 otherwise).")
+    flags = {"--pretrain-steps": args.pretrain_steps, "--boto-steps": args.boto_steps,
+             "--finetune-steps": args.finetune_steps, "--warmup-steps": args.warmup_steps,
+             "--eval-episodes": args.eval_episodes, "--data-steps": args.data_steps,
+             **{"--members": m for m in members if m < 1}}
+    for flag, v in flags.items():
+        if v < 1 or (flag in ("--pretrain-steps", "--boto-steps", "--finetune-steps") and v < 8):
+            raise ConfigError(f"botorl bench --paper: {flag} {v} is too small (>= 8 for the stage windows "
+                              "of pre-training, BOTO and fine-tuning, each logs 4 rows; >= 1 otherwise).")
     from botorl.envs.registry import get_task
 
     for t in tasks:
