@@ -288,7 +288,7 @@ def _read_pairs(paths: tuple[str, ...]) -> list:
     for p in paths:
         try:
             pairs += read_pairs_csv(Path(p))
-        except (OSError, KeyError, ValueError) as err:
+        except (OSError, KeyError, ValueError, TypeError) as err:
             raise ConfigError(f"--pairs-from {p}: not a paired.csv that `botorl report` wrote ({err}).") from None
     return pairs
 

@@ -38,7 +38,7 @@ import numpy as np
 
 from botorl.experiments.dip import DIP_WINDOW, run_dip
 from botorl.experiments.runs import Run
-from botorl.experiments.stats import alpha_text, bootstrap_mean_ci, fmt_float, mean_se, suptitle
+from botorl.experiments.stats import alpha_text, bootstrap_mean_ci, check_bootstrap, fmt_float, mean_se, suptitle
 from botorl.io import atomic_save_figure
 
 REFERENCE = "wsrl"
@@ -234,8 +234,10 @@ def read_pairs_csv(path: Path) -> list[Pair]:
         except ValueError:
             return math.nan
 
+    from botorl.experiments.runs import CSV_LIMIT, read_bounded
+
     pairs = []
-    with open(path, newline="") as f:
+    with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:
         for row in csv.DictReader(f):
             pairs.append(Pair(
                 row["task"], int(row["seed"]) if row["seed"] else None, row["method"],
@@ -405,6 +407,7 @@ def write_paired_report(pairs: Sequence[Pair], out: Path, *, sources: Sequence[s
     """A report of pairs alone (``botorl report --pairs-from``): the paired files and report.md."""
     from botorl.io import atomic_write_text
 
+    check_bootstrap(n_boot, confidence)
     out.mkdir(parents=True, exist_ok=True)
     files, md, _ = write_paired(pairs, out, n_boot=n_boot, confidence=confidence, seed=seed)
     head = ["# botorl report: pairs", "", f"{len(pairs)} pairs from "

@@ -39,6 +39,7 @@ from botorl.experiments.runs import Run, Skipped, find_runs
 from botorl.experiments.stats import (
     alpha_text,
     bootstrap_mean_ci,
+    check_bootstrap,
     fmt_float,
     line_label,
     mean_se,
@@ -611,6 +612,7 @@ def make_report(
     report_seeds: Sequence[int] | None = None,
     extra_pairs: Sequence[Pair] = (),
 ) -> ReportResult:
+    check_bootstrap(n_boot, confidence)
     if not (isinstance(dip_window, (int, float)) and math.isfinite(dip_window) and dip_window > 0):
         raise ConfigError(f"--dip-window must be a positive number of online env steps, got {dip_window!r}.")
     runs, skipped = find_runs(dirs)

@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import errno
+import io
 import json
 import math
 import os
+import stat
 from collections import defaultdict
 from pathlib import Path
 from typing import Any, Iterable
@@ -68,13 +71,52 @@ def _num(v: Any) -> float:
     return f
 
 
+# A run directory is data from anywhere (a colleague's archive, a shared disk): its files are
+# read only when they are regular files (no symlink, FIFO or device) of a bounded size.
+JSON_LIMIT = 4 << 20
+CSV_LIMIT = 64 << 20
+
+
+def read_bounded(path: Path, limit: int, *, tail: bool = False) -> str:
+    """The text of a regular file of at most ``limit`` bytes (``tail``: its last ``limit``
+    bytes, whatever its size); ValueError or OSError saying what is wrong otherwise."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise ValueError(f"{path.name} is a symbolic link, not a regular file") from None
+        raise
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f"{path.name} is not a regular file")
+        if st.st_size > limit and not tail:
+            raise ValueError(f"{path.name} is {st.st_size:,} bytes, more than the {limit:,} a run's file may hold")
+        if tail and st.st_size > limit:
+            os.lseek(fd, st.st_size - limit, os.SEEK_SET)
+        chunks, left = [], limit
+        while left > 0:
+            b = os.read(fd, min(left, 1 << 20))
+            if not b:
+                break
+            chunks.append(b)
+            left -= len(b)
+    finally:
+        os.close(fd)
+    data = b"".join(chunks)
+    try:
+        return data.decode("utf-8", errors="replace" if tail else "strict")
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path.name} is not UTF-8 text ({err.reason} at byte {err.start})") from None
+
+
 def read_eval_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(env_step, success) with one value per step: the last row written for that step.
 
     Several stages may evaluate at env_step 0 (end of pre-training, end of BOTO); the last
     one is what fine-tuning starts from.
     """
-    with open(path, newline="") as f:
+    with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:
         reader = csv.DictReader(f)
         if reader.fieldnames is None or not {"env_step", "success"} <= set(reader.fieldnames):
             raise ValueError(f"{path.name} has no env_step/success columns (header {reader.fieldnames})")
@@ -129,20 +171,20 @@ def label_variants(runs: list[Run]) -> None:
 
 def _load_run(run_dir: Path) -> Run | Skipped:
     try:
-        summary = json.loads((run_dir / "summary.json").read_text())
+        summary = json.loads(read_bounded(run_dir / "summary.json", JSON_LIMIT))
         if not isinstance(summary, dict):
             raise ValueError("not a JSON object")
-    except (OSError, ValueError) as err:
-        return Skipped(run_dir, f"summary.json unreadable ({err})")
+    except (OSError, ValueError, RecursionError) as err:
+        return Skipped(run_dir, f"summary.json unreadable ({type(err).__name__ if isinstance(err, RecursionError) else err})")
     status = summary.get("status")
     if status != "finished":
         error = f" ({summary['error']})" if summary.get("error") else ""
         return Skipped(run_dir, f"status is {status!r}, not 'finished'{error}")
     config: dict[str, Any] = {}
     try:
-        loaded = json.loads((run_dir / "config.json").read_text())
+        loaded = json.loads(read_bounded(run_dir / "config.json", JSON_LIMIT))
         config = loaded if isinstance(loaded, dict) else {}
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         pass
 
     def field(name: str) -> Any:
@@ -159,6 +201,10 @@ def _load_run(run_dir: Path) -> Run | Skipped:
         return Skipped(run_dir, f"eval.csv unreadable ({err})")
     alpha = field("alpha")
     seed = field("seed")
+    if seed is not None and not (isinstance(seed, int) and not isinstance(seed, bool)):
+        return Skipped(run_dir, f"its seed {str(seed)[:40]!r} is not an integer")
+    if not isinstance(field("task"), str) or not isinstance(field("method"), str):
+        return Skipped(run_dir, "summary.json and config.json name no task/method as text")
     return Run(
         path=run_dir,
         task=str(field("task")),
@@ -188,8 +234,8 @@ def _dense_from(config: dict) -> float | None:
 
 def _last_line(path: Path) -> str:
     try:
-        lines = [ln.strip() for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
-    except OSError:
+        lines = [ln.strip() for ln in read_bounded(path, 4096, tail=True).splitlines() if ln.strip()]
+    except (OSError, ValueError):
         return "(unreadable)"
     return lines[-1][:300] if lines else "(empty)"
 

@@ -103,3 +103,18 @@ def line_label(label: str, alpha: float | None, multi_alpha: bool) -> str:
     if not multi_alpha:
         return label
     return f"{label} α=preset" if alpha is None else f"{label} α={alpha:+.2f}"
+
+
+MAX_RESAMPLES = 1_000_000  # 2,000 is the default; more than a million says nothing new and takes hours
+
+
+def check_bootstrap(n_boot, confidence) -> None:
+    """ConfigError unless the bootstrap's settings can run: 1 <= resamples <= 1e6 and a
+    confidence level strictly between 0 and 1."""
+    from botorl.errors import ConfigError
+
+    if isinstance(n_boot, bool) or not isinstance(n_boot, int) or not 1 <= n_boot <= MAX_RESAMPLES:
+        raise ConfigError(f"--bootstrap {n_boot!r}: give a whole number of resamples from 1 to {MAX_RESAMPLES:,} "
+                          "(2000 is the default).")
+    if not isinstance(confidence, (int, float)) or not 0.0 < float(confidence) < 1.0:
+        raise ConfigError(f"--confidence {confidence!r}: give a level strictly between 0 and 1, e.g. 0.95.")
