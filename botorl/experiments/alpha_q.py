@@ -112,6 +112,15 @@ def noise_scale(agent, cfg, d_off, rng: np.random.Generator, n: int = 20_000) ->
             "tau_logp_mean": tau * float(np.asarray(logp).mean()), "discount": float(agent.config.discount)}
 
 
+def _weight(text: str | None):
+    if text is None:
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
 def arms(preset_alpha: float) -> dict[str, dict]:
     return {"alpha=-1": {"alpha": -1.0}, "alpha=0": {"alpha": 0.0}, "alpha=+1": {"alpha": 1.0},
             f"alpha={preset_alpha:+g}, no entropy term": {"alpha": preset_alpha, "backup_entropy": False},
@@ -126,6 +135,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", default="1000,5000,20000,100000", help="BOTO steps at which Q is measured")
     p.add_argument("--states", type=int, default=1000)
     p.add_argument("--arms", default=None, help="comma-separated arm names (default: all)")
+    p.add_argument("--weight-fn", default=None,
+                   help="the hybrid noise's mixing weight for every arm: linear (w = t, the default) or a constant share")
+    p.add_argument("--log-sigma", type=float, default=None, help="the hybrid noise's log sigma for every arm")
+    p.add_argument("--runs", default=None, help="folder of the pre-training runs (default: OUT/runs); share it "
+                                                "between probes to compare them on the same pre-trainings")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
     from botorl.jaxsetup import setup_jax
@@ -149,7 +163,11 @@ def main(argv: list[str] | None = None) -> int:
         done = {(r["seed"], r["arm"]) for r in rows if r["step"] == steps[-1]}
         rows = [r for r in rows if (r["seed"], r["arm"]) in done or r["arm"] == "pre-trained"]
     for seed in seeds:
-        cfg, agent0, d_off, d_warm = _pretrained(args.task, seed, out / "runs", args.profile)
+        cfg, agent0, d_off, d_warm = _pretrained(args.task, seed, Path(args.runs) if args.runs else out / "runs",
+                                                 args.profile)
+        noise = {k: v for k, v in (("weight_fn", _weight(args.weight_fn)), ("log_sigma", args.log_sigma))
+                 if v is not None}
+        cfg = dataclasses.replace(cfg, boto=dataclasses.replace(cfg.boto, **noise))
         rng = np.random.default_rng(seed)
         pick = rng.choice(len(d_off), size=min(args.states, len(d_off)), replace=False)
         obs, acts = d_off.observations[pick], d_off.actions[pick]
