@@ -220,6 +220,11 @@ def _write(out: Path, rows, scales, steps, write_text, save_figure) -> None:
     for s in scales:
         md.append(f"| {s['seed']} | " + " | ".join(f"{v:.4g}" for k, v in s.items() if k != "seed") + " |")
     write_text(out / "alpha_q.md", "\n".join(md) + "\n")
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(scales[0]), lineterminator="\n")
+    w.writeheader()
+    w.writerows(scales)
+    write_text(out / "alpha_q_scale.csv", buf.getvalue())
 
     import matplotlib
 
@@ -227,12 +232,14 @@ def _write(out: Path, rows, scales, steps, write_text, save_figure) -> None:
     import matplotlib.pyplot as plt
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.8))
+    names = [a for a in dict.fromkeys(r["arm"] for r in rows) if a != "pre-trained"]
+    color = {a: f"C{i}" for i, a in enumerate(names)} | {"pre-trained": "grey"}
     xs = [0.0] + list(DISTANCES)
     for (arm, step), g in groups.items():
         if step != steps[-1] and arm != "pre-trained":
             continue
         ys = [float(np.mean([r[c] for r in g])) for c in qcols[:-1]]
-        ax1.plot(xs, ys, marker="o", ms=3, label=arm, ls="--" if arm == "pre-trained" else "-")
+        ax1.plot(xs, ys, marker="o", ms=3, label=arm, color=color[arm], ls="--" if arm == "pre-trained" else "-")
     ax1.set_xlabel("distance from the dataset action")
     ax1.set_ylabel("mean Q")
     ax1.set_title(f"Q after {steps[-1]:,} BOTO steps", fontsize=9)
@@ -244,7 +251,7 @@ def _write(out: Path, rows, scales, steps, write_text, save_figure) -> None:
         by_arm.setdefault(arm, []).append((step, float(np.mean([r["q_data"] - r["q_uniform"] for r in g]))))
     for arm, pts in by_arm.items():
         pts.sort()
-        ax2.plot([p[0] for p in pts], [p[1] for p in pts], "-o", ms=3, label=arm)
+        ax2.plot([p[0] for p in pts], [p[1] for p in pts], "-o", ms=3, label=arm, color=color[arm])
     pre = groups.get(("pre-trained", 0))
     if pre:
         ax2.axhline(float(np.mean([r["q_data"] - r["q_uniform"] for r in pre])), color="grey", ls="--",
