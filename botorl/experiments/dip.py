@@ -15,14 +15,13 @@ import csv
 import dataclasses
 import io
 import math
-import os
 from collections import defaultdict
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from botorl.experiments.runs import Run, Skipped, from_scratch, key_order
+from botorl.experiments.runs import Run, Skipped, from_scratch, key_order, relative
 from botorl.experiments.stats import (
     alpha_text,
     line_label,
@@ -142,7 +141,7 @@ def dip_runs_csv(dips: Sequence[Dip], relative_to: Path | None = None) -> str:
         r = d.run
         w.writerow([r.task, r.label, "" if r.alpha is None else repr(r.alpha), "" if r.seed is None else r.seed,
                     fmt_float(d.initial), fmt_float(d.lowest), f"{d.lowest_step:g}", d.evals, f"{d.last_step:g}", fmt_float(d.value),
-                    str(r.path) if relative_to is None else os.path.relpath(r.path.resolve(), relative_to.resolve())])
+                    relative(r.path, relative_to)])
     return buf.getvalue()
 
 

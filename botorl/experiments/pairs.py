@@ -29,7 +29,6 @@ import dataclasses
 import io
 import json
 import math
-import os
 from collections import defaultdict
 from pathlib import Path
 from typing import Sequence
@@ -37,7 +36,7 @@ from typing import Sequence
 import numpy as np
 
 from botorl.experiments.dip import DIP_WINDOW, run_dip
-from botorl.experiments.runs import Run
+from botorl.experiments.runs import Run, relative
 from botorl.experiments.stats import alpha_text, bootstrap_mean_ci, check_bootstrap, fmt_float, mean_se, suptitle
 from botorl.io import atomic_save_figure
 
@@ -116,7 +115,7 @@ def find_pairs(runs: Sequence[Run], *, reference: str = REFERENCE, window: float
             continue
         ref = refs[0]
         if len(refs) > 1:
-            notes.append(f"{len(refs)} {reference} runs share one pre-training ({', '.join(_rel(r.path, relative_to) for r in refs)}); "
+            notes.append(f"{len(refs)} {reference} runs share one pre-training ({', '.join(relative(r.path, relative_to) for r in refs)}); "
                          f"the others are paired with the first")
         ref_q = _quantities(ref, window)
         if ref_q is None:
@@ -128,14 +127,10 @@ def find_pairs(runs: Sequence[Run], *, reference: str = REFERENCE, window: float
             if q is None:
                 continue
             pairs.append(Pair(ref.task, ref.seed, other.label, other.alpha if other.method == "boto" else None,
-                              ref.label, ref_q, q, _rel(ref.path, relative_to), _rel(other.path, relative_to)))
+                              ref.label, ref_q, q, relative(ref.path, relative_to), relative(other.path, relative_to)))
     pairs.sort(key=lambda p: (p.task, p.noise_floor, p.label, -99 if p.alpha is None else p.alpha,
                               -1 if p.seed is None else p.seed))
     return pairs, notes
-
-
-def _rel(path: Path, base: Path | None) -> str:
-    return str(path) if base is None else os.path.relpath(Path(path).resolve(), Path(base).resolve())
 
 
 # ------------------------------------------------------------------------------------ statistics
@@ -411,6 +406,6 @@ def write_paired_report(pairs: Sequence[Pair], out: Path, *, sources: Sequence[s
     out.mkdir(parents=True, exist_ok=True)
     files, md, _ = write_paired(pairs, out, n_boot=n_boot, confidence=confidence, seed=seed)
     head = ["# botorl report: pairs", "", f"{len(pairs)} pairs from "
-            + ", ".join(f"`{os.path.relpath(Path(s).resolve(), out.resolve())}`" for s in sources) + ".", ""]
+            + ", ".join(f"`{relative(s, out)}`" for s in sources) + ".", ""]
     atomic_write_text(out / "report.md", "\n".join(head + md))
     return files + [out / "report.md"]

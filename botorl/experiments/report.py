@@ -14,7 +14,6 @@ import csv
 import dataclasses
 import io
 import math
-import os
 from collections import defaultdict
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -35,7 +34,7 @@ from botorl.experiments.dip import (
     run_dip,
 )
 from botorl.experiments.pairs import Pair, PairedCell, find_pairs, merge_pairs, write_paired
-from botorl.experiments.runs import Run, Skipped, find_runs
+from botorl.experiments.runs import Run, Skipped, find_runs, relative
 from botorl.experiments.stats import (
     alpha_text,
     bootstrap_mean_ci,
@@ -620,8 +619,7 @@ def make_report(
     out.mkdir(parents=True, exist_ok=True)
 
     def rel(path) -> str:
-        # committed reports hold no path of the machine that made them: paths relative to the report
-        return os.path.relpath(Path(path).resolve(), out.resolve())
+        return relative(path, out)
 
     files: list[Path] = []
     notes: list[str] = []

@@ -77,6 +77,13 @@ JSON_LIMIT = 4 << 20
 CSV_LIMIT = 64 << 20
 
 
+def relative(path: Path | str, base: Path | str | None) -> str:
+    """``path`` as the report names it: relative to ``base`` (the report's folder), through
+    the paths as given (symbolic links not resolved), so committed reports hold no path of
+    the machine that made them; ``path`` itself when ``base`` is None."""
+    return str(path) if base is None else os.path.relpath(os.path.abspath(path), os.path.abspath(base))
+
+
 def read_bounded(path: Path, limit: int, *, tail: bool = False) -> str:
     """The text of a regular file of at most ``limit`` bytes (``tail``: its last ``limit``
     bytes, whatever its size); ValueError or OSError saying what is wrong otherwise."""
