@@ -151,8 +151,8 @@ def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:
     finished pre-training with its own settings under ``directory`` (BOTO's, for WSRL at the
     same seeds), else ``[]``: the trial then pre-trains itself."""
     from botorl.pipeline import shared_pretrain
-    from botorl.pipeline.methods import get_method
-    from botorl.pipeline.population_cli import build_population
+    from botorl.configs.methods import get_method
+    from botorl.configs.build import build_population
 
     try:
         cfg, _, member_cfgs = build_population(args)

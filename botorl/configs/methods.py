@@ -1,0 +1,103 @@
+"""Methods by name: which stages each runs, and how its fine-tuning starts and learns.
+
+One table (``METHODS``) maps a method to its stages (the stage functions are in
+botorl/pipeline/stages.py) and declares what fine-tuning needs from it: how it starts
+(``finetune_start``: WSRL's warm start of a SAC learner from the pre-trained networks, the
+pre-trained agent continued with its own loss, or SAC from scratch), whether its batches may
+hold only rows of finished episodes (Cal-QL: a row's Monte-Carlo return is known once its
+episode ends) and their layout (``batch_layout``: one update on utd x batch rows split into
+utd critic minibatches, or IQL's utd separate updates of a batch each).
+
+| method | stages                               | online phase                                         |
+|--------|--------------------------------------|------------------------------------------------------|
+| boto   | pretrain, warmup, boto, finetune     | WSRL: SAC, 10 critics, from the BOTO-trained nets,   |
+|        |                                      | buffer = D_warmup, offline data dropped, UTD 4       |
+| wsrl   | pretrain, warmup, finetune           | WSRL, from the pre-trained nets                      |
+| calql  | pretrain, finetune                   | Cal-QL's own loss continued, 50/50 offline/online,   |
+| cql    |                                      | UTD 1, offline data kept (as in the paper's          |
+| iql    |                                      | baselines, algorithms.md section 5)                  |
+| rlpd   | finetune                             | SAC from scratch, 10 critics, 50/50 offline/online,  |
+|        |                                      | UTD 4 with WSRL's batch layout, 5,000 random steps   |
+
+``pretrain`` picks the offline algorithm for boto and wsrl (calql by default); calql, cql and
+iql pre-train with themselves; rlpd has no pre-training.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from botorl.errors import ConfigError
+
+PRETRAIN_ALGOS = ("calql", "cql", "iql")
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    stages: tuple[str, ...]
+    finetune_start: str  # "warm_start" (WSRL) | "continue" (the pre-trained agent's own loss) | "scratch"
+    fixed_pretrain: str | None = None  # the method *is* its pre-training algorithm
+    uses_alpha: bool = False
+    finished_episodes_only: bool = False  # fine-tuning batches hold rows of finished episodes only
+    batch_layout: str = "utd_rows"  # "utd_rows": one update on utd x B rows | "per_update": utd updates of B
+    description: str = ""
+
+    @property
+    def pretrains(self) -> bool:
+        """Starts from an offline pre-training (every method but RLPD, which starts from nothing)."""
+        return "pretrain" in self.stages
+
+
+METHODS: dict[str, Method] = {
+    "boto": Method("boto", ("pretrain", "warmup", "boto", "finetune"), "warm_start", uses_alpha=True,
+                   description="pre-train, warm-up, BOTO critic training, WSRL fine-tuning"),
+    "wsrl": Method("wsrl", ("pretrain", "warmup", "finetune"), "warm_start",
+                   description="pre-train, warm-up, WSRL fine-tuning (no BOTO)"),
+    # Cal-QL bounds Q by each row's MC return, known once its episode ends: it samples finished
+    # episodes only and waits for the first one (WSRL)
+    "calql": Method("calql", ("pretrain", "finetune"), "continue", fixed_pretrain="calql",
+                    finished_episodes_only=True,
+                    description="Cal-QL offline, then its own loss online with the offline data kept"),
+    "cql": Method("cql", ("pretrain", "finetune"), "continue", fixed_pretrain="cql",
+                  description="CQL offline, then its own loss online with the offline data kept"),
+    "iql": Method("iql", ("pretrain", "finetune"), "continue", fixed_pretrain="iql", batch_layout="per_update",
+                  description="IQL offline, then its own loss online with the offline data kept"),
+    "rlpd": Method("rlpd", ("finetune",), "scratch",
+                   description="SAC from scratch online with 50/50 offline/online batches"),
+}
+
+
+def get_method(name: str) -> Method:
+    if name not in METHODS:
+        raise ConfigError(
+            f"unknown method {name!r} (--method). Choose one of: {', '.join(METHODS)}. "
+            f"For BOTO on top of CQL or IQL use `--method boto --pretrain cql|iql`."
+        )
+    return METHODS[name]
+
+
+def resolve_pretrain(method: str, pretrain: str | None) -> str | None:
+    """The offline algorithm a method uses, or None (rlpd)."""
+    m = get_method(method)
+    if pretrain is not None and pretrain not in PRETRAIN_ALGOS:
+        raise ConfigError(
+            f"unknown pre-training algorithm {pretrain!r} (--pretrain). Choose one of: "
+            f"{', '.join(PRETRAIN_ALGOS)}."
+        )
+    if m.fixed_pretrain is not None:
+        if pretrain is not None and pretrain != m.fixed_pretrain:
+            raise ConfigError(
+                f"--method {method} pre-trains with {m.fixed_pretrain}; --pretrain {pretrain} "
+                f"contradicts it. Drop --pretrain, or use `--method boto --pretrain {pretrain}` "
+                f"(or `--method wsrl --pretrain {pretrain}`)."
+            )
+        return m.fixed_pretrain
+    if "pretrain" not in m.stages:
+        if pretrain is not None:
+            raise ConfigError(
+                f"--method {method} trains from scratch and has no pre-training; drop "
+                f"--pretrain {pretrain}."
+            )
+        return None
+    return pretrain or "calql"
