@@ -37,7 +37,7 @@ from pathlib import Path
 def _run(argv: list[str], out: Path) -> dict:
     from botorl.envs.registry import get_task
     from botorl.pipeline import runner
-    from botorl.pipeline.cli import build_config
+    from botorl.configs.build import build_config
     from botorl.pipeline.rundir import RunDir
 
     cfg = build_config([*argv, "--out", str(out)])

@@ -4,7 +4,7 @@
         [--workloads calql,iql,boto,online] [--min-time 2] [--json PATH]
 
 For each workload and size, N members (seeds 0..N-1) are stacked on a leading axis and
-updated with one jitted call (botorl.pipeline.population); the table gives member-updates/s
+updated with one jitted call (botorl.agents.population); the table gives member-updates/s
 (N x updates per call x calls / s) and its ratio to N = 1 measured in the same process.
 Batches are fixed random arrays already on the device (the host sampling of the pipeline is
 not in these rows; the whole-run rows are `--whole-run`).
@@ -54,7 +54,8 @@ from botorl.benchmarks.workloads import make_batch  # noqa: E402
 from botorl.boto.config import BOTOConfig  # noqa: E402
 from botorl.boto.objective import ObjectiveSettings  # noqa: E402
 from botorl.configs.schema import RunConfig  # noqa: E402
-from botorl.pipeline import population as P  # noqa: E402
+from botorl.agents import population as P  # noqa: E402
+from botorl.boto.objective import population_update_many  # noqa: E402
 
 # Sizes of the pipeline's presets (botorl/configs/presets.py + resolve.py; written out here so
 # the script needs no environment packages, e.g. on a GPU machine without gymnasium). Every
@@ -98,22 +99,22 @@ def build(workload: str, size: str, n: int, k: int):
         batch = make_batch(4 * 256, s["obs"], s["act"], 0, lead=(n,))
 
         def call(a):
-            return P.pop_update(a, batch)[0]
+            return P.update(a, batch)[0]
         per_call = n
     elif workload == "boto":
-        settings = ObjectiveSettings.resolve(BOTOConfig(alpha=0.0), P.member_of(agents, 0))
+        settings = ObjectiveSettings.resolve(BOTOConfig(), P.member_of(agents, 0))
         batches = make_batch(256, s["obs"], s["act"], 0, lead=(n, k))
         batches = {kk: v for kk, v in batches.items() if kk != "mc_returns"}
         alphas = np.linspace(-1, 1, n).astype(np.float32) if n > 1 else np.zeros(1, np.float32)
 
         def call(a):
-            return P.pop_boto_update_many(a, batches, alphas, settings)[0]
+            return population_update_many(a, batches, alphas, settings)[0]
         per_call = n * k
     else:
         batches = make_batch(256, s["obs"], s["act"], 0, lead=(n, k))
 
         def call(a):
-            return P.pop_update_many(a, batches)[0]
+            return P.update_many(a, batches)[0]
         per_call = n * k
 
     def step(calls: int) -> None:

@@ -3,7 +3,7 @@
     python benchmarks/population_layouts.py [--workload online] [--members 8] [--groups 2,4]
         [--min-time 5]
 
-The question behind `_across_cores` in botorl/pipeline/population.py: given N members of
+The question behind `_across_cores` in botorl/agents/population.py: given N members of
 the quick profile and the cores of this machine, is it faster to vmap them (one batched
 program), to run them one after another inside one jitted call (`lax.map`), to vmap small
 groups in turn, and does splitting them over one JAX CPU device per core help? Every row
@@ -16,7 +16,7 @@ Layouts:
   vmap                all N vmapped on device 0 (botorl before it split members)
   in turn             lax.map over the N members on device 0
   groups of g         lax.map over N/g groups, each vmapped, on device 0
-  D devices, in turn  what botorl does: the pipeline's pop_update / pop_update_many
+  D devices, in turn  what botorl does: botorl.agents.population.update / update_many
   D devices, groups   shard_map over D devices, groups of g within
 """
 
@@ -43,7 +43,7 @@ import population as bench  # noqa: E402  (the population benchmark's sizes and 
 
 from botorl.agents import common as C  # noqa: E402
 from botorl.benchmarks.workloads import make_batch  # noqa: E402
-from botorl.pipeline import population as P  # noqa: E402
+from botorl.agents import population as P  # noqa: E402
 
 
 def _grouped(fn, g: int):
@@ -85,7 +85,7 @@ def main(argv=None) -> int:
     n, w = args.members, args.workload
     s = bench.SIZES["quick"]
     k = bench.K_PER_CALL[w]
-    fn = C._update if w == "online" else C._update_many
+    fn = C.update_fn if w == "online" else C.update_many_fn
     if w == "online":
         batch = make_batch(4 * 256, s["obs"], s["act"], 0, lead=(n,))
         per_member = 1
@@ -117,8 +117,8 @@ def main(argv=None) -> int:
         mesh = Mesh(np.array(devices[:d]), ("members",))
         sh = NamedSharding(mesh, PartitionSpec("members"))
         placed_agents, placed_batch = jax.device_put(agents, sh), jax.device_put(batch, sh)
-        # in turn on every device: the pipeline's own entry point (botorl.pipeline.population)
-        update = P.pop_update if w == "online" else P.pop_update_many
+        # in turn on every device: the pipeline's own entry point (botorl.agents.population)
+        update = P.update if w == "online" else P.update_many
         rate = _timed(lambda a: update(a, placed_batch)[0], placed_agents, n * per_member, args.min_time)
         rows.append((f"{d} devices, in turn (botorl)", rate))
         for g in [g for g in groups if g > 1 and (n // d) % g == 0]:

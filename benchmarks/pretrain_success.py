@@ -22,9 +22,9 @@ import numpy as np
 from botorl.configs.presets import make_preset
 from botorl.configs.resolve import resolve
 from botorl.envs.registry import get_task
-from botorl.pipeline import population as P
-from botorl.pipeline.evaluation import make_eval_envs
-from botorl.pipeline.population import parse_seeds
+from botorl.agents import population as P
+from botorl.pipeline.evaluation import make_eval_envs, run_episodes
+from botorl.configs.members import parse_seeds
 from botorl.pipeline.runner import load_offline, transform_dataset
 from botorl.pipeline.stages import make_pretrain_agent
 
@@ -67,13 +67,13 @@ def main(argv=None) -> int:
           f"cql_n_actions {cfg.offline.cql.cql_n_actions}, {cfg.network.num_critics} critics", flush=True)
     K, step, t0 = 50, 0, time.perf_counter()
     while step < args.steps:
-        agents, metrics = P.pop_update_many(agents, P.sample_members(d, rngs, offline.batch_size, K))
+        agents, metrics = P.update_many(agents, d.sample_members(rngs, offline.batch_size, K))
         step += K
         if step % args.every == 0 or step >= args.steps:
             train_s = time.perf_counter() - t0
-            sts = P.run_population_episodes(lambda o: P.pop_eval(agents, o), envs, episodes=cfg.eval.episodes,
-                                            success_mode=spec.success_mode, seeds=[100_000 + 1000 * s for s in seeds],
-                                            max_steps=spec.max_episode_steps)
+            sts = run_episodes(lambda o: P.eval_actions(agents, o), envs, episodes=cfg.eval.episodes,
+                               success_mode=spec.success_mode, seeds=[100_000 + 1000 * s for s in seeds],
+                               max_steps=spec.max_episode_steps)
             succ = np.array([st.success for st in sts])
             q = float(np.mean(np.asarray(metrics["q_data"]))) if "q_data" in metrics else float("nan")
             per = " ".join(f"{x:.2f}" for x in succ) if len(seeds) > 1 else ""

@@ -7,15 +7,11 @@ module only dispatches, so ``botorl --help`` stays fast (no JAX import) and a us
 
 from __future__ import annotations
 
-import errno
 import importlib
 import os
 import sys
 
-# OSErrors that say the machine cannot take the output (not a bug in botorl): exit 2.
-_IO_FAULTS = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
-              errno.EROFS: "the file system is read-only", errno.EACCES: "permission denied",
-              errno.EPERM: "operation not permitted"}
+from botorl.io import IO_FAULTS
 
 # name -> (module:function, one-line help). Imported lazily.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -24,9 +20,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("botorl.pipeline.cli:eval_main", "evaluate the last checkpoint of a run directory"),
     "data": ("botorl.data.cli:main", "generate datasets and show their statistics"),
     "tasks": ("botorl.envs.cli:main", "list the tasks, or check one's environment"),
-    "train-ant": ("botorl.data.generators.ant_train:main", "train the goal-reaching ant behind the antmaze data"),
+    "train-ant": ("botorl.experts.ant_train:main", "train the goal-reaching ant behind the antmaze data"),
     "bandit": ("botorl.boto.bandit:main", "reproduce the paper's bandit figures 2 and 3"),
-    "bench": ("botorl.bench:main", "measure update speed (optionally against d3rlpy)"),
+    "bench": ("botorl.benchmarks.suite:main", "measure update speed (optionally against d3rlpy)"),
     "sweep": ("botorl.experiments.cli:sweep_main", "run a grid of tasks x methods x seeds x alphas"),
     "report": ("botorl.experiments.cli:report_main", "Table 1 and Figure 5 from finished runs"),
 }
@@ -81,10 +77,10 @@ def main(argv: list[str] | None = None) -> int:
         _silence_stdout()
         return 2
     except OSError as err:
-        if err.errno not in _IO_FAULTS:
+        if err.errno not in IO_FAULTS:
             raise
         where = f" {err.filename}" if err.filename else ""
-        print(f"botorl {name}: error: cannot write{where}: {_IO_FAULTS[err.errno]} ({err.strerror}). Free space, "
+        print(f"botorl {name}: error: cannot write{where}: {IO_FAULTS[err.errno]} ({err.strerror}). Free space, "
               f"or write somewhere writable (--out).", file=sys.stderr)
         return 2
     except SystemExit as err:

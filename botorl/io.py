@@ -9,7 +9,9 @@ to what the process umask allows, so run directories stay readable by a shared g
 
 from __future__ import annotations
 
+import errno
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -41,8 +43,34 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write_bytes(path, text.encode())
 
 
-def atomic_write_json(path: str | os.PathLike, obj: Any, *, indent: int | None = 2) -> Path:
-    return atomic_write_text(path, json.dumps(obj, indent=indent) + "\n")
+def jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if hasattr(x, "item") and callable(x.item):  # numpy / jax scalars
+        try:
+            x = x.item()
+        except (ValueError, TypeError):
+            return str(x)
+    if isinstance(x, float) and not math.isfinite(x):
+        return None if math.isnan(x) else (1e308 if x > 0 else -1e308)
+    if isinstance(x, (str, int, float, bool)) or x is None:
+        return x
+    return str(x)
+
+
+def atomic_write_json(path: str | os.PathLike, obj: Any, *, indent: int | None = 2, exact: bool = False) -> Path:
+    """JSON with numpy scalars unwrapped and non-finite floats made valid JSON (NaN -> null);
+    ``exact``: ``obj`` as Python's json writes it (NaN / Infinity kept, to be read back exactly)."""
+    return atomic_write_text(path, json.dumps(obj if exact else jsonable(obj), indent=indent) + "\n")
+
+
+# OSErrors that say the machine cannot take the output (not a bug in botorl): exit 2 with a
+# message naming the place, never a traceback.
+IO_FAULTS = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
+             errno.EROFS: "the file system is read-only", errno.EACCES: "permission denied",
+             errno.EPERM: "operation not permitted"}
 
 
 def atomic_save_figure(fig: Any, path: str | os.PathLike, **savefig_kwargs: Any) -> Path:

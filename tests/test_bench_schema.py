@@ -40,10 +40,31 @@ def test_unknown_workload_is_a_user_error():
         main(["--only", "nope"])
 
 
-def test_botorl_bench_against_routes_to_the_comparison():
+def test_botorl_bench_against_routes_to_the_comparison(capsys):
     # `botorl bench --against d3rlpy` reaches botorl.benchmarks (its workload names), and
-    # rejects a bad one before any venv is made.
-    from botorl.bench import main as bench_main
+    # rejects a bad one before any venv is made: exit 2 with the message.
+    from botorl.cli import main as botorl_main
 
-    with pytest.raises(BotorlError, match="unknown workload"):
-        bench_main(["--against", "d3rlpy", "--only", "nope"])
+    assert botorl_main(["bench", "--against", "d3rlpy", "--only", "nope"]) == 2
+    assert "unknown workload" in capsys.readouterr().err
+
+
+def test_online_loop_times_the_fine_tuning_loop():
+    """The loop benchmark runs fine-tuning's own step (OnlineState.advance): every env step
+    lands in the replay buffer and updates the agent."""
+    import jax
+    import numpy as np
+
+    from botorl.agents.sac import SACAgent, SACConfig
+    from botorl.benchmarks.online_loop import OnlineLoop
+    from botorl.envs.registry import get_task
+
+    spec = get_task("pointmaze-umaze")
+    agent = SACAgent.create(SACConfig(actor_hidden_dims=(8,), critic_hidden_dims=(8,), num_critics=2, utd_ratio=2),
+                            spec.obs_dim, spec.action_dim, 0)
+    loop = OnlineLoop(agent, spec, batch=4, utd=2, prefill=10)
+    loop.run(3)
+    assert loop.state.step == 3 and len(loop.state.buffer) == 13
+    before, after = jax.tree_util.tree_leaves(agent.critic.params), jax.tree_util.tree_leaves(loop.agents.critic.params)
+    assert any(not np.allclose(np.asarray(b), np.asarray(a)[0]) for b, a in zip(before, after))
+    loop.close()

@@ -40,7 +40,7 @@ def test_target_matches_numpy(backup_entropy):
         "dones": np.array([0.0, 1.0, 0.0, 0.0], np.float32),
     }
     alpha = -0.7
-    settings = ObjectiveSettings.resolve(BOTOConfig(alpha=alpha, noise="gaussian", sigma=0.3,
+    settings = ObjectiveSettings.resolve(BOTOConfig(noise="gaussian", sigma=0.3,
                                                     backup_entropy=backup_entropy), agent)
     k_noise, k_next = jax.random.PRNGKey(11), jax.random.PRNGKey(12)
     jb = {k: jnp.asarray(v) for k, v in batch.items()}
@@ -79,13 +79,13 @@ def _same(a, b):
     return jax.tree_util.tree_all(jax.tree_util.tree_map(lambda x, y: bool(np.array_equal(x, y)), a, b))
 
 
-CFG = BOTOConfig(alpha=0.5, boto_steps=6, steps_per_call=3, batch_size=16)
+CFG = BOTOConfig(boto_steps=6, steps_per_call=3, batch_size=16)
 
 
 def test_run_boto_calql_keeps_actor_frozen(data):
     agent = CQLAgent.create(CQLConfig(**TINY, calql=True, num_critics=4), O, A, seed=0)
     seen = []
-    new, hist = run_boto(agent, *data, CFG, progress=False, callback=lambda s, a, m: seen.append(s))
+    new, hist = run_boto(agent, *data, CFG, alpha=0.5, progress=False, callback=lambda s, a, m: seen.append(s))
     assert seen == [3, 6] and [h["step"] for h in hist] == [3, 6]
     assert {"critic_loss", "q_data", "q_perturbed", "q_uniform", "penalty", "sq_dist", "uniform_share"} <= set(hist[-1])
     assert all(math.isfinite(v) for v in hist[-1].values())
@@ -93,8 +93,8 @@ def test_run_boto_calql_keeps_actor_frozen(data):
     assert not _same(new.critic.params, agent.critic.params)
     assert not _same(new.target_critic_params, agent.target_critic_params)
     # resumable: 3 steps, then 3 more from step 3, equals 6 in one go
-    half, _ = run_boto(agent, *data, CFG, num_steps=3, progress=False)
-    rest, _ = run_boto(half, *data, CFG, start_step=3, progress=False)
+    half, _ = run_boto(agent, *data, CFG, alpha=0.5, num_steps=3, progress=False)
+    rest, _ = run_boto(half, *data, CFG, alpha=0.5, start_step=3, progress=False)
     assert jax.tree_util.tree_all(jax.tree_util.tree_map(
         lambda x, y: bool(np.allclose(x, y, atol=1e-6)), rest.critic.params, new.critic.params))
 
@@ -102,24 +102,24 @@ def test_run_boto_calql_keeps_actor_frozen(data):
 def test_run_boto_cql_train_actor_option(data):
     agent = CQLAgent.create(CQLConfig(**TINY, num_critics=2), O, A, seed=0)
     new, hist = run_boto(agent, *data, BOTOConfig(boto_steps=2, steps_per_call=2, batch_size=16, train_actor=True),
-                         progress=False)
+                         alpha=0.0, progress=False)
     assert not _same(new.actor.params, agent.actor.params)
     assert "actor_loss" in hist[-1]
 
 
 def test_run_boto_iql(data):
     agent = IQLAgent.create(IQLConfig(**TINY, value_hidden_dims=(8,)), O, A, seed=0)
-    new, hist = run_boto(agent, *data, CFG, progress=False)
+    new, hist = run_boto(agent, *data, CFG, alpha=0.5, progress=False)
     assert _same(new.actor.params, agent.actor.params) and _same(new.value.params, agent.value.params)
     assert not _same(new.critic.params, agent.critic.params)
     assert math.isfinite(hist[-1]["critic_loss"])
     with pytest.raises(ConfigError):
-        run_boto(agent, *data, BOTOConfig(boto_steps=2, train_actor=True), progress=False)
+        run_boto(agent, *data, BOTOConfig(boto_steps=2, train_actor=True), alpha=0.0, progress=False)
 
 
 def test_alpha_outside_range_is_config_error(data):
     agent = IQLAgent.create(IQLConfig(**TINY, value_hidden_dims=(8,)), O, A, seed=0)
     with pytest.raises(ConfigError):
-        run_boto(agent, *data, BOTOConfig(alpha=1.5, boto_steps=2), progress=False)
+        run_boto(agent, *data, BOTOConfig(boto_steps=2), alpha=1.5, progress=False)
     with pytest.raises(ConfigError):
         boto_update(agent, data[0].sample(np.random.default_rng(0), 8), -1.01, BOTOConfig())

@@ -1,4 +1,4 @@
-"""Bandit generators and their ground truth; the cache and the `botorl data` CLI."""
+"""Bandit generators and their ground truth (botorl.envs.bandit); the cache and the `botorl data` CLI."""
 
 from __future__ import annotations
 
@@ -7,24 +7,25 @@ import pytest
 
 from botorl.data.generators import GENERATORS, get_generator
 from botorl.data.generators import bandit
+from botorl.envs import bandit as truth
 from botorl.errors import BotorlError, ConfigError
 
 
 def test_pinwheel_density_normalised_and_matches_samples():
     g = np.linspace(-1, 1, 401)
     xx, yy = np.meshgrid(g, g)
-    dens = bandit.pinwheel_density(np.stack([xx, yy], -1))
+    dens = truth.pinwheel_density(np.stack([xx, yy], -1))
     mass = dens.sum() * (g[1] - g[0]) ** 2
     assert mass == pytest.approx(1.0, abs=0.01)  # all mass inside [-1, 1]^2
-    acts, arm = bandit.sample_pinwheel(np.random.default_rng(0), 20000)
+    acts, arm = truth.sample_pinwheel(np.random.default_rng(0), 20000)
     assert np.abs(acts).max() < 1.0
     # Sampled points sit where the density is high: mean density at samples >> uniform's 1/4.
-    assert bandit.pinwheel_density(acts).mean() > 1.0
+    assert truth.pinwheel_density(acts).mean() > 1.0
     # The arm with the largest density at a sample is (almost always) the arm it came from.
-    assert (bandit.pinwheel_arm(acts) == arm).mean() > 0.95
-    r = bandit.pinwheel_reward(acts)
-    for k in range(bandit.PINWHEEL_ARMS):
-        sel = bandit.pinwheel_arm(acts) == k
+    assert (truth.pinwheel_arm(acts) == arm).mean() > 0.95
+    r = truth.pinwheel_reward(acts)
+    for k in range(truth.PINWHEEL_ARMS):
+        sel = truth.pinwheel_arm(acts) == k
         assert r[sel].min() >= k / 5 - 1e-6 and r[sel].max() < (k + 1) / 5
 
 
@@ -33,13 +34,13 @@ def test_bandit_datasets_one_step_and_deterministic():
     b = bandit.generate_pinwheel(300, seed=3)
     np.testing.assert_array_equal(a.actions, b.actions)
     assert a.terminals.all() and a.episode_ends.all() and a.obs_dim == 1 and a.action_dim == 2
-    np.testing.assert_allclose(a.rewards, bandit.pinwheel_reward(a.actions), atol=1e-5)
+    np.testing.assert_allclose(a.rewards, truth.pinwheel_reward(a.actions), atol=1e-5)
     d = bandit.generate_1d(500, seed=0)
-    sup, rew, probs = bandit.bandit_1d_support()
+    sup, rew, probs = truth.bandit_1d_support()
     assert d.action_dim == 1 and probs.sum() == pytest.approx(1.0)
     assert set(np.round(d.actions[:, 0], 5)) <= set(np.round(sup[:, 0], 5))
-    np.testing.assert_array_equal(d.rewards, bandit.bandit_1d_reward(d.actions))
-    assert len(set(rew.tolist())) == len(bandit.BANDIT_1D_CLUSTERS)  # distinct cluster rewards
+    np.testing.assert_array_equal(d.rewards, truth.bandit_1d_reward(d.actions))
+    assert len(set(rew.tolist())) == len(truth.BANDIT_1D_CLUSTERS)  # distinct cluster rewards
 
 
 def test_registry_errors():

@@ -223,16 +223,19 @@ def test_kitchen_compat_patch_is_needed_and_applied():
 
 def test_generated_task_loads_through_ensure_dataset():
     # conftest points BOTORL_DATA_DIR at a temp folder: generated, cached, then read back
+    from botorl.data.tasks import data_status, load_task_data
+
     spec = get_task("pointmaze-umaze")
-    ds = spec.load_dataset(steps=2_000, seed=1, progress=False)
+    ds = load_task_data(spec, steps=2_000, seed=1, progress=False)
     assert (ds.obs_dim, ds.action_dim) == (spec.obs_dim, spec.action_dim)
-    assert spec.data_status()[0] == "generated-cached"
-    again = spec.load_dataset(steps=2_000, seed=1, progress=False)
+    assert data_status(spec)[0] == "generated-cached"
+    again = load_task_data(spec, steps=2_000, seed=1, progress=False)
     np.testing.assert_allclose(again.observations, ds.observations)
 
 
 def test_calql_task_without_a_path_says_how_to_get_the_data():
+    from botorl.data.tasks import load_task_data
     from botorl.errors import DatasetNotFoundError
 
     with pytest.raises(DatasetNotFoundError, match="Cal-QL"):
-        get_task("pen-binary-v0").load_dataset()
+        load_task_data(get_task("pen-binary-v0"))

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from botorl.experiments.cli import report_main, sweep_main
-from botorl.experiments.runner import _mentions
+from botorl.experiments.backend_local import mentions as _mentions
 
 TASKS = "pointmaze-umaze,pointmaze-medium"
 COMMON = ["--profile", "smoke", "--no-progress"]

@@ -76,7 +76,7 @@ def tiny_agent():
 
 
 def test_numpy_actor_equals_the_sac_actor(tiny_agent, tmp_path):
-    from botorl.data.generators.ant_train import export_actor
+    from botorl.experts.ant_train import export_actor
 
     path = export_actor(ag.actor_arrays(tiny_agent.actor.params), tmp_path / "a.npz")
     actor = ag.NumpyActor.load(path)
@@ -170,7 +170,9 @@ def test_registry_antmaze_loader_reads_the_generated_data(small_data):
     np.testing.assert_allclose(via_groups.observations, ds.observations, atol=1e-5)
     np.testing.assert_allclose(via_groups.next_observations, ds.next_observations, atol=1e-5)
     np.testing.assert_array_equal(via_groups.episode_ends, ds.episode_ends)
-    loaded = task.load_dataset(path)
+    from botorl.data.tasks import load_task_data
+
+    loaded = load_task_data(task, path)
     assert len(loaded) == len(ds)
     # the observation is the evaluation env's layout: achieved_goal then observation
     env = task.make_env(0)
@@ -239,7 +241,7 @@ def test_maze_stats_count_cells():
 
 
 def test_train_ant_runs_and_resumes(tmp_path):
-    from botorl.data.generators.ant_train import AntTrainConfig, train
+    from botorl.experts.ant_train import AntTrainConfig, train
 
     kw = dict(out=str(tmp_path / "ant"), envs_per_worker=2, rollout_len=4, updates_per_iter=2, batch_size=16,
               buffer_size=400, start_steps=16, hidden=(16, 16), eval_every_s=1e9, checkpoint_every_s=1e9,

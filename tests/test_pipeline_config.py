@@ -14,7 +14,7 @@ from botorl.configs.resolve import resolve, validate
 from botorl.configs.schema import RunConfig, from_dict, to_dict
 from botorl.envs.registry import get_task
 from botorl.pipeline.cli import build_config
-from botorl.pipeline.methods import METHODS
+from botorl.configs.methods import METHODS
 
 PAPER_TASKS = ["antmaze-large-diverse-v2", "antmaze-large-play-v2", "kitchen-partial-v0", "kitchen-mixed-v0",
                "door-binary-v0", "pen-binary-v0"]
@@ -26,7 +26,7 @@ def test_full_preset_is_the_papers(task):
     cfg = resolve(make_preset(task, "full", "boto"))
     validate(cfg)
     spec = get_task(task)
-    assert cfg.alpha == spec.paper.alpha == cfg.boto.alpha
+    assert cfg.alpha == spec.paper.alpha and not hasattr(cfg.boto, "alpha")
     assert cfg.boto.boto_steps == spec.paper.boto_steps and cfg.boto.log_sigma == spec.paper.log_sigma
     assert cfg.online.steps == 300_000 and cfg.online.utd == 4 and cfg.online.offline_ratio == 0.0
     assert cfg.network.num_critics == 10 and cfg.online.sac.num_critics == 10 and cfg.offline.cql.num_critics == 10
@@ -107,7 +107,7 @@ def test_dotted_overrides_and_shortcuts():
                         "--network.critic_hidden_dims", "64", "64", "--alpha", "0.3", "--demos", "/x/demos.npz"])
     assert cfg.online.steps == 7000 and cfg.offline.cql.cql_weight == 2.5
     assert cfg.online.sac.critic_hidden_dims == (64, 64) == cfg.offline.cql.critic_hidden_dims
-    assert cfg.alpha == 0.3 == cfg.boto.alpha and cfg.data.demos == "/x/demos.npz"
+    assert cfg.alpha == 0.3 and cfg.data.demos == "/x/demos.npz"
     bare = build_config([])
     assert (bare.task, bare.method, bare.profile, bare.pretrain) == ("pointmaze-umaze", "boto", "quick", "calql")
     assert bare.offline.steps == QUICK_POINTMAZE_PRETRAIN
@@ -212,7 +212,6 @@ def test_online_mc_returns_follow_the_offline_rule():
 
     from botorl.data.replay import ReplayBuffer
     from botorl.pipeline.runner import with_mc_returns
-    from botorl.pipeline.stages import _fill_mc_returns
 
     cfg = resolve(make_preset("pointmaze-umaze", "smoke", "calql"))
     spec = get_task(cfg.task)
@@ -220,8 +219,8 @@ def test_online_mc_returns_follow_the_offline_rule():
     buf = ReplayBuffer(10, 1, 1)
     for r, done in [(-5.0, False), (-5.0, False), (5.0, True), (-5.0, False), (-5.0, False)]:
         buf.insert(np.zeros(1), np.zeros(1), r, np.zeros(1), done)
-    _fill_mc_returns(ctx, buf, [0, 1, 2])  # reaches the goal
-    _fill_mc_returns(ctx, buf, [3, 4])  # truncated, never succeeds: r_neg / (1 - gamma)
+    buf.set_mc_returns([0, 1, 2], ctx.mc_returns)  # reaches the goal
+    buf.set_mc_returns([3, 4], ctx.mc_returns)  # truncated, never succeeds: r_neg / (1 - gamma)
     g2 = 5.0
     g1 = -5.0 + 0.99 * g2
     g0 = -5.0 + 0.99 * g1

@@ -37,17 +37,17 @@ EVAL_CALLS: list[int] = []
 
 @pytest.fixture(scope="module")
 def boto_run(tmp_path_factory):
-    from botorl.pipeline import population as P
+    from botorl.pipeline import evaluation
 
     out = tmp_path_factory.mktemp("pipeline") / "boto"
-    run_episodes = P.run_population_episodes
+    run_episodes = evaluation.run_episodes
 
     def counted(*args, **kwargs):
         EVAL_CALLS.append(1)
         return run_episodes(*args, **kwargs)
 
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(P, "run_population_episodes", counted)
+        mp.setattr(evaluation, "run_episodes", counted)
         assert _run(out, "--seed", "3", "--alpha", "-0.5") == 0
     return out
 
@@ -57,7 +57,7 @@ def test_run_directory_contract(boto_run):
     cfg = json.loads((d / "config.json").read_text())
     assert (cfg["task"], cfg["method"], cfg["seed"], cfg["alpha"], cfg["pretrain"], cfg["profile"]) == (
         TASK, "boto", 3, -0.5, "calql", "smoke")
-    assert cfg["boto"]["alpha"] == -0.5
+    assert "alpha" not in cfg["boto"] and "seed" not in cfg["boto"]  # stored once, at the top level
 
     rows = _csv(d / "eval.csv")
     assert list(rows[0].keys()) == ["stage", "env_step", "success", "return", "q_data", "q_uniform"]
@@ -192,11 +192,11 @@ def test_pretrain_can_sample_on_the_device(tmp_path):
 
 def test_divergence_stops_with_last_good_checkpoint(tmp_path, monkeypatch, capsys):
     """A NaN loss in fine-tuning: exit 2, status failed, the checkpoint before it kept."""
-    from botorl.pipeline import population
+    from botorl.agents import population
 
     # every fine-tuning update of SAC goes through the population's batched update (a run is a
     # population of one)
-    real_update = population.pop_update
+    real_update = population.update
     calls = {"n": 0}
 
     def poisoned(agents, batches):
@@ -206,7 +206,7 @@ def test_divergence_stops_with_last_good_checkpoint(tmp_path, monkeypatch, capsy
             metrics = dict(metrics, critic_loss=np.full((1,), np.nan, np.float32))
         return agents, metrics
 
-    monkeypatch.setattr(population, "pop_update", poisoned)
+    monkeypatch.setattr(population, "update", poisoned)
     out = tmp_path / "nan"
     code = _run(out, "--online.steps", "80")  # fine-tuning from 30 (after the warm-up) to 80
     err = capsys.readouterr().err

@@ -1,5 +1,5 @@
-"""Populations (botorl.pipeline.population): member parsing, stacking, the vmapped entry
-points, per-member sampling and replay, the memory check.
+"""Populations: member parsing (botorl.pipeline.population), stacking and the mapped entry
+points (botorl.agents.population, the BOTO update), per-member sampling and the replay buffer's member axis, the memory check.
 
 Independence is the property everything rests on: member i of a population computes what a
 population of one (= the agent's own jitted function) computes for the same seed, to float
@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from botorl.agents import population as AP
+from botorl.data.replay import ReplayBuffer
 from botorl.errors import ConfigError
 from botorl.pipeline import population as P
 
@@ -43,6 +45,8 @@ def _iql(seed):
 
 # ------------------------------------------------------------------ members
 def test_parse_seeds_and_alphas():
+    from botorl.configs import members as P
+
     assert P.parse_seeds("0-3") == [0, 1, 2, 3]
     assert P.parse_seeds("0-2,7") == [0, 1, 2, 7]
     assert P.parse_alphas("-1:1:0.25") == [-1.0, -0.75, -0.5, -0.25, 0.0, 0.25, 0.5, 0.75, 1.0]
@@ -65,9 +69,9 @@ def test_stack_unstack_roundtrip():
     import jax
 
     agents = [_iql(s) for s in (1, 2, 3)]
-    pop = P.stack(agents)
-    assert P.population_size(pop) == 3
-    for a, b in zip(agents, P.unstack(pop)):
+    pop = AP.stack(agents)
+    assert AP.population_size(pop) == 3
+    for a, b in zip(agents, AP.unstack(pop)):
         for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
@@ -79,26 +83,26 @@ def test_updates_split_members_over_the_cpu_devices(dataset):
     1-member population's member."""
     import jax
 
-    assert len(jax.local_devices()) == 2 and P.host_shards(1) == 1 and P.host_shards(3) == 2
-    one = P.stack([_calql(3)])
-    b1 = P.sample_members(dataset, [np.random.default_rng([3, 1])], 16, 5)
-    one, m1 = P.pop_update_many(one, b1)
+    assert len(jax.local_devices()) == 2 and AP.host_shards(1) == 1 and AP.host_shards(3) == 2
+    one = AP.stack([_calql(3)])
+    b1 = dataset.sample_members([np.random.default_rng([3, 1])], 16, 5)
+    one, m1 = AP.update_many(one, b1)
     for seeds in ([5, 3, 8, 9], [5, 3, 8]):
-        pop = P.stack([_calql(s) for s in seeds])
+        pop = AP.stack([_calql(s) for s in seeds])
         rngs = [np.random.default_rng([s, 1]) for s in seeds]
-        before = P._jit_update_many._cache_size()
+        before = AP.jit_update_many._cache_size()
         for _ in range(2):
-            pop, m = P.pop_update_many(pop, P.sample_members(dataset, rngs, 16, 5))
-        assert P._jit_update_many._cache_size() - before == 1
+            pop, m = AP.update_many(pop, dataset.sample_members(rngs, 16, 5))
+        assert AP.jit_update_many._cache_size() - before == 1
         leaf = jax.tree_util.tree_leaves(pop)[0]
         assert len(leaf.sharding.device_set) == 2
         if len(seeds) == 4:  # split, not copied: each device holds 2 members
             assert {s.data.shape[0] for s in leaf.addressable_shards} == {2}
-        pop_first = P.stack([_calql(s) for s in seeds])
-        pop_first, m = P.pop_update_many(pop_first, P.sample_members(
-            dataset, [np.random.default_rng([s, 1]) for s in seeds], 16, 5))
+        pop_first = AP.stack([_calql(s) for s in seeds])
+        pop_first, m = AP.update_many(pop_first, dataset.sample_members(
+            [np.random.default_rng([s, 1]) for s in seeds], 16, 5))
         np.testing.assert_allclose(np.asarray(m["critic_loss"])[1], np.asarray(m1["critic_loss"])[0], rtol=1e-5)
-        for x, y in zip(jax.tree_util.tree_leaves(P.member_of(pop_first, 1)), jax.tree_util.tree_leaves(one)):
+        for x, y in zip(jax.tree_util.tree_leaves(AP.member_of(pop_first, 1)), jax.tree_util.tree_leaves(one)):
             np.testing.assert_allclose(np.asarray(x), np.asarray(y)[0], rtol=1e-5, atol=1e-6)
 
 
@@ -122,23 +126,23 @@ def test_member_equals_population_of_one(make, dataset):
     """Member (seed 3) of a population of 3 and a population of one with seed 3 draw the same
     batches and actions and reach the same losses; one compile per population size."""
     seeds = [5, 3, 8]
-    pop, one = P.stack([make(s) for s in seeds]), P.stack([make(3)])
+    pop, one = AP.stack([make(s) for s in seeds]), AP.stack([make(3)])
     rngs = [np.random.default_rng([s, 1]) for s in seeds]
     rng1 = [np.random.default_rng([3, 1])]
-    before = P._jit_update_many._cache_size()
+    before = AP.jit_update_many._cache_size()
     for _ in range(4):
-        b, b1 = P.sample_members(dataset, rngs, 16, 5), P.sample_members(dataset, rng1, 16, 5)
+        b, b1 = dataset.sample_members(rngs, 16, 5), dataset.sample_members(rng1, 16, 5)
         np.testing.assert_array_equal(b["observations"][1], b1["observations"][0])
-        pop, m = P.pop_update_many(pop, b)
-        one, m1 = P.pop_update_many(one, b1)
+        pop, m = AP.update_many(pop, b)
+        one, m1 = AP.update_many(one, b1)
         np.testing.assert_allclose(np.asarray(m["critic_loss"])[1], np.asarray(m1["critic_loss"])[0], rtol=1e-4)
-    assert P._jit_update_many._cache_size() - before <= 2  # N = 3 and N = 1, each once
+    assert AP.jit_update_many._cache_size() - before <= 2  # N = 3 and N = 1, each once
     obs = dataset.observations[:3]
-    a, pop = P.pop_sample(pop, obs)
-    a1, one = P.pop_sample(one, obs[1:2])
+    a, pop = AP.sample(pop, obs)
+    a1, one = AP.sample(one, obs[1:2])
     np.testing.assert_allclose(np.asarray(a)[1], np.asarray(a1)[0], atol=1e-5)
-    np.testing.assert_allclose(np.asarray(P.pop_eval(pop, obs[None].repeat(3, 0)))[1],
-                               np.asarray(P.pop_eval(one, obs[None]))[0], atol=1e-5)
+    np.testing.assert_allclose(np.asarray(AP.eval_actions(pop, obs[None].repeat(3, 0)))[1],
+                               np.asarray(AP.eval_actions(one, obs[None]))[0], atol=1e-5)
     # a population of one is the agent's own jitted update, bit for bit
     plain = make(3)
     r = np.random.default_rng([3, 1])
@@ -149,16 +153,16 @@ def test_member_equals_population_of_one(make, dataset):
 
 def test_boto_each_member_its_alpha(dataset):
     from botorl.boto.config import BOTOConfig
-    from botorl.boto.objective import ObjectiveSettings, boto_update_many
-    from botorl.boto.phase import boto_dataset
+    from botorl.boto.objective import ObjectiveSettings, boto_update_many, population_update_many
+    from botorl.boto.phase import boto_batches, boto_dataset
 
     seeds, alphas = [0, 1, 2], np.array([-1.0, 0.0, 0.5], np.float32)
     agents = [_calql(s) for s in seeds]
     settings = ObjectiveSettings.resolve(BOTOConfig(), agents[0])
     warm = [None] * len(seeds)
     rngs = [np.random.default_rng([s, 0]) for s in seeds]
-    b = P.sample_union_members(dataset, warm, rngs, 16, 3)
-    pop, m = P.pop_boto_update_many(P.stack(agents), b, alphas, settings)
+    b = boto_batches(dataset, warm, rngs, 16, 3)
+    pop, m = population_update_many(AP.stack(agents), b, alphas, settings)
     for i, s in enumerate(seeds):
         bi = boto_dataset(dataset, None).sample(np.random.default_rng([s, 0]), 16, num_batches=3)
         np.testing.assert_array_equal(b["actions"][i], bi["actions"])
@@ -169,13 +173,13 @@ def test_boto_each_member_its_alpha(dataset):
 
 # ------------------------------------------------------------------ sampling and replay
 def test_union_sampling_matches_concat(dataset):
-    from botorl.boto.phase import boto_dataset
+    from botorl.boto.phase import boto_batches, boto_dataset
     from botorl.data.dataset import Dataset
 
     rng = np.random.default_rng(1)
     warm = [Dataset(rng.normal(size=(40, O)), rng.uniform(-1, 1, (40, A)), rng.normal(size=40),
                     rng.normal(size=(40, O)), rng.random(40) < 0.1) for _ in range(2)]
-    b = P.sample_union_members(dataset, warm, [np.random.default_rng([s, 7]) for s in (4, 9)], 64, 3)
+    b = boto_batches(dataset, warm, [np.random.default_rng([s, 7]) for s in (4, 9)], 64, 3)
     for i, s in enumerate((4, 9)):
         ref = boto_dataset(dataset, warm[i]).sample(np.random.default_rng([s, 7]), 64, num_batches=3)
         for k in ("observations", "actions", "rewards", "next_observations", "dones"):
@@ -183,11 +187,11 @@ def test_union_sampling_matches_concat(dataset):
 
 
 def test_member_replay_matches_replay_buffer(dataset):
-    from botorl.data.replay import ReplayBuffer, sample_mixed
+    from botorl.data.replay import sample_mixed
 
     rng = np.random.default_rng(2)
     n, cap = 3, 50
-    pop = P.MemberReplay(n, cap, O, A)
+    pop = ReplayBuffer(cap, O, A, members=n)
     singles = [ReplayBuffer(cap, O, A) for _ in range(n)]
     for _ in range(70):  # wraps around
         o, a, r, o2, d = rng.normal(size=(n, O)), rng.uniform(-1, 1, (n, A)), rng.normal(size=n), \
@@ -196,15 +200,15 @@ def test_member_replay_matches_replay_buffer(dataset):
         for i, buf in enumerate(singles):
             buf.insert(o[i], a[i], r[i], o2[i], d[i])
     seeds = [11, 12, 13]
-    got = pop.sample_mixed(dataset, 0.5, [np.random.default_rng(s) for s in seeds], 20, num_batches=4)
-    got2 = pop.sample([np.random.default_rng(s) for s in seeds], 20)
+    got = pop.sample_members([np.random.default_rng(s) for s in seeds], 20, 4, offline=dataset, offline_ratio=0.5)
+    got2 = pop.sample_members([np.random.default_rng(s) for s in seeds], 20)
     for i, s in enumerate(seeds):
         ref = sample_mixed([dataset, singles[i]], [0.5, 0.5], np.random.default_rng(s), 20, num_batches=4)
         ref2 = singles[i].sample(np.random.default_rng(s), 20)
         for k in ref:
             np.testing.assert_array_equal(got[k][i], ref[k])
             np.testing.assert_array_equal(got2[k][i], ref2[k])
-    back = P.MemberReplay.from_state_dict(pop.state_dict())
+    back = ReplayBuffer.from_state_dict(pop.state_dict())
     for k in ("observations", "dones"):
         np.testing.assert_array_equal(getattr(back, k), getattr(pop, k))
     assert (back.size, back.insert_index) == (pop.size, pop.insert_index)
@@ -214,11 +218,11 @@ def test_sample_active_draws_each_active_member_as_a_single_run(dataset):
     """The fine-tuning batch of a population with an inactive member (Cal-QL online before its
     first episode ends): each active member draws exactly what its single run draws, from
     its own rows (the flat gather must index the right member), the inactive one nothing."""
-    from botorl.data.replay import ReplayBuffer, sample_mixed
+    from botorl.data.replay import sample_mixed
 
     rng = np.random.default_rng(4)
     n, cap = 3, 40
-    pop = P.MemberReplay(n, cap, O, A)
+    pop = ReplayBuffer(cap, O, A, members=n)
     singles = [ReplayBuffer(cap, O, A) for _ in range(n)]
     for t in range(55):  # wraps around; member i ends an episode every 7 + i steps
         o, a, r, o2, d = rng.normal(size=(n, O)), rng.uniform(-1, 1, (n, A)), rng.normal(size=n), \
@@ -233,7 +237,7 @@ def test_sample_active_draws_each_active_member_as_a_single_run(dataset):
     seeds = [21, 22, 23]
     for offline, ratio, finished in ((dataset, 0.5, False), (None, 0.0, True)):
         rngs = [np.random.default_rng(s) for s in seeds]
-        got = pop.sample_active(rngs, active, 16, 3, finished=finished, offline=offline, offline_ratio=ratio)
+        got = pop.sample_members(rngs, 16, 3, active=active, finished=finished, offline=offline, offline_ratio=ratio)
         for i, s in enumerate(seeds):
             if not active[i]:
                 assert all(not got[k][i].any() for k in got)

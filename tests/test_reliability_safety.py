@@ -95,10 +95,11 @@ def test_npy_without_pickle_is_read_without_pickle(tmp_path):
 
 def test_adroit_hint_names_the_real_flag():
     from botorl.data.loaders import download_hint
+    from botorl.data.tasks import data_status
     from botorl.envs.registry import get_task
 
     assert "--data.path" in download_hint("door-binary-v0") and "--data-path" not in download_hint("door-binary-v0")
-    assert "--data.path" in get_task("door-binary-v0").data_status()[1]
+    assert "--data.path" in data_status(get_task("door-binary-v0"))[1]
 
 
 # ----------------------------------------------------------------------------- lock

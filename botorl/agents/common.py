@@ -8,7 +8,6 @@ config therefore compiles once, whatever agent instance it is called with.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 
 import jax
@@ -20,8 +19,9 @@ from botorl.errors import ConfigError
 from botorl.networks import sample_tanh_gaussian, tanh_gaussian_mode
 
 __all__ = [
-    "TrainState", "polyak", "jit_update", "jit_update_many", "jit_sample", "jit_eval", "adam", "check_batch",
-    "chunk_size", "summed_value_and_grad", "update_many_on_device",
+    "TrainState", "polyak", "update_fn", "update_many_fn", "sample_fn", "eval_fn", "q_mean_fn",
+    "update_many_on_device_fn", "jit_update", "jit_update_many", "jit_sample", "jit_eval", "jit_q_mean", "adam",
+    "check_batch", "chunk_size", "summed_value_and_grad", "update_many_on_device", "sample_batches",
 ]
 
 BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones", "mc_returns")
@@ -92,21 +92,21 @@ def summed_value_and_grad(loss_fn, params, rows, per_chunk: int):
     return out
 
 
-def _update(agent, batch):
-    return agent._update(batch)
+# ------------------------------------------------------------------ the traced bodies
+# One agent's update, update_many, action draws and Q mean as plain traced functions: the
+# ``jit_*`` below are these jitted (the agents' methods call them), and a population maps the
+# same functions over its member axis (agents/population.py).
+def update_fn(agent, batch):
+    return agent.train_step(batch)
 
 
-def _update_many(agent, batches):
-    def body(a, b):
-        a, info = a._update(b)
-        return a, info
-
-    agent, infos = jax.lax.scan(body, agent, batches)
+def update_many_fn(agent, batches):
+    agent, infos = jax.lax.scan(lambda a, b: a.train_step(b), agent, batches)
     # Mean over the K updates: less noisy to log than the last one.
     return agent, jax.tree_util.tree_map(jnp.mean, infos)
 
 
-def _sample(agent, observations):
+def sample_fn(agent, observations):
     # Every agent's actor is a tanh-Gaussian behind ``agent.policy`` (SAC, CQL, IQL alike).
     rng, key = jax.random.split(agent.rng)
     mean, log_std = agent.policy(observations)
@@ -114,22 +114,33 @@ def _sample(agent, observations):
     return actions, agent.replace(rng=rng)
 
 
-def _eval(agent, observations):
+def eval_fn(agent, observations):
     mean, _ = agent.policy(observations)
     return tanh_gaussian_mode(mean)
 
 
-def _update_many_on_device(agent, arrays, key, num_updates: int, batch_size: int):
-    from botorl.data.dataset import sample_batches
+def q_mean_fn(agent, observations, actions):
+    """Mean over the critic ensemble of Q(s, a): (B,)."""
+    return agent.critic_values(agent.critic.params, observations, actions).mean(axis=0)
 
-    return _update_many(agent, sample_batches(arrays, key, num_updates, batch_size))
+
+def sample_batches(arrays: dict, key, num_batches: int, batch_size: int) -> dict:
+    """``num_batches`` uniform batches (with replacement) of ``arrays``' rows, stacked (K, B, ...)."""
+    n = arrays["rewards"].shape[0]
+    idx = jax.random.randint(key, (num_batches, batch_size), 0, n)
+    return jax.tree_util.tree_map(lambda x: x[idx], arrays)
 
 
-jit_update = jax.jit(_update)
-jit_update_many = jax.jit(_update_many)
-jit_sample = jax.jit(_sample)
-jit_eval = jax.jit(_eval)
-_jit_update_many_on_device = jax.jit(_update_many_on_device, static_argnames=("num_updates", "batch_size"))
+def update_many_on_device_fn(agent, arrays, key, num_updates: int, batch_size: int):
+    return update_many_fn(agent, sample_batches(arrays, key, num_updates, batch_size))
+
+
+jit_update = jax.jit(update_fn)
+jit_update_many = jax.jit(update_many_fn)
+jit_sample = jax.jit(sample_fn)
+jit_eval = jax.jit(eval_fn)
+jit_q_mean = jax.jit(q_mean_fn)
+_jit_update_many_on_device = jax.jit(update_many_on_device_fn, static_argnames=("num_updates", "batch_size"))
 
 
 def update_many_on_device(agent, arrays: dict, key: jax.Array, num_updates: int, batch_size: int):
@@ -165,7 +176,3 @@ def ensure_mc_returns(batch):
         batch = dict(batch)
         batch["mc_returns"] = jnp.zeros_like(batch["rewards"])
     return batch
-
-
-def frozen_replace(config, **changes):
-    return dataclasses.replace(config, **changes)

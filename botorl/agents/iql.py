@@ -186,7 +186,7 @@ class IQLAgent(struct.PyTreeNode):
         loss = jnp.mean((q - jax.lax.stop_gradient(target)[None]) ** 2)
         return loss, {"critic_loss": loss, "q_data": q.mean(), "target_q": target.mean()}
 
-    def _update(self, batch):
+    def train_step(self, batch):
         rng, k_actor, k_sub = jax.random.split(self.rng, 3)
         agent = self.replace(rng=rng)
         q = jax.lax.stop_gradient(agent.target_q(batch, k_sub))  # the same Q' for V and the AWR weights

@@ -387,7 +387,7 @@ class SACAgent(struct.PyTreeNode):
         grads, info = jax.grad(self.temp_loss, has_aux=True)(self.temp.params, entropy)
         return self.replace(temp=self.temp.apply_gradients(grads=grads)), info
 
-    def _update(self, batch):
+    def train_step(self, batch):
         cfg = self.config
         rng, k_critic, k_actor = jax.random.split(self.rng, 3)
         agent = self.replace(rng=rng)

@@ -1,10 +1,10 @@
 """Env steps per second of the whole online loop: act, step, insert, update (UTD 4).
 
-The loop is WSRL's fine-tuning loop as ``botorl.pipeline.stages.finetune`` runs it (that
-function needs a whole run context, so its body is mirrored here), one env step at a time: the
-agent samples an action for the current observation (one jitted call), the real task env
-steps, the transition goes into the real ``ReplayBuffer``, a batch of ``utd * batch`` rows
-is sampled and ``agent.update`` does utd critic steps + 1 actor + 1 temperature step.
+The loop timed is fine-tuning's own: ``OnlineLoop.run(n)`` calls
+``botorl.pipeline.online.OnlineState.advance`` n times, the body of the fine-tuning stage's
+loop (one policy call, the real task env steps, the transition goes into the real replay
+buffer, a batch of ``utd * batch`` rows is drawn and the agent's update does utd critic steps
++ 1 actor + 1 temperature step), for a single run (a population of one) of WSRL's learner.
 ``online_loop_efficiency`` = (env steps/s of this loop) / (updates/s of the same update
 alone, measured in the same run): 1.0 means acting, stepping, inserting and sampling cost
 nothing beside the update.
@@ -13,6 +13,7 @@ nothing beside the update.
 from __future__ import annotations
 
 import time
+from types import SimpleNamespace
 from typing import Any
 
 import jax
@@ -20,63 +21,64 @@ import numpy as np
 
 
 def make_env(task: str = "antmaze", seed: int = 0) -> tuple[Any, str]:
-    """The task env: via the task registry where it is there, else the antmaze wrapper,
-    else gymnasium's Hopper-v5 (all real MuJoCo envs)."""
+    """A task whose env the loop steps: (a TaskSpec-like object, its name). The task registry's
+    where it is there, else the antmaze wrapper, else gymnasium's Hopper-v5 (all real MuJoCo envs)."""
     try:
         from botorl.envs.registry import list_tasks
 
         for spec in list_tasks():
             if spec.domain == task or spec.name == task:
-                return spec.make_env(seed), spec.name
+                spec.make_env(seed).close()
+                return spec, spec.name
     except Exception:
         pass
+    fixed = dict(reward_scale=1.0, reward_bias=0.0, success_mode="any")
     if task == "antmaze":
         try:
             from botorl.envs.antmaze import make_antmaze
 
-            return make_antmaze(seed), "antmaze (botorl.envs.antmaze)"
+            make_antmaze(seed).close()
+            return SimpleNamespace(make_env=lambda seed: make_antmaze(seed), **fixed), "antmaze (botorl.envs.antmaze)"
         except Exception:
             pass
     import gymnasium as gym
 
-    return gym.make("Hopper-v5"), "Hopper-v5"
+    return SimpleNamespace(make_env=lambda seed: gym.make("Hopper-v5"), **fixed), "Hopper-v5"
 
 
 class OnlineLoop:
-    """A running online loop whose ``run(n)`` does n env steps."""
+    """A running fine-tuning loop (a population of one) whose ``run(n)`` does n env steps."""
 
-    def __init__(self, agent: Any, env: Any, batch: int, utd: int, seed: int = 0, prefill: int = 2000):
-        from botorl.data.replay import ReplayBuffer
+    def __init__(self, agent: Any, spec: Any, batch: int, utd: int, seed: int = 0, prefill: int = 2000):
+        from botorl.agents.population import stack
+        from botorl.configs.methods import get_method
+        from botorl.configs.schema import OnlineConfig, RunConfig
+        from botorl.pipeline.online import OnlineState
+        from botorl.pipeline.stages import Window
 
-        self.agent, self.env = agent, env
-        self.batch, self.utd = batch, utd
-        obs_dim = int(np.prod(env.observation_space.shape))
-        action_dim = int(np.prod(env.action_space.shape))
-        self.buffer = ReplayBuffer(max(100_000, prefill * 2), obs_dim, action_dim)
-        self.rng = np.random.default_rng(seed)
-        self.obs, _ = env.reset(seed=seed)
+        env = spec.make_env(seed)
+        obs_dim, action_dim = int(np.prod(env.observation_space.shape)), int(np.prod(env.action_space.shape))
+        env.close()
+        # WSRL's learner: the buffer alone (no offline data), utd x batch rows per update
+        online = OnlineConfig(steps=10**12, batch_size=batch, utd=utd, buffer_capacity=max(100_000, prefill * 2))
+        ctx = SimpleNamespace(cfg=SimpleNamespace(online=online), n=1, members=[SimpleNamespace(cfg=RunConfig(seed=seed))],
+                              spec=spec, method=get_method("wsrl"), d_offline=SimpleNamespace(obs_dim=obs_dim,
+                                                                                             action_dim=action_dim))
+        self.state = OnlineState.begin(ctx, None)
+        self.agents, self.window = stack([agent]), Window(1)
         # WSRL starts fine-tuning with the warm-up data in the buffer; random actions here.
+        rng = np.random.default_rng(seed)
         for _ in range(prefill):
-            a = self.rng.uniform(-1, 1, action_dim).astype(np.float32)
-            self._env_step(a)
-
-    def _env_step(self, action: np.ndarray) -> None:
-        next_obs, reward, terminated, truncated, _ = self.env.step(action)
-        self.buffer.insert(self.obs, action, float(reward), next_obs, float(terminated))
-        self.obs = next_obs
-        if terminated or truncated:
-            self.obs, _ = self.env.reset()
+            self.state.act(rng.uniform(-1, 1, (1, action_dim)).astype(np.float32))
 
     def run(self, n: int) -> None:
-        agent = self.agent
         for _ in range(n):
-            action, agent = agent.sample_actions(self.obs)
-            self._env_step(np.asarray(action, np.float32))
-            # As botorl.pipeline.stages.finetune: u minibatches of B, flattened to u*B rows.
-            b = self.buffer.sample(self.rng, self.batch, num_batches=self.utd)
-            agent, _ = agent.update({k: v.reshape((-1,) + v.shape[2:]) for k, v in b.items()})
-        jax.block_until_ready(agent)
-        self.agent = agent
+            self.agents = self.state.advance(self.agents, self.window)
+        self.window.rows.clear()  # the metrics stay on the device: the loop logs none here
+        jax.block_until_ready(self.agents)
+
+    def close(self) -> None:
+        self.state.__exit__()
 
 
 def time_rate(run: Any, min_time: float) -> float:

@@ -14,13 +14,11 @@ at start and end is in the JSON.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +27,7 @@ from typing import Any, Literal, Optional
 from botorl.benchmarks import flops as flopmod
 from botorl.benchmarks import workloads as wl
 from botorl.errors import BotorlError
+from botorl.io import atomic_write_json
 
 SCHEMA_VERSION = 1
 
@@ -238,13 +237,15 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
     from botorl.agents.sac import SACAgent, SACConfig
     from botorl.benchmarks.online_loop import OnlineLoop, make_env
 
-    env, env_name = make_env("antmaze")
+    spec, env_name = make_env("antmaze")
+    env = spec.make_env(0)
     obs_dim = int(env.observation_space.shape[0])
     action_dim = int(env.action_space.shape[0])
+    env.close()
     cfg = SACConfig(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden,
                     num_critics=w.num_critics, utd_ratio=w.utd)
     agent = SACAgent.create(cfg, obs_dim, action_dim, 0)
-    loop = OnlineLoop(agent, env, w.batch, w.utd, prefill=max(w.batch * w.utd, 2000))
+    loop = OnlineLoop(agent, spec, w.batch, w.utd, prefill=max(w.batch * w.utd, 2000))
     # The update alone on the env's shapes (the same jit cache entry as the table's row
     # when those are the same).
     alone = wl.build(dataclasses.replace(w, obs_dim=obs_dim, action_dim=action_dim))
@@ -257,7 +258,7 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
         loop_rates.append(lr)
         alone_rates.append(ar)
         ratios.append(lr / ar)
-    env.close()
+    loop.close()
     return {"env": env_name, "obs_dim": obs_dim, "action_dim": action_dim,
             "env_steps_per_s": _median(loop_rates), "samples": loop_rates,
             "update_alone_per_s": _median(alone_rates), "update_alone_samples": alone_rates,
@@ -304,19 +305,22 @@ def format_table(result: dict[str, Any]) -> str:
 
 def write_json(result: dict[str, Any], path: str) -> None:
     """Atomically (temp file + rename): an interrupted run leaves no half file."""
-    target = Path(path).expanduser()
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(result, f, indent=2)
-        f.write("\n")
-    os.replace(tmp, target)
+    atomic_write_json(Path(path).expanduser(), result, exact=True)
 
 
 def main(argv: list[str] | None = None) -> int:
+    import sys
+
     import tyro
 
-    cfg = tyro.cli(BenchConfig, args=argv, prog="botorl bench", description=__doc__.split("\n")[0])
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--paper" in argv:
+        # what a whole paper run costs, from the real pipeline's stages: its own options
+        from botorl.benchmarks.paper import main as paper_main
+
+        return paper_main(argv)
+    cfg = tyro.cli(BenchConfig, args=argv, prog="botorl bench",
+                   description=__doc__.split("\n")[0] + " (`botorl bench --paper --help`: what a whole paper run costs)")
     result = run(cfg)
     print(format_table(result))
     if cfg.json:

@@ -223,7 +223,7 @@ def _build_boto(w: Workload, seed: int) -> Bound:
     from botorl.boto.objective import ObjectiveSettings, boto_update_many
 
     agent = SACAgent.create(_config(SACConfig, **_net_fields(w)), w.obs_dim, w.action_dim, seed)
-    settings = ObjectiveSettings.resolve(BOTOConfig(alpha=0.5), agent)
+    settings = ObjectiveSettings.resolve(BOTOConfig(), agent)
     k = BOTO_STEPS_PER_CALL
     batches = make_batch(w.batch, w.obs_dim, w.action_dim, seed, lead=(k,))
     state = {"agent": agent}

@@ -112,7 +112,7 @@ def train_boto_bandit(
 
     from botorl.agents.common import TrainState
     from botorl.agents.sac import SACAgent
-    from botorl.boto.objective import ObjectiveSettings, _update_many, check_alpha
+    from botorl.boto.objective import ObjectiveSettings, boto_update_many_fn, check_alpha
 
     check_alpha(list(alphas))
     agent = SACAgent.create(_small_sac_config(critic_hidden=critic_hidden), dataset.obs_dim, dataset.action_dim, seed=seed)
@@ -128,7 +128,7 @@ def train_boto_bandit(
 
     @jax.jit
     def train_chunk(ags, batches):
-        return jax.vmap(partial(_update_many, settings=settings), in_axes=(0, None, 0))(ags, batches, alpha_arr)
+        return jax.vmap(partial(boto_update_many_fn, settings=settings), in_axes=(0, None, 0))(ags, batches, alpha_arr)
 
     rng = np.random.default_rng(seed)
     done = 0

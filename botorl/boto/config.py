@@ -1,6 +1,8 @@
 """``BOTOConfig``: the settings of the BOTO phase (stage 2b of the pipeline).
 
-Names follow the paper: ``alpha`` (bias controller, in [-1, 1]), ``boto_steps``, ``log_sigma``.
+Names follow the paper: ``boto_steps``, ``log_sigma``; the bias controller ``alpha`` (in [-1, 1])
+is not a setting of the phase but of each run (``RunConfig.alpha``; ``run_boto(..., alpha=)``):
+one BOTO phase trains a population whose members have their own alphas.
 Fields left at ``None`` are taken from the pre-trained agent's own config (discount, Polyak
 rate, critic subset size), so BOTO bootstraps exactly like the agent it continues.
 """
@@ -9,16 +11,32 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
 
 from botorl.errors import ConfigError
+
+
+def check_alpha(alpha: Any, what: str = "alpha") -> None:
+    """Raise ConfigError unless ``alpha`` is a number in [-1, 1] (or an array of them): the one
+    check of BOTO's alpha, wherever it comes from (--alpha, --alphas, a sweep, BOTOConfig)."""
+    try:
+        arr = np.asarray(alpha, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{what} = {alpha!r} is not a number; give BOTO's alpha in [-1, 1], e.g. --alpha -0.5.") from None
+    if arr.size == 0 or np.isnan(arr).any() or (arr < -1.0).any() or (arr > 1.0).any():
+        raise ConfigError(
+            f"{what} = {alpha!r} is outside [-1, 1]. alpha is BOTO's bias controller (paper section 4): > 0 "
+            "conservative, < 0 optimistic, 1 is the NAMDP of Oh & Lee (2025); the paper's grid is [-1, 1] in steps "
+            "of 0.1. Pass e.g. --alpha -0.5."
+        )
 
 
 @dataclass(frozen=True)
 class BOTOConfig:
     """Settings of BOTO training; defaults are the paper's (Table 2, B.1) where it gives them.
 
-    alpha: bias controller in [-1, 1]; > 0 lowers Q far from the data (conservative), < 0
-        raises it (optimistic), 0 is plain noisy-action Q-learning, 1 is Oh & Lee's NAMDP.
     boto_steps: critic gradient steps (paper: 100k, 250k on kitchen).
     noise: "hybrid" (paper B.1) or "gaussian" (N(a, sigma^2 I), the bandit figure 3).
     log_sigma: the hybrid noise's lower end of log t (paper: -20; -30 on antmaze-large-diverse).
@@ -40,7 +58,6 @@ class BOTOConfig:
         step (SAC-family agents only). Default False: Theorem 1 is stated for a fixed policy.
     """
 
-    alpha: float = 0.0
     boto_steps: int = 100_000
     noise: str = "hybrid"
     log_sigma: float = -20.0
@@ -55,15 +72,11 @@ class BOTOConfig:
     discount: float | None = None
     tau: float | None = None
     train_actor: bool = False
-    seed: int = 0
 
     def validate(self) -> None:
         def bad(field: str, why: str) -> None:
             raise ConfigError(f"BOTOConfig.{field} = {getattr(self, field)!r} is invalid: {why}.")
 
-        a = self.alpha
-        if not isinstance(a, (int, float)) or math.isnan(a) or not -1.0 <= a <= 1.0:
-            bad("alpha", "the bias controller must lie in [-1, 1] (paper section 4); e.g. --alpha -0.5")
         if self.boto_steps < 0:
             bad("boto_steps", "must be >= 0")
         if self.noise not in ("hybrid", "gaussian"):

@@ -28,34 +28,19 @@ open"):
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from botorl.boto.config import BOTOConfig
+from botorl.agents.population import as_f32, over_members, placed
+from botorl.boto.config import BOTOConfig, check_alpha
 from botorl.boto.noise import make_noise_fn
 from botorl.errors import ConfigError
 
 _BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones")
-
-
-def check_alpha(alpha: Any) -> None:
-    """Raise ConfigError unless alpha is a number in [-1, 1] (or an array of them)."""
-    try:
-        import numpy as np
-
-        arr = np.asarray(alpha, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ConfigError(f"BOTO alpha={alpha!r} is not a number; give a value in [-1, 1].") from None
-    if arr.size == 0 or np.isnan(arr).any() or (arr < -1.0).any() or (arr > 1.0).any():
-        raise ConfigError(
-            f"BOTO alpha={alpha!r} is outside [-1, 1]. alpha is the bias controller: > 0 is "
-            "conservative, < 0 optimistic, 1 is the NAMDP of Oh & Lee (2025); the paper searches "
-            "[-1, 1] in steps of 0.1."
-        )
 
 
 @dataclass(frozen=True)
@@ -211,7 +196,10 @@ def q_diagnostics(agent, batch, key) -> dict:
     }
 
 
-def _update_many(agent, batches, alpha, settings: ObjectiveSettings):
+def boto_update_many_fn(agent, batches, alpha, settings: ObjectiveSettings):
+    """K BOTO critic steps under one ``lax.scan`` (traced; ``boto_update_many`` jits it, and
+    ``population_update_many`` maps it over a population)."""
+
     def body(a, b):
         return boto_critic_step(a, b, alpha, settings)
 
@@ -223,7 +211,9 @@ def _update_many(agent, batches, alpha, settings: ObjectiveSettings):
     return agent.replace(rng=rng), info
 
 
-_jit_update_many = jax.jit(_update_many, static_argnames=("settings",))
+_jit_update_many = jax.jit(boto_update_many_fn, static_argnames=("settings",))
+_jit_population_update_many = jax.jit(over_members(boto_update_many_fn, (0, 0, 0), across_cores=True),
+                                      static_argnames=("settings",))
 
 
 def _check_batches(batches, many: bool) -> None:
@@ -262,5 +252,9 @@ def boto_update(agent, batch, alpha: float, config: BOTOConfig | ObjectiveSettin
     return boto_update_many(agent, {k: jnp.asarray(batch[k])[None] for k in _BATCH_KEYS}, alpha, config)
 
 
-def is_finite_metrics(metrics: dict) -> bool:
-    return all(math.isfinite(float(v)) for v in metrics.values())
+def population_update_many(agents, batches, alphas, settings: ObjectiveSettings):
+    """``boto_update_many`` of every member of a population (agents/population.py), each with its
+    own alpha; ``batches`` (N, K, B, ...), ``alphas`` (N,)."""
+    check_alpha(np.asarray(alphas))
+    b = {k: as_f32(batches[k]) for k in _BATCH_KEYS}
+    return _jit_population_update_many(*placed(agents, b, as_f32(alphas)), settings=settings)

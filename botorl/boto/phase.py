@@ -1,9 +1,12 @@
 """The BOTO phase (stage 2b): train the critic with the BOTO objective on D_BOTO.
 
-``run_boto(agent, d_offline, d_warmup, config)`` trains for ``config.boto_steps`` critic steps
-on D_BOTO = D_offline u D_warmup, each batch drawn uniformly (with replacement) from the union
-of the rows, ``config.steps_per_call`` steps per jitted ``lax.scan`` call. The actor (and SAC
-temperature) stay frozen unless ``config.train_actor``.
+``train_boto(agents, d_offline, d_warmups, config, alphas, seeds)`` is the phase of a
+population (agents/population.py): member i trains its critic with its own alpha on
+D_offline u D_warmup_i for ``config.boto_steps`` critic steps, each batch drawn uniformly
+(with replacement) from the union of the rows, ``config.steps_per_call`` steps per jitted
+``lax.scan`` call for all members. The pipeline's BOTO stage runs it with its logging and
+checkpoints in ``on_call``; ``run_boto(agent, d_offline, d_warmup, config)`` is a population of
+one on this same loop (its alpha and batch seed given with it). The actor (and SAC temperature) stay frozen unless ``config.train_actor``.
 
 Agents: any SAC-family agent (SAC, CQL, Cal-QL) and IQL. For IQL, which has an AWR
 tanh-Gaussian actor and no SAC temperature, the target's next action a~ comes from IQL's own
@@ -15,27 +18,28 @@ stationary rule's value when probe observations are given (agents/temperature.py
 the target; set ``backup_entropy=False`` if you do that.)
 
 Resumable: ``start_step`` says how many steps were done before (e.g. restored from a
-checkpoint) and ``num_steps`` how many to do now (default: up to ``boto_steps``). The batches
-of call c are drawn from ``np.random.default_rng([seed, c])`` and the noise from the agent's
-own rng, so a resumed phase sees the same data stream as an uninterrupted one when it is cut
-at a multiple of ``steps_per_call``.
+checkpoint). The batches of call c are drawn from ``np.random.default_rng([seed, c])`` and the
+noise from the agent's own rng, so a resumed phase sees the same data stream as an
+uninterrupted one when it is cut at a multiple of ``steps_per_call``.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from botorl.agents.population import member_metrics, member_of, stack
 from botorl.boto.config import BOTOConfig
-from botorl.boto.objective import ObjectiveSettings, boto_update_many, check_alpha
+from botorl.boto.objective import ObjectiveSettings, check_alpha, population_update_many
 from botorl.errors import ConfigError, TrainingDivergedError
 
-__all__ = ["BOTOConfig", "run_boto", "boto_dataset"]
+__all__ = ["BOTOConfig", "run_boto", "train_boto", "boto_dataset", "boto_batches"]
 
 Callback = Callable[[int, Any, dict], None]
+_KEYS = ("observations", "actions", "rewards", "next_observations", "dones")
 
 
 def boto_dataset(d_offline, d_warmup=None):
@@ -49,18 +53,87 @@ def boto_dataset(d_offline, d_warmup=None):
     return d_offline.concat(d_warmup)
 
 
+def boto_batches(d_offline, d_warmups: Sequence, rngs: Sequence[np.random.Generator], batch_size: int,
+                 num_batches: int) -> dict:
+    """Batches from D_offline u D_warmup_i per member i, as ``boto_dataset(...).sample`` draws
+    them (row r < len(D_offline) from the offline data, else from the member's warm-up data),
+    without copying the offline data once per member. Stacked (N, K, B, ...)."""
+    out = []
+    n_off = 0 if d_offline is None else len(d_offline)
+    for rng, d_w in zip(rngs, d_warmups):
+        n_w = 0 if d_w is None else len(d_w)
+        if n_off + n_w == 0:
+            raise ConfigError("BOTO got no data: D_offline and D_warmup are both empty; pass the offline dataset.")
+        idx = rng.integers(0, n_off + n_w, size=(num_batches, batch_size))
+        if n_w == 0:
+            b = d_offline.batch_at(idx)
+        elif n_off == 0:
+            b = d_w.batch_at(idx)
+        else:
+            off = idx < n_off
+            b_off = d_offline.batch_at(np.where(off, idx, 0))
+            b_w = d_w.batch_at(np.where(off, 0, idx - n_off))
+            b = {k: np.where(off.reshape(off.shape + (1,) * (b_off[k].ndim - 2)), b_off[k], b_w[k]) for k in _KEYS}
+        out.append({k: b[k] for k in _KEYS})
+    return {k: np.stack([o[k] for o in out]) for k in _KEYS}
+
+
+OnCall = Callable[[int, int, Any, list], None]
+
+
+def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alphas: Sequence[float],
+               seeds: Sequence[int], *, start_step: int = 0, end_step: int | None = None,
+               on_call: OnCall | None = None, progress: bool = True):
+    """BOTO for every member of ``agents`` (stacked), member i with ``alphas[i]`` on
+    D_offline u ``d_warmups[i]`` (None: none), its batches from ``seeds[i]``; returns the agents.
+
+    ``on_call(prev_step, step, agents, metrics)`` runs after every call with the call's new
+    agents and one dict of floats per member (the means over the call's steps of
+    ``boto_update_many``'s metrics); it may raise to stop (the agents before the call are then
+    the last good ones)."""
+    settings = ObjectiveSettings.resolve(config, member_of(agents, 0))
+    alphas = np.asarray(alphas, np.float32)
+    end = config.boto_steps if end_step is None else end_step
+    step = start_step
+    from tqdm.auto import tqdm
+
+    label = f"BOTO alpha={alphas[0]:+.2f}" if len(alphas) == 1 else f"BOTO x {len(alphas)} members"
+    bar = tqdm(total=end, initial=start_step, desc=label, unit="step", dynamic_ncols=True, disable=not progress,
+               mininterval=1.0, smoothing=0.05)
+    try:
+        while step < end:
+            k = min(config.steps_per_call, end - step)
+            rngs = [np.random.default_rng([s, step // config.steps_per_call]) for s in seeds]
+            batches = boto_batches(d_offline, d_warmups, rngs, config.batch_size, k)
+            new, metrics = population_update_many(agents, batches, alphas, settings)
+            ms = member_metrics(metrics)
+            if on_call is not None:
+                on_call(step, step + k, new, ms)
+            agents, step = new, step + k
+            bar.update(k)
+            bar.set_postfix(loss=f"{ms[0]['critic_loss']:.3g}", q_data=f"{ms[0]['q_data']:.3g}",
+                            q_unif=f"{ms[0]['q_uniform']:.3g}")
+    finally:
+        bar.close()
+    return agents
+
+
 def run_boto(
     agent,
     d_offline,
     d_warmup,
     config: BOTOConfig,
     *,
+    alpha: float,
+    seed: int = 0,
     start_step: int = 0,
     num_steps: int | None = None,
     callback: Callback | None = None,
     progress: bool = True,
 ) -> tuple[Any, list[dict]]:
-    """Train ``agent``'s critic with BOTO; returns ``(agent, history)``.
+    """Train one agent's critic with BOTO at bias controller ``alpha`` in [-1, 1] (> 0 lowers Q
+    far from the data, < 0 raises it; 1 is Oh & Lee's NAMDP), its batches drawn from ``seed``
+    (``train_boto`` on a population of one); returns ``(agent, history)``.
 
     ``history`` has one dict per call: ``step`` (steps done after the call), ``seconds`` (wall
     time since this invocation started) and the metrics of ``boto_update_many`` (means over the
@@ -70,45 +143,24 @@ def run_boto(
     callback is the last good one).
     """
     config.validate()
-    check_alpha(config.alpha)
+    check_alpha(alpha)
     if start_step < 0 or start_step > config.boto_steps:
         raise ConfigError(f"run_boto start_step={start_step} must be in [0, boto_steps={config.boto_steps}].")
     end = config.boto_steps if num_steps is None else min(config.boto_steps, start_step + int(num_steps))
-    data = boto_dataset(d_offline, d_warmup)
-    settings = ObjectiveSettings.resolve(config, agent)
     history: list[dict] = []
     t0 = time.perf_counter()
-    step = start_step
-    bar = None
-    if progress and end > start_step:
-        from tqdm.auto import tqdm
 
-        bar = tqdm(total=end - start_step, desc=f"BOTO alpha={config.alpha:+.2f}", unit="step", dynamic_ncols=True)
-    try:
-        while step < end:
-            k = min(config.steps_per_call, end - step)
-            call_index = step // config.steps_per_call
-            rng = np.random.default_rng([config.seed, call_index])
-            batches = data.sample(rng, config.batch_size, num_batches=k)
-            new_agent, metrics = boto_update_many(agent, batches, config.alpha, settings)
-            metrics = {name: float(v) for name, v in metrics.items()}
-            if not math.isfinite(metrics["critic_loss"]):
-                raise TrainingDivergedError(
-                    f"BOTO diverged between steps {step} and {step + k} (critic loss {metrics['critic_loss']}, "
-                    f"alpha={config.alpha}). Check the reward scale of the data, or lower the critic learning "
-                    "rate; the last good agent is the one given to the last callback."
-                )
-            agent = new_agent
-            step += k
-            record = {"step": step, "seconds": time.perf_counter() - t0, **metrics}
-            history.append(record)
-            if bar is not None:
-                bar.update(k)
-                bar.set_postfix(loss=f"{metrics['critic_loss']:.3g}", q_data=f"{metrics['q_data']:.3g}",
-                                q_unif=f"{metrics['q_uniform']:.3g}")
-            if callback is not None:
-                callback(step, agent, record)
-    finally:
-        if bar is not None:
-            bar.close()
-    return agent, history
+    def on_call(prev: int, step: int, agents, ms: list[dict]) -> None:
+        if not math.isfinite(ms[0]["critic_loss"]):
+            raise TrainingDivergedError(
+                f"BOTO diverged between steps {prev} and {step} (critic loss {ms[0]['critic_loss']}, "
+                f"alpha={alpha}). Check the reward scale of the data, or lower the critic learning "
+                "rate; the last good agent is the one given to the last callback."
+            )
+        history.append({"step": step, "seconds": time.perf_counter() - t0, **ms[0]})
+        if callback is not None:
+            callback(step, member_of(agents, 0), history[-1])
+
+    agents = train_boto(stack([agent]), d_offline, [d_warmup], config, [alpha], [seed],
+                        start_step=start_step, end_step=end, on_call=on_call, progress=progress)
+    return member_of(agents, 0), history

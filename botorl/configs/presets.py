@@ -83,6 +83,13 @@ def paper_domain(domain: str) -> str:
     return _STANDS_IN.get(domain, domain)
 
 
+def paper_settings(spec) -> tuple[float, int, float]:
+    """(alpha, boto_steps, log_sigma) of a task: the paper's (Table 2, B.1), ours for the others."""
+    if spec.paper is not None:
+        return spec.paper.alpha, spec.paper.boto_steps, spec.paper.log_sigma
+    return _DEFAULT_PAPER.get(spec.domain, (0.0, 100_000, -20.0))
+
+
 def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrain: str | None = None) -> RunConfig:
     """The default config of ``task`` under ``profile`` for ``method``."""
     from botorl.envs.registry import get_task
@@ -92,10 +99,7 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
         raise ConfigError(f"unknown profile {profile!r} (--profile). Choose one of: {', '.join(PROFILES)}.")
     spec = get_task(task)
     dom = paper_domain(spec.domain)
-    if spec.paper is not None:
-        alpha, boto_steps, log_sigma = spec.paper.alpha, spec.paper.boto_steps, spec.paper.log_sigma
-    else:
-        alpha, boto_steps, log_sigma = _DEFAULT_PAPER.get(spec.domain, (0.0, 100_000, -20.0))
+    _, boto_steps, log_sigma = paper_settings(spec)
 
     net = NetworkConfig(
         actor_hidden_dims=tuple(spec.networks.actor),
@@ -114,7 +118,7 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     offline = OfflineConfig(steps=_PRETRAIN_STEPS[dom], cql=cql, iql=iql, **_MC[dom])
     sac = replace(SACConfig(), max_target_backup=(dom == "antmaze"), backup_entropy=False, **std)
     online = OnlineConfig(steps=300_000, sac=sac)
-    boto = replace(BOTOConfig(), alpha=alpha, boto_steps=boto_steps, log_sigma=log_sigma)
+    boto = replace(BOTOConfig(), boto_steps=boto_steps, log_sigma=log_sigma)
     cfg = RunConfig(
         task=task, method=method, pretrain=pretrain, profile=profile,
         data=DataConfig(), network=net, offline=offline, warmup=WarmupConfig(5_000),

@@ -6,9 +6,10 @@ message names the field and says what to change.
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
+from botorl.boto.config import check_alpha
+from botorl.configs.presets import paper_settings
 from botorl.configs.schema import RunConfig
 from botorl.errors import BotorlError, ConfigError
 
@@ -16,7 +17,7 @@ from botorl.errors import BotorlError, ConfigError
 def resolve(cfg: RunConfig) -> RunConfig:
     """Fill the derived fields: pretrain, alpha, and what the pipeline owns in agent configs."""
     from botorl.envs.registry import get_task
-    from botorl.pipeline.methods import get_method, resolve_pretrain
+    from botorl.configs.methods import get_method, resolve_pretrain
 
     spec = get_task(cfg.task)
     method = get_method(cfg.method)
@@ -27,12 +28,8 @@ def resolve(cfg: RunConfig) -> RunConfig:
             f"or use --method boto."
         )
     alpha = None
-    boto = cfg.boto
-    if method.uses_alpha:
-        alpha = cfg.boto.alpha if cfg.alpha is None else cfg.alpha
-        _check_alpha(alpha)
-        boto = replace(boto, alpha=float(alpha), seed=cfg.online_seed)
-        alpha = float(alpha)
+    if method.uses_alpha:  # None: the task's (the paper's per-task value)
+        alpha = float(paper_settings(spec)[0] if cfg.alpha is None else cfg.alpha)
 
     net = cfg.network
     ln = net.layer_norm
@@ -45,7 +42,7 @@ def resolve(cfg: RunConfig) -> RunConfig:
         num_critics=net.num_critics,
         calql=(pretrain == "calql"),
         # calql/cql continued online take utd x batch rows per env step (UTD 1 by default)
-        utd_ratio=cfg.online.utd if method.online == "continue" else 1,
+        utd_ratio=cfg.online.utd if method.finetune_start == "continue" else 1,
     )
     sac = replace(
         cfg.online.sac,
@@ -70,7 +67,7 @@ def resolve(cfg: RunConfig) -> RunConfig:
         num_min_critics=min(cfg.offline.iql.num_min_critics, net.num_critics),
         state_dependent_std=sac.state_dependent_std,
     )
-    if pretrain == "iql" and method.online == "wsrl":
+    if pretrain == "iql" and method.finetune_start == "warm_start":
         sac = replace(sac, log_std_min=iql.log_std_min, log_std_max=iql.log_std_max)
     if cfg.method == "rlpd" and sac.target_entropy is None:
         sac = replace(sac, target_entropy=-spec.action_dim / 2.0)
@@ -78,25 +75,15 @@ def resolve(cfg: RunConfig) -> RunConfig:
         cfg,
         pretrain=pretrain,
         alpha=alpha,
-        boto=boto,
         offline=replace(cfg.offline, cql=cql, iql=iql),
         online=replace(cfg.online, sac=sac),
     )
 
 
-def _check_alpha(alpha) -> None:
-    if not isinstance(alpha, (int, float)) or math.isnan(alpha) or not -1.0 <= alpha <= 1.0:
-        raise ConfigError(
-            f"alpha = {alpha!r} is outside [-1, 1]. alpha is BOTO's bias controller (paper section 4): "
-            f"> 0 conservative, < 0 optimistic, the paper's grid is [-1, 1] in steps of 0.1. "
-            f"Pass e.g. --alpha -0.5."
-        )
-
-
 def validate(cfg: RunConfig) -> None:
     """Raise ConfigError for any value that cannot run (call after ``resolve``)."""
     from botorl.configs.presets import PROFILES
-    from botorl.pipeline.methods import get_method
+    from botorl.configs.methods import get_method
 
     method = get_method(cfg.method)
     if cfg.profile not in PROFILES:
@@ -147,18 +134,18 @@ def validate(cfg: RunConfig) -> None:
     for name, dims in (("network.actor_hidden_dims", cfg.network.actor_hidden_dims),
                        ("network.critic_hidden_dims", cfg.network.critic_hidden_dims)):
         need(len(dims) >= 1 and all(int(d) >= 1 for d in dims), name, dims, "give positive layer widths, e.g. 256 256")
+    if method.uses_alpha:
+        check_alpha(cfg.alpha)
     if "warmup" in method.stages and cfg.online.steps <= cfg.warmup.steps:
         raise ConfigError(
             f"--online.steps = {cfg.online.steps} leaves no fine-tuning after the {cfg.warmup.steps}-step warm-up: "
             f"the warm-up's env steps count as online steps (WSRL's accounting), so online.steps is the whole "
             f"online budget. Raise --online.steps above --warmup.steps or lower --warmup.steps."
         )
-    if method.uses_alpha:
-        _check_alpha(cfg.boto.alpha)
     try:
         if method.pretrains:
             (cfg.offline.iql if cfg.pretrain == "iql" else cfg.offline.cql).validate()
-        if method.online in ("wsrl", "scratch"):
+        if method.finetune_start in ("warm_start", "scratch"):
             cfg.online.sac.validate()
         if "boto" in method.stages:
             cfg.boto.validate()

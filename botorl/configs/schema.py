@@ -8,9 +8,10 @@ defaults (presets.py); ``resolve`` then makes the config consistent (below) and
 
 What the pipeline owns (``resolve`` writes it into the agent configs, so set it here, not in
 ``offline.cql``/``online.sac``): the network sizes and ensemble size (``network.*``), the
-UTD ratio of fine-tuning (``online.utd``), the CQL/Cal-QL switch (``pretrain``) and BOTO's
-``alpha`` (top-level ``alpha``, copied into ``boto.alpha``). Everything else in the agent
-configs is theirs to set.
+UTD ratio of fine-tuning (``online.utd``) and the CQL/Cal-QL switch (``pretrain``). A run's
+seed (``seed``, with ``online_reseed`` for its online phase) and BOTO's ``alpha`` are
+top-level fields, stored there only: the stages read them from there. Everything else in the
+agent configs is theirs to set.
 """
 
 from __future__ import annotations

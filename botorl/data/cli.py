@@ -129,6 +129,7 @@ def _load_for_info(cfg: Info) -> list[tuple[str, object]]:
     if Path(target).expanduser().exists():
         return [(target, load_path(target))]
     try:
+        from botorl.data.tasks import load_task_data
         from botorl.envs.registry import get_task
 
         task = get_task(target)
@@ -141,7 +142,7 @@ def _load_for_info(cfg: Info) -> list[tuple[str, object]]:
         ) from None
     if task is None:
         raise BotorlError(f"{target!r} is not a dataset path or a generated task.")
-    return [(target, task.load_dataset())]
+    return [(target, load_task_data(task))]
 
 
 def _info(cfg: Info) -> int:

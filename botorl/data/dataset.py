@@ -47,6 +47,11 @@ class RewardTransform:
     scale: float = 1.0
     bias: float = 0.0
 
+    @classmethod
+    def of(cls, spec) -> "RewardTransform":
+        """The transform of a task (``TaskSpec.reward_scale``, ``reward_bias``)."""
+        return cls(spec.reward_scale, spec.reward_bias)
+
     def __call__(self, rewards):
         return self.scale * rewards + self.bias
 
@@ -341,6 +346,13 @@ class Dataset:
         """Uniform rows with replacement: a Batch of (B, ...) or, with ``num_batches=K``, (K, B, ...)."""
         shape = (batch_size,) if num_batches is None else (num_batches, batch_size)
         return self.batch_at(rng.integers(0, len(self), size=shape))
+
+    def sample_members(self, rngs, batch_size: int, num_batches: int | None = None) -> dict:
+        """One batch per member of a population, each drawn with the member's own generator
+        exactly as ``sample(rngs[i], ...)`` draws it, the rows of all gathered at once (the data
+        held once): stacked (N, [K,] B, ...)."""
+        shape = (batch_size,) if num_batches is None else (num_batches, batch_size)
+        return self.batch_at(np.stack([r.integers(0, len(self), size=shape) for r in rngs]))
 
     def to_device(self) -> dict:
         """The Batch fields of all rows as a pytree of ``jnp`` arrays (for ``sample_batch``)."""

@@ -29,7 +29,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from botorl.data.dataset import Dataset, validate
-from botorl.data.minari_io import SPLIT_KEY, FlatCacheInvalid, read_flat, rebuild_flat
+from botorl.data.minari_io import SPLIT_KEY, FlatCacheInvalid, minari_root, read_flat, rebuild_flat
 from botorl.errors import DataFormatError, DatasetNotFoundError
 
 # ----------------------------------------------------------------------------- hints
@@ -55,12 +55,6 @@ CALQL_DATA_INSTRUCTIONS = (
     "explicitly (e.g. `botorl run --task door-binary-v0 --data.path /path/to/offpolicy_hand_data`, "
     "or --data.path EXPERT.npy,BC.npy). These files are pickles, so botorl only opens files you name."
 )
-
-
-def minari_root() -> Path:
-    """Minari's dataset root: ``$MINARI_DATASETS_PATH`` or ``~/.minari/datasets``."""
-    env = os.environ.get("MINARI_DATASETS_PATH")
-    return Path(env) if env else Path.home() / ".minari" / "datasets"
 
 
 def download_hint(name: str) -> str:

@@ -119,6 +119,12 @@ def clean_stale_tmp(root: Path) -> list[Path]:
     return removed
 
 
+def minari_root() -> Path:
+    """Minari's dataset root: ``$MINARI_DATASETS_PATH`` or ``~/.minari/datasets``."""
+    env = os.environ.get("MINARI_DATASETS_PATH")
+    return Path(env) if env else Path.home() / ".minari" / "datasets"
+
+
 @contextlib.contextmanager
 def _minari_root(path: Path):
     old = os.environ.get("MINARI_DATASETS_PATH")
@@ -284,7 +290,6 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
 def _resolve(dataset_id: str | None, path: str | os.PathLike | None, root: str | os.PathLike | None):
     from minari.dataset.minari_dataset import parse_dataset_id
 
-    from botorl.data.loaders import minari_root
 
     if path is not None:
         p = Path(path).expanduser().resolve()

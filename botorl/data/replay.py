@@ -1,20 +1,29 @@
-"""Online replay buffer (fixed-capacity ring) and mixed sampling from several sources.
+"""Online replay buffer (fixed-capacity ring), with a member axis for populations, and
+mixed sampling from several sources.
+
+``ReplayBuffer(capacity, obs_dim, action_dim)`` is one buffer: ``insert`` one transition,
+``sample(rng, B)``. ``ReplayBuffer(..., members=N)`` holds N such rings in one set of arrays
+(N, capacity, ...) for a population whose members step in lockstep: ``insert`` writes one row
+per member with one vectorised assignment per field, and ``sample_members`` draws each
+member's batch with the member's own generator, exactly as that member's own buffer would
+(``sample`` / ``sample_mixed``). The fine-tuning stage always uses the member form (a single
+run: N = 1).
 
 ``sample_mixed`` draws one batch whose rows come from several sources (replay buffers and/or
 ``Dataset``s) in fixed proportions, e.g. RLPD's and the Cal-QL/CQL/IQL fine-tuning baselines'
 50/50 offline/online batches. Counts are exact: ``ratios=(0.5, 0.5)`` with ``batch_size=256``
 gives exactly 128 rows from each source (largest-remainder rounding otherwise).
 
-Finished episodes: the buffer knows which rows belong to the episode still running (the
-newest ``open_rows``; ``end_episode()`` closes it). Cal-QL online needs each row's
-Monte-Carlo return-to-go, known only once its episode ends, so it samples
-``buffer.finished()``, a view of the closed rows only -- as WSRL does for Cal-QL, which
+Finished episodes: the buffer knows which rows belong to each member's episode still running
+(the newest ``open_rows``; ``end_episode()`` closes it). Cal-QL online needs each row's
+Monte-Carlo return-to-go, known only once its episode ends, so it samples finished rows only
+(``finished()``, or ``sample_members(..., finished=True)``) -- as WSRL does for Cal-QL, which
 samples finished trajectories and waits one episode before its first update.
 """
 
 from __future__ import annotations
 
-from typing import Sequence, Union
+from typing import Callable, Sequence, Union
 
 import numpy as np
 
@@ -22,168 +31,244 @@ from botorl.data.dataset import BATCH_KEYS, Dataset
 from botorl.errors import BotorlError, DataFormatError
 
 _FIELDS = ("observations", "actions", "rewards", "next_observations", "dones", "mc_returns")
+_EMPTY = "cannot sample from an empty replay buffer; insert transitions first."
+_ALL_EMPTY = "sample_mixed: every source with a positive ratio is empty; nothing to sample."
 
 
 class ReplayBuffer:
-    """Ring buffer of float32 transitions; the oldest rows are overwritten once full.
+    """Ring buffer(s) of float32 transitions; the oldest rows are overwritten once full.
 
-    ``insert`` is O(1); ``insert_batch`` writes many rows with at most two slice copies.
-    ``state_dict()`` / ``load_state_dict()`` give plain numpy arrays for checkpoints.
+    ``members=None``: one buffer, fields (capacity, ...). ``members=N``: N buffers filled in
+    lockstep, fields (N, capacity, ...); ``size``, ``insert_index`` and ``total_inserted`` are
+    shared, ``open_rows`` is per member. ``state_dict()`` / ``from_state_dict()`` give plain
+    numpy arrays for checkpoints (each form its own layout, both read back).
     """
 
-    def __init__(self, capacity: int, obs_dim: int, action_dim: int):
+    def __init__(self, capacity: int, obs_dim: int, action_dim: int, members: int | None = None):
         if capacity <= 0:
             raise ValueError(f"capacity must be positive, got {capacity}")
-        self.capacity = int(capacity)
-        self.obs_dim = int(obs_dim)
-        self.action_dim = int(action_dim)
-        self.observations = np.zeros((capacity, obs_dim), np.float32)
-        self.actions = np.zeros((capacity, action_dim), np.float32)
-        self.rewards = np.zeros((capacity,), np.float32)
-        self.next_observations = np.zeros((capacity, obs_dim), np.float32)
-        self.dones = np.zeros((capacity,), np.float32)
-        self.mc_returns = np.zeros((capacity,), np.float32)
+        self.capacity, self.obs_dim, self.action_dim = int(capacity), int(obs_dim), int(action_dim)
+        self.members = None if members is None else int(members)
+        m = 1 if members is None else self.members
+        tails = {"observations": (obs_dim,), "actions": (action_dim,), "next_observations": (obs_dim,)}
+        self._arrays = {k: np.zeros((m, capacity) + tails.get(k, ()), np.float32) for k in _FIELDS}
+        for k, arr in self._arrays.items():  # the public fields: views without the axis for one buffer
+            setattr(self, k, arr[0] if members is None else arr)
         self.size = 0
         self.insert_index = 0
         self.total_inserted = 0
-        self.open_rows = 0  # rows of the episode still running: the newest ones
+        self._open = np.zeros(m, np.int64)  # rows of each member's running episode: the newest ones
+
+    @property
+    def n(self) -> int:
+        return self._open.shape[0]
+
+    @property
+    def open_rows(self):
+        return int(self._open[0]) if self.members is None else self._open
 
     def __len__(self) -> int:
         return self.size
 
-    def insert(self, observation, action, reward, next_observation, done, mc_return: float = 0.0) -> None:
-        """Add one transition. ``done`` = true terminal only (a time-limit truncation is not done)."""
+    # ------------------------------------------------------------------ inserting
+    def insert(self, observation, action, reward, next_observation, done, mc_return=0.0) -> None:
+        """One transition (per member, stacked (N, ...), for a member buffer). ``done`` = true
+        terminal only (a time-limit truncation is not done)."""
         i = self.insert_index
-        self.observations[i] = observation
-        self.actions[i] = action
-        self.rewards[i] = reward
-        self.next_observations[i] = next_observation
-        self.dones[i] = float(done)
-        self.mc_returns[i] = mc_return
+        for k, v in zip(_FIELDS, (observation, action, reward, next_observation, done, mc_return)):
+            self._arrays[k][:, i] = v
         self.insert_index = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
         self.total_inserted += 1
-        self.open_rows = min(self.open_rows + 1, self.capacity)
+        self._open = np.minimum(self._open + 1, self.capacity)
 
-    def end_episode(self) -> None:
-        """The running episode has ended: its rows become finished (sampleable by ``finished()``)."""
-        self.open_rows = 0
+    def end_episode(self, member: int = 0) -> None:
+        """The member's running episode has ended: its rows become finished."""
+        self._open[member] = 0
+
+    def finished_len(self, member: int = 0) -> int:
+        return int(self.size - self._open[member])
 
     def finished(self) -> "FinishedRows":
         """A view of the rows whose episode has ended (for ``sample_mixed``/``sample``)."""
         return FinishedRows(self)
 
     def insert_batch(self, observations, actions, rewards, next_observations, dones, mc_returns=None) -> None:
-        """Add n transitions of finished episodes at once (in order; if n > capacity only the last
-        ``capacity`` stay)."""
-        data = {
-            "observations": np.asarray(observations, np.float32).reshape(-1, self.obs_dim),
-            "actions": np.asarray(actions, np.float32).reshape(-1, self.action_dim),
-            "rewards": np.asarray(rewards, np.float32).reshape(-1),
-            "next_observations": np.asarray(next_observations, np.float32).reshape(-1, self.obs_dim),
-            "dones": np.asarray(dones, np.float32).reshape(-1),
-        }
-        n = data["rewards"].shape[0]
-        data["mc_returns"] = (
-            np.zeros(n, np.float32) if mc_returns is None else np.asarray(mc_returns, np.float32).reshape(-1)
-        )
-        if any(v.shape[0] != n for v in data.values()):
-            raise DataFormatError(
-                "ReplayBuffer.insert_batch: fields have different lengths "
-                f"{ {k: v.shape[0] for k, v in data.items()} }."
-            )
+        """Add n transitions of finished episodes at once, in order (if n > capacity only the last
+        ``capacity`` stay); a member buffer takes (N, n, ...) arrays."""
+        data = {"observations": (observations, (self.obs_dim,)), "actions": (actions, (self.action_dim,)),
+                "rewards": (rewards, ()), "next_observations": (next_observations, (self.obs_dim,)),
+                "dones": (dones, ()), "mc_returns": (mc_returns, ())}
+        data = {k: None if v is None else np.asarray(v, np.float32).reshape((self.n, -1) + t)
+                for k, (v, t) in data.items()}
+        n = data["rewards"].shape[1]
+        if data["mc_returns"] is None:
+            data["mc_returns"] = np.zeros((self.n, n), np.float32)
+        if any(v.shape[1] != n for v in data.values()):
+            raise DataFormatError("ReplayBuffer.insert_batch: fields have different lengths "
+                                  f"{ {k: v.shape[1] for k, v in data.items()} }.")
         skipped = max(0, n - self.capacity)
-        if skipped:
-            data = {k: v[skipped:] for k, v in data.items()}
         m = n - skipped
         start = (self.insert_index + skipped) % self.capacity
         first = min(m, self.capacity - start)
         for k, v in data.items():
-            buf = getattr(self, k)
-            buf[start : start + first] = v[:first]
-            buf[: m - first] = v[first:]
+            buf = self._arrays[k]
+            buf[:, start:start + first] = v[:, skipped:skipped + first]
+            buf[:, :m - first] = v[:, skipped + first:]
         self.insert_index = (start + m) % self.capacity
         self.size = min(self.size + n, self.capacity)
         self.total_inserted += n
-        self.open_rows = 0
+        self._open[:] = 0
 
-    def insert_dataset(self, dataset: Dataset) -> None:
-        """Copy all rows of a ``Dataset`` (with its MC returns if it has them)."""
-        if dataset.obs_dim != self.obs_dim or dataset.action_dim != self.action_dim:
-            raise DataFormatError(
-                f"cannot insert {dataset!r} into a buffer for obs_dim={self.obs_dim}, "
-                f"action_dim={self.action_dim}."
-            )
-        self.insert_batch(
-            dataset.observations,
-            dataset.actions,
-            dataset.rewards,
-            dataset.next_observations,
-            dataset.terminals,
-            dataset.mc_returns,
-        )
+    def insert_dataset(self, dataset: Dataset | Sequence[Dataset]) -> None:
+        """Copy all rows of a ``Dataset`` (with its MC returns if it has them); a member buffer
+        takes one dataset per member, all of one length (each member's D_warmup)."""
+        datasets = [dataset] if isinstance(dataset, Dataset) else list(dataset)
+        if len(datasets) != self.n or len({len(d) for d in datasets}) != 1:
+            raise ValueError(f"insert_dataset needs {self.n} dataset(s) of one length, got {len(datasets)}")
+        for d in datasets:
+            if d.obs_dim != self.obs_dim or d.action_dim != self.action_dim:
+                raise DataFormatError(f"cannot insert {d!r} into a buffer for obs_dim={self.obs_dim}, "
+                                      f"action_dim={self.action_dim}.")
+        fields = ("observations", "actions", "rewards", "next_observations", "terminals")
+        cols = [np.stack([np.asarray(getattr(d, f), np.float32) for d in datasets]) for f in fields]
+        mc = np.stack([np.zeros(len(d), np.float32) if d.mc_returns is None else d.mc_returns for d in datasets])
+        self.insert_batch(*cols, mc)
 
+    def set_mc_returns(self, rows: Sequence[int], mc_returns: Callable[[Dataset], np.ndarray], member: int = 0) -> None:
+        """Fill the Monte-Carlo returns of one finished episode's ``rows`` (of ``member``) with
+        ``mc_returns(episode)`` (the offline data's rule, applied to the episode as a Dataset)."""
+        if not len(rows):
+            return
+        idx = (member, np.asarray(rows))
+        a = self._arrays
+        ep = Dataset(a["observations"][idx], a["actions"][idx], a["rewards"][idx], a["next_observations"][idx],
+                     a["dones"][idx] > 0.5, metadata={"source": "online episode"})
+        a["mc_returns"][idx] = mc_returns(ep)
+
+    # ------------------------------------------------------------------ sampling
     def batch_at(self, idx: np.ndarray) -> dict:
+        """Rows ``idx`` of a single buffer."""
         return {k: getattr(self, k)[idx] for k in BATCH_KEYS}
 
     def sample(self, rng: np.random.Generator, batch_size: int, num_batches: int | None = None) -> dict:
         """Uniform rows with replacement: (B, ...) or, with ``num_batches=K``, (K, B, ...)."""
         if self.size == 0:
-            raise BotorlError("cannot sample from an empty replay buffer; insert transitions first.")
+            raise BotorlError(_EMPTY)
         shape = (batch_size,) if num_batches is None else (num_batches, batch_size)
         return self.batch_at(rng.integers(0, self.size, size=shape))
 
+    def _take(self, members: np.ndarray, idx: np.ndarray) -> dict:
+        """Rows ``idx`` (M, ...) of ``members`` (M,), one flat ``np.take`` per field: numpy's
+        two-array fancy index (``arr[m, idx]``) is 4-10x slower, and with 8 members it was a
+        fifth of a fine-tuning step's host time."""
+        flat = (members.reshape(members.shape + (1,) * (idx.ndim - 1)) * self.capacity + idx).ravel()
+        out = {}
+        for k in _FIELDS:
+            arr = self._arrays[k]
+            tail = arr.shape[2:]
+            out[k] = np.take(arr.reshape((-1,) + tail), flat, axis=0).reshape(idx.shape + tail)
+        return out
+
+    def _row_index(self, i: int, rng: np.random.Generator, shape, finished: bool) -> np.ndarray:
+        """Member i's row indices as ``sample`` (all rows) or ``FinishedRows.sample`` (closed
+        episodes, oldest first) draws them."""
+        if not finished:
+            return rng.integers(0, self.size, size=shape)
+        oldest = self.insert_index if self.size == self.capacity else 0
+        return (oldest + rng.integers(0, self.finished_len(i), size=shape)) % self.capacity
+
+    def sample_members(self, rngs: Sequence[np.random.Generator], batch_size: int, num_batches: int | None = None,
+                       *, active: Sequence[bool] | None = None, finished: bool = False, offline: Dataset | None = None,
+                       offline_ratio: float = 0.0) -> dict:
+        """One batch per member, drawn as member i's own buffer draws it with ``rngs[i]``:
+        ``sample_mixed([offline, rows], [r, 1 - r], ...)`` or ``rows.sample``, with ``rows`` its
+        buffer or its finished rows. Members not ``active`` draw nothing (their generator is not
+        advanced) and get zeros. Stacked (N, [K,] B, ...)."""
+        active = [True] * self.n if active is None else active
+        lead = () if num_batches is None else (num_batches,)
+        out = {k: np.zeros((self.n,) + lead + (batch_size,) + v.shape[2:], np.float32) for k, v in self._arrays.items()}
+        r_idx, members, off_idx = [], [], []
+        counts = None
+        for i, (rng, on) in enumerate(zip(rngs, active)):
+            if not on:
+                continue
+            n_rows = self.finished_len(i) if finished else self.size
+            if offline is not None:
+                ratios = [offline_ratio if len(offline) > 0 else 0.0, (1.0 - offline_ratio) if n_rows > 0 else 0.0]
+                if sum(ratios) <= 0:
+                    raise BotorlError(_ALL_EMPTY)
+                c_off, c_on = split_counts(ratios, batch_size)
+            else:
+                if n_rows == 0:
+                    raise BotorlError(_EMPTY)
+                c_off, c_on = 0, batch_size
+            if counts is not None and counts != (c_off, c_on):
+                raise AssertionError("members of one population drew batches of different compositions")
+            counts = (c_off, c_on)
+            # the order of sample_mixed: the offline rows, then the buffer's
+            off_idx.append(rng.integers(0, len(offline), size=lead + (c_off,)) if c_off else None)
+            r_idx.append(self._row_index(i, rng, lead + (c_on,), finished) if c_on else None)
+            members.append(i)
+        if not members:
+            return out
+        c_off, c_on = counts
+        parts = []
+        if c_off:
+            parts.append(offline.batch_at(np.stack(off_idx)))
+        if c_on:
+            parts.append(self._take(np.asarray(members), np.stack(r_idx)))
+        axis = len(lead) + 1
+        for k in BATCH_KEYS:
+            out[k][np.asarray(members)] = np.concatenate([p[k] for p in parts], axis=axis)
+        return out
+
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict[str, np.ndarray]:
-        """Filled rows plus counters, as numpy arrays (np.savez-able)."""
+        """Filled rows plus counters, as numpy arrays (np.savez-able); a member buffer's also
+        ``num_members`` and one ``open_rows`` per member."""
         n = self.size
-        state = {k: getattr(self, k)[:n].copy() for k in _FIELDS}
-        state.update(
-            capacity=np.asarray(self.capacity),
-            obs_dim=np.asarray(self.obs_dim),
-            action_dim=np.asarray(self.action_dim),
-            size=np.asarray(self.size),
-            insert_index=np.asarray(self.insert_index),
-            total_inserted=np.asarray(self.total_inserted),
-            open_rows=np.asarray(self.open_rows),
-        )
+        state = {k: self._fields_state(k, n) for k in _FIELDS}
+        if self.members is not None:
+            state["num_members"] = np.asarray(self.members)
+        state.update(capacity=np.asarray(self.capacity), obs_dim=np.asarray(self.obs_dim),
+                     action_dim=np.asarray(self.action_dim), size=np.asarray(self.size),
+                     insert_index=np.asarray(self.insert_index), total_inserted=np.asarray(self.total_inserted),
+                     open_rows=self._open.copy() if self.members is not None else np.asarray(self.open_rows))
         return state
 
-    def load_state_dict(self, state: dict) -> "ReplayBuffer":
-        """Restore from ``state_dict()`` output (in place; returns self)."""
-        for k in ("capacity", "obs_dim", "action_dim"):
-            if int(state[k]) != getattr(self, k):
-                raise DataFormatError(
-                    f"replay buffer checkpoint has {k}={int(state[k])}, this buffer has "
-                    f"{getattr(self, k)}; build the buffer with the checkpoint's sizes."
-                )
-        n = int(state["size"])
-        for k in _FIELDS:
-            arr = np.asarray(state[k])
-            if arr.shape[0] != n:
-                raise DataFormatError(f"replay buffer checkpoint: field {k!r} has {arr.shape[0]} rows, expected {n}.")
-            getattr(self, k)[:n] = arr
-        self.size = n
-        self.insert_index = int(state["insert_index"])
-        self.total_inserted = int(state["total_inserted"])
-        self.open_rows = int(state.get("open_rows", 0))
-        return self
+    def _fields_state(self, k: str, n: int) -> np.ndarray:
+        arr = self._arrays[k][:, :n].copy()
+        return arr[0] if self.members is None else arr
 
     @classmethod
     def from_state_dict(cls, state: dict) -> "ReplayBuffer":
-        return cls(int(state["capacity"]), int(state["obs_dim"]), int(state["action_dim"])).load_state_dict(state)
-
-    sample_mixed = staticmethod(lambda *a, **k: sample_mixed(*a, **k))
+        """A buffer from either form's ``state_dict()`` output."""
+        members = int(state["num_members"]) if "num_members" in state else None
+        buf = cls(int(state["capacity"]), int(state["obs_dim"]), int(state["action_dim"]), members)
+        n = int(state["size"])
+        for k in _FIELDS:
+            arr = np.asarray(state[k])
+            arr = arr[None] if members is None else arr
+            if arr.shape[:2] != (buf.n, n):
+                raise DataFormatError(f"replay buffer checkpoint: field {k!r} has shape {arr.shape}, expected "
+                                      f"{buf.n} member(s) x {n} rows.")
+            buf._arrays[k][:, :n] = arr
+        buf.size = n
+        buf.insert_index = int(state["insert_index"])
+        buf.total_inserted = int(state["total_inserted"])
+        buf._open[:] = np.asarray(state.get("open_rows", 0), np.int64)
+        return buf
 
 
 class FinishedRows:
-    """The rows of a ``ReplayBuffer`` whose episode has ended, oldest first (a live view)."""
+    """The rows of a single ``ReplayBuffer`` whose episode has ended, oldest first (a live view)."""
 
     def __init__(self, buffer: ReplayBuffer):
         self.buffer = buffer
 
     def __len__(self) -> int:
-        return self.buffer.size - self.buffer.open_rows
+        return self.buffer.finished_len()
 
     def batch_at(self, idx: np.ndarray) -> dict:
         b = self.buffer
@@ -232,14 +317,16 @@ def sample_mixed(
         raise ValueError(f"{len(sources)} sources but {len(ratios)} ratios")
     ratios = [float(r) if len(s) > 0 else 0.0 for s, r in zip(sources, ratios)]
     if sum(ratios) <= 0:
-        raise BotorlError("sample_mixed: every source with a positive ratio is empty; nothing to sample.")
+        raise BotorlError(_ALL_EMPTY)
     counts = split_counts(ratios, batch_size)
     parts = []
     for src, c in zip(sources, counts):
         if c == 0:
             continue
-        n = len(src)
         shape = (c,) if num_batches is None else (num_batches, c)
-        parts.append(src.batch_at(rng.integers(0, n, size=shape)))
+        parts.append(src.batch_at(rng.integers(0, len(src), size=shape)))
     axis = 0 if num_batches is None else 1
     return {k: np.concatenate([p[k] for p in parts], axis=axis) for k in BATCH_KEYS}
+
+
+ReplayBuffer.sample_mixed = staticmethod(sample_mixed)

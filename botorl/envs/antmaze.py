@@ -12,9 +12,14 @@
   (ant qpos without x, y, then qvel). This is D4RL's layout; the Minari datasets store the
   same three keys, so a loader concatenates ``ANTMAZE_OBS_KEYS`` in this order.
 - Horizon 1000 (D4RL antmaze evaluation; set by the registry).
+- The medium and umaze maps (``layout``, ``make_antmaze_task``) are the antmaze-*-local tasks'
+  (their data made by botorl.data.generators.antmaze): the same wrapper, D4RL's evaluation
+  start and goal of that map.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -52,3 +57,61 @@ def make_antmaze(seed: int | None = None) -> AntMazeTask:
         reset_target=False,
     )
     return AntMazeTask(inner, OBS_DIM, seed)
+
+
+# ------------------------------------------------------------------ the other mazes (data made by botorl)
+@dataclass(frozen=True)
+class AntMazeLayout:
+    name: str
+    maze_map: tuple[tuple[int, ...], ...]  # 1 = wall, 0 = free
+    locations: tuple[tuple[int, int], ...]  # "play": hand-picked goal/start cells
+    eval_start: tuple[int, int]
+    eval_goal: tuple[int, int]
+
+
+def _layouts() -> dict[str, AntMazeLayout]:
+    import_robotics()
+    from gymnasium_robotics.envs.maze import maps
+
+    def parse(m):
+        walls = tuple(tuple(1 if c == 1 else 0 for c in row) for row in m)
+        picked = tuple((r, c) for r, row in enumerate(m) for c, v in enumerate(row) if v in ("c", "g", "r"))
+        return walls, picked
+
+    out = {}
+    # evaluation start/goal: D4RL's (Minari EVAL_ENV_MAPS 'r'/'g' cells)
+    for name, grid, picked_grid, start, goal in (
+        ("umaze", maps.U_MAZE, None, (3, 1), (1, 1)),
+        ("medium", maps.MEDIUM_MAZE, maps.MEDIUM_MAZE_DIVERSE_GR, (1, 1), (6, 6)),
+        ("large", maps.LARGE_MAZE, maps.LARGE_MAZE_DIVERSE_GR, (1, 1), (7, 9)),
+    ):
+        walls, _ = parse(grid)
+        picked = parse(picked_grid)[1] if picked_grid is not None else (start, goal)
+        out[name] = AntMazeLayout(name, walls, picked, start, goal)
+    return out
+
+
+def layout(maze: str) -> AntMazeLayout:
+    layouts = _layouts()
+    if maze not in layouts:
+        raise ValueError(f"unknown maze {maze!r}; one of {sorted(layouts)}")
+    return layouts[maze]
+
+
+
+
+def make_antmaze_task(maze: str, seed: int | None = None):
+    """The D4RL-style evaluation env on the medium or umaze map (the large map's is
+    ``botorl.envs.antmaze.make_antmaze``): the same wrapper, this maze's start and goal."""
+    import_robotics()
+    from gymnasium_robotics.envs.maze.ant_maze_v4 import AntMazeEnv
+
+    spec = layout(maze)
+
+    class _Task(AntMazeTask):
+        def _reset_options(self):
+            return {"reset_cell": np.array(spec.eval_start), "goal_cell": np.array(spec.eval_goal)}
+
+    inner = AntMazeEnv(maze_map=[list(r) for r in spec.maze_map], reward_type="sparse", continuing_task=False,
+                       reset_target=False)
+    return _Task(inner, OBS_DIM, seed)

@@ -1,9 +1,31 @@
-"""One-step bandit envs (``bandit-pinwheel``, ``bandit-1d``) so the registry is uniform.
+"""One-step bandits (``bandit-pinwheel``, ``bandit-1d``): the task definitions behind the
+paper's Figures 2 and 3 and their env, so the registry is uniform.
 
-The observation is a constant (a single 0.0); the action is in [-1, 1]^A (A = 2 for the
-pinwheel, 1 for the 1-D bandit); the reward is the bandit's R(a) from
-``botorl.data.generators.bandit`` (the data generator's own reward, so data and env agree);
-every episode ends after one step (terminated; gamma is irrelevant).
+Both tasks have one step per episode (gamma = 0 semantics: every transition is terminal), a
+constant observation ``zeros(1)``, and rewards that are a deterministic function R(a) of the
+action, so the BOTO fixed point can be computed exactly (algorithms.md section 4):
+``Q*(a_bar) = ∫ p_D(a) q(a_bar|a) (R(a) - alpha ||a - a_bar||^2) da / ∫ p_D(a) q(a_bar|a) da``.
+
+* ``bandit-pinwheel`` (Figure 2): 2-D actions from a pinwheel density, the standard toy
+  density with curved arms (here ``PINWHEEL_ARMS`` = 5 spiral arms). In polar coordinates
+  ``(rho, theta)``: ``rho`` ~ Normal(0.55, 0.15^2) truncated to [0.05, 0.98], and on arm k
+  ``theta = 2 pi k / 5 + twist * rho + Normal(0, 0.12^2)`` with twist = 2.5 rad, so each arm
+  bends as it goes out. All mass lies inside the unit disk, hence inside [-1, 1]^2. The
+  density ``pinwheel_density(a)`` is exact (polar density / rho, wrapped normal in angle).
+  Reward: ``R(a) = (k(a) + rho) / 5`` where k(a) is the arm with the largest density at a, so
+  arm k's rewards lie in [k/5, (k+1)/5): a distinct range per arm.
+* ``bandit-1d`` (Figure 3): 1-D actions drawn uniformly from a finite support of
+  ``BANDIT_1D_CLUSTERS`` (3 clusters of 7 evenly spaced points, each cluster with its own
+  reward). ``bandit_1d_support()`` returns the support points, their rewards and their
+  probabilities: p_D is that discrete distribution (integrals become weighted sums), and the
+  red dots of Figure 3 are its (action, reward) pairs.
+
+``sample_*`` functions are deterministic for a given ``np.random.Generator``; the data are
+made from them by botorl.data.generators.bandit.
+
+The env: the observation is a constant (a single 0.0); the action is in [-1, 1]^A (A = 2 for
+the pinwheel, 1 for the 1-D bandit); the reward is the bandit's R(a), as in the data; every
+episode ends after one step (terminated; gamma is irrelevant).
 ``info["success"]`` = (R(a) - min R) / (max R - min R), R's range estimated once on a grid
 over the action box, i.e. how close the action is to the best one.
 """
@@ -14,7 +36,115 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-DIMS = {"pinwheel": (1, 2), "1d": (1, 1)}
+OBS_DIM = 1
+ACTION_DIM = {"pinwheel": 2, "1d": 1}
+
+PINWHEEL_ARMS = 5
+PINWHEEL_RADIUS_MEAN = 0.55
+PINWHEEL_RADIUS_STD = 0.15
+PINWHEEL_RADIUS_RANGE = (0.05, 0.98)
+PINWHEEL_TWIST = 2.5
+PINWHEEL_ANGLE_STD = 0.12
+
+# (centre, reward) per cluster; 7 points spaced 0.03 apart around each centre.
+BANDIT_1D_CLUSTERS = ((-0.6, 0.3), (0.0, 1.0), (0.55, 0.6))
+BANDIT_1D_POINTS_PER_CLUSTER = 7
+BANDIT_1D_SPACING = 0.03
+
+
+# ----------------------------------------------------------------------------- pinwheel
+
+
+def _radius_pdf(rho: np.ndarray) -> np.ndarray:
+    from scipy.stats import truncnorm
+
+    lo, hi = PINWHEEL_RADIUS_RANGE
+    a, b = (lo - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD, (hi - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD
+    return truncnorm.pdf(rho, a, b, loc=PINWHEEL_RADIUS_MEAN, scale=PINWHEEL_RADIUS_STD)
+
+
+def _arm_angle_pdf(rho: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """(..., K): wrapped-normal density of theta around each arm's centre line at radius rho."""
+    base = 2 * np.pi * np.arange(PINWHEEL_ARMS) / PINWHEEL_ARMS
+    centre = base + PINWHEEL_TWIST * rho[..., None]
+    d = (theta[..., None] - centre + np.pi) % (2 * np.pi) - np.pi  # in [-pi, pi)
+    s = PINWHEEL_ANGLE_STD
+    # Wrapping terms beyond +-2 pi are below 1e-300 for s = 0.12.
+    tot = sum(np.exp(-0.5 * ((d + 2 * np.pi * m) / s) ** 2) for m in (-1, 0, 1))
+    return tot / (s * np.sqrt(2 * np.pi))
+
+
+def sample_pinwheel(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """n actions (n, 2) from the pinwheel density, and their arm indices (n,)."""
+    from scipy.stats import truncnorm
+
+    lo, hi = PINWHEEL_RADIUS_RANGE
+    a, b = (lo - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD, (hi - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD
+    arm = rng.integers(0, PINWHEEL_ARMS, size=n)
+    rho = truncnorm.rvs(a, b, loc=PINWHEEL_RADIUS_MEAN, scale=PINWHEEL_RADIUS_STD, size=n, random_state=rng)
+    theta = 2 * np.pi * arm / PINWHEEL_ARMS + PINWHEEL_TWIST * rho + rng.normal(0.0, PINWHEEL_ANGLE_STD, size=n)
+    acts = np.stack([rho * np.cos(theta), rho * np.sin(theta)], axis=-1)
+    return acts.astype(np.float32), arm
+
+
+def pinwheel_density(actions: np.ndarray) -> np.ndarray:
+    """p_D(a) for actions (..., 2): exact density w.r.t. Lebesgue measure on the plane."""
+    a = np.asarray(actions, np.float64)
+    rho = np.hypot(a[..., 0], a[..., 1])
+    theta = np.arctan2(a[..., 1], a[..., 0])
+    polar = _radius_pdf(rho) * _arm_angle_pdf(rho, theta).mean(axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(rho > 0, polar / np.maximum(rho, 1e-300), 0.0)
+
+
+def pinwheel_arm(actions: np.ndarray) -> np.ndarray:
+    """Index of the arm whose density is largest at each action (..., 2) -> (...)."""
+    a = np.asarray(actions, np.float64)
+    rho = np.hypot(a[..., 0], a[..., 1])
+    theta = np.arctan2(a[..., 1], a[..., 0])
+    return np.argmax(_arm_angle_pdf(rho, theta), axis=-1)
+
+
+def pinwheel_reward(actions: np.ndarray) -> np.ndarray:
+    """R(a) = (k(a) + rho) / K: arm k's rewards lie in [k/K, (k+1)/K)."""
+    a = np.asarray(actions, np.float64)
+    rho = np.clip(np.hypot(a[..., 0], a[..., 1]), 0.0, 1.0 - 1e-9)
+    return ((pinwheel_arm(a) + rho) / PINWHEEL_ARMS).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- 1-D
+
+
+def bandit_1d_support() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(actions (M, 1), rewards (M,), probabilities (M,)) of the 1-D bandit's data distribution."""
+    k = BANDIT_1D_POINTS_PER_CLUSTER
+    offs = (np.arange(k) - (k - 1) / 2) * BANDIT_1D_SPACING
+    acts = np.concatenate([c + offs for c, _ in BANDIT_1D_CLUSTERS])
+    rews = np.concatenate([np.full(k, r) for _, r in BANDIT_1D_CLUSTERS])
+    probs = np.full(len(acts), 1.0 / len(acts))
+    return acts[:, None].astype(np.float32), rews.astype(np.float32), probs
+
+
+def bandit_1d_reward(actions: np.ndarray) -> np.ndarray:
+    """R(a) of the nearest support point (exact on the support, where Q* needs it).
+
+    ``actions``: (..., 1) -> (...); a plain (n,) array is read as n scalar actions.
+    """
+    sup, rew, _ = bandit_1d_support()
+    a = np.asarray(actions, np.float64)
+    if a.ndim > 1 and a.shape[-1] == 1:
+        a = a[..., 0]
+    idx = np.argmin(np.abs(a[..., None] - sup[:, 0]), axis=-1)
+    return rew[idx]
+
+
+def sample_1d(rng: np.random.Generator, n: int) -> np.ndarray:
+    sup, _, probs = bandit_1d_support()
+    return sup[rng.choice(len(sup), size=n, p=probs)]
+
+
+# ----------------------------------------------------------------------------- the env
+DIMS = {kind: (OBS_DIM, a) for kind, a in ACTION_DIM.items()}
 
 
 def bandit_dims(kind: str) -> tuple[int, int]:
@@ -23,10 +153,8 @@ def bandit_dims(kind: str) -> tuple[int, int]:
 
 
 def reward_function(kind: str):
-    """R(a) for a batch of actions (N, A) -> (N,), from the bandit data generator."""
-    from botorl.data.generators import bandit
-
-    fn = {"pinwheel": bandit.pinwheel_reward, "1d": bandit.bandit_1d_reward}[kind]
+    """R(a) for a batch of actions (N, A) -> (N,)."""
+    fn = {"pinwheel": pinwheel_reward, "1d": bandit_1d_reward}[kind]
     return lambda a: np.asarray(fn(np.asarray(a, np.float64)), dtype=np.float64).reshape(-1)
 
 

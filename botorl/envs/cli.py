@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import tyro
 
+from botorl.data.tasks import data_status
 from botorl.envs.registry import TaskSpec, get_task, list_tasks
 
 
@@ -36,7 +37,7 @@ class CheckConfig:
 def list_main(cfg: ListConfig) -> int:
     rows = []
     for spec in list_tasks():
-        status, detail = spec.data_status()
+        status, detail = data_status(spec)
         rows.append((spec.name, spec.domain, str(spec.max_episode_steps), spec.dataset_source.describe(), status, detail))
     widths = [max(len(r[i]) for r in rows + [("task", "domain", "horizon", "data", "status", "")]) for i in range(5)]
     header = ("task", "domain", "horizon", "data", "status")

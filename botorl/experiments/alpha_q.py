@@ -175,10 +175,10 @@ def main(argv: list[str] | None = None) -> int:
         if not any(r["seed"] == seed and r["arm"] == "pre-trained" for r in rows):
             rows.append({"seed": seed, "arm": "pre-trained", "alpha": math.nan, "step": 0,
                          **q_profile(agent0, obs, acts, np.random.default_rng(7))})
-        for name, arm in arms(cfg.boto.alpha).items():
+        for name, arm in arms(cfg.alpha).items():
             if (args.arms and name not in args.arms.split(",")) or (seed, name) in done:
                 continue
-            boto = dataclasses.replace(cfg.boto, alpha=arm["alpha"], boto_steps=steps[-1],
+            boto = dataclasses.replace(cfg.boto, boto_steps=steps[-1],
                                        backup_entropy=arm.get("backup_entropy", cfg.boto.backup_entropy))
 
             def measure(step, agent, _record, name=name, arm=arm):
@@ -186,7 +186,8 @@ def main(argv: list[str] | None = None) -> int:
                     rows.append({"seed": seed, "arm": name, "alpha": arm["alpha"], "step": step,
                                  **q_profile(agent, obs, acts, np.random.default_rng(7))})
 
-            run_boto(agent0, d_off, d_warm if arm.get("warmup", True) else None, boto, callback=measure,
+            run_boto(agent0, d_off, d_warm if arm.get("warmup", True) else None, boto, alpha=arm["alpha"],
+                     seed=cfg.online_seed, callback=measure,
                      progress=False)
             print(f"seed {seed} {name}: done", flush=True)
             _write(out, rows, scales, steps, atomic_write_text, atomic_save_figure)

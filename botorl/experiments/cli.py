@@ -177,7 +177,7 @@ def _check_trial_configs(grid) -> None:
     from botorl.errors import BotorlError
 
     try:
-        from botorl.pipeline.cli import build_config
+        from botorl.configs.build import build_config
     except ImportError:
         return
     seen = set()

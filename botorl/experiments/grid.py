@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -72,7 +71,7 @@ class PopulationJob:
 
     Its members are the product of ``seeds`` and ``alphas`` (a population is always a
     product, so one `botorl run` command line describes it). Each member's run directory is
-    ``<relpath>/<member name>`` (botorl.pipeline.population.Member.name)."""
+    ``<relpath>/<member name>`` (botorl.configs.members.Member.name)."""
 
     task: str
     method: str
@@ -103,7 +102,7 @@ class PopulationJob:
 
     def member_dir(self, trial: Trial) -> str:
         """A member's run directory, relative to the sweep directory."""
-        from botorl.pipeline.population import Member
+        from botorl.configs.members import Member
 
         return f"{self.relpath}/{Member(trial.seed, trial.alpha).name}"
 
@@ -173,55 +172,18 @@ def _as_list(value: Any, field: str) -> list[Any]:
 
 
 def parse_seeds(value: Any) -> list[int]:
-    """`"0-4"` -> 0..4 inclusive; `"0,2,5"`; `3`; a list; or a mix (`"0-2,7"`)."""
-    seeds: list[int] = []
-    for item in _as_list(value, "seeds"):
-        text = str(item).strip()
-        try:
-            if "-" in text[1:]:
-                lo, hi = text.split("-", 1)
-                lo_i, hi_i = int(lo), int(hi)
-                if hi_i < lo_i:
-                    raise ValueError
-                seeds.extend(range(lo_i, hi_i + 1))
-            else:
-                seeds.append(int(text))
-        except ValueError:
-            raise ConfigError(
-                f"Grid field 'seeds': cannot read {text!r}. Use a range like 0-4 (inclusive), a "
-                "comma-separated list like 0,1,2, or a YAML list of integers."
-            ) from None
-    if any(s < 0 for s in seeds):
-        raise ConfigError(f"Grid field 'seeds': seeds must be >= 0, got {seeds}.")
-    return sorted(dict.fromkeys(seeds))
+    """The seeds of the grid (botorl.configs.members.parse_seeds: a seed given twice is an
+    error), in increasing order: the trials' order."""
+    from botorl.configs.members import parse_seeds as parse
+
+    return sorted(parse(value, "seeds"))
 
 
 def parse_alphas(value: Any) -> list[float]:
-    """`"-1:1:0.1"` (start:stop:step, stop inclusive) or `"0,0.5,-0.3"` or a list."""
-    if value is None:
-        return []
-    alphas: list[float] = []
-    items = [value] if isinstance(value, str) and ":" in value and "," not in value else _as_list(value, "alphas")
-    for item in items:
-        text = str(item).strip()
-        try:
-            if ":" in text:
-                start, stop, step = (float(p) for p in text.split(":"))
-                if step <= 0 or stop < start:
-                    raise ValueError
-                n = int(math.floor((stop - start) / step + 1e-9)) + 1
-                alphas.extend(round(start + i * step, 6) for i in range(n))
-            else:
-                alphas.append(round(float(text), 6))
-        except ValueError:
-            raise ConfigError(
-                f"Grid field 'alphas': cannot read {text!r}. Use start:stop:step with stop included "
-                "(e.g. -1:1:0.1 gives 21 values) or a comma-separated list like -0.5,0,0.5."
-            ) from None
-    bad = [a for a in alphas if not -1.0 <= a <= 1.0]
-    if bad:
-        raise ConfigError(f"Grid field 'alphas': BOTO's alpha lies in [-1, 1]; got {bad}.")
-    return [0.0 if a == 0 else a for a in dict.fromkeys(alphas)]
+    """The alphas of the grid (botorl.configs.members.parse_alphas), in the order given."""
+    from botorl.configs.members import parse_alphas as parse
+
+    return parse(value, "alphas")
 
 
 def parse_methods(value: Any) -> list[tuple[str, str | None]]:

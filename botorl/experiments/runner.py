@@ -7,13 +7,12 @@ else means `botorl run`. So a sweep that was killed (or a machine that rebooted)
 by starting the same command again. `sweep.json` (written atomically) records the grid and,
 per trial, its state, how many times it was launched and how it last ended.
 
-Backends:
-- sequential: one trial at a time with the machine's full thread pools;
-- local: ``--workers`` processes (default: one per core), each pinned to its own block of
-  the cores (C // W of them); a worker with one core has XLA/BLAS limited to one thread
-  (a 1-core trial with many threads only adds context switches), one with several keeps
-  the thread pools;
-- ray: one Ray task (num_cpus=1) per trial on an existing cluster or a local instance.
+Backends, one module each (``start``, ``launch``, ``poll``, ``abort``, ``close``):
+- backend_local.py: ``sequential``, one trial at a time with the machine's full thread
+  pools, and ``local``, ``--workers`` processes (default: one per core), each pinned to its
+  own block of the cores;
+- backend_ray.py: ``ray``, one Ray task (num_cpus=1) per trial on an existing cluster or a
+  local instance.
 
 With ``population_size`` K > 1 the unit of work of every backend is a population: the
 trials of one (task, method, pre-training) grouped K at a time (grid.group_populations) and
@@ -32,62 +31,31 @@ import dataclasses
 import datetime as _dt
 import json
 import os
-import shutil
 import signal
 import socket
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections import deque
 from pathlib import Path
 from typing import Any, Sequence
 
-from botorl.io import atomic_write_json, pid_alive
 from botorl.errors import BotorlError, ConfigError
-from botorl.experiments.child import launcher
+from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, single_thread_env, stop_orphan
+from botorl.experiments.backend_ray import RayBackend
+from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial
+from botorl.io import atomic_write_json
 
 MANIFEST = "sweep.json"
 LOCKFILE = ".sweep.lock"
 TRIAL_LOG = "sweep-trial.log"  # stdout+stderr of every attempt, appended
-TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan detection)
 USER_ERROR_EXIT = 2  # BotorlError: retrying cannot help
 
 BACKENDS = ("sequential", "local", "ray")
 
-# Thread settings for a trial pinned to one core: the usual BLAS/OpenMP knobs. XLA needs no
-# flag: its CPU thread pools are sized from the affinity mask (a JAX 0.10 process pinned to
-# one core starts 13 threads instead of 17, all on that core). --xla_cpu_multi_thread_eigen=false
-# is accepted by JAX 0.10 but did not change that, and any XLA_FLAGS value is part of the
-# persistent compile cache's key, so setting it would make pinned trials recompile everything
-# that unpinned runs already cached. Extra flags for pinned trials: $BOTORL_SWEEP_XLA_FLAGS.
-SINGLE_THREAD_ENV = {
-    "OMP_NUM_THREADS": "1",
-    "OPENBLAS_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "VECLIB_MAXIMUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1",
-    "TF_NUM_INTRAOP_THREADS": "1",
-    "TF_NUM_INTEROP_THREADS": "1",
-}
-
-
-RAY_ENV_PREFIXES = ("BOTORL_", "XLA_", "JAX_", "MINARI_", "MUJOCO_", "PYTHONUNBUFFERED")
-
-
 def default_command() -> list[str]:
     return [sys.executable, "-m", "botorl.cli"]
-
-
-def single_thread_env(base: dict[str, str] | None = None) -> dict[str, str]:
-    env = dict(os.environ if base is None else base)
-    env.update(SINGLE_THREAD_ENV)
-    extra = env.get("BOTORL_SWEEP_XLA_FLAGS", "").strip()
-    if extra:
-        env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {extra}".strip()
-    return env
 
 
 def _now() -> str:
@@ -151,8 +119,8 @@ def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:
     finished pre-training with its own settings under ``directory`` (BOTO's, for WSRL at the
     same seeds), else ``[]``: the trial then pre-trains itself."""
     from botorl.pipeline import shared_pretrain
-    from botorl.pipeline.methods import get_method
-    from botorl.pipeline.population_cli import build_population
+    from botorl.configs.methods import get_method
+    from botorl.configs.build import build_population
 
     try:
         cfg, _, member_cfgs = build_population(args)
@@ -163,84 +131,6 @@ def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:
     if shared_pretrain.match(member_cfgs, directory, strict=False) is None:
         return []
     return ["--pretrained", str(directory)]
-
-
-# ---------------------------------------------------------------------------------------------
-# Child processes
-
-
-def _cmdline(pid: int) -> str:
-    try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-    except OSError:
-        return ""
-
-
-def stop_orphan(run_dir: Path, timeout: float = 15.0) -> bool:
-    """Stop a trial process left from an earlier sweep of this directory (same host only)."""
-    info = read_json(Path(run_dir) / TRIAL_PID)
-    if not info or info.get("host") != socket.gethostname():
-        return False
-    pid = int(info.get("pid", 0) or 0)
-    if pid <= 0 or pid == os.getpid() or not pid_alive(pid):
-        return False
-    if str(Path(run_dir).resolve()) not in _cmdline(pid):  # pid reused by something else
-        return False
-    with contextlib.suppress(ProcessLookupError):
-        os.kill(pid, signal.SIGTERM)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and pid_alive(pid) and str(Path(run_dir).resolve()) in _cmdline(pid):
-        time.sleep(0.1)
-    if pid_alive(pid) and str(Path(run_dir).resolve()) in _cmdline(pid):
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pid, signal.SIGKILL)
-    return True
-
-
-def stop_processes_mentioning(needle: str, timeout: float = 10.0) -> int:
-    """SIGTERM (then SIGKILL) this user's processes whose command line contains `needle`."""
-    me = os.getpid()
-    uid = os.getuid()
-    victims = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit() or int(entry.name) == me:
-            continue
-        try:
-            if entry.stat().st_uid != uid:
-                continue
-        except OSError:
-            continue
-        if _mentions(int(entry.name), needle):
-            victims.append(int(entry.name))
-    for pid in victims:
-        with contextlib.suppress(ProcessLookupError, PermissionError):
-            os.kill(pid, signal.SIGTERM)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and any(pid_alive(p) and _mentions(p, needle) for p in victims):
-        time.sleep(0.1)
-    for pid in victims:
-        if pid_alive(pid) and _mentions(pid, needle):
-            with contextlib.suppress(ProcessLookupError, PermissionError):
-                os.kill(pid, signal.SIGKILL)
-    return len(victims)
-
-
-def _mentions(pid: int, needle: str) -> bool:
-    """The command line or an open file of `pid` contains `needle` (Ray's daemons rename
-    their process title, but keep their log files under the instance's temp dir open)."""
-    if needle in _cmdline(pid):
-        return True
-    try:
-        fds = list(Path(f"/proc/{pid}/fd").iterdir())
-    except OSError:
-        return False
-    for fd in fds:
-        try:
-            if needle in os.readlink(fd):
-                return True
-        except OSError:
-            continue
-    return False
 
 
 def _log_tail(path: Path, n: int = 20) -> str:
@@ -297,10 +187,8 @@ class Sweep:
         self.trials = grid.trials() if options.population_size <= 1 else grid.populations(options.population_size)
         self.manifest: dict[str, Any] = {}
         self._lock_file = None
-        self._ray = None
-        self._ray_fn = None
-        self._ray_tmp: str | None = None
         self._pbar = None
+        self.backend = (RayBackend if options.backend == "ray" else LocalBackend)(self)
 
     # -- manifest ------------------------------------------------------------------------------
 
@@ -309,7 +197,7 @@ class Sweep:
 
     def _load_manifest(self) -> None:
         old = read_json(self.out / MANIFEST) or {}
-        self._cleanup_previous_ray(old)
+        cleanup_previous_ray(old)
         old_grid = old.get("grid") or {}
         for field in ("profile", "overrides"):
             if old_grid and old_grid.get(field) != self.grid.to_json()[field]:
@@ -346,13 +234,13 @@ class Sweep:
                     mtime = (self.run_dir(trial) / "summary.json").stat().st_mtime
                     entry["ended"] = _dt.datetime.fromtimestamp(mtime).isoformat(timespec="seconds")
 
-    def _save(self) -> None:
+    def save(self) -> None:
         self.manifest["updated"] = _now()
         states = [self.manifest["trials"][t.id]["state"] for t in self.trials]
         self.manifest["counts"] = {s: states.count(s) for s in sorted(set(states))}
         atomic_write_json(self.out / MANIFEST, self.manifest)
 
-    def _entry(self, trial: Trial) -> dict[str, Any]:
+    def entry(self, trial: Trial) -> dict[str, Any]:
         return self.manifest["trials"][trial.id]
 
     # -- locking: two sweeps in one directory would launch every trial twice ---------------------
@@ -385,47 +273,21 @@ class Sweep:
 
     # -- launching -------------------------------------------------------------------------------
 
-    def _workers(self) -> int:
-        if self.opt.backend == "sequential":
-            return 1
-        if self.opt.workers:
-            return max(1, int(self.opt.workers))
-        try:
-            return len(os.sched_getaffinity(0))
-        except AttributeError:
-            return os.cpu_count() or 1
-
-    def _cores(self) -> list[int]:
-        try:
-            return sorted(os.sched_getaffinity(0))
-        except AttributeError:
-            return list(range(os.cpu_count() or 1))
-
-    def _core_block(self, slot: int) -> list[int]:
-        """The cores of worker slot ``slot``: the sweep's cores split into one contiguous block
-        per worker, so W workers on C cores get C // W cores each (one when W >= C). Pinning
-        every worker to a single core instead left cores idle when W < C (one worker on a
-        2-core machine used one core)."""
-        cores = self._cores()
-        w = min(self._workers(), len(cores))
-        k = slot % w
-        return cores[k * len(cores) // w:(k + 1) * len(cores) // w]
-
-    def _trial_env(self, threads: int = 1) -> dict[str, str]:
+    def trial_env(self, threads: int = 1) -> dict[str, str]:
         env = dict(os.environ)
         if self.opt.backend != "sequential" and threads == 1:
             env = single_thread_env(env)
         env.setdefault("PYTHONUNBUFFERED", "1")
         return env
 
-    def _prepare(self, trial: Trial) -> tuple[Path, list[str], Path]:
+    def prepare(self, trial: Trial) -> tuple[Path, list[str], Path]:
         run_dir = self.run_dir(trial)
         stop_orphan(run_dir)
         action, cmd = trial_command(trial, run_dir, self.grid, self.opt.command,
                                     self.out if self.opt.share_pretraining else None)
         run_dir.mkdir(parents=True, exist_ok=True)
         log = run_dir / TRIAL_LOG
-        entry = self._entry(trial)
+        entry = self.entry(trial)
         entry["launches"] += 1
         entry.update(state="running", action=action, started=_now(), ended=None, command=cmd)
         with open(log, "a") as f:
@@ -433,93 +295,11 @@ class Sweep:
             f.write("===== " + " ".join(cmd) + "\n")
         return run_dir, cmd, log
 
-    def _launch_local(self, trial: Trial, slot: int | None) -> subprocess.Popen:
-        run_dir, cmd, log = self._prepare(trial)
-        block = self._core_block(slot) if (slot is not None and self.opt.backend == "local") else None
-        # "cpu": the one core of a single-core block (the manifest's field before blocks), else None
-        cpu = block[0] if block and len(block) == 1 else None
-        with open(log, "ab") as logf:
-            proc = subprocess.Popen(
-                launcher(cmd, os.getpid(), block),
-                stdout=logf,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                env=self._trial_env(len(block) if block else 1),
-                cwd=str(self.out),
-            )
-        atomic_write_json(run_dir / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": cpu,
-                                                "cpus": block})
-        entry = self._entry(trial)
-        entry.update(pid=proc.pid, cpu=cpu, cpus=block)
-        self._save()
-        return proc
-
-    def _launch_ray(self, trial: Trial) -> Any:
-        run_dir, cmd, log = self._prepare(trial)
-        self._entry(trial).update(pid=None, cpu=None)
-        self._save()
-        # only the settings that concern botorl: the rest of this machine's environment (PATH,
-        # HOME) may be wrong on another node of a cluster
-        env = {k: v for k, v in self._trial_env().items() if k in SINGLE_THREAD_ENV or k.startswith(RAY_ENV_PREFIXES)}
-        return self._ray_fn.remote(cmd, env, str(log), str(run_dir), str(self.out))
-
-    def _start_ray(self) -> None:
-        try:
-            import ray
-        except ImportError:
-            raise BotorlError(
-                "The ray backend needs Ray, which is not installed. Install it with "
-                "`pip install 'botorl[ray]'` (or `pip install 'ray[default]'`), or use "
-                "--backend local."
-            ) from None
-        self._ray = ray
-        kwargs: dict[str, Any] = {"log_to_driver": False, "include_dashboard": False}
-        if self.opt.ray_address:
-            kwargs["address"] = self.opt.ray_address
-        else:
-            kwargs["num_cpus"] = self._workers()
-            # A private temp dir names every process of this local instance on its command
-            # line, so a sweep killed with SIGKILL can have its leftover Ray daemons stopped by
-            # the next invocation (Ray's agents outlive a SIGKILLed driver). Short path: Ray's
-            # unix sockets live under it (108-byte limit).
-            self._ray_tmp = tempfile.mkdtemp(prefix="botorl-ray-", dir="/tmp")
-            kwargs["_temp_dir"] = self._ray_tmp
-            self.manifest["ray_local_temp_dir"] = self._ray_tmp
-            self._save()
-        if not ray.is_initialized():
-            try:
-                ray.init(**kwargs)
-            except Exception as err:  # a bad --ray-address is the user's to fix
-                raise BotorlError(
-                    f"Could not connect to or start Ray ({kwargs.get('address', 'local instance')}): "
-                    f"{err}. Check --ray-address (e.g. ray://host:10001 or auto) or leave it out "
-                    "to start a local instance."
-                ) from None
-        self._ray_fn = ray.remote(num_cpus=1, max_retries=0)(_ray_trial)
-
-    def _stop_ray(self) -> None:
-        if self._ray is not None and self._ray.is_initialized():
-            self._ray.shutdown()
-        if self._ray_tmp:
-            stop_processes_mentioning(self._ray_tmp)
-            shutil.rmtree(self._ray_tmp, ignore_errors=True)
-            self._ray_tmp = None
-            with contextlib.suppress(Exception):
-                self.manifest.pop("ray_local_temp_dir", None)
-                self._save()
-
-    def _cleanup_previous_ray(self, old_manifest: dict[str, Any]) -> None:
-        """Stop the daemons of a local Ray instance that an earlier, killed sweep started."""
-        tmp = old_manifest.get("ray_local_temp_dir")
-        if isinstance(tmp, str) and tmp.startswith("/tmp/botorl-ray-"):
-            stop_processes_mentioning(tmp)
-            shutil.rmtree(tmp, ignore_errors=True)
-
     # -- finishing a trial -----------------------------------------------------------------------
 
     def _finish(self, trial: Trial, returncode: int, queue: deque[Trial]) -> None:
         run_dir = self.run_dir(trial)
-        entry = self._entry(trial)
+        entry = self.entry(trial)
         status = run_status(run_dir)
         entry.update(ended=_now(), returncode=returncode, pid=None, run_status=status)
         with contextlib.suppress(OSError):
@@ -561,7 +341,7 @@ class Sweep:
     def _set_postfix(self) -> None:
         if self._pbar is None:
             return
-        states = [self._entry(t)["state"] for t in self.trials]
+        states = [self.entry(t)["state"] for t in self.trials]
         self._pbar.set_postfix(
             running=states.count("running"), failed=states.count("failed"), refresh=False
         )
@@ -580,16 +360,10 @@ class Sweep:
             old_term = signal.signal(signal.SIGTERM, _raise_interrupt)
         try:
             self._load_manifest()
-            self._save()
-            queue: deque[Trial] = deque(t for t in self.trials if self._entry(t)["state"] != "finished")
+            self.save()
+            queue: deque[Trial] = deque(t for t in self.trials if self.entry(t)["state"] != "finished")
             done = len(self.trials) - len(queue)
-            n_workers = self._workers()
-            if self.opt.backend == "ray" and queue:
-                self._start_ray()
-                if self.opt.ray_address and not self.opt.workers:
-                    # an existing cluster: as many trials at once as it has CPUs
-                    n_workers = max(1, int(self._ray.cluster_resources().get("CPU", 1)))
-            n_workers = min(n_workers, max(1, len(queue)))
+            n_workers = self.backend.start(len(queue))
             self._pbar = tqdm(
                 total=len(self.trials), initial=done, desc="sweep", unit="trial",
                 disable=not self.opt.progress, dynamic_ncols=True,
@@ -600,99 +374,38 @@ class Sweep:
                 while queue and free_slots:
                     trial = queue.popleft()
                     slot = free_slots.pop(0)
-                    if self.opt.backend == "ray":
-                        handle = self._launch_ray(trial)
-                    else:
-                        handle = self._launch_local(trial, slot)
+                    handle = self.backend.launch(trial, slot)
                     running[next_key] = _Running(trial, handle, slot, time.monotonic())
                     next_key += 1
                     self._set_postfix()
-                finished_keys = self._poll(running)
+                finished_keys = self.backend.poll(running)
                 for key, code in finished_keys:
                     self._finish(running.pop(key).trial, code, queue)
                 if finished_keys:
-                    self._save()
+                    self.save()
                 else:
                     time.sleep(self.opt.poll_interval)
-        except BaseException:
-            self._abort(running)
+        except BaseException:  # Ctrl-C or an error in the sweep itself: stop the trials; they resume next time
+            self.backend.abort(running)
+            for r in running.values():
+                with contextlib.suppress(Exception):
+                    self.entry(r.trial).update(state="interrupted", ended=_now(), pid=None)
+            with contextlib.suppress(Exception):
+                if self.manifest:
+                    self.save()
             raise
         finally:
             if self._pbar is not None:
                 self._pbar.close()
                 self._pbar = None
-            self._stop_ray()
+            self.backend.close()
             self._release_lock()
             if old_term is not None:
                 signal.signal(signal.SIGTERM, old_term)
         return self.manifest
 
-    def _poll(self, running: dict[int, _Running]) -> list[tuple[int, int]]:
-        out: list[tuple[int, int]] = []
-        if self.opt.backend == "ray":
-            refs = {r.handle: k for k, r in running.items()}
-            if not refs:
-                return out
-            ready, _ = self._ray.wait(list(refs), num_returns=len(refs), timeout=self.opt.poll_interval)
-            for ref in ready:
-                try:
-                    code = int(self._ray.get(ref))
-                except Exception as err:  # the Ray task itself died (node lost, worker killed)
-                    print(f"botorl sweep: Ray task failed: {err}", file=sys.stderr)
-                    code = -1
-                out.append((refs[ref], code))
-            return out
-        for key, r in running.items():
-            code = r.handle.poll()
-            if code is not None:
-                out.append((key, code))
-        return out
-
-    def _abort(self, running: dict[int, _Running]) -> None:
-        """Ctrl-C or an error in the sweep itself: stop the trials; they resume next time."""
-        for r in running.values():
-            if self.opt.backend == "ray":
-                with contextlib.suppress(Exception):
-                    self._ray.cancel(r.handle, force=True)
-            else:
-                with contextlib.suppress(ProcessLookupError):
-                    r.handle.terminate()
-        for r in running.values():
-            if self.opt.backend != "ray":
-                try:
-                    r.handle.wait(timeout=15)
-                except subprocess.TimeoutExpired:
-                    r.handle.kill()
-            with contextlib.suppress(Exception):
-                self._entry(r.trial).update(state="interrupted", ended=_now(), pid=None)
-        with contextlib.suppress(Exception):
-            if self.manifest:
-                self._save()
-
-
 def _raise_interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
-
-
-def _ray_trial(cmd: list[str], env: dict[str, str], log: str, run_dir: str, cwd: str) -> int:
-    """Body of the Ray task: one trial as a subprocess of the Ray worker."""
-    full_env = dict(os.environ)
-    full_env.update(env)
-    with open(log, "ab") as logf:
-        proc = subprocess.Popen(
-            launcher(cmd, os.getpid()), stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            env=full_env, cwd=cwd,
-        )
-    atomic_write_json(Path(run_dir) / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": None})
-    try:
-        return proc.wait()
-    except BaseException:  # ray.cancel raises in the worker: do not leave the trial running
-        proc.terminate()
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        raise
 
 
 def run_sweep(grid: Grid, options: SweepOptions) -> dict[str, Any]:

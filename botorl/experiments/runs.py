@@ -21,7 +21,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from botorl.errors import BotorlError
-from botorl.pipeline.methods import METHODS
+from botorl.configs.methods import METHODS
 
 @dataclasses.dataclass
 class Run:

@@ -7,10 +7,12 @@
     botorl resume runs/pointmaze-large-boto-s0-20260101-120000
     botorl eval runs/pointmaze-large-boto-s0-20260101-120000 --episodes 50
 
-Modules: ``methods`` (method -> stages table), ``stages`` (pretrain, warmup, boto,
-finetune), ``runner`` (order, checkpoints, resume, summary, curve), ``evaluation`` (lockstep
-episodes, Q statistics), ``rundir`` / ``checkpoint`` (the files), ``cli``. The configs and
-presets are in ``botorl.configs``.
+Modules: ``stages`` (pretrain, warmup, boto, finetune), ``online`` (fine-tuning's resumable
+state), ``runner`` (order, checkpoints, resume, summary, curve), ``evaluation`` (lockstep
+episodes, Q statistics), ``population`` (a population's memory), ``rundir`` / ``checkpoint``
+(the files), ``cli`` / ``population_cli``. The configs, presets, the method table and the
+population's members are in ``botorl.configs``; a population's mapped calls in
+``botorl.agents.population``.
 
 Run directory (CONTRACTS.md "Runs"):
 

@@ -36,8 +36,8 @@ from typing import Any, Callable
 import numpy as np
 
 from botorl.errors import ConfigError, DataFormatError
-from botorl.io import atomic_write_json as _atomic_write_json_exact
-from botorl.pipeline.rundir import atomic_write_json, read_json
+from botorl.io import atomic_write_json
+from botorl.pipeline.rundir import read_json
 
 LATEST = "latest.json"
 MANIFEST = "MANIFEST.json"
@@ -134,7 +134,7 @@ class CheckpointManager:
             if key in ("state", "MANIFEST"):
                 raise ValueError(f"checkpoint document name {key!r} is reserved")
             # plain json (NaN / Infinity kept as such: an env's state must come back exactly)
-            _atomic_write_json_exact(tmp / f"{key}.json", doc, indent=None)
+            atomic_write_json(tmp / f"{key}.json", doc, indent=None, exact=True)
         atomic_write_json(tmp / "state.json", state)
         files = {q.name: _describe(q) for q in sorted(tmp.iterdir()) if q.is_file() and not q.name.startswith(".")}
         atomic_write_json(tmp / MANIFEST, {"name": name, "seq": self._next_seq(), "time": time.time(), "files": files})

@@ -14,38 +14,19 @@ $BOTORL_DOOR_DEMOS, else the copy shipped in botorl/data/assets).
 from __future__ import annotations
 
 import argparse
-import contextlib
-import errno
 import sys
 import time
 from pathlib import Path
 
+from botorl.configs.build import build_config
 from botorl.errors import BotorlError, ConfigError
-
-# OSErrors that are the machine's state, not a bug: exit 2 with a message naming the directory.
-IO_FAULTS = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded",
-             errno.EROFS: "the file system is read-only", errno.EACCES: "permission denied",
-             errno.EPERM: "operation not permitted"}
-
-
-class RunIOError(BotorlError):
-    """The run directory cannot be written (disk full, read-only, no permission)."""
-
-
-def io_fault(err: OSError, where) -> RunIOError | None:
-    """The exit-2 error for an OSError that is a full / read-only / forbidden output, else None."""
-    if not isinstance(err, OSError) or err.errno not in IO_FAULTS:
-        return None
-    detail = f" ({err.filename})" if getattr(err, "filename", None) else ""
-    return RunIOError(
-        f"cannot write to {where}{detail}: {IO_FAULTS[err.errno]} ({err.strerror}). Free space or pick a "
-        f"writable --out; the run's checkpoints so far are kept, and `botorl resume {where}` continues it."
-    )
+from botorl.pipeline.rundir import io_fault, owned
 
 
 def _mark_failed(run, reason: str, cfg=None) -> None:
     """summary.json says ``failed`` with the reason, when it can still be written."""
-    from botorl.pipeline.rundir import atomic_write_json, read_json
+    from botorl.io import atomic_write_json
+    from botorl.pipeline.rundir import read_json
 
     try:
         summary = read_json(run.summary) if run.summary.exists() else None
@@ -109,88 +90,14 @@ def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None =
         raise BotorlError(msg) from None
 
 
-@contextlib.contextmanager
-def _owned(root: Path):
-    """Hold the run directory's lock; turn I/O faults while taking it into exit 2."""
-    from botorl.pipeline.rundir import RunLock
-
-    try:
-        lock = RunLock(root).acquire()
-    except OSError as err:
-        fault = io_fault(err, root)
-        if fault is None:
-            raise
-        raise fault from None
-    try:
-        yield lock
-    finally:
-        lock.release()
-
-_SHORTCUTS = {"--demos": "--data.demos", "--dataset": "--data.path"}
-
-
-def _expand_shortcuts(argv: list[str]) -> list[str]:
-    out = []
-    for a in argv:
-        key, eq, val = a.partition("=")
-        if key in _SHORTCUTS:
-            out.append(_SHORTCUTS[key] + (eq + val if eq else ""))
-        else:
-            out.append(a)
-    return out
-
-
-def _pre_parse(argv: list[str]) -> argparse.Namespace:
-    p = argparse.ArgumentParser(add_help=False)
-    p.add_argument("--task", default="pointmaze-umaze")
-    p.add_argument("--method", default="boto")
-    p.add_argument("--profile", default="quick")
-    p.add_argument("--pretrain", default=None)
-    ns, _ = p.parse_known_args(argv)
-    if ns.pretrain in ("None", "none"):
-        ns.pretrain = None
-    return ns
-
-
-def build_config(argv: list[str]):
-    """Preset + command line -> resolved, validated RunConfig (ConfigError on bad input)."""
-    import tyro
-
-    from botorl.configs.presets import make_preset
-    from botorl.configs.resolve import resolve, validate
-    from botorl.configs.schema import RunConfig
-    from botorl.pipeline.methods import get_method
-
-    argv = _expand_shortcuts(list(argv))
-    pre = _pre_parse(argv)
-    get_method(pre.method)  # clear errors before tyro's generic ones
-    from botorl.pipeline.methods import resolve_pretrain
-
-    resolve_pretrain(pre.method, pre.pretrain)
-    from botorl.envs.registry import get_task
-
-    get_task(pre.task)
-    default = make_preset(pre.task, pre.profile, pre.method, pre.pretrain)
-    cfg = tyro.cli(
-        RunConfig,
-        default=default,
-        args=argv,
-        prog="botorl run",
-        description="Run one method on one task, offline to online (preset: "
-        f"task={pre.task}, method={pre.method}, profile={pre.profile}).",
-    )
-    cfg = resolve(cfg)
-    validate(cfg)
-    return cfg
-
-
 def _default_out(cfg) -> Path:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     return Path("runs") / f"{cfg.task}-{cfg.method}-s{cfg.seed}-{stamp}"
 
 
 def run_main(argv: list[str]) -> int:
-    from botorl.pipeline.population_cli import is_population, run_population_main
+    from botorl.configs.build import is_population
+    from botorl.pipeline.population_cli import run_population_main
 
     if is_population(argv):  # --seeds / --alphas: a population (botorl/pipeline/population_cli.py)
         return run_population_main(argv)
@@ -202,7 +109,8 @@ def run_main(argv: list[str]) -> int:
 
     from botorl.configs.schema import to_dict
     from botorl.envs.registry import get_task
-    from botorl.pipeline.rundir import RunDir, atomic_write_json
+    from botorl.io import atomic_write_json
+    from botorl.pipeline.rundir import RunDir
     from botorl.pipeline.runner import format_summary, load_offline
 
     out = Path(cfg.out) if cfg.out else _default_out(cfg)
@@ -223,7 +131,7 @@ def run_main(argv: list[str]) -> int:
 
         shared_pretrain.match([cfg], cfg.pretrained)
     run = RunDir(out)
-    with _owned(out):
+    with owned(out):
         already_a_run()  # again, under the lock: another `run` may have started meanwhile
         try:
             run.create()
@@ -281,7 +189,7 @@ def resume_main(argv: list[str]) -> int:
     from botorl.pipeline.runner import format_summary
 
     run, cfg = _load_run_config(args.dir)
-    with _owned(run.root):
+    with owned(run.root):
         if args.no_progress:
             cfg = replace(cfg, progress=False)
         if args.from_ is not None:
@@ -329,7 +237,7 @@ def eval_main(argv: list[str]) -> int:
 
     setup_jax()
     run, cfg = _load_run_config(args.dir)
-    with _owned(run.root):
+    with owned(run.root):
         try:
             return _eval(args, run, cfg)
         except OSError as err:
@@ -347,7 +255,7 @@ def _eval(args, run, cfg) -> int:
     from botorl.pipeline import stages as S
     from botorl.pipeline.checkpoint import CheckpointManager
     from botorl.pipeline.evaluation import QProbe, make_eval_envs, run_episodes
-    from botorl.pipeline.rundir import atomic_write_json
+    from botorl.io import atomic_write_json
     from botorl.pipeline.runner import transform_dataset
 
     if args.episodes is not None:
@@ -372,8 +280,8 @@ def _eval(args, run, cfg) -> int:
     agent = agent_ckpt.load(ckpt.path(name) / "agent.ckpt", like=template)
     envs = make_eval_envs(spec, cfg.eval)
     t0 = time.perf_counter()
-    stats = run_episodes(lambda o: agent.eval_actions(o), envs, episodes=cfg.eval.episodes,
-                         success_mode=spec.success_mode, seed=200_000 + cfg.seed, max_steps=spec.max_episode_steps)
+    stats = run_episodes(lambda o: agent.eval_actions(o[0])[None], [envs], episodes=cfg.eval.episodes,
+                         success_mode=spec.success_mode, seeds=[200_000 + cfg.seed], max_steps=spec.max_episode_steps)[0]
     q_data, q_uniform = QProbe(d.observations, d.actions, seed=12345, size=cfg.eval.q_pairs)(S.q_fn(agent))
     for e in envs:
         e.close()

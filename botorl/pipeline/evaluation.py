@@ -40,62 +40,49 @@ def make_eval_envs(spec, eval_cfg) -> list[Any]:
     return [spec.make_env(seed=10_000 + i, evaluation=True) for i in range(eval_cfg.envs_per_member)]
 
 
-def run_episodes(
-    policy: Callable[[np.ndarray], np.ndarray],
-    envs: Sequence[Any],
-    *,
-    episodes: int,
-    success_mode: str,
-    seed: int,
-    max_steps: int | None = None,
-) -> EpisodeStats:
-    """Run ``episodes`` episodes on ``envs`` in lockstep rounds of ``len(envs)``."""
+def run_episodes(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Sequence[Any]], *, episodes: int,
+                 success_mode: str, seeds: Sequence[int], max_steps: int | None = None) -> list[EpisodeStats]:
+    """``episodes`` episodes for every member of a population: member i runs them on its own
+    ``envs[i]`` in lockstep rounds of ``len(envs[i])`` (reset seeds ``seeds[i] + episode
+    index``), all members' envs stepped together with ONE policy call per step on (N, E, O)
+    observations (``policy`` -> (N, E, A)). A member's episodes do not depend on the others
+    (a single agent is a population of one). Every env is reset each round (the batch keeps
+    its shape); only the first ones count. Returns one ``EpisodeStats`` per member."""
     if success_mode not in ("any", "last"):
         raise ValueError(f"success_mode must be 'any' or 'last', not {success_mode!r}")
-    n_envs = len(envs)
-    successes: list[float] = []
-    returns: list[float] = []
-    lengths: list[int] = []
+    n_mem, n_envs = len(envs), len(envs[0])
+    per = [{"successes": [], "returns": [], "lengths": []} for _ in range(n_mem)]
     episode_index = 0
     while episode_index < episodes:
         n = min(n_envs, episodes - episode_index)
-        obs = []
-        for i in range(n_envs):
-            # every env is reset (the batch keeps its shape); only the first n count
-            o, _ = envs[i].reset(seed=int(seed) + episode_index + i)
-            obs.append(np.asarray(o, dtype=np.float32))
-        obs = np.stack(obs)
-        active = np.zeros(n_envs, dtype=bool)
-        active[:n] = True
-        ret = np.zeros(n_envs)
-        length = np.zeros(n_envs, dtype=np.int64)
-        succ_any = np.zeros(n_envs)
-        succ_last = np.zeros(n_envs)
-        step = 0
+        obs = np.stack([np.stack([np.asarray(envs[m][i].reset(seed=int(seeds[m]) + episode_index + i)[0], np.float32)
+                                  for i in range(n_envs)]) for m in range(n_mem)])
+        active = np.zeros((n_mem, n_envs), dtype=bool)
+        active[:, :n] = True
+        ret = np.zeros((n_mem, n_envs))
+        length = np.zeros((n_mem, n_envs), dtype=np.int64)
+        succ_any = np.zeros((n_mem, n_envs))
+        succ_last = np.zeros((n_mem, n_envs))
         while active.any():
             actions = np.asarray(policy(obs))
-            for i in np.flatnonzero(active):
-                o, r, terminated, truncated, info = envs[i].step(actions[i])
+            for m, i in zip(*np.nonzero(active)):
+                o, r, terminated, truncated, info = envs[m][i].step(actions[m, i])
                 s = float(info.get("success", 0.0))
-                succ_any[i] = max(succ_any[i], s)
-                succ_last[i] = s
-                ret[i] += float(r)
-                length[i] += 1
-                obs[i] = np.asarray(o, dtype=np.float32)
-                if terminated or truncated or (max_steps is not None and length[i] >= max_steps):
-                    active[i] = False
-            step += 1
-        per = succ_any if success_mode == "any" else succ_last
-        successes += per[:n].tolist()
-        returns += ret[:n].tolist()
-        lengths += length[:n].tolist()
+                succ_any[m, i] = max(succ_any[m, i], s)
+                succ_last[m, i] = s
+                ret[m, i] += float(r)
+                length[m, i] += 1
+                obs[m, i] = np.asarray(o, dtype=np.float32)
+                if terminated or truncated or (max_steps is not None and length[m, i] >= max_steps):
+                    active[m, i] = False
+        got = succ_any if success_mode == "any" else succ_last
+        for m in range(n_mem):
+            per[m]["successes"] += got[m, :n].tolist()
+            per[m]["returns"] += ret[m, :n].tolist()
+            per[m]["lengths"] += length[m, :n].tolist()
         episode_index += n
-    return EpisodeStats(
-        success=float(np.mean(successes)),
-        episode_return=float(np.mean(returns)),
-        length=float(np.mean(lengths)),
-        successes=successes,
-    )
+    return [EpisodeStats(success=float(np.mean(p["successes"])), episode_return=float(np.mean(p["returns"])),
+                         length=float(np.mean(p["lengths"])), successes=p["successes"]) for p in per]
 
 
 class QProbe:

@@ -8,7 +8,7 @@ The members are every (seed, alpha) pair; all other settings are shared (any con
 may be set as for `botorl run`). The population directory holds ``population.json``
 (members, status, the shared config), ``checkpoints/`` (one checkpoint of the whole
 population) and one ordinary run directory per member, named ``seed<k>`` or
-``alpha<+0.50>-seed<k>`` (botorl.pipeline.population.Member.name), which `botorl report` and
+``alpha<+0.50>-seed<k>`` (botorl.configs.members.Member.name), which `botorl report` and
 `botorl eval` read like any run. Before any work the population's memory is estimated and
 compared with what the machine has (exit 2 if it does not fit).
 """
@@ -22,78 +22,13 @@ from pathlib import Path
 
 from botorl.errors import ConfigError
 
-POPULATION_FLAGS = ("--seeds", "--alphas")
-
-
-def is_population(argv: list[str]) -> bool:
-    return any(a.split("=", 1)[0] in POPULATION_FLAGS for a in argv)
-
-
-def split_population_args(argv: list[str]) -> tuple[dict[str, str], list[str]]:
-    """--seeds/--alphas (``--x V`` or ``--x=V``) out of argv; each may be given once."""
-    found: dict[str, str] = {}
-    rest: list[str] = []
-    i = 0
-    while i < len(argv):
-        a = argv[i]
-        key, eq, val = a.partition("=")
-        if key in POPULATION_FLAGS:
-            if not eq:
-                if i + 1 >= len(argv):
-                    raise ConfigError(f"{key} needs a value, e.g. {key} 0-7.")
-                val = argv[i + 1]
-                i += 1
-            if key in found:
-                raise ConfigError(f"{key} is given twice ({found[key]!r} and {val!r}); give it once.")
-            found[key] = val
-        else:
-            rest.append(a)
-        i += 1
-    return found, rest
-
-
-def _given(rest: list[str], flag: str) -> bool:
-    return any(a.split("=", 1)[0] == flag for a in rest)
-
-
-def build_population(argv: list[str]):
-    """(shared config, member configs, Member list) from a `botorl run` command line."""
-    from botorl.pipeline.cli import build_config
-    from botorl.pipeline.methods import get_method
-    from botorl.pipeline.population import make_members, parse_alphas, parse_seeds
-    from botorl.pipeline.runner import member_config
-
-    found, rest = split_population_args(list(argv))
-    if "--seeds" in found and _given(rest, "--seed"):
-        raise ConfigError("--seed and --seeds are both given; a population takes --seeds (e.g. --seeds 0-7) only.")
-    if "--alphas" in found and _given(rest, "--alpha"):
-        raise ConfigError("--alpha and --alphas are both given; a population takes --alphas (e.g. --alphas -1:1:0.25) only.")
-    seeds = parse_seeds(found["--seeds"]) if "--seeds" in found else None
-    alphas = parse_alphas(found["--alphas"]) if "--alphas" in found else None
-    extra = []
-    if seeds is None:
-        cfg0 = build_config(rest)
-        seeds = [cfg0.seed]
-    else:
-        extra += ["--seed", str(seeds[0])]
-    if alphas is not None:
-        extra.append(f"--alpha={alphas[0]}")
-    cfg = build_config(rest + extra)  # validates everything shared, and the first member's alpha
-    uses_alpha = get_method(cfg.method).uses_alpha
-    if alphas is not None and not uses_alpha:
-        raise ConfigError(f"--alphas sets BOTO's bias controller; --method {cfg.method} has no BOTO phase. "
-                          f"Drop --alphas, or use --method boto.")
-    members = make_members(seeds, alphas or [None], uses_alpha)
-    return cfg, members, [member_config(cfg, m.seed, m.alpha) for m in members]
-
-
 def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
     """The population's memory by part (population.estimate_memory), from one template member;
     with the task's ``spec``, its environments measured (one training env and
     eval.envs_per_member evaluation envs per member)."""
     from botorl.pipeline import population as P
     from botorl.pipeline import stages as S
-    from botorl.pipeline.methods import get_method
+    from botorl.configs.methods import get_method
 
     # envs first: made after JAX has built its first arrays, the first ~16 pointmaze envs grow the
     # process by twice what each later one does (allocator arenas), which would double the estimate.
@@ -131,11 +66,14 @@ def run_population_main(argv: list[str]) -> int:
     from botorl.envs.registry import get_task
     from botorl.jaxsetup import setup_jax
     from botorl.pipeline import population as P
-    from botorl.pipeline.cli import _owned, io_fault
-    from botorl.pipeline.rundir import RunDir, atomic_write_json
+    from botorl.pipeline.rundir import io_fault, owned
+    from botorl.io import atomic_write_json
+    from botorl.pipeline.rundir import RunDir
     from botorl.pipeline.runner import POPULATION_FILE, load_offline, write_population_file
 
     setup_jax()
+    from botorl.configs.build import build_population
+
     cfg, members, member_cfgs = build_population(argv)
     out = Path(cfg.out) if cfg.out else _default_out(cfg, len(members))
 
@@ -164,7 +102,7 @@ def run_population_main(argv: list[str]) -> int:
         P.check_memory({"environments": envs, "total": envs}, len(members), available=P.host_memory())
     runs = [RunDir(out / m.name) for m in members]
     member_cfgs = [replace(c, out=str(r.root)) for c, r in zip(member_cfgs, runs)]
-    with _owned(out):
+    with owned(out):
         already()
         try:
             for c, r in zip(member_cfgs, runs):
@@ -186,7 +124,7 @@ def run_population_main(argv: list[str]) -> int:
 def _execute(cfg, member_cfgs, out: Path, runs, d_raw, *, resume: bool):
     """execute_population with I/O faults turned into exit 2 and a truthful population status."""
     from botorl.errors import BotorlError
-    from botorl.pipeline.cli import io_fault
+    from botorl.pipeline.rundir import io_fault
     from botorl.pipeline.runner import execute_population
 
     try:
@@ -203,7 +141,8 @@ def _execute(cfg, member_cfgs, out: Path, runs, d_raw, *, resume: bool):
 
 
 def _mark_population_failed(out: Path, reason: str) -> None:
-    from botorl.pipeline.rundir import atomic_write_json, read_json
+    from botorl.io import atomic_write_json
+    from botorl.pipeline.rundir import read_json
     from botorl.pipeline.runner import POPULATION_FILE
 
     try:
@@ -237,13 +176,13 @@ def load_population(directory: str | Path):
 def resume_population_main(directory: str, *, no_progress: bool = False) -> int:
     from botorl.envs.registry import get_task
     from botorl.jaxsetup import setup_jax
-    from botorl.pipeline.cli import _owned
+    from botorl.pipeline.rundir import owned
     from botorl.pipeline.runner import load_offline, read_summary
 
     setup_jax()
     cfg, member_cfgs, runs, data = load_population(directory)
     root = Path(directory)
-    with _owned(root):
+    with owned(root):
         if no_progress:
             cfg = replace(cfg, progress=False)
             member_cfgs = [replace(c, progress=False) for c in member_cfgs]

@@ -18,6 +18,7 @@ rows written after the last checkpoint do not appear twice.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import errno
 import fcntl
@@ -31,34 +32,11 @@ from pathlib import Path
 from typing import Any
 
 from botorl.errors import BotorlError
-from botorl.io import atomic_write_bytes
-from botorl.io import atomic_write_json as _atomic_write_json
+from botorl.io import IO_FAULTS, atomic_write_bytes, jsonable
 
 LOCK_FILE = ".lock"
 
 EVAL_COLUMNS = ["stage", "env_step", "success", "return", "q_data", "q_uniform"]
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if hasattr(x, "item") and callable(x.item):  # numpy / jax scalars
-        try:
-            x = x.item()
-        except (ValueError, TypeError):
-            return str(x)
-    if isinstance(x, float) and not math.isfinite(x):
-        return None if math.isnan(x) else (1e308 if x > 0 else -1e308)
-    if isinstance(x, (str, int, float, bool)) or x is None:
-        return x
-    return str(x)
-
-
-def atomic_write_json(path: Path, obj: Any) -> None:
-    """JSON with numpy scalars unwrapped and non-finite floats made valid JSON."""
-    _atomic_write_json(path, _jsonable(obj))
 
 
 def read_json(path: Path) -> Any:
@@ -107,6 +85,36 @@ class RunDir:
 
 
 # ----------------------------------------------------------------------------- ownership
+class RunIOError(BotorlError):
+    """The run directory cannot be written (disk full, read-only, no permission)."""
+
+
+def io_fault(err: OSError, where) -> RunIOError | None:
+    """The exit-2 error for an OSError that is a full / read-only / forbidden output, else None."""
+    if not isinstance(err, OSError) or err.errno not in IO_FAULTS:
+        return None
+    detail = f" ({err.filename})" if getattr(err, "filename", None) else ""
+    return RunIOError(
+        f"cannot write to {where}{detail}: {IO_FAULTS[err.errno]} ({err.strerror}). Free space or pick a "
+        f"writable --out; the run's checkpoints so far are kept, and `botorl resume {where}` continues it."
+    )
+
+
+@contextlib.contextmanager
+def owned(root: Path):
+    """Hold the run directory's lock; turn I/O faults while taking it into exit 2."""
+    try:
+        lock = RunLock(root).acquire()
+    except OSError as err:
+        fault = io_fault(err, root)
+        if fault is None:
+            raise
+        raise fault from None
+    try:
+        yield lock
+    finally:
+        lock.release()
+
 class RunLockedError(BotorlError):
     """Another live process owns the run directory."""
 
@@ -231,7 +239,7 @@ class JsonlLog:
 
     def append(self, row: dict[str, Any]) -> None:
         with open(self.path, "a") as f:
-            f.write(json.dumps(_jsonable(row)) + "\n")
+            f.write(json.dumps(jsonable(row)) + "\n")
             f.flush()
 
     def truncate(self, keep) -> None:

@@ -17,16 +17,18 @@ from typing import Any
 
 import numpy as np
 
+from botorl.agents import population as AP
+from botorl.configs.members import Member, member_config  # noqa: F401 (importers of runner.member_config)
+from botorl.configs.methods import get_method
 from botorl.configs.schema import RunConfig, to_dict
-from botorl.data.dataset import Dataset
+from botorl.data.dataset import Dataset, RewardTransform
 from botorl.errors import ConfigError, TrainingDivergedError
-from botorl.pipeline import population as P
-from botorl.pipeline import shared_pretrain
+from botorl.io import atomic_write_json
+from botorl.pipeline import evaluation, shared_pretrain
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_name
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
-from botorl.pipeline.methods import get_method
-from botorl.pipeline.rundir import EVAL_COLUMNS, CsvLog, MetricsLogger, RunDir, atomic_write_json
+from botorl.pipeline.rundir import EVAL_COLUMNS, CsvLog, MetricsLogger, RunDir
 
 _DS_FIELDS = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends", "mc_returns")
 
@@ -35,6 +37,7 @@ _DS_FIELDS = ("observations", "actions", "rewards", "next_observations", "termin
 def load_offline(cfg: RunConfig, spec) -> Dataset:
     """The task's offline data with raw rewards; generated tasks are made when missing."""
     from botorl.data.dataset import validate as validate_dataset
+    from botorl.data.tasks import load_task_data
 
     if spec.dataset_source.kind == "generated" and cfg.data.path is None:
         if cfg.data.demos:
@@ -47,16 +50,16 @@ def load_offline(cfg: RunConfig, spec) -> Dataset:
                     f"(botorl/data/assets/door_human_demos.npz)."
                 )
             os.environ["BOTORL_DOOR_DEMOS"] = str(demos.resolve())
-        ds = spec.load_dataset(None, steps=cfg.data.steps, seed=cfg.data.seed, progress=cfg.progress)
+        ds = load_task_data(spec, None, steps=cfg.data.steps, seed=cfg.data.seed, progress=cfg.progress)
     else:
-        ds = spec.load_dataset(cfg.data.path)
+        ds = load_task_data(spec, cfg.data.path)
     return validate_dataset(ds, obs_dim=spec.obs_dim, action_dim=spec.action_dim,
                             action_tolerance=cfg.data.action_tolerance)
 
 
 def transform_dataset(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
     """The task's reward transform, then Cal-QL's Monte-Carlo returns (in transformed units)."""
-    return with_mc_returns(cfg, spec, ds.with_reward_transform(spec.reward_transform))
+    return with_mc_returns(cfg, spec, ds.with_reward_transform(RewardTransform.of(spec)))
 
 
 def with_mc_returns(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
@@ -65,7 +68,7 @@ def with_mc_returns(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
     gamma = cfg.offline.iql.discount if cfg.pretrain == "iql" else cfg.offline.cql.discount
     return ds.with_mc_returns(
         gamma,
-        sparse_negative_reward=None if r_neg is None else float(spec.reward_transform(r_neg)),
+        sparse_negative_reward=None if r_neg is None else float(RewardTransform.of(spec)(r_neg)),
         infinite_horizon=cfg.offline.mc_infinite_horizon,
     )
 
@@ -95,28 +98,54 @@ class MemberRun:
         self.error: str | None = None  # set when this member diverged (the others go on)
 
 
+class Layout:
+    """How a population's checkpoints are written. A single run (a population of one) keeps the
+    single-run format of CONTRACTS.md "Runs" in its own run directory: the member's own agent,
+    its generator state and counters as plain values, D_warmup as ``warmup.npz``. A larger
+    population keeps one checkpoint of the stacked members in its own directory, with
+    per-member lists and ``warmup-m<i>.npz``, and at every stage end also each member's own
+    agent in the member's run directory (so `botorl eval MEMBER_DIR` reads it)."""
+
+    def __init__(self, single: bool):
+        self.single = single
+
+    def checkpoints(self, root: Path, member_runs: list[RunDir]) -> Path:
+        return (member_runs[0] if self.single else RunDir(root)).checkpoints
+
+    def agent(self, agents):
+        """What agent.ckpt holds: the member's own agent, or the stacked population."""
+        return AP.member_of(agents, 0) if self.single else agents
+
+    def load(self, path: Path, like):
+        from botorl.agents import checkpoint as agent_ckpt
+
+        return AP.stack([agent_ckpt.load(path, like=AP.member_of(like, 0))]) if self.single else \
+            agent_ckpt.load(path, like=like)
+
+    def values(self, x):
+        """Per-member lists (alone, or as the values of a dict) as a single run stores them: its item."""
+        if isinstance(x, dict):
+            return {k: self.values(v) for k, v in x.items()}
+        return x[0] if self.single and isinstance(x, list) else x
+
+    def warmup_keys(self, n: int) -> list[str]:
+        return ["warmup"] if self.single else [f"warmup-m{i}" for i in range(n)]
+
+
 class RunContext:
-    """What the stages share: the population's members (a single run: one), the task, the
-    offline data (held once), the checkpoints of the whole population, evaluation.
+    """What the stages share: the population's members (a single run: one; each its config,
+    run directory and logs), the method and task, the offline data (held once) and its probe,
+    evaluation, the divergence check, and the checkpoints of the whole population (``layout``).
 
     ``cfg`` is the population's config (its members' configs differ in seed and alpha only);
-    ``members[i].cfg`` is member i's. A population of one (``single``) keeps the run
-    directory layout of CONTRACTS.md "Runs" exactly: its checkpoints hold the member's own
-    agent. A larger one keeps one checkpoint of the stacked population in ``root``, and at
-    every stage end also each member's own agent in the member's run directory (so `botorl
-    eval MEMBER_DIR` reads it)."""
+    ``members[i].cfg`` is member i's."""
 
     def __init__(self, cfg: RunConfig, spec, root: Path, members: list[MemberRun], d_offline: Dataset, state: dict,
-                 *, single: bool):
-        self.cfg = cfg
-        self.spec = spec
-        self.root = Path(root)
-        self.members = members
-        self.n = len(members)
-        self.single = single
-        self.run = members[0].run if single else RunDir(root)  # where the checkpoints live
+                 layout: Layout):
+        self.cfg, self.method, self.spec = cfg, get_method(cfg.method), spec
+        self.root, self.members, self.n, self.layout = Path(root), members, len(members), layout
+        self.ckpt = CheckpointManager(layout.checkpoints(root, [m.run for m in members]))
         self.d_offline = d_offline
-        self.ckpt = CheckpointManager(self.run.checkpoints)
         self.probe = QProbe(d_offline.observations, d_offline.actions, seed=12345, size=cfg.eval.q_pairs)
         self.state = state  # done_stages, stage_seconds
         self.failed: set[int] = {i for i, m in enumerate(members) if m.error}
@@ -124,13 +153,46 @@ class RunContext:
         self._stage = None
         self._stage_t0 = 0.0
 
-    @property
-    def logger(self):  # a single run's logger (kept for callers that know one run)
-        return self.members[0].logger
-
     def live(self, ms: list):
         """(member, its item of ``ms``) for the members that have not failed."""
         return [(mc, m) for i, (mc, m) in enumerate(zip(self.members, ms)) if i not in self.failed]
+
+    def log(self, stage: str, step: int, rows: list[dict]) -> None:
+        """Each live member's row of ``rows`` into its metrics/<stage> logs."""
+        for mc, row in self.live(rows):
+            mc.logger.log(stage, step, row)
+
+    def check(self, stage: str, step: int, ms: list[dict[str, float]]) -> None:
+        """Each live member's metrics must be finite: a population of one raises (the last good
+        checkpoint stays); in a larger one a diverged member is marked failed and the rest go on."""
+        bad = [{k: v for k, v in m.items() if not math.isfinite(v)} for m in ms]
+        if self.n == 1:
+            if bad and bad[0]:
+                last = self.ckpt.latest()
+                where = f"checkpoint {last['name']}" if last else "no checkpoint yet"
+                raise TrainingDivergedError(
+                    f"training diverged in stage {stage!r} near step {step}: "
+                    + ", ".join(f"{k} = {v}" for k, v in sorted(bad[0].items()))
+                    + f". The last good state is kept ({where} in {self.ckpt.root}). Lower the learning rates "
+                    f"(e.g. --offline.cql.critic_lr, --online.sac.critic_lr), check the data's reward scale, or run "
+                    f"another seed; `botorl resume` would start again from that checkpoint.")
+            return
+        for i, b in enumerate(bad):
+            if b and i not in self.failed:
+                self.fail_member(i, f"training diverged in stage {stage!r} near step {step}: "
+                                 + ", ".join(f"{k} = {v}" for k, v in sorted(b.items()))
+                                 + ". The other members went on. Lower the learning rates or run another seed.")
+        if len(self.failed) == self.n:
+            raise TrainingDivergedError(
+                f"every member of the population diverged (stage {stage!r}, near step {step}); each member's "
+                f"summary.json says how. Lower the learning rates (e.g. --online.sac.critic_lr) or check the data's "
+                f"reward scale.")
+
+    def bar(self, total: int, initial: int, desc: str, unit: str = "step"):
+        from tqdm.auto import tqdm
+
+        return tqdm(total=total, initial=initial, desc=desc, unit=unit, dynamic_ncols=True,
+                    disable=not self.cfg.progress, mininterval=1.0, smoothing=0.05)
 
     def fail_member(self, i: int, error: str) -> None:
         self.failed.add(i)
@@ -164,12 +226,7 @@ class RunContext:
     # -- checkpoints
     def load_agents(self, name: str, like):
         """The population's agents saved under ``name`` (``like``: a stacked template)."""
-        from botorl.agents import checkpoint as agent_ckpt
-
-        path = self.ckpt.path(name) / "agent.ckpt"
-        if self.single:  # the member's own agent (CONTRACTS.md layout)
-            return P.stack([agent_ckpt.load(path, like=P.member_of(like, 0))])
-        return agent_ckpt.load(path, like=like)
+        return self.layout.load(self.ckpt.path(name) / "agent.ckpt", like)
 
     def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None,
               documents=None):
@@ -181,19 +238,19 @@ class RunContext:
             "stage_done": done,
             "done_stages": list(self.state["done_stages"]),
             "stage_seconds": self.stage_seconds(),
-            "np_rng": (np_rng[0] if self.single else np_rng) if isinstance(np_rng, list) else np_rng,
-            "extra": _single_extra(extra) if self.single else (extra or {}),
+            "np_rng": self.layout.values(np_rng),
+            "extra": self.layout.values(extra or {}),
             "failed": {str(i): self.members[i].error for i in sorted(self.failed)},
             "time": time.time(),
         }
-        agent = P.member_of(agents, 0) if self.single else agents
-        self.ckpt.save(name, state=state, agent=agent, save_agent=agent_ckpt.save, arrays=arrays, documents=documents)
-        if not self.single and done:
+        self.ckpt.save(name, state=state, agent=self.layout.agent(agents), save_agent=agent_ckpt.save, arrays=arrays,
+                       documents=documents)
+        if not self.layout.single and done:
             # each member's own agent in its run directory, for `botorl eval MEMBER_DIR`
             for i, mc in enumerate(self.members):
                 CheckpointManager(mc.run.checkpoints).save(
                     name, state={**state, "np_rng": None, "extra": {}, "member": i},
-                    agent=P.member_of(agents, i), save_agent=agent_ckpt.save)
+                    agent=AP.member_of(agents, i), save_agent=agent_ckpt.save)
         self.write_summary("running")
 
     def save_mid(self, stage: str, step: int, agents, *, np_rng=None, arrays=None, extra=None, documents=None) -> None:
@@ -214,8 +271,8 @@ class RunContext:
 
     def q_stats(self, agents) -> list[tuple[float, float]]:
         """(q_data, q_uniform) per member on the probe's pairs (one call for all members)."""
-        q_d = np.asarray(P.pop_q_mean(agents, self.probe.observations, self.probe.actions))
-        q_u = np.asarray(P.pop_q_mean(agents, self.probe.observations, self.probe.uniform))
+        q_d = np.asarray(AP.q_mean(agents, self.probe.observations, self.probe.actions))
+        q_u = np.asarray(AP.q_mean(agents, self.probe.observations, self.probe.uniform))
         return [(float(q_d[i].mean()), float(q_u[i].mean())) for i in range(self.n)]
 
     def log_q(self, stage: str, step: int, agents) -> None:
@@ -226,8 +283,8 @@ class RunContext:
     def evaluate(self, agents, env_step: int) -> list[dict[str, Any]]:
         """All members' evaluation episodes, one batched policy call per env step; a row per member."""
         cfg = self.cfg
-        stats = P.run_population_episodes(
-            lambda o: P.pop_eval(agents, o), self.envs(), episodes=cfg.eval.episodes,
+        stats = evaluation.run_episodes(
+            lambda o: AP.eval_actions(agents, o), self.envs(), episodes=cfg.eval.episodes,
             success_mode=self.spec.success_mode, seeds=[100_000 + 1_000 * mc.cfg.seed for mc in self.members],
             max_steps=self.spec.max_episode_steps,
         )
@@ -262,7 +319,7 @@ class RunContext:
         if i in self.failed:
             status, error = "failed", mc.error
         summary = build_summary(mc.cfg, mc.run, status, self.stage_seconds(), error)
-        if not self.single:
+        if not self.layout.single:
             summary["population"] = str(self.root)
         atomic_write_json(mc.run.summary, summary)
         return summary
@@ -270,18 +327,10 @@ class RunContext:
     def write_summary(self, status: str, error: str | None = None) -> dict[str, Any]:
         """Every member's summary.json (and a population's population.json); returns member 0's."""
         out = [self.write_member_summary(i, status, error) for i in range(self.n)]
-        if not self.single:
+        if not self.layout.single:
             write_population_file(self.root, self.cfg, [mc.cfg for mc in self.members], status,
                                   [s["status"] for s in out], self.stage_seconds(), error)
         return out[0]
-
-
-def _single_extra(extra: dict | None) -> dict:
-    """A population of one stores its counters as a single run did (episodes: a number)."""
-    extra = dict(extra or {})
-    if isinstance(extra.get("episodes"), list):
-        extra["episodes"] = int(extra["episodes"][0])
-    return extra
 
 
 POPULATION_FILE = "population.json"
@@ -289,8 +338,6 @@ POPULATION_FILE = "population.json"
 
 def write_population_file(root: Path, cfg: RunConfig, member_cfgs: list[RunConfig], status: str,
                           member_status: list[str], stage_seconds: dict, error: str | None = None) -> None:
-    from botorl.pipeline.population import Member
-
     members = []
     for mcfg, st in zip(member_cfgs, member_status):
         m = Member(mcfg.seed, mcfg.alpha if get_method(cfg.method).uses_alpha else None)
@@ -363,7 +410,7 @@ def _template(cfg, stage: str, d: Dataset):
 
 
 def _templates(member_cfgs: list[RunConfig], stage: str, d: Dataset):
-    return P.stack([_template(c, stage, d) for c in member_cfgs])
+    return AP.stack([_template(c, stage, d) for c in member_cfgs])
 
 
 def _wandb_timeout() -> float:
@@ -436,19 +483,46 @@ def _finish_wandb(wandb_run, exit_code: int = 0) -> None:
               f"(`wandb sync` the run's wandb folder to send them).", file=sys.stderr)
 
 
-def member_config(cfg: RunConfig, seed: int, alpha: float | None, out: Path | str | None = None) -> RunConfig:
-    """The config of the member (seed, alpha) of a population made from ``cfg``."""
-    from dataclasses import replace
-
-    if alpha is None or not get_method(cfg.method).uses_alpha:
-        alpha = cfg.alpha
-    boto = replace(cfg.boto, seed=int(seed), alpha=float(alpha) if alpha is not None else cfg.boto.alpha)
-    return replace(cfg, seed=int(seed), alpha=alpha, boto=boto, out=str(out) if out is not None else cfg.out)
-
-
 def execute(cfg: RunConfig, run: RunDir, d_offline_raw: Dataset, *, resume: bool = False) -> dict[str, Any]:
     """One run: a population of one member, in the run directory ``run``. Returns its summary."""
     return execute_population(cfg, [cfg], run.root, [run], d_offline_raw, resume=resume, single=True)[0]
+
+
+def _resume_point(ckpt: CheckpointManager):
+    """(the newest checkpoint, {done_stages, stage_seconds}, failed members, the mid-stage point or None)."""
+    latest = ckpt.latest()
+    if latest is None:
+        return None, {"done_stages": [], "stage_seconds": {}}, {}, None
+    st = ckpt.state(latest["name"])
+    mid = None if st["stage_done"] else {"name": latest["name"], "stage": st["stage"], "step": st["step"],
+                                         "np_rng": st.get("np_rng"), "extra": st.get("extra", {})}
+    return latest, {"done_stages": list(st["done_stages"]), "stage_seconds": dict(st["stage_seconds"])}, \
+        st.get("failed") or {}, mid
+
+
+def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | None, member_cfgs: list[RunConfig]):
+    """One stage of the method: (agents, D_warmups, the arrays its end-of-stage checkpoint keeps)."""
+    cfg, arrays = ctx.cfg, None
+    if stage == "pretrain":
+        if cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
+            agents = shared_pretrain.load(ctx, member_cfgs, shared_pretrain.match(member_cfgs, cfg.pretrained))
+        else:
+            agents = S.pretrain(ctx, resume)
+        ctx.log_q("pretrain", cfg.offline.steps, agents)
+    elif stage == "warmup":
+        d_warmups, agents = S.warmup(ctx, agents)
+        if d_warmups is not None:
+            arrays = {k: _dataset_arrays(d) for k, d in zip(ctx.layout.warmup_keys(ctx.n), d_warmups)}
+    elif stage == "boto":
+        if resume is not None and agents is None:
+            agents = _templates(member_cfgs, "boto", ctx.d_offline)
+        agents = S.boto(ctx, agents, d_warmups, resume)
+        ctx.log_q("boto", cfg.boto.boto_steps, agents)
+    elif stage == "finetune":
+        if agents is None:  # rlpd, or a resume inside fine-tuning of a method without pre-training
+            agents = _templates(member_cfgs, "pretrain", ctx.d_offline) if ctx.method.pretrains else None
+        agents = S.finetune(ctx, agents, d_warmups, resume)
+    return agents, d_warmups, arrays
 
 
 def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_runs: list[RunDir],
@@ -459,28 +533,18 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
     ``member_runs[i]`` is member i's ordinary run directory. Returns every member's summary."""
     from botorl.envs.registry import get_task
 
-    spec = get_task(cfg.task)
-    method = get_method(cfg.method)
+    spec, method, layout = get_task(cfg.task), get_method(cfg.method), Layout(single)
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     d_offline = transform_dataset(cfg, spec, d_offline_raw)
-    ckpt = CheckpointManager((member_runs[0] if single else RunDir(root)).checkpoints)
-    latest = ckpt.latest() if resume else None
-    state = {"done_stages": [], "stage_seconds": {}}
-    mid = None
-    failed: dict = {}
-    if latest is not None:
-        st = ckpt.state(latest["name"])
-        state = {"done_stages": list(st["done_stages"]), "stage_seconds": dict(st["stage_seconds"])}
-        failed = st.get("failed") or {}
-        if not st["stage_done"]:
-            mid = {"name": latest["name"], "stage": st["stage"], "step": st["step"], "np_rng": st.get("np_rng"),
-                   "extra": st.get("extra", {})}
+    ckpt = CheckpointManager(layout.checkpoints(root, member_runs))
+    latest, state, failed, mid = _resume_point(ckpt) if resume else (None, {"done_stages": [], "stage_seconds": {}},
+                                                                      {}, None)
     wandb_run = _wandb(cfg, member_runs[0]) if single else None
     members = [MemberRun(c, r, wandb_run) for c, r in zip(member_cfgs, member_runs)]
     for i, err in failed.items():
         members[int(i)].error = err
-    ctx = RunContext(cfg, spec, root, members, d_offline, state, single=single)
+    ctx = RunContext(cfg, spec, root, members, d_offline, state, layout)
     for mc in members:
         _truncate_logs(mc, method.stages, mid, state["done_stages"])
     if latest is not None:
@@ -488,41 +552,20 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
         print(f"botorl: resuming {root} from {where} (checkpoint {latest['name']})", file=sys.stderr)
     ctx.write_summary("running")
 
-    agents = None
-    d_warmups = None
+    agents = d_warmups = None
     if state["done_stages"]:
         last = state["done_stages"][-1]
         agents = ctx.load_agents(checkpoint_name(last, None), _templates(member_cfgs, last, d_offline))
     if "warmup" in state["done_stages"]:
-        d_warmups = _load_warmups(ckpt, len(members), single)
-
+        d_warmups = _load_warmups(ckpt, layout.warmup_keys(len(members)))
     try:
         for stage in method.stages:
             if stage in state["done_stages"]:
                 continue
-            resume_here = mid if (mid is not None and mid["stage"] == stage) else None
             ctx.begin_stage(stage)
-            arrays = None
-            if stage == "pretrain":
-                if cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
-                    agents = shared_pretrain.load(ctx, member_cfgs, shared_pretrain.match(member_cfgs, cfg.pretrained))
-                else:
-                    agents = S.pretrain(ctx, resume_here)
-                ctx.log_q("pretrain", cfg.offline.steps, agents)
-            elif stage == "warmup":
-                d_warmups, agents = S.warmup(ctx, agents)
-                if d_warmups is not None:
-                    arrays = ({"warmup": _dataset_arrays(d_warmups[0])} if single else
-                              {f"warmup-m{i}": _dataset_arrays(d) for i, d in enumerate(d_warmups)})
-            elif stage == "boto":
-                if resume_here is not None and agents is None:
-                    agents = _templates(member_cfgs, "boto", d_offline)
-                agents = S.boto(ctx, agents, d_warmups, resume_here)
-                ctx.log_q("boto", cfg.boto.boto_steps, agents)
-            elif stage == "finetune":
-                if agents is None:  # rlpd, or a resume inside fine-tuning of a method without pre-training
-                    agents = _templates(member_cfgs, "pretrain", d_offline) if method.pretrains else None
-                agents = S.finetune(ctx, agents, d_warmups, resume_here)
+            agents, d_warmups, arrays = _run_stage(ctx, stage, agents, d_warmups,
+                                                   mid if (mid is not None and mid["stage"] == stage) else None,
+                                                   member_cfgs)
             ctx.end_stage()
             state["done_stages"].append(stage)
             ctx.save_stage_end(stage, agents, arrays=arrays)
@@ -555,8 +598,7 @@ def read_summary(run: RunDir) -> dict[str, Any]:
         return json.load(f)
 
 
-def _load_warmups(ckpt: CheckpointManager, n: int, single: bool) -> list[Dataset] | None:
-    keys = ["warmup"] if single else [f"warmup-m{i}" for i in range(n)]
+def _load_warmups(ckpt: CheckpointManager, keys: list[str]) -> list[Dataset] | None:
     out = []
     for key in keys:
         arrays = ckpt.arrays(checkpoint_name("warmup", None), key)

@@ -110,7 +110,7 @@ def load(ctx, member_cfgs, sources: list[Path]):
     """The members' pre-trained agents (stacked), with each source's pre-training logs copied
     into the member's run directory so its metrics read as if it had pre-trained itself."""
     from botorl.agents import checkpoint as agent_ckpt
-    from botorl.pipeline import population as P
+    from botorl.agents.population import stack
     from botorl.pipeline.stages import make_pretrain_agent
 
     d = ctx.d_offline
@@ -123,4 +123,4 @@ def load(ctx, member_cfgs, sources: list[Path]):
                 tmp = mc.run.metrics / f".{name}.tmp"
                 shutil.copyfile(src / "metrics" / name, tmp)
                 tmp.replace(mc.run.metrics / name)
-    return P.stack(agents)
+    return stack(agents)

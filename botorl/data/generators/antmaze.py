@@ -44,60 +44,22 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from botorl.data.dataset import Dataset
+from botorl.envs.antmaze import SUCCESS_RADIUS, layout  # the mazes: botorl/envs/antmaze.py
 
 ACTION_NOISE = 0.2  # create_antmaze_dataset.py --action-noise
 WAYPOINT_THRESHOLD = 0.45  # controller.py waypoint_threshold
 WAYPOINT_JITTER = 0.2  # controller.py: cell centre - U(0, 1) * 0.2
 SCALE = 4.0  # AntMaze maze_size_scaling
 POSITION_NOISE = 0.25  # Gymnasium-Robotics position_noise_range (cells)
-SUCCESS_RADIUS = 0.45
 EPISODE_STEPS = 1000
 FRAME_SKIP = 5
 
 ASSET = Path(__file__).parent / "assets" / "ant_goal_actor.npz"
-
-
-@dataclass(frozen=True)
-class AntMazeLayout:
-    name: str
-    maze_map: tuple[tuple[int, ...], ...]  # 1 = wall, 0 = free
-    locations: tuple[tuple[int, int], ...]  # "play": hand-picked goal/start cells
-    eval_start: tuple[int, int]
-    eval_goal: tuple[int, int]
-
-
-def _layouts() -> dict[str, AntMazeLayout]:
-    from gymnasium_robotics.envs.maze import maps
-
-    def parse(m):
-        walls = tuple(tuple(1 if c == 1 else 0 for c in row) for row in m)
-        picked = tuple((r, c) for r, row in enumerate(m) for c, v in enumerate(row) if v in ("c", "g", "r"))
-        return walls, picked
-
-    out = {}
-    # evaluation start/goal: D4RL's (Minari EVAL_ENV_MAPS 'r'/'g' cells)
-    for name, grid, picked_grid, start, goal in (
-        ("umaze", maps.U_MAZE, None, (3, 1), (1, 1)),
-        ("medium", maps.MEDIUM_MAZE, maps.MEDIUM_MAZE_DIVERSE_GR, (1, 1), (6, 6)),
-        ("large", maps.LARGE_MAZE, maps.LARGE_MAZE_DIVERSE_GR, (1, 1), (7, 9)),
-    ):
-        walls, _ = parse(grid)
-        picked = parse(picked_grid)[1] if picked_grid is not None else (start, goal)
-        out[name] = AntMazeLayout(name, walls, picked, start, goal)
-    return out
-
-
-def layout(maze: str) -> AntMazeLayout:
-    layouts = _layouts()
-    if maze not in layouts:
-        raise ValueError(f"unknown maze {maze!r}; one of {sorted(layouts)}")
-    return layouts[maze]
 
 
 def cell_xy(maze_map, cell) -> np.ndarray:
@@ -392,30 +354,6 @@ def evaluate_controller(maze: str = "large", episodes: int = 20, seed: int = 0, 
     return {"maze": maze, "episodes": episodes, "success": len(ok) / episodes,
             "mean_steps_to_goal": float(np.mean(ok)) if ok else None, "steps": results,
             "action_noise": action_noise}
-
-
-# ------------------------------------------------------------------ evaluation envs of the other mazes
-
-
-def make_antmaze_task(maze: str, seed: int | None = None):
-    """The D4RL-style evaluation env on the medium or umaze map (the large map's is
-    ``botorl.envs.antmaze.make_antmaze``): the same wrapper, this maze's start and goal."""
-    from botorl.envs.antmaze import OBS_DIM as ANT_OBS_DIM
-    from botorl.envs.antmaze import AntMazeTask
-    from botorl.envs.wrappers import import_robotics
-
-    import_robotics()
-    from gymnasium_robotics.envs.maze.ant_maze_v4 import AntMazeEnv
-
-    spec = layout(maze)
-
-    class _Task(AntMazeTask):
-        def _reset_options(self):
-            return {"reset_cell": np.array(spec.eval_start), "goal_cell": np.array(spec.eval_goal)}
-
-    inner = AntMazeEnv(maze_map=[list(r) for r in spec.maze_map], reward_type="sparse", continuing_task=False,
-                       reset_target=False)
-    return _Task(inner, ANT_OBS_DIM, seed)
 
 
 # ------------------------------------------------------------------ statistics and the coverage picture

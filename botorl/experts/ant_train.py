@@ -4,7 +4,7 @@
 
 Layout: worker processes own the ants (``AntGoalSim``) and a numpy copy of the actor; each
 iteration they step ``rollout_len`` steps of their ants with the actor of the previous
-iteration while the accelerator runs ``updates_per_iter`` SAC updates (``SACAgent._update``
+iteration while the accelerator runs ``updates_per_iter`` SAC updates (``SACAgent.train_step``
 under ``lax.scan``) on batches drawn from a replay buffer that lives on the device. So the
 CPU simulation and the gradient steps overlap; on a GPU machine with 16 cores the workers use
 the cores and the GPU the updates. On a CPU-only machine the same code runs (``num_workers``
@@ -219,7 +219,7 @@ def _make_train_step(batch_size: int, updates: int):
             idx = jax.random.randint(k, (batch_size,), 0, size)
             batch = {n: v[idx] for n, v in buf.items()}
             batch["mc_returns"] = jnp.zeros_like(batch["rewards"])
-            return a._update(batch)
+            return a.train_step(batch)
 
         agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, updates))
         return agent, {k: v[-1] for k, v in metrics.items()}

@@ -1,6 +1,12 @@
-"""Methods by name: which stages each runs, and how its online phase learns.
+"""Methods by name: which stages each runs, and how its fine-tuning starts and learns.
 
-One table (``METHODS``) maps a method to its stages; the stage functions are in stages.py.
+One table (``METHODS``) maps a method to its stages (the stage functions are in
+botorl/pipeline/stages.py) and declares what fine-tuning needs from it: how it starts
+(``finetune_start``: WSRL's warm start of a SAC learner from the pre-trained networks, the
+pre-trained agent continued with its own loss, or SAC from scratch), whether its batches may
+hold only rows of finished episodes (Cal-QL: a row's Monte-Carlo return is known once its
+episode ends) and their layout (``batch_layout``: one update on utd x batch rows split into
+utd critic minibatches, or IQL's utd separate updates of a batch each).
 
 | method | stages                               | online phase                                         |
 |--------|--------------------------------------|------------------------------------------------------|
@@ -9,7 +15,7 @@ One table (``METHODS``) maps a method to its stages; the stage functions are in 
 | wsrl   | pretrain, warmup, finetune           | WSRL, from the pre-trained nets                      |
 | calql  | pretrain, finetune                   | Cal-QL's own loss continued, 50/50 offline/online,   |
 | cql    |                                      | UTD 1, offline data kept (as in the paper's          |
-| iql    |                                      | baselines; docs/methods.md)                          |
+| iql    |                                      | baselines, algorithms.md section 5)                  |
 | rlpd   | finetune                             | SAC from scratch, 10 critics, 50/50 offline/online,  |
 |        |                                      | UTD 4 with WSRL's batch layout, 5,000 random steps   |
 
@@ -30,9 +36,11 @@ PRETRAIN_ALGOS = ("calql", "cql", "iql")
 class Method:
     name: str
     stages: tuple[str, ...]
-    online: str  # "wsrl" | "continue" | "scratch"
+    finetune_start: str  # "warm_start" (WSRL) | "continue" (the pre-trained agent's own loss) | "scratch"
     fixed_pretrain: str | None = None  # the method *is* its pre-training algorithm
     uses_alpha: bool = False
+    finished_episodes_only: bool = False  # fine-tuning batches hold rows of finished episodes only
+    batch_layout: str = "utd_rows"  # "utd_rows": one update on utd x B rows | "per_update": utd updates of B
     description: str = ""
 
     @property
@@ -42,15 +50,18 @@ class Method:
 
 
 METHODS: dict[str, Method] = {
-    "boto": Method("boto", ("pretrain", "warmup", "boto", "finetune"), "wsrl", uses_alpha=True,
+    "boto": Method("boto", ("pretrain", "warmup", "boto", "finetune"), "warm_start", uses_alpha=True,
                    description="pre-train, warm-up, BOTO critic training, WSRL fine-tuning"),
-    "wsrl": Method("wsrl", ("pretrain", "warmup", "finetune"), "wsrl",
+    "wsrl": Method("wsrl", ("pretrain", "warmup", "finetune"), "warm_start",
                    description="pre-train, warm-up, WSRL fine-tuning (no BOTO)"),
+    # Cal-QL bounds Q by each row's MC return, known once its episode ends: it samples finished
+    # episodes only and waits for the first one (WSRL)
     "calql": Method("calql", ("pretrain", "finetune"), "continue", fixed_pretrain="calql",
+                    finished_episodes_only=True,
                     description="Cal-QL offline, then its own loss online with the offline data kept"),
     "cql": Method("cql", ("pretrain", "finetune"), "continue", fixed_pretrain="cql",
                   description="CQL offline, then its own loss online with the offline data kept"),
-    "iql": Method("iql", ("pretrain", "finetune"), "continue", fixed_pretrain="iql",
+    "iql": Method("iql", ("pretrain", "finetune"), "continue", fixed_pretrain="iql", batch_layout="per_update",
                   description="IQL offline, then its own loss online with the offline data kept"),
     "rlpd": Method("rlpd", ("finetune",), "scratch",
                    description="SAC from scratch online with 50/50 offline/online batches"),

@@ -1,0 +1,236 @@
+"""Populations of agents: N agents of one class and config stacked along a leading member
+axis and trained by one jitted call, every call the agent's own traced function
+(``agents/common.py``: ``update_fn``, ``update_many_fn``, ``sample_fn``, ...) mapped over that
+axis by ``over_members``. A single run is a population of one on this same code: the member
+is taken out of the axis inside the jitted function, so it computes exactly what the agent's
+own jitted function computes (and runs as fast).
+
+How the members are mapped: the updates (``across_cores=True``) split the members over one
+JAX CPU device per core on a CPU (``jaxsetup.setup_jax`` makes them) and each device runs
+its members in turn; elsewhere, and for the per-step policy calls, the function is
+``jax.vmap``ped. Members are independent: nothing here mixes them, and every member carries
+its own JAX key inside its agent.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from botorl.agents import common as C
+
+__all__ = [
+    "stack", "unstack", "member_of", "population_size", "member_metrics", "host_shards", "member_sharding", "over_members",
+    "update", "update_many", "update_masked", "update_many_on_device", "sample", "eval_actions", "q_mean",
+]
+
+
+# ============================================================================ stacking
+def stack(agents: Sequence[Any]):
+    """Agent pytrees of one class and config -> one pytree with a leading member axis."""
+    if not agents:
+        raise ValueError("stack needs at least one agent")
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *agents)
+
+
+def population_size(agents) -> int:
+    return int(jax.tree_util.tree_leaves(agents)[0].shape[0])
+
+
+def member_of(agents, i: int):
+    """Member ``i`` of a stacked pytree (an ordinary agent)."""
+    return jax.tree_util.tree_map(lambda x: x[i], agents)
+
+
+def unstack(agents) -> list:
+    return [member_of(agents, i) for i in range(population_size(agents))]
+
+
+def member_metrics(metrics) -> list[dict[str, float]]:
+    """Stacked metrics {name: (N,)} -> one dict of floats per member (one host transfer)."""
+    host = jax.device_get(metrics)
+    n = len(next(iter(host.values())))
+    return [{k: float(np.asarray(v)[i]) for k, v in host.items() if np.asarray(v)[i].size == 1} for i in range(n)]
+
+
+# ============================================================================ mapping over the members
+def _member_count(axes, args) -> int:
+    """Members in the first argument mapped over its leading axis."""
+    return next(jax.tree_util.tree_leaves(a)[0].shape[0] for a, ax in zip(args, axes) if ax == 0)
+
+
+def _per_member(fn, axes, *args):
+    """``vmap(fn, in_axes=axes)(*args)``; for a population of one, ``fn`` on the member itself
+    (no batch dimension in any op: the single run's program) with the axis put back."""
+    if _member_count(axes, args) == 1:
+        sq = [jax.tree_util.tree_map(lambda x: x[0], a) if ax == 0 else a for a, ax in zip(args, axes)]
+        return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[None], fn(*sq))
+    return jax.vmap(fn, in_axes=axes)(*args)
+
+
+def host_shards(n: int) -> int:
+    """CPU devices a population of ``n`` members trains on: one per core that the process may
+    use, at most ``n``; 1 off the CPU, where one device's vmapped kernels are the faster layout."""
+    if n <= 1 or jax.default_backend() != "cpu":
+        return 1
+    return min(n, jax.local_device_count())
+
+
+def _member_loop(fn, axes, *args):
+    """``fn`` on each member in turn (``lax.map``): every member runs the single run's own
+    unbatched program (XLA may still fuse it another way inside the loop: parameters equal a
+    1-member population's to ~1e-8 after 3 Cal-QL updates, against ~1e-7 vmapped)."""
+    mapped = tuple(a for a, ax in zip(args, axes) if ax == 0)
+
+    def one(ms):
+        it = iter(ms)
+        return fn(*[next(it) if ax == 0 else a for a, ax in zip(args, axes)])
+
+    return jax.lax.map(one, mapped)
+
+
+def _across_cores(fn, axes, *args):
+    """``fn`` on every member, the members split over one JAX CPU device per core
+    (``shard_map``), each device running its members one after another: measured on 2 cores
+    (README "What it buys"), a vmapped batch of members is slower per member than one member
+    alone (its activations, N times larger, fall out of the caches), while members in turn keep
+    the single run's speed on each core. The member axis is padded with copies of member 0 to a
+    multiple of the devices; their results are dropped."""
+    n = _member_count(axes, args)
+    d = host_shards(n)
+    if d == 1:
+        return _per_member(fn, axes, *args)
+    pad = (-n) % d
+
+    def padded(x):
+        return x if pad == 0 else jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)])
+
+    args = [jax.tree_util.tree_map(padded, a) if ax == 0 else a for a, ax in zip(args, axes)]
+    specs = tuple(PartitionSpec("members") if ax == 0 else PartitionSpec() for ax in axes)
+    out = jax.shard_map(lambda *a: _member_loop(fn, axes, *a), mesh=_mesh(d), in_specs=specs,
+                        out_specs=PartitionSpec("members"), check_vma=False)(*args)
+    if pad:
+        out = jax.tree_util.tree_map(lambda x: x[:n], out)
+    return jax.lax.with_sharding_constraint(out, member_sharding(n))
+
+
+@functools.lru_cache(maxsize=None)
+def _mesh(d: int) -> Mesh:
+    return Mesh(np.array(jax.local_devices()[:d]), ("members",))
+
+
+def member_sharding(n: int):
+    """Where a population of ``n`` members keeps its stacked arrays between updates: split
+    over the devices along the member axis (replicated when ``n`` does not divide, as JAX
+    shards only evenly). None for one device."""
+    d = host_shards(n)
+    if d == 1:
+        return None
+    return NamedSharding(_mesh(d), PartitionSpec("members") if n % d == 0 else PartitionSpec())
+
+
+def placed(*trees):
+    """The member-axis inputs of an update where its outputs will be, so that every call
+    (the first, with fresh arrays, and the later ones) compiles to one program."""
+    sharding = member_sharding(population_size(trees[0]))
+    if sharding is None:
+        return trees
+
+    def put(tree):
+        first = jax.tree_util.tree_leaves(tree)[0]
+        if isinstance(first, jax.Array) and first.sharding == sharding:
+            return tree  # the agents after their first update: already there (a per-leaf check costs ms)
+        return jax.device_put(tree, sharding)
+
+    return tuple(put(t) for t in trees)
+
+
+def over_members(fn, axes: tuple, *, across_cores: bool):
+    """``fn(member, *args)`` of one agent as a function of the population: the arguments with
+    axis 0 are mapped over the members, those with axis None are shared. ``across_cores``:
+    the heavy calls (updates), split over the CPU devices (``_across_cores``); otherwise
+    vmapped. Keyword arguments are static (part of the compiled program)."""
+    mapper = _across_cores if across_cores else _per_member
+
+    def mapped(*args, **static):
+        return mapper(functools.partial(fn, **static) if static else fn, axes, *args)
+
+    return mapped
+
+
+# ============================================================================ the entry points
+def _masked(agents, batches, mask, many: bool):
+    """Members with ``mask`` False keep their agent (rng included): they did not update."""
+    new, metrics = (_update_many if many else _update)(agents, batches)
+
+    def pick(n, o):
+        return jnp.where(mask.reshape(mask.shape + (1,) * (n.ndim - 1)), n, o)
+
+    return jax.tree_util.tree_map(pick, new, agents), metrics
+
+
+_update = over_members(C.update_fn, (0, 0), across_cores=True)
+_update_many = over_members(C.update_many_fn, (0, 0), across_cores=True)
+jit_update = jax.jit(_update)
+jit_update_many = jax.jit(_update_many)
+jit_update_masked = jax.jit(_masked, static_argnames=("many",))
+jit_update_many_on_device = jax.jit(over_members(C.update_many_on_device_fn, (0, None, 0), across_cores=False),
+                                    static_argnames=("num_updates", "batch_size"))
+jit_sample = jax.jit(over_members(C.sample_fn, (0, 0), across_cores=False))
+jit_eval = jax.jit(over_members(C.eval_fn, (0, 0), across_cores=False))
+jit_q_mean = jax.jit(over_members(C.q_mean_fn, (0, None, None), across_cores=False))
+
+
+def as_f32(x):
+    # host arrays stay on the host until the update places them (one copy, to their devices);
+    # device arrays stay on their device
+    return x.astype(jnp.float32) if isinstance(x, jax.Array) else np.asarray(x, np.float32)
+
+
+def _f32(batch: dict) -> dict:
+    C.check_batch(batch)
+    batch = C.ensure_mc_returns(batch)
+    return {k: as_f32(batch[k]) for k in C.BATCH_KEYS}
+
+
+def update(agents, batches):
+    """One ``update`` per member; ``batches`` (N, B, ...). Returns (agents, metrics (N,))."""
+    return jit_update(*placed(agents, _f32(batches)))
+
+
+def update_many(agents, batches):
+    """K updates per member under one ``lax.scan``; ``batches`` (N, K, B, ...)."""
+    return jit_update_many(*placed(agents, _f32(batches)))
+
+
+def update_masked(agents, batches, mask, *, many: bool = False):
+    """``update`` (or ``update_many``) where only the members with ``mask`` True update; the
+    others keep their agent exactly (their rows of ``batches`` are ignored)."""
+    return jit_update_masked(*placed(agents, _f32(batches), np.asarray(mask, bool)), many=many)
+
+
+def update_many_on_device(agents, arrays: dict, keys, num_updates: int, batch_size: int):
+    """``update_many_on_device`` per member from one shared on-device dataset; ``keys`` (N, 2)."""
+    C.check_batch(arrays)
+    return jit_update_many_on_device(agents, C.ensure_mc_returns(arrays), keys, num_updates=num_updates,
+                                     batch_size=batch_size)
+
+
+def sample(agents, observations):
+    """Stochastic actions of every member at its own observation(s): (N, O) -> (N, A)."""
+    return jit_sample(agents, jnp.asarray(observations, jnp.float32))
+
+
+def eval_actions(agents, observations):
+    """Deterministic actions: (N, O) -> (N, A) or (N, E, O) -> (N, E, A)."""
+    return jit_eval(agents, jnp.asarray(observations, jnp.float32))
+
+
+def q_mean(agents, observations, actions):
+    """Mean over each member's critic ensemble of Q(s, a) on shared (s, a): (N, B)."""
+    return jit_q_mean(agents, jnp.asarray(observations, jnp.float32), jnp.asarray(actions, jnp.float32))

@@ -1,0 +1,133 @@
+"""The members of a population: every (seed, alpha) pair of ``--seeds`` / ``--alphas``.
+
+One parser of seeds and of alphas for the population's command line and the sweep's grid
+(``parse_seeds``, ``parse_alphas``: a value given twice is an error), the ``Member`` and its
+run directory's name, and each member's ``RunConfig`` (``member_config``: the shared config
+with the member's seed and alpha, the only fields in which members differ).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+from botorl.boto.config import check_alpha
+from botorl.configs.methods import get_method
+from botorl.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Member:
+    """One member: its seed and, for BOTO, its alpha (None: no BOTO phase)."""
+
+    seed: int
+    alpha: float | None = None
+
+    @property
+    def name(self) -> str:
+        """Its run directory's name inside the population directory."""
+        if self.alpha is None:
+            return f"seed{self.seed}"
+        return f"alpha{self.alpha:+.2f}-seed{self.seed}" if round(self.alpha, 2) == self.alpha else \
+            f"alpha{self.alpha:+.6f}-seed{self.seed}"
+
+    def to_json(self) -> dict:
+        return {"seed": self.seed, "alpha": self.alpha, "name": self.name}
+
+
+def _items(value, flag: str) -> list[str]:
+    """The items of a command-line value ("0-3,7") or a YAML one (a list, a number)."""
+    if value is None:
+        return []
+    if isinstance(value, (list, tuple)):
+        return [str(v).strip() for v in value]
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return [repr(value)]
+    items = [t.strip() for t in str(value).split(",")]
+    if not all(items):
+        raise ConfigError(f"{flag} {value!r} has an empty item; write e.g. {flag} 0-3 or {flag} 0,2,5.")
+    return items
+
+
+def _no_repeats(values: list, value, flag: str) -> None:
+    dup = sorted({v for v in values if values.count(v) > 1})
+    if dup:
+        raise ConfigError(f"{flag} {value}: {dup} given twice. Two members (or trials) with the same seed and alpha "
+                          f"would be the same run; give each value once.")
+
+
+def parse_seeds(value, flag: str = "--seeds") -> list[int]:
+    """``"0-7"`` (inclusive), ``"0,2,5"``, ``"0-2,7"``, a number or a list, in the order given (the
+    population's and the sweep's parser alike); a seed given twice is an error."""
+    seeds: list[int] = []
+    for item in _items(value, flag):
+        try:
+            if "-" in item[1:]:
+                lo, hi = (int(p) for p in item.split("-", 1))
+                if hi < lo:
+                    raise ValueError
+                seeds.extend(range(lo, hi + 1))
+            else:
+                seeds.append(int(item))
+        except ValueError:
+            raise ConfigError(
+                f"{flag}: cannot read {item!r}. Give a range like 0-7 (both ends included), a list like "
+                f"0,2,5, or both (0-3,9)."
+            ) from None
+    if any(s < 0 for s in seeds):
+        raise ConfigError(f"{flag}: seeds must be >= 0, got {[s for s in seeds if s < 0]}.")
+    _no_repeats(seeds, value, flag)
+    return seeds
+
+
+def parse_alphas(value, flag: str = "--alphas") -> list[float]:
+    """``"-1:1:0.25"`` (start:stop:step, stop included), ``"-0.5,0,0.5"``, a number or a list, in
+    the order given, rounded to 1e-6; an alpha given twice is an error."""
+    alphas: list[float] = []
+    one_range = isinstance(value, str) and ":" in value and "," not in value
+    for item in [value.strip()] if one_range else _items(value, flag):
+        try:
+            if ":" in item:
+                start, stop, step = (float(p) for p in item.split(":"))
+                if not step > 0 or stop < start:
+                    raise ValueError
+                n = int(math.floor((stop - start) / step + 1e-9)) + 1
+                alphas.extend(round(start + i * step, 6) for i in range(n))
+            else:
+                alphas.append(round(float(item), 6))
+        except ValueError:
+            raise ConfigError(
+                f"{flag}: cannot read {item!r}. Give start:stop:step with the stop included (-1:1:0.25 gives "
+                f"9 values) or a list like -0.5,0,0.5."
+            ) from None
+    alphas = [0.0 if a == 0 else a for a in alphas]
+    bad = [a for a in alphas if math.isnan(a) or not -1.0 <= a <= 1.0]
+    if bad:
+        check_alpha(bad, flag)
+    _no_repeats(alphas, value, flag)
+    return alphas
+
+
+def make_members(seeds: Sequence[int], alphas: Sequence[float | None], method_uses_alpha: bool) -> list[Member]:
+    """Every (seed, alpha) pair, alpha-major. ``alphas`` empty or [None]: one alpha (the preset's)."""
+    alphas = list(alphas) or [None]
+    if not method_uses_alpha and any(a is not None for a in alphas):
+        raise ConfigError("--alphas sets BOTO's bias controller; this method has no BOTO phase. Drop --alphas or use --method boto.")
+    members = [Member(int(s), None if a is None else float(a)) for a in alphas for s in seeds]
+    if not members:
+        raise ConfigError("the population is empty; give at least one seed (--seeds).")
+    names = [m.name for m in members]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"members {dup} appear twice in the population; give each seed and alpha once.")
+    return members
+
+
+def member_config(cfg, seed: int, alpha: float | None, out: str | os.PathLike | None = None):
+    """The config of the member (seed, alpha) of a population made from ``cfg``."""
+    if alpha is None or not get_method(cfg.method).uses_alpha:
+        alpha = cfg.alpha
+    return replace(cfg, seed=int(seed), alpha=None if alpha is None else float(alpha),
+                   out=str(out) if out is not None else cfg.out)

@@ -1,0 +1,71 @@
+"""A task's offline data: read (or made) where its ``TaskSpec.dataset_source`` says.
+
+``load_task_data(spec, path)`` is what the pipeline loads (raw rewards: the pipeline applies
+the task's transform); ``data_status(spec)`` is what ``botorl tasks`` shows.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from botorl.data import loaders
+from botorl.data.dataset import Dataset
+
+
+def load_task_data(spec, path: str | os.PathLike | None = None, **kwargs) -> Dataset:
+    """The task's offline data with raw rewards (the pipeline applies the transform).
+
+    ``path``: a Minari dataset folder (minari tasks; default: by id from
+    ``$MINARI_DATASETS_PATH``), the Cal-QL folder or ``expert.npy,bc.npy`` (adroit; must be
+    given: those files are pickles), or a generated Minari folder (generated tasks;
+    default: the cache, generating the data if missing; ``kwargs`` go to ``ensure_dataset``).
+    """
+    src = spec.dataset_source
+    if src.kind == "minari":
+        return loaders.load_minari(
+            path or src.ref, obs_keys=src.obs_keys, obs_dim=spec.obs_dim, action_dim=spec.action_dim
+        )
+    if src.kind == "calql_npy":
+        expert, bc = _calql_paths(spec.name, src, path)
+        return loaders.load_calql_adroit(expert, bc, obs_dim=spec.obs_dim, action_dim=spec.action_dim)
+    if path is not None:
+        return loaders.load_minari(Path(path), obs_dim=spec.obs_dim, action_dim=spec.action_dim)
+    from botorl.data.generate import ensure_dataset
+
+    return ensure_dataset(spec.name, **kwargs)
+
+
+def data_status(spec) -> tuple[str, str]:
+    """("found" | "generated-cached" | "missing" | "generate", a one-line detail)."""
+    src = spec.dataset_source
+    if src.kind == "minari":
+        folder = loaders.minari_root() / src.ref
+        if (folder / "data").is_dir():
+            return "found", str(folder)
+        return "missing", loaders.download_hint(spec.name)
+    if src.kind == "calql_npy":
+        return "missing", "pass --data.path: " + loaders.download_hint(spec.name)
+    try:
+        from botorl.data.generate import cached_datasets
+
+        cached = cached_datasets(spec.name)
+    except Exception:  # the data package may not offer a cache listing; stay informative
+        cached = []
+    if cached:
+        return "generated-cached", str(cached[0])
+    return "generate", f"made on first use, or now with `botorl data generate {spec.name}`"
+
+
+def _calql_paths(name: str, src, path) -> tuple[Path, Path | None]:
+    expert_name, bc_name = src.ref.split(",")
+    if path is None:
+        raise loaders.dataset_not_found(name, [], None)
+    text = str(path)
+    if "," in text:
+        a, b = text.split(",", 1)
+        return Path(a).expanduser(), Path(b).expanduser()
+    p = Path(text).expanduser()
+    if p.is_dir():
+        return p / expert_name, p / bc_name
+    return p, None

@@ -1,0 +1,196 @@
+"""The sweep's local backends: ``local`` runs ``--workers`` trial processes at once (default:
+one per usable core), each pinned to its own block of the cores (C // W of them; a worker
+with one core has XLA/BLAS limited to one thread, as a 1-core trial with many threads only
+adds context switches); ``sequential`` runs one trial at a time with the machine's full thread
+pools."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import socket
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+from botorl.experiments.child import launcher
+from botorl.io import atomic_write_json, pid_alive
+
+TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan detection)
+
+# Thread settings for a trial pinned to one core: the usual BLAS/OpenMP knobs. XLA needs no
+# flag: its CPU thread pools are sized from the affinity mask (a JAX 0.10 process pinned to
+# one core starts 13 threads instead of 17, all on that core). --xla_cpu_multi_thread_eigen=false
+# is accepted by JAX 0.10 but did not change that, and any XLA_FLAGS value is part of the
+# persistent compile cache's key, so setting it would make pinned trials recompile everything
+# that unpinned runs already cached. Extra flags for pinned trials: $BOTORL_SWEEP_XLA_FLAGS.
+SINGLE_THREAD_ENV = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "VECLIB_MAXIMUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+    "TF_NUM_INTRAOP_THREADS": "1",
+    "TF_NUM_INTEROP_THREADS": "1",
+}
+
+
+def single_thread_env(base: dict[str, str] | None = None) -> dict[str, str]:
+    env = dict(os.environ if base is None else base)
+    env.update(SINGLE_THREAD_ENV)
+    extra = env.get("BOTORL_SWEEP_XLA_FLAGS", "").strip()
+    if extra:
+        env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {extra}".strip()
+    return env
+
+
+# ---------------------------------------------------------------------------------------------
+# Child processes
+
+
+def cmdline(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def stop_orphan(run_dir: Path, timeout: float = 15.0) -> bool:
+    """Stop a trial process left from an earlier sweep of this directory (same host only)."""
+    try:
+        info = json.loads((Path(run_dir) / TRIAL_PID).read_text())
+    except (OSError, ValueError):
+        info = None
+    if not isinstance(info, dict) or info.get("host") != socket.gethostname():
+        return False
+    pid = int(info.get("pid", 0) or 0)
+    if pid <= 0 or pid == os.getpid() or not pid_alive(pid):
+        return False
+    if str(Path(run_dir).resolve()) not in cmdline(pid):  # pid reused by something else
+        return False
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and pid_alive(pid) and str(Path(run_dir).resolve()) in cmdline(pid):
+        time.sleep(0.1)
+    if pid_alive(pid) and str(Path(run_dir).resolve()) in cmdline(pid):
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    return True
+
+
+def stop_processes_mentioning(needle: str, timeout: float = 10.0) -> int:
+    """SIGTERM (then SIGKILL) this user's processes whose command line contains `needle`."""
+    me = os.getpid()
+    uid = os.getuid()
+    victims = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == me:
+            continue
+        try:
+            if entry.stat().st_uid != uid:
+                continue
+        except OSError:
+            continue
+        if mentions(int(entry.name), needle):
+            victims.append(int(entry.name))
+    for pid in victims:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and any(pid_alive(p) and mentions(p, needle) for p in victims):
+        time.sleep(0.1)
+    for pid in victims:
+        if pid_alive(pid) and mentions(pid, needle):
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(pid, signal.SIGKILL)
+    return len(victims)
+
+
+def mentions(pid: int, needle: str) -> bool:
+    """The command line or an open file of `pid` contains `needle` (Ray's daemons rename
+    their process title, but keep their log files under the instance's temp dir open)."""
+    if needle in cmdline(pid):
+        return True
+    try:
+        fds = list(Path(f"/proc/{pid}/fd").iterdir())
+    except OSError:
+        return False
+    for fd in fds:
+        try:
+            if needle in os.readlink(fd):
+                return True
+        except OSError:
+            continue
+    return False
+
+
+def usable_cores() -> list[int]:
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except AttributeError:
+        return list(range(os.cpu_count() or 1))
+
+
+class LocalBackend:
+    """Trials as child processes of the sweep (``sweep`` is the ``runner.Sweep``)."""
+
+    def __init__(self, sweep):
+        self.sweep = sweep
+        self.pinned = sweep.opt.backend == "local"
+
+    def workers(self) -> int:
+        if not self.pinned:
+            return 1
+        return max(1, int(self.sweep.opt.workers)) if self.sweep.opt.workers else len(usable_cores())
+
+    def start(self, pending: int) -> int:
+        """The number of trials to run at once."""
+        return min(self.workers(), max(1, pending))
+
+    def core_block(self, slot: int) -> list[int]:
+        """The cores of worker slot ``slot``: the sweep's cores split into one contiguous block
+        per worker, so W workers on C cores get C // W cores each (one when W >= C). Pinning
+        every worker to a single core instead left cores idle when W < C (one worker on a
+        2-core machine used one core)."""
+        cores = usable_cores()
+        w = min(self.workers(), len(cores))
+        k = slot % w
+        return cores[k * len(cores) // w:(k + 1) * len(cores) // w]
+
+    def launch(self, trial, slot: int | None) -> subprocess.Popen:
+        sweep = self.sweep
+        run_dir, cmd, log = sweep.prepare(trial)
+        block = self.core_block(slot) if (slot is not None and self.pinned) else None
+        # "cpu": the one core of a single-core block (the manifest's field before blocks), else None
+        cpu = block[0] if block and len(block) == 1 else None
+        with open(log, "ab") as logf:
+            proc = subprocess.Popen(launcher(cmd, os.getpid(), block), stdout=logf, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, env=sweep.trial_env(len(block) if block else 1),
+                                    cwd=str(sweep.out))
+        atomic_write_json(run_dir / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": cpu,
+                                                "cpus": block})
+        sweep.entry(trial).update(pid=proc.pid, cpu=cpu, cpus=block)
+        sweep.save()
+        return proc
+
+    def poll(self, running: dict) -> list[tuple[int, int]]:
+        """(key, exit code) of every finished trial."""
+        return [(key, code) for key, r in running.items() if (code := r.handle.poll()) is not None]
+
+    def abort(self, running: dict) -> None:
+        """Stop the running trials (they resume next time)."""
+        for r in running.values():
+            with contextlib.suppress(ProcessLookupError):
+                r.handle.terminate()
+        for r in running.values():
+            try:
+                r.handle.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                r.handle.kill()
+
+    def close(self) -> Any:
+        return None

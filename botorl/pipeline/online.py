@@ -1,0 +1,207 @@
+"""Fine-tuning's resumable state: everything besides the agents that decides what comes next.
+
+``OnlineState`` holds the members' envs stepped in lockstep (each mid-episode), their current
+observations and episode counters, the replay buffer with a member axis, each member's
+batch generator, the step, and the evaluation schedule's memory. It is saved whole into a
+mid-stage checkpoint (``save``) and restored whole (``restore``), so a resumed fine-tuning
+repeats an uninterrupted one exactly (CONTRACTS.md "Runs": ``buffer.npz``, ``online.npz``,
+``envs.json`` and the counters in ``state.json``).
+
+What a method needs from it is declared in its ``Method`` (botorl/configs/methods.py):
+``finished_episodes_only`` -- batches hold rows of finished episodes only, whose Monte-Carlo
+returns are filled (the offline data's rule) when the episode ends, and a member waits for its
+first one (Cal-QL); ``batch_layout`` -- one update on utd x B rows, or utd updates of B rows
+each (IQL); the offline data mixed in at ``online.offline_ratio``.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from botorl.agents import population as AP
+from botorl.data.dataset import RewardTransform
+from botorl.data.replay import ReplayBuffer
+
+
+def rng_from(state: dict | None, seed_seq) -> np.random.Generator:
+    """A generator seeded by ``seed_seq``, at ``state`` if given (a checkpoint's)."""
+    rng = np.random.default_rng(seed_seq)
+    if state is not None:
+        rng.bit_generator.state = state
+    return rng
+
+
+class OnlineState:
+    """The state of fine-tuning beside the agents (see the module docstring)."""
+
+    def __init__(self, ctx, *, step: int, start: int, buffer: ReplayBuffer, rng_states, episodes, last_eval: int,
+                 resumes: int):
+        oc, n = ctx.cfg.online, ctx.n
+        self.ctx, self.step, self.start, self.buffer = ctx, step, start, buffer
+        self.rngs = [rng_from(st, [mc.cfg.online_seed, 3])
+                     for mc, st in zip(ctx.members, rng_states if isinstance(rng_states, list) else [rng_states] * n)]
+        self.episodes = list(episodes) if isinstance(episodes, list) else [int(episodes)] * n
+        self.last_eval, self.resumes = last_eval, resumes
+        self.env_seeds = [mc.cfg.online_seed * 1000 + 11 for mc in ctx.members]
+        self.envs = [ctx.spec.make_env(seed=s) for s in self.env_seeds]
+        self.obs = np.zeros((n, buffer.obs_dim), np.float32)
+        self.ep_succ = np.zeros(n)
+        self.ep_rows: list[list[int]] = [[] for _ in range(n)]
+        self.recent_success: list[list[float]] = [[] for _ in range(n)]
+        self.finished_only = ctx.method.finished_episodes_only
+        self.reward = RewardTransform.of(ctx.spec)
+        self.offline = ctx.d_offline if oc.offline_ratio > 0 else None
+
+    # ------------------------------------------------------------------ start and resume
+    @classmethod
+    def begin(cls, ctx, d_warmups) -> "OnlineState":
+        """Fine-tuning from its start: the step after the warm-up, a buffer holding D_warmup for
+        WSRL's warm start (the offline data are dropped), every member's episode starting."""
+        oc, d = ctx.cfg.online, ctx.d_offline
+        n_warm = len(d_warmups[0]) if d_warmups is not None else 0
+        buffer = ReplayBuffer(oc.buffer_capacity or (oc.steps + n_warm + 1), d.obs_dim, d.action_dim, members=ctx.n)
+        if d_warmups is not None and ctx.method.finetune_start == "warm_start":
+            buffer.insert_dataset(d_warmups)  # WSRL: the online buffer starts with D_warmup
+        state = cls(ctx, step=n_warm, start=n_warm, buffer=buffer, rng_states=None, episodes=0, last_eval=-1,
+                    resumes=0)
+        state._reset_all(state.env_seeds)
+        return state
+
+    @classmethod
+    def restore(cls, ctx, resume: dict, d_warmups) -> "OnlineState":
+        """The state a mid-stage checkpoint (``resume``: name, step, np_rng, extra) saved; each env
+        set to its saved state mid-episode."""
+        extra = resume.get("extra", {})
+        n_warm = len(d_warmups[0]) if d_warmups is not None else 0
+        state = cls(ctx, step=int(resume["step"]), start=int(extra.get("start", n_warm)),
+                    buffer=ReplayBuffer.from_state_dict(ctx.ckpt.arrays(resume["name"], "buffer")),
+                    rng_states=resume.get("np_rng"), episodes=extra.get("episodes", 0),
+                    last_eval=int(extra.get("last_eval", -1)), resumes=int(extra.get("resumes", 0)) + 1)
+        if not state._load_envs(resume["name"]):
+            # a checkpoint written before env states were saved: each member starts a new episode,
+            # with seeds not used before (the run is then not exact)
+            print("botorl: warning: this checkpoint has no env state (written by an older botorl); fine-tuning "
+                  "continues with new episodes, so the run will not repeat an uninterrupted one exactly.",
+                  file=sys.stderr)
+            state._reset_all([s + 100_003 * state.resumes for s in state.env_seeds])
+        return state
+
+    def _reset_all(self, seeds) -> None:
+        self.obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(self.envs, seeds)])
+
+    def save(self, agents) -> None:
+        """A mid-stage checkpoint of the agents and this whole state."""
+        from botorl.envs.state import get_env_state
+
+        self.ctx.save_mid(
+            "finetune", self.step, agents, np_rng=[r.bit_generator.state for r in self.rngs],
+            arrays={"buffer": self.buffer.state_dict(), "online": {"obs": self.obs, "ep_succ": self.ep_succ}},
+            extra={"episodes": self.episodes, "last_eval": self.last_eval, "resumes": self.resumes, "start": self.start},
+            # what of the running episodes is not in arrays: each member's env state, the buffer rows
+            # of its running episode (their MC returns are filled when it ends), the recent successes
+            documents={"envs": {"envs": [get_env_state(e) for e in self.envs],
+                                "ep_rows": [[int(r) for r in rows] for rows in self.ep_rows],
+                                "recent_success": [[float(x) for x in xs] for xs in self.recent_success]}})
+
+    def _load_envs(self, name: str) -> bool:
+        """Each env, observation and running episode from checkpoint ``name``; False for a
+        checkpoint without env states (older botorl)."""
+        from botorl.envs.state import set_env_state
+        from botorl.pipeline.checkpoint import CheckpointCorrupt
+
+        doc, arrays = self.ctx.ckpt.document(name, "envs"), self.ctx.ckpt.arrays(name, "online")
+        if doc is None or arrays is None:
+            return False
+        try:
+            if len(doc["envs"]) != len(self.envs) or arrays["obs"].shape[0] != len(self.envs):
+                raise ValueError(f"it holds {len(doc['envs'])} envs, the run has {len(self.envs)} members")
+            for env, st in zip(self.envs, doc["envs"]):
+                set_env_state(env, st)
+            self.obs = np.array(arrays["obs"], np.float32)
+            self.ep_succ = np.array(arrays["ep_succ"], np.float64)
+            self.ep_rows = [[int(r) for r in rows] for rows in doc["ep_rows"]]
+            self.recent_success = [[float(x) for x in xs] for xs in doc["recent_success"]]
+        except (KeyError, TypeError, ValueError, IndexError) as err:
+            raise CheckpointCorrupt(
+                f"checkpoint {name}: its env state (envs.json, online.npz) does not fit this run "
+                f"({type(err).__name__}: {err}). Resume from another checkpoint: `botorl resume RUN_DIR --from NAME`."
+            ) from None
+        return True
+
+    def __enter__(self) -> "OnlineState":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for env in self.envs:
+            env.close()
+
+    # ------------------------------------------------------------------ one env step, one update
+    def advance(self, agents, window):
+        """One online step of every member: act (one policy call for all), step the envs, store
+        the transitions; then one UTD update (from ``online.random_steps`` on). The body of
+        fine-tuning's loop (stages.finetune) and what the online-loop benchmark times."""
+        actions, agents = AP.sample(agents, self.obs)
+        self.act(np.asarray(actions, dtype=np.float32))
+        if self.step >= self.ctx.cfg.online.random_steps:
+            agents = self.learn(agents, window)
+        self.step += 1
+        return agents
+
+    def act(self, actions: np.ndarray) -> None:
+        """Every member's env steps with its action; the transitions go into the buffer; ended
+        episodes close (with their Monte-Carlo returns where the method needs them) and reset."""
+        ctx, n = self.ctx, len(self.envs)
+        next_obs, rewards, dones = np.zeros_like(self.obs), np.zeros(n, np.float32), np.zeros(n, np.float32)
+        ended = []
+        for i, env in enumerate(self.envs):
+            next_obs[i], r, terminated, truncated, info = env.step(actions[i])
+            rewards[i] = self.reward(float(r))
+            dones[i] = float(terminated)
+            s = float(info.get("success", 0.0))
+            self.ep_succ[i] = max(self.ep_succ[i], s) if ctx.spec.success_mode == "any" else s
+            if terminated or truncated:
+                ended.append(i)
+        for rows in self.ep_rows:
+            rows.append(self.buffer.insert_index)
+        self.buffer.insert(self.obs, actions, rewards, next_obs, dones)
+        self.obs[:] = next_obs
+        for i in ended:
+            if self.finished_only:
+                self.buffer.set_mc_returns(self.ep_rows[i], ctx.mc_returns, member=i)
+            self.buffer.end_episode(i)
+            self.ep_rows[i] = []
+            self.episodes[i] += 1
+            self.recent_success[i].append(self.ep_succ[i])
+            self.obs[i] = self.envs[i].reset()[0]
+            self.ep_succ[i] = 0.0
+
+    def learn(self, agents, window):
+        """One UTD update of every member that has rows to learn from (a Cal-QL member waits for
+        its first finished episode; the others keep their agents exactly)."""
+        oc, n = self.ctx.cfg.online, len(self.envs)
+        rows = [self.buffer.finished_len(i) if self.finished_only else len(self.buffer) for i in range(n)]
+        active = [r > 0 or (self.offline is not None and not self.finished_only) for r in rows]
+        if not any(active):
+            return agents
+        u, B = oc.utd, oc.batch_size
+        b = self.buffer.sample_members(self.rngs, B, u, active=active, finished=self.finished_only,
+                                       offline=self.offline, offline_ratio=oc.offline_ratio)
+        many = self.ctx.method.batch_layout == "per_update"  # (N, u, B, ...): u updates
+        if not many:  # (N, u, B, ...) -> (N, u*B, ...): each critic minibatch keeps the offline/online mix
+            b = {k: v.reshape((n, u * B) + v.shape[3:]) for k, v in b.items()}
+        if all(active):
+            agents, metrics = (AP.update_many if many else AP.update)(agents, b)
+        else:
+            agents, metrics = AP.update_masked(agents, b, np.asarray(active), many=many)
+        window.add(metrics, np.asarray(active))
+        return agents
+
+    def log_rows(self, ms: list[dict], env_steps_per_s: float) -> list[dict]:
+        """Each member's fine-tuning log row at a log point (the episode successes since the last)."""
+        rows = [{**m, "episodes": self.episodes[i], "env_steps_per_s": env_steps_per_s,
+                 "train_success": float(np.mean(self.recent_success[i])) if self.recent_success[i] else float("nan"),
+                 "buffer_size": len(self.buffer)} for i, m in enumerate(ms)]
+        self.recent_success = [[] for _ in ms]
+        return rows
