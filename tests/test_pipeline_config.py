@@ -235,3 +235,13 @@ def test_bare_botorl_trains_nothing_and_says_what_there_is(capsys, tmp_path, mon
     out = capsys.readouterr().out
     assert "usage: botorl <command>" in out and "botorl run" in out and "python3 -m pytest -q" in out
     assert not any(tmp_path.iterdir()), "a bare `botorl` must not start a run (no run directory)"
+
+
+def test_run_help_names_the_population_flags(capsys):
+    from botorl.cli import main as botorl_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        botorl_main(["run", "--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert "--seeds" in out and "--alphas" in out and "--pretrained" in out

@@ -60,7 +60,11 @@ def build_config(argv: list[str]):
         args=argv,
         prog="botorl run",
         description="Run one method on one task, offline to online (preset: "
-        f"task={pre.task}, method={pre.method}, profile={pre.profile}).",
+        f"task={pre.task}, method={pre.method}, profile={pre.profile}). "
+        "Many runs as one program (a population): --seeds 0-7 (or 0,2,5) for several seeds, and for "
+        "--method boto --alphas -1:1:0.5 (or -1,0,1) for several alphas, each member its own run "
+        "directory under --out; --pretrained DIR starts every member from the finished pre-training "
+        "of the same seed and settings under DIR.",
     )
     cfg = resolve(cfg)
     validate(cfg)
