@@ -26,6 +26,7 @@ from botorl.experiments.stats import (
     alpha_text,
     line_label,
     bootstrap_mean_ci,
+    fmt_ci,
     fmt_float,
     mean_se,
     stratified_bootstrap_iqm,
@@ -145,10 +146,6 @@ def dip_runs_csv(dips: Sequence[Dip], relative_to: Path | None = None) -> str:
     return buf.getvalue()
 
 
-def _fmt_ci(lo: float, hi: float) -> str:
-    return "-" if not math.isfinite(lo) else f"[{lo:+.2f}, {hi:+.2f}]"
-
-
 def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> str:
     pct = f"{100 * confidence:g}%"
     lines = [
@@ -161,10 +158,10 @@ def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> 
         ms = "-" if st["n"] == 0 else (f"{st['mean']:+.2f} (n=1)" if not math.isfinite(st["se"])
                                        else f"{st['mean']:+.2f} ± {st['se']:.2f}")
         iq = "-" if not math.isfinite(st["iqm"]) else (f"{st['iqm']:+.2f}" + (
-            f" {_fmt_ci(st['iqm_lo'], st['iqm_hi'])}" if math.isfinite(st["iqm_lo"]) else ""))
+            f" {fmt_ci(st['iqm_lo'], st['iqm_hi'])}" if math.isfinite(st["iqm_lo"]) else ""))
         lines.append(
             f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {int(st['n'])} | {c.initial:.2f} | {c.lowest:.2f} | "
-            f"{ms} | {_fmt_ci(st['lo'], st['hi'])} | {iq} |"
+            f"{ms} | {fmt_ci(st['lo'], st['hi'])} | {iq} |"
         )
     scratch = sorted({(c.task, c.label) for c in cells if c.from_scratch})
     if scratch:

@@ -37,14 +37,24 @@ import numpy as np
 
 from botorl.experiments.dip import DIP_WINDOW, run_dip
 from botorl.experiments.runs import Run, relative
-from botorl.experiments.stats import alpha_text, bootstrap_mean_ci, check_bootstrap, fmt_float, mean_se, suptitle
+from botorl.experiments.stats import (
+    EQUAL,
+    alpha_text,
+    bootstrap_mean_ci,
+    check_bootstrap,
+    fmt_ci,
+    fmt_float,
+    mean_se,
+    suptitle,
+    t_interval,
+    wilcoxon_p,
+)
 from botorl.io import atomic_save_figure
 
 REFERENCE = "wsrl"
 # quantities compared, in the order of paired.csv (each: the reference's, the other's, other - reference)
 QUANTITIES = ("success_0", "lowest", "dip", "success_10k", "success_final")
 TABLE_QUANTITIES = ("dip", "success_10k", "success_final")  # shown in report.md
-EQUAL = 1e-9
 
 
 @dataclasses.dataclass
@@ -63,13 +73,26 @@ class Pair:
         return self.other[q] - self.ref[q]
 
     @property
-    def group(self) -> tuple[str, str, float | None]:
-        return (self.task, self.label, self.alpha)
+    def group(self) -> tuple:
+        """The group a pair's statistics pool over, in the report's order (the noise floor
+        last on each task)."""
+        return (self.task, self.noise_floor, self.label, -99 if self.alpha is None else self.alpha, self.reference)
 
     @property
     def noise_floor(self) -> bool:
-        """WSRL against WSRL: the two differ only in their online seed."""
-        return self.label.split(" ")[0] == self.reference.split(" ")[0]
+        return same_method(self.label, self.reference)
+
+
+def same_method(label: str, reference: str) -> bool:
+    """WSRL against WSRL (labels differ only in their variant): the noise floor."""
+    return label.split(" ")[0] == reference.split(" ")[0]
+
+
+def _groups(pairs: Sequence[Pair]) -> list[list[Pair]]:
+    groups: dict[tuple, list[Pair]] = defaultdict(list)
+    for p in pairs:
+        groups[p.group].append(p)
+    return [groups[k] for k in sorted(groups)]
 
 
 def _pretraining_key(run: Run) -> str | None:
@@ -128,31 +151,10 @@ def find_pairs(runs: Sequence[Run], *, reference: str = REFERENCE, window: float
                 continue
             pairs.append(Pair(ref.task, ref.seed, other.label, other.alpha if other.method == "boto" else None,
                               ref.label, ref_q, q, relative(ref.path, relative_to), relative(other.path, relative_to)))
-    pairs.sort(key=lambda p: (p.task, p.noise_floor, p.label, -99 if p.alpha is None else p.alpha,
-                              -1 if p.seed is None else p.seed))
+    pairs.sort(key=lambda p: (*p.group, -1 if p.seed is None else p.seed))
     return pairs, notes
 
 
-# ------------------------------------------------------------------------------------ statistics
-def t_interval(values: Sequence[float], confidence: float = 0.95) -> tuple[float, float]:
-    """mean +- t_{(1+c)/2, n-1} * s.e.; (nan, nan) for n < 2."""
-    from scipy import stats
-
-    mean, se, n = mean_se(values)
-    if n < 2:
-        return math.nan, math.nan
-    half = float(stats.t.ppf((1 + confidence) / 2, n - 1)) * se
-    return mean - half, mean + half
-
-
-def wilcoxon_p(values: Sequence[float]) -> float:
-    """Two-sided Wilcoxon signed-rank p-value; zero differences dropped; nan if none is left."""
-    from scipy import stats
-
-    d = np.asarray([v for v in values if math.isfinite(v) and abs(v) > EQUAL], dtype=np.float64)
-    if d.size == 0:
-        return math.nan
-    return float(stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
 
 
 @dataclasses.dataclass
@@ -178,17 +180,13 @@ class PairedCell:
 
     @property
     def noise_floor(self) -> bool:
-        return self.label.split(" ")[0] == self.reference.split(" ")[0]
+        return same_method(self.label, self.reference)
 
 
 def paired_table(pairs: Sequence[Pair], *, quantities: Sequence[str] = QUANTITIES, n_boot: int = 2000,
                  confidence: float = 0.95, seed: int = 0) -> list[PairedCell]:
-    groups: dict[tuple, list[Pair]] = defaultdict(list)
-    for p in pairs:
-        groups[(p.task, p.noise_floor, p.label, -99 if p.alpha is None else p.alpha, p.reference)].append(p)
     cells = []
-    for key in sorted(groups):
-        group = groups[key]
+    for group in _groups(pairs):
         first = group[0]
         for q in quantities:
             d = [p.diff(q) for p in group]
@@ -273,14 +271,10 @@ def paired_markdown(cells: Sequence[PairedCell], confidence: float, *,
         p = "-" if not math.isfinite(c.wilcoxon_p) else f"{c.wilcoxon_p:.3f}"
         lines.append(
             f"| {c.task} | {label} | {alpha_text(c.alpha)} | {_NAMES[c.quantity]} | {c.n} | {c.ref_mean:.2f} | "
-            f"{c.other_mean:.2f} | {c.mean:+.3f} | {_ci(c.boot_lo, c.boot_hi)} | {_ci(c.t_lo, c.t_hi)} | "
+            f"{c.other_mean:.2f} | {c.mean:+.3f} | {fmt_ci(c.boot_lo, c.boot_hi, 3)} | {fmt_ci(c.t_lo, c.t_hi, 3)} | "
             f"{c.better} / {c.equal} / {c.worse} | {p} |"
         )
     return "\n".join(lines)
-
-
-def _ci(lo: float, hi: float) -> str:
-    return "-" if not math.isfinite(lo) else f"[{lo:+.3f}, {hi:+.3f}]"
 
 
 def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") -> None:
@@ -291,16 +285,12 @@ def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    groups: dict[tuple, list[Pair]] = defaultdict(list)
-    for p in pairs:
-        groups[(p.task, p.noise_floor, p.label, -99 if p.alpha is None else p.alpha)].append(p)
-    keys = sorted(groups)
-    cols = min(4, len(keys))
-    rows = math.ceil(len(keys) / cols)
+    groups = _groups(pairs)
+    cols = min(4, len(groups))
+    rows = math.ceil(len(groups) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False, sharey=True)
     rng = np.random.default_rng(0)
-    for ax, key in zip(axes.flat, keys):
-        group = groups[key]
+    for ax, group in zip(axes.flat, groups):
         for p in group:
             j = rng.uniform(-0.015, 0.015)
             ax.plot([0, 1], [p.ref[quantity] + j, p.other[quantity] + j], "-o", ms=3, lw=0.8, alpha=0.6,
@@ -312,7 +302,7 @@ def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") ->
         a = "" if group[0].alpha is None else f" α={group[0].alpha:+.2f}"
         ax.set_title(f"{group[0].task}{a}\nmean difference {mean:+.3f} (n={n})", fontsize=8)
         ax.set_xlim(-0.3, 1.3)
-    for ax in list(axes.flat)[len(keys):]:
+    for ax in list(axes.flat)[len(groups):]:
         ax.axis("off")
     axes[0][0].set_ylabel(_NAMES[quantity], fontsize=8)
     suptitle(fig, f"Paired runs (same pre-training): {_NAMES[quantity]}, one line per pair; "

@@ -80,6 +80,32 @@ def bootstrap_mean_ci(
 
 
 
+# Paired differences (botorl/experiments/pairs.py)
+
+EQUAL = 1e-9  # differences within this are ties
+
+
+def t_interval(values: Sequence[float], confidence: float = 0.95) -> tuple[float, float]:
+    """mean +- t_{(1+c)/2, n-1} * s.e.; (nan, nan) for n < 2."""
+    from scipy import stats
+
+    mean, se, n = mean_se(values)
+    if n < 2:
+        return math.nan, math.nan
+    half = float(stats.t.ppf((1 + confidence) / 2, n - 1)) * se
+    return mean - half, mean + half
+
+
+def wilcoxon_p(values: Sequence[float]) -> float:
+    """Two-sided Wilcoxon signed-rank p-value; zero differences dropped; nan if none is left."""
+    from scipy import stats
+
+    d = np.asarray([v for v in values if math.isfinite(v) and abs(v) > EQUAL], dtype=np.float64)
+    if d.size == 0:
+        return math.nan
+    return float(stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
+
+
 # Formats shared by the report's files
 
 
@@ -118,3 +144,8 @@ def check_bootstrap(n_boot, confidence) -> None:
                           "(2000 is the default).")
     if not isinstance(confidence, (int, float)) or not 0.0 < float(confidence) < 1.0:
         raise ConfigError(f"--confidence {confidence!r}: give a level strictly between 0 and 1, e.g. 0.95.")
+
+
+def fmt_ci(lo: float, hi: float, digits: int = 2) -> str:
+    """A confidence interval as ``[lo, hi]`` with signs, or "-" when there is none."""
+    return "-" if not math.isfinite(lo) else f"[{lo:+.{digits}f}, {hi:+.{digits}f}]"
