@@ -26,6 +26,7 @@ import csv
 import dataclasses
 import io
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -153,11 +154,24 @@ def main(argv: list[str] | None = None) -> int:
     steps = sorted(int(s) for s in args.steps.split(","))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    from botorl.configs.presets import make_preset
+    from botorl.configs.resolve import resolve
+
+    # the pre-training runs are WSRL's (no alpha): the ablations use BOTO's preset alpha for the task
+    preset_alpha = resolve(make_preset(args.task, args.profile, "boto")).alpha
+    # arm names hold ", " themselves ("alpha=-1, no entropy term"): split only at a bare comma
+    chosen = set(re.split(r",(?=\S)", args.arms)) if args.arms else set()
+    unknown = chosen - set(arms(preset_alpha))
+    if unknown:
+        from botorl.errors import ConfigError
+
+        raise ConfigError(f"--arms: unknown arm(s) {sorted(unknown)}; choose from {list(arms(preset_alpha))}.")
     rows: list[dict] = []
     scales: list[dict] = []
     done: set[tuple[int, str]] = set()
     if (out / "alpha_q.csv").exists():  # resume: keep the arms already measured
-        rows = [{k: (v if k == "arm" else float(v)) for k, v in r.items()} for r in csv.DictReader(open(out / "alpha_q.csv"))]
+        with open(out / "alpha_q.csv", newline="") as f:
+            rows = [{k: (v if k == "arm" else float(v)) for k, v in r.items()} for r in csv.DictReader(f)]
         for r in rows:
             r["seed"], r["step"] = int(r["seed"]), int(r["step"])
         done = {(r["seed"], r["arm"]) for r in rows if r["step"] == steps[-1]}
@@ -175,8 +189,8 @@ def main(argv: list[str] | None = None) -> int:
         if not any(r["seed"] == seed and r["arm"] == "pre-trained" for r in rows):
             rows.append({"seed": seed, "arm": "pre-trained", "alpha": math.nan, "step": 0,
                          **q_profile(agent0, obs, acts, np.random.default_rng(7))})
-        for name, arm in arms(cfg.alpha).items():
-            if (args.arms and name not in args.arms.split(",")) or (seed, name) in done:
+        for name, arm in arms(preset_alpha).items():
+            if (chosen and name not in chosen) or (seed, name) in done:
                 continue
             boto = dataclasses.replace(cfg.boto, boto_steps=steps[-1],
                                        backup_entropy=arm.get("backup_entropy", cfg.boto.backup_entropy))
