@@ -16,7 +16,8 @@ are the first) divided by these rates, plus every evaluation (one at step 0 and 
 ``eval.interval``, ``eval.episodes`` episodes of the task's horizon: the worst case, a policy
 that never ends an episode early) at the measured evaluation rate, plus each stage's compile
 time once. Tasks whose data cannot be made here (kitchen, pen) run on synthetic data of their
-shapes (random rows in a D4RL hdf5 file), marked ``"data": "synthetic"``: their rates are the
+shapes (random rows in the format each task reads: a Minari dataset for kitchen, a
+Cal-QL expert ``.npy`` for pen), marked ``"data": "synthetic"``: their rates are the
 real networks' and envs', their learning means nothing.
 """
 
@@ -57,20 +58,46 @@ def paper_name(task: str) -> str:
     return task.removesuffix("-local").removesuffix("-v0").removesuffix("-v2")
 
 
-def _synthetic_hdf5(spec, path: Path, rows: int, seed: int = 0) -> Path:
-    """Random rows of the task's shapes in D4RL's hdf5 layout (episodes of its horizon)."""
-    import h5py
-
+def _synthetic_rows(spec, rows: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """Random rows of the task's shapes (episodes of its horizon); a success every ~20 rows so
+    that Cal-QL's adroit loader, which drops trajectories that never succeed, keeps them."""
     rng = np.random.default_rng(seed)
-    ends = (np.arange(rows) + 1) % spec.max_episode_steps == 0
-    with h5py.File(path, "w") as f:
-        f["observations"] = rng.normal(size=(rows, spec.obs_dim)).astype(np.float32)
-        f["next_observations"] = rng.normal(size=(rows, spec.obs_dim)).astype(np.float32)
-        f["actions"] = rng.uniform(-1, 1, (rows, spec.action_dim)).astype(np.float32)
-        f["rewards"] = (rng.uniform(size=rows) < 0.05).astype(np.float32)
-        f["terminals"] = np.zeros(rows, bool)
-        f["timeouts"] = ends
-    return path
+    return {"observations": rng.normal(size=(rows, spec.obs_dim)).astype(np.float32),
+            "next_observations": rng.normal(size=(rows, spec.obs_dim)).astype(np.float32),
+            "actions": rng.uniform(-1, 1, (rows, spec.action_dim)).astype(np.float32),
+            "rewards": (rng.uniform(size=rows) < 0.05).astype(np.float32),
+            "ends": (np.arange(rows) + 1) % spec.max_episode_steps == 0}
+
+
+def _synthetic_data(spec, work: Path, rows: int) -> tuple[list[str], list[str]]:
+    """Synthetic data in the format the task reads, and the flags of ``botorl run`` and of
+    ``botorl eval`` that read it: a Minari dataset (kitchen), or a Cal-QL expert ``.npy`` of
+    per-trajectory dicts (adroit binary: a pickle botorl wrote itself, which `eval` reads back
+    from the run's config only with ``--allow-pickle``)."""
+    r = _synthetic_rows(spec, rows)
+    kind = spec.dataset_source.kind
+    if kind == "minari":
+        from botorl.data.dataset import Dataset
+        from botorl.data.minari_io import write_minari
+
+        ds = Dataset(r["observations"], r["actions"], r["rewards"], r["next_observations"],
+                     np.zeros(rows, bool), episode_ends=r["ends"], metadata={"source": "synthetic"})
+        folder = write_minari(ds, path=work / f"{spec.name}-synthetic-v0", overwrite=True)
+        return ["--data.path", str(folder)], []
+    if kind == "calql_npy":
+        cuts = np.flatnonzero(r["ends"]) + 1
+        trajs = []
+        for s, e in zip(np.r_[0, cuts[:-1]], cuts):
+            rew = r["rewards"][s:e] - 1.0  # Cal-QL's binary {-1, 0}
+            rew[-1] = 0.0  # every trajectory ends in a success, so none is dropped
+            trajs.append({"observations": r["observations"][s:e], "next_observations": r["next_observations"][s:e],
+                          "actions": r["actions"][s:e], "rewards": rew, "terminals": rew == 0.0})
+        arr = np.empty(len(trajs), dtype=object)
+        arr[:] = trajs
+        path = work / f"{spec.name}-synthetic-expert.npy"
+        np.save(path, arr, allow_pickle=True)
+        return ["--data.path", str(path)], ["--allow-pickle"]
+    raise ValueError(f"{spec.name}: no synthetic writer for data of kind {kind!r}")
 
 
 def _run(cmd: list[str], log: Path) -> tuple[int, float, float]:
@@ -114,9 +141,9 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
     cfg = resolve(make_preset(task, "full", "boto"))
     out = work / f"{task}-n{members}"
     shutil.rmtree(out, ignore_errors=True)
-    data_args = ["--data.steps", str(data_steps)]
+    data_args, eval_args = ["--data.steps", str(data_steps)], []
     if PAPER_TASKS.get(task) == "synthetic":
-        data_args = ["--data.path", str(_synthetic_hdf5(spec, work / f"{task}-synthetic.hdf5", data_steps))]
+        data_args, eval_args = _synthetic_data(spec, work, data_steps)
     p, w, b, f = (windows[k] for k in ("pretrain", "warmup", "boto", "finetune"))
     seeds = ["--seeds", f"0-{members - 1}"] if members > 1 else ["--seed", "0"]
     cmd = ["run", "--task", task, "--method", "boto", "--profile", "full", *seeds, "--out", str(out),
@@ -142,7 +169,7 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
     stages["finetune"] = {"rate": rate, "unit": "env steps/s (UTD 4)", "compile_s": comp}
     # evaluation: `botorl eval` of the run's last checkpoint (a single run's or member 0's)
     eval_dir = out if members == 1 else member
-    ecode, _, ers = _run(["eval", str(eval_dir), "--episodes", str(windows["eval_episodes"])],
+    ecode, _, ers = _run(["eval", str(eval_dir), "--episodes", str(windows["eval_episodes"]), *eval_args],
                          work / f"{task}-n{members}-eval.log")
     ev = json.loads(next(eval_dir.glob("eval-*.json")).read_text()) if ecode == 0 else None
     if ev is None:
