@@ -62,8 +62,6 @@ def _now() -> str:
     return _dt.datetime.now().isoformat(timespec="seconds")
 
 
-
-
 def read_json(path: Path) -> dict[str, Any] | None:
     try:
         with open(path) as f:
@@ -408,7 +406,3 @@ class Sweep:
 
 def _raise_interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
-
-
-def run_sweep(grid: Grid, options: SweepOptions) -> dict[str, Any]:
-    return Sweep(grid, options).run()
