@@ -245,3 +245,43 @@ def test_run_help_names_the_population_flags(capsys):
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert "--seeds" in out and "--alphas" in out and "--pretrained" in out
+
+
+# ------------------------------------------------------------------ one fact, one field
+@pytest.mark.parametrize("flag, names", [
+    (["--online.sac.utd-ratio", "8"], "--online.utd"),
+    (["--offline.cql.num_critics", "3"], "--network.num-critics"),
+    (["--offline.iql.value-hidden-dims", "8"], "--network.critic-hidden-dims"),
+    (["--online.sac.no-critic-layer-norm"], "--network.layer-norm"),
+    (["--offline.cql.calql=False"], "--pretrain"),
+])
+def test_a_derived_agent_field_is_refused_naming_its_one_flag(capsys, flag, names):
+    # --online.steps 0 fails validation too: a code that took the flag would not start a run here
+    assert botorl_main(["run", "--profile", "smoke", "--online.steps", "0", *flag]) == 2
+    err = capsys.readouterr().err
+    assert flag[0].split("=")[0] in err and f"give {names} instead" in err
+
+
+def test_each_agent_takes_network_and_utd_from_the_one_field():
+    from botorl.configs.resolve import DERIVED
+
+    cfg = build_config(["--method", "calql", "--profile", "smoke", "--online.utd", "3", "--network.num-critics", "5",
+                        "--network.critic-hidden-dims", "8", "8", "--network.no-layer-norm"])
+    for agent in (cfg.offline.cql, cfg.offline.iql, cfg.online.sac):
+        assert agent.num_critics == 5 and agent.critic_hidden_dims == (8, 8) and not agent.critic_layer_norm
+    assert cfg.offline.iql.value_hidden_dims == (8, 8)
+    assert cfg.online.sac.utd_ratio == cfg.offline.cql.utd_ratio == 3  # calql continues online at the run's UTD
+    assert build_config(["--profile", "smoke", "--online.utd", "3"]).offline.cql.utd_ratio == 1  # BOTO pre-trains
+    assert set(DERIVED) <= {f for a in (cfg.offline.cql, cfg.offline.iql) for f in vars(a)}
+
+
+def test_seeds_and_alphas_are_config_fields():
+    from botorl.configs.members import is_population, population
+
+    cfg = build_config(["--profile", "smoke", "--seeds", "3-4", "--alphas", "-1:1:1"])  # '-1:...' after a space
+    assert (cfg.seeds, cfg.alphas, cfg.seed, cfg.alpha) == ("3-4", "-1:1:1", 3, -1.0) and is_population(cfg)
+    members, cfgs = population(cfg)
+    assert [(m.seed, m.alpha) for m in members] == [(s, a) for a in (-1.0, 0.0, 1.0) for s in (3, 4)]
+    assert [(c.seed, c.alpha, c.seeds, c.alphas) for c in cfgs[:2]] == [(3, -1.0, None, None), (4, -1.0, None, None)]
+    assert from_dict(RunConfig, to_dict(cfg)) == cfg
+    assert not is_population(build_config(["--profile", "smoke"]))

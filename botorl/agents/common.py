@@ -140,6 +140,26 @@ jit_update_many = jax.jit(update_many_fn)
 jit_sample = jax.jit(sample_fn)
 jit_eval = jax.jit(eval_fn)
 jit_q_mean = jax.jit(q_mean_fn)
+
+
+class AgentAPI:
+    """The public entry points every agent shares (SAC, CQL, IQL): the jitted functions above."""
+
+    def update(self, batch):
+        """One learning step (SAC: UTD u critic steps + 1 actor + 1 temperature); jitted."""
+        check_batch(batch)
+        return jit_update(self, ensure_mc_returns(batch))
+
+    def update_many(self, batches):
+        """K updates in one call (``lax.scan``); batches have a leading axis K."""
+        check_batch(batches)
+        return jit_update_many(self, ensure_mc_returns(batches))
+
+    def sample_actions(self, observations):
+        return jit_sample(self, jnp.asarray(observations, jnp.float32))
+
+    def eval_actions(self, observations):
+        return jit_eval(self, jnp.asarray(observations, jnp.float32))
 _jit_update_many_on_device = jax.jit(update_many_on_device_fn, static_argnames=("num_updates", "batch_size"))
 
 

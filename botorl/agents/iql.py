@@ -28,17 +28,7 @@ import flax.struct as struct
 import jax
 import jax.numpy as jnp
 
-from botorl.agents.common import (
-    TrainState,
-    adam,
-    check_batch,
-    ensure_mc_returns,
-    jit_eval,
-    jit_sample,
-    jit_update,
-    jit_update_many,
-    polyak,
-)
+from botorl.agents.common import AgentAPI, TrainState, adam, polyak
 from botorl.agents.sac import actor_def, critic_def
 from botorl.errors import ConfigError
 from botorl.networks import ValueNetwork, subsample_ensemble, tanh_gaussian_log_prob
@@ -102,7 +92,7 @@ def expectile_loss(diff: jax.Array, expectile: float) -> jax.Array:
     return jnp.mean(weight * diff**2)
 
 
-class IQLAgent(struct.PyTreeNode):
+class IQLAgent(AgentAPI, struct.PyTreeNode):
     actor: TrainState
     critic: TrainState  # Q ensemble, leading axis num_critics
     target_critic_params: Any
@@ -128,21 +118,6 @@ class IQLAgent(struct.PyTreeNode):
         v_def = value_def(config.value_hidden_dims, config.critic_layer_norm)
         value = TrainState.create(apply_fn=v_def.apply, params=v_def.init(k_value, obs)["params"], tx=adam(config.value_lr))
         return cls(actor=actor, critic=critic, target_critic_params=critic_params, value=value, rng=rng, config=config)
-
-    # ------------------------------------------------------------------ public API
-    def update(self, batch):
-        check_batch(batch)
-        return jit_update(self, ensure_mc_returns(batch))
-
-    def update_many(self, batches):
-        check_batch(batches)
-        return jit_update_many(self, ensure_mc_returns(batches))
-
-    def sample_actions(self, observations):
-        return jit_sample(self, jnp.asarray(observations, jnp.float32))
-
-    def eval_actions(self, observations):
-        return jit_eval(self, jnp.asarray(observations, jnp.float32))
 
     # ------------------------------------------------------------------ pieces
     def policy(self, observations, actor_params=None, *, dropout_key=None):

@@ -32,15 +32,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from botorl.agents.common import (
+    AgentAPI,
     TrainState,
     adam,
-    check_batch,
     chunk_size,
-    ensure_mc_returns,
-    jit_eval,
-    jit_sample,
-    jit_update,
-    jit_update_many,
     polyak,
     summed_value_and_grad,
 )
@@ -160,11 +155,7 @@ def temp_def(init_temp: float) -> Temperature:
     return Temperature(init_temp)
 
 
-def _as_batch(x):
-    return jnp.asarray(x, jnp.float32)
-
-
-class SACAgent(struct.PyTreeNode):
+class SACAgent(AgentAPI, struct.PyTreeNode):
     """SAC-family agent. Fields shared with CQL/Cal-QL (CONTRACTS.md)."""
 
     actor: TrainState
@@ -268,23 +259,6 @@ class SACAgent(struct.PyTreeNode):
             temp=temp,
             rng=rng,
         )
-
-    # ------------------------------------------------------------------ public API
-    def update(self, batch):
-        """One learning step (UTD u critic steps + 1 actor + 1 temperature); jitted."""
-        check_batch(batch)
-        return jit_update(self, ensure_mc_returns(batch))
-
-    def update_many(self, batches):
-        """K updates in one call (``lax.scan``); batches have a leading axis K."""
-        check_batch(batches)
-        return jit_update_many(self, ensure_mc_returns(batches))
-
-    def sample_actions(self, observations):
-        return jit_sample(self, _as_batch(observations))
-
-    def eval_actions(self, observations):
-        return jit_eval(self, _as_batch(observations))
 
     # ------------------------------------------------------------------ pieces (traced)
     @property

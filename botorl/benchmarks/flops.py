@@ -26,7 +26,6 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 # Elementwise primitives XLA counts as transcendentals, not FLOPs.
 _TRANSCENDENTAL = {
@@ -150,8 +149,3 @@ def matmul_peak_gflops(n: int = 1024, repeats: int = 7, calls: int = 4) -> float
         out.block_until_ready()
         best = min(best, (time.perf_counter() - t0) / calls)
     return 2.0 * n**3 / best / 1e9
-
-
-def _self_check() -> None:  # pragma: no cover - a manual sanity check
-    a, b = np.ones((64, 32), np.float32), np.ones((32, 16), np.float32)
-    print(jaxpr_flops(lambda x, y: x @ y, a, b), xla_flops(lambda x, y: x @ y, a, b))

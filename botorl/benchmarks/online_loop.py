@@ -12,7 +12,6 @@ nothing beside the update.
 
 from __future__ import annotations
 
-import time
 from types import SimpleNamespace
 from typing import Any
 
@@ -79,15 +78,3 @@ class OnlineLoop:
 
     def close(self) -> None:
         self.state.__exit__()
-
-
-def time_rate(run: Any, min_time: float) -> float:
-    """Calls per second of ``run(n)`` (n grows until a block lasts ``min_time``)."""
-    n = 1
-    while True:
-        t0 = time.perf_counter()
-        run(n)
-        elapsed = time.perf_counter() - t0
-        if elapsed >= min_time:
-            return n / elapsed
-        n = max(n + 1, int(n * min(8.0, 1.3 * min_time / max(elapsed, 1e-6))))

@@ -38,35 +38,6 @@ def gaussian_log_density(sigma: float) -> Callable[[np.ndarray, np.ndarray], np.
     return logq
 
 
-def hybrid_log_density(
-    log_sigma: float, weight_fn: Callable[[np.ndarray], np.ndarray] = lambda t: t, n_quad: int = 256
-) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    """Log density of the unclipped hybrid noise: E_lambda[w(t) U([-1,1]^A) + (1-w(t)) N(a, t^2 I)].
-
-    Gauss-Legendre quadrature over lambda in [log_sigma, 0]; the Gaussian part is nearly a
-    point mass for small t, so this is meant for a_bar away from the data (figures), not for
-    a_bar equal to a data point.
-    """
-    x, wq = np.polynomial.legendre.leggauss(n_quad)
-    lam = 0.5 * (x + 1.0) * (0.0 - log_sigma) + log_sigma
-    wq = wq * 0.5  # quadrature weights of the mean over lambda (interval length cancels)
-    t = np.exp(lam)
-    w = np.asarray(weight_fn(t), dtype=np.float64)
-
-    def logq(a_bar: np.ndarray, a: np.ndarray) -> np.ndarray:
-        dim = a.shape[-1]
-        d2 = ((a_bar[:, None, :] - a[None, :, :]) ** 2).sum(-1)[..., None]  # (M, N, 1)
-        log_gauss = -0.5 * d2 / t**2 - dim * (lam + 0.5 * np.log(2 * np.pi))
-        inside = np.all(np.abs(a_bar) <= 1.0, axis=-1)[:, None, None]
-        log_uni = np.where(inside, -dim * np.log(2.0), -np.inf)
-        with np.errstate(divide="ignore"):
-            terms = np.logaddexp(np.log(w) + log_uni, np.log1p(-w) + log_gauss) + np.log(wq)
-        m = terms.max(-1, keepdims=True)
-        return (m + np.log(np.exp(terms - m).sum(-1, keepdims=True)))[..., 0]
-
-    return logq
-
-
 @dataclass
 class ExactSolution:
     """Q*, the Theorem 2 bounds and Rbar on a set of query actions."""

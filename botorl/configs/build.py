@@ -13,6 +13,7 @@ import argparse
 from botorl.errors import ConfigError
 
 _SHORTCUTS = {"--demos": "--data.demos", "--dataset": "--data.path"}
+_LIST_FLAGS = ("--seeds", "--alphas")
 
 
 def _expand_shortcuts(argv: list[str]) -> list[str]:
@@ -21,9 +22,38 @@ def _expand_shortcuts(argv: list[str]) -> list[str]:
         key, eq, val = a.partition("=")
         if key in _SHORTCUTS:
             out.append(_SHORTCUTS[key] + (eq + val if eq else ""))
+        elif out and out[-1] in _LIST_FLAGS and not eq:
+            out[-1] += "=" + a  # --alphas -1:1:0.5: a value with a leading '-' is no flag to tyro
         else:
             out.append(a)
+    for flag in _LIST_FLAGS:
+        given = [a.partition("=")[2] for a in out if a.partition("=")[0] == flag]
+        if flag in out:
+            raise ConfigError(f"{flag} needs a value, e.g. {flag} 0-7.")
+        if len(given) > 1:
+            raise ConfigError(f"{flag} is given twice ({given[0]!r} and {given[1]!r}); give it once.")
     return out
+
+
+_AGENT_PREFIXES = ("--offline.cql.", "--offline.iql.", "--online.sac.")
+
+
+def _refuse_derived(argv: list[str]) -> None:
+    """A flag of a field ``resolve`` derives (``configs.resolve.DERIVED``) would be overwritten
+    unseen: refuse it, naming the one flag that sets the fact."""
+    from botorl.configs.resolve import DERIVED
+
+    for a in argv:
+        key = a.partition("=")[0]
+        prefix = next((p for p in _AGENT_PREFIXES if key.startswith(p)), None)
+        if prefix is None:
+            continue
+        name = key[len(prefix):].replace("-", "_")
+        name = name[3:] if name.startswith("no_") else name
+        if name in DERIVED:
+            src = "--" + DERIVED[name].replace("_", "-")
+            raise ConfigError(f"{key}: every agent takes this from {src}, the one field that holds it (pre-training "
+                              f"and fine-tuning alike); give {src} instead.")
 
 
 def _pre_parse(argv: list[str]) -> argparse.Namespace:
@@ -49,6 +79,7 @@ def build_config(argv: list[str]):
     from botorl.envs.registry import get_task
 
     argv = _expand_shortcuts(list(argv))
+    _refuse_derived(argv)
     pre = _pre_parse(argv)
     get_method(pre.method)  # clear errors before tyro's generic ones
     resolve_pretrain(pre.method, pre.pretrain)
@@ -66,70 +97,19 @@ def build_config(argv: list[str]):
         "directory under --out; --pretrained DIR starts every member from the finished pre-training "
         "of the same seed and settings under DIR.",
     )
+    _check_population_flags(argv, cfg)
     cfg = resolve(cfg)
     validate(cfg)
     return cfg
 
 
 # ------------------------------------------------------------------ a population's command line
-POPULATION_FLAGS = ("--seeds", "--alphas")
+def _given(argv: list[str], flag: str) -> bool:
+    return any(a.split("=", 1)[0] == flag for a in argv)
 
 
-def is_population(argv: list[str]) -> bool:
-    return any(a.split("=", 1)[0] in POPULATION_FLAGS for a in argv)
-
-
-def split_population_args(argv: list[str]) -> tuple[dict[str, str], list[str]]:
-    """--seeds/--alphas (``--x V`` or ``--x=V``) out of argv; each may be given once."""
-    found: dict[str, str] = {}
-    rest: list[str] = []
-    i = 0
-    while i < len(argv):
-        a = argv[i]
-        key, eq, val = a.partition("=")
-        if key in POPULATION_FLAGS:
-            if not eq:
-                if i + 1 >= len(argv):
-                    raise ConfigError(f"{key} needs a value, e.g. {key} 0-7.")
-                val = argv[i + 1]
-                i += 1
-            if key in found:
-                raise ConfigError(f"{key} is given twice ({found[key]!r} and {val!r}); give it once.")
-            found[key] = val
-        else:
-            rest.append(a)
-        i += 1
-    return found, rest
-
-
-def _given(rest: list[str], flag: str) -> bool:
-    return any(a.split("=", 1)[0] == flag for a in rest)
-
-
-def build_population(argv: list[str]):
-    """(shared config, member configs, Member list) from a `botorl run` command line."""
-    from botorl.configs.members import make_members, member_config, parse_alphas, parse_seeds
-    from botorl.configs.methods import get_method
-
-    found, rest = split_population_args(list(argv))
-    if "--seeds" in found and _given(rest, "--seed"):
+def _check_population_flags(argv: list[str], cfg) -> None:
+    if cfg.seeds is not None and _given(argv, "--seed"):
         raise ConfigError("--seed and --seeds are both given; a population takes --seeds (e.g. --seeds 0-7) only.")
-    if "--alphas" in found and _given(rest, "--alpha"):
+    if cfg.alphas is not None and _given(argv, "--alpha"):
         raise ConfigError("--alpha and --alphas are both given; a population takes --alphas (e.g. --alphas -1:1:0.25) only.")
-    seeds = parse_seeds(found["--seeds"]) if "--seeds" in found else None
-    alphas = parse_alphas(found["--alphas"]) if "--alphas" in found else None
-    extra = []
-    if seeds is None:
-        cfg0 = build_config(rest)
-        seeds = [cfg0.seed]
-    else:
-        extra += ["--seed", str(seeds[0])]
-    if alphas is not None:
-        extra.append(f"--alpha={alphas[0]}")
-    cfg = build_config(rest + extra)  # validates everything shared, and the first member's alpha
-    uses_alpha = get_method(cfg.method).uses_alpha
-    if alphas is not None and not uses_alpha:
-        raise ConfigError(f"--alphas sets BOTO's bias controller; --method {cfg.method} has no BOTO phase. "
-                          f"Drop --alphas, or use --method boto.")
-    members = make_members(seeds, alphas or [None], uses_alpha)
-    return cfg, members, [member_config(cfg, m.seed, m.alpha) for m in members]

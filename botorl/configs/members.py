@@ -1,9 +1,10 @@
 """The members of a population: every (seed, alpha) pair of ``--seeds`` / ``--alphas``.
 
-One parser of seeds and of alphas for the population's command line and the sweep's grid
-(``parse_seeds``, ``parse_alphas``: a value given twice is an error), the ``Member`` and its
-run directory's name, and each member's ``RunConfig`` (``member_config``: the shared config
-with the member's seed and alpha, the only fields in which members differ).
+One parser of seeds and of alphas for the population's config fields (``RunConfig.seeds``,
+``RunConfig.alphas``) and the sweep's grid (``parse_seeds``, ``parse_alphas``: a value given
+twice is an error), the ``Member`` and its run directory's name, and each member's
+``RunConfig`` (``population``, ``member_config``: the shared config with the member's seed and
+alpha, the only fields in which members differ).
 """
 
 from __future__ import annotations
@@ -126,8 +127,23 @@ def make_members(seeds: Sequence[int], alphas: Sequence[float | None], method_us
 
 
 def member_config(cfg, seed: int, alpha: float | None, out: str | os.PathLike | None = None):
-    """The config of the member (seed, alpha) of a population made from ``cfg``."""
+    """The config of the member (seed, alpha) of a population made from ``cfg``: one run, so no
+    ``seeds``/``alphas``."""
     if alpha is None or not get_method(cfg.method).uses_alpha:
         alpha = cfg.alpha
-    return replace(cfg, seed=int(seed), alpha=None if alpha is None else float(alpha),
+    return replace(cfg, seed=int(seed), alpha=None if alpha is None else float(alpha), seeds=None, alphas=None,
                    out=str(out) if out is not None else cfg.out)
+
+
+def is_population(cfg) -> bool:
+    """Whether ``cfg`` asks for a population (``seeds`` or ``alphas``), not one run."""
+    return cfg.seeds is not None or cfg.alphas is not None
+
+
+def population(cfg) -> tuple[list[Member], list]:
+    """The members of the population ``cfg`` describes (every pair of its ``seeds``, else its
+    ``seed``, and its ``alphas``) and each member's config."""
+    seeds = [cfg.seed] if cfg.seeds is None else parse_seeds(cfg.seeds)
+    alphas = [None] if cfg.alphas is None else parse_alphas(cfg.alphas)
+    members = make_members(seeds, alphas, get_method(cfg.method).uses_alpha)
+    return members, [member_config(cfg, m.seed, m.alpha) for m in members]

@@ -6,12 +6,41 @@ message names the field and says what to change.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import replace
 
 from botorl.boto.config import check_alpha
+from botorl.configs.members import parse_alphas, parse_seeds
 from botorl.configs.presets import paper_settings
 from botorl.configs.schema import RunConfig
-from botorl.errors import BotorlError, ConfigError
+from botorl.errors import ConfigError
+
+
+# The fields of the agents' configs that repeat a fact of the run config, and the run config's
+# field each is derived from: the network sizes (network.*), the UTD ratio (online.utd) and
+# Cal-QL's switch (pretrain). ``derive`` sets them, the one place they are set; the command
+# line refuses them (configs/build.py), so no fact can be given twice, or twice differently.
+DERIVED = {
+    "actor_hidden_dims": "network.actor_hidden_dims",
+    "critic_hidden_dims": "network.critic_hidden_dims",
+    "value_hidden_dims": "network.critic_hidden_dims",  # IQL's value network
+    "actor_layer_norm": "network.layer_norm",
+    "critic_layer_norm": "network.layer_norm",
+    "num_critics": "network.num_critics",
+    "utd_ratio": "online.utd",
+    "calql": "pretrain",
+}
+
+
+def derive(agent_cfg, cfg: RunConfig, **special):
+    """``agent_cfg`` (an agent's config) with its ``DERIVED`` fields taken from ``cfg``; ``special``
+    gives the values that are no copy (Cal-QL's switch, a method's own UTD)."""
+    def value(path: str):
+        v = functools.reduce(getattr, path.split("."), cfg)
+        return tuple(v) if isinstance(v, list) else v  # hashable: the jitted functions key on configs
+
+    derived = {f: value(src) for f, src in DERIVED.items() if hasattr(agent_cfg, f)}
+    return replace(agent_cfg, **{**derived, **special})
 
 
 def resolve(cfg: RunConfig) -> RunConfig:
@@ -27,52 +56,32 @@ def resolve(cfg: RunConfig) -> RunConfig:
             f"--alpha is BOTO's bias controller; --method {cfg.method} has no BOTO phase. Drop --alpha, "
             f"or use --method boto."
         )
+    if cfg.alphas is not None and not method.uses_alpha:
+        raise ConfigError(f"--alphas sets BOTO's bias controller; --method {cfg.method} has no BOTO phase. "
+                          f"Drop --alphas, or use --method boto.")
+    # a population's shared config holds its first member's seed and alpha
+    seed = cfg.seed if cfg.seeds is None else parse_seeds(cfg.seeds)[0]
+    given = cfg.alpha if cfg.alphas is None else parse_alphas(cfg.alphas)[0]
     alpha = None
     if method.uses_alpha:  # None: the task's (the paper's per-task value)
-        alpha = float(paper_settings(spec)[0] if cfg.alpha is None else cfg.alpha)
+        alpha = float(paper_settings(spec)[0] if given is None else given)
 
-    net = cfg.network
-    ln = net.layer_norm
-    cql = replace(
-        cfg.offline.cql,
-        actor_hidden_dims=tuple(net.actor_hidden_dims),
-        critic_hidden_dims=tuple(net.critic_hidden_dims),
-        actor_layer_norm=ln,
-        critic_layer_norm=ln,
-        num_critics=net.num_critics,
-        calql=(pretrain == "calql"),
-        # calql/cql continued online take utd x batch rows per env step (UTD 1 by default)
-        utd_ratio=cfg.online.utd if method.finetune_start == "continue" else 1,
-    )
-    sac = replace(
-        cfg.online.sac,
-        actor_hidden_dims=tuple(net.actor_hidden_dims),
-        critic_hidden_dims=tuple(net.critic_hidden_dims),
-        actor_layer_norm=ln,
-        critic_layer_norm=ln,
-        num_critics=net.num_critics,
-        utd_ratio=cfg.online.utd,
-    )
+    # calql/cql continued online take utd x batch rows per env step; pre-training alone one batch
+    cql = derive(cfg.offline.cql, cfg, calql=(pretrain == "calql"),
+                 utd_ratio=cfg.online.utd if method.finetune_start == "continue" else 1)
+    sac = derive(cfg.online.sac, cfg)
     # IQL pre-trains the networks fine-tuning takes over (the paper's: sizes, LayerNorm,
     # ensemble, state-dependent std); its value network has the critic's hidden sizes. It keeps
     # IQL's log-std range [-5, 2], which the SAC learner then inherits.
-    iql = replace(
-        cfg.offline.iql,
-        actor_hidden_dims=tuple(net.actor_hidden_dims),
-        critic_hidden_dims=tuple(net.critic_hidden_dims),
-        value_hidden_dims=tuple(net.critic_hidden_dims),
-        actor_layer_norm=ln,
-        critic_layer_norm=ln,
-        num_critics=net.num_critics,
-        num_min_critics=min(cfg.offline.iql.num_min_critics, net.num_critics),
-        state_dependent_std=sac.state_dependent_std,
-    )
+    iql = derive(cfg.offline.iql, cfg, num_min_critics=min(cfg.offline.iql.num_min_critics, cfg.network.num_critics),
+                 state_dependent_std=sac.state_dependent_std)
     if pretrain == "iql" and method.finetune_start == "warm_start":
         sac = replace(sac, log_std_min=iql.log_std_min, log_std_max=iql.log_std_max)
     if cfg.method == "rlpd" and sac.target_entropy is None:
         sac = replace(sac, target_entropy=-spec.action_dim / 2.0)
     return replace(
         cfg,
+        seed=seed,
         pretrain=pretrain,
         alpha=alpha,
         offline=replace(cfg.offline, cql=cql, iql=iql),
@@ -136,20 +145,19 @@ def validate(cfg: RunConfig) -> None:
         need(len(dims) >= 1 and all(int(d) >= 1 for d in dims), name, dims, "give positive layer widths, e.g. 256 256")
     if method.uses_alpha:
         check_alpha(cfg.alpha)
+    if cfg.seeds is not None:
+        parse_seeds(cfg.seeds)
+    if cfg.alphas is not None:
+        parse_alphas(cfg.alphas)
     if "warmup" in method.stages and cfg.online.steps <= cfg.warmup.steps:
         raise ConfigError(
             f"--online.steps = {cfg.online.steps} leaves no fine-tuning after the {cfg.warmup.steps}-step warm-up: "
             f"the warm-up's env steps count as online steps (WSRL's accounting), so online.steps is the whole "
             f"online budget. Raise --online.steps above --warmup.steps or lower --warmup.steps."
         )
-    try:
-        if method.pretrains:
-            (cfg.offline.iql if cfg.pretrain == "iql" else cfg.offline.cql).validate()
-        if method.finetune_start in ("warm_start", "scratch"):
-            cfg.online.sac.validate()
-        if "boto" in method.stages:
-            cfg.boto.validate()
-    except ConfigError:
-        raise
-    except BotorlError:
-        raise
+    if method.pretrains:
+        (cfg.offline.iql if cfg.pretrain == "iql" else cfg.offline.cql).validate()
+    if method.finetune_start in ("warm_start", "scratch"):
+        cfg.online.sac.validate()
+    if "boto" in method.stages:
+        cfg.boto.validate()

@@ -6,12 +6,14 @@ Every field can be set on the command line as ``--<dotted.path> VALUE``, e.g.
 defaults (presets.py); ``resolve`` then makes the config consistent (below) and
 ``validate`` rejects bad values before any work.
 
-What the pipeline owns (``resolve`` writes it into the agent configs, so set it here, not in
-``offline.cql``/``online.sac``): the network sizes and ensemble size (``network.*``), the
-UTD ratio of fine-tuning (``online.utd``) and the CQL/Cal-QL switch (``pretrain``). A run's
-seed (``seed``, with ``online_reseed`` for its online phase) and BOTO's ``alpha`` are
-top-level fields, stored there only: the stages read them from there. Everything else in the
-agent configs is theirs to set.
+One fact, one field. The network sizes and ensemble size (``network.*``), the UTD ratio
+(``online.utd``) and the CQL/Cal-QL switch (``pretrain``) are set here only: ``resolve``
+derives the agent configs' copies from them (``configs.resolve.DERIVED``) and the command line
+refuses ``--offline.cql.num-critics`` and the like, naming the flag to use. A run's seed
+(``seed``, with ``online_reseed`` for its online phase) and BOTO's ``alpha`` are top-level
+fields, stored there only; a population's are ``seeds`` and ``alphas`` (each member's config
+has its own ``seed`` and ``alpha``, configs/members.py). Everything else in the agent configs
+is theirs to set.
 """
 
 from __future__ import annotations
@@ -159,6 +161,12 @@ class RunConfig:
     pre-training differ only online: the noise floor a paired comparison is read against."""
     alpha: float | None = None
     """BOTO's bias controller in [-1, 1]; None = the preset's (the paper's per-task value)."""
+    seeds: str | None = None
+    """A population: one member per seed, trained as one program: 0-7 (both ends included), 0,2,5
+    or 0-3,9 (configs/members.py); None: the one run of `seed`."""
+    alphas: str | None = None
+    """boto: one member per alpha (and seed): -1:1:0.5 (start:stop:step, stop included) or -1,0,1;
+    None: `alpha`."""
     pretrain: Literal["calql", "cql", "iql"] | None = None
     """Offline algorithm of boto/wsrl (default calql); calql/cql/iql use themselves; rlpd none."""
     pretrained: str | None = None

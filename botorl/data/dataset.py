@@ -55,10 +55,6 @@ class RewardTransform:
     def __call__(self, rewards):
         return self.scale * rewards + self.bias
 
-    @property
-    def is_identity(self) -> bool:
-        return self.scale == 1.0 and self.bias == 0.0
-
 
 def _source(metadata: dict | None) -> str:
     return str((metadata or {}).get("source", "<in-memory dataset>"))

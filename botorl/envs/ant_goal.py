@@ -156,11 +156,6 @@ class AntGoalSim:
         return next_obs, reward, terminated, truncated, reached
 
 
-def make_ant_goal_env(seed: int | None = None, **kwargs):
-    """The Gymnasium version (reference implementation); see ``AntGoalEnv``."""
-    return AntGoalEnv(seed=seed, **kwargs)
-
-
 def _gym_base():
     import gymnasium as gym
 

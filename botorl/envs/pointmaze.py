@@ -58,11 +58,6 @@ def cell_to_xy(maze_map, cell) -> np.ndarray:
     return np.array([(cell[1] + 0.5) - cols / 2, rows / 2 - (cell[0] + 0.5)])
 
 
-def xy_to_cell(maze_map, xy) -> tuple[int, int]:
-    rows, cols = len(maze_map), len(maze_map[0])
-    return int(np.floor(rows / 2 - xy[1])), int(np.floor(xy[0] + cols / 2))
-
-
 def free_cells(maze_map) -> list[tuple[int, int]]:
     return [(i, j) for i, row in enumerate(maze_map) for j, c in enumerate(row) if c != 1]
 

@@ -62,8 +62,6 @@ def _now() -> str:
     return _dt.datetime.now().isoformat(timespec="seconds")
 
 
-
-
 def read_json(path: Path) -> dict[str, Any] | None:
     try:
         with open(path) as f:
@@ -120,10 +118,12 @@ def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:
     same seeds), else ``[]``: the trial then pre-trains itself."""
     from botorl.pipeline import shared_pretrain
     from botorl.configs.methods import get_method
-    from botorl.configs.build import build_population
+    from botorl.configs.build import build_config
+    from botorl.configs.members import population
 
     try:
-        cfg, _, member_cfgs = build_population(args)
+        cfg = build_config(args)  # the trial's config, as its `botorl run` will build it
+        member_cfgs = population(cfg)[1]
     except BotorlError:  # not a botorl run (a stand-in command's task): nothing to share
         return []
     if cfg.pretrained is not None or "pretrain" not in get_method(cfg.method).stages:
@@ -406,7 +406,3 @@ class Sweep:
 
 def _raise_interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt(f"signal {signum}")
-
-
-def run_sweep(grid: Grid, options: SweepOptions) -> dict[str, Any]:
-    return Sweep(grid, options).run()

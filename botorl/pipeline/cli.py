@@ -96,15 +96,15 @@ def _default_out(cfg) -> Path:
 
 
 def run_main(argv: list[str]) -> int:
-    from botorl.configs.build import is_population
-    from botorl.pipeline.population_cli import run_population_main
-
-    if is_population(argv):  # --seeds / --alphas: a population (botorl/pipeline/population_cli.py)
-        return run_population_main(argv)
+    from botorl.configs.members import is_population
     from botorl.jaxsetup import setup_jax
 
     setup_jax()
     cfg = build_config(argv)
+    if is_population(cfg):  # --seeds / --alphas: a population (botorl/pipeline/population_cli.py)
+        from botorl.pipeline.population_cli import run_population_main
+
+        return run_population_main(cfg)
     from dataclasses import replace
 
     from botorl.configs.schema import to_dict

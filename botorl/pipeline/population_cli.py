@@ -61,7 +61,8 @@ def _default_out(cfg, n: int) -> Path:
     return Path("runs") / f"{cfg.task}-{cfg.method}-pop{n}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-def run_population_main(argv: list[str]) -> int:
+def run_population_main(cfg) -> int:
+    """Run the population ``cfg`` describes (a built config with ``seeds`` or ``alphas``)."""
     from botorl.configs.schema import to_dict
     from botorl.envs.registry import get_task
     from botorl.jaxsetup import setup_jax
@@ -71,10 +72,10 @@ def run_population_main(argv: list[str]) -> int:
     from botorl.pipeline.rundir import RunDir
     from botorl.pipeline.runner import POPULATION_FILE, load_offline, write_population_file
 
-    setup_jax()
-    from botorl.configs.build import build_population
+    from botorl.configs.members import population
 
-    cfg, members, member_cfgs = build_population(argv)
+    setup_jax()
+    members, member_cfgs = population(cfg)
     out = Path(cfg.out) if cfg.out else _default_out(cfg, len(members))
 
     def already():

@@ -49,34 +49,13 @@ class RunDir:
 
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
-
-    @property
-    def config(self) -> Path:
-        return self.root / "config.json"
-
-    @property
-    def eval_csv(self) -> Path:
-        return self.root / "eval.csv"
-
-    @property
-    def metrics(self) -> Path:
-        return self.root / "metrics"
-
-    @property
-    def checkpoints(self) -> Path:
-        return self.root / "checkpoints"
-
-    @property
-    def summary(self) -> Path:
-        return self.root / "summary.json"
-
-    @property
-    def curve(self) -> Path:
-        return self.root / "curve.png"
-
-    @property
-    def tb(self) -> Path:
-        return self.root / "tb"
+        self.config = self.root / "config.json"
+        self.eval_csv = self.root / "eval.csv"
+        self.metrics = self.root / "metrics"
+        self.checkpoints = self.root / "checkpoints"
+        self.summary = self.root / "summary.json"
+        self.curve = self.root / "curve.png"
+        self.tb = self.root / "tb"
 
     def create(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)

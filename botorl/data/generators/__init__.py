@@ -46,10 +46,6 @@ DEFAULT_STEPS: dict[str, int] = {
 }
 
 
-def generator_names() -> list[str]:
-    return list(GENERATORS)
-
-
 def get_generator(task: str) -> Callable:
     """The generator function of ``task``; a clear ``BotorlError`` if it is unknown or missing."""
     if task not in GENERATORS:
