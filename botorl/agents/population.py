@@ -223,12 +223,13 @@ def update_many_on_device(agents, arrays: dict, keys, num_updates: int, batch_si
 
 def sample(agents, observations):
     """Stochastic actions of every member at its own observation(s): (N, O) -> (N, A)."""
-    return jit_sample(agents, jnp.asarray(observations, jnp.float32))
+    actions, rng = jit_sample(C.acting_view(agents), jnp.asarray(observations, jnp.float32))
+    return actions, agents.replace(rng=rng)
 
 
 def eval_actions(agents, observations):
     """Deterministic actions: (N, O) -> (N, A) or (N, E, O) -> (N, E, A)."""
-    return jit_eval(agents, jnp.asarray(observations, jnp.float32))
+    return jit_eval(C.acting_view(agents), jnp.asarray(observations, jnp.float32))
 
 
 def q_mean(agents, observations, actions):
