@@ -49,3 +49,19 @@ def test_bad_input_exits_2_before_any_run(capsys):
     assert "--members" in capsys.readouterr().err
     assert botorl_main(["bench", "--paper", "--pretrain-steps", "2"]) == 2
     assert "--pretrain-steps 2 is too small" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("task", ["kitchen-partial-v0", "pen-binary-v0"])
+def test_synthetic_data_is_read_by_the_tasks_own_loader(task, tmp_path):
+    """kitchen reads Minari datasets and pen Cal-QL .npy files: the benchmark's synthetic rows
+    must come in that format (they once came as a D4RL hdf5, which `botorl run` refused)."""
+    from botorl.data.tasks import load_task_data
+    from botorl.envs.registry import get_task
+
+    spec = get_task(task)
+    run_args, eval_args = PB._synthetic_data(spec, tmp_path, rows=4 * spec.max_episode_steps)
+    path = run_args[run_args.index("--data.path") + 1]
+    ds = load_task_data(spec, path)
+    assert ds.obs_dim == spec.obs_dim and ds.action_dim == spec.action_dim
+    assert len(ds.rewards) == 4 * spec.max_episode_steps  # every row kept (pen: every episode ends in success)
+    assert eval_args == (["--allow-pickle"] if spec.dataset_source.kind == "calql_npy" else [])

@@ -233,7 +233,7 @@ def main(argv: list[str]) -> int:
     p.add_argument("--tasks", default=",".join(PAPER_TASKS), help="comma-separated tasks")
     p.add_argument("--members", default="1", help="population sizes, e.g. 1,4,16")
     p.add_argument("--json", type=Path, default=None, help="write the results to this JSON file")
-    p.add_argument("--pretrain-steps", type=int, default=24)
+    p.add_argument("--pretrain-steps", type=int, default=48)
     p.add_argument("--warmup-steps", type=int, default=500)
     p.add_argument("--boto-steps", type=int, default=200)
     p.add_argument("--finetune-steps", type=int, default=100)
