@@ -20,6 +20,7 @@ from pathlib import Path
 
 from botorl.configs.build import build_config
 from botorl.errors import BotorlError, ConfigError
+from botorl.pipeline import preempt
 from botorl.pipeline.rundir import io_fault, owned
 
 
@@ -142,7 +143,8 @@ def run_main(argv: list[str]) -> int:
                 raise
             raise fault from None
         print(f"botorl: {cfg.method} on {cfg.task} (profile {cfg.profile}, seed {cfg.seed}) -> {out}", file=sys.stderr)
-        summary = _execute_guarded(cfg, run, d_raw, resume=False)
+        with preempt.resumable(f"botorl resume {out}"):
+            summary = _execute_guarded(cfg, run, d_raw, resume=False)
     print(format_summary(summary))
     return 0
 
@@ -206,7 +208,8 @@ def resume_main(argv: list[str]) -> int:
                 return 0
         spec = get_task(cfg.task)
         d_raw = _load_run_data(cfg, spec, run, args.allow_pickle)
-        summary = _execute_guarded(cfg, run, d_raw, resume=True, resume_from=args.from_)
+        with preempt.resumable(f"botorl resume {run.root}"):
+            summary = _execute_guarded(cfg, run, d_raw, resume=True, resume_from=args.from_)
     print(format_summary(summary))
     return 0
 

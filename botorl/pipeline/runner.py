@@ -22,9 +22,9 @@ from botorl.configs.members import Member, member_config  # noqa: F401 (importer
 from botorl.configs.methods import get_method
 from botorl.configs.schema import RunConfig, to_dict
 from botorl.data.dataset import Dataset, RewardTransform
-from botorl.errors import ConfigError, TrainingDivergedError
+from botorl.errors import ConfigError, Interrupted, TrainingDivergedError
 from botorl.io import atomic_write_json
-from botorl.pipeline import evaluation, shared_pretrain
+from botorl.pipeline import evaluation, preempt, shared_pretrain
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_name
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
@@ -468,11 +468,11 @@ def _wandb(cfg: RunConfig, run: RunDir):
     return wb
 
 
-def _finish_wandb(wandb_run, exit_code: int = 0) -> None:
+def _finish_wandb(wandb_run, exit_code: int = 0, timeout: float | None = None) -> None:
     """``wandb_run.finish`` that cannot hang the process (it uploads what is left)."""
     if wandb_run is None:
         return
-    timeout = _wandb_timeout()
+    timeout = _wandb_timeout() if timeout is None else timeout
     try:
         ok, _ = _bounded(lambda: wandb_run.finish(exit_code=exit_code), timeout)
     except Exception as err:
@@ -553,22 +553,34 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
     ctx.write_summary("running")
 
     agents = d_warmups = None
-    if state["done_stages"]:
-        last = state["done_stages"][-1]
-        agents = ctx.load_agents(checkpoint_name(last, None), _templates(member_cfgs, last, d_offline))
-    if "warmup" in state["done_stages"]:
-        d_warmups = _load_warmups(ckpt, layout.warmup_keys(len(members)))
     try:
-        for stage in method.stages:
-            if stage in state["done_stages"]:
-                continue
-            ctx.begin_stage(stage)
-            agents, d_warmups, arrays = _run_stage(ctx, stage, agents, d_warmups,
-                                                   mid if (mid is not None and mid["stage"] == stage) else None,
-                                                   member_cfgs)
-            ctx.end_stage()
-            state["done_stages"].append(stage)
-            ctx.save_stage_end(stage, agents, arrays=arrays)
+        with preempt.deferred():  # SIGTERM / SIGINT: the stages stop at a step with a checkpoint
+            if state["done_stages"]:
+                last = state["done_stages"][-1]
+                agents = ctx.load_agents(checkpoint_name(last, None), _templates(member_cfgs, last, d_offline))
+            if "warmup" in state["done_stages"]:
+                d_warmups = _load_warmups(ckpt, layout.warmup_keys(len(members)))
+            for stage in method.stages:
+                if stage in state["done_stages"]:
+                    continue
+                if preempt.requested():  # between two stages: the last one's final checkpoint is the point
+                    raise preempt.interrupted()
+                ctx.begin_stage(stage)
+                agents, d_warmups, arrays = _run_stage(ctx, stage, agents, d_warmups,
+                                                       mid if (mid is not None and mid["stage"] == stage) else None,
+                                                       member_cfgs)
+                ctx.end_stage()
+                state["done_stages"].append(stage)
+                ctx.save_stage_end(stage, agents, arrays=arrays)
+    except Interrupted as err:
+        ctx.end_stage()
+        ctx.write_summary("interrupted")
+        ctx.close()
+        latest = ctx.ckpt.latest()
+        err.checkpoint = latest["name"] if latest else None
+        err.how = err.how or f"botorl resume {root}"
+        _finish_wandb(wandb_run, 128 + err.signum, timeout=min(_wandb_timeout(), 10.0))
+        raise
     except TrainingDivergedError as err:
         ctx.end_stage()
         ctx.write_summary("failed", error=str(err))
@@ -578,7 +590,7 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
         raise
     except BaseException as err:  # an interrupt or a bug: the run can be resumed
         ctx.end_stage()
-        status = "running" if isinstance(err, KeyboardInterrupt) else "failed"
+        status = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
         ctx.write_summary(status, error=None if status == "running" else f"{type(err).__name__}: {err}")
         ctx.close()
         _finish_wandb(wandb_run, 1)
