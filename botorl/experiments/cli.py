@@ -190,7 +190,11 @@ def _check_trial_configs(grid) -> None:
         captured = io.StringIO()
         try:
             with contextlib.redirect_stderr(captured), contextlib.redirect_stdout(captured):
-                build_config(args)
+                cfg = build_config(args)
+            if cfg.wandb:  # once, now, rather than exit 2 in every trial
+                from botorl.pipeline.tracking import require_wandb
+
+                require_wandb()
         except BotorlError as err:
             raise ConfigError(f"Sweep trial {trial.id}: {err}") from None
         except SystemExit:

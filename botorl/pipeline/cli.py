@@ -106,6 +106,10 @@ def run_main(argv: list[str]) -> int:
 
     setup_jax()
     cfg = build_config(argv)
+    if cfg.wandb:  # before any work: a missing wandb must not leave a run directory behind
+        from botorl.pipeline.tracking import require_wandb
+
+        require_wandb()
     from dataclasses import replace
 
     from botorl.configs.schema import to_dict
@@ -191,6 +195,10 @@ def resume_main(argv: list[str]) -> int:
     from botorl.pipeline.runner import format_summary
 
     run, cfg = _load_run_config(args.dir)
+    if cfg.wandb:
+        from botorl.pipeline.tracking import require_wandb
+
+        require_wandb()
     with owned(run.root):
         if args.no_progress:
             cfg = replace(cfg, progress=False)

@@ -76,6 +76,10 @@ def run_population_main(argv: list[str]) -> int:
     from botorl.configs.build import build_population
 
     cfg, members, member_cfgs = build_population(argv)
+    if cfg.wandb:  # before any work: a missing wandb must not leave a population directory behind
+        from botorl.pipeline.tracking import require_wandb
+
+        require_wandb()
     out = Path(cfg.out) if cfg.out else _default_out(cfg, len(members))
 
     def already():
@@ -184,6 +188,10 @@ def resume_population_main(directory: str, *, no_progress: bool = False) -> int:
     setup_jax()
     cfg, member_cfgs, runs, data = load_population(directory)
     root = Path(directory)
+    if cfg.wandb:
+        from botorl.pipeline.tracking import require_wandb
+
+        require_wandb()
     with owned(root):
         if no_progress:
             cfg = replace(cfg, progress=False)
