@@ -28,6 +28,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+PREEMPTIBLE = ("run", "resume", "sweep")
+
+
 def _usage() -> str:
     width = max(len(n) for n in COMMANDS)
     lines = ["usage: botorl <command> [options]", "", "commands:"]
@@ -60,13 +63,30 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     target, _ = COMMANDS[name]
     module_name, func_name = target.split(":")
-    from botorl.errors import BotorlError
+    import contextlib
+
+    from botorl.errors import BotorlError, Interrupted
 
     try:
-        func = getattr(importlib.import_module(module_name), func_name)
-        code = func(rest)
+        # the commands that train stop at a step with a checkpoint on SIGTERM / SIGINT
+        # (botorl/pipeline/preempt.py); the others keep Python's defaults
+        if name in PREEMPTIBLE:
+            from botorl.pipeline.preempt import handling
+        with handling() if name in PREEMPTIBLE else contextlib.nullcontext():
+            func = getattr(importlib.import_module(module_name), func_name)
+            code = func(rest)
     except BotorlError as err:
         print(f"botorl {name}: error: {err}", file=sys.stderr)
+        return err.exit_code
+    except Interrupted as err:
+        import signal
+
+        what = signal.Signals(err.signum).name
+        if err.how:
+            at = f"; checkpoint {err.checkpoint}" if err.checkpoint else ""
+            print(f"botorl {name}: stopped by {what}{at}. Continue with: {err.how}", file=sys.stderr)
+        else:
+            print(f"botorl {name}: stopped by {what} before any work was saved; nothing to resume.", file=sys.stderr)
         return err.exit_code
     except KeyboardInterrupt:
         print(f"botorl {name}: interrupted", file=sys.stderr)

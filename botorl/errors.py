@@ -29,3 +29,20 @@ class ConfigError(BotorlError):
 
 class TrainingDivergedError(BotorlError):
     """A loss became NaN or inf; the last good checkpoint is kept."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGTERM or SIGINT stopped the work (botorl/pipeline/preempt.py); the CLI exits
+    128 + ``signum``. A KeyboardInterrupt, so code that cleans up after Ctrl-C cleans up after
+    it too. ``how``: the command that continues the work, once there is work to continue
+    (``botorl resume DIR``); ``checkpoint``: the checkpoint that resume starts from."""
+
+    def __init__(self, signum: int):
+        super().__init__(f"signal {signum}")
+        self.signum = int(signum)
+        self.how: str | None = None
+        self.checkpoint: str | None = None
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum

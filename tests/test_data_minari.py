@@ -113,3 +113,23 @@ def test_fast_writer_matches_minari_writer(tmp_path, monkeypatch):
     for k in ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends"):
         np.testing.assert_array_equal(getattr(back, k), getattr(ds, k), err_msg=k)
     np.testing.assert_array_equal(back.infos["success"], ds.infos["success"])
+
+
+def test_generated_dataset_recovers_its_environment(monkeypatch, tmp_path):
+    """Data botorl generates record their env_spec: Minari's recover_environment() makes the
+    task's env (offline: the spec points at botorl's own entry point), whose spaces are the data's."""
+    import minari
+
+    from botorl.data.generate import cache_id, data_dir, ensure_dataset
+
+    monkeypatch.setenv("BOTORL_DATA_DIR", str(tmp_path))
+    ds = ensure_dataset("pointmaze-umaze", 300, 0, progress=False)
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(data_dir()))
+    m = minari.load_dataset(cache_id("pointmaze-umaze", 300, 0))
+    assert m.spec.env_spec is not None and m.spec.env_spec.id == "botorl/pointmaze-umaze-v0"
+    env = m.recover_environment()
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (ds.obs_dim,) and env.action_space.shape == (ds.action_dim,)
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert "success" in info
+    env.close()

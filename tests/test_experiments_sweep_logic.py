@@ -184,7 +184,7 @@ def test_sigterm_stops_trials_and_records_them(tmp_path, fake):
     while time.monotonic() < deadline and len(list(out.glob("t1/wsrl/seed*/starts.txt"))) < 2:
         time.sleep(0.1)
     proc.send_signal(signal.SIGTERM)
-    assert proc.wait(timeout=30) == 130
+    assert proc.wait(timeout=30) == 128 + signal.SIGTERM
     manifest = json.loads((out / "sweep.json").read_text())
     assert {e["state"] for e in manifest["trials"].values()} == {"interrupted"}
     pids = [e.get("pid") for e in manifest["trials"].values()]

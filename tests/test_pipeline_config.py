@@ -5,6 +5,7 @@ No training here: every bad configuration must fail before any work (no run dire
 
 from __future__ import annotations
 
+import re
 
 import pytest
 
@@ -285,3 +286,60 @@ def test_seeds_and_alphas_are_config_fields():
     assert [(c.seed, c.alpha, c.seeds, c.alphas) for c in cfgs[:2]] == [(3, -1.0, None, None), (4, -1.0, None, None)]
     assert from_dict(RunConfig, to_dict(cfg)) == cfg
     assert not is_population(build_config(["--profile", "smoke"]))
+
+
+def _help_options(text: str) -> list[tuple[str, str]]:
+    """(flag line, help text) of every option in a tyro help screen (box borders stripped)."""
+    out, cur = [], None
+    for line in (re.sub(r"^[│\s]+|[│\s]+$", "", raw) for raw in text.splitlines()):
+        if re.fullmatch(r"[-─]{3,}", line):  # a section's rule
+            continue
+        if line.startswith("-"):
+            cur = [line, ""]
+            out.append(cur)
+        elif cur is not None and line and not line.startswith(("╭", "╰", "─")):
+            cur[1] += " " + line
+        elif not line:
+            cur = None
+    return [tuple(o) for o in out]
+
+
+def help_artefacts(text: str) -> list[str]:
+    """What a help screen must not show: tyro's doubled negation, numbers split at their commas
+    by the wrapper, files users do not have (the docs' .md sources), and a "(default: X)" tyro
+    appends to a help text that already says what the default is."""
+    flat = " ".join(re.sub(r"^[│\s]+|[│\s]+$", "", line) for line in text.splitlines())
+    bad = ["--no-no-"] if "no-no-" in flat else []
+    bad += re.findall(r"\b\d{1,3}, \d{3}\b", flat)
+    bad += re.findall(r"[\w./-]+\.md\b", flat)
+    for flag, text_ in _help_options(text):
+        body = f"{flag} {text_}".strip()
+        hint = re.search(r"\(default: [^)]*\)$", body)
+        if hint and re.search(r"default", body[:hint.start()], re.I):
+            bad.append(f"two defaults for {flag.split()[0]}")
+    return bad
+
+
+def test_help_artefacts_are_found():
+    """The checker can fail: each artefact the issue reported, as tyro printed it."""
+    assert help_artefacts("│ --progress, --no-no-progress │") == ["--no-no-"]
+    assert help_artefacts("│ --x INT  steps (paper: 1, 000,000) (default: 1) │") == ["1, 000"]
+    assert help_artefacts("│ --out STR  run directory; default runs/x. (default: None) │") == ["two defaults for --out"]
+    assert help_artefacts("│ --net  sizes (algorithms.md). │") == ["algorithms.md"]
+    assert help_artefacts("│ --seed INT  the seed (default: 0) │") == []
+
+
+@pytest.mark.parametrize("command", ["run", "resume", "eval", "sweep", "report"])
+def test_help_is_one_style_without_tyro_artefacts(command, capsys, monkeypatch):
+    from botorl.cli import main as botorl_main
+
+    monkeypatch.setenv("COLUMNS", "100")
+    with pytest.raises(SystemExit) as exit_info:
+        botorl_main([command, "--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"usage: botorl {command} ")
+    # tyro's layout for every command (resume and eval were plain argparse): boxes on a
+    # terminal, a ruled section header otherwise
+    assert re.search(r"╭─ options|^ options *\n -{10,}", out, re.M), out[:2000]
+    assert help_artefacts(out) == []

@@ -55,6 +55,7 @@ def test_wandb_run_gets_prefixed_metrics(tmp_path):
     log.log("finetune", 100, {"actor_loss": 0.5})
     log.log_eval({"env_step": 0, "success": 1.0, "return": 2.0, "q_data": -1.0, "q_uniform": -2.0})
     log.close()
-    assert rec.calls[0] == {"finetune/actor_loss": 0.5, "finetune/step": 100}
+    # rows of the online axis carry env_step, W&B's x-axis for them (pipeline/tracking.py)
+    assert rec.calls[0] == {"finetune/actor_loss": 0.5, "finetune/step": 100, "env_step": 100}
     assert rec.calls[1] == {"eval/success": 1.0, "eval/return": 2.0, "eval/q_data": -1.0,
-                            "eval/q_uniform": -2.0, "eval/env_step": 0}
+                            "eval/q_uniform": -2.0, "eval/env_step": 0, "env_step": 0}

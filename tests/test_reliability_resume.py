@@ -352,7 +352,7 @@ def test_wandb_that_hangs_is_turned_off(tmp_path, monkeypatch, capsys):
     from dataclasses import replace
 
     from botorl.configs.presets import make_preset
-    from botorl.pipeline import runner
+    from botorl.pipeline import tracking
     from botorl.pipeline.rundir import RunDir
 
     never = threading.Event()
@@ -362,19 +362,22 @@ def test_wandb_that_hangs_is_turned_off(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("BOTORL_WANDB_TIMEOUT", "0.3")
     cfg = replace(make_preset(FAMILIES["pointmaze"], "smoke"), wandb=True)
     t0 = time.perf_counter()
-    assert runner._wandb(cfg, RunDir(tmp_path / "run")) is None
+    assert tracking.start([cfg], [RunDir(tmp_path / "run")]) == [None]
     assert time.perf_counter() - t0 < 5
     assert "W&B did not start within 0.3 s" in capsys.readouterr().err
 
     class Run:
+        def define_metric(self, *a, **kw):
+            pass
+
         def finish(self, exit_code=0):
             never.wait()
 
     fake.init = lambda **kw: Run()
-    wb = runner._wandb(cfg, RunDir(tmp_path / "run"))
+    (wb,) = tracking.start([cfg], [RunDir(tmp_path / "run")])
     assert isinstance(wb, Run)
     t0 = time.perf_counter()
-    runner._finish_wandb(wb)
+    tracking.finish([wb])
     assert time.perf_counter() - t0 < 5
     assert "W&B did not finish within 0.3 s" in capsys.readouterr().err
 
@@ -382,7 +385,7 @@ def test_wandb_that_hangs_is_turned_off(tmp_path, monkeypatch, capsys):
         raise ConnectionError("no network")
 
     fake.init = refuse
-    assert runner._wandb(cfg, RunDir(tmp_path / "run")) is None
+    assert tracking.start([cfg], [RunDir(tmp_path / "run")]) == [None]
     assert "ConnectionError: no network" in capsys.readouterr().err
     never.set()
 

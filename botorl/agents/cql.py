@@ -43,7 +43,7 @@ from botorl.networks import sample_tanh_gaussian
 
 @dataclass(frozen=True)
 class CQLConfig(SACConfig):
-    """CQL / Cal-QL pre-training; defaults are Cal-QL on antmaze (docs/methods.md)."""
+    """CQL / Cal-QL pre-training; defaults are Cal-QL on antmaze (the docs' Methods page)."""
 
     num_critics: int = 10  # WSRL pre-trains with the fine-tuning ensemble size
     utd_ratio: int = 1

@@ -38,7 +38,7 @@ import functools
 
 @dataclass(frozen=True)
 class IQLConfig:
-    """IQL settings; defaults are antmaze (expectile 0.9, beta 10; docs/methods.md).
+    """IQL settings; defaults are antmaze (expectile 0.9, beta 10; the docs' Methods page).
     Adroit/kitchen: expectile 0.7, awr_beta 0.5, actor_dropout 0.1."""
 
     actor_hidden_dims: tuple[int, ...] = (256, 256)

@@ -53,7 +53,7 @@ from botorl.networks import (
 
 @dataclass(frozen=True)
 class SACConfig:
-    """SAC settings; defaults are WSRL's online fine-tuning on antmaze (docs/methods.md)."""
+    """SAC settings; defaults are WSRL's online fine-tuning on antmaze (the docs' Methods page)."""
 
     actor_hidden_dims: tuple[int, ...] = (256, 256)
     critic_hidden_dims: tuple[int, ...] = (256, 256, 256, 256)

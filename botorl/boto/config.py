@@ -51,7 +51,7 @@ class BOTOConfig:
         target critics. None -> the agent's own setting (SAC/CQL: ``num_min_critics``,
         ``subsample_replace``); an agent without one (IQL) uses all its members.
     backup_entropy: subtract ``tau * log pi(a~|s')`` in the target (SAC's soft value; the paper
-        prints ``+`` in section 4.1's target -- we use the SAC sign; docs/methods.md). Agents
+        prints ``+`` in section 4.1's target -- we use the SAC sign; the docs' Methods page). Agents
         without a SAC temperature (IQL) use tau = 0.
     discount, tau: None -> the agent's ``config.discount`` / ``config.tau`` (Polyak rate).
     train_actor: also train the actor and temperature with the SAC losses after every critic

@@ -39,14 +39,14 @@ class DataConfig:
 
     path: str | None = None
     """Dataset location for the task's loader: a Minari dataset folder or id (antmaze, kitchen),
-    the Cal-QL folder or ``expert.npy,bc.npy`` (adroit binary). None: the task's default (the
+    the Cal-QL folder or ``expert.npy,bc.npy`` (adroit binary). None: the task's own (the
     Minari id under $MINARI_DATASETS_PATH; generated tasks: botorl's cache, made when missing)."""
     steps: int | None = None
-    """Generated tasks only: dataset size in env steps (None: the generator's default)."""
+    """Generated tasks only: dataset size in env steps (None: the generator's own size)."""
     seed: int = 0
     """Generated tasks only: the dataset's seed (independent of the run seed, like a D4RL file)."""
     demos: str | None = None
-    """door-binary-local: the DAPG demos (door_human_demos.npz); default $BOTORL_DOOR_DEMOS, else the copy
+    """door-binary-local: the DAPG demos (door_human_demos.npz); None: $BOTORL_DOOR_DEMOS, else the copy
     shipped in botorl (botorl/data/assets)."""
     action_tolerance: float = 1e-3
     """Largest |action| - 1 accepted in the data before the clip to the box (else an error)."""
@@ -54,7 +54,7 @@ class DataConfig:
 
 @dataclass
 class NetworkConfig:
-    """Network sizes used by pre-training and fine-tuning alike (docs/methods.md)."""
+    """Network sizes used by pre-training and fine-tuning alike (the docs' Methods page)."""
 
     actor_hidden_dims: tuple[int, ...] = (256, 256)
     critic_hidden_dims: tuple[int, ...] = (256, 256, 256, 256)
@@ -118,7 +118,7 @@ class OnlineConfig:
 
 @dataclass
 class EvalConfig:
-    """Evaluation (as WSRL and Cal-QL evaluate; docs/methods.md, "Evaluation")."""
+    """Evaluation (as WSRL and Cal-QL evaluate; the docs' Methods page, "Evaluation")."""
 
     episodes: int = 20
     """Deterministic episodes per evaluation."""
@@ -168,16 +168,16 @@ class RunConfig:
     """boto: one member per alpha (and seed): -1:1:0.5 (start:stop:step, stop included) or -1,0,1;
     None: `alpha`."""
     pretrain: Literal["calql", "cql", "iql"] | None = None
-    """Offline algorithm of boto/wsrl (default calql); calql/cql/iql use themselves; rlpd none."""
+    """Offline algorithm of boto/wsrl (None: calql); calql/cql/iql use themselves; rlpd none."""
     pretrained: str | None = None
     """Skip pre-training: start each member from the finished pre-training of the run under this
     directory (a run, population or sweep) with the same seed and pre-training settings (e.g. WSRL
     from the BOTO runs' pre-training; botorl/pipeline/shared_pretrain.py)."""
     profile: Literal["quick", "full", "smoke"] = "quick"
     out: str | None = None
-    """Run directory; default runs/<task>-<method>-s<seed>-<timestamp>."""
+    """Run directory; None: runs/<task>-<method>-s<seed>-<timestamp>."""
     wandb: bool = False
-    """Also log to Weights & Biases (needs `pip install wandb`)."""
+    """Also log to Weights & Biases (needs `pip install "botorl[wandb]"`); one W&B run per member."""
     tensorboard: bool = True
     """TensorBoard events under DIR/tb when tensorboardX is installed."""
     progress: bool = True

@@ -84,6 +84,7 @@ def _generate(cfg: Generate) -> int:
     from botorl.data.generate import cache_id, cache_path, ensure_dataset
     from botorl.data.generators import DEFAULT_STEPS, get_generator
     from botorl.data.minari_io import write_minari
+    from botorl.envs.registry import get_task
 
     get_generator(cfg.task)  # unknown/missing generator: clear error before any work
     steps = cfg.steps if cfg.steps is not None else DEFAULT_STEPS[cfg.task]
@@ -97,10 +98,11 @@ def _generate(cfg: Generate) -> int:
     if cfg.out is not None:
         out = cfg.out.expanduser()
         if re.fullmatch(r"[-\w]+-v\d+", out.name):
-            dest = write_minari(ds, path=out, overwrite=cfg.overwrite, metadata=ds.metadata.get("botorl", {}))
+            dest = write_minari(ds, path=out, overwrite=cfg.overwrite, metadata=ds.metadata.get("botorl", {}),
+                                env_spec=get_task(cfg.task).gym_spec())
         else:
             dest = write_minari(ds, cache_id(cfg.task, steps, cfg.seed), root=out, overwrite=cfg.overwrite,
-                                metadata=ds.metadata.get("botorl", {}))
+                                metadata=ds.metadata.get("botorl", {}), env_spec=get_task(cfg.task).gym_spec())
         print(f"copy written to {dest}")
     return 0
 

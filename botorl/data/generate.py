@@ -85,7 +85,7 @@ def ensure_dataset(
     try:
         write_minari(ds, cache_id(task, steps, seed), root=data_dir(), overwrite=regenerate, metadata=meta,
                      description=f"botorl generated data for {task} ({steps} steps, seed {seed})",
-                     progress=progress)
+                     progress=progress, env_spec=_env_spec(task))
     except (BotorlError, OSError):
         if not _complete(path):  # not a concurrent writer that finished first
             raise
@@ -97,3 +97,10 @@ def get_generator_name(task: str) -> str:
     from botorl.data.generators import GENERATORS
 
     return GENERATORS[task]
+
+
+def _env_spec(task: str):
+    """The task's Gymnasium spec, recorded in its Minari data (``recover_environment()``)."""
+    from botorl.envs.registry import get_task
+
+    return get_task(task).gym_spec()

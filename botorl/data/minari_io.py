@@ -319,6 +319,7 @@ def write_minari(
     metadata: dict[str, Any] | None = None,
     algorithm_name: str = "botorl generator",
     progress: bool = False,
+    env_spec=None,
     _minari_writer: bool = False,
 ) -> Path:
     """Write ``dataset`` as a Minari dataset; returns its folder.
@@ -327,8 +328,9 @@ def write_minari(
     ``root`` (default: Minari's root, ``$MINARI_DATASETS_PATH`` or ``~/.minari/datasets``), so
     ``minari.load_dataset(dataset_id)`` reads it; or ``path``, a folder whose name is the id
     (``.../name-v0``). ``metadata`` (JSON-serialisable: generator name, steps, seed, ...) is
-    stored with botorl's dataset metadata. An existing dataset is replaced only with
-    ``overwrite=True``.
+    stored with botorl's dataset metadata. ``env_spec`` (a Gymnasium ``EnvSpec``, e.g. a task's
+    ``TaskSpec.gym_spec()``) is recorded as the dataset's, so ``recover_environment()`` works.
+    An existing dataset is replaced only with ``overwrite=True``.
     """
     import minari
 
@@ -354,7 +356,8 @@ def write_minari(
             warnings.simplefilter("ignore")  # Minari warns about every optional field left empty
             kwargs = dict(algorithm_name=algorithm_name, author="botorl", author_email="none",
                           code_permalink="https://github.com/botorl/botorl", action_space=act_space,
-                          observation_space=obs_space, description=description or f"botorl dataset {dataset_id}")
+                          observation_space=obs_space, description=description or f"botorl dataset {dataset_id}",
+                          env=env_spec)
             extra = {"botorl_metadata": json.dumps(meta, default=_json_default)}
             if _minari_writer:  # Minari's own (slow) writer; tests compare the two
                 mds = minari.create_dataset_from_buffers(

@@ -87,6 +87,22 @@ class TaskSpec:
 
         return finish(self.env_factory(seed), self.max_episode_steps)
 
+    def gym_spec(self):
+        """A Gymnasium ``EnvSpec`` that makes this task's env (``gym.make(spec)``), what the
+        Minari datasets botorl writes record as their ``env_spec``, so Minari's
+        ``recover_environment()`` gives the env the data came from. The horizon is the env's
+        own (``make_env``), so the spec adds no TimeLimit."""
+        from gymnasium.envs.registration import EnvSpec
+
+        return EnvSpec(id=f"botorl/{self.name}-v0", entry_point="botorl.envs.registry:make_gym_env",
+                       kwargs={"task": self.name}, disable_env_checker=True)
+
+
+def make_gym_env(task: str, seed: int = 0, **_render) -> gym.Env:
+    """``gym.make`` entry point of ``TaskSpec.gym_spec`` (Gymnasium passes ``render_mode``, which
+    the tasks do not take)."""
+    return get_task(task).make_env(seed)
+
 
 # ------------------------------------------------------------------------------ the tasks
 

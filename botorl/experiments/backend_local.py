@@ -19,6 +19,7 @@ from typing import Any
 from botorl.experiments.child import launcher
 from botorl.io import atomic_write_json, pid_alive
 
+ABORT_WAIT_S = 60.0  # a stopped trial's last update chunk and checkpoint; SLURM's default KillWait is 30 s
 TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan detection)
 
 # Thread settings for a trial pinned to one core: the usual BLAS/OpenMP knobs. XLA needs no
@@ -181,16 +182,21 @@ class LocalBackend:
         """(key, exit code) of every finished trial."""
         return [(key, code) for key, r in running.items() if (code := r.handle.poll()) is not None]
 
-    def abort(self, running: dict) -> None:
-        """Stop the running trials (they resume next time)."""
+    def abort(self, running: dict, signum: int = signal.SIGTERM) -> None:
+        """Stop the running trials with ``signum`` (the signal that stopped the sweep): each
+        writes a checkpoint at its current step and exits (pipeline/preempt.py); they resume
+        next time. One that has not exited after ``ABORT_WAIT_S`` is killed (its last periodic
+        checkpoint stays)."""
         for r in running.values():
             with contextlib.suppress(ProcessLookupError):
-                r.handle.terminate()
+                r.handle.send_signal(signum)
+        deadline = time.monotonic() + ABORT_WAIT_S
         for r in running.values():
             try:
-                r.handle.wait(timeout=15)
+                r.handle.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 r.handle.kill()
+                r.handle.wait()
 
     def close(self) -> Any:
         return None

@@ -103,7 +103,7 @@ class RayBackend:
             out.append((refs[ref], code))
         return out
 
-    def abort(self, running: dict) -> None:
+    def abort(self, running: dict, signum: int = 15) -> None:
         for r in running.values():
             with contextlib.suppress(Exception):
                 self.ray.cancel(r.handle, force=True)

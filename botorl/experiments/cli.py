@@ -52,19 +52,19 @@ class SweepArgs:
     seeds: Optional[str] = None
     """e.g. 0-4 (inclusive) or 0,1,2"""
     alphas: Optional[str] = None
-    """boto only, e.g. -1:1:0.1 (stop included) or -0.5,0,0.5; default: each task's preset"""
+    """boto only, e.g. -1:1:0.1 (stop included) or -0.5,0,0.5; None: each task's preset"""
     profile: Optional[str] = None
     """botorl run profile: quick, full or smoke"""
     set: tuple[str, ...] = ()
     """config overrides dotted.path=value, passed as --dotted.path value to every trial"""
     backend: Literal["sequential", "local", "ray"] = "local"
-    """sequential: one at a time; local: --workers pinned processes (default one per core); ray: Ray tasks"""
+    """sequential: one at a time; local: --workers pinned processes (one per core unless given); ray: Ray tasks"""
     workers: Optional[int] = None
-    """parallel trials (local: each pinned to its own block of cores, C // workers of them; ray: CPUs of a local instance); default: the usable cores"""
+    """parallel trials (local: each pinned to its own block of cores, C // workers of them; ray: CPUs of a local instance); None: one per usable core"""
     max_retries: int = 2
     """a failed trial is resumed from its checkpoint at most this many times per invocation"""
     ray_address: Optional[str] = None
-    """existing Ray cluster (e.g. auto or ray://head:10001); default: start a local instance"""
+    """existing Ray cluster (e.g. auto or ray://head:10001); None: start a local instance"""
     trial_command: Optional[str] = None
     """command that stands in for `python -m botorl.cli` (testing); gets run/resume arguments"""
     population_size: int = 1
@@ -190,7 +190,11 @@ def _check_trial_configs(grid) -> None:
         captured = io.StringIO()
         try:
             with contextlib.redirect_stderr(captured), contextlib.redirect_stdout(captured):
-                build_config(args)
+                cfg = build_config(args)
+            if cfg.wandb:  # once, now, rather than exit 2 in every trial
+                from botorl.pipeline.tracking import require_wandb
+
+                require_wandb()
         except BotorlError as err:
             raise ConfigError(f"Sweep trial {trial.id}: {err}") from None
         except SystemExit:
@@ -210,7 +214,7 @@ class ReportArgs:
     dirs: tyro.conf.Positional[tuple[str, ...]]
     """run or sweep directories, searched recursively for summary.json"""
     out: Optional[str] = None
-    """output folder (default: the first DIR/report)"""
+    """output folder (None: the first DIR/report)"""
     select_alpha: bool = False
     """pick alpha per task from an alpha sweep and print the preset lines"""
     bootstrap: int = 2000
@@ -224,9 +228,9 @@ class ReportArgs:
     dip_window: int = 10_000
     """the dip: lowest success over evaluations with 0 <= env_step <= this, minus success at step 0"""
     select_seeds: Optional[str] = None
-    """seeds that choose alpha (e.g. 0-3 or 0,2,4); default: the first half of each alpha's sorted seeds"""
+    """seeds that choose alpha (e.g. 0-3 or 0,2,4); None: the first half of each alpha's sorted seeds"""
     report_seeds: Optional[str] = None
-    """seeds on which the chosen alpha's score is reported (default: every seed not in --select-seeds)"""
+    """seeds on which the chosen alpha's score is reported (None: every seed not in --select-seeds)"""
     pairs_from: tuple[str, ...] = ()
     """paired.csv files of earlier reports: their pairs join the pairs of DIRS (a study reported
     population by population, whose run directories are gone); DIRS may then be empty"""

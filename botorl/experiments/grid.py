@@ -374,11 +374,34 @@ def build_grid(
     return grid
 
 
+def _is_flag(key: str) -> bool:
+    """Whether ``key`` (a dotted path) is a plain bool field of the run config, which tyro
+    makes a flag pair (``bool | None`` fields take a value)."""
+    import dataclasses
+    import typing
+
+    from botorl.configs.schema import RunConfig
+
+    cls = RunConfig
+    for part in key.replace("-", "_").split("."):
+        if not dataclasses.is_dataclass(cls):
+            return False
+        hints = typing.get_type_hints(cls)
+        if part not in hints:
+            return False
+        cls = hints[part]
+    return cls is bool
+
+
 def _shared_args(pretrain: str | None, profile: str | None, overrides: dict[str, str]) -> list[str]:
     """The `botorl run` arguments a trial and a population have alike."""
     args = [] if pretrain is None else ["--pretrain", pretrain]
     if profile:
         args += ["--profile", profile]
     for key, value in overrides.items():
+        if value.lower() in ("true", "false") and _is_flag(key):  # tyro's bools: --wandb / --no-wandb, --a.no-b
+            head, _, leaf = key.rpartition(".")
+            args.append(f"--{key}" if value.lower() == "true" else f"--{head + '.' if head else ''}no-{leaf.replace('_', '-')}")
+            continue
         args += [f"--{key}={value}"] if value.startswith("-") else [f"--{key}", value]  # "=": a leading '-' is no flag
     return args

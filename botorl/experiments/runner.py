@@ -34,18 +34,18 @@ import os
 import signal
 import socket
 import sys
-import threading
 import time
 from collections import deque
 from pathlib import Path
 from typing import Any, Sequence
 
-from botorl.errors import BotorlError, ConfigError
+from botorl.errors import BotorlError, ConfigError, Interrupted
 from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, single_thread_env, stop_orphan
 from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial
 from botorl.io import atomic_write_json
+from botorl.pipeline import preempt
 
 MANIFEST = "sweep.json"
 LOCKFILE = ".sweep.lock"
@@ -349,15 +349,18 @@ class Sweep:
     # -- main loop -------------------------------------------------------------------------------
 
     def run(self) -> dict[str, Any]:
+        # SIGTERM (a scheduler's preemption) and SIGINT stop the sweep at once and are forwarded
+        # to the trials, which stop at a step with a checkpoint (pipeline/preempt.py); the sweep
+        # records them as interrupted and the same command resumes them. SIGKILL is handled by
+        # PR_SET_PDEATHSIG and the next invocation.
+        with preempt.handling():
+            return self._run()
+
+    def _run(self) -> dict[str, Any]:
         from tqdm import tqdm
 
         self._acquire_lock()
         running: dict[int, _Running] = {}
-        old_term = None
-        if threading.current_thread() is threading.main_thread():
-            # `kill PID` (a scheduler's preemption) ends the trials cleanly and records them,
-            # as Ctrl-C does; SIGKILL is handled by PR_SET_PDEATHSIG and the next invocation
-            old_term = signal.signal(signal.SIGTERM, _raise_interrupt)
         try:
             self._load_manifest()
             self.save()
@@ -385,8 +388,11 @@ class Sweep:
                     self.save()
                 else:
                     time.sleep(self.opt.poll_interval)
-        except BaseException:  # Ctrl-C or an error in the sweep itself: stop the trials; they resume next time
-            self.backend.abort(running)
+        except BaseException as err:  # a signal or an error in the sweep itself: stop the trials; they resume next time
+            signum = err.signum if isinstance(err, Interrupted) else signal.SIGTERM
+            if isinstance(err, Interrupted):
+                err.how = err.how or "the same `botorl sweep` command (finished trials are kept, the rest resume)"
+            self.backend.abort(running, signum)
             for r in running.values():
                 with contextlib.suppress(Exception):
                     self.entry(r.trial).update(state="interrupted", ended=_now(), pid=None)
@@ -400,9 +406,5 @@ class Sweep:
                 self._pbar = None
             self.backend.close()
             self._release_lock()
-            if old_term is not None:
-                signal.signal(signal.SIGTERM, old_term)
         return self.manifest
 
-def _raise_interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")

@@ -13,13 +13,17 @@ $BOTORL_DOOR_DEMOS, else the copy shipped in botorl/data/assets).
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 from botorl.configs.build import build_config
 from botorl.errors import BotorlError, ConfigError
+from botorl.pipeline import preempt
 from botorl.pipeline.rundir import io_fault, owned
 
 
@@ -101,6 +105,10 @@ def run_main(argv: list[str]) -> int:
 
     setup_jax()
     cfg = build_config(argv)
+    if cfg.wandb:  # before any work: a missing wandb must not leave a run directory behind
+        from botorl.pipeline.tracking import require_wandb
+
+        require_wandb()
     if is_population(cfg):  # --seeds / --alphas: a population (botorl/pipeline/population_cli.py)
         from botorl.pipeline.population_cli import run_population_main
 
@@ -142,7 +150,8 @@ def run_main(argv: list[str]) -> int:
                 raise
             raise fault from None
         print(f"botorl: {cfg.method} on {cfg.task} (profile {cfg.profile}, seed {cfg.seed}) -> {out}", file=sys.stderr)
-        summary = _execute_guarded(cfg, run, d_raw, resume=False)
+        with preempt.resumable(f"botorl resume {out}"):
+            summary = _execute_guarded(cfg, run, d_raw, resume=False)
     print(format_summary(summary))
     return 0
 
@@ -166,14 +175,44 @@ def _load_run_config(directory: str):
     return run, cfg
 
 
+ALLOW_PICKLE_HELP = ("open a pickle-based dataset (Cal-QL .npy, DAPG .pickle) named in the run's config.json; "
+                     "without it botorl refuses, as a pickle from a run directory could run code")
+
+# resume and eval parse with tyro as run, sweep and report do: one help style for every command
+_Dir = Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="DIR")]
+_Flag = tyro.conf.FlagCreatePairsOff[bool]  # --no-progress alone, not --no-progress / --no-no-progress
+
+
+@dataclass
+class ResumeArgs:
+    """Continue a run (or population) directory from its last checkpoint; a run stopped by
+    SIGTERM / SIGINT continues from the checkpoint it wrote then."""
+
+    dir: _Dir
+    """the run directory (the --out of `botorl run`)"""
+    from_: Annotated[str | None, tyro.conf.arg(name="from", metavar="NAME",
+                                               help_behavior_hint="(default: the newest verified one)")] = None
+    """resume from this checkpoint folder of DIR/checkpoints"""
+    no_progress: _Flag = False
+    """no progress bars"""
+    allow_pickle: Annotated[_Flag, tyro.conf.arg(help=ALLOW_PICKLE_HELP)] = False
+
+
+@dataclass
+class EvalArgs:
+    """Evaluate the last checkpoint of a run directory (or the one --checkpoint names)."""
+
+    dir: _Dir
+    """the run directory"""
+    episodes: Annotated[int | None, tyro.conf.arg(metavar="N", help_behavior_hint="(default: the run's eval.episodes)")] = None
+    """evaluation episodes"""
+    checkpoint: Annotated[str | None, tyro.conf.arg(metavar="NAME", help_behavior_hint="(default: the latest)")] = None
+    """checkpoint folder name in DIR/checkpoints"""
+    allow_pickle: Annotated[_Flag, tyro.conf.arg(help=ALLOW_PICKLE_HELP)] = False
+
+
 def resume_main(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="botorl resume", description="Continue a run directory from its last checkpoint.")
-    p.add_argument("dir", help="the run directory (the --out of `botorl run`)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    p.add_argument("--from", dest="from_", metavar="NAME", default=None,
-                   help="resume from this checkpoint folder (default: the newest verified one)")
-    p.add_argument("--allow-pickle", action="store_true", help=ALLOW_PICKLE_HELP)
-    args = p.parse_args(argv)
+    args = tyro.cli(ResumeArgs, args=argv, prog="botorl resume")
     if (Path(args.dir) / "population.json").exists():  # a population (botorl/pipeline/population_cli.py)
         from botorl.pipeline.population_cli import resume_population_main
 
@@ -189,6 +228,10 @@ def resume_main(argv: list[str]) -> int:
     from botorl.pipeline.runner import format_summary
 
     run, cfg = _load_run_config(args.dir)
+    if cfg.wandb:
+        from botorl.pipeline.tracking import require_wandb
+
+        require_wandb()
     with owned(run.root):
         if args.no_progress:
             cfg = replace(cfg, progress=False)
@@ -206,13 +249,10 @@ def resume_main(argv: list[str]) -> int:
                 return 0
         spec = get_task(cfg.task)
         d_raw = _load_run_data(cfg, spec, run, args.allow_pickle)
-        summary = _execute_guarded(cfg, run, d_raw, resume=True, resume_from=args.from_)
+        with preempt.resumable(f"botorl resume {run.root}"):
+            summary = _execute_guarded(cfg, run, d_raw, resume=True, resume_from=args.from_)
     print(format_summary(summary))
     return 0
-
-
-ALLOW_PICKLE_HELP = ("open a pickle-based dataset (Cal-QL .npy, DAPG .pickle) named in the run's config.json; "
-                     "without it botorl refuses, as a pickle from a run directory could run code")
 
 
 def _load_run_data(cfg, spec, run, allow_pickle: bool):
@@ -227,12 +267,7 @@ def _load_run_data(cfg, spec, run, allow_pickle: bool):
 
 
 def eval_main(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="botorl eval", description="Evaluate the last checkpoint of a run directory.")
-    p.add_argument("dir", help="the run directory")
-    p.add_argument("--episodes", type=int, default=None, help="episodes (default: the run's eval.episodes)")
-    p.add_argument("--checkpoint", default=None, help="checkpoint folder name (default: the latest)")
-    p.add_argument("--allow-pickle", action="store_true", help=ALLOW_PICKLE_HELP)
-    args = p.parse_args(argv)
+    args = tyro.cli(EvalArgs, args=argv, prog="botorl eval")
     from botorl.jaxsetup import setup_jax
 
     setup_jax()

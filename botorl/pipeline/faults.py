@@ -10,6 +10,9 @@ uninterrupted run ends (tests/test_reliability_resume.py). Two ways to ask:
   ``finetune-step000000040``): PHASE ``files`` after the agent file is written into the
   temporary folder (the rest not yet), ``renamed`` after the folder is renamed into place but
   before ``latest.json`` points at it.
+* ``BOTORL_PAUSE_AT=STAGE:STEP`` with ``BOTORL_PAUSE_FILE=PATH``: when STAGE first reaches
+  STEP the run creates PATH and waits while it exists (at most 10 minutes), so a test can
+  send a real signal while a chosen stage runs (tests/test_reliability_preempt.py).
 * ``set_hook(fn)`` in-process: ``fn(kind, stage_or_name, step_or_phase)`` is called at the same
   points (``kind`` "step" or "checkpoint"); a test copies the run directory there, which is
   what a kill -9 at that point leaves on disk (every write before it is complete).
@@ -26,11 +29,12 @@ from typing import Callable
 _hook: Callable[[str, str, object], None] | None = None
 _kill_at: tuple[str, int] | None = None
 _kill_ckpt: tuple[str, str] | None = None
+_pause_at: tuple[str, int, str] | None = None
 _active = False
 
 
 def _read_env() -> None:
-    global _kill_at, _kill_ckpt, _active
+    global _kill_at, _kill_ckpt, _pause_at, _active
     at = os.environ.get("BOTORL_KILL_AT")
     if at:
         stage, _, step = at.rpartition(":")
@@ -41,7 +45,11 @@ def _read_env() -> None:
         if phase not in ("files", "renamed"):
             raise ValueError(f"BOTORL_KILL_IN_CHECKPOINT: phase must be files or renamed, not {phase!r}")
         _kill_ckpt = (name, phase)
-    _active = _hook is not None or _kill_at is not None or _kill_ckpt is not None
+    pause = os.environ.get("BOTORL_PAUSE_AT")
+    if pause:
+        stage, _, step = pause.rpartition(":")
+        _pause_at = (stage, int(step), os.environ["BOTORL_PAUSE_FILE"])
+    _active = _hook is not None or _kill_at is not None or _kill_ckpt is not None or _pause_at is not None
 
 
 def set_hook(fn: Callable[[str, str, object], None] | None) -> None:
@@ -63,6 +71,20 @@ def step(stage: str, step_: int) -> None:
         _hook("step", stage, int(step_))
     if _kill_at is not None and _kill_at[0] == stage and step_ >= _kill_at[1]:
         _die()
+    if _pause_at is not None and _pause_at[0] == stage and step_ >= _pause_at[1]:
+        _pause(_pause_at[2])
+
+
+def _pause(path: str) -> None:
+    global _pause_at
+    import time
+
+    _pause_at = None  # once
+    with open(path, "w") as f:
+        f.write(str(os.getpid()))
+    deadline = time.monotonic() + 600
+    while os.path.exists(path) and time.monotonic() < deadline:
+        time.sleep(0.01)
 
 
 def checkpoint(name: str, phase: str) -> None:

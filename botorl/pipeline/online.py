@@ -91,13 +91,17 @@ class OnlineState:
     def _reset_all(self, seeds) -> None:
         self.obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(self.envs, seeds)])
 
-    def save(self, agents) -> None:
-        """A mid-stage checkpoint of the agents and this whole state."""
+    def save(self, agents, window=None) -> None:
+        """A mid-stage checkpoint of the agents and this whole state (and, from an interrupt
+        between two log points, the metrics ``window`` since the last one: stages.Window)."""
         from botorl.envs.state import get_env_state
 
+        arrays = {"buffer": self.buffer.state_dict(), "online": {"obs": self.obs, "ep_succ": self.ep_succ}}
+        w = None if window is None else window.state_dict()
+        if w:
+            arrays["window"] = w
         self.ctx.save_mid(
-            "finetune", self.step, agents, np_rng=[r.bit_generator.state for r in self.rngs],
-            arrays={"buffer": self.buffer.state_dict(), "online": {"obs": self.obs, "ep_succ": self.ep_succ}},
+            "finetune", self.step, agents, np_rng=[r.bit_generator.state for r in self.rngs], arrays=arrays,
             extra={"episodes": self.episodes, "last_eval": self.last_eval, "resumes": self.resumes, "start": self.start},
             # what of the running episodes is not in arrays: each member's env state, the buffer rows
             # of its running episode (their MC returns are filled when it ends), the recent successes

@@ -21,6 +21,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from botorl.errors import ConfigError
+from botorl.pipeline import preempt
 
 def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
     """The population's memory by part (population.estimate_memory), from one template member;
@@ -117,7 +118,8 @@ def run_population_main(cfg) -> int:
             raise fault from None
         print(f"botorl: {cfg.method} on {cfg.task} (profile {cfg.profile}), a population of {len(members)}: "
               f"{', '.join(m.name for m in members)} -> {out}", file=sys.stderr)
-        summaries = _execute(cfg, member_cfgs, out, runs, d_raw, resume=False)
+        with preempt.resumable(f"botorl resume {out}"):
+            summaries = _execute(cfg, member_cfgs, out, runs, d_raw, resume=False)
     print(format_population(summaries))
     return 0
 
@@ -183,6 +185,10 @@ def resume_population_main(directory: str, *, no_progress: bool = False) -> int:
     setup_jax()
     cfg, member_cfgs, runs, data = load_population(directory)
     root = Path(directory)
+    if cfg.wandb:
+        from botorl.pipeline.tracking import require_wandb
+
+        require_wandb()
     with owned(root):
         if no_progress:
             cfg = replace(cfg, progress=False)
@@ -192,7 +198,8 @@ def resume_population_main(directory: str, *, no_progress: bool = False) -> int:
             print(format_population([read_summary(r) for r in runs]))
             return 0
         d_raw = load_offline(cfg, get_task(cfg.task))
-        summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True)
+        with preempt.resumable(f"botorl resume {root}"):
+            summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True)
     print(format_population(summaries))
     return 0
 

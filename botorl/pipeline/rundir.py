@@ -358,7 +358,9 @@ class MetricsLogger:
                 if k != "step" and isinstance(v, (int, float)):
                     self._tb.add_scalar(f"{stage}/{k}", v, step)
         if self._wandb is not None:
-            self._wandb_log({f"{stage}/{k}": v for k, v in row.items() if k != "step"} | {f"{stage}/step": step})
+            # rows of the online stages also carry env_step, their W&B x-axis (pipeline/tracking.py)
+            self._wandb_log({f"{stage}/{k}": v for k, v in row.items() if k != "step"} | {f"{stage}/step": step}
+                            | ({"env_step": step} if stage in ("warmup", "finetune") else {}))
 
     def log_eval(self, row: dict[str, Any]) -> None:
         if self._tb is not None:
@@ -368,7 +370,7 @@ class MetricsLogger:
                     self._tb.add_scalar(f"eval/{k}", v, row["env_step"])
         if self._wandb is not None:
             self._wandb_log({f"eval/{k}": row[k] for k in ("success", "return", "q_data", "q_uniform")}
-                            | {"eval/env_step": row["env_step"]})
+                            | {"eval/env_step": row["env_step"], "env_step": row["env_step"]})
 
     def truncate(self, stage: str, max_step: int) -> None:
         """Drop rows of ``stage`` logged after ``max_step`` (they are redone after a resume)."""

@@ -22,9 +22,9 @@ from botorl.configs.members import Member, member_config  # noqa: F401 (importer
 from botorl.configs.methods import get_method
 from botorl.configs.schema import RunConfig, to_dict
 from botorl.data.dataset import Dataset, RewardTransform
-from botorl.errors import ConfigError, TrainingDivergedError
+from botorl.errors import ConfigError, Interrupted, TrainingDivergedError
 from botorl.io import atomic_write_json
-from botorl.pipeline import evaluation, shared_pretrain
+from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_name
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
@@ -413,76 +413,6 @@ def _templates(member_cfgs: list[RunConfig], stage: str, d: Dataset):
     return AP.stack([_template(c, stage, d) for c in member_cfgs])
 
 
-def _wandb_timeout() -> float:
-    try:
-        return float(os.environ.get("BOTORL_WANDB_TIMEOUT", "120"))
-    except ValueError:
-        return 120.0
-
-
-def _bounded(fn, seconds: float):
-    """``fn()`` in a daemon thread: (True, its result) if it returned within ``seconds``, else
-    (False, None) and the thread is left behind (it cannot hold the process: daemon)."""
-    import threading
-
-    box: dict = {}
-
-    def target():
-        try:
-            box["value"] = fn()
-        except BaseException as err:  # handed to the caller
-            box["error"] = err
-
-    t = threading.Thread(target=target, name="botorl-wandb", daemon=True)
-    t.start()
-    t.join(seconds)
-    if t.is_alive():
-        return False, None
-    if "error" in box:
-        raise box["error"]
-    return True, box.get("value")
-
-
-def _wandb(cfg: RunConfig, run: RunDir):
-    """The W&B run, or None: W&B is optional, so a W&B that fails or does not answer within
-    $BOTORL_WANDB_TIMEOUT seconds (default 120) is turned off with a warning, not the run."""
-    if not cfg.wandb:
-        return None
-    try:
-        import wandb
-    except ImportError:
-        raise ConfigError("--wandb needs the wandb package: `pip install wandb` (or drop --wandb).") from None
-    timeout = _wandb_timeout()
-    try:
-        ok, wb = _bounded(lambda: wandb.init(project=os.environ.get("WANDB_PROJECT", "botorl"), name=run.root.name,
-                                             dir=str(run.root), config=to_dict(cfg), resume="allow",
-                                             id=run.root.name), timeout)
-    except Exception as err:
-        print(f"botorl: warning: W&B did not start ({type(err).__name__}: {err}); the run goes on without it.",
-              file=sys.stderr)
-        return None
-    if not ok:
-        print(f"botorl: warning: W&B did not start within {timeout:g} s (no network? WANDB_MODE=offline logs "
-              f"locally); the run goes on without it.", file=sys.stderr)
-        return None
-    return wb
-
-
-def _finish_wandb(wandb_run, exit_code: int = 0) -> None:
-    """``wandb_run.finish`` that cannot hang the process (it uploads what is left)."""
-    if wandb_run is None:
-        return
-    timeout = _wandb_timeout()
-    try:
-        ok, _ = _bounded(lambda: wandb_run.finish(exit_code=exit_code), timeout)
-    except Exception as err:
-        print(f"botorl: warning: W&B finish failed ({type(err).__name__}: {err}).", file=sys.stderr)
-        return
-    if not ok:
-        print(f"botorl: warning: W&B did not finish within {timeout:g} s; its last data may not be uploaded "
-              f"(`wandb sync` the run's wandb folder to send them).", file=sys.stderr)
-
-
 def execute(cfg: RunConfig, run: RunDir, d_offline_raw: Dataset, *, resume: bool = False) -> dict[str, Any]:
     """One run: a population of one member, in the run directory ``run``. Returns its summary."""
     return execute_population(cfg, [cfg], run.root, [run], d_offline_raw, resume=resume, single=True)[0]
@@ -540,8 +470,8 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
     ckpt = CheckpointManager(layout.checkpoints(root, member_runs))
     latest, state, failed, mid = _resume_point(ckpt) if resume else (None, {"done_stages": [], "stage_seconds": {}},
                                                                       {}, None)
-    wandb_run = _wandb(cfg, member_runs[0]) if single else None
-    members = [MemberRun(c, r, wandb_run) for c, r in zip(member_cfgs, member_runs)]
+    wandb_runs = tracking.start(member_cfgs, member_runs)  # one W&B run per member (None: no --wandb)
+    members = [MemberRun(c, r, w) for c, r, w in zip(member_cfgs, member_runs, wandb_runs)]
     for i, err in failed.items():
         members[int(i)].error = err
     ctx = RunContext(cfg, spec, root, members, d_offline, state, layout)
@@ -553,41 +483,53 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
     ctx.write_summary("running")
 
     agents = d_warmups = None
-    if state["done_stages"]:
-        last = state["done_stages"][-1]
-        agents = ctx.load_agents(checkpoint_name(last, None), _templates(member_cfgs, last, d_offline))
-    if "warmup" in state["done_stages"]:
-        d_warmups = _load_warmups(ckpt, layout.warmup_keys(len(members)))
     try:
-        for stage in method.stages:
-            if stage in state["done_stages"]:
-                continue
-            ctx.begin_stage(stage)
-            agents, d_warmups, arrays = _run_stage(ctx, stage, agents, d_warmups,
-                                                   mid if (mid is not None and mid["stage"] == stage) else None,
-                                                   member_cfgs)
-            ctx.end_stage()
-            state["done_stages"].append(stage)
-            ctx.save_stage_end(stage, agents, arrays=arrays)
+        with preempt.deferred():  # SIGTERM / SIGINT: the stages stop at a step with a checkpoint
+            if state["done_stages"]:
+                last = state["done_stages"][-1]
+                agents = ctx.load_agents(checkpoint_name(last, None), _templates(member_cfgs, last, d_offline))
+            if "warmup" in state["done_stages"]:
+                d_warmups = _load_warmups(ckpt, layout.warmup_keys(len(members)))
+            for stage in method.stages:
+                if stage in state["done_stages"]:
+                    continue
+                if preempt.requested():  # between two stages: the last one's final checkpoint is the point
+                    raise preempt.interrupted()
+                ctx.begin_stage(stage)
+                agents, d_warmups, arrays = _run_stage(ctx, stage, agents, d_warmups,
+                                                       mid if (mid is not None and mid["stage"] == stage) else None,
+                                                       member_cfgs)
+                ctx.end_stage()
+                state["done_stages"].append(stage)
+                ctx.save_stage_end(stage, agents, arrays=arrays)
+    except Interrupted as err:
+        ctx.end_stage()
+        ctx.write_summary("interrupted")
+        ctx.close()
+        latest = ctx.ckpt.latest()
+        err.checkpoint = latest["name"] if latest else None
+        err.how = err.how or f"botorl resume {root}"
+        tracking.finish(wandb_runs, 128 + err.signum, seconds=min(tracking.timeout(), 10.0))
+        raise
     except TrainingDivergedError as err:
         ctx.end_stage()
         ctx.write_summary("failed", error=str(err))
         _finish_outputs(ctx)
         ctx.close()
-        _finish_wandb(wandb_run, 1)
+        tracking.finish(wandb_runs, 1)
         raise
     except BaseException as err:  # an interrupt or a bug: the run can be resumed
         ctx.end_stage()
-        status = "running" if isinstance(err, KeyboardInterrupt) else "failed"
+        status = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
         ctx.write_summary(status, error=None if status == "running" else f"{type(err).__name__}: {err}")
         ctx.close()
-        _finish_wandb(wandb_run, 1)
+        tracking.finish(wandb_runs, 1)
         raise
     ctx.write_summary("finished")
     summaries = [read_summary(mc.run) for mc in members]
     _finish_outputs(ctx)
     ctx.close()
-    _finish_wandb(wandb_run)
+    tracking.finish(wandb_runs)
     return summaries
 
 

@@ -27,6 +27,10 @@ resume after a kill inside it runs it again from its start, which gives the same
 seed). tests/test_reliability_resume.py checks that a resumed run's eval.csv, summary and
 metrics equal an uninterrupted run's.
 
+Preemption (pipeline/preempt.py): under a command that handles SIGTERM / SIGINT each stage
+checks at its step boundaries whether one arrived; if so it writes the checkpoint of that
+step (with the metrics window since the last log point) and raises ``Interrupted``.
+
 Divergence: every stage checks each member's losses for NaN/inf before each checkpoint and
 at each log point (``ctx.check``). A population of one raises TrainingDivergedError there
 without writing a checkpoint, so the last good one stays; in a larger population that member
@@ -47,7 +51,7 @@ from botorl.agents import population as AP
 from botorl.boto.phase import train_boto
 from botorl.data.dataset import Dataset
 from botorl.errors import ConfigError
-from botorl.pipeline import faults
+from botorl.pipeline import faults, preempt
 from botorl.pipeline.online import OnlineState, rng_from
 
 STAGES = ("pretrain", "warmup", "boto", "finetune")
@@ -135,6 +139,23 @@ class Window:
     def add(self, metrics, active=None) -> None:
         self.rows.append((metrics, np.ones(self.n, bool) if active is None else np.asarray(active)))
 
+    def state_dict(self) -> dict[str, np.ndarray] | None:
+        """The rows since the last flush (None: none), for the checkpoint an interrupt writes
+        between two log points: restored (``load``), the next log row is the uninterrupted
+        run's. Periodic checkpoints need none: the window is flushed there."""
+        if not self.rows:
+            return None
+        host = jax.device_get([w for w, _ in self.rows])
+        keys = [k for k, v in host[0].items() if np.asarray(v).ndim == 1]
+        out = {f"m.{k}": np.stack([np.asarray(h[k]) for h in host]) for k in keys}
+        out["mask"] = np.stack([m for _, m in self.rows])
+        return out
+
+    def load(self, arrays: dict[str, np.ndarray] | None) -> None:
+        if arrays:
+            keys = [k[2:] for k in arrays if k.startswith("m.")]
+            self.rows = [({k: arrays[f"m.{k}"][t] for k in keys}, arrays["mask"][t]) for t in range(len(arrays["mask"]))]
+
     def flush(self) -> list[dict[str, float]]:
         rows, self.rows = self.rows, []
         if not rows:
@@ -199,6 +220,8 @@ def pretrain(ctx, resume: dict | None = None):
         base_keys = [jax.random.PRNGKey(s * 1_000_003 + 1) for s in seeds]
     points = Schedule(oc.steps, oc.log_every, cfg.checkpoint_every)
     window, rate = Window(len(reps)), Rate(step)
+    if resume is not None:
+        window.load(ctx.ckpt.arrays(resume["name"], "window"))
     shared = f" x {len(reps)} seeds for {ctx.n} members" if len(reps) < ctx.n else f" x {ctx.n} members"
     with ctx.bar(oc.steps, step, f"pretrain ({cfg.pretrain})" + (shared if ctx.n > 1 else "")) as bar:
         while step < oc.steps:
@@ -225,6 +248,12 @@ def pretrain(ctx, resume: dict | None = None):
             if due.checkpoint:
                 ctx.save_mid("pretrain", step, agents, np_rng=[r.bit_generator.state for r in rngs])
             faults.step("pretrain", step)
+            if step < oc.steps and preempt.requested():  # SIGTERM / SIGINT: stop here, resumable exactly
+                if not due.checkpoint:
+                    w = window.state_dict()
+                    ctx.save_mid("pretrain", step, agents, np_rng=[r.bit_generator.state for r in rngs],
+                                 arrays={"window": w} if w else None)
+                raise preempt.interrupted()
     if len(reps) < ctx.n:
         agents = jax.tree_util.tree_map(lambda x: x[np.asarray(group)], agents)
     return agents
@@ -288,6 +317,8 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
                 if t % 200 == 0:
                     bar.update(min(200, n - bar.n))
                 faults.step("warmup", t + 1)
+                if preempt.requested():  # the resume starts the warm-up again (exact; see the docstring)
+                    raise preempt.interrupted()
             bar.update(n - bar.n)
     finally:
         for env in envs:
@@ -322,6 +353,10 @@ def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = Non
         if due.checkpoint:
             ctx.save_mid("boto", step, agents)
         faults.step("boto", step)
+        if step < bc.boto_steps and preempt.requested():  # the batches follow from the step: exact
+            if not due.checkpoint:
+                ctx.save_mid("boto", step, agents)
+            raise preempt.interrupted()
 
     return train_boto(agents, ctx.d_offline, d_warmups or [None] * ctx.n, bc,
                       [mc.cfg.alpha for mc in ctx.members], [mc.cfg.online_seed for mc in ctx.members],
@@ -352,6 +387,8 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
         ctx.evaluate(agents, state.start)
         state.last_eval = state.start
     window, rate = Window(ctx.n), Rate(state.step)
+    if resume is not None:
+        window.load(ctx.ckpt.arrays(resume["name"], "window"))
     label = f"fine-tune ({cfg.method})" + (f" x {ctx.n} members" if ctx.n > 1 else "")
     with state, ctx.bar(oc.steps, state.step, label, unit="env step") as bar:
         while state.step < oc.steps:
@@ -370,4 +407,8 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
             if due.checkpoint:
                 state.save(agents)
             faults.step("finetune", state.step)
+            if state.step < oc.steps and preempt.requested():  # a periodic checkpoint's state, and the window
+                if not due.checkpoint:
+                    state.save(agents, window)
+                raise preempt.interrupted()
     return agents
