@@ -42,6 +42,7 @@ def build_config(argv: list[str]):
     """Preset + command line -> resolved, validated RunConfig (ConfigError on bad input)."""
     import tyro
 
+    from botorl.configs.custom import expand_argv
     from botorl.configs.methods import get_method, resolve_pretrain
     from botorl.configs.presets import make_preset
     from botorl.configs.resolve import resolve, validate
@@ -49,6 +50,7 @@ def build_config(argv: list[str]):
     from botorl.envs.registry import get_task
 
     argv = _expand_shortcuts(list(argv))
+    argv = expand_argv(argv)  # --env MODULE:FUNCTION: a task of one's own, registered here (configs/custom.py)
     pre = _pre_parse(argv)
     get_method(pre.method)  # clear errors before tyro's generic ones
     resolve_pretrain(pre.method, pre.pretrain)
