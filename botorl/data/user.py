@@ -70,16 +70,20 @@ def _obs(x, task: UserTask, field: str, source: str) -> np.ndarray:
 
 def check_dims(ds: Dataset, task: UserTask, source: str) -> None:
     """The data's widths against the env's (DataFormatError naming both)."""
-    layout = f" (the env's dict observation flattened as {', '.join(task.obs_keys)})" if task.obs_keys else ""
-    if ds.obs_dim != task.obs_dim:
-        raise DataFormatError(
-            f"{source}: observations have {ds.obs_dim} dimensions, but the env's have {task.obs_dim}{layout}. The data "
-            f"were logged from another env (or another version of it); log them from this env's observations."
-        )
+    _check_obs(ds.obs_dim, task, source, "observations")
     if ds.action_dim != task.action_dim:
         raise DataFormatError(
             f"{source}: actions have {ds.action_dim} dimensions, but the env's action space has {task.action_dim}. "
             f"The data were logged from another env; log the actions passed to this env's step()."
+        )
+
+
+def _check_obs(width: int, task: UserTask, source: str, field: str) -> None:
+    if width != task.obs_dim:
+        layout = f" (the env's dict observation flattened as {', '.join(task.obs_keys)})" if task.obs_keys else ""
+        raise DataFormatError(
+            f"{source}: {field} have {width} dimensions, but the env's have {task.obs_dim}{layout}. The data were "
+            f"logged from another env (or another version of it); log them from this env's observations."
         )
 
 
@@ -93,6 +97,8 @@ def from_arrays(arrays: Mapping, task: UserTask, *, source: str) -> Dataset:
         )
     obs = _obs(arrays["observations"], task, "observations", source)
     nobs = _obs(arrays["next_observations"], task, "next_observations", source)
+    _check_obs(obs.shape[1], task, source, "observations")
+    _check_obs(nobs.shape[1], task, source, "next_observations")
     act = np.asarray(arrays["actions"], dtype=np.float64)
     act = act.reshape(-1, 1) if act.ndim == 1 else act.reshape(act.shape[0], -1)
     if act.shape[1] == task.action_dim:

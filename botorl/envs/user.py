@@ -157,18 +157,16 @@ def split_entry(entry: str) -> tuple[str, str]:
 
 
 def import_entry(entry: str, path: str | None = None) -> tuple[Callable[[int], gym.Env], str | None]:
-    """Import ``MODULE:FUNCTION`` -> (the function, the folder it was found in when that folder is
-    not already on sys.path: record it to find the module again).
+    """Import ``MODULE:FUNCTION`` -> (the function, the folder it was found in, to be recorded and
+    searched first in another process; None for an installed module).
 
     As ``python -m`` does, the current folder is searched first; ``path`` (a recorded folder) is
     searched too."""
     module_name, func_name = split_entry(entry)
     cwd = os.getcwd()
-    added = []
-    for p in (path, cwd):
+    for p in (cwd, path):  # the recorded folder ends up first
         if p and p not in sys.path and os.path.isdir(p):
             sys.path.insert(0, p)
-            added.append(p)
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as err:
@@ -186,7 +184,7 @@ def import_entry(entry: str, path: str | None = None) -> tuple[Callable[[int], g
         names = [n for n in dir(module) if not n.startswith("_") and callable(getattr(module, n))]
         raise ConfigError(f"--env {entry}: module {module_name!r} ({getattr(module, '__file__', '?')}) has no "
                           f"function {func_name!r}; its callables: {', '.join(names) or 'none'}.")
-    return func, _found_in(module, module_name, added)
+    return func, _found_in(module, module_name)
 
 
 def _module_root(module, module_name: str) -> Path | None:
@@ -198,9 +196,13 @@ def _module_root(module, module_name: str) -> Path | None:
     return root.parent if Path(file).name == "__init__.py" else root
 
 
-def _found_in(module, module_name: str, added: list[str]) -> str | None:
+def _found_in(module, module_name: str) -> str | None:
+    """The folder to search again for ``module_name`` in another process, None for an installed
+    module (site-packages) that any process finds."""
     root = _module_root(module, module_name)
-    return str(root) if root is not None and any(Path(a).resolve() == root for a in added) else None
+    if root is None or {"site-packages", "dist-packages"} & set(root.parts):
+        return None
+    return str(root)
 
 
 def entry_of(make_env: Callable) -> tuple[str | None, str | None]:
@@ -214,8 +216,7 @@ def entry_of(make_env: Callable) -> tuple[str | None, str | None]:
     module = sys.modules.get(module_name)
     if module is None or getattr(module, qual, None) is not make_env:
         return None, None
-    root = _module_root(module, module_name)
-    return f"{module_name}:{qual}", None if root is None else str(root)
+    return f"{module_name}:{qual}", _found_in(module, module_name)
 
 
 # ------------------------------------------------------------------ probing the env
