@@ -14,7 +14,6 @@ import textwrap
 import time
 from pathlib import Path
 
-import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium import spaces
@@ -90,6 +89,23 @@ def work(tmp_path_factory):
     rewards[7] = np.nan
     np.savez(d / "nan.npz", **{**flat, "rewards": rewards})
     return {"dir": d, "data": data, "flat": flat}
+
+
+def test_import_botorl_stays_light():
+    code = ("import sys, botorl; heavy = [m for m in ('jax', 'flax', 'gymnasium', 'tyro') if m in sys.modules]; "
+            "assert not heavy, heavy; assert callable(botorl.run) and 'jax' not in sys.modules; "
+            "assert {'register_task', 'run', 'resume', 'load_policy', 'load_agent'} <= set(dir(botorl))")
+    proc = subprocess.run([sys.executable, "-c", code], env=_env(), capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_override_args():
+    from botorl.api import override_args
+
+    assert override_args({"online__steps": 5, "network": {"layer_norm": False, "critic_hidden_dims": (8, 8)},
+                          "progress": True, "online.buffer_capacity": None}) == [
+        "--online.steps", "5", "--network.no-layer-norm", "--network.critic_hidden_dims", "8", "8", "--progress",
+        "--online.buffer_capacity", "None"]
 
 
 # ------------------------------------------------------------------ the pure transformations

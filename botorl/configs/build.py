@@ -66,7 +66,8 @@ def build_config(argv: list[str]):
         "Many runs as one program (a population): --seeds 0-7 (or 0,2,5) for several seeds, and for "
         "--method boto --alphas -1:1:0.5 (or -1,0,1) for several alphas, each member its own run "
         "directory under --out; --pretrained DIR starts every member from the finished pre-training "
-        "of the same seed and settings under DIR.",
+        "of the same seed and settings under DIR. A task of your own: --env MODULE:FUNCTION --data.path FILE "
+        "--env-max-steps N [--success-key K] (docs/own-task.md).",
     )
     cfg = resolve(cfg)
     validate(cfg)
