@@ -140,7 +140,12 @@ def test_task_env_rescales_actions_and_flattens(work):
 
 # ------------------------------------------------------------------ bad input: exit 2 / BotorlError
 def _cli(work, monkeypatch, capsys, *args):
+    # as the `botorl` console script starts: the current folder is not on sys.path, so the entry
+    # point's module is found only because botorl looks there first (as `python -m` does)
     monkeypatch.chdir(work["dir"])
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", ".", str(work["dir"]))])
+    for name in ("mytask", "badenvs", "broken"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
     out = work["dir"] / "runs" / f"bad-{time.time_ns()}"
     code = cli_main(["run", *args, "--profile", "smoke", "--no-progress", "--out", str(out)])
     err = capsys.readouterr().err
