@@ -113,7 +113,11 @@ def main() -> None:
 
     import botorl
 
-    botorl.register_task("point-goal", make_env, data, max_episode_steps=MAX_STEPS)
+    # reward 10 r - 5: every step short of the goal costs 5, so a shorter path is worth more and the
+    # critic's Q depends on the action (antmaze's transform). On the raw 0/1 reward the quick
+    # profile's fine-tuning lost the goal (success 0.85 -> 0 for BOTO and WSRL alike).
+    botorl.register_task("point-goal", make_env, data, max_episode_steps=MAX_STEPS, reward_scale=10.0,
+                         reward_bias=-5.0)
     runs = {}
     for method in ("boto", "wsrl"):
         summary = botorl.run(task="point-goal", method=method, profile=args.profile, out=f"{args.out}/{method}",
