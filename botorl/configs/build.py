@@ -72,6 +72,7 @@ def build_config(argv: list[str]):
     """Preset + command line -> resolved, validated RunConfig (ConfigError on bad input)."""
     import tyro
 
+    from botorl.configs.custom import expand_argv
     from botorl.configs.methods import get_method, resolve_pretrain
     from botorl.configs.presets import make_preset
     from botorl.configs.resolve import resolve, validate
@@ -79,6 +80,7 @@ def build_config(argv: list[str]):
     from botorl.envs.registry import get_task
 
     argv = _expand_shortcuts(list(argv))
+    argv = expand_argv(argv)  # --env MODULE:FUNCTION: a task of one's own, registered here (configs/custom.py)
     _refuse_derived(argv)
     pre = _pre_parse(argv)
     get_method(pre.method)  # clear errors before tyro's generic ones
@@ -95,7 +97,8 @@ def build_config(argv: list[str]):
         "Many runs as one program (a population): --seeds 0-7 (or 0,2,5) for several seeds, and for "
         "--method boto --alphas -1:1:0.5 (or -1,0,1) for several alphas, each member its own run "
         "directory under --out; --pretrained DIR starts every member from the finished pre-training "
-        "of the same seed and settings under DIR.",
+        "of the same seed and settings under DIR. A task of your own: --env MODULE:FUNCTION --data.path FILE "
+        "--env-max-steps N [--success-key K] (docs/own-task.md).",
     )
     _check_population_flags(argv, cfg)
     cfg = resolve(cfg)

@@ -25,7 +25,9 @@ Profiles
 
 Our choices for tasks outside the paper: pointmaze uses antmaze's alpha (-1.0, the
 "diverse" value: the maze2d-style data are diverse, goals re-drawn) and log sigma -20;
-door-binary-local uses door-binary's alpha 0.0.
+door-binary-local uses door-binary's alpha 0.0. A user's task (domain "custom" unless it names a
+paper domain; docs/own-task.md): 2 x 256 networks, 100k Cal-QL steps with CQL weight 1 (no
+Lagrange), IQL expectile 0.7 / temperature 3, alpha 0, 100k BOTO steps, log sigma -20.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from botorl.agents.sac import SACConfig
 from botorl.boto.config import BOTOConfig
 from botorl.configs.schema import (
     DataConfig,
+    EnvConfig,
     EvalConfig,
     NetworkConfig,
     OfflineConfig,
@@ -53,12 +56,14 @@ PROFILES = ("quick", "full", "smoke")
 _STANDS_IN = {"pointmaze": "antmaze"}
 
 # Cal-QL / CQL pre-training per domain (Cal-QL's and WSRL's code; docs/methods.md).
-_PRETRAIN_STEPS = {"antmaze": 1_000_000, "adroit": 20_000, "kitchen": 250_000, "bandit": 20_000}
+_PRETRAIN_STEPS = {"antmaze": 1_000_000, "adroit": 20_000, "kitchen": 250_000, "bandit": 20_000,
+                   "custom": 100_000}
 _CQL = {
     "antmaze": dict(cql_weight=5.0, cql_lagrange=True, cql_target_action_gap=0.8, cql_importance_sample=True),
     "adroit": dict(cql_weight=1.0, cql_lagrange=False, cql_importance_sample=True),
     "kitchen": dict(cql_weight=5.0, cql_lagrange=False, cql_importance_sample=False),
     "bandit": dict(cql_weight=1.0, cql_lagrange=False, cql_importance_sample=True),
+    "custom": dict(cql_weight=1.0, cql_lagrange=False, cql_importance_sample=True),
 }
 # IQL: expectile 0.9 / temperature 10 on antmaze; 0.7 / 0.5 and actor dropout 0.1 otherwise.
 _IQL = {
@@ -66,6 +71,7 @@ _IQL = {
     "adroit": dict(expectile=0.7, awr_beta=0.5, actor_dropout=0.1),
     "kitchen": dict(expectile=0.7, awr_beta=0.5, actor_dropout=0.1),
     "bandit": dict(expectile=0.7, awr_beta=0.5, actor_dropout=None),
+    "custom": dict(expectile=0.7, awr_beta=3.0, actor_dropout=None),
 }
 # Cal-QL MC returns: raw reward of a failing sparse trajectory; finite horizon everywhere
 # (WSRL computes kitchen's returns with infinite_horizon=False; Cal-QL's code has no kitchen).
@@ -74,9 +80,11 @@ _MC = {
     "adroit": dict(mc_sparse_negative_reward=-1.0, mc_infinite_horizon=False),
     "kitchen": dict(mc_sparse_negative_reward=None, mc_infinite_horizon=False),
     "bandit": dict(mc_sparse_negative_reward=None, mc_infinite_horizon=False),
+    "custom": dict(mc_sparse_negative_reward=None, mc_infinite_horizon=False),
 }
 # Our choices for tasks the paper does not have (see the module docstring).
-_DEFAULT_PAPER = {"pointmaze": (-1.0, 100_000, -20.0), "adroit": (0.0, 100_000, -20.0), "bandit": (0.0, 20_000, -20.0)}
+_DEFAULT_PAPER = {"pointmaze": (-1.0, 100_000, -20.0), "adroit": (0.0, 100_000, -20.0), "bandit": (0.0, 20_000, -20.0),
+                  "custom": (0.0, 100_000, -20.0)}
 
 
 def paper_domain(domain: str) -> str:
@@ -121,7 +129,7 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     boto = replace(BOTOConfig(), boto_steps=boto_steps, log_sigma=log_sigma)
     cfg = RunConfig(
         task=task, method=method, pretrain=pretrain, profile=profile,
-        data=DataConfig(), network=net, offline=offline, warmup=WarmupConfig(5_000),
+        data=DataConfig(path=_user_data_path(spec)), env=env_record(spec), network=net, offline=offline, warmup=WarmupConfig(5_000),
         boto=boto, online=online, eval=EvalConfig(), checkpoint_every=50_000,
     )
     if spec.domain == "adroit":
@@ -134,6 +142,22 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     elif profile == "smoke":
         cfg = _smoke(cfg, spec)
     return _method_defaults(cfg, spec)
+
+
+def env_record(spec) -> EnvConfig:
+    """What config.json records of a user's task (botorl/envs/user.py); empty for botorl's tasks."""
+    u = spec.user
+    if u is None:
+        return EnvConfig()
+    return EnvConfig(entry=u.entry, path=u.path, max_steps=spec.max_episode_steps, success_key=u.success_key,
+                     success_off=u.success_off, domain=None if spec.domain == "custom" else spec.domain,
+                     reward_scale=spec.reward_scale, reward_bias=spec.reward_bias, obs_keys=u.obs_keys,
+                     obs_dim=u.obs_dim, action_dim=u.action_dim, action_low=u.action_low, action_high=u.action_high)
+
+
+def _user_data_path(spec) -> str | None:
+    """A user's task reads the file it was registered with (None: data held in memory)."""
+    return (spec.dataset_source.ref or None) if spec.user is not None else None
 
 
 # Cal-QL pre-training steps of the quick profile on pointmaze (see _quick).

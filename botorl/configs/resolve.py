@@ -91,8 +91,11 @@ def resolve(cfg: RunConfig) -> RunConfig:
 
 def validate(cfg: RunConfig) -> None:
     """Raise ConfigError for any value that cannot run (call after ``resolve``)."""
+    from botorl.configs.custom import ensure_task
     from botorl.configs.presets import PROFILES
     from botorl.configs.methods import get_method
+
+    ensure_task(cfg)  # a task of one's own read back from config.json: imported again by name
 
     method = get_method(cfg.method)
     if cfg.profile not in PROFILES:

@@ -23,9 +23,10 @@ import math
 import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
+import tyro
 
 from botorl.agents.cql import CQLConfig
 from botorl.agents.iql import IQLConfig
@@ -50,6 +51,38 @@ class DataConfig:
     shipped in botorl (botorl/data/assets)."""
     action_tolerance: float = 1e-3
     """Largest |action| - 1 accepted in the data before the clip to the box (else an error)."""
+
+
+@dataclass
+class EnvConfig:
+    """A task of your own (``botorl run --env MODULE:FUNCTION``, ``botorl.register_task``;
+    docs/own-task.md): what botorl needs to build it again on resume and eval, and what its env
+    is, recorded from the task when the run starts. Not set on the command line (``--env``,
+    ``--env-max-steps``, ``--success-key`` fill it); all None for botorl's own tasks."""
+
+    entry: str | None = None
+    """MODULE:FUNCTION, imported again by name (never unpickled) on resume, eval and report; None for a
+    task whose make_env cannot be imported by name (defined in a script: the script registers it again)."""
+    path: str | None = None
+    """The folder ``entry``'s module was found in (the current folder of `botorl run`), put on sys.path
+    again to import it."""
+    max_steps: int | None = None
+    """The episode length limit (--env-max-steps); None: botorl's own task."""
+    success_key: str | None = None
+    """The info key read as success; None: success is off."""
+    success_off: str | None = None
+    """Why success is off, when it is."""
+    domain: str | None = None
+    """The paper domain whose presets the task takes; None: the defaults of docs/own-task.md."""
+    reward_scale: float = 1.0
+    reward_bias: float = 0.0
+    obs_keys: tuple[str, ...] | None = None
+    """A dict observation's leaves in flattening order (sorted, nested as a/b); None: a Box."""
+    obs_dim: int | None = None
+    action_dim: int | None = None
+    action_low: tuple[float, ...] | None = None
+    """The env's own action bounds; the policy's [-1, 1] actions are mapped onto them."""
+    action_high: tuple[float, ...] | None = None
 
 
 @dataclass
@@ -192,6 +225,8 @@ class RunConfig:
     boto: BOTOConfig = field(default_factory=BOTOConfig)
     online: OnlineConfig = field(default_factory=OnlineConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    env: Annotated[EnvConfig, tyro.conf.Suppress] = field(default_factory=EnvConfig)
+    """A task of your own (see EnvConfig); filled from the task, so not a command-line field."""
 
     @property
     def online_seed(self) -> int:

@@ -144,6 +144,7 @@ def load_d4rl_hdf5(
     obs_dim: int | None = None,
     action_dim: int | None = None,
     action_tolerance: float = 1e-3,
+    actions_to_unit: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Dataset:
     """A D4RL hdf5 file (``observations, actions, rewards, terminals[, timeouts, infos/*]``).
 
@@ -151,6 +152,8 @@ def load_d4rl_hdf5(
     ``max_episode_steps`` only matters for files without ``timeouts`` (kitchen: D4RL uses the
     env's limit, 280); None treats such a file as episodes split only by terminals.
     ``infos/success`` or ``infos/goal_achieved``, if present, become ``infos["success"]``.
+    ``actions_to_unit`` maps the file's actions to [-1, 1] before the Dataset clips them (a user's
+    env with other action bounds, botorl/data/user.py).
     """
     import h5py
 
@@ -171,6 +174,8 @@ def load_d4rl_hdf5(
             )
         obs = np.asarray(f["observations"], np.float32)
         act = np.asarray(f["actions"], np.float32)
+        if actions_to_unit is not None:
+            act = np.asarray(actions_to_unit(act), np.float32)
         rew = np.asarray(f["rewards"], np.float32).reshape(-1)
         term = np.asarray(f["terminals"]).reshape(-1).astype(bool)
         tout = np.asarray(f["timeouts"]).reshape(-1).astype(bool) if "timeouts" in f else None
@@ -303,6 +308,7 @@ def load_minari(
     action_dim: int | None = None,
     action_tolerance: float = 1e-3,
     success_info_key: str = "success",
+    actions_to_unit: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Dataset:
     """A Minari dataset, by id (``minari.load_dataset``, offline) or by path.
 
@@ -316,6 +322,8 @@ def load_minari(
     ``next_observations = observations[1:]``, ``terminals = terminations``, the last step is
     an episode end (terminated or truncated). ``infos[success_info_key]`` (the last T entries
     when Minari stored T + 1, the first being the reset info) becomes ``infos["success"]``.
+    ``actions_to_unit`` maps the dataset's actions to [-1, 1] before the Dataset clips them (a
+    user's env with other action bounds; botorl's flat cache is then not used).
     """
     data_path, as_path = _minari_data_path(id_or_path)
     name = str(id_or_path)
@@ -327,7 +335,7 @@ def load_minari(
             "file is read by `botorl data info FILE` / botorl.data.loaders.load_d4rl_hdf5, not as a Minari dataset."
         )
     rebuild = False
-    if obs_keys is None and data_path.name == "data":
+    if obs_keys is None and data_path.name == "data" and actions_to_unit is None:
         try:
             flat = read_flat(data_path.parent)
         except FlatCacheInvalid as err:
@@ -367,6 +375,8 @@ def load_minari(
             ) from None
         t = len(ep["rewards"])
         actions = np.asarray(ep["actions"], np.float32)
+        if actions_to_unit is not None:
+            actions = np.asarray(actions_to_unit(actions), np.float32)
         if o.shape[0] != t + 1 or actions.shape[0] != t:
             raise DataFormatError(
                 f"{data_path}: episode {ep_id} has {o.shape[0]} observations and "

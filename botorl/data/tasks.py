@@ -19,9 +19,15 @@ def load_task_data(spec, path: str | os.PathLike | None = None, **kwargs) -> Dat
     ``path``: a Minari dataset folder (minari tasks; default: by id from
     ``$MINARI_DATASETS_PATH``), the Cal-QL folder or ``expert.npy,bc.npy`` (adroit; must be
     given: those files are pickles), or a generated Minari folder (generated tasks;
-    default: the cache, generating the data if missing; ``kwargs`` go to ``ensure_dataset``).
+    default: the cache, generating the data if missing; ``kwargs`` go to ``ensure_dataset``), or a
+    user's file (user tasks; default: theirs, held in memory or the file registered; ``kwargs``:
+    ``action_tolerance``).
     """
     src = spec.dataset_source
+    if src.kind == "user":  # a user's own task (botorl/data/user.py)
+        from botorl.data.user import load_task_data as load_user_data
+
+        return load_user_data(spec, path, **kwargs)
     if src.kind == "minari":
         return loaders.load_minari(
             path or src.ref, obs_keys=src.obs_keys, obs_dim=spec.obs_dim, action_dim=spec.action_dim
@@ -39,6 +45,8 @@ def load_task_data(spec, path: str | os.PathLike | None = None, **kwargs) -> Dat
 def data_status(spec) -> tuple[str, str]:
     """("found" | "generated-cached" | "missing" | "generate", a one-line detail)."""
     src = spec.dataset_source
+    if src.kind == "user":
+        return "found", src.ref or "in memory (botorl.register_task)"
     if src.kind == "minari":
         folder = loaders.minari_root() / src.ref
         if (folder / "data").is_dir():

@@ -46,8 +46,9 @@ class DatasetSource:
 
     kind: "minari" (``ref`` = Minari dataset id, flattened with ``obs_keys``), "calql_npy"
     (``ref`` = the expert and BC file names, joined by ","; a folder or the files must be named
-    explicitly), or "generated" (``ref`` = the generator's task name; cached Minari dataset
-    under ``$BOTORL_DATA_DIR``).
+    explicitly), "generated" (``ref`` = the generator's task name; cached Minari dataset
+    under ``$BOTORL_DATA_DIR``) or "user" (a user's task: ``ref`` = the file, "" = held in memory;
+    botorl/data/user.py).
     """
 
     kind: str
@@ -59,6 +60,8 @@ class DatasetSource:
             return f"Minari {self.ref}"
         if self.kind == "calql_npy":
             return f"Cal-QL {' + '.join(self.ref.split(','))}"
+        if self.kind == "user":
+            return f"yours ({self.ref or 'in memory'})"
         return f"generated ({self.ref})"
 
 
@@ -78,6 +81,9 @@ class TaskSpec:
     networks: NetworkSizes
     paper: PaperSettings | None = None
     description: str = ""
+    user: "UserTask | None" = field(default=None, repr=False)
+    """A task of the user's own (``botorl.register_task``, ``botorl run --env``): what its env is
+    (botorl/envs/user.py); None for botorl's tasks."""
 
     def make_env(self, seed: int = 0, *, evaluation: bool = False) -> gym.Env:
         """The wrapped env (flat float32 obs, [-1, 1] actions, ``info["success"]``), with the
@@ -113,6 +119,10 @@ KITCHEN_NET = NetworkSizes(critic=(512,) * 3, actor=(512,) * 3)
 # networks; the one-step bandits need little.
 POINTMAZE_NET = ANTMAZE_NET
 BANDIT_NET = NetworkSizes(critic=(256, 256), actor=(256, 256))
+# A user's task without a paper domain: SAC's usual 2 x 256 (docs/own-task.md).
+CUSTOM_NET = NetworkSizes(critic=(256, 256), actor=(256, 256))
+DOMAIN_NETS = {"antmaze": ANTMAZE_NET, "adroit": ADROIT_NET, "kitchen": KITCHEN_NET, "pointmaze": POINTMAZE_NET,
+               "custom": CUSTOM_NET}
 
 
 def _antmaze(seed):
@@ -275,6 +285,23 @@ def list_tasks() -> list[TaskSpec]:
 
 def task_names() -> list[str]:
     return list(_tasks())
+
+
+def register(spec: TaskSpec) -> TaskSpec:
+    """Add a user's task to the registry of this process (again under the same name replaces it);
+    botorl's own task names are refused."""
+    tasks = _tasks()
+    old = tasks.get(spec.name)
+    if old is not None and old.user is None:
+        raise ConfigError(f"task name {spec.name!r} is one of botorl's tasks; register yours under another name.")
+    if spec.user is None:
+        raise ConfigError(f"task {spec.name!r}: only user tasks (TaskSpec.user set) can be registered.")
+    tasks[spec.name] = spec
+    return spec
+
+
+def is_registered(name: str) -> bool:
+    return name in _tasks()
 
 
 def get_task(name: str) -> TaskSpec:

@@ -631,6 +631,10 @@ def make_report(
             f"{len(short)} run(s) end before the {dip_window:g}-step dip window (their dip covers only the steps "
             f"they evaluated): {', '.join(rel(x) for x in short[:5])}{' ...' if len(short) > 5 else ''}"
         )
+    off = sorted({r.task for r in runs if isinstance(r.config.get("env"), dict) and r.config["env"].get("success_off")})
+    if off:  # a task of one's own whose env reports no success (docs/own-task.md)
+        notes.append(f"success is off on {', '.join(off)}: the env's info has no success key, so every success rate "
+                     f"there is 0 and says nothing")
     cells = table1(runs, n_boot=n_boot, confidence=confidence, seed=seed, dips=dip_cells)
     pairs, pair_notes = find_pairs(runs, window=dip_window, relative_to=out)
     pairs = merge_pairs(pairs, extra_pairs)

@@ -139,10 +139,11 @@ def read_eval_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 # Config fields that differ between runs of one method without making them another method:
 # the member's identity (seed, alpha and their copies), where and how it logs, how updates are
-# chunked into calls, and where its pre-training came from (the same numbers either way).
+# chunked into calls, where its pre-training came from (the same numbers either way), and the
+# folder a task of one's own was imported from.
 _SAME_METHOD = {"seed", "alpha", "out", "pretrained", "progress", "tensorboard", "wandb", "checkpoint_every",
                 "boto.alpha", "boto.seed", "eval.num_envs", "offline.updates_per_call", "boto.steps_per_call",
-                "offline.sample_on_device"}
+                "offline.sample_on_device", "env.path"}
 
 
 def _settings(config: dict, prefix: str = "") -> dict[str, Any]:

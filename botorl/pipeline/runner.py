@@ -51,6 +51,8 @@ def load_offline(cfg: RunConfig, spec) -> Dataset:
                 )
             os.environ["BOTORL_DOOR_DEMOS"] = str(demos.resolve())
         ds = load_task_data(spec, None, steps=cfg.data.steps, seed=cfg.data.seed, progress=cfg.progress)
+    elif spec.dataset_source.kind == "user":  # a user's task: its actions checked against the env's box
+        ds = load_task_data(spec, cfg.data.path, action_tolerance=cfg.data.action_tolerance)
     else:
         ds = load_task_data(spec, cfg.data.path)
     return validate_dataset(ds, obs_dim=spec.obs_dim, action_dim=spec.action_dim,
@@ -397,6 +399,8 @@ def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict,
         "status": status,
         "run_dir": str(run.root),
     }
+    if cfg.env.success_off:  # a task of one's own whose env says nothing of success
+        out["success_off"] = cfg.env.success_off
     if error:
         out["error"] = error
     return out
@@ -636,4 +640,6 @@ def format_summary(summary: dict) -> str:
          f"(no evaluation at 10k: the run ends at env step {f(summary.get('env_step_final'))})"),
         f"run directory: {summary['run_dir']}",
     ]
+    if summary.get("success_off"):
+        lines.insert(-1, f"success is off: {summary['success_off']}")
     return "\n".join(lines)

@@ -1,0 +1,184 @@
+"""botorl from Python: ``register_task``, ``run``, ``resume``, ``load_policy``, ``load_agent``.
+
+The front door beside the command line (docs/own-task.md): ``run`` hands its arguments to the
+very function ``botorl run`` calls, so a run started here is the same run, with the same run
+directory, that the command line makes (and ``botorl resume``/``eval``/``report`` read). Like the
+command modules this sits above every layer; ``botorl/__init__.py`` hands its names out on first
+use, so ``import botorl`` imports none of JAX.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Callable
+
+from botorl.errors import BotorlError, ConfigError
+
+
+def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_episode_steps: int,
+                  success_key: str | None = "success", domain: str | None = None, reward_scale: float = 1.0,
+                  reward_bias: float = 0.0):
+    """Register a task of your own for this process; returns its ``TaskSpec``.
+
+    ``make_env(seed)`` returns a Gymnasium env with a ``Box`` action space (any finite bounds:
+    the agent acts in [-1, 1], mapped onto them) and a ``Box`` or ``Dict`` observation space
+    (flattened in sorted key order); ``"MODULE:FUNCTION"`` names it instead. ``dataset``: a dict
+    of arrays (``observations, actions, rewards, next_observations, terminals``, optional
+    ``timeouts`` / ``episode_ends``; actions in the env's own units), a path (``.npz`` with those
+    keys, D4RL ``.hdf5``, Minari folder or id) or a botorl ``Dataset``. ``success_key``: the info
+    key read as success (absent from the env's info: success is off, and the summary says so;
+    None: off). ``domain``: a paper domain ("antmaze", "adroit", "kitchen", "pointmaze") whose
+    presets the task takes, else the defaults of docs/own-task.md. ``reward_scale``,
+    ``reward_bias``: the reward transform ``r' = scale * r + bias`` of training (offline and online).
+
+    Bad input raises ``BotorlError`` naming the problem. Registering a name again replaces it.
+    """
+    from dataclasses import replace
+
+    from botorl.data import user as data_user
+    from botorl.envs import registry
+    from botorl.envs.user import entry_of, import_entry, make_spec, probe
+
+    if isinstance(make_env, str):
+        entry = make_env
+        make_env, path = import_entry(entry)
+    elif callable(make_env):
+        entry, path = entry_of(make_env)
+    else:
+        raise ConfigError(f"task {name!r}: make_env is a {type(make_env).__name__}; give a function make_env(seed) "
+                          f"returning a Gymnasium env, or its 'MODULE:FUNCTION'.")
+    task = probe(make_env, max_episode_steps, success_key, name=name,
+                 key_given=success_key not in (None, "success"))
+    task = replace(task, entry=entry, path=path)
+    ref, ds = data_user.to_dataset(dataset, task, name=name, max_episode_steps=max_episode_steps)
+    spec = make_spec(name, make_env, task, max_episode_steps=max_episode_steps, domain=domain,
+                     reward_scale=reward_scale, reward_bias=reward_bias, data_ref=ref)
+    registry.register(spec)
+    data_user.hold(name, ref, ds)
+    if task.success_off and success_key is not None:
+        print(f"botorl: warning: task {name!r}: {task.success_off}.", file=sys.stderr)
+    return spec
+
+
+def _flat_overrides(overrides: Mapping, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in overrides.items():
+        key = prefix + str(k).replace("__", ".")
+        if isinstance(v, Mapping):
+            out.update(_flat_overrides(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def override_args(overrides: Mapping) -> list[str]:
+    """``{"online.steps": 5000, "network": {"layer_norm": False}}`` (or ``online__steps=5000``) ->
+    the command line's ``--online.steps 5000 --network.no-layer-norm``."""
+    argv: list[str] = []
+    for key, v in _flat_overrides(overrides).items():
+        if isinstance(v, bool):  # tyro's flags: --x / --no-x (--a.b.no-x for a nested field)
+            head, _, last = key.rpartition(".")
+            argv.append(f"--{key}" if v else f"--{head + '.' if head else ''}no-{last.replace('_', '-')}")
+        elif isinstance(v, (list, tuple)):
+            argv += [f"--{key}", *map(str, v)]
+        else:
+            argv += [f"--{key}", "None" if v is None else str(v)]
+    return argv
+
+
+def _read_json(path: Path) -> dict:
+    import json
+
+    with open(path) as f:
+        return json.load(f)
+
+
+def _call(main, argv: list[str]) -> int:
+    """A command's main from Python: its usage errors (tyro/argparse exit) become a ConfigError."""
+    from botorl.jaxsetup import setup_jax
+
+    setup_jax()
+    try:
+        return main(argv)
+    except SystemExit as err:
+        if err.code in (0, None):
+            return 0
+        raise ConfigError(f"botorl refused the arguments {' '.join(argv)} (the message above says which); check "
+                          f"the override names against `botorl run --help`.") from None
+
+
+def run(task: str | Any = "pointmaze-umaze", method: str = "boto", profile: str = "quick", out: str | os.PathLike | None = None,
+        seeds=None, **overrides) -> dict[str, Any]:
+    """Run ``method`` on ``task`` as ``botorl run`` does (the same function, the same run directory);
+    returns the run's summary (summary.json as a dict; ``status`` "finished" when it ran through).
+
+    ``task``: a task name (botorl's, or one given to ``register_task``) or the TaskSpec it returned.
+    ``out``: the run directory (default ``runs/<task>-<method>-<time>``). ``seeds``: several seeds
+    (a list, or "0-7") run as one population: the summary then has ``members`` (each member's
+    summary) and ``run_dir``. ``overrides``: any config field, dotted as on the command line, as
+    ``online__steps=50_000`` or a dict (``online={"steps": 50_000}``, ``**{"online.steps": 50_000}``).
+    """
+    from botorl.pipeline.cli import run_main
+
+    name = getattr(task, "name", task)
+    if not isinstance(name, str):
+        raise ConfigError(f"task = {task!r}: give a task name or the TaskSpec register_task returned.")
+    if out is None:
+        out = Path("runs") / f"{name}-{method}-{time.strftime('%Y%m%d-%H%M%S')}"
+    out = Path(out)
+    argv = ["--task", name, "--method", method, "--profile", profile, "--out", str(out)]
+    if seeds is not None:
+        if isinstance(seeds, int) and not isinstance(seeds, bool):
+            argv += ["--seed", str(seeds)]
+            seeds = None
+        else:
+            argv += ["--seeds", seeds if isinstance(seeds, str) else ",".join(str(int(s)) for s in seeds)]
+    argv += override_args(overrides)
+    _call(run_main, argv)
+    return _summary(out, population=seeds is not None)
+
+
+def resume(run_dir: str | os.PathLike, *, checkpoint: str | None = None, progress: bool = True,
+           allow_pickle: bool = False) -> dict[str, Any]:
+    """``botorl resume RUN_DIR [--from CHECKPOINT] [--no-progress] [--allow-pickle]`` from Python;
+    returns the summary as ``run`` does. A task registered from a script must be registered again
+    first (the same ``register_task`` call); one run from ``--env MODULE:FUNCTION`` is imported again
+    by itself."""
+    from botorl.pipeline.cli import resume_main
+
+    root = Path(run_dir)
+    argv = [str(root)] + (["--from", checkpoint] if checkpoint else []) + ([] if progress else ["--no-progress"]) + \
+        (["--allow-pickle"] if allow_pickle else [])
+    _call(resume_main, argv)
+    return _summary(root, population=(root / "population.json").exists())
+
+
+def _summary(root: Path, population: bool) -> dict[str, Any]:
+    if not population:
+        return _read_json(root / "summary.json")
+    data = _read_json(root / "population.json")
+    members = [_read_json(root / m["name"] / "summary.json") for m in data.get("members", [])]
+    return {"status": data.get("status"), "run_dir": str(root), "members": members}
+
+
+def load_agent(run_dir: str | os.PathLike, checkpoint: str | None = None):
+    """The whole agent (actor, critics, temperature) of a run's checkpoint (default: the latest)."""
+    from botorl.pipeline.policy import load_agent as _load_agent
+
+    return _load_agent(run_dir, checkpoint)
+
+
+def load_policy(run_dir: str | os.PathLike, checkpoint: str | None = None, deterministic: bool = True):
+    """A run's policy: a NumPy callable (B, obs_dim) -> (B, action_dim) in the env's own action
+    bounds, with botorl's observation transformation (Dict flattening) inside; needs no other
+    botorl call (botorl/pipeline/policy.py, ``Policy``)."""
+    from botorl.pipeline.policy import load_policy as _load_policy
+
+    return _load_policy(run_dir, checkpoint, deterministic)
+
+
+__all__ = ["BotorlError", "register_task", "run", "resume", "load_policy", "load_agent", "override_args"]

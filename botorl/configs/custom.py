@@ -1,0 +1,142 @@
+"""A task of the user's own in a run's config: ``botorl run --env MODULE:FUNCTION ...`` on the
+command line, and the same task found again when a run directory is read back.
+
+``expand_argv`` takes the task's flags out of ``botorl run``'s arguments, registers the task
+(imports the entry point, looks at its env) and names it with ``--task``; the preset then records
+it in the config's ``env`` section (``presets.env_record``). ``ensure_task(cfg)`` (called by
+``validate``, so by resume, eval and populations alike) registers a recorded task again from its
+entry point, by name, and checks that its env still is what the run was trained on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+from botorl.errors import ConfigError
+
+# the command line's flags of a task of one's own -> what they set
+FLAGS = {
+    "--env": "entry",
+    "--env-max-steps": "max_steps",
+    "--success-key": "success_key",
+    "--env-domain": "domain",
+    "--env-reward-scale": "reward_scale",
+    "--env-reward-bias": "reward_bias",
+}
+
+
+def _pull(argv: list[str], flags) -> tuple[dict[str, str], list[str]]:
+    """``flags`` (``--x V`` or ``--x=V``) out of argv; each may be given once."""
+    found: dict[str, str] = {}
+    rest: list[str] = []
+    i = 0
+    while i < len(argv):
+        key, eq, val = argv[i].partition("=")
+        if key in flags:
+            if not eq:
+                if i + 1 >= len(argv):
+                    raise ConfigError(f"{key} needs a value.")
+                val = argv[i + 1]
+                i += 1
+            if key in found:
+                raise ConfigError(f"{key} is given twice ({found[key]!r} and {val!r}); give it once.")
+            found[key] = val
+        else:
+            rest.append(argv[i])
+        i += 1
+    return found, rest
+
+
+def _number(flag: str, text: str, kind):
+    try:
+        return kind(text)
+    except ValueError:
+        raise ConfigError(f"{flag} {text!r}: give a{'n integer' if kind is int else ' number'}.") from None
+
+
+def expand_argv(argv: list[str]) -> list[str]:
+    """``botorl run``'s arguments with a task of one's own registered and named by ``--task``
+    (unchanged when there is no ``--env``)."""
+    found, rest = _pull(list(argv), FLAGS)
+    if not found:
+        return list(argv)
+    if "--env" not in found:
+        raise ConfigError(f"{', '.join(found)} describe a task of your own, which --env MODULE:FUNCTION names "
+                          f"(e.g. --env mytask:make_env --data.path logged.npz --env-max-steps 50).")
+    if "--env-max-steps" not in found:
+        raise ConfigError(f"--env {found['--env']} needs --env-max-steps N: the episode length limit of your env.")
+    given, rest = _pull(rest, ("--data.path", "--task"))
+    if "--data.path" not in given:
+        raise ConfigError(f"--env {found['--env']} needs --data.path FILE: your logged transitions (a .npz with "
+                          f"observations, actions, rewards, next_observations, terminals; a D4RL .hdf5; a Minari "
+                          f"dataset folder or id).")
+    data = given["--data.path"]
+    if Path(data).expanduser().exists():
+        data = str(Path(data).expanduser().resolve())  # resume may run from another folder
+    entry = found["--env"]
+    from botorl.envs.user import split_entry
+
+    module, func = split_entry(entry)
+    name = given.get("--task") or f"{module}.{func}"
+    register_entry(name, entry, data, _number("--env-max-steps", found["--env-max-steps"], int),
+                   success_key=found.get("--success-key", "success"), key_given="--success-key" in found,
+                   domain=found.get("--env-domain"),
+                   reward_scale=_number("--env-reward-scale", found.get("--env-reward-scale", "1"), float),
+                   reward_bias=_number("--env-reward-bias", found.get("--env-reward-bias", "0"), float))
+    return rest + ["--task", name, "--data.path", data]
+
+
+def register_entry(name: str, entry: str, data: str, max_steps: int, *, success_key: str | None = "success",
+                   key_given: bool = False, domain: str | None = None, reward_scale: float = 1.0,
+                   reward_bias: float = 0.0, path: str | None = None):
+    """Import ``entry``, look at its env and register the task ``name`` reading ``data`` (the file
+    is read when the run loads its data). Returns the TaskSpec."""
+    from botorl.envs import registry
+    from botorl.envs.user import import_entry, make_spec, probe
+
+    make_env, found = import_entry(entry, path)
+    task = probe(make_env, max_steps, success_key, name=name, key_given=key_given)
+    task = replace(task, entry=entry, path=found or path)
+    return registry.register(make_spec(name, make_env, task, max_episode_steps=max_steps, domain=domain,
+                                       reward_scale=reward_scale, reward_bias=reward_bias, data_ref=data))
+
+
+def ensure_task(cfg) -> None:
+    """A run's task of one's own, registered again from its recorded entry point when this
+    process does not have it; a ConfigError when it cannot be, or when its env changed."""
+    from botorl.envs import registry
+
+    e = cfg.env
+    if e.max_steps is None:
+        return  # one of botorl's tasks
+    if not registry.is_registered(cfg.task):
+        if e.entry is None:
+            raise ConfigError(
+                f"task {cfg.task!r} was registered from Python (botorl.register_task) with a make_env that cannot be "
+                f"imported by name (defined in a script). Register it again in this process (run the script's "
+                f"register_task), then resume with botorl.resume(DIR); or define make_env in a module so that "
+                f"`botorl resume` imports it."
+            )
+        if not cfg.data.path:
+            raise ConfigError(
+                f"task {cfg.task!r}: its data were given in memory to botorl.register_task; register the task again "
+                f"in this process (then botorl.resume(DIR)), or register a data file instead."
+            )
+        register_entry(cfg.task, e.entry, cfg.data.path, e.max_steps, success_key=e.success_key, domain=e.domain,
+                       reward_scale=e.reward_scale, reward_bias=e.reward_bias, path=e.path)
+    u = registry.get_task(cfg.task).user
+    if u is None:
+        return
+    now = {"observation width": u.obs_dim, "action width": u.action_dim, "action low": u.action_low,
+           "action high": u.action_high, "dict observation keys": u.obs_keys}
+    then = {"observation width": e.obs_dim, "action width": e.action_dim, "action low": e.action_low,
+            "action high": e.action_high, "dict observation keys": e.obs_keys}
+    changed = [f"{k} {then[k]} -> {now[k]}" for k in now if then[k] is not None and _as_tuple(then[k]) != _as_tuple(now[k])]
+    if changed:
+        raise ConfigError(f"task {cfg.task!r}: the env is not the one this run was trained on ({'; '.join(changed)}). "
+                          f"Restore the env (entry {e.entry or 'registered from Python'}) or start a new run.")
+
+
+def _as_tuple(v):
+    return tuple(v) if isinstance(v, (list, tuple)) else v

@@ -1,0 +1,329 @@
+"""A task of the user's own: their Gymnasium env, behind the same ``TaskEnv`` every task has.
+
+``make_env(seed)`` (a callable of the user's, or ``MODULE:FUNCTION`` imported by name) returns a
+Gymnasium env with a ``Box`` action space and a ``Box`` or (nested) ``Dict`` of ``Box``
+observation space. ``UserTaskEnv`` makes it look like every botorl task (CONTRACTS.md,
+"Tasks"):
+
+* observations: a ``Dict`` is flattened by ``flatten_obs`` in the order of ``obs_keys_of``:
+  the keys sorted alphabetically at every level (nested keys written ``"a/b"``), each leaf
+  row-major, concatenated; the same order ``botorl.data.loaders.flatten_observation`` gives
+  dict observations in data. Then float32. There is no other observation transform (no
+  normalisation).
+* actions: the agent acts in [-1, 1]^A; ``action_to_env`` maps that affinely onto the env's own
+  ``[low, high]`` (``action_from_env`` is its inverse, used on logged actions).
+* ``info["success"]``: the value of the env's ``info[success_key]`` (0 where it is absent);
+  ``success_key`` None: success is off (always 0; the run's summary says so).
+
+``flatten_obs``, ``action_to_env`` and ``action_from_env`` are pure NumPy functions so that code
+outside botorl (``botorl.load_policy``, an exporter) applies exactly the same transformations.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from botorl.envs.wrappers import TaskEnv
+from botorl.errors import ConfigError
+
+
+# ------------------------------------------------------------------ the pure transformations
+def obs_keys_of(space: spaces.Space) -> tuple[str, ...] | None:
+    """The leaves of a ``Dict`` observation space in flattening order (sorted keys at every
+    level, nested ones as ``"a/b"``); None for a ``Box``. Any other space is a ConfigError."""
+    if isinstance(space, spaces.Box):
+        return None
+    if isinstance(space, spaces.Dict):
+        keys: list[str] = []
+        for k in sorted(space.spaces):
+            sub = space.spaces[k]
+            inner = obs_keys_of(sub)
+            keys += [str(k)] if inner is None else [f"{k}/{i}" for i in inner]
+        return tuple(keys)
+    raise ConfigError(
+        f"the env's observation space is {space}; botorl takes a gymnasium.spaces.Box, or a Dict of Boxes "
+        f"(flattened in sorted key order). Wrap the env so that it observes a Box (e.g. "
+        f"gymnasium.wrappers.FlattenObservation)."
+    )
+
+
+def _leaf(obs: Any, key: str):
+    node = obs
+    for part in key.split("/"):
+        if not isinstance(node, dict) or part not in node:
+            raise ConfigError(f"observation has no key {key!r} (it has {sorted(node) if isinstance(node, dict) else type(node).__name__}); "
+                              f"the env's observations changed since the task was registered.")
+        node = node[part]
+    return node
+
+
+def flatten_obs(obs: Any, keys: tuple[str, ...] | None = None, *, batched: bool = False) -> np.ndarray:
+    """One observation -> (D,) float32, or a batch (``batched``: every leaf (B, ...)) -> (B, D).
+
+    ``keys`` (``obs_keys_of`` of the env's space): the leaves of a dict observation in order; None
+    for an array observation, which is only reshaped."""
+    if keys is None:
+        a = np.asarray(obs, dtype=np.float32)
+        return a.reshape(a.shape[0], -1) if batched else a.reshape(-1)
+    leaves = [np.asarray(_leaf(obs, k), dtype=np.float32) for k in keys]
+    if batched:
+        return np.concatenate([x.reshape(x.shape[0], -1) for x in leaves], axis=-1)
+    return np.concatenate([x.reshape(-1) for x in leaves])
+
+
+def action_to_env(actions, low, high) -> np.ndarray:
+    """Actions in [-1, 1] -> the env's ``[low, high]`` (affine; clipped to the box)."""
+    a = np.clip(np.asarray(actions, dtype=np.float64), -1.0, 1.0)
+    low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+    return np.clip(low + (a + 1.0) * 0.5 * (high - low), low, high)
+
+
+def action_from_env(actions, low, high) -> np.ndarray:
+    """The inverse of ``action_to_env`` (not clipped: logged actions outside the box stay
+    outside, so that a check can report them)."""
+    a = np.asarray(actions, dtype=np.float64)
+    low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+    return 2.0 * (a - low) / (high - low) - 1.0
+
+
+def is_unit_box(low, high) -> bool:
+    return bool(np.all(np.asarray(low) == -1.0) and np.all(np.asarray(high) == 1.0))
+
+
+# ------------------------------------------------------------------ what botorl knows of the env
+@dataclass(frozen=True)
+class UserTask:
+    """What a user task's env is, found by ``probe`` (recorded in the run's config.json as ``env``)."""
+
+    obs_keys: tuple[str, ...] | None  # None: a Box observation space
+    obs_dim: int
+    action_dim: int
+    action_low: tuple[float, ...]
+    action_high: tuple[float, ...]
+    success_key: str | None  # None: success is off
+    success_off: str | None = None  # why success is off (None while it is on)
+    entry: str | None = None  # "module:function", when make_env can be imported by that name
+    path: str | None = None  # the folder put on sys.path to import ``entry`` (None: importable as is)
+
+
+class UnitActions(gym.ActionWrapper):
+    """The env's ``Box(low, high)`` seen as ``Box(-1, 1)``."""
+
+    def __init__(self, env: gym.Env, low, high):
+        super().__init__(env)
+        self._low = np.asarray(low, np.float64)
+        self._high = np.asarray(high, np.float64)
+        self._dtype = env.action_space.dtype
+        self.action_space = spaces.Box(-1.0, 1.0, shape=env.action_space.shape, dtype=np.float32)
+
+    def action(self, action):
+        return action_to_env(action, self._low, self._high).astype(self._dtype).reshape(self.env.action_space.shape)
+
+
+class UserTaskEnv(TaskEnv):
+    """A user's env as a botorl task (see the module docstring)."""
+
+    def __init__(self, env: gym.Env, task: UserTask, seed: int | None = None):
+        self._keys = task.obs_keys
+        self._success_key = task.success_key
+        super().__init__(UnitActions(env, task.action_low, task.action_high), task.obs_dim, seed)
+
+    def _observe(self, obs):
+        return flatten_obs(obs, self._keys)
+
+    def _task_step(self, obs, reward, terminated, info):
+        if self._success_key is None:
+            return reward, terminated, 0.0
+        s = np.asarray(info.get(self._success_key, 0.0), dtype=np.float64)
+        return reward, terminated, float(s.max()) if s.size else 0.0
+
+
+# ------------------------------------------------------------------ entry points
+def split_entry(entry: str) -> tuple[str, str]:
+    module, sep, func = str(entry).partition(":")
+    if not sep or not module or not func or ":" in func:
+        raise ConfigError(f"--env {entry!r}: give the env's entry point as MODULE:FUNCTION, e.g. --env mytask:make_env "
+                          f"(make_env(seed) in mytask.py in the current folder, returning a Gymnasium env).")
+    return module, func
+
+
+def import_entry(entry: str, path: str | None = None) -> tuple[Callable[[int], gym.Env], str | None]:
+    """Import ``MODULE:FUNCTION`` -> (the function, the folder it was found in, to be recorded and
+    searched first in another process; None for an installed module).
+
+    As ``python -m`` does, the current folder is searched first; ``path`` (a recorded folder) is
+    searched too."""
+    module_name, func_name = split_entry(entry)
+    cwd = os.getcwd()
+    for p in (cwd, path):  # the recorded folder ends up first
+        if p and p not in sys.path and os.path.isdir(p):
+            sys.path.insert(0, p)
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as err:
+        where = f"the current folder ({cwd})" + (f", {path}" if path and path != cwd else "")
+        raise ConfigError(
+            f"--env {entry}: cannot import module {module_name!r} ({err}). botorl looks in {where} and on "
+            f"PYTHONPATH; run from the folder holding {module_name.replace('.', '/')}.py or add its folder to "
+            f"PYTHONPATH."
+        ) from None
+    except Exception as err:  # the user's module failed while importing
+        raise ConfigError(f"--env {entry}: importing module {module_name!r} failed: {type(err).__name__}: {err}. "
+                          f"Fix the module (`python -c \"import {module_name}\"` shows the traceback).") from None
+    func = getattr(module, func_name, None)
+    if func is None or not callable(func):
+        names = [n for n in dir(module) if not n.startswith("_") and callable(getattr(module, n))]
+        raise ConfigError(f"--env {entry}: module {module_name!r} ({getattr(module, '__file__', '?')}) has no "
+                          f"function {func_name!r}; its callables: {', '.join(names) or 'none'}.")
+    return func, _found_in(module, module_name)
+
+
+def _module_root(module, module_name: str) -> Path | None:
+    """The sys.path folder ``module_name`` is imported from (its top package's parent)."""
+    file = getattr(module, "__file__", None)
+    if not file:
+        return None
+    root = Path(file).resolve().parents[module_name.count(".")]
+    return root.parent if Path(file).name == "__init__.py" else root
+
+
+def _found_in(module, module_name: str) -> str | None:
+    """The folder to search again for ``module_name`` in another process, None for an installed
+    module (site-packages) that any process finds."""
+    root = _module_root(module, module_name)
+    if root is None or {"site-packages", "dist-packages"} & set(root.parts):
+        return None
+    return str(root)
+
+
+def entry_of(make_env: Callable) -> tuple[str | None, str | None]:
+    """(``module:qualname``, the folder to import it from) of a function that can be imported
+    again by name in another process; (None, None) for one defined in ``__main__``, a lambda, a
+    closure or a partial (those are never pickled: such a task is registered again by its script)."""
+    module_name = getattr(make_env, "__module__", None)
+    qual = getattr(make_env, "__qualname__", "")
+    if not module_name or module_name == "__main__" or "<" in qual or "." in qual:
+        return None, None
+    module = sys.modules.get(module_name)
+    if module is None or getattr(module, qual, None) is not make_env:
+        return None, None
+    return f"{module_name}:{qual}", _found_in(module, module_name)
+
+
+# ------------------------------------------------------------------ probing the env
+def _close(env) -> None:
+    try:
+        env.close()
+    except Exception:
+        pass
+
+
+def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_key: str | None,
+          *, name: str, key_given: bool = False) -> UserTask:
+    """Make one env and look at it: the spaces (a Box action space with finite bounds, a Box or Dict
+    observation space), and one episode of random actions for ``info[success_key]``.
+
+    A ``success_key`` that never appears turns success off (``UserTask.success_off`` says why),
+    unless ``key_given`` (the user named a key other than the default), which is a ConfigError."""
+    what = f"task {name!r}: make_env"
+    try:
+        env = make_env(0)
+    except Exception as err:
+        raise ConfigError(f"{what}(0) raised {type(err).__name__}: {err}. make_env(seed) must return a Gymnasium "
+                          f"env.") from None
+    if not isinstance(env, gym.Env):
+        raise ConfigError(f"{what}(0) returned {type(env).__name__}, not a gymnasium.Env.")
+    try:
+        act = env.action_space
+        if not isinstance(act, spaces.Box):
+            raise ConfigError(
+                f"{what}(0) has the action space {act}; botorl's agents act in continuous boxes and need a "
+                f"gymnasium.spaces.Box action space (a discrete task needs another library)."
+            )
+        low = np.broadcast_to(np.asarray(act.low, np.float64), act.shape).reshape(-1)
+        high = np.broadcast_to(np.asarray(act.high, np.float64), act.shape).reshape(-1)
+        if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(high > low)):
+            raise ConfigError(f"{what}(0) has the action space {act} with unbounded or empty dimensions; botorl "
+                              f"rescales the box to [-1, 1] and needs finite low < high in every dimension.")
+        if len(act.shape) != 1:
+            raise ConfigError(f"{what}(0) has actions of shape {act.shape}; botorl needs a flat Box (shape (A,)).")
+        keys = obs_keys_of(env.observation_space)
+        obs, info = env.reset(seed=0)
+        flat = flatten_obs(obs, keys)
+        seen = success_key is not None and success_key in info
+        rng = np.random.default_rng(0)
+        for _ in range(int(max_episode_steps)):
+            if seen or success_key is None:
+                break
+            a = rng.uniform(low, high).astype(act.dtype).reshape(act.shape)
+            obs, _, terminated, truncated, info = env.step(a)
+            seen = success_key in info
+            if terminated or truncated:
+                break
+    except ConfigError:
+        _close(env)
+        raise
+    except Exception as err:
+        _close(env)
+        raise ConfigError(f"task {name!r}: the env failed on reset/step ({type(err).__name__}: {err}).") from None
+    _close(env)
+    off = None
+    if success_key is None:
+        off = "success_key=None: success is off"
+    elif not seen:
+        found = ", ".join(sorted(map(str, info))) or "none"
+        if key_given:
+            raise ConfigError(
+                f"task {name!r}: --success-key {success_key!r} is not in the env's info (keys seen: {found}). "
+                f"Name the info key that says the episode succeeded, or leave --success-key out (success is then "
+                f"off if the env has no {'success'!r} key)."
+            )
+        off = (f"the env's info has no {success_key!r} key (keys seen: {found}), so success is off: every "
+               f"success rate is 0; pass success_key (--success-key) naming the info key that marks success")
+    return UserTask(obs_keys=keys, obs_dim=int(flat.shape[0]), action_dim=int(low.shape[0]),
+                    action_low=tuple(float(x) for x in low), action_high=tuple(float(x) for x in high),
+                    success_key=None if off else success_key, success_off=off)
+
+
+# ------------------------------------------------------------------ the task
+PAPER_DOMAINS = ("antmaze", "adroit", "kitchen", "pointmaze")
+
+
+def make_spec(name: str, make_env: Callable[[int], gym.Env], task: UserTask, *, max_episode_steps: int,
+              domain: str | None = None, reward_scale: float = 1.0, reward_bias: float = 0.0,
+              data_ref: str | None = None):
+    """The ``TaskSpec`` of a user's task (not registered yet: ``registry.register``)."""
+    from botorl.envs.registry import DOMAIN_NETS, DatasetSource, TaskSpec
+
+    if not isinstance(name, str) or not name or any(c.isspace() for c in name) or "/" in name:
+        raise ConfigError(f"task name {name!r}: give a non-empty name without spaces or '/', e.g. 'mytask'.")
+    if domain is not None and domain not in PAPER_DOMAINS:
+        raise ConfigError(f"task {name!r}: domain {domain!r} is not one of {', '.join(PAPER_DOMAINS)} (a paper domain "
+                          f"whose presets the task takes), or None for the defaults of docs/own-task.md.")
+    if isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, (int, np.integer)) or max_episode_steps < 1:
+        raise ConfigError(f"task {name!r}: max_episode_steps (--env-max-steps) = {max_episode_steps!r}; give the "
+                          f"episode length limit, a positive integer.")
+    for what, v in (("reward_scale", reward_scale), ("reward_bias", reward_bias)):
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not np.isfinite(v):
+            raise ConfigError(f"task {name!r}: {what} = {v!r}; give a finite number.")
+    dom = domain or "custom"
+
+    def factory(seed, _make=make_env, _task=task):
+        return UserTaskEnv(_make(seed), _task, seed)
+
+    return TaskSpec(
+        name=name, domain=dom, env_factory=factory, max_episode_steps=int(max_episode_steps),
+        success_mode="any", reward_scale=float(reward_scale), reward_bias=float(reward_bias),
+        dataset_source=DatasetSource("user", data_ref or ""), generated=False,
+        obs_dim=task.obs_dim, action_dim=task.action_dim, networks=DOMAIN_NETS[dom],
+        description=f"your task ({task.entry or 'registered from Python'})", user=task,
+    )

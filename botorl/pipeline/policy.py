@@ -1,0 +1,160 @@
+"""A run's agent and policy, for use outside botorl: ``load_agent`` and ``load_policy``.
+
+Both read only the run directory (its ``config.json`` and a checkpoint): the task need not be
+registered and its env is never made, so a policy trained on a task of one's own loads in a
+process that knows nothing of that task.
+
+``Policy`` is the whole chain from the env's observation to the env's action, each step a pure
+function an exporter can reuse (issue 33):
+
+    flat = flatten_obs(obs, policy.obs_keys)                  # Dict -> (D,), float32 (botorl/envs/user.py)
+    unit = tanh(mean(actor(flat)))                            # the agent's deterministic action, in [-1, 1]
+    action = action_to_env(unit, policy.action_low, policy.action_high)   # affine onto the env's box
+
+There is no other transformation: botorl does not normalise observations.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from botorl.errors import ConfigError
+
+
+def _read_run(run_dir):
+    from botorl.configs.schema import RunConfig, from_dict
+    from botorl.pipeline.rundir import RunDir, read_json
+
+    root = Path(run_dir)
+    if (root / "population.json").exists():
+        members = sorted(p.name for p in root.iterdir() if (p / "config.json").exists())
+        raise ConfigError(f"{root} is a population; load one member's run directory, e.g. {root / (members or ['s0'])[0]}.")
+    run = RunDir(root)
+    if not run.config.exists():
+        raise ConfigError(f"{root} is not a botorl run directory (no config.json); give the --out folder of a run.")
+    try:
+        cfg = from_dict(RunConfig, read_json(run.config))
+    except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
+        raise ConfigError(f"{run.config} cannot be read as a run config ({err}).") from None
+    return run, cfg
+
+
+def task_io(cfg) -> dict[str, Any]:
+    """The policy's interface of a run's task: obs_keys (None: flat), obs_dim, action_dim, and the
+    env's action bounds (botorl's own tasks act in [-1, 1])."""
+    e = cfg.env
+    if e.max_steps is not None:  # a task of one's own: recorded in config.json
+        return {"obs_keys": tuple(e.obs_keys) if e.obs_keys else None, "obs_dim": int(e.obs_dim),
+                "action_dim": int(e.action_dim), "action_low": np.asarray(e.action_low, np.float64),
+                "action_high": np.asarray(e.action_high, np.float64)}
+    from botorl.envs.registry import get_task
+
+    spec = get_task(cfg.task)  # botorl's own: the registry is plain data, no env is made
+    return {"obs_keys": None, "obs_dim": spec.obs_dim, "action_dim": spec.action_dim,
+            "action_low": -np.ones(spec.action_dim), "action_high": np.ones(spec.action_dim)}
+
+
+def load_agent(run_dir, checkpoint: str | None = None):
+    """The whole agent (actor, critics, temperature, optimiser states) of a run's checkpoint:
+    ``checkpoint`` names one of ``RUN_DIR/checkpoints`` (default: the latest verified one). A
+    checkpoint of fine-tuning holds the fine-tuning learner (SAC for boto/wsrl/rlpd), any earlier
+    one the pre-training agent."""
+    return _load(run_dir, checkpoint)[0]
+
+
+def _load(run_dir, checkpoint):
+    from botorl.agents import checkpoint as agent_ckpt
+    from botorl.jaxsetup import setup_jax
+    from botorl.pipeline import stages as S
+    from botorl.pipeline.checkpoint import CheckpointManager
+
+    setup_jax()
+    run, cfg = _read_run(run_dir)
+    ckpt = CheckpointManager(run.checkpoints)
+    if checkpoint is not None:
+        ckpt.verify_named(checkpoint)
+        name = checkpoint
+    else:
+        latest = ckpt.latest()
+        if latest is None:
+            raise ConfigError(f"{run.root} has no checkpoint yet; wait for the first stage to finish.")
+        name = latest["name"]
+    stage = ckpt.state(name)["stage"]
+    io = task_io(cfg)
+    make = S.make_online_agent_template if stage == "finetune" else S.make_pretrain_agent
+    template = make(cfg, io["obs_dim"], io["action_dim"], cfg.seed)
+    return agent_ckpt.load(ckpt.path(name) / "agent.ckpt", like=template), cfg, io, name
+
+
+class Policy:
+    """``policy(obs)``: (B, obs_dim) -> (B, action_dim), or one (obs_dim,) observation -> (action_dim,),
+    in the env's own action bounds; a dict observation (one, or leaves with a batch axis) is
+    flattened first. ``deterministic``: the tanh of the Gaussian's mean (as botorl evaluates);
+    otherwise a sample, from the checkpoint's random key onwards."""
+
+    def __init__(self, agent, io: dict[str, Any], deterministic: bool = True, checkpoint: str | None = None):
+        self.agent = agent
+        self.obs_keys: tuple[str, ...] | None = io["obs_keys"]
+        self.obs_dim: int = io["obs_dim"]
+        self.action_dim: int = io["action_dim"]
+        self.action_low: np.ndarray = io["action_low"]
+        self.action_high: np.ndarray = io["action_high"]
+        self.deterministic = bool(deterministic)
+        self.checkpoint = checkpoint
+
+    def transform_obs(self, obs) -> np.ndarray:
+        """The env's observation(s) -> (B, obs_dim) float32 (``flatten_obs``)."""
+        from botorl.envs.user import flatten_obs
+
+        if isinstance(obs, Mapping):
+            sizes = sum(int(np.size(v)) for v in _leaves(obs))
+            flat = flatten_obs(obs, self.obs_keys or tuple(sorted(obs)), batched=sizes != self.obs_dim)
+        else:
+            flat = np.asarray(obs, dtype=np.float32)
+        flat = np.atleast_2d(flat)
+        if flat.ndim != 2 or flat.shape[1] != self.obs_dim:
+            raise ConfigError(f"observations of shape {np.shape(obs)}: this policy takes (B, {self.obs_dim}) or "
+                              f"({self.obs_dim},)" + (f", or the env's dict observation ({', '.join(self.obs_keys)})"
+                                                       if self.obs_keys else "") + ".")
+        return flat
+
+    def unit_actions(self, flat_obs: np.ndarray) -> np.ndarray:
+        """(B, obs_dim) float32 -> the agent's actions in [-1, 1], (B, action_dim)."""
+        if self.deterministic:
+            return np.asarray(self.agent.eval_actions(flat_obs))
+        actions, self.agent = self.agent.sample_actions(flat_obs)
+        return np.asarray(actions)
+
+    def transform_action(self, unit: np.ndarray) -> np.ndarray:
+        """[-1, 1] -> the env's bounds (``action_to_env``), float32."""
+        from botorl.envs.user import action_to_env
+
+        return action_to_env(unit, self.action_low, self.action_high).astype(np.float32)
+
+    def __call__(self, obs) -> np.ndarray:
+        single = (not isinstance(obs, Mapping) and np.ndim(obs) == 1) or (
+            isinstance(obs, Mapping) and sum(int(np.size(v)) for v in _leaves(obs)) == self.obs_dim)
+        out = self.transform_action(self.unit_actions(self.transform_obs(obs)))
+        return out[0] if single else out
+
+    def __repr__(self) -> str:
+        return (f"Policy(obs_dim={self.obs_dim}, action_dim={self.action_dim}, obs_keys={self.obs_keys}, "
+                f"deterministic={self.deterministic}, checkpoint={self.checkpoint!r})")
+
+
+def _leaves(obs):
+    for v in obs.values():
+        if isinstance(v, Mapping):
+            yield from _leaves(v)
+        else:
+            yield v
+
+
+def load_policy(run_dir, checkpoint: str | None = None, deterministic: bool = True) -> Policy:
+    """A run's policy as a NumPy callable in the env's own action bounds (see ``Policy``)."""
+    agent, _, io, name = _load(run_dir, checkpoint)
+    return Policy(agent, io, deterministic=deterministic, checkpoint=name)
