@@ -98,7 +98,7 @@ def build_config(argv: list[str]):
         "--method boto --alphas -1:1:0.5 (or -1,0,1) for several alphas, each member its own run "
         "directory under --out; --pretrained DIR starts every member from the finished pre-training "
         "of the same seed and settings under DIR. A task of your own: --env MODULE:FUNCTION --data.path FILE "
-        "--env-max-steps N [--success-key K] (docs/own-task.md).",
+        "--env-max-steps N [--success-key K] (the docs' Your own task page).",
     )
     _check_population_flags(argv, cfg)
     cfg = resolve(cfg)

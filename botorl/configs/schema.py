@@ -56,7 +56,7 @@ class DataConfig:
 @dataclass
 class EnvConfig:
     """A task of your own (``botorl run --env MODULE:FUNCTION``, ``botorl.register_task``;
-    docs/own-task.md): what botorl needs to build it again on resume and eval, and what its env
+    the docs' "Your own task" page): what botorl needs to build it again on resume and eval, and what its env
     is, recorded from the task when the run starts. Not set on the command line (``--env``,
     ``--env-max-steps``, ``--success-key`` fill it); all None for botorl's own tasks."""
 
@@ -73,7 +73,7 @@ class EnvConfig:
     success_off: str | None = None
     """Why success is off, when it is."""
     domain: str | None = None
-    """The paper domain whose presets the task takes; None: the defaults of docs/own-task.md."""
+    """The paper domain whose presets the task takes; None: the defaults of the docs' Your own task page."""
     reward_scale: float = 1.0
     reward_bias: float = 0.0
     obs_keys: tuple[str, ...] | None = None

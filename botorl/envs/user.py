@@ -308,7 +308,7 @@ def make_spec(name: str, make_env: Callable[[int], gym.Env], task: UserTask, *, 
         raise ConfigError(f"task name {name!r}: give a non-empty name without spaces or '/', e.g. 'mytask'.")
     if domain is not None and domain not in PAPER_DOMAINS:
         raise ConfigError(f"task {name!r}: domain {domain!r} is not one of {', '.join(PAPER_DOMAINS)} (a paper domain "
-                          f"whose presets the task takes), or None for the defaults of docs/own-task.md.")
+                          f"whose presets the task takes), or None for the defaults of the docs' Your own task page.")
     if isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, (int, np.integer)) or max_episode_steps < 1:
         raise ConfigError(f"task {name!r}: max_episode_steps (--env-max-steps) = {max_episode_steps!r}; give the "
                           f"episode length limit, a positive integer.")
