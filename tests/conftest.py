@@ -31,3 +31,44 @@ def door_demos_path() -> Path:
     if not path.exists():
         pytest.skip(f"{path} is not present")
     return path
+
+
+def subprocess_env() -> dict[str, str]:
+    """The environment of a botorl subprocess: this checkout first on the path."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO_ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    return env
+
+
+def sigkill_in_finetune(cmd: list[str], out: Path, *, cwd=None, timeout: float = 600):
+    """Start ``cmd`` (a `botorl run`), SIGKILL it as soon as ``out`` holds a mid-fine-tuning
+    checkpoint, and return (the step it was killed at, the process). Fails the test when no
+    such checkpoint appears; latest.json must never be read half-written (atomic writes)."""
+    import json
+    import signal
+    import subprocess
+    import time
+
+    proc = subprocess.Popen(cmd, cwd=cwd, env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            start_new_session=True)
+    latest = out / "checkpoints" / "latest.json"
+    killed_at = None
+    deadline = time.time() + timeout
+    try:
+        while time.time() < deadline and proc.poll() is None:
+            if latest.exists():
+                try:
+                    info = json.loads(latest.read_text())
+                except json.JSONDecodeError:
+                    raise AssertionError("latest.json was read half-written") from None
+                if info["stage"] == "finetune" and not info["stage_done"]:
+                    os.kill(proc.pid, signal.SIGKILL)
+                    killed_at = info["step"]
+                    break
+            time.sleep(0.02)
+    finally:
+        if proc.poll() is None and killed_at is None:
+            os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert killed_at is not None, f"no mid-stage checkpoint appeared; stderr: {proc.stderr.read().decode()[-2000:]}"
+    return killed_at, proc

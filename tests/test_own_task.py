@@ -5,9 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import shutil
-import signal
 import subprocess
 import sys
 import textwrap
@@ -16,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import sigkill_in_finetune
+from conftest import subprocess_env as _env
 from gymnasium import spaces
 
 import botorl
@@ -24,12 +24,6 @@ from botorl.envs.user import action_from_env, action_to_env, flatten_obs, obs_ke
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "own_task.py"
-
-
-def _env():
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
 
 
 def _example():
@@ -283,25 +277,7 @@ def test_cli_entry_point_kill_resume_eval_policy(work, tmp_path):
     cmd = [sys.executable, "-m", "botorl.cli", "run", "--env", "mytask:make_env", "--data.path", "logged.npz",
            "--env-max-steps", "50", "--profile", "smoke", "--no-progress", "--no-tensorboard", "--online.steps", "400",
            "--checkpoint_every", "50", "--eval.interval", "100", "--out", str(out)]
-    proc = subprocess.Popen(cmd, cwd=cwd, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            start_new_session=True)
-    latest = out / "checkpoints" / "latest.json"
-    killed_at = None
-    deadline = time.time() + 420
-    try:
-        while time.time() < deadline and proc.poll() is None:
-            if latest.exists():
-                info = json.loads(latest.read_text())
-                if info["stage"] == "finetune" and not info["stage_done"]:
-                    os.kill(proc.pid, signal.SIGKILL)
-                    killed_at = info["step"]
-                    break
-            time.sleep(0.02)
-    finally:
-        if proc.poll() is None and killed_at is None:
-            os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=30)
-    assert killed_at is not None, f"no mid-stage checkpoint appeared; stderr: {proc.stderr.read().decode()[-2000:]}"
+    killed_at, _ = sigkill_in_finetune(cmd, out, cwd=cwd, timeout=420)
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["task"] == "mytask.make_env" and cfg["env"]["entry"] == "mytask:make_env"
     assert cfg["env"]["path"] == str(cwd.resolve()) and cfg["data"]["path"] == str((cwd / "logged.npz").resolve())

@@ -11,22 +11,15 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+from conftest import sigkill_in_finetune
+from conftest import subprocess_env as _env
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _env():
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
 
 
 def _csv(path: Path) -> list[dict]:
@@ -40,27 +33,7 @@ def test_sigkill_mid_stage_then_resume(tmp_path):
     cmd = [sys.executable, "-m", "botorl.cli", "run", "--task", "pointmaze-umaze", "--profile", "smoke",
            "--no-progress", "--no-tensorboard", "--online.steps", "400", "--checkpoint_every", "50",
            "--eval.interval", "100", "--out", str(out)]
-    proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
-    latest = out / "checkpoints" / "latest.json"
-    killed_at = None
-    deadline = time.time() + 420
-    try:
-        while time.time() < deadline and proc.poll() is None:
-            if latest.exists():
-                try:
-                    info = json.loads(latest.read_text())
-                except json.JSONDecodeError:  # cannot happen with atomic writes; be strict below
-                    raise AssertionError("latest.json was read half-written")
-                if info["stage"] == "finetune" and not info["stage_done"]:
-                    os.kill(proc.pid, signal.SIGKILL)
-                    killed_at = info["step"]
-                    break
-            time.sleep(0.02)
-    finally:
-        if proc.poll() is None and killed_at is None:
-            os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=30)
-    assert killed_at is not None, f"no mid-stage checkpoint appeared; stderr: {proc.stderr.read().decode()[-2000:]}"
+    killed_at, proc = sigkill_in_finetune(cmd, out, timeout=420)
     assert proc.returncode == -signal.SIGKILL
     assert json.loads((out / "summary.json").read_text())["status"] == "running"
 

@@ -14,19 +14,18 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import sigkill_in_finetune
+from conftest import subprocess_env as _env
 
 from botorl.cli import main as botorl_main
 
-REPO = Path(__file__).resolve().parents[1]
 TASK = "pointmaze-umaze"
 # >= 200 updates of every stage: 200 pre-training steps, 200 BOTO steps, 200 fine-tuning
 # steps after the 30-step warm-up
@@ -111,36 +110,13 @@ def test_bad_population_exit_2(tmp_path, capsys, args, message):
     assert not out.exists()
 
 
-def _env():
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
-
-
 @pytest.mark.timeout(900)
 def test_population_sigkill_then_resume(tmp_path):
     out = tmp_path / "killed"
     cmd = [sys.executable, "-m", "botorl.cli", "run", "--task", TASK, "--profile", "smoke", "--no-progress",
            "--no-tensorboard", "--method", "wsrl", "--seeds", "0,1", "--online.steps", "400",
            "--checkpoint_every", "50", "--eval.interval", "100", "--out", str(out)]
-    proc = subprocess.Popen(cmd, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
-    latest = out / "checkpoints" / "latest.json"
-    killed_at = None
-    deadline = time.time() + 600
-    try:
-        while time.time() < deadline and proc.poll() is None:
-            if latest.exists():
-                info = json.loads(latest.read_text())
-                if info["stage"] == "finetune" and not info["stage_done"]:
-                    os.kill(proc.pid, signal.SIGKILL)
-                    killed_at = info["step"]
-                    break
-            time.sleep(0.02)
-    finally:
-        if proc.poll() is None and killed_at is None:
-            os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=30)
-    assert killed_at is not None, proc.stderr.read().decode()[-2000:]
+    killed_at, _ = sigkill_in_finetune(cmd, out)
     assert json.loads((out / "population.json").read_text())["status"] == "running"
 
     res = subprocess.run([sys.executable, "-m", "botorl.cli", "resume", str(out), "--no-progress"], env=_env(),
