@@ -133,3 +133,21 @@ def test_pairs_of_earlier_reports_combine_without_their_runs(paired_dir, tmp_pat
     assert "8 pairs from" in (combined / "report.md").read_text()
     with pytest.raises(Exception, match="paired.csv"):
         report_main(["--pairs-from", str(first / "table1.csv"), "--out", str(tmp_path / "bad")])
+
+
+def test_blocks_pool_whether_or_not_their_report_held_a_noise_floor(tmp_path):
+    """A block reported with its noise floor labels its WSRL "wsrl [online_reseed=0]", a block
+    without one plain "wsrl": pooled from their paired.csv, they are one group."""
+    from botorl.experiments.pairs import Pair, canonical_label, paired_table, pairs_csv, read_pairs_csv
+
+    assert canonical_label("wsrl [online_reseed=0]") == "wsrl"
+    assert canonical_label("wsrl [online_reseed=1]") == "wsrl [online_reseed=1]"
+    assert canonical_label("boto+calql [online_reseed=0, online.steps=500]") == "boto+calql [online.steps=500]"
+    q = {"success_0": 1.0, "lowest": 0.0, "dip": -1.0, "success_10k": 1.0, "success_final": 1.0}
+    blocks = []
+    for i, (ref, other) in enumerate([("wsrl [online_reseed=0]", "boto+calql [online_reseed=0]"), ("wsrl", "boto+calql")]):
+        path = tmp_path / f"b{i}.csv"
+        path.write_text(pairs_csv([Pair("t", i, other, -1.0, ref, q, {**q, "dip": 0.0})]))
+        blocks += read_pairs_csv(path)
+    cells = paired_table(blocks, quantities=("dip",), n_boot=50)
+    assert [(c.label, c.reference, c.n, c.mean) for c in cells] == [("boto+calql", "wsrl", 2, 1.0)]

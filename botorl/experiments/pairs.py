@@ -88,6 +88,16 @@ def same_method(label: str, reference: str) -> bool:
     return label.split(" ")[0] == reference.split(" ")[0]
 
 
+def canonical_label(label: str) -> str:
+    """A run's label without ``online_reseed=0``, the default: a report shows a setting in a
+    label only where its runs differ in it, so one block's WSRL is "wsrl [online_reseed=0]"
+    (its noise floor beside it) and the next block's plain "wsrl"; pooled, they are one
+    method."""
+    base, _, variant = label.partition(" [")
+    parts = [v for v in variant.rstrip("]").split(", ") if v and v != "online_reseed=0"]
+    return f"{base} [{', '.join(parts)}]" if parts else base
+
+
 def _groups(pairs: Sequence[Pair]) -> list[list[Pair]]:
     groups: dict[tuple, list[Pair]] = defaultdict(list)
     for p in pairs:
@@ -149,8 +159,8 @@ def find_pairs(runs: Sequence[Run], *, reference: str = REFERENCE, window: float
             q = _quantities(other, window)
             if q is None:
                 continue
-            pairs.append(Pair(ref.task, ref.seed, other.label, other.alpha if other.method == "boto" else None,
-                              ref.label, ref_q, q, relative(ref.path, relative_to), relative(other.path, relative_to)))
+            pairs.append(Pair(ref.task, ref.seed, canonical_label(other.label),
+                              other.alpha if other.method == "boto" else None, canonical_label(ref.label), ref_q, q, relative(ref.path, relative_to), relative(other.path, relative_to)))
     pairs.sort(key=lambda p: (*p.group, -1 if p.seed is None else p.seed))
     return pairs, notes
 
@@ -233,8 +243,8 @@ def read_pairs_csv(path: Path) -> list[Pair]:
     with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:
         for row in csv.DictReader(f):
             pairs.append(Pair(
-                row["task"], int(row["seed"]) if row["seed"] else None, row["method"],
-                float(row["alpha"]) if row["alpha"] else None, row["reference"],
+                row["task"], int(row["seed"]) if row["seed"] else None, canonical_label(row["method"]),
+                float(row["alpha"]) if row["alpha"] else None, canonical_label(row["reference"]),
                 {q: num(row[f"{q}_reference"]) for q in QUANTITIES}, {q: num(row[f"{q}_method"]) for q in QUANTITIES},
                 row.get("reference_path", ""), row.get("path", ""),
             ))
