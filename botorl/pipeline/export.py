@@ -152,6 +152,20 @@ def checkpoint_step(cfg, state: dict) -> int | None:
     return None if step is None else int(step)
 
 
+def task_here(cfg) -> str | None:
+    """None when the run's task can be built in this process (botorl's own; one of one's own
+    imported again from its ``--env`` entry point, or registered here), else why not. The model
+    needs only the checkpoint; the task gives the verification its dataset and the contract the
+    env's observation shapes."""
+    from botorl.configs.custom import ensure_task
+
+    try:
+        ensure_task(cfg)
+    except BotorlError as err:
+        return str(err)
+    return None
+
+
 def observation_spaces(cfg):
     """(the policy's flat observation space, the env's own observation space) of the run's task,
     when the task can be built in this process (botorl's own, an ``--env MODULE:FUNCTION`` one, a
@@ -194,26 +208,30 @@ def observation_layout(obs_keys, own_space) -> list[dict[str, Any]] | None:
             space = space.spaces[part] if space is not None else None
         shape = None if space is None else [int(s) for s in space.shape]
         size = None if shape is None else int(np.prod(shape, dtype=np.int64))
-        out.append({"key": key, "shape": shape, "offset": offset, "size": size})
+        out.append({"key": key, "shape": shape, "offset": offset, "size": size,
+                    "low": None if space is None else _bounds(space.low),
+                    "high": None if space is None else _bounds(space.high)})
         offset = None if (offset is None or size is None) else offset + size
     return out
 
 
-def verification_observations(cfg, run, n: int, seed: int = 0) -> tuple[np.ndarray, str]:
+def verification_observations(cfg, run, n: int, seed: int = 0, why: str | None = None) -> tuple[np.ndarray, str]:
     """``n`` observations of the run's dataset (the states the policy was trained on), and where
-    they came from; standard normal ones when the data cannot be read here (a task registered
-    from a script, a pickle-based dataset)."""
+    they came from; standard normal ones when the data cannot be read here (``why``: the task
+    cannot be built here, e.g. registered from a script; a pickle-based dataset)."""
     from botorl.data.loaders import refuse_pickle
     from botorl.envs.registry import get_task
     from botorl.pipeline.runner import load_offline
 
     try:
+        if why is not None:
+            raise BotorlError(why)
         spec = get_task(cfg.task)
         with refuse_pickle(f"the run directory's {run.config}"):
             obs = np.asarray(load_offline(cfg, spec).observations, np.float32)
     except BotorlError as err:
         print(f"botorl export: the run's dataset cannot be read here ({err}); verifying on {n} standard normal "
-              f"observations instead.", file=sys.stderr)
+              f"observations instead (the contract's verification.source says so).", file=sys.stderr)
         return np.random.default_rng(seed).standard_normal((n, _obs_dim(cfg))).astype(np.float32), "standard-normal"
     rng = np.random.default_rng(seed)
     idx = rng.choice(len(obs), size=n, replace=len(obs) < n)
@@ -325,11 +343,12 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     run, cfg = read_run(run_dir)
     name = pick_checkpoint(run, checkpoint)
     setup_jax()
+    here = task_here(cfg)
     policy = load_policy(run.root, checkpoint=name, deterministic=True)
     state = CheckpointManager(run.checkpoints).state(name)
 
     if observations is None:
-        obs, source = verification_observations(cfg, run, verify_rows, seed=cfg.seed)
+        obs, source = verification_observations(cfg, run, verify_rows, seed=cfg.seed, why=here)
     else:
         obs, source = np.asarray(observations, np.float32), "given"
         if obs.ndim != 2 or obs.shape[1] != policy.obs_dim or len(obs) == 0:
@@ -347,7 +366,15 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
                              f"({_version('jax2onnx')}) and onnxruntime "
                              f"({mods['onnxruntime'].__version__}).")
 
-    flat_space, own_space = observation_spaces(cfg)
+    flat_space, own_space = observation_spaces(cfg) if here is None else (None, None)
+    layout = observation_layout(policy.obs_keys, own_space)
+    if layout is not None and own_space is not None:  # a Dict: its leaves' bounds in the flat order
+        obs_low = [v for leaf in layout for v in leaf["low"]]
+        obs_high = [v for leaf in layout for v in leaf["high"]]
+    else:  # a Box env of one's own has its own bounds; botorl's task envs are unbounded
+        space = own_space if getattr(own_space, "shape", None) == (policy.obs_dim,) else flat_space
+        obs_low = None if space is None else _bounds(space.low)
+        obs_high = None if space is None else _bounds(space.high)
     contract = {
         "format": "onnx",
         "model": out.name,
@@ -357,9 +384,9 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
         "output": {"name": OUTPUT_NAME, "shape": ["batch", policy.action_dim], "dtype": "float32"},
         "observation": {
             "dim": policy.obs_dim,
-            "low": None if flat_space is None else _bounds(flat_space.low),
-            "high": None if flat_space is None else _bounds(flat_space.high),
-            "layout": observation_layout(policy.obs_keys, own_space),
+            "low": obs_low,
+            "high": obs_high,
+            "layout": layout,
             "normalization": None,
         },
         "action": {"dim": policy.action_dim, "low": _bounds(policy.action_low), "high": _bounds(policy.action_high),
