@@ -282,10 +282,10 @@ class OnnxPolicy:
     the env's bounds, as ``Policy`` is called on flat observations."""
 
     def __init__(self, path: str | Path | bytes):
-        ort = require("onnxruntime")["onnxruntime"]
         self.path = None if isinstance(path, bytes) else Path(path)
         if self.path is not None and not self.path.is_file():
             raise ConfigError(f"{self.path}: no such model file; give the FILE.onnx that `botorl export` wrote.")
+        ort = require("onnxruntime")["onnxruntime"]
         try:
             self.session = ort.InferenceSession(path if isinstance(path, bytes) else str(path),
                                                 providers=["CPUExecutionProvider"])
@@ -339,9 +339,9 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
                 raise ConfigError(f"{p} exists; pass --force (force=True) to overwrite it, or give another --out.")
     if out.is_dir():
         raise ConfigError(f"--out {out} is a folder; give a file name such as {out / 'policy.onnx'}.")
-    mods = require("onnx", "onnxruntime", "jax2onnx")  # before any work: a missing extra costs nothing
     run, cfg = read_run(run_dir)
     name = pick_checkpoint(run, checkpoint)
+    mods = require("onnx", "onnxruntime", "jax2onnx")  # before any JAX work: a missing extra costs nothing
     setup_jax()
     here = task_here(cfg)
     policy = load_policy(run.root, checkpoint=name, deterministic=True)
