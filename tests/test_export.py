@@ -128,7 +128,7 @@ def test_graph_function_maps_onto_the_env_box(umaze):
 def test_contract_pieces():
     from gymnasium import spaces
 
-    from botorl.configs.presets import make_config
+    from botorl.configs.presets import make_preset
 
     space = spaces.Dict({"b": spaces.Box(-1, 1, (2,)), "a": spaces.Dict({"y": spaces.Box(0, np.inf, (1,)),
                                                                             "x": spaces.Box(-2, 2, (2, 2))})})
@@ -141,7 +141,7 @@ def test_contract_pieces():
     assert E.contract_path("d/policy.onnx") == Path("d/policy.onnx.json")
     assert E.max_gap([[0.0, 1.0], [2.0, 3.0]], [[0.0, 1.0], [2.0, 3.5]]) == (0.5, 1)
     assert E.max_gap([[np.nan]], [[0.0]])[0] == float("inf")
-    cfg = make_config("pointmaze-umaze", "boto", "smoke")
+    cfg = make_preset("pointmaze-umaze", "smoke", "boto")
     assert E.checkpoint_step(cfg, {"stage": "finetune", "step": None, "stage_done": True}) == cfg.online.steps
     assert E.checkpoint_step(cfg, {"stage": "pretrain", "step": 7, "stage_done": False}) == 7
 
@@ -187,12 +187,19 @@ def test_export_writes_model_and_contract(exported, umaze):
     for b in (1, 7):  # the batch axis is dynamic
         assert np.abs(session.run(["actions"], {"observations": obs[:b]})[0] - got[:b]).max() <= 1e-6
 
-    res = _botorl("export", umaze)  # the files exist now
+
+def test_export_force_and_checkpoint(exported, umaze, tmp_path):
+    out = tmp_path / "p.onnx"
+    shutil.copy(exported, out)
+    shutil.copy(E.contract_path(exported), E.contract_path(out))
+    res = _botorl("export", umaze, "--out", out)
     assert res.returncode == 2 and "exists; pass --force" in res.stderr
-    res = _botorl("export", umaze, "--checkpoint", "pretrain-final", "--force")
+    res = _botorl("export", umaze, "--checkpoint", "pretrain-final", "--force", "--out", out)
     assert res.returncode == 0, res.stderr[-2000:]
-    again = json.loads(E.contract_path(exported).read_text())
+    again = json.loads(E.contract_path(out).read_text())
     assert again["checkpoint"] == "pretrain-final" and again["stage"] == "pretrain"
+    assert again["step"] == json.loads((umaze / "config.json").read_text())["offline"]["steps"]
+    assert again["sha256"] != json.loads(E.contract_path(exported).read_text())["sha256"]
 
 
 def test_mismatch_exit_1_names_the_gap(umaze, tmp_path, monkeypatch, capsys):
