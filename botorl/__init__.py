@@ -1,15 +1,15 @@
 """botorl: offline-to-online reinforcement learning with BOTO, in JAX.
 
-The Python API (``register_task``, ``run``, ``resume``, ``load_policy``, ``load_agent``) lives in
-``botorl/api.py`` and is imported on first use of one of its names, so ``import botorl`` stays
-light (no JAX).
+The Python API (``register_task``, ``run``, ``resume``, ``load_policy``, ``load_agent``,
+``export_policy``) lives in ``botorl/api.py`` and is imported on first use of one of its names,
+so ``import botorl`` stays light (no JAX).
 """
 
 __version__ = "0.1.0"
 
 from botorl.errors import BotorlError  # noqa: E402,F401
 
-_API = ("register_task", "run", "resume", "load_policy", "load_agent")
+_API = ("register_task", "run", "resume", "load_policy", "load_agent", "export_policy")
 __all__ = ["BotorlError", "__version__", *_API]
 
 

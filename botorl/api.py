@@ -1,4 +1,4 @@
-"""botorl from Python: ``register_task``, ``run``, ``resume``, ``load_policy``, ``load_agent``.
+"""botorl from Python: ``register_task``, ``run``, ``resume``, ``load_policy``, ``load_agent``, ``export_policy``.
 
 The front door beside the command line (docs/own-task.md): ``run`` hands its arguments to the
 very function ``botorl run`` calls, so a run started here is the same run, with the same run
@@ -181,4 +181,18 @@ def load_policy(run_dir: str | os.PathLike, checkpoint: str | None = None, deter
     return _load_policy(run_dir, checkpoint, deterministic)
 
 
-__all__ = ["BotorlError", "register_task", "run", "resume", "load_policy", "load_agent", "override_args"]
+def export_policy(run_dir: str | os.PathLike, path: str | os.PathLike, checkpoint: str | None = None,
+                  format: str = "onnx", force: bool = False, observations=None) -> dict[str, Any]:
+    """``botorl export RUN_DIR --out PATH``: the run's deterministic policy as an ONNX model at
+    ``path`` and its contract at ``path + ".json"``, verified with onnxruntime against
+    ``load_policy`` before they are written; returns the contract. ``observations``: the (N,
+    obs_dim) batch to verify on (default: 256 of the run's dataset). Needs ``pip install
+    "botorl[export]"`` (else ``BotorlError``); a model that does not act as ``load_policy`` raises
+    ``BotorlError`` (``exit_code`` 1) and writes nothing (botorl/pipeline/export.py)."""
+    from botorl.pipeline.export import export_policy as _export_policy
+
+    return _export_policy(run_dir, path, checkpoint=checkpoint, format=format, force=force, observations=observations)
+
+
+__all__ = ["BotorlError", "register_task", "run", "resume", "load_policy", "load_agent", "export_policy",
+           "override_args"]

@@ -329,7 +329,7 @@ def test_help_artefacts_are_found():
     assert help_artefacts("│ --seed INT  the seed (default: 0) │") == []
 
 
-@pytest.mark.parametrize("command", ["run", "resume", "eval", "sweep", "report"])
+@pytest.mark.parametrize("command", ["run", "resume", "eval", "export", "sweep", "report"])
 def test_help_is_one_style_without_tyro_artefacts(command, capsys, monkeypatch):
     from botorl.cli import main as botorl_main
 

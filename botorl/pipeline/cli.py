@@ -208,6 +208,9 @@ class EvalArgs:
     """evaluation episodes"""
     checkpoint: Annotated[str | None, tyro.conf.arg(metavar="NAME", help_behavior_hint="(default: the latest)")] = None
     """checkpoint folder name in DIR/checkpoints"""
+    policy: Annotated[str | None, tyro.conf.arg(metavar="FILE.onnx")] = None
+    """evaluate this exported model (`botorl export`) through onnxruntime instead of a checkpoint, on the same
+    episodes (needs pip install "botorl[export]")"""
     allow_pickle: Annotated[_Flag, tyro.conf.arg(help=ALLOW_PICKLE_HELP)] = False
 
 
@@ -272,6 +275,18 @@ def eval_main(argv: list[str]) -> int:
 
     setup_jax()
     run, cfg = _load_run_config(args.dir)
+    if args.policy is not None:  # an exported model through onnxruntime (botorl/pipeline/export.py)
+        if args.checkpoint is not None:
+            raise ConfigError("--policy and --checkpoint: the model names its checkpoint (in FILE.onnx.json); give one.")
+        if args.episodes is not None and args.episodes < 1:
+            raise ConfigError(f"--episodes {args.episodes}: give at least 1 episode.")
+        from botorl.pipeline.export import evaluate_exported
+
+        with owned(run.root):
+            result = evaluate_exported(run, cfg, args.policy, episodes=args.episodes)
+        for k, v in result.items():
+            print(f"{k:<15} {v:.4g}" if isinstance(v, float) else f"{k:<15} {v}")
+        return 0
     with owned(run.root):
         try:
             return _eval(args, run, cfg)

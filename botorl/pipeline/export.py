@@ -1,0 +1,488 @@
+"""A run's policy as an ONNX model with its contract (``botorl export``, ``botorl.export_policy``).
+
+The model is ``load_policy``'s deterministic chain as one graph, so that a runtime with neither
+botorl nor JAX acts exactly as ``botorl.load_policy(run_dir)`` does (botorl/pipeline/policy.py):
+
+    observations (B, obs_dim) float32 -> tanh(mean(actor(observations))) -> action_to_env -> actions (B, action_dim)
+
+The one step of ``Policy`` outside the graph is ``flatten_obs``: a graph has one input, so a
+Dict observation is flattened by the caller in the order the contract's ``observation.layout``
+lists (sorted keys at every level, each leaf row-major). botorl normalises no observation, so
+there is nothing else to carry over.
+
+The converter is jax2onnx (docs/deploy.md says why): it traces the very JAX function the agent
+evaluates with (``agents.common.eval_fn``), so no ONNX node is written by hand here. Before the
+files are put in place the model is run through onnxruntime on the run's dataset observations
+and compared with ``load_policy``; a gap above the tolerance is ``ExportMismatch`` (exit 1) and
+nothing is written.
+
+``OnnxPolicy`` runs an exported model through onnxruntime (``botorl eval RUN --policy FILE``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from botorl.errors import BotorlError, ConfigError
+
+INSTALL = 'pip install "botorl[export]"'
+OPSET = 17  # LayerNormalization's first opset; onnxruntime >= 1.13 runs it (robots' runtimes lag)
+TOLERANCE = 1e-5
+VERIFY_ROWS = 256
+INPUT_NAME = "observations"
+OUTPUT_NAME = "actions"
+FORMATS = ("onnx",)
+
+
+class MissingExportDependency(BotorlError):
+    """onnx, onnxruntime or jax2onnx is not installed (exit 2 with the install line)."""
+
+
+class ExportMismatch(BotorlError):
+    """The written model does not act as ``load_policy`` does (exit 1)."""
+
+    exit_code = 1
+
+
+def require(*modules: str) -> dict[str, Any]:
+    """Import the export extra's ``modules`` (``onnx``, ``onnxruntime``, ``jax2onnx``) or say how to install them."""
+    import importlib
+
+    # jax2onnx logs a traceback for each of its plugins whose library (equinox, dm-pix) is absent;
+    # botorl's actor needs none of them
+    logging.getLogger("jax2onnx").setLevel(logging.ERROR)
+    got, missing = {}, []
+    for name in modules:
+        try:
+            got[name] = importlib.import_module(name)
+        except ImportError:
+            missing.append(name)
+    if missing:
+        raise MissingExportDependency(f"{', '.join(missing)} {'is' if len(missing) == 1 else 'are'} not installed; "
+                                      f"exporting and running an ONNX policy need the export extra: {INSTALL}")
+    return got
+
+
+def _version(dist: str) -> str | None:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(dist)
+    except PackageNotFoundError:
+        return None
+
+
+def sha256_of(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def contract_path(model: str | Path) -> Path:
+    """The contract beside a model: ``FILE.json`` (``policy.onnx`` -> ``policy.onnx.json``)."""
+    model = Path(model)
+    return model.with_name(model.name + ".json")
+
+
+# ------------------------------------------------------------------ the run
+def read_run(run_dir):
+    """(RunDir, RunConfig) of a single run directory; ConfigError for anything else."""
+    from botorl.configs.schema import RunConfig, from_dict
+    from botorl.pipeline.rundir import RunDir, read_json
+
+    root = Path(run_dir)
+    if (root / "population.json").exists():
+        members = sorted(p.name for p in root.iterdir() if (p / "config.json").exists())
+        raise ConfigError(f"{root} is a population; export one member's run directory, e.g. {root / (members or ['s0'])[0]}.")
+    run = RunDir(root)
+    if not run.config.exists():
+        raise ConfigError(f"{root} is not a botorl run directory (no config.json); give the --out folder of a `botorl run`.")
+    try:
+        cfg = from_dict(RunConfig, read_json(run.config))
+    except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
+        raise ConfigError(f"{run.config} cannot be read as a run config ({err}).") from None
+    return run, cfg
+
+
+def pick_checkpoint(run, checkpoint: str | None) -> str:
+    """The checkpoint to export: the named one (verified), else the latest; a run with no
+    finished stage has nothing worth exporting unless a checkpoint is named."""
+    from botorl.pipeline.checkpoint import CheckpointManager
+
+    ckpt = CheckpointManager(run.checkpoints)
+    if checkpoint is not None:
+        ckpt.verify_named(checkpoint)  # ConfigError naming the ones there are
+        return checkpoint
+    finished = [n for n in ckpt.names() if ckpt.exists(n) and _stage_done(ckpt, n)]
+    if not finished:
+        there = [n for n in ckpt.names() if ckpt.exists(n)]
+        more = (f" Its checkpoints ({', '.join(there)}) are mid-stage; name one with --checkpoint NAME to export it "
+                f"anyway." if there else "")
+        raise ConfigError(f"{run.root} has no finished stage yet, so no policy to export; wait for the first stage "
+                          f"(pre-training) to finish.{more}")
+    latest = ckpt.latest()
+    if latest is None:
+        raise ConfigError(f"{run.root} has no checkpoint that passes its check; name one with --checkpoint NAME.")
+    return latest["name"]
+
+
+def _stage_done(ckpt, name: str) -> bool:
+    try:
+        return bool(ckpt.state(name).get("stage_done"))
+    except BotorlError:
+        return False  # a damaged checkpoint is not a finished stage
+
+
+def checkpoint_step(cfg, state: dict) -> int | None:
+    """The step of a checkpoint within its stage: ``state.json``'s, or the stage's whole budget
+    for a stage's final checkpoint (as ``botorl eval`` reports it)."""
+    step = state.get("step")
+    if step is None and state.get("stage_done"):
+        step = {"pretrain": cfg.offline.steps, "warmup": cfg.warmup.steps, "boto": cfg.boto.boto_steps,
+                "finetune": cfg.online.steps}.get(state.get("stage"))
+    return None if step is None else int(step)
+
+
+def task_here(cfg) -> str | None:
+    """None when the run's task can be built in this process (botorl's own; one of one's own
+    imported again from its ``--env`` entry point, or registered here), else why not. The model
+    needs only the checkpoint; the task gives the verification its dataset and the contract the
+    env's observation shapes."""
+    from botorl.configs.custom import ensure_task
+
+    try:
+        ensure_task(cfg)
+    except BotorlError as err:
+        return str(err)
+    return None
+
+
+def observation_spaces(cfg):
+    """(the policy's flat observation space, the env's own observation space) of the run's task,
+    when the task can be built in this process (botorl's own, an ``--env MODULE:FUNCTION`` one, a
+    registered one); (None, None) otherwise: the contract then lists the layout without shapes."""
+    try:
+        from botorl.envs.registry import get_task
+
+        env = get_task(cfg.task).make_env(seed=0)
+    except Exception:  # noqa: BLE001 - the bounds are a courtesy; an unbuildable env must not stop the export
+        return None, None
+    try:
+        from botorl.envs.wrappers import TaskEnv
+
+        inner = env
+        while not isinstance(inner, TaskEnv) and hasattr(inner, "env"):
+            inner = inner.env  # TimeLimit -> the task env
+        own = inner.env.observation_space if isinstance(inner, TaskEnv) else None
+        return env.observation_space, own
+    finally:
+        try:
+            env.close()
+        except Exception:  # noqa: BLE001
+            pass
+
+
+def _bounds(x) -> list[float | None]:
+    """Bounds for JSON: an infinite bound is null (JSON has no infinity)."""
+    return [float(v) if np.isfinite(v) else None for v in np.asarray(x, np.float64).reshape(-1)]
+
+
+def observation_layout(obs_keys, own_space) -> list[dict[str, Any]] | None:
+    """Each leaf of a Dict observation in flattening order: key ("a/b" for nested), shape, offset
+    and size in the flat vector (shape/offset null when the env could not be built here)."""
+    if obs_keys is None:
+        return None
+    out, offset = [], 0
+    for key in obs_keys:
+        space = own_space
+        for part in key.split("/"):
+            space = space.spaces[part] if space is not None else None
+        shape = None if space is None else [int(s) for s in space.shape]
+        size = None if shape is None else int(np.prod(shape, dtype=np.int64))
+        out.append({"key": key, "shape": shape, "offset": offset, "size": size,
+                    "low": None if space is None else _bounds(space.low),
+                    "high": None if space is None else _bounds(space.high)})
+        offset = None if (offset is None or size is None) else offset + size
+    return out
+
+
+def verification_observations(cfg, run, n: int, seed: int = 0, why: str | None = None) -> tuple[np.ndarray, str]:
+    """``n`` observations of the run's dataset (the states the policy was trained on), and where
+    they came from; standard normal ones when the data cannot be read here (``why``: the task
+    cannot be built here, e.g. registered from a script; a pickle-based dataset)."""
+    from botorl.data.loaders import refuse_pickle
+    from botorl.envs.registry import get_task
+    from botorl.pipeline.runner import load_offline
+
+    try:
+        if why is not None:
+            raise BotorlError(why)
+        spec = get_task(cfg.task)
+        with refuse_pickle(f"the run directory's {run.config}"):
+            obs = np.asarray(load_offline(cfg, spec).observations, np.float32)
+    except BotorlError as err:
+        print(f"botorl export: the run's dataset cannot be read here ({err}); verifying on {n} standard normal "
+              f"observations instead (the contract's verification.source says so).", file=sys.stderr)
+        return np.random.default_rng(seed).standard_normal((n, _obs_dim(cfg))).astype(np.float32), "standard-normal"
+    rng = np.random.default_rng(seed)
+    idx = rng.choice(len(obs), size=n, replace=len(obs) < n)
+    return obs[idx], "dataset"
+
+
+def _obs_dim(cfg) -> int:
+    from botorl.pipeline.policy import task_io
+
+    return int(task_io(cfg)["obs_dim"])
+
+
+# ------------------------------------------------------------------ the graph
+def policy_function(policy):
+    """``load_policy``'s deterministic chain after ``flatten_obs`` as one JAX function of (B, obs_dim)
+    float32: ``eval_fn`` (what ``agent.eval_actions`` jits) then ``action_to_env`` in float32."""
+    import jax.numpy as jnp
+
+    from botorl.agents.common import acting_view, eval_fn
+    from botorl.envs.user import is_unit_box
+
+    view = acting_view(policy.agent)
+    unit_box = is_unit_box(policy.action_low, policy.action_high)
+    low = jnp.asarray(policy.action_low, jnp.float32)
+    high = jnp.asarray(policy.action_high, jnp.float32)
+
+    def act(observations):
+        a = jnp.clip(eval_fn(view, observations), -1.0, 1.0)
+        if unit_box:  # botorl's own tasks: action_to_env is the identity, kept exact
+            return a
+        return jnp.clip(low + (a + 1.0) * 0.5 * (high - low), low, high)
+
+    return act
+
+
+def convert(policy, opset: int = OPSET) -> bytes:
+    """The ONNX model (serialised) of ``policy_function(policy)``, batch axis dynamic."""
+    mods = require("onnx", "jax2onnx")
+    model = mods["jax2onnx"].to_onnx(policy_function(policy), [("B", policy.obs_dim)], model_name="botorl_policy",
+                                     opset=opset, input_names=[INPUT_NAME], output_names=[OUTPUT_NAME])
+    mods["onnx"].checker.check_model(model)
+    return model.SerializeToString()
+
+
+# ------------------------------------------------------------------ running a model
+class OnnxPolicy:
+    """An exported model through onnxruntime: ``policy(obs)`` (B, obs_dim) -> (B, action_dim) in
+    the env's bounds, as ``Policy`` is called on flat observations."""
+
+    def __init__(self, path: str | Path | bytes):
+        self.path = None if isinstance(path, bytes) else Path(path)
+        if self.path is not None and not self.path.is_file():
+            raise ConfigError(f"{self.path}: no such model file; give the FILE.onnx that `botorl export` wrote.")
+        ort = require("onnxruntime")["onnxruntime"]
+        try:
+            self.session = ort.InferenceSession(path if isinstance(path, bytes) else str(path),
+                                                providers=["CPUExecutionProvider"])
+        except Exception as err:  # noqa: BLE001 - onnxruntime raises its own types for a bad file
+            raise ConfigError(f"{self.path or 'the model'} cannot be loaded by onnxruntime ({err}); give a model "
+                              f"`botorl export` wrote.") from None
+        ins, outs = self.session.get_inputs(), self.session.get_outputs()
+        if [i.name for i in ins] != [INPUT_NAME] or OUTPUT_NAME not in [o.name for o in outs]:
+            raise ConfigError(f"{self.path or 'the model'} takes {[i.name for i in ins]} and gives "
+                              f"{[o.name for o in outs]}; a botorl policy takes '{INPUT_NAME}' and gives "
+                              f"'{OUTPUT_NAME}'.")
+        shape = ins[0].shape
+        self.obs_dim = shape[-1] if len(shape) == 2 and isinstance(shape[-1], int) else None
+
+    def __call__(self, observations) -> np.ndarray:
+        obs = np.asarray(observations, np.float32)
+        return self.session.run([OUTPUT_NAME], {INPUT_NAME: obs.reshape(-1, obs.shape[-1])})[0].reshape(
+            *obs.shape[:-1], -1)
+
+
+def max_gap(a, b) -> tuple[float, int]:
+    """The max abs difference of two action batches and the row where it is."""
+    d = np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64))
+    if not np.all(np.isfinite(d)):
+        row = int(np.argwhere(~np.isfinite(d))[0][0])
+        return float("inf"), row
+    return float(d.max()), int(np.unravel_index(int(d.argmax()), d.shape)[0])
+
+
+# ------------------------------------------------------------------ the whole export
+def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "onnx", force: bool = False,
+                  observations=None, verify_rows: int = VERIFY_ROWS, tolerance: float = TOLERANCE,
+                  opset: int = OPSET) -> dict[str, Any]:
+    """Write ``path`` (the ONNX model) and ``path.json`` (its contract) for a run's policy and
+    return the contract. ``observations``: the (N, obs_dim) batch to verify on (default:
+    ``verify_rows`` of the run's dataset). ``ExportMismatch`` (exit 1) when onnxruntime's actions
+    differ from ``load_policy``'s by more than ``tolerance``; nothing is written then."""
+    from botorl import __version__ as botorl_version
+    from botorl.io import atomic_write_bytes, atomic_write_json
+    from botorl.jaxsetup import setup_jax
+    from botorl.pipeline.checkpoint import CheckpointManager
+    from botorl.pipeline.policy import load_policy
+
+    if format not in FORMATS:
+        raise ConfigError(f"--format {format}: botorl exports {', '.join(FORMATS)}.")
+    out = Path(path)
+    meta = contract_path(out)
+    if not force:
+        for p in (out, meta):
+            if p.exists():
+                raise ConfigError(f"{p} exists; pass --force (force=True) to overwrite it, or give another --out.")
+    if out.is_dir():
+        raise ConfigError(f"--out {out} is a folder; give a file name such as {out / 'policy.onnx'}.")
+    run, cfg = read_run(run_dir)
+    name = pick_checkpoint(run, checkpoint)
+    mods = require("onnx", "onnxruntime", "jax2onnx")  # before any JAX work: a missing extra costs nothing
+    setup_jax()
+    here = task_here(cfg)
+    policy = load_policy(run.root, checkpoint=name, deterministic=True)
+    state = CheckpointManager(run.checkpoints).state(name)
+
+    if observations is None:
+        obs, source = verification_observations(cfg, run, verify_rows, seed=cfg.seed, why=here)
+    else:
+        obs, source = np.asarray(observations, np.float32), "given"
+        if obs.ndim != 2 or obs.shape[1] != policy.obs_dim or len(obs) == 0:
+            raise ConfigError(f"observations of shape {obs.shape}: give (N, {policy.obs_dim}) flat observations.")
+    model = convert(policy, opset=opset)
+    expected = policy(obs)
+    got = OnnxPolicy(model)(obs)
+    gap, row = max_gap(got, expected)
+    single, _ = max_gap(OnnxPolicy(model)(obs[:1]), expected[:1])  # the batch axis is dynamic: B = 1 too
+    gap = max(gap, single)
+    if not gap <= tolerance:
+        raise ExportMismatch(f"the exported model does not act as load_policy: max |onnxruntime - load_policy| = "
+                             f"{gap:.3g} (row {row} of {len(obs)} {source} observations) > {tolerance:g}; nothing "
+                             f"was written. Report it with the run's config.json and the versions of jax2onnx "
+                             f"({_version('jax2onnx')}) and onnxruntime "
+                             f"({mods['onnxruntime'].__version__}).")
+
+    flat_space, own_space = observation_spaces(cfg) if here is None else (None, None)
+    layout = observation_layout(policy.obs_keys, own_space)
+    if layout is not None and own_space is not None:  # a Dict: its leaves' bounds in the flat order
+        obs_low = [v for leaf in layout for v in leaf["low"]]
+        obs_high = [v for leaf in layout for v in leaf["high"]]
+    else:  # a Box env of one's own has its own bounds; botorl's task envs are unbounded
+        space = own_space if getattr(own_space, "shape", None) == (policy.obs_dim,) else flat_space
+        obs_low = None if space is None else _bounds(space.low)
+        obs_high = None if space is None else _bounds(space.high)
+    contract = {
+        "format": "onnx",
+        "model": out.name,
+        "sha256": hashlib.sha256(model).hexdigest(),
+        "opset": int(opset),
+        "input": {"name": INPUT_NAME, "shape": ["batch", policy.obs_dim], "dtype": "float32"},
+        "output": {"name": OUTPUT_NAME, "shape": ["batch", policy.action_dim], "dtype": "float32"},
+        "observation": {
+            "dim": policy.obs_dim,
+            "low": obs_low,
+            "high": obs_high,
+            "layout": layout,
+            "normalization": None,
+        },
+        "action": {"dim": policy.action_dim, "low": _bounds(policy.action_low), "high": _bounds(policy.action_high),
+                   "deterministic": True},
+        "task": cfg.task,
+        "method": cfg.method,
+        "seed": int(cfg.seed),
+        "alpha": None if cfg.alpha is None else float(cfg.alpha),
+        "checkpoint": name,
+        "stage": state.get("stage"),
+        "step": checkpoint_step(cfg, state),
+        "botorl_version": botorl_version,
+        "converter": {"name": "jax2onnx", "version": _version("jax2onnx")},
+        "verification": {"runtime": f"onnxruntime {mods['onnxruntime'].__version__}", "observations": len(obs),
+                         "source": source, "max_abs_gap": gap, "tolerance": tolerance},
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out, model)
+    if sha256_of(out) != contract["sha256"]:  # what is on disk is what was verified
+        raise BotorlError(f"{out} does not read back as written (sha256 differs); check the disk and export again.")
+    atomic_write_json(meta, contract)
+    return contract
+
+
+def read_contract(model: str | Path) -> dict[str, Any] | None:
+    """The contract beside a model (None when there is none); ConfigError if it is unreadable."""
+    p = contract_path(model)
+    if not p.exists():
+        return None
+    try:
+        with open(p) as f:
+            c = json.load(f)
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{p} cannot be read as a policy contract ({err}); export the policy again.") from None
+    if not isinstance(c, dict):
+        raise ConfigError(f"{p} is not a policy contract (a JSON object); export the policy again.")
+    return c
+
+
+# ------------------------------------------------------------------ the round trip
+def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path) -> None:
+    """ConfigError unless the model is this run's policy as exported (task, dims, sha256)."""
+    from botorl.pipeline.policy import task_io
+
+    io = task_io(cfg)
+    if contract is None:
+        print(f"botorl eval: {contract_path(path)} is missing; checking the model's shapes only.", file=sys.stderr)
+    else:
+        if contract.get("task") != cfg.task:
+            raise ConfigError(f"{path} is a policy of task {contract.get('task')!r} (its contract says), not of this "
+                              f"run's {cfg.task!r}; give the run it was exported from.")
+        want = contract.get("sha256")
+        if want is not None and sha256_of(path) != want:
+            raise ConfigError(f"{path} is not the file its contract describes (sha256 differs): it changed since "
+                              f"`botorl export`; export it again.")
+    if model.obs_dim is not None and model.obs_dim != io["obs_dim"]:
+        raise ConfigError(f"{path} takes {model.obs_dim} observation values; this run's task {cfg.task!r} has "
+                          f"{io['obs_dim']}.")
+
+
+def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, Any]:
+    """``botorl eval RUN --policy FILE``: the run's evaluation protocol (``botorl eval``: the same
+    envs, reset seeds and success rule) with the exported model acting through onnxruntime;
+    written to ``RUN/eval-<FILE stem>-onnx.json``."""
+    import time
+
+    from botorl.envs.registry import get_task
+    from botorl.envs.user import action_from_env, is_unit_box
+    from botorl.io import atomic_write_json
+    from botorl.pipeline.evaluation import make_eval_envs, run_episodes
+    from botorl.pipeline.policy import task_io
+
+    path = Path(path)
+    model = OnnxPolicy(path)  # exit 2 when onnxruntime is missing or the file is not a model
+    contract = read_contract(path)
+    check_against_run(model, contract, cfg, path)
+    io = task_io(cfg)
+    unit_box = is_unit_box(io["action_low"], io["action_high"])
+    n = cfg.eval.episodes if episodes is None else int(episodes)
+
+    def act(obs):  # (1, E, O) -> (1, E, A): the task env takes [-1, 1] and maps it onto the env's box itself
+        a = model(obs[0])
+        return (a if unit_box else action_from_env(a, io["action_low"], io["action_high"]).astype(np.float32))[None]
+
+    spec = get_task(cfg.task)
+    envs = make_eval_envs(spec, cfg.eval)
+    t0 = time.perf_counter()
+    try:
+        stats = run_episodes(act, [envs], episodes=n, success_mode=spec.success_mode, seeds=[200_000 + cfg.seed],
+                             max_steps=spec.max_episode_steps)[0]
+    finally:
+        for e in envs:
+            e.close()
+    result = {"policy": str(path), "checkpoint": (contract or {}).get("checkpoint"), "stage": (contract or {}).get("stage"),
+              "step": (contract or {}).get("step"), "episodes": n, "success": stats.success,
+              "return": stats.episode_return, "episode_length": stats.length,
+              "seconds": round(time.perf_counter() - t0, 2)}
+    atomic_write_json(run.root / f"eval-{path.stem}-onnx.json", result)
+    return result
