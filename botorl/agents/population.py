@@ -26,16 +26,26 @@ from botorl.agents import common as C
 
 __all__ = [
     "stack", "unstack", "member_of", "population_size", "member_metrics", "host_shards", "member_sharding", "over_members",
-    "update", "update_many", "update_masked", "update_many_on_device", "sample", "eval_actions", "q_mean",
+    "placed", "update", "update_many", "update_masked", "update_many_on_device", "sample", "eval_actions", "q_mean",
 ]
 
 
 # ============================================================================ stacking
 def stack(agents: Sequence[Any]):
-    """Agent pytrees of one class and config -> one pytree with a leading member axis."""
+    """Agent pytrees of one class and config -> one pytree with a leading member axis.
+
+    Every leaf strongly typed: a fresh agent's step counters are Python ints (weakly typed
+    int32 arrays in JAX) while the same agent loaded from a checkpoint has plain int32 ones,
+    and the jitted updates compiled a second program for the loaded one, which XLA is free
+    to fuse otherwise. One type for both: a resumed run runs the uninterrupted run's programs."""
     if not agents:
         raise ValueError("stack needs at least one agent")
-    return jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *agents)
+
+    def strong(*xs):
+        first = jnp.asarray(xs[0])
+        return jnp.stack([jnp.asarray(x, dtype=first.dtype) for x in xs])
+
+    return jax.tree_util.tree_map(strong, *agents)
 
 
 def population_size(agents) -> int:

@@ -381,6 +381,11 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
     state = OnlineState.restore(ctx, resume, d_warmups) if resume is not None else OnlineState.begin(ctx, d_warmups)
     if resume is not None:
         agents = ctx.load_agents(resume["name"], agents)
+    # where the updates keep them (a population's members split over the CPU devices), from the
+    # first step on: a resumed run's loaded agents sit on one device, where the policy call
+    # compiles another program than the uninterrupted run's at that step (its actions differed
+    # in the last bit, and the run drifted from there)
+    agents = AP.placed(agents)[0]
     points = Schedule(oc.steps, oc.log_every, cfg.checkpoint_every,
                       evaluate=lambda step: cfg.eval.due(step, oc.steps, cfg.warmup.steps))
     if state.step == state.start and state.last_eval < state.start:
