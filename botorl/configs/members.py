@@ -11,12 +11,17 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass, replace
 from typing import Sequence
 
 from botorl.boto.config import check_alpha
 from botorl.configs.methods import get_method
 from botorl.errors import ConfigError
+
+
+# every name Member.name makes, and nothing else (population.json's names are checked against it)
+MEMBER_NAME = re.compile(r"(alpha[+-][0-9]{1,3}\.[0-9]{2,6}-)?seed[0-9]{1,12}")
 
 
 @dataclass(frozen=True)

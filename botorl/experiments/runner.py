@@ -29,7 +29,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime as _dt
-import json
 import os
 import signal
 import socket
@@ -45,7 +44,8 @@ from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, single_thr
 from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial
-from botorl.io import atomic_write_json
+from botorl.io import JSON_LIMIT, SWEEP_JSON_LIMIT, append_text, atomic_write_json, open_regular, read_bounded, \
+    read_json_bounded
 
 MANIFEST = "sweep.json"
 LOCKFILE = ".sweep.lock"
@@ -62,10 +62,10 @@ def _now() -> str:
     return _dt.datetime.now().isoformat(timespec="seconds")
 
 
-def read_json(path: Path) -> dict[str, Any] | None:
+def read_json(path: Path, limit: int = JSON_LIMIT) -> dict[str, Any] | None:
+    """The JSON object in ``path`` (a regular file of at most ``limit`` bytes), else None."""
     try:
-        with open(path) as f:
-            data = json.load(f)
+        data = read_json_bounded(path, limit)
         return data if isinstance(data, dict) else None
     except (OSError, ValueError):
         return None
@@ -135,13 +135,8 @@ def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:
 
 def _log_tail(path: Path, n: int = 20) -> str:
     try:
-        with open(path, "rb") as f:
-            f.seek(0, os.SEEK_END)
-            size = f.tell()
-            f.seek(max(0, size - 8192))
-            lines = f.read().decode(errors="replace").splitlines()
-        return "\n".join(lines[-n:])
-    except OSError:
+        return "\n".join(read_bounded(path, 8192, tail=True).splitlines()[-n:])
+    except (OSError, ValueError):
         return ""
 
 
@@ -196,7 +191,7 @@ class Sweep:
         return self.out / trial.relpath
 
     def _load_manifest(self) -> None:
-        old = read_json(self.out / MANIFEST) or {}
+        old = read_json(self.out / MANIFEST, SWEEP_JSON_LIMIT) or {}
         cleanup_previous_ray(old)
         old_grid = old.get("grid") or {}
         for field in ("profile", "overrides"):
@@ -249,7 +244,7 @@ class Sweep:
         import fcntl
 
         self.out.mkdir(parents=True, exist_ok=True)
-        f = open(self.out / LOCKFILE, "a+")
+        f = os.fdopen(open_regular(self.out / LOCKFILE, os.O_RDWR | os.O_CREAT), "r+")
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -290,9 +285,8 @@ class Sweep:
         entry = self.entry(trial)
         entry["launches"] += 1
         entry.update(state="running", action=action, started=_now(), ended=None, command=cmd)
-        with open(log, "a") as f:
-            f.write(f"\n===== botorl sweep: attempt {entry['launches']} ({action}) at {_now()}\n")
-            f.write("===== " + " ".join(cmd) + "\n")
+        append_text(log, f"\n===== botorl sweep: attempt {entry['launches']} ({action}) at {_now()}\n"
+                         + "===== " + " ".join(cmd) + "\n")
         return run_dir, cmd, log
 
     # -- finishing a trial -----------------------------------------------------------------------

@@ -49,14 +49,17 @@ def _mark_failed(run, reason: str, cfg=None) -> None:
         # summary in place reuses its blocks. Not atomic, so only as the fallback.
         try:
             import json
+            import os
+
+            from botorl.io import open_regular
 
             text = json.dumps(summary, indent=2, default=str) + "\n"
-            with open(run.summary, "r+" if run.summary.exists() else "w") as f:
+            with os.fdopen(open_regular(run.summary, os.O_RDWR | os.O_CREAT), "r+") as f:  # never through a link
                 f.seek(0)
                 f.truncate()
                 f.write(text)
-        except OSError:
-            pass  # read-only or gone: the exit code and the message still say it
+        except (OSError, BotorlError):
+            pass  # read-only, gone or not a regular file: the exit code and the message still say it
 
 
 def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None = None):

@@ -22,7 +22,7 @@ from botorl.configs.members import Member, member_config  # noqa: F401 (importer
 from botorl.configs.methods import get_method
 from botorl.configs.schema import RunConfig, to_dict
 from botorl.data.dataset import Dataset, RewardTransform
-from botorl.errors import ConfigError, TrainingDivergedError
+from botorl.errors import BotorlError, ConfigError, TrainingDivergedError
 from botorl.io import atomic_write_json
 from botorl.pipeline import evaluation, shared_pretrain
 from botorl.pipeline import stages as S
@@ -592,10 +592,16 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
 
 
 def read_summary(run: RunDir) -> dict[str, Any]:
-    import json
+    from botorl.pipeline.rundir import read_json
 
-    with open(run.summary) as f:
-        return json.load(f)
+    try:
+        summary = read_json(run.summary)
+    except (OSError, ValueError) as err:
+        raise BotorlError(f"{run.summary} cannot be read ({err}); `botorl resume {run.root}` rewrites it.") from None
+    if not isinstance(summary, dict):
+        raise BotorlError(f"{run.summary} is not a run summary (a JSON object); `botorl resume {run.root}` "
+                          f"rewrites it.")
+    return summary
 
 
 def _load_warmups(ckpt: CheckpointManager, keys: list[str]) -> list[Dataset] | None:

@@ -1,0 +1,210 @@
+"""Run, population and sweep directories are data, never orders (issue 32): whatever they hold,
+botorl deletes, signals and writes nothing outside them, reads only regular files of a bounded
+size, and answers a bad file with exit 2 and a message -- never a traceback or a hang.
+
+Every test here fails on the code before issue 32 (the control lines show it can fail)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from botorl.cli import main as botorl_main
+from botorl.errors import BotorlError
+
+SLEEPER = [sys.executable, "-c", "import time; time.sleep(120)"]
+
+
+def _smoke_config(*extra: str):
+    from botorl.configs.build import build_config
+
+    return build_config(["--task", "pointmaze-umaze", "--profile", "smoke", *extra])
+
+
+def _crafted_run(d: Path, *extra: str) -> Path:
+    """A run directory with a config.json (no training): enough for the readers of resume/eval."""
+    from botorl.configs.schema import to_dict
+
+    d.mkdir(parents=True)
+    (d / "config.json").write_text(json.dumps(to_dict(_smoke_config(*extra))))
+    return d
+
+
+def _kill(*procs):
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
+# ----------------------------------------------------------------------------- 1. the sweep's Ray cleanup
+def test_ray_cleanup_deletes_and_signals_only_what_it_recorded(tmp_path):
+    from botorl.experiments.backend_local import process_record
+    from botorl.experiments.backend_ray import cleanup_previous
+
+    ray_dir = tempfile.mkdtemp(prefix="botorl-ray-", dir="/tmp")  # as anyone on the machine can make
+    link = Path(tempfile.mkdtemp(prefix="botorl-ray-", dir="/tmp"))
+    victim = tmp_path / "precious"
+    victim.mkdir()
+    (victim / "data").write_text("keep me")
+    link.rmdir()
+    link.symlink_to(victim)
+    needle = f"{ray_dir}/../..{victim}"
+    bystander = subprocess.Popen(SLEEPER + [needle, str(link)])  # mentions both strings
+    recorded = subprocess.Popen(SLEEPER)
+    try:
+        for manifest in ({"ray_local_temp_dir": needle}, {"ray_local_temp_dir": str(link)},
+                         {"ray_local_temp_dir": str(victim)}, {"ray_local_temp_dir": ["/tmp"]},
+                         {"ray_local_processes": [{"pid": bystander.pid, "start": 1}, {"pid": bystander.pid},
+                                                  "x", {"pid": 1, "start": 0}, {"pid": os.getpid(), "start": 0}]}):
+            cleanup_previous(manifest)
+            assert (victim / "data").read_text() == "keep me", manifest
+            assert bystander.poll() is None, manifest
+        assert link.is_symlink()
+        # control: the dir and the process the earlier sweep did record go
+        cleanup_previous({"ray_local_temp_dir": ray_dir, "ray_local_processes": [process_record(recorded.pid)]})
+        assert not Path(ray_dir).exists()
+        assert recorded.wait(timeout=20) != 0
+        assert bystander.poll() is None
+    finally:
+        _kill(bystander, recorded)
+        link.unlink(missing_ok=True)
+        shutil.rmtree(ray_dir, ignore_errors=True)
+
+
+# ----------------------------------------------------------------------------- 1. locks and appenders
+def _link_to_precious(tmp_path: Path, at: Path) -> Path:
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me")
+    at.symlink_to(target)
+    return target
+
+
+def test_run_lock_does_not_follow_a_link(tmp_path, capsys):
+    d = _crafted_run(tmp_path / "run")
+    target = _link_to_precious(tmp_path, d / ".lock")
+    assert botorl_main(["eval", str(d)]) == 2
+    err = capsys.readouterr().err
+    assert "symbolic link" in err and ".lock" in err and "Traceback" not in err
+    assert target.read_text() == "keep me"
+
+
+def test_run_lock_refuses_a_fifo_without_hanging(tmp_path):
+    from botorl.pipeline.rundir import RunLock
+
+    d = tmp_path / "run"
+    d.mkdir()
+    os.mkfifo(d / ".lock")
+    with pytest.raises(BotorlError, match="not a regular file"):
+        RunLock(d).acquire()
+
+
+def test_sweep_lock_does_not_follow_a_link(tmp_path):
+    from botorl.experiments.grid import build_grid
+    from botorl.experiments.runner import LOCKFILE, Sweep, SweepOptions
+
+    out = tmp_path / "sw"
+    out.mkdir()
+    target = _link_to_precious(tmp_path, out / LOCKFILE)
+    sweep = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0"), SweepOptions(out=out, progress=False))
+    with pytest.raises(BotorlError, match="symbolic link"):
+        sweep.run()
+    assert target.read_text() == "keep me"
+
+
+@pytest.mark.parametrize("name", ["metrics/pretrain.csv", "metrics/pretrain.jsonl", "eval.csv"])
+def test_log_appenders_do_not_follow_a_link(tmp_path, name):
+    from botorl.pipeline.rundir import EVAL_COLUMNS, CsvLog, JsonlLog, RunDir
+
+    run = RunDir(tmp_path / "run")
+    run.create()
+    target = _link_to_precious(tmp_path, run.root / name)
+    with pytest.raises(BotorlError, match="symbolic link"):
+        log = JsonlLog(run.root / name) if name.endswith(".jsonl") else CsvLog(run.root / name, EVAL_COLUMNS)
+        log.append({"step": 1, "stage": "x", "env_step": 0, "success": 1.0})
+    assert target.read_text() == "keep me"
+
+
+def test_a_linked_metrics_folder_is_refused(tmp_path):
+    from botorl.pipeline.rundir import RunDir
+
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    run = RunDir(tmp_path / "run")
+    run.root.mkdir()
+    run.metrics.symlink_to(outside)
+    with pytest.raises(BotorlError, match="symbolic link"):
+        run.create()
+    assert list(outside.iterdir()) == []
+
+
+# ----------------------------------------------------------------------------- 1. population member names
+def _crafted_population(out: Path) -> Path:
+    """A population directory of two members as `botorl run --seeds 0,1` makes it, before training."""
+    from dataclasses import replace
+
+    from botorl.configs.members import population
+    from botorl.configs.schema import to_dict
+    from botorl.pipeline.rundir import RunDir
+    from botorl.pipeline.runner import write_population_file
+
+    cfg = replace(_smoke_config("--seeds", "0,1"), out=str(out))
+    members, member_cfgs = population(cfg)
+    member_cfgs = [replace(c, out=str(out / m.name)) for c, m in zip(member_cfgs, members)]
+    for c in member_cfgs:
+        RunDir(c.out).create()
+        Path(c.out, "config.json").write_text(json.dumps(to_dict(c)))
+    write_population_file(out, cfg, member_cfgs, "running", ["running"] * 2, {})
+    return out
+
+
+def _edit(path: Path, fn) -> None:
+    data = json.loads(path.read_text())
+    fn(data)
+    path.write_text(json.dumps(data))
+
+
+def test_population_members_stay_inside(tmp_path, capsys):
+    from botorl.pipeline.population_cli import load_population
+
+    pop = _crafted_population(tmp_path / "pop")
+    cfg, member_cfgs, runs, _ = load_population(pop)  # control: botorl's own file is read
+    assert [r.root.name for r in runs] == ["seed0", "seed1"] and [c.seed for c in member_cfgs] == [0, 1]
+    outside = tmp_path / "outside"
+    shutil.copytree(pop / "seed1", outside)
+    for name in ("../outside", str(outside), "seed1/../../outside", "tb", ""):
+        p = tmp_path / f"pop-{len(name)}"
+        shutil.copytree(pop, p)
+        _edit(p / "population.json", lambda d: d["members"][1].update(name=name))
+        assert botorl_main(["resume", str(p), "--no-progress"]) == 2, name
+        err = capsys.readouterr().err
+        assert "not a member name botorl makes" in err and "Traceback" not in err, err
+        assert sorted(x.name for x in outside.iterdir()) == sorted(x.name for x in (pop / "seed1").iterdir())
+    # a member folder that is a link out of the population
+    p = tmp_path / "pop-link"
+    shutil.copytree(pop, p)
+    shutil.rmtree(p / "seed1")
+    (p / "seed1").symlink_to(outside)
+    assert botorl_main(["resume", str(p), "--no-progress"]) == 2
+    assert "link out of the population" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("edit", [{"task": "pointmaze-medium"}, {"method": "wsrl"}, {"online": {"steps": 7}}])
+def test_population_member_config_must_match_the_population(tmp_path, capsys, edit):
+    pop = _crafted_population(tmp_path / "pop")
+
+    def change(d):
+        for k, v in edit.items():
+            d[k].update(v) if isinstance(v, dict) else d.update({k: v})
+
+    _edit(pop / "seed1" / "config.json", change)
+    assert botorl_main(["resume", str(pop), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "does not describe a member of the population" in err and "seed1" in err
