@@ -208,3 +208,73 @@ def test_population_member_config_must_match_the_population(tmp_path, capsys, ed
     assert botorl_main(["resume", str(pop), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "does not describe a member of the population" in err and "seed1" in err
+
+
+# ----------------------------------------------------------------------------- 2. a checkpoint knows its run
+@pytest.fixture(scope="module")
+def two_seeds(tmp_path_factory):
+    """Two finished smoke runs, seeds 0 and 1 (BOTO, so alpha matters)."""
+    root = tmp_path_factory.mktemp("seeds")
+    for seed in (0, 1):
+        assert botorl_main(["run", "--task", "pointmaze-umaze", "--profile", "smoke", "--no-progress",
+                            "--no-tensorboard", "--online.steps", "40", "--seed", str(seed),
+                            "--out", str(root / f"s{seed}")]) == 0
+    return root
+
+
+def _copy_run(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    (dst / ".lock").unlink(missing_ok=True)
+    s = json.loads((dst / "summary.json").read_text())
+    s["status"] = "running"  # so that resume reads the checkpoints (a finished run has nothing to resume)
+    (dst / "summary.json").write_text(json.dumps(s))
+    return dst
+
+
+def _refused(capsys, d: Path, *words: str) -> None:
+    for cmd in (["eval", str(d), "--episodes", "1"], ["resume", str(d), "--no-progress"]):
+        assert botorl_main(cmd) == 2, cmd
+        err = capsys.readouterr().err
+        assert "belongs to another run" in err and "Traceback" not in err, err
+        assert all(w in err for w in words), (words, err)
+
+
+def test_another_runs_checkpoints_are_refused(two_seeds, tmp_path, capsys):
+    d = _copy_run(two_seeds / "s0", tmp_path / "s0")
+    shutil.rmtree(d / "checkpoints")
+    shutil.copytree(two_seeds / "s1" / "checkpoints", d / "checkpoints")
+    _refused(capsys, d, "seed 1 in the checkpoint, 0 in the config")
+    # control: the run's own checkpoints are read
+    assert botorl_main(["eval", str(_copy_run(two_seeds / "s0", tmp_path / "own")), "--episodes", "1"]) == 0
+
+
+@pytest.mark.parametrize("field,value,words", [
+    ("seed", 1, "seed 0 in the checkpoint, 1 in the config"),
+    ("alpha", 0.5, "alpha -1.0 in the checkpoint, 0.5 in the config"),
+    ("method", "wsrl", "method 'boto' in the checkpoint, 'wsrl' in the config"),
+    ("task", "pointmaze-medium", "task 'pointmaze-umaze' in the checkpoint, 'pointmaze-medium' in the config"),
+    ("online.sac.discount", 0.9, "config '"),
+])
+def test_an_edited_config_is_refused(two_seeds, tmp_path, capsys, field, value, words):
+    d = _copy_run(two_seeds / "s0", tmp_path / "run")
+
+    def edit(cfg):
+        *path, last = field.split(".")
+        for k in path:
+            cfg = cfg[k]
+        cfg[last] = value
+
+    _edit(d / "config.json", edit)
+    _refused(capsys, d, words)
+
+
+def test_a_checkpoint_without_identity_is_accepted_with_a_warning(two_seeds, tmp_path, capsys):
+    from botorl.pipeline.checkpoint import CheckpointManager
+
+    d = _copy_run(two_seeds / "s0", tmp_path / "old")
+    ck = CheckpointManager(d / "checkpoints")
+    name = ck.latest()["name"]
+    _edit(d / "checkpoints" / name / "state.json", lambda s: s.pop("identity"))
+    (d / "checkpoints" / name / "MANIFEST.json").unlink()  # as written before manifests and identities
+    assert botorl_main(["eval", str(d), "--episodes", "1", "--checkpoint", name]) == 0
+    assert "records no run identity" in capsys.readouterr().err

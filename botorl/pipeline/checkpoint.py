@@ -43,6 +43,35 @@ LATEST = "latest.json"
 MANIFEST = "MANIFEST.json"
 
 
+def check_identity(state: dict[str, Any], expected: list[dict[str, Any]], where: Path, name: str) -> None:
+    """ConfigError (exit 2) unless checkpoint ``name`` (its ``state``) was written by the run(s)
+    whose identities (``configs.schema.run_identity``, one per member) are ``expected``: a
+    checkpoint copied from another run, or a config.json edited after the run began, is refused
+    naming both sides. A checkpoint written before botorl recorded identities is accepted with
+    a warning."""
+    got = state.get("identity")
+    if got is None:
+        print(f"botorl: warning: checkpoint {name} in {where} records no run identity (written before checkpoints "
+              f"recorded their run); it is taken to belong to this run's config.json.", file=sys.stderr)
+        return
+    if got == expected:
+        return
+    if not isinstance(got, list) or len(got) != len(expected) or not all(isinstance(g, dict) for g in got):
+        diff = f"it records {got!r}, this run is {expected!r}"
+    else:
+        parts = []
+        for i, (g, e) in enumerate(zip(got, expected)):
+            keys = [k for k in sorted(set(g) | set(e)) if g.get(k) != e.get(k)]
+            who = f"member {i}: " if len(expected) > 1 else ""
+            parts += [f"{who}{k} {g.get(k)!r} in the checkpoint, {e.get(k)!r} in the config" for k in keys]
+        diff = "; ".join(parts)
+    raise ConfigError(
+        f"checkpoint {name} in {where} belongs to another run ({diff}; 'pretraining' and 'config' are digests of the "
+        f"settings that shape the saved state). A checkpoint is read only by the run that wrote it: put back that "
+        f"run's config.json, or start this one afresh with `botorl run` and another --out."
+    )
+
+
 def file_sha256(path: Path, chunk: int = 1 << 22) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:

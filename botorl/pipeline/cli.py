@@ -256,7 +256,8 @@ def _eval(args, run, cfg) -> int:
     from botorl.agents import checkpoint as agent_ckpt
     from botorl.envs.registry import get_task
     from botorl.pipeline import stages as S
-    from botorl.pipeline.checkpoint import CheckpointManager
+    from botorl.configs.schema import run_identity
+    from botorl.pipeline.checkpoint import CheckpointManager, check_identity
     from botorl.pipeline.evaluation import QProbe, make_eval_envs, run_episodes
     from botorl.io import atomic_write_json
     from botorl.pipeline.runner import transform_dataset
@@ -275,6 +276,7 @@ def _eval(args, run, cfg) -> int:
             raise ConfigError(f"{run.root} has no checkpoint yet; wait for the first stage to finish.")
         name = latest["name"]
     state = ckpt.state(name)
+    check_identity(state, [run_identity(cfg)], run.checkpoints, name)
     spec = get_task(cfg.task)
     d = transform_dataset(cfg, spec, _load_run_data(cfg, spec, run, args.allow_pickle))
     stage = state["stage"]

@@ -20,13 +20,13 @@ import numpy as np
 from botorl.agents import population as AP
 from botorl.configs.members import Member, member_config  # noqa: F401 (importers of runner.member_config)
 from botorl.configs.methods import get_method
-from botorl.configs.schema import RunConfig, to_dict
+from botorl.configs.schema import RunConfig, run_identity, to_dict
 from botorl.data.dataset import Dataset, RewardTransform
 from botorl.errors import BotorlError, ConfigError, TrainingDivergedError
 from botorl.io import atomic_write_json
 from botorl.pipeline import evaluation, shared_pretrain
 from botorl.pipeline import stages as S
-from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_name
+from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
 from botorl.pipeline.rundir import EVAL_COLUMNS, CsvLog, MetricsLogger, RunDir
 
@@ -233,6 +233,7 @@ class RunContext:
         from botorl.agents import checkpoint as agent_ckpt
 
         state = {
+            "identity": [run_identity(mc.cfg) for mc in self.members],
             "stage": stage,
             "step": step,
             "stage_done": done,
@@ -249,7 +250,7 @@ class RunContext:
             # each member's own agent in its run directory, for `botorl eval MEMBER_DIR`
             for i, mc in enumerate(self.members):
                 CheckpointManager(mc.run.checkpoints).save(
-                    name, state={**state, "np_rng": None, "extra": {}, "member": i},
+                    name, state={**state, "np_rng": None, "extra": {}, "member": i, "identity": [state["identity"][i]]},
                     agent=AP.member_of(agents, i), save_agent=agent_ckpt.save)
         self.write_summary("running")
 
@@ -488,12 +489,13 @@ def execute(cfg: RunConfig, run: RunDir, d_offline_raw: Dataset, *, resume: bool
     return execute_population(cfg, [cfg], run.root, [run], d_offline_raw, resume=resume, single=True)[0]
 
 
-def _resume_point(ckpt: CheckpointManager):
+def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig]):
     """(the newest checkpoint, {done_stages, stage_seconds}, failed members, the mid-stage point or None)."""
     latest = ckpt.latest()
     if latest is None:
         return None, {"done_stages": [], "stage_seconds": {}}, {}, None
     st = ckpt.state(latest["name"])
+    check_identity(st, [run_identity(c) for c in member_cfgs], ckpt.root, latest["name"])
     mid = None if st["stage_done"] else {"name": latest["name"], "stage": st["stage"], "step": st["step"],
                                          "np_rng": st.get("np_rng"), "extra": st.get("extra", {})}
     return latest, {"done_stages": list(st["done_stages"]), "stage_seconds": dict(st["stage_seconds"])}, \
@@ -538,7 +540,7 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
     root.mkdir(parents=True, exist_ok=True)
     d_offline = transform_dataset(cfg, spec, d_offline_raw)
     ckpt = CheckpointManager(layout.checkpoints(root, member_runs))
-    latest, state, failed, mid = _resume_point(ckpt) if resume else (None, {"done_stages": [], "stage_seconds": {}},
+    latest, state, failed, mid = _resume_point(ckpt, member_cfgs) if resume else (None, {"done_stages": [], "stage_seconds": {}},
                                                                       {}, None)
     wandb_run = _wandb(cfg, member_runs[0]) if single else None
     members = [MemberRun(c, r, wandb_run) for c, r in zip(member_cfgs, member_runs)]
