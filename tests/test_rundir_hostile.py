@@ -278,3 +278,67 @@ def test_a_checkpoint_without_identity_is_accepted_with_a_warning(two_seeds, tmp
     (d / "checkpoints" / name / "MANIFEST.json").unlink()  # as written before manifests and identities
     assert botorl_main(["eval", str(d), "--episodes", "1", "--checkpoint", name]) == 0
     assert "records no run identity" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- 3. bounded by construction
+@pytest.mark.parametrize("args,words", [
+    (["--seeds", "0-2147483648"], "seeds must lie in [0, 2**31)"),
+    (["--seeds", "0-2147483647"], "at most 10,000"),
+    (["--alphas", "-1:1:1e-12"], "at most 10,000"),
+    (["--seeds", "0-999", "--alphas", "-1:1:0.01"], "members; at most 10,000"),
+    (["--online.batch-size", "100000000"], "a batch size must be an integer in [1, 1,048,576]"),
+    (["--boto.batch-size", "2000000"], "a batch size must be an integer in [1, 1,048,576]"),
+    (["--online.steps", "100000000000"], "more than this machine's"),
+    (["--online.buffer-capacity", "100000000000"], "more than this machine's"),
+    (["--offline.batch-size", "1000000", "--offline.updates-per-call", "100000"], "more than this machine's"),
+    (["--network.critic-hidden-dims", "100000000"], "at most 65,536 units"),
+    (["--online.buffer-capacity", "5"], "must hold the warm-up's"),
+])
+def test_sizes_are_refused_before_anything_is_built(tmp_path, capsys, args, words):
+    import resource
+
+    out = tmp_path / "out"
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (8 << 30, hard))  # a MemoryError, not a swapping machine, on failure
+    try:
+        assert botorl_main(["run", "--profile", "smoke", "--no-progress", "--out", str(out), *args]) == 2
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+    err = capsys.readouterr().err
+    assert words in err and "Traceback" not in err, err
+    assert not out.exists()
+
+
+def test_a_sweep_grid_is_counted_before_it_is_listed(tmp_path):
+    from botorl.experiments.grid import build_grid
+
+    with pytest.raises(BotorlError, match="at most 100,000"):
+        build_grid(tasks="pointmaze-umaze,pointmaze-medium", methods="boto,wsrl,calql", seeds="0-9999",
+                   alphas="-1:1:0.5")
+
+
+@pytest.mark.parametrize("kind", ["fifo", "dir", "link", "huge", "deep", "bytes"])
+@pytest.mark.timeout(60)
+def test_a_bad_config_json_is_exit_2(tmp_path, capsys, kind):
+    d = _crafted_run(tmp_path / "run")
+    cfg = d / "config.json"
+    good = cfg.read_bytes()
+    cfg.unlink()
+    if kind == "fifo":
+        os.mkfifo(cfg)  # opening it for reading would block forever
+    elif kind == "dir":
+        cfg.mkdir()
+    elif kind == "link":
+        (tmp_path / "elsewhere.json").write_bytes(good)
+        cfg.symlink_to(tmp_path / "elsewhere.json")
+    elif kind == "huge":
+        with open(cfg, "wb") as f:
+            f.truncate(64 << 20)
+    elif kind == "deep":
+        cfg.write_bytes(b"[" * 200_000)
+    else:
+        cfg.write_bytes(b"\xff\xfe" + good)
+    for cmd in (["resume", str(d)], ["eval", str(d)]):
+        assert botorl_main(cmd) == 2, cmd
+        err = capsys.readouterr().err
+        assert "config.json" in err and "Traceback" not in err, err

@@ -28,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import stat
 import sys
 import time
 from pathlib import Path
@@ -237,7 +238,9 @@ class CheckpointManager:
     def names(self) -> list[str]:
         if not self.root.is_dir():
             return []
-        return sorted(p.name for p in self.root.iterdir() if p.is_dir() and not p.name.startswith("."))
+        # a link is not a checkpoint of this run, whatever it points at
+        return sorted(p.name for p in self.root.iterdir()
+                      if p.is_dir() and not p.is_symlink() and not p.name.startswith("."))
 
     def _check_file(self, name: str, fname: str) -> None:
         """Raise CheckpointCorrupt unless ``name/fname`` matches the manifest (no manifest: accepted)."""
@@ -245,6 +248,12 @@ class CheckpointManager:
         if Path(fname).name != fname or fname in ("", ".", ".."):
             raise CheckpointCorrupt(f"checkpoint {name}: {MANIFEST} lists {fname!r}, which is not a file of the folder.")
         path = self.root / name / fname
+        try:
+            st = os.lstat(path)
+        except OSError:
+            st = None
+        if st is not None and not stat.S_ISREG(st.st_mode):  # a link, FIFO or device: never opened
+            raise CheckpointCorrupt(f"checkpoint {name}: {fname} is not a regular file.")
         if m is None:
             return
         want = m["files"].get(fname)
@@ -258,6 +267,12 @@ class CheckpointManager:
         if file_sha256(path) != want.get("sha256"):
             raise CheckpointCorrupt(f"checkpoint {name}: {fname} does not match its sha256 checksum (the file changed "
                                     f"after it was written).")
+
+    def file(self, name: str, fname: str) -> Path:
+        """The path of ``fname`` in checkpoint ``name``, checked against the manifest (and a
+        regular file); CheckpointCorrupt otherwise."""
+        self._check_file(name, fname)
+        return self.root / name / fname
 
     def verify(self, name: str) -> str | None:
         """None if checkpoint ``name`` passes the check, else the reason it does not."""

@@ -162,8 +162,11 @@ def _load_run_config(directory: str):
             f"`botorl run`."
         )
     try:
-        cfg = from_dict(RunConfig, read_json(run.config))
-    except (TypeError, ValueError, KeyError, AttributeError) as err:
+        data = read_json(run.config)
+        if not isinstance(data, dict):
+            raise ValueError("not a JSON object")
+        cfg = from_dict(RunConfig, data)
+    except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
         raise ConfigError(f"{run.config} cannot be read as a run config ({err}); was it edited by hand?") from None
     validate(cfg)
     return run, cfg
@@ -282,7 +285,7 @@ def _eval(args, run, cfg) -> int:
     stage = state["stage"]
     template = (S.make_online_agent_template if stage == "finetune" else S.make_pretrain_agent)(
         cfg, d.obs_dim, d.action_dim, cfg.seed)
-    agent = agent_ckpt.load(ckpt.path(name) / "agent.ckpt", like=template)
+    agent = agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=template)
     envs = make_eval_envs(spec, cfg.eval)
     t0 = time.perf_counter()
     stats = run_episodes(lambda o: agent.eval_actions(o[0])[None], [envs], episodes=cfg.eval.episodes,

@@ -226,7 +226,7 @@ class RunContext:
     # -- checkpoints
     def load_agents(self, name: str, like):
         """The population's agents saved under ``name`` (``like``: a stacked template)."""
-        return self.layout.load(self.ckpt.path(name) / "agent.ckpt", like)
+        return self.layout.load(self.ckpt.file(name, "agent.ckpt"), like)
 
     def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None,
               documents=None):
