@@ -34,7 +34,10 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except IsADirectoryError:  # a folder where botorl keeps a file: the user's to remove
+            raise _not_regular(path, "a directory") from None
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -331,14 +331,180 @@ def test_a_bad_config_json_is_exit_2(tmp_path, capsys, kind):
     elif kind == "link":
         (tmp_path / "elsewhere.json").write_bytes(good)
         cfg.symlink_to(tmp_path / "elsewhere.json")
-    elif kind == "huge":
-        with open(cfg, "wb") as f:
-            f.truncate(64 << 20)
+    elif kind == "huge":  # botorl's own config, padded past the size limit
+        cfg.write_bytes(good + b" " * (17 << 20))
     elif kind == "deep":
         cfg.write_bytes(b"[" * 200_000)
     else:
         cfg.write_bytes(b"\xff\xfe" + good)
-    for cmd in (["resume", str(d)], ["eval", str(d)]):
+    for cmd in (["eval", str(d)], ["resume", str(d)]):
         assert botorl_main(cmd) == 2, cmd
         err = capsys.readouterr().err
         assert "config.json" in err and "Traceback" not in err, err
+
+
+# ----------------------------------------------------------------------------- 6. property tests
+# Whatever a file of a run, population or sweep directory holds -- random bytes, a truncation of
+# botorl's own file, a link (to a good file outside), a FIFO, a folder, a huge file -- the
+# readers of `resume` / `eval` / `sweep` exit 2 with a message or succeed: never a traceback, a
+# hang (a FIFO opened for reading blocks without O_NONBLOCK) or a write outside the directory.
+# No training runs here: valid inputs lead to "finished already", "no checkpoint yet" or a
+# reader called directly.
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+KINDS = ("bytes", "truncated", "link", "fifo", "dir", "huge", "json")
+PROPERTY = settings(max_examples=int(os.environ.get("BOTORL_HYPOTHESIS_EXAMPLES", "25")), deadline=None, suppress_health_check=list(HealthCheck))
+JSON_VALUES = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+                           lambda c: st.lists(c, max_size=3) | st.dictionaries(st.text(max_size=8), c, max_size=3),
+                           max_leaves=8)
+
+
+@st.composite
+def hostile_file(draw):
+    kind = draw(st.sampled_from(KINDS))
+    if kind == "bytes":
+        return kind, draw(st.binary(max_size=200))
+    if kind == "truncated":
+        return kind, draw(st.floats(0, 0.999))
+    if kind == "json":
+        return kind, json.dumps(draw(JSON_VALUES)).encode()
+    return kind, None
+
+
+def _plant(path: Path, kind: str, arg, good: bytes, outside: Path) -> None:
+    """Replace the file ``path`` (whose good content is ``good``) by a hostile one."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+    if kind == "bytes" or kind == "json":
+        path.write_bytes(arg)
+    elif kind == "truncated":
+        path.write_bytes(good[:int(arg * len(good))])
+    elif kind == "link":
+        target = outside / f"target-{path.name}"
+        target.write_bytes(good)
+        path.symlink_to(target)
+    elif kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "dir":
+        path.mkdir()
+    elif kind == "huge":
+        with open(path, "wb") as f:
+            f.truncate(80 << 20)
+
+
+def _snapshot(d: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(d)): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file() and not p.is_symlink()}
+
+
+@pytest.fixture(scope="module")
+def hostile_root(tmp_path_factory):
+    return tmp_path_factory.mktemp("hostile")
+
+
+def _case(root: Path) -> tuple[Path, Path]:
+    case = Path(tempfile.mkdtemp(dir=root))
+    (case / "outside").mkdir()
+    (case / "outside" / "keep").write_text("keep me")
+    return case, case / "outside"
+
+
+def _exit_2_or_0(capsys, argv: list[str]) -> None:
+    rc = botorl_main(argv)
+    err = capsys.readouterr().err
+    assert rc in (0, 2), (rc, err[-2000:])
+    assert "Traceback" not in err
+    if rc == 2:
+        assert err.strip(), "exit 2 without a message"
+
+
+@PROPERTY
+@given(f=hostile_file(), cmd=st.sampled_from(["resume", "eval"]))
+@pytest.mark.timeout(120)
+def test_property_config_json(hostile_root, capsys, f, cmd):
+    case, outside = _case(hostile_root)
+    d = _crafted_run(case / "run")
+    (d / "summary.json").write_text(json.dumps({"status": "finished", "task": "pointmaze-umaze", "method": "boto",
+                                                "seed": 0, "alpha": -1.0, "pretrain": "calql"}))
+    good = (d / "config.json").read_bytes()
+    _plant(d / "config.json", *f, good, outside)
+    before = _snapshot(outside)
+    _exit_2_or_0(capsys, [cmd, str(d), "--no-progress"] if cmd == "resume" else [cmd, str(d)])
+    assert _snapshot(outside) == before
+
+
+@PROPERTY
+@given(f=hostile_file(), which=st.sampled_from(["population.json", "seed1/config.json", "seed0/summary.json"]))
+@pytest.mark.timeout(120)
+def test_property_population_files(hostile_root, capsys, f, which):
+    case, outside = _case(hostile_root)
+    pop = _crafted_population(case / "pop")
+    _edit(pop / "population.json", lambda d: d.update(status="finished"))
+    for m in ("seed0", "seed1"):
+        (pop / m / "summary.json").write_text(json.dumps({"status": "finished", "run_dir": str(pop / m)}))
+    good = (pop / which).read_bytes()
+    _plant(pop / which, *f, good, outside)
+    before = _snapshot(outside)
+    _exit_2_or_0(capsys, ["resume", str(pop), "--no-progress"])
+    assert _snapshot(outside) == before
+
+
+@PROPERTY
+@given(f=hostile_file(), which=st.sampled_from(["latest.json", "state.json", "MANIFEST.json", "agent.ckpt",
+                                                "envs.json"]))
+@pytest.mark.timeout(120)
+def test_property_checkpoint_metadata(hostile_root, f, which):
+    """The readers `resume` and `eval` use on a checkpoint folder: latest(), state(), the
+    identity check, documents and the agent file's check -- a BotorlError (exit 2) or a result."""
+    from botorl.configs.schema import run_identity
+    from botorl.pipeline.checkpoint import CheckpointManager, check_identity
+
+    case, outside = _case(hostile_root)
+    cfg = _smoke_config()
+    ck = CheckpointManager(case / "run" / "checkpoints")
+    state = {"identity": [run_identity(cfg)], "stage": "finetune", "step": 10, "stage_done": False,
+             "done_stages": ["pretrain"], "stage_seconds": {}, "np_rng": None, "extra": {}, "failed": {}}
+    ck.save("finetune-step000000010", state=state, agent=b"agent", save_agent=lambda p, a: Path(p).write_bytes(a),
+            documents={"envs": {"x": [1, 2]}})
+    folder = ck.root / "finetune-step000000010"
+    path = ck.root / which if which == "latest.json" else folder / which
+    _plant(path, *f, path.read_bytes(), outside)
+    before = _snapshot(outside)
+    try:
+        latest = ck.latest()
+        if latest is not None:
+            st_ = ck.state(latest["name"])
+            check_identity(st_, [run_identity(cfg)], ck.root, latest["name"])
+            ck.document(latest["name"], "envs")
+            ck.file(latest["name"], "agent.ckpt")
+    except BotorlError:
+        pass
+    assert _snapshot(outside) == before
+
+
+@PROPERTY
+@given(f=hostile_file())
+@pytest.mark.timeout(120)
+def test_property_sweep_json(hostile_root, f):
+    """sweep.json as the next sweep reads it (cleanup of an earlier Ray instance included)."""
+    from botorl.experiments.grid import build_grid
+    from botorl.experiments.runner import Sweep, SweepOptions
+
+    case, outside = _case(hostile_root)
+    out = case / "sw"
+    sweep = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0"), SweepOptions(out=out, progress=False))
+    out.mkdir()
+    sweep._load_manifest()
+    sweep.manifest.update(ray_local_temp_dir=f"/tmp/botorl-ray-x/../..{outside}",
+                          ray_local_processes=[{"pid": os.getpid(), "start": 0}])
+    sweep.save()
+    _plant(out / "sweep.json", *f, (out / "sweep.json").read_bytes(), outside)
+    before = _snapshot(outside)
+    try:
+        sweep._load_manifest()
+        sweep.save()
+    except BotorlError:
+        pass
+    assert _snapshot(outside) == before

@@ -71,7 +71,7 @@ def start_time(pid: int) -> int | None:
     reused; the pair (pid, start time) names one process for good."""
     f = _stat_fields(pid)
     try:
-        return int(f[19]) if f else None
+        return int(f[19]) if f and f[0] != b"Z" else None  # a zombie has ended (its parent has not reaped it)
     except (ValueError, IndexError):
         return None
 

@@ -208,7 +208,10 @@ def resume_main(argv: list[str]) -> int:
                 s = {}  # a damaged summary is rewritten by the resume
             if isinstance(s, dict) and s.get("status") == "finished":
                 print(f"botorl: {run.root} has finished already; nothing to resume.", file=sys.stderr)
-                print(format_summary(s))
+                try:
+                    print(format_summary(s))
+                except (KeyError, TypeError, ValueError, AttributeError):  # a summary edited by hand
+                    print(f"status finished (the rest of {run.summary} cannot be shown)")
                 return 0
         spec = get_task(cfg.task)
         d_raw = _load_run_data(cfg, spec, run, args.allow_pickle)

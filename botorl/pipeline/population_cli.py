@@ -220,7 +220,11 @@ def resume_population_main(directory: str, *, no_progress: bool = False) -> int:
             member_cfgs = [replace(c, progress=False) for c in member_cfgs]
         if data.get("status") == "finished":
             print(f"botorl: {root} has finished already; nothing to resume.", file=sys.stderr)
-            print(format_population([read_summary(r) for r in runs]))
+            summaries = [read_summary(r) for r in runs]
+            try:
+                print(format_population(summaries))
+            except (KeyError, TypeError, ValueError, AttributeError):  # a member's summary edited by hand
+                print("\n".join(f"{r.root.name}: status {s.get('status')!r}" for r, s in zip(runs, summaries)))
             return 0
         d_raw = load_offline(cfg, get_task(cfg.task))
         summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True)
