@@ -146,7 +146,7 @@ def test_a_linked_metrics_folder_is_refused(tmp_path):
 
 
 # ----------------------------------------------------------------------------- 1. population member names
-def _crafted_population(out: Path) -> Path:
+def _crafted_population(out: Path, *extra: str) -> Path:
     """A population directory of two members as `botorl run --seeds 0,1` makes it, before training."""
     from dataclasses import replace
 
@@ -155,7 +155,7 @@ def _crafted_population(out: Path) -> Path:
     from botorl.pipeline.rundir import RunDir
     from botorl.pipeline.runner import write_population_file
 
-    cfg = replace(_smoke_config("--seeds", "0,1"), out=str(out))
+    cfg = replace(_smoke_config("--seeds", "0,1", *extra), out=str(out))
     members, member_cfgs = population(cfg)
     member_cfgs = [replace(c, out=str(out / m.name)) for c, m in zip(member_cfgs, members)]
     for c in member_cfgs:
@@ -508,3 +508,71 @@ def test_property_sweep_json(hostile_root, f):
     except BotorlError:
         pass
     assert _snapshot(outside) == before
+
+
+# ----------------------------------------------------------------------------- 4. every interrupted run resumes
+def test_a_damaged_metrics_tail_is_cut_back_on_resume(two_seeds, tmp_path, capsys):
+    d = _copy_run(two_seeds / "s0", tmp_path / "run")
+    for name in ("metrics/finetune.csv", "metrics/finetune.jsonl", "eval.csv"):
+        with open(d / name, "ab") as f:
+            f.write(b"999,\xff\xfe\x00 not utf-8\n12")  # a damaged record, then a torn one
+    assert botorl_main(["resume", str(d), "--no-progress", "--from", "boto-final"]) == 0
+    err = capsys.readouterr().err
+    assert "not UTF-8 text and a last line cut short left out" in err
+    for name in ("metrics/finetune.csv", "metrics/finetune.jsonl", "eval.csv"):
+        data = (d / name).read_bytes()
+        assert b"\xff" not in data and data.endswith(b"\n"), name
+    steps = [json.loads(x)["step"] for x in (d / "metrics" / "finetune.jsonl").read_text().splitlines()]
+    assert steps == sorted(set(steps)) and 999 not in steps
+    assert json.loads((d / "summary.json").read_text())["status"] == "finished"
+
+
+def test_resume_hint_names_a_checkpoint_that_passes(two_seeds, tmp_path, capsys):
+    d = _copy_run(two_seeds / "s0", tmp_path / "run")
+    ck = d / "checkpoints" / "warmup-final"
+    (ck / "MANIFEST.json").unlink()  # unverifiable, so the damage shows only when it is read
+    (ck / "warmup.npz").write_bytes(b"PK\x03\x04 torn")
+    assert botorl_main(["resume", str(d), "--no-progress", "--from", "warmup-final"]) == 2
+    err = capsys.readouterr().err
+    assert "warmup.npz" in err and "--from pretrain-final" in err and "Traceback" not in err, err
+
+
+def test_sweep_resumes_pickle_tasks_with_the_users_own_data_path(tmp_path):
+    from botorl.configs.build import build_config
+    from botorl.configs.schema import to_dict
+    from botorl.experiments.grid import build_grid
+    from botorl.experiments.runner import trial_command
+
+    npy = tmp_path / "door2_sparse.npy"
+    grid = build_grid(tasks="door-binary-v0", methods="wsrl", seeds="0", profile="smoke",
+                      overrides={"data.path": str(npy)})
+    trial = grid.trials()[0]
+    run_dir = tmp_path / "sw" / trial.relpath
+    run_dir.mkdir(parents=True)
+    (run_dir / "config.json").write_text(json.dumps(to_dict(build_config(trial.run_args(grid.profile,
+                                                                                          grid.overrides)))))
+    action, cmd = trial_command(trial, run_dir, grid, ["botorl"])
+    assert action == "resume" and cmd[-1] == "--allow-pickle", cmd
+    # a data path the directory names but this sweep's command line does not: no consent
+    _edit(run_dir / "config.json", lambda c: c["data"].update(path=str(tmp_path / "other.npy")))
+    assert "--allow-pickle" not in trial_command(trial, run_dir, grid, ["botorl"])[1]
+
+
+def test_population_resume_does_not_unpickle_what_its_file_names(tmp_path, capsys):
+    import builtins
+
+    import numpy as np
+
+    class Payload:
+        def __reduce__(self):
+            return (builtins.open, (str(tmp_path / "pwned"), "w"))
+
+    evil = tmp_path / "door2_sparse.npy"
+    arr = np.empty(1, dtype=object)
+    arr[0] = Payload()
+    np.save(evil, arr, allow_pickle=True)
+    pop = _crafted_population(tmp_path / "pop", "--task", "door-binary-v0", "--data.path", str(evil))
+    assert botorl_main(["resume", str(pop), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "pickle" in err and "--allow-pickle" in err and "population.json" in err
+    assert not (tmp_path / "pwned").exists()

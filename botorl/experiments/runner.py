@@ -105,11 +105,30 @@ def trial_command(
     action = next_action(run_dir)
     # no progress bars: a trial's output goes to its log file, where tqdm's redraws pile up
     if action == "resume":
-        return action, prefix + ["resume", str(run_dir), "--no-progress"]
+        consent = ["--allow-pickle"] if same_data(trial, run_dir, grid) else []
+        return action, prefix + ["resume", str(run_dir), "--no-progress", *consent]
     args = trial.run_args(grid.profile, grid.overrides)
     if share_in is not None:
         args += shared_pretraining_args(args, share_in)
     return action, prefix + ["run", *args, "--out", str(run_dir), "--no-progress"]
+
+
+def same_data(trial: Trial, run_dir: Path, grid: Grid) -> bool:
+    """Whether the trial's run directory reads its offline data from where this sweep's own
+    command line says (data.path, data.demos). Then the sweep passes --allow-pickle to its
+    `botorl resume`: the user named that data when starting the sweep, as for `botorl run`, so a
+    pickle-format task (door-binary-v0, pen-binary-v0 with a Cal-QL .npy) resumes. A path the
+    directory's files name and the command line does not stays refused."""
+    from botorl.configs.build import build_config
+
+    try:
+        want = build_config(trial.run_args(grid.profile, grid.overrides)).data
+    except BotorlError:  # not a botorl run (a stand-in command's task)
+        return False
+    pop = read_json(Path(run_dir) / POPULATION_FILE)
+    cfg = pop.get("config") if pop is not None else read_json(Path(run_dir) / "config.json")
+    data = cfg.get("data") if isinstance(cfg, dict) else None
+    return isinstance(data, dict) and data.get("path") == want.path and data.get("demos") == want.demos
 
 
 def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:

@@ -127,8 +127,7 @@ def load_npz(path: Path) -> dict[str, np.ndarray]:
             return {k: z[k] for k in z.files}
     except Exception as err:  # truncated zip, bad header, object arrays
         raise CheckpointCorrupt(
-            f"{path} cannot be read ({type(err).__name__}: {err}); the checkpoint is damaged. Resume from an "
-            f"earlier one: `botorl resume RUN_DIR --from NAME` (names: `ls {path.parent.parent}`)."
+            f"{path} cannot be read ({type(err).__name__}: {err}); the checkpoint is damaged."
         ) from None
 
 
@@ -292,6 +291,31 @@ class CheckpointManager:
             return f"checkpoint {name}: state.json cannot be read ({err})"
         return None
 
+    def usable(self, name: str) -> bool:
+        """Whether a resume from ``name`` can read everything it needs: ``name`` passes the check
+        (a checkpoint without a manifest: its arrays load), and so does every stage-final
+        checkpoint it builds on (its done stages: the agent of the last, the warm-up's data)."""
+        def whole(n: str) -> bool:
+            if self.verify(n) is not None:
+                return False
+            if self._manifest(n) is None:  # unverifiable: read its arrays
+                try:
+                    for p in (self.root / n).glob("*.npz"):
+                        self._check_file(n, p.name)
+                        load_npz(p)
+                except CheckpointCorrupt:
+                    return False
+            return True
+
+        if not whole(name):
+            return False
+        try:
+            done = self.state(name).get("done_stages") or []
+        except CheckpointCorrupt:
+            return False
+        return all(whole(checkpoint_name(s, None)) for s in done if isinstance(s, str)
+                   and checkpoint_name(s, None) != name)
+
     def verify_named(self, name: str) -> None:
         """ConfigError unless ``name`` is a checkpoint of this run that passes the check."""
         if name not in self.names() or not (self.root / name / "state.json").exists():
@@ -308,7 +332,8 @@ class CheckpointManager:
         self._point_latest(name, st)
         return self.latest()
 
-    def _order(self, name: str) -> tuple[float, float]:
+    def order(self, name: str) -> tuple[float, float]:
+        """Sort key of checkpoint ``name``: newest last."""
         try:
             m = self._manifest(name)
         except CheckpointCorrupt:
@@ -342,7 +367,7 @@ class CheckpointManager:
                 bad.append(reason)
         elif not p.exists() and not self.names():
             return None
-        for name in sorted(self.names(), key=self._order, reverse=True):
+        for name in sorted(self.names(), key=self.order, reverse=True):
             if name == named:
                 continue
             reason = self.verify(name)

@@ -64,7 +64,7 @@ def _mark_failed(run, reason: str, cfg=None) -> None:
 
 def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None = None):
     """``execute`` with I/O faults and corrupt checkpoints turned into exit 2 and a truthful status."""
-    from botorl.pipeline.checkpoint import CheckpointManager
+    from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager
     from botorl.pipeline.runner import execute
 
     try:
@@ -79,6 +79,10 @@ def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None =
             raise
         _mark_failed(run, str(fault), cfg)
         raise fault from None
+    except CheckpointCorrupt as err:
+        msg = f"{err} {_resume_hint(run, resume_from)}" if resume else str(err)
+        _mark_failed(run, msg, cfg)
+        raise BotorlError(msg) from None
     except BotorlError as err:
         _mark_failed(run, str(err), cfg)
         raise
@@ -87,10 +91,23 @@ def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None =
             raise
         # a damaged latest.json / state.json / buffer.npz read during the resume
         msg = (f"{run.root}: a checkpoint file could not be read on resume ({type(err).__name__}: {err}). "
-               f"List the checkpoints with `ls {run.checkpoints}` and pick an older one with "
-               f"`botorl resume {run.root} --from NAME`.")
+               f"{_resume_hint(run, resume_from)}")
         _mark_failed(run, msg, cfg)
         raise BotorlError(msg) from None
+
+
+def _resume_hint(run, resume_from: str | None) -> str:
+    """The command that resumes from the newest checkpoint that passes the check, other than
+    the one that just failed (a hint that names a command that works)."""
+    from botorl.pipeline.checkpoint import CheckpointManager
+
+    ckpt = CheckpointManager(run.checkpoints)
+    failed = resume_from or (ckpt.latest() or {}).get("name")
+    good = [n for n in sorted(ckpt.names(), key=ckpt.order, reverse=True) if n != failed and ckpt.usable(n)]
+    if not good:
+        return "No other checkpoint passes the check; start the run again with `botorl run` and another --out."
+    others = f" (others that pass: {', '.join(good[1:])})" if good[1:] else ""
+    return f"Resume from an earlier checkpoint: `botorl resume {run.root} --from {good[0]}`{others}."
 
 
 def _default_out(cfg) -> Path:
@@ -183,7 +200,7 @@ def resume_main(argv: list[str]) -> int:
     if (Path(args.dir) / "population.json").exists():  # a population (botorl/pipeline/population_cli.py)
         from botorl.pipeline.population_cli import resume_population_main
 
-        return resume_population_main(args.dir, no_progress=args.no_progress)
+        return resume_population_main(args.dir, no_progress=args.no_progress, allow_pickle=args.allow_pickle)
     from botorl.jaxsetup import setup_jax
 
     setup_jax()

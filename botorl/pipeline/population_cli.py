@@ -205,7 +205,7 @@ def load_population(directory: str | Path):
     return replace(cfg, out=str(root)), member_cfgs, runs, data
 
 
-def resume_population_main(directory: str, *, no_progress: bool = False) -> int:
+def resume_population_main(directory: str, *, no_progress: bool = False, allow_pickle: bool = False) -> int:
     from botorl.envs.registry import get_task
     from botorl.jaxsetup import setup_jax
     from botorl.pipeline.rundir import owned
@@ -226,7 +226,13 @@ def resume_population_main(directory: str, *, no_progress: bool = False) -> int:
             except (KeyError, TypeError, ValueError, AttributeError):  # a member's summary edited by hand
                 print("\n".join(f"{r.root.name}: status {s.get('status')!r}" for r, s in zip(runs, summaries)))
             return 0
-        d_raw = load_offline(cfg, get_task(cfg.task))
+        if allow_pickle:
+            d_raw = load_offline(cfg, get_task(cfg.task))
+        else:  # a pickle named in population.json is not the user's to run (as for a run's config.json)
+            from botorl.data.loaders import refuse_pickle
+
+            with refuse_pickle(f"the population directory's {root / 'population.json'}"):
+                d_raw = load_offline(cfg, get_task(cfg.task))
         summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True)
     print(format_population(summaries))
     return 0
