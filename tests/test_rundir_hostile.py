@@ -576,3 +576,83 @@ def test_population_resume_does_not_unpickle_what_its_file_names(tmp_path, capsy
     err = capsys.readouterr().err
     assert "pickle" in err and "--allow-pickle" in err and "population.json" in err
     assert not (tmp_path / "pwned").exists()
+
+
+# ----------------------------------------------------------------------------- 5. every option checked
+@pytest.mark.parametrize("args,words", [
+    (["--online.sac.actor-lr", "-1e-4"], "a learning rate must be a finite number >= 0"),
+    (["--offline.cql.critic-lr", "-3e-4"], "a learning rate must be a finite number >= 0"),
+    (["--offline.cql.cql-lagrange-lr", "-1"], "a learning rate must be a finite number >= 0"),
+    (["--method", "iql", "--pretrain", "iql", "--offline.iql.value-lr", "-1"], "a learning rate must be"),
+    (["--online.sac.log-std-min", "3"], "log_std_min < log_std_max"),
+    (["--method", "iql", "--pretrain", "iql", "--offline.iql.log-std-max", "-9"], "log_std_min < log_std_max"),
+])
+def test_nonsense_settings_are_refused(tmp_path, capsys, args, words):
+    out = tmp_path / "out"
+    assert botorl_main(["run", "--profile", "smoke", "--no-progress", "--out", str(out), *args]) == 2
+    err = capsys.readouterr().err
+    assert words in err and "Traceback" not in err, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("where", ["file", "under-file", "proc"])
+def test_out_must_be_a_folder_on_a_disk(tmp_path, capsys, where):
+    f = tmp_path / "a-file"
+    f.write_text("keep me")
+    out = {"file": f, "under-file": f / "run", "proc": Path("/proc/self/botorl-run")}[where]
+    for extra in ([], ["--seeds", "0,1"]):
+        assert botorl_main(["run", "--profile", "smoke", "--no-progress", "--out", str(out), *extra]) == 2
+        err = capsys.readouterr().err
+        assert "--out" in err and "Traceback" not in err, err
+    assert f.read_text() == "keep me"
+
+
+def test_a_missing_accelerator_is_a_message(tmp_path):
+    env = {**os.environ, "JAX_PLATFORMS": "cuda", "CUDA_VISIBLE_DEVICES": "",
+           "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    res = subprocess.run([sys.executable, "-m", "botorl.cli", "run", "--profile", "smoke", "--no-progress",
+                          "--out", str(tmp_path / "out")], env=env, capture_output=True, text=True, timeout=300)
+    if res.returncode == 0:
+        pytest.skip("this machine has a CUDA device")
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert "JAX_PLATFORMS=cuda" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("err", [OSError(28, "No space left on device"),
+                                 OSError("Can't synchronously write data (file write failed: time = x, filename = "
+                                         "'d.h5', file descriptor = 7, errno = 28, error message = 'No space left "
+                                         "on device', buf = 0x1, total write size = 8, bytes this sub-write = 8)")])
+def test_a_full_disk_while_writing_a_dataset_is_a_message(tmp_path, capsys, monkeypatch, err):
+    from botorl.data import minari_io
+
+    def full(*a, **kw):
+        raise err
+
+    monkeypatch.setattr(minari_io, "write_minari", full)
+    rc = botorl_main(["data", "generate", "pointmaze-umaze", "--steps", "2000", "--no-progress",
+                      "--out", str(tmp_path / "ds")])
+    out = capsys.readouterr().err
+    assert rc == 2 and "the disk is full" in out and "Traceback" not in out, out
+
+
+def test_action_tolerance_is_honoured_for_a_minari_path(tmp_path):
+    """A Minari --data.path with actions up to |a| = 1.2: refused by default, read with
+    --data.action-tolerance 0.5 (the loader judged it with its own 1e-3 before)."""
+    from botorl.data.generate import ensure_dataset
+    from botorl.data.minari_io import write_minari
+    from botorl.envs.registry import get_task
+    from botorl.pipeline.runner import load_offline
+
+    from botorl.data.dataset import Dataset
+
+    ds = ensure_dataset("pointmaze-umaze", steps=2000, seed=0, progress=False)
+    wide = ds.actions.copy()
+    wide[0, 0] = 1.2
+    wide_ds = Dataset(ds.observations, wide, ds.rewards, ds.next_observations, ds.terminals,
+                      episode_ends=ds.episode_ends, infos=ds.infos, metadata=ds.metadata)
+    path = write_minari(wide_ds, path=tmp_path / "wide-v0")
+    spec = get_task("pointmaze-umaze")
+    with pytest.raises(BotorlError, match="tolerance"):
+        load_offline(_smoke_config("--data.path", str(path)), spec)
+    got = load_offline(_smoke_config("--data.path", str(path), "--data.action-tolerance", "0.5"), spec)
+    assert got.raw_action_max == pytest.approx(1.2)

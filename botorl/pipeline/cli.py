@@ -20,7 +20,7 @@ from pathlib import Path
 
 from botorl.configs.build import build_config
 from botorl.errors import BotorlError, ConfigError
-from botorl.pipeline.rundir import io_fault, owned
+from botorl.pipeline.rundir import check_out, io_fault, owned
 
 
 def _mark_failed(run, reason: str, cfg=None) -> None:
@@ -134,6 +134,7 @@ def run_main(argv: list[str]) -> int:
     from botorl.pipeline.runner import format_summary, load_offline
 
     out = Path(cfg.out) if cfg.out else _default_out(cfg)
+    check_out(out)
 
     def already_a_run():
         if (out / "config.json").exists():

@@ -67,7 +67,7 @@ def run_population_main(cfg) -> int:
     from botorl.envs.registry import get_task
     from botorl.jaxsetup import setup_jax
     from botorl.pipeline import population as P
-    from botorl.pipeline.rundir import io_fault, owned
+    from botorl.pipeline.rundir import check_out, io_fault, owned
     from botorl.io import atomic_write_json
     from botorl.pipeline.rundir import RunDir
     from botorl.pipeline.runner import POPULATION_FILE, load_offline, write_population_file
@@ -77,6 +77,7 @@ def run_population_main(cfg) -> int:
     setup_jax()
     members, member_cfgs = population(cfg)
     out = Path(cfg.out) if cfg.out else _default_out(cfg, len(members))
+    check_out(out)
 
     def already():
         if (out / POPULATION_FILE).exists() or (out / "config.json").exists():

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from botorl.errors import BotorlError
+from botorl.errors import BotorlError, ConfigError
 from botorl.io import (IO_FAULTS, JSON_LIMIT, UnsafeFileError, append_text, atomic_write_bytes, jsonable,
                        open_regular, read_bounded, read_bounded_bytes, read_json_bounded)
 
@@ -69,6 +69,19 @@ class RunDir:
                                       f"directory. Remove the link (or give another --out) and run the command again.")
         self.metrics.mkdir(exist_ok=True)
         self.checkpoints.mkdir(exist_ok=True)
+
+
+def check_out(out: Path) -> None:
+    """ConfigError (exit 2) unless ``--out`` can be a run directory: not an existing file, not
+    inside the kernel's pseudo file systems (/proc, /sys, /dev)."""
+    resolved = Path(os.path.realpath(out))
+    if resolved.parts[1:2] and resolved.parts[1] in ("proc", "sys", "dev"):
+        raise ConfigError(f"--out {out} is inside /{resolved.parts[1]}, the kernel's view of the machine, not a place "
+                          f"for files; give a folder on a disk, e.g. --out runs/my-run.")
+    first = next((p for p in (out, *out.parents) if p.exists()), None)  # the nearest part that exists
+    if first is not None and not first.is_dir():
+        where = "is an existing file" if first == out else f"is inside {first}, an existing file"
+        raise ConfigError(f"--out {out} {where}, not a folder; give a new folder (or an existing one) for the run.")
 
 
 # ----------------------------------------------------------------------------- ownership

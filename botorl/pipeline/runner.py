@@ -52,7 +52,7 @@ def load_offline(cfg: RunConfig, spec) -> Dataset:
             os.environ["BOTORL_DOOR_DEMOS"] = str(demos.resolve())
         ds = load_task_data(spec, None, steps=cfg.data.steps, seed=cfg.data.seed, progress=cfg.progress)
     else:
-        ds = load_task_data(spec, cfg.data.path)
+        ds = load_task_data(spec, cfg.data.path, action_tolerance=cfg.data.action_tolerance)
     return validate_dataset(ds, obs_dim=spec.obs_dim, action_dim=spec.action_dim,
                             action_tolerance=cfg.data.action_tolerance)
 
