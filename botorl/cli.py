@@ -98,11 +98,12 @@ def main(argv: list[str] | None = None) -> int:
         _silence_stdout()
         return 2
     except OSError as err:
-        if err.errno not in IO_FAULTS:
+        code = err.errno if err.errno is not None else _hdf5_errno(err)
+        if code not in IO_FAULTS:
             raise
         where = f" {err.filename}" if err.filename else ""
-        print(f"botorl {name}: error: cannot write{where}: {IO_FAULTS[err.errno]} ({err.strerror}). Free space, "
-              f"or write somewhere writable (--out).", file=sys.stderr)
+        print(f"botorl {name}: error: cannot write{where}: {IO_FAULTS[code]} ({err.strerror or os.strerror(code)}). "
+              f"Free space, or write somewhere writable (--out).", file=sys.stderr)
         return 2
     except SystemExit as err:
         # argparse / tyro exit after printing help or a usage error; flush here so that a
@@ -119,6 +120,15 @@ def main(argv: list[str] | None = None) -> int:
         _silence_stdout()
         return 2
     return int(code or 0)
+
+
+def _hdf5_errno(err: OSError) -> int | None:
+    """The errno inside an h5py OSError, which has none of its own ("... errno = 28, error
+    message = 'No space left on device' ...")."""
+    import re
+
+    m = re.search(r"errno = (\d+)", str(err))
+    return int(m.group(1)) if m else None
 
 
 def _silence_stdout() -> None:

@@ -13,9 +13,12 @@ import errno
 import json
 import math
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any
+
+from botorl.errors import BotorlError
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)  # reading the umask needs setting it; restored at once
@@ -31,7 +34,10 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        try:
+            os.replace(tmp, path)
+        except IsADirectoryError:  # a folder where botorl keeps a file: the user's to remove
+            raise _not_regular(path, "a directory") from None
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -98,3 +104,105 @@ def pid_alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+# ---------------------------------------------------------------------------------------------
+# Files inside a run, population or sweep directory. Such a directory is data from anywhere (a
+# colleague's archive, a shared disk): a file in it may be a symbolic link to something outside,
+# a FIFO that blocks whoever opens it, a device or a huge file. Readers take only regular files
+# of a bounded size; appenders and locks open without following a link.
+
+JSON_LIMIT = 16 << 20  # config.json, summary.json, population.json, a checkpoint's state.json, ...
+SWEEP_JSON_LIMIT = 64 << 20  # sweep.json: a grid of thousands of trials, each with its log tail
+CSV_LIMIT = 64 << 20
+
+
+class UnsafeFileError(BotorlError):
+    """A file botorl writes in a run directory is a symbolic link or not a regular file."""
+
+
+def _not_regular(path: Path, what: str) -> UnsafeFileError:
+    return UnsafeFileError(
+        f"{path} is {what}, not a regular file. botorl writes only regular files inside a run, population or "
+        f"sweep directory (a link there could make it write anywhere); remove it and run the command again."
+    )
+
+
+def open_regular(path: str | os.PathLike, flags: int, mode: int = 0o644) -> int:
+    """``os.open`` of a regular file that follows no symbolic link and never blocks on a FIFO
+    (``O_NONBLOCK``: a FIFO or device is opened, seen and closed); ``UnsafeFileError`` (exit 2)
+    otherwise."""
+    path = Path(path)
+    try:
+        fd = os.open(path, flags | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, mode)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise _not_regular(path, "a symbolic link") from None
+        if err.errno == errno.ENXIO:  # a FIFO without a reader, opened for writing
+            raise _not_regular(path, "a FIFO") from None
+        raise
+    st = os.fstat(fd)
+    if not stat.S_ISREG(st.st_mode):
+        os.close(fd)
+        raise _not_regular(path, "a directory" if stat.S_ISDIR(st.st_mode) else "a special file")
+    return fd
+
+
+def append_text(path: str | os.PathLike, text: str) -> None:
+    """Append ``text`` to the regular file ``path`` (created if missing), following no link."""
+    fd = open_regular(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666 & ~_UMASK)
+    with os.fdopen(fd, "w", newline="") as f:
+        f.write(text)
+        f.flush()
+
+
+def read_bounded_bytes(path: str | os.PathLike, limit: int, *, tail: bool = False) -> bytes:
+    """The bytes of a regular file of at most ``limit`` bytes (``tail``: its last ``limit``
+    bytes, whatever its size); ValueError or OSError saying what is wrong otherwise."""
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise ValueError(f"{path.name} is a symbolic link, not a regular file") from None
+        raise
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f"{path.name} is not a regular file")
+        if st.st_size > limit and not tail:
+            raise ValueError(f"{path.name} is {st.st_size:,} bytes, more than the {limit:,} a run's file may hold")
+        if tail and st.st_size > limit:
+            os.lseek(fd, st.st_size - limit, os.SEEK_SET)
+        chunks, left = [], limit
+        while left > 0:
+            b = os.read(fd, min(left, 1 << 20))
+            if not b:
+                break
+            chunks.append(b)
+            left -= len(b)
+    finally:
+        os.close(fd)
+    return b"".join(chunks)
+
+
+def read_bounded(path: str | os.PathLike, limit: int, *, tail: bool = False) -> str:
+    """The text of a regular file of at most ``limit`` bytes (``tail``: its last ``limit``
+    bytes, whatever its size, undecodable bytes replaced); ValueError (not a regular file, too
+    large, not UTF-8) or OSError otherwise."""
+    path = Path(path)
+    data = read_bounded_bytes(path, limit, tail=tail)
+    try:
+        return data.decode("utf-8", errors="replace" if tail else "strict")
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path.name} is not UTF-8 text ({err.reason} at byte {err.start})") from None
+
+
+def read_json_bounded(path: str | os.PathLike, limit: int = JSON_LIMIT) -> Any:
+    """The JSON document in the regular file ``path`` (at most ``limit`` bytes); ValueError
+    (not a regular file, too large, not UTF-8, not JSON, nested too deep) or OSError."""
+    text = read_bounded(path, limit)
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError(f"{Path(path).name} is nested too deeply to be a botorl file") from None

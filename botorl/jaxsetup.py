@@ -46,6 +46,23 @@ def _cpu_devices(jax) -> None:
         pass
 
 
+def _check_backend(jax) -> None:
+    """Start JAX's backend now, so that a platform this machine does not have
+    (``JAX_PLATFORMS=cuda`` without a GPU) is exit 2 with a message, not a traceback at the first
+    array. JAX raises RuntimeError (or, in some versions, a bare AssertionError) there."""
+    try:
+        jax.devices()
+    except (RuntimeError, AssertionError) as err:
+        from botorl.errors import BotorlError
+
+        platforms = os.environ.get("JAX_PLATFORMS") or os.environ.get("JAX_PLATFORM_NAME") or "(not set)"
+        raise BotorlError(
+            f"JAX cannot start its backend (JAX_PLATFORMS={platforms}): {type(err).__name__}: {str(err) or 'no such device'}. "
+            f"Unset JAX_PLATFORMS (or set JAX_PLATFORMS=cpu) to run on the CPU, or install the jax build for this "
+            f"machine's accelerator."
+        ) from None
+
+
 def setup_jax() -> None:
     """Turn on the persistent compilation cache and one CPU device per usable core (idempotent).
 
@@ -59,6 +76,7 @@ def setup_jax() -> None:
     import jax
 
     _cpu_devices(jax)
+    _check_backend(jax)
     where = os.environ.get("BOTORL_JAX_CACHE", str(Path.home() / ".cache" / "botorl" / "jax"))
     if where.lower() == "off":
         return

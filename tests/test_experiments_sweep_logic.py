@@ -287,10 +287,19 @@ def test_orphan_of_an_earlier_sweep_is_stopped(tmp_path):
     try:
         import socket
 
-        write_json_atomic(run_dir / TRIAL_PID, {"pid": stranger.pid, "host": socket.gethostname()})
+        from botorl.experiments.backend_local import start_time
+
+        host = socket.gethostname()
+        write_json_atomic(run_dir / TRIAL_PID, {"pid": stranger.pid, "start": start_time(stranger.pid), "host": host})
         assert not stop_orphan(run_dir)  # a pid that is not this trial's is never touched
         assert stranger.poll() is None
-        write_json_atomic(run_dir / TRIAL_PID, {"pid": orphan.pid, "host": socket.gethostname()})
+        # the trial's pid with another start time: the pid of a process that ended, reused
+        write_json_atomic(run_dir / TRIAL_PID, {"pid": orphan.pid, "start": start_time(orphan.pid) - 1, "host": host})
+        assert not stop_orphan(run_dir)
+        write_json_atomic(run_dir / TRIAL_PID, {"pid": orphan.pid, "host": host})  # no start time: not a record
+        assert not stop_orphan(run_dir)
+        assert orphan.poll() is None
+        write_json_atomic(run_dir / TRIAL_PID, {"pid": orphan.pid, "start": start_time(orphan.pid), "host": host})
         assert stop_orphan(run_dir)
         assert orphan.wait(timeout=20) == -signal.SIGTERM
     finally:

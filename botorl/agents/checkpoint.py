@@ -25,10 +25,11 @@ import numpy as np
 from flax import serialization
 
 from botorl.errors import DataFormatError
-from botorl.io import atomic_write_bytes
+from botorl.io import atomic_write_bytes, read_bounded_bytes
 
 FORMAT = "botorl-agent-v2"
 FORMATS = ("botorl-agent-v1", FORMAT)
+AGENT_LIMIT = 1 << 36  # bytes of one agent file: a population of large agents, far under any real one
 
 
 def _config_json(config) -> str:
@@ -64,7 +65,8 @@ def _read(path: Path) -> dict:
     if not path.is_file():
         raise DataFormatError(f"checkpoint {path} does not exist; give the path of a file written by botorl.agents.checkpoint.save.")
     try:
-        payload = serialization.msgpack_restore(path.read_bytes())
+        # a regular file only (no link, FIFO or device), and not more than a population's agents hold
+        payload = serialization.msgpack_restore(read_bounded_bytes(path, AGENT_LIMIT))
     except Exception as err:  # truncated / not msgpack
         raise DataFormatError(
             f"checkpoint {path} cannot be read ({type(err).__name__}: {err}); the file is damaged or not a botorl "

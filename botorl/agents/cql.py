@@ -72,6 +72,9 @@ class CQLConfig(SACConfig):
 
         if self.cql_n_actions < 1:
             raise ConfigError(f"CQLConfig.cql_n_actions = {self.cql_n_actions} is invalid: need at least 1 sample.")
+        if not (self.cql_lagrange_lr >= 0 and self.cql_lagrange_lr < float("inf")):
+            raise ConfigError(f"CQLConfig.cql_lagrange_lr = {self.cql_lagrange_lr} is invalid: a learning rate must be "
+                              f"a finite number >= 0.")
         if self.cql_temp <= 0:
             raise ConfigError(f"CQLConfig.cql_temp = {self.cql_temp} is invalid: must be positive.")
         if self.cql_penalty_critics is not None and self.cql_penalty_critics < 1:

@@ -77,6 +77,13 @@ class IQLConfig:
                 f"IQLConfig.num_min_critics = {self.num_min_critics} is invalid: must be in [1, num_critics = "
                 f"{self.num_critics}]."
             )
+        for f in ("actor_lr", "critic_lr", "value_lr"):
+            v = getattr(self, f)
+            if not (v >= 0 and v < float("inf")):  # a negative rate climbs the loss
+                raise ConfigError(f"IQLConfig.{f} = {v} is invalid: a learning rate must be a finite number >= 0.")
+        if not (-float("inf") < self.log_std_min < self.log_std_max < float("inf")):
+            raise ConfigError(f"IQLConfig.log_std_min = {self.log_std_min} is invalid: the actor's log-std range "
+                              f"needs log_std_min < log_std_max (= {self.log_std_max}).")
         if self.actor_dropout is not None and not 0.0 <= self.actor_dropout < 1.0:
             raise ConfigError(f"IQLConfig.actor_dropout = {self.actor_dropout} is invalid: must be in [0, 1) or None.")
 

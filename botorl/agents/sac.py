@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -110,6 +111,12 @@ class SACConfig:
                 'or "fixed" (init_temp)')
         if self.num_backup_actions < 1:
             bad("num_backup_actions", "must be >= 1")
+        for f in ("actor_lr", "critic_lr", "temp_lr"):
+            if not (math.isfinite(getattr(self, f)) and getattr(self, f) >= 0):  # a negative rate climbs the loss
+                bad(f, "a learning rate must be a finite number >= 0, e.g. 3e-4")
+        if not (math.isfinite(self.log_std_min) and math.isfinite(self.log_std_max)
+                and self.log_std_min < self.log_std_max):
+            bad("log_std_min", f"the actor's log-std range needs log_std_min < log_std_max (= {self.log_std_max!r})")
         if self.chunk_rows is not None and (not isinstance(self.chunk_rows, int) or self.chunk_rows < 0):
             bad("chunk_rows", "give a row count, 0 for no chunking, or None for the device's default")
         for f in ("actor_hidden_dims", "critic_hidden_dims"):

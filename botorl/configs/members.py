@@ -11,12 +11,24 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass, replace
 from typing import Sequence
 
 from botorl.boto.config import check_alpha
 from botorl.configs.methods import get_method
 from botorl.errors import ConfigError
+
+
+# The most seeds, alphas or members one population (or one sweep's grid axis) may have: far more
+# than any study needs, and few enough that the lists are built before any size is known
+# (`--seeds 0-2147483648` is refused, not a MemoryError). The memory a population needs is
+# checked against the machine later (pipeline/population.py).
+MAX_MEMBERS = 10_000
+SEED_LIMIT = 2**31  # NumPy's and JAX's seeds: [0, 2**31)
+
+# every name Member.name makes, and nothing else (population.json's names are checked against it)
+MEMBER_NAME = re.compile(r"(alpha[+-][0-9]{1,3}\.[0-9]{2,6}-)?seed[0-9]{1,12}")
 
 
 @dataclass(frozen=True)
@@ -69,16 +81,19 @@ def parse_seeds(value, flag: str = "--seeds") -> list[int]:
                 lo, hi = (int(p) for p in item.split("-", 1))
                 if hi < lo:
                     raise ValueError
-                seeds.extend(range(lo, hi + 1))
             else:
-                seeds.append(int(item))
+                lo = hi = int(item)
         except ValueError:
             raise ConfigError(
                 f"{flag}: cannot read {item!r}. Give a range like 0-7 (both ends included), a list like "
                 f"0,2,5, or both (0-3,9)."
             ) from None
-    if any(s < 0 for s in seeds):
-        raise ConfigError(f"{flag}: seeds must be >= 0, got {[s for s in seeds if s < 0]}.")
+        if lo < 0 or hi >= SEED_LIMIT:
+            raise ConfigError(f"{flag}: {item!r}: seeds must lie in [0, 2**31), got {lo if lo < 0 else hi}.")
+        if len(seeds) + hi - lo + 1 > MAX_MEMBERS:  # counted before the list is built
+            raise ConfigError(f"{flag} {value!r} gives {len(seeds) + hi - lo + 1:,} seeds or more; at most "
+                              f"{MAX_MEMBERS:,} are allowed. Give fewer seeds (e.g. {flag} 0-7).")
+        seeds.extend(range(lo, hi + 1))
     _no_repeats(seeds, value, flag)
     return seeds
 
@@ -95,10 +110,13 @@ def parse_alphas(value, flag: str = "--alphas") -> list[float]:
                 if not step > 0 or stop < start:
                     raise ValueError
                 n = int(math.floor((stop - start) / step + 1e-9)) + 1
+                if len(alphas) + n > MAX_MEMBERS:
+                    raise ConfigError(f"{flag} {value!r} gives {len(alphas) + n:,} alphas; at most {MAX_MEMBERS:,} "
+                                      f"are allowed. Use a coarser step (e.g. {flag} -1:1:0.25).")
                 alphas.extend(round(start + i * step, 6) for i in range(n))
             else:
                 alphas.append(round(float(item), 6))
-        except ValueError:
+        except (ValueError, OverflowError):
             raise ConfigError(
                 f"{flag}: cannot read {item!r}. Give start:stop:step with the stop included (-1:1:0.25 gives "
                 f"9 values) or a list like -0.5,0,0.5."
@@ -114,6 +132,9 @@ def parse_alphas(value, flag: str = "--alphas") -> list[float]:
 def make_members(seeds: Sequence[int], alphas: Sequence[float | None], method_uses_alpha: bool) -> list[Member]:
     """Every (seed, alpha) pair, alpha-major. ``alphas`` empty or [None]: one alpha (the preset's)."""
     alphas = list(alphas) or [None]
+    if len(seeds) * len(alphas) > MAX_MEMBERS:
+        raise ConfigError(f"{len(seeds):,} seeds x {len(alphas):,} alphas make {len(seeds) * len(alphas):,} members; at "
+                          f"most {MAX_MEMBERS:,} are allowed. Give fewer --seeds or --alphas.")
     if not method_uses_alpha and any(a is not None for a in alphas):
         raise ConfigError("--alphas sets BOTO's bias controller; this method has no BOTO phase. Drop --alphas or use --method boto.")
     members = [Member(int(s), None if a is None else float(a)) for a in alphas for s in seeds]

@@ -7,6 +7,7 @@ message names the field and says what to change.
 from __future__ import annotations
 
 import functools
+import os
 from dataclasses import replace
 
 from botorl.boto.config import check_alpha
@@ -89,6 +90,63 @@ def resolve(cfg: RunConfig) -> RunConfig:
     )
 
 
+MAX_BATCH = 1 << 20  # rows of one batch: 4096x the paper's 256
+MAX_WIDTH = 1 << 16  # units of one hidden layer
+
+
+def machine_memory() -> int:
+    """Bytes of physical memory (0 when the system does not say)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
+def _check_sizes(cfg: RunConfig, method, need) -> None:
+    """Batch sizes, layer widths and the replay buffer against a cap and against this machine's
+    memory, before anything is allocated (a huge value is exit 2, not a MemoryError)."""
+    batches = {"offline.batch_size": cfg.offline.batch_size, "online.batch_size": cfg.online.batch_size,
+               "boto.batch_size": cfg.boto.batch_size}
+    for name, v in batches.items():
+        need(isinstance(v, int) and 1 <= v <= MAX_BATCH, name, v, f"a batch size must be an integer in [1, {MAX_BATCH:,}]")
+    for name, dims in (("network.actor_hidden_dims", cfg.network.actor_hidden_dims),
+                       ("network.critic_hidden_dims", cfg.network.critic_hidden_dims)):
+        need(all(isinstance(d, int) and d <= MAX_WIDTH for d in dims), name, dims,
+             f"a layer is at most {MAX_WIDTH:,} units wide")
+    try:
+        from botorl.envs.registry import get_task
+
+        spec = get_task(cfg.task)
+    except ConfigError:
+        return  # an unknown task is refused where the task is looked up, naming the valid ones
+    warm = cfg.warmup.steps if "warmup" in method.stages else 0
+    rows = cfg.online.buffer_capacity or (cfg.online.steps + warm + 1)
+    if cfg.online.buffer_capacity is not None and "finetune" in method.stages:
+        # the warm-up's transitions go into the buffer, and Cal-QL samples finished episodes only
+        least = max(warm, spec.max_episode_steps)
+        need(cfg.online.buffer_capacity >= least, "online.buffer_capacity", cfg.online.buffer_capacity,
+             f"the replay buffer must hold the warm-up's {warm} transitions and one whole episode "
+             f"({spec.max_episode_steps} steps on {cfg.task}); give at least {least}, or leave it unset (None: the "
+             f"whole online budget)")
+    members = (1 if cfg.seeds is None else len(parse_seeds(cfg.seeds))) * \
+        (1 if cfg.alphas is None else len(parse_alphas(cfg.alphas)))  # each capped at MAX_MEMBERS
+    row_bytes = 4 * (2 * spec.obs_dim + spec.action_dim + 4)
+    have = machine_memory()
+    if have and rows * row_bytes * members > have:
+        what = "--online.buffer_capacity" if cfg.online.buffer_capacity else "--online.steps (the buffer holds them all)"
+        raise ConfigError(
+            f"the replay buffer would hold {rows:,} transitions ({rows * row_bytes * members / 2**30:.1f} GiB"
+            f"{f' for {members} members' if members > 1 else ''}), more than this machine's "
+            f"{have / 2**30:.1f} GiB of memory. Lower {what}{' or use fewer members (--seeds/--alphas)' if members > 1 else ''}.")
+    call_rows = max(cfg.offline.updates_per_call * cfg.offline.batch_size, cfg.online.utd * cfg.online.batch_size,
+                    cfg.boto.steps_per_call * cfg.boto.batch_size)
+    if have and call_rows * row_bytes * members > have:
+        raise ConfigError(
+            f"one jitted call's batches would hold {call_rows:,} rows ({call_rows * row_bytes / 2**30:.1f} GiB per "
+            f"member), more than this machine's {have / 2**30:.1f} GiB of memory. Lower the batch sizes, "
+            f"--offline.updates-per-call, --boto.steps-per-call or --online.utd.")
+
+
 def validate(cfg: RunConfig) -> None:
     """Raise ConfigError for any value that cannot run (call after ``resolve``)."""
     from botorl.configs.custom import ensure_task
@@ -143,6 +201,7 @@ def validate(cfg: RunConfig) -> None:
     need(0.0 <= cfg.online.offline_ratio <= 1.0, "online.offline_ratio", cfg.online.offline_ratio, "must lie in [0, 1]")
     if cfg.online.buffer_capacity is not None:
         need(cfg.online.buffer_capacity >= 1, "online.buffer_capacity", cfg.online.buffer_capacity, "must be positive or None")
+    _check_sizes(cfg, method, need)
     for name, dims in (("network.actor_hidden_dims", cfg.network.actor_hidden_dims),
                        ("network.critic_hidden_dims", cfg.network.critic_hidden_dims)):
         need(len(dims) >= 1 and all(int(d) >= 1 for d in dims), name, dims, "give positive layer widths, e.g. 256 256")

@@ -236,6 +236,43 @@ class RunConfig:
         return int(np.random.SeedSequence([self.seed, self.online_reseed]).generate_state(1)[0] % 2**31)
 
 
+# ------------------------------------------------------------------ a run's identity
+# Fields that do not change what a run's checkpoints hold: where and how it logs, how updates
+# are chunked into jitted calls (the same numbers either way), where its data and pre-training
+# are read from (a run directory moves between machines), the preset's name and evaluation.
+_NOT_STATE = ("out", "progress", "tensorboard", "wandb", "checkpoint_every", "seeds", "alphas", "pretrained", "profile",
+              "seed", "alpha", "data.path", "data.demos", "offline.updates_per_call", "offline.sample_on_device",
+              "boto.steps_per_call")
+
+
+def _flat(d: dict, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _digest(fields: dict[str, Any]) -> str:
+    import hashlib
+    import json
+
+    return hashlib.sha256(json.dumps(fields, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def run_identity(cfg: "RunConfig") -> dict[str, Any]:
+    """What every checkpoint of the run ``cfg`` records, so that it is never read as another
+    run's: task, method, pre-training (algorithm and a digest of the fields that shape it),
+    seed, alpha, and a digest of every config field that shapes the saved state."""
+    flat = {k: v for k, v in _flat(to_dict(cfg)).items()
+            if k not in _NOT_STATE and not k.startswith(("eval.",)) and not k.endswith("log_every")}
+    pre = {k: v for k, v in flat.items() if k.startswith(("data.", "network.", "offline."))}
+    return {"task": cfg.task, "method": cfg.method, "pretrain": cfg.pretrain, "pretraining": _digest(pre),
+            "seed": cfg.seed, "alpha": cfg.alpha, "config": _digest(flat)}
+
+
 # ------------------------------------------------------------------ dict round trip
 def to_dict(cfg: Any) -> Any:
     if dataclasses.is_dataclass(cfg):

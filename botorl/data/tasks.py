@@ -13,7 +13,8 @@ from botorl.data import loaders
 from botorl.data.dataset import Dataset
 
 
-def load_task_data(spec, path: str | os.PathLike | None = None, **kwargs) -> Dataset:
+def load_task_data(spec, path: str | os.PathLike | None = None, *, action_tolerance: float = 1e-3,
+                   **kwargs) -> Dataset:
     """The task's offline data with raw rewards (the pipeline applies the transform).
 
     ``path``: a Minari dataset folder (minari tasks; default: by id from
@@ -21,7 +22,8 @@ def load_task_data(spec, path: str | os.PathLike | None = None, **kwargs) -> Dat
     given: those files are pickles), or a generated Minari folder (generated tasks;
     default: the cache, generating the data if missing; ``kwargs`` go to ``ensure_dataset``), or a
     user's file (user tasks; default: theirs, held in memory or the file registered; ``kwargs``:
-    ``action_tolerance``).
+    ``action_tolerance``). ``action_tolerance``: the largest |action| - 1 a Minari dataset may
+    hold (--data.action-tolerance).
     """
     src = spec.dataset_source
     if src.kind == "user":  # a user's own task (botorl/data/user.py)
@@ -30,13 +32,14 @@ def load_task_data(spec, path: str | os.PathLike | None = None, **kwargs) -> Dat
         return load_user_data(spec, path, **kwargs)
     if src.kind == "minari":
         return loaders.load_minari(
-            path or src.ref, obs_keys=src.obs_keys, obs_dim=spec.obs_dim, action_dim=spec.action_dim
-        )
+            path or src.ref, obs_keys=src.obs_keys, obs_dim=spec.obs_dim, action_dim=spec.action_dim,
+            action_tolerance=action_tolerance)
     if src.kind == "calql_npy":
         expert, bc = _calql_paths(spec.name, src, path)
         return loaders.load_calql_adroit(expert, bc, obs_dim=spec.obs_dim, action_dim=spec.action_dim)
     if path is not None:
-        return loaders.load_minari(Path(path), obs_dim=spec.obs_dim, action_dim=spec.action_dim)
+        return loaders.load_minari(Path(path), obs_dim=spec.obs_dim, action_dim=spec.action_dim,
+                                   action_tolerance=action_tolerance)
     from botorl.data.generate import ensure_dataset
 
     return ensure_dataset(spec.name, **kwargs)

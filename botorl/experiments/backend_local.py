@@ -7,7 +7,6 @@ pools."""
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import signal
 import socket
@@ -17,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from botorl.experiments.child import launcher
-from botorl.io import atomic_write_json, pid_alive
+from botorl.io import atomic_write_json, open_regular, read_json_bounded
 
 ABORT_WAIT_S = 60.0  # a stopped trial's last update chunk and checkpoint; SLURM's default KillWait is 30 s
 TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan detection)
@@ -59,56 +58,99 @@ def cmdline(pid: int) -> str:
         return ""
 
 
-def stop_orphan(run_dir: Path, timeout: float = 15.0) -> bool:
-    """Stop a trial process left from an earlier sweep of this directory (same host only)."""
+def _stat_fields(pid: int) -> list[bytes] | None:
+    """The fields of /proc/PID/stat after the command name (field 3 onwards)."""
     try:
-        info = json.loads((Path(run_dir) / TRIAL_PID).read_text())
+        raw = Path(f"/proc/{int(pid)}/stat").read_bytes()
+        return raw[raw.rindex(b")") + 2:].split()
+    except (OSError, ValueError):
+        return None
+
+
+def start_time(pid: int) -> int | None:
+    """When ``pid`` started (clock ticks since boot, field 22 of /proc/PID/stat). A pid is
+    reused; the pair (pid, start time) names one process for good."""
+    f = _stat_fields(pid)
+    try:
+        return int(f[19]) if f and f[0] != b"Z" else None  # a zombie has ended (its parent has not reaped it)
+    except (ValueError, IndexError):
+        return None
+
+
+def process_record(pid: int) -> dict[str, int] | None:
+    """What a sweep writes down to stop a process of its own later: its pid and start time."""
+    start = start_time(pid)
+    return None if start is None else {"pid": int(pid), "start": start}
+
+
+def recorded_alive(record: Any) -> int | None:
+    """The pid of ``record`` (``process_record``, as read back from a file) if that very process
+    still runs and is this user's, else None: a record names a process, never a pattern."""
+    if not isinstance(record, dict):
+        return None
+    pid, start = record.get("pid"), record.get("start")
+    if type(pid) is not int or type(start) is not int or pid <= 1 or pid == os.getpid():
+        return None
+    try:
+        if Path(f"/proc/{pid}").stat().st_uid != os.getuid():
+            return None
+    except OSError:
+        return None
+    return pid if start_time(pid) == start else None
+
+
+def descendants(pids: list[int]) -> list[int]:
+    """Every live descendant of ``pids`` (children, their children, ...)."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            f = _stat_fields(int(entry.name))
+            if f and len(f) > 1 and f[1].isdigit():
+                children.setdefault(int(f[1]), []).append(int(entry.name))
+    out, todo = [], list(pids)
+    while todo:
+        for c in children.get(todo.pop(), []):
+            if c not in out and c not in pids:
+                out.append(c)
+                todo.append(c)
+    return out
+
+
+def stop_recorded(records: Any, timeout: float = 10.0) -> int:
+    """SIGTERM (then SIGKILL) the processes ``records`` name that still run (same pid, same
+    start time, this user's), with their descendants; nothing else. The number stopped."""
+    roots = [p for r in (records if isinstance(records, list) else []) if (p := recorded_alive(r)) is not None]
+    if not roots:
+        return 0
+    victims = [r for p in roots + descendants(roots) if (r := process_record(p)) is not None]
+    for r in victims:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(r["pid"], signal.SIGTERM)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and any(recorded_alive(r) for r in victims):
+        time.sleep(0.1)
+    for r in victims:
+        if recorded_alive(r):
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(r["pid"], signal.SIGKILL)
+    return len(victims)
+
+
+def stop_orphan(run_dir: Path, timeout: float = 15.0) -> bool:
+    """Stop a trial process left from an earlier sweep of this directory (same host only): the
+    process the trial's pid file records (pid and start time), if it still runs and still works
+    on this directory."""
+    try:
+        info = read_json_bounded(Path(run_dir) / TRIAL_PID)
     except (OSError, ValueError):
         info = None
     if not isinstance(info, dict) or info.get("host") != socket.gethostname():
         return False
-    pid = int(info.get("pid", 0) or 0)
-    if pid <= 0 or pid == os.getpid() or not pid_alive(pid):
+    pid = recorded_alive(info)
+    if pid is None or str(Path(run_dir).resolve()) not in cmdline(pid):
         return False
-    if str(Path(run_dir).resolve()) not in cmdline(pid):  # pid reused by something else
-        return False
-    with contextlib.suppress(ProcessLookupError):
-        os.kill(pid, signal.SIGTERM)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and pid_alive(pid) and str(Path(run_dir).resolve()) in cmdline(pid):
-        time.sleep(0.1)
-    if pid_alive(pid) and str(Path(run_dir).resolve()) in cmdline(pid):
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pid, signal.SIGKILL)
+    stop_recorded([info], timeout)
     return True
-
-
-def stop_processes_mentioning(needle: str, timeout: float = 10.0) -> int:
-    """SIGTERM (then SIGKILL) this user's processes whose command line contains `needle`."""
-    me = os.getpid()
-    uid = os.getuid()
-    victims = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit() or int(entry.name) == me:
-            continue
-        try:
-            if entry.stat().st_uid != uid:
-                continue
-        except OSError:
-            continue
-        if mentions(int(entry.name), needle):
-            victims.append(int(entry.name))
-    for pid in victims:
-        with contextlib.suppress(ProcessLookupError, PermissionError):
-            os.kill(pid, signal.SIGTERM)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and any(pid_alive(p) and mentions(p, needle) for p in victims):
-        time.sleep(0.1)
-    for pid in victims:
-        if pid_alive(pid) and mentions(pid, needle):
-            with contextlib.suppress(ProcessLookupError, PermissionError):
-                os.kill(pid, signal.SIGKILL)
-    return len(victims)
 
 
 def mentions(pid: int, needle: str) -> bool:
@@ -168,12 +210,12 @@ class LocalBackend:
         block = self.core_block(slot) if (slot is not None and self.pinned) else None
         # "cpu": the one core of a single-core block (the manifest's field before blocks), else None
         cpu = block[0] if block and len(block) == 1 else None
-        with open(log, "ab") as logf:
+        with os.fdopen(open_regular(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT), "ab") as logf:
             proc = subprocess.Popen(launcher(cmd, os.getpid(), block), stdout=logf, stderr=subprocess.STDOUT,
                                     stdin=subprocess.DEVNULL, env=sweep.trial_env(len(block) if block else 1),
                                     cwd=str(sweep.out))
-        atomic_write_json(run_dir / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": cpu,
-                                                "cpus": block})
+        atomic_write_json(run_dir / TRIAL_PID, {"pid": proc.pid, "start": start_time(proc.pid),
+                                                "host": socket.gethostname(), "cpu": cpu, "cpus": block})
         sweep.entry(trial).update(pid=proc.pid, cpu=cpu, cpus=block)
         sweep.save()
         return proc

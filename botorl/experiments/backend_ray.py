@@ -1,14 +1,19 @@
 """The sweep's Ray backend: one Ray task (num_cpus=1) per trial, on an existing cluster
 (``--ray-address``) or on a local instance the sweep starts and stops. A local instance
-lives in a private temp dir named on every one of its processes' command lines, so a sweep
-killed with SIGKILL has its leftover daemons stopped by the next invocation
-(``cleanup_previous``)."""
+lives in a private temp dir, ``/tmp/botorl-ray-XXXXXXXX``; sweep.json records that dir and
+the instance's processes (pid and start time), so a sweep killed with SIGKILL has its
+leftover daemons stopped and the dir removed by the next invocation (``cleanup_previous``).
+sweep.json is data (it may come from anywhere): only a process it records that still runs
+with the recorded start time, and its descendants, is stopped, and only a dir that is what
+this module makes is removed."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
+import stat
 import socket
 import subprocess
 import sys
@@ -17,18 +22,46 @@ from pathlib import Path
 from typing import Any
 
 from botorl.errors import BotorlError
-from botorl.experiments.backend_local import SINGLE_THREAD_ENV, TRIAL_PID, stop_processes_mentioning, usable_cores
+from botorl.experiments.backend_local import (SINGLE_THREAD_ENV, TRIAL_PID, descendants, process_record,
+                                              start_time, stop_recorded, usable_cores)
 from botorl.experiments.child import launcher
-from botorl.io import atomic_write_json
+from botorl.io import atomic_write_json, open_regular
 
 RAY_ENV_PREFIXES = ("BOTORL_", "XLA_", "JAX_", "MINARI_", "MUJOCO_", "PYTHONUNBUFFERED")
 
+# A local instance's temp dir: short (Ray's unix sockets live under it, 108-byte limit), one
+# level below /tmp, named by tempfile.mkdtemp.
+RAY_TEMP_ROOT = "/tmp"
+RAY_TEMP_PREFIX = "botorl-ray-"
+_RAY_TEMP_NAME = re.compile(re.escape(RAY_TEMP_PREFIX) + r"[A-Za-z0-9_]{6,16}")
+
+
+def own_ray_temp_dir(value: Any) -> str | None:
+    """``value`` (sweep.json's ``ray_local_temp_dir``) if it is a dir this backend makes: a
+    direct child of /tmp named ``botorl-ray-XXXXXXXX``, no ``..`` or link on the way, a real
+    directory (not a link) owned by this user; else None."""
+    if not isinstance(value, str):
+        return None
+    parent, _, name = value.rpartition("/")
+    if parent != RAY_TEMP_ROOT or not _RAY_TEMP_NAME.fullmatch(name):
+        return None
+    try:
+        st = os.lstat(value)
+    except OSError:
+        return None
+    if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid():
+        return None
+    if os.path.realpath(value) != os.path.join(os.path.realpath(RAY_TEMP_ROOT), name):
+        return None
+    return value
+
 
 def cleanup_previous(old_manifest: dict[str, Any]) -> None:
-    """Stop the daemons of a local Ray instance that an earlier, killed sweep started."""
-    tmp = old_manifest.get("ray_local_temp_dir")
-    if isinstance(tmp, str) and tmp.startswith("/tmp/botorl-ray-"):
-        stop_processes_mentioning(tmp)
+    """Stop the daemons of a local Ray instance that an earlier, killed sweep started (those it
+    recorded, with their descendants) and remove its temp dir (if it is one this backend made)."""
+    stop_recorded(old_manifest.get("ray_local_processes"))
+    tmp = own_ray_temp_dir(old_manifest.get("ray_local_temp_dir"))
+    if tmp is not None:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
@@ -38,6 +71,7 @@ class RayBackend:
         self.ray = None
         self.fn = None
         self.tmp: str | None = None
+        self.processes: list[dict[str, int]] = []
 
     def start(self, pending: int) -> int:
         """Connect to (or start) Ray; the number of trials to run at once."""
@@ -60,7 +94,7 @@ class RayBackend:
         else:
             kwargs["num_cpus"] = workers
             # Short path: Ray's unix sockets live under it (108-byte limit).
-            self.tmp = tempfile.mkdtemp(prefix="botorl-ray-", dir="/tmp")
+            self.tmp = tempfile.mkdtemp(prefix=RAY_TEMP_PREFIX, dir=RAY_TEMP_ROOT)
             kwargs["_temp_dir"] = self.tmp
             self.sweep.manifest["ray_local_temp_dir"] = self.tmp
             self.sweep.save()
@@ -73,6 +107,10 @@ class RayBackend:
                     f"{err}. Check --ray-address (e.g. ray://host:10001 or auto) or leave it out "
                     "to start a local instance."
                 ) from None
+            if self.tmp:  # the local instance's daemons: the processes ray.init started
+                self.processes = [r for p in descendants([os.getpid()]) if (r := process_record(p)) is not None]
+                self.sweep.manifest["ray_local_processes"] = self.processes
+                self.sweep.save()
         self.fn = ray.remote(num_cpus=1, max_retries=0)(_ray_trial)
         if opt.ray_address and not opt.workers:  # an existing cluster: as many trials at once as it has CPUs
             workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
@@ -112,11 +150,13 @@ class RayBackend:
         if self.ray is not None and self.ray.is_initialized():
             self.ray.shutdown()
         if self.tmp:
-            stop_processes_mentioning(self.tmp)
+            stop_recorded(self.processes)
             shutil.rmtree(self.tmp, ignore_errors=True)
             self.tmp = None
+            self.processes = []
             with contextlib.suppress(Exception):
                 self.sweep.manifest.pop("ray_local_temp_dir", None)
+                self.sweep.manifest.pop("ray_local_processes", None)
                 self.sweep.save()
 
 
@@ -124,12 +164,13 @@ def _ray_trial(cmd: list[str], env: dict[str, str], log: str, run_dir: str, cwd:
     """Body of the Ray task: one trial as a subprocess of the Ray worker."""
     full_env = dict(os.environ)
     full_env.update(env)
-    with open(log, "ab") as logf:
+    with os.fdopen(open_regular(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT), "ab") as logf:
         proc = subprocess.Popen(
             launcher(cmd, os.getpid()), stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             env=full_env, cwd=cwd,
         )
-    atomic_write_json(Path(run_dir) / TRIAL_PID, {"pid": proc.pid, "host": socket.gethostname(), "cpu": None})
+    atomic_write_json(Path(run_dir) / TRIAL_PID, {"pid": proc.pid, "start": start_time(proc.pid),
+                                                  "host": socket.gethostname(), "cpu": None})
     try:
         return proc.wait()
     except BaseException:  # ray.cancel raises in the worker: do not leave the trial running

@@ -299,6 +299,13 @@ class Grid:
                 "The sweep grid lists alphas but no boto method; alpha is BOTO's bias controller "
                 "and applies to boto only. Add boto to --methods or drop --alphas."
             )
+        n = len(self.tasks) * len(self.methods) * max(1, len(self.alphas)) * len(self.seeds)
+        if n > MAX_TRIALS:  # counted before the trial list is built
+            raise ConfigError(f"The sweep grid has about {n:,} trials; at most {MAX_TRIALS:,} are allowed. Give fewer "
+                              f"tasks, methods, seeds or alphas (or split the grid into several sweeps).")
+
+
+MAX_TRIALS = 100_000  # a grid's trials: far more than a study runs, few enough to list
 
 
 def _grid_loader() -> type:

@@ -237,7 +237,7 @@ def read_pairs_csv(path: Path) -> list[Pair]:
         except ValueError:
             return math.nan
 
-    from botorl.experiments.runs import CSV_LIMIT, read_bounded
+    from botorl.io import CSV_LIMIT, read_bounded
 
     pairs = []
     with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:

@@ -29,7 +29,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime as _dt
-import json
 import os
 import signal
 import socket
@@ -44,7 +43,8 @@ from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, single_thr
 from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial
-from botorl.io import atomic_write_json
+from botorl.io import JSON_LIMIT, SWEEP_JSON_LIMIT, append_text, atomic_write_json, open_regular, read_bounded, \
+    read_json_bounded
 from botorl.pipeline import preempt
 
 MANIFEST = "sweep.json"
@@ -62,10 +62,10 @@ def _now() -> str:
     return _dt.datetime.now().isoformat(timespec="seconds")
 
 
-def read_json(path: Path) -> dict[str, Any] | None:
+def read_json(path: Path, limit: int = JSON_LIMIT) -> dict[str, Any] | None:
+    """The JSON object in ``path`` (a regular file of at most ``limit`` bytes), else None."""
     try:
-        with open(path) as f:
-            data = json.load(f)
+        data = read_json_bounded(path, limit)
         return data if isinstance(data, dict) else None
     except (OSError, ValueError):
         return None
@@ -105,11 +105,30 @@ def trial_command(
     action = next_action(run_dir)
     # no progress bars: a trial's output goes to its log file, where tqdm's redraws pile up
     if action == "resume":
-        return action, prefix + ["resume", str(run_dir), "--no-progress"]
+        consent = ["--allow-pickle"] if same_data(trial, run_dir, grid) else []
+        return action, prefix + ["resume", str(run_dir), "--no-progress", *consent]
     args = trial.run_args(grid.profile, grid.overrides)
     if share_in is not None:
         args += shared_pretraining_args(args, share_in)
     return action, prefix + ["run", *args, "--out", str(run_dir), "--no-progress"]
+
+
+def same_data(trial: Trial, run_dir: Path, grid: Grid) -> bool:
+    """Whether the trial's run directory reads its offline data from where this sweep's own
+    command line says (data.path, data.demos). Then the sweep passes --allow-pickle to its
+    `botorl resume`: the user named that data when starting the sweep, as for `botorl run`, so a
+    pickle-format task (door-binary-v0, pen-binary-v0 with a Cal-QL .npy) resumes. A path the
+    directory's files name and the command line does not stays refused."""
+    from botorl.configs.build import build_config
+
+    try:
+        want = build_config(trial.run_args(grid.profile, grid.overrides)).data
+    except BotorlError:  # not a botorl run (a stand-in command's task)
+        return False
+    pop = read_json(Path(run_dir) / POPULATION_FILE)
+    cfg = pop.get("config") if pop is not None else read_json(Path(run_dir) / "config.json")
+    data = cfg.get("data") if isinstance(cfg, dict) else None
+    return isinstance(data, dict) and data.get("path") == want.path and data.get("demos") == want.demos
 
 
 def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:
@@ -135,13 +154,8 @@ def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:
 
 def _log_tail(path: Path, n: int = 20) -> str:
     try:
-        with open(path, "rb") as f:
-            f.seek(0, os.SEEK_END)
-            size = f.tell()
-            f.seek(max(0, size - 8192))
-            lines = f.read().decode(errors="replace").splitlines()
-        return "\n".join(lines[-n:])
-    except OSError:
+        return "\n".join(read_bounded(path, 8192, tail=True).splitlines()[-n:])
+    except (OSError, ValueError):
         return ""
 
 
@@ -196,7 +210,7 @@ class Sweep:
         return self.out / trial.relpath
 
     def _load_manifest(self) -> None:
-        old = read_json(self.out / MANIFEST) or {}
+        old = read_json(self.out / MANIFEST, SWEEP_JSON_LIMIT) or {}
         cleanup_previous_ray(old)
         old_grid = old.get("grid") or {}
         for field in ("profile", "overrides"):
@@ -249,7 +263,7 @@ class Sweep:
         import fcntl
 
         self.out.mkdir(parents=True, exist_ok=True)
-        f = open(self.out / LOCKFILE, "a+")
+        f = os.fdopen(open_regular(self.out / LOCKFILE, os.O_RDWR | os.O_CREAT), "r+")
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -290,9 +304,8 @@ class Sweep:
         entry = self.entry(trial)
         entry["launches"] += 1
         entry.update(state="running", action=action, started=_now(), ended=None, command=cmd)
-        with open(log, "a") as f:
-            f.write(f"\n===== botorl sweep: attempt {entry['launches']} ({action}) at {_now()}\n")
-            f.write("===== " + " ".join(cmd) + "\n")
+        append_text(log, f"\n===== botorl sweep: attempt {entry['launches']} ({action}) at {_now()}\n"
+                         + "===== " + " ".join(cmd) + "\n")
         return run_dir, cmd, log
 
     # -- finishing a trial -----------------------------------------------------------------------

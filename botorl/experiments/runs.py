@@ -8,12 +8,10 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import errno
 import io
 import json
 import math
 import os
-import stat
 from collections import defaultdict
 from pathlib import Path
 from typing import Any, Iterable
@@ -22,6 +20,7 @@ import numpy as np
 
 from botorl.errors import BotorlError
 from botorl.configs.methods import METHODS
+from botorl.io import CSV_LIMIT, JSON_LIMIT, read_bounded
 
 @dataclasses.dataclass
 class Run:
@@ -72,9 +71,8 @@ def _num(v: Any) -> float:
 
 
 # A run directory is data from anywhere (a colleague's archive, a shared disk): its files are
-# read only when they are regular files (no symlink, FIFO or device) of a bounded size.
-JSON_LIMIT = 4 << 20
-CSV_LIMIT = 64 << 20
+# read only when they are regular files (no symlink, FIFO or device) of a bounded size
+# (botorl.io.read_bounded, JSON_LIMIT, CSV_LIMIT).
 
 
 def relative(path: Path | str, base: Path | str | None) -> str:
@@ -82,39 +80,6 @@ def relative(path: Path | str, base: Path | str | None) -> str:
     the paths as given (symbolic links not resolved), so committed reports hold no path of
     the machine that made them; ``path`` itself when ``base`` is None."""
     return str(path) if base is None else os.path.relpath(os.path.abspath(path), os.path.abspath(base))
-
-
-def read_bounded(path: Path, limit: int, *, tail: bool = False) -> str:
-    """The text of a regular file of at most ``limit`` bytes (``tail``: its last ``limit``
-    bytes, whatever its size); ValueError or OSError saying what is wrong otherwise."""
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
-    except OSError as err:
-        if err.errno == errno.ELOOP:
-            raise ValueError(f"{path.name} is a symbolic link, not a regular file") from None
-        raise
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise ValueError(f"{path.name} is not a regular file")
-        if st.st_size > limit and not tail:
-            raise ValueError(f"{path.name} is {st.st_size:,} bytes, more than the {limit:,} a run's file may hold")
-        if tail and st.st_size > limit:
-            os.lseek(fd, st.st_size - limit, os.SEEK_SET)
-        chunks, left = [], limit
-        while left > 0:
-            b = os.read(fd, min(left, 1 << 20))
-            if not b:
-                break
-            chunks.append(b)
-            left -= len(b)
-    finally:
-        os.close(fd)
-    data = b"".join(chunks)
-    try:
-        return data.decode("utf-8", errors="replace" if tail else "strict")
-    except UnicodeDecodeError as err:
-        raise ValueError(f"{path.name} is not UTF-8 text ({err.reason} at byte {err.start})") from None
 
 
 def read_eval_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:

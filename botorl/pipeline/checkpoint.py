@@ -28,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import stat
 import sys
 import time
 from pathlib import Path
@@ -41,6 +42,35 @@ from botorl.pipeline.rundir import read_json
 
 LATEST = "latest.json"
 MANIFEST = "MANIFEST.json"
+
+
+def check_identity(state: dict[str, Any], expected: list[dict[str, Any]], where: Path, name: str) -> None:
+    """ConfigError (exit 2) unless checkpoint ``name`` (its ``state``) was written by the run(s)
+    whose identities (``configs.schema.run_identity``, one per member) are ``expected``: a
+    checkpoint copied from another run, or a config.json edited after the run began, is refused
+    naming both sides. A checkpoint written before botorl recorded identities is accepted with
+    a warning."""
+    got = state.get("identity")
+    if got is None:
+        print(f"botorl: warning: checkpoint {name} in {where} records no run identity (written before checkpoints "
+              f"recorded their run); it is taken to belong to this run's config.json.", file=sys.stderr)
+        return
+    if got == expected:
+        return
+    if not isinstance(got, list) or len(got) != len(expected) or not all(isinstance(g, dict) for g in got):
+        diff = f"it records {got!r}, this run is {expected!r}"
+    else:
+        parts = []
+        for i, (g, e) in enumerate(zip(got, expected)):
+            keys = [k for k in sorted(set(g) | set(e)) if g.get(k) != e.get(k)]
+            who = f"member {i}: " if len(expected) > 1 else ""
+            parts += [f"{who}{k} {g.get(k)!r} in the checkpoint, {e.get(k)!r} in the config" for k in keys]
+        diff = "; ".join(parts)
+    raise ConfigError(
+        f"checkpoint {name} in {where} belongs to another run ({diff}; 'pretraining' and 'config' are digests of the "
+        f"settings that shape the saved state). A checkpoint is read only by the run that wrote it: put back that "
+        f"run's config.json, or start this one afresh with `botorl run` and another --out."
+    )
 
 
 def file_sha256(path: Path, chunk: int = 1 << 22) -> str:
@@ -97,8 +127,7 @@ def load_npz(path: Path) -> dict[str, np.ndarray]:
             return {k: z[k] for k in z.files}
     except Exception as err:  # truncated zip, bad header, object arrays
         raise CheckpointCorrupt(
-            f"{path} cannot be read ({type(err).__name__}: {err}); the checkpoint is damaged. Resume from an "
-            f"earlier one: `botorl resume RUN_DIR --from NAME` (names: `ls {path.parent.parent}`)."
+            f"{path} cannot be read ({type(err).__name__}: {err}); the checkpoint is damaged."
         ) from None
 
 
@@ -208,7 +237,9 @@ class CheckpointManager:
     def names(self) -> list[str]:
         if not self.root.is_dir():
             return []
-        return sorted(p.name for p in self.root.iterdir() if p.is_dir() and not p.name.startswith("."))
+        # a link is not a checkpoint of this run, whatever it points at
+        return sorted(p.name for p in self.root.iterdir()
+                      if p.is_dir() and not p.is_symlink() and not p.name.startswith("."))
 
     def _check_file(self, name: str, fname: str) -> None:
         """Raise CheckpointCorrupt unless ``name/fname`` matches the manifest (no manifest: accepted)."""
@@ -216,6 +247,12 @@ class CheckpointManager:
         if Path(fname).name != fname or fname in ("", ".", ".."):
             raise CheckpointCorrupt(f"checkpoint {name}: {MANIFEST} lists {fname!r}, which is not a file of the folder.")
         path = self.root / name / fname
+        try:
+            st = os.lstat(path)
+        except OSError:
+            st = None
+        if st is not None and not stat.S_ISREG(st.st_mode):  # a link, FIFO or device: never opened
+            raise CheckpointCorrupt(f"checkpoint {name}: {fname} is not a regular file.")
         if m is None:
             return
         want = m["files"].get(fname)
@@ -229,6 +266,12 @@ class CheckpointManager:
         if file_sha256(path) != want.get("sha256"):
             raise CheckpointCorrupt(f"checkpoint {name}: {fname} does not match its sha256 checksum (the file changed "
                                     f"after it was written).")
+
+    def file(self, name: str, fname: str) -> Path:
+        """The path of ``fname`` in checkpoint ``name``, checked against the manifest (and a
+        regular file); CheckpointCorrupt otherwise."""
+        self._check_file(name, fname)
+        return self.root / name / fname
 
     def verify(self, name: str) -> str | None:
         """None if checkpoint ``name`` passes the check, else the reason it does not."""
@@ -248,6 +291,31 @@ class CheckpointManager:
             return f"checkpoint {name}: state.json cannot be read ({err})"
         return None
 
+    def usable(self, name: str) -> bool:
+        """Whether a resume from ``name`` can read everything it needs: ``name`` passes the check
+        (a checkpoint without a manifest: its arrays load), and so does every stage-final
+        checkpoint it builds on (its done stages: the agent of the last, the warm-up's data)."""
+        def whole(n: str) -> bool:
+            if self.verify(n) is not None:
+                return False
+            if self._manifest(n) is None:  # unverifiable: read its arrays
+                try:
+                    for p in (self.root / n).glob("*.npz"):
+                        self._check_file(n, p.name)
+                        load_npz(p)
+                except CheckpointCorrupt:
+                    return False
+            return True
+
+        if not whole(name):
+            return False
+        try:
+            done = self.state(name).get("done_stages") or []
+        except CheckpointCorrupt:
+            return False
+        return all(whole(checkpoint_name(s, None)) for s in done if isinstance(s, str)
+                   and checkpoint_name(s, None) != name)
+
     def verify_named(self, name: str) -> None:
         """ConfigError unless ``name`` is a checkpoint of this run that passes the check."""
         if name not in self.names() or not (self.root / name / "state.json").exists():
@@ -264,7 +332,8 @@ class CheckpointManager:
         self._point_latest(name, st)
         return self.latest()
 
-    def _order(self, name: str) -> tuple[float, float]:
+    def order(self, name: str) -> tuple[float, float]:
+        """Sort key of checkpoint ``name``: newest last."""
         try:
             m = self._manifest(name)
         except CheckpointCorrupt:
@@ -298,7 +367,7 @@ class CheckpointManager:
                 bad.append(reason)
         elif not p.exists() and not self.names():
             return None
-        for name in sorted(self.names(), key=self._order, reverse=True):
+        for name in sorted(self.names(), key=self.order, reverse=True):
             if name == named:
                 continue
             reason = self.verify(name)

@@ -24,7 +24,7 @@ import tyro
 from botorl.configs.build import build_config
 from botorl.errors import BotorlError, ConfigError
 from botorl.pipeline import preempt
-from botorl.pipeline.rundir import io_fault, owned
+from botorl.pipeline.rundir import check_out, io_fault, owned
 
 
 def _mark_failed(run, reason: str, cfg=None) -> None:
@@ -53,19 +53,22 @@ def _mark_failed(run, reason: str, cfg=None) -> None:
         # summary in place reuses its blocks. Not atomic, so only as the fallback.
         try:
             import json
+            import os
+
+            from botorl.io import open_regular
 
             text = json.dumps(summary, indent=2, default=str) + "\n"
-            with open(run.summary, "r+" if run.summary.exists() else "w") as f:
+            with os.fdopen(open_regular(run.summary, os.O_RDWR | os.O_CREAT), "r+") as f:  # never through a link
                 f.seek(0)
                 f.truncate()
                 f.write(text)
-        except OSError:
-            pass  # read-only or gone: the exit code and the message still say it
+        except (OSError, BotorlError):
+            pass  # read-only, gone or not a regular file: the exit code and the message still say it
 
 
 def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None = None):
     """``execute`` with I/O faults and corrupt checkpoints turned into exit 2 and a truthful status."""
-    from botorl.pipeline.checkpoint import CheckpointManager
+    from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager
     from botorl.pipeline.runner import execute
 
     try:
@@ -80,6 +83,10 @@ def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None =
             raise
         _mark_failed(run, str(fault), cfg)
         raise fault from None
+    except CheckpointCorrupt as err:
+        msg = f"{err} {_resume_hint(run, resume_from)}" if resume else str(err)
+        _mark_failed(run, msg, cfg)
+        raise BotorlError(msg) from None
     except BotorlError as err:
         _mark_failed(run, str(err), cfg)
         raise
@@ -88,10 +95,23 @@ def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None =
             raise
         # a damaged latest.json / state.json / buffer.npz read during the resume
         msg = (f"{run.root}: a checkpoint file could not be read on resume ({type(err).__name__}: {err}). "
-               f"List the checkpoints with `ls {run.checkpoints}` and pick an older one with "
-               f"`botorl resume {run.root} --from NAME`.")
+               f"{_resume_hint(run, resume_from)}")
         _mark_failed(run, msg, cfg)
         raise BotorlError(msg) from None
+
+
+def _resume_hint(run, resume_from: str | None) -> str:
+    """The command that resumes from the newest checkpoint that passes the check, other than
+    the one that just failed (a hint that names a command that works)."""
+    from botorl.pipeline.checkpoint import CheckpointManager
+
+    ckpt = CheckpointManager(run.checkpoints)
+    failed = resume_from or (ckpt.latest() or {}).get("name")
+    good = [n for n in sorted(ckpt.names(), key=ckpt.order, reverse=True) if n != failed and ckpt.usable(n)]
+    if not good:
+        return "No other checkpoint passes the check; start the run again with `botorl run` and another --out."
+    others = f" (others that pass: {', '.join(good[1:])})" if good[1:] else ""
+    return f"Resume from an earlier checkpoint: `botorl resume {run.root} --from {good[0]}`{others}."
 
 
 def _default_out(cfg) -> Path:
@@ -122,6 +142,7 @@ def run_main(argv: list[str]) -> int:
     from botorl.pipeline.runner import format_summary, load_offline
 
     out = Path(cfg.out) if cfg.out else _default_out(cfg)
+    check_out(out)
 
     def already_a_run():
         if (out / "config.json").exists():
@@ -168,8 +189,11 @@ def _load_run_config(directory: str):
             f"`botorl run`."
         )
     try:
-        cfg = from_dict(RunConfig, read_json(run.config))
-    except (TypeError, ValueError, KeyError, AttributeError) as err:
+        data = read_json(run.config)
+        if not isinstance(data, dict):
+            raise ValueError("not a JSON object")
+        cfg = from_dict(RunConfig, data)
+    except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
         raise ConfigError(f"{run.config} cannot be read as a run config ({err}); was it edited by hand?") from None
     validate(cfg)
     return run, cfg
@@ -219,7 +243,7 @@ def resume_main(argv: list[str]) -> int:
     if (Path(args.dir) / "population.json").exists():  # a population (botorl/pipeline/population_cli.py)
         from botorl.pipeline.population_cli import resume_population_main
 
-        return resume_population_main(args.dir, no_progress=args.no_progress)
+        return resume_population_main(args.dir, no_progress=args.no_progress, allow_pickle=args.allow_pickle)
     from botorl.jaxsetup import setup_jax
 
     setup_jax()
@@ -248,7 +272,10 @@ def resume_main(argv: list[str]) -> int:
                 s = {}  # a damaged summary is rewritten by the resume
             if isinstance(s, dict) and s.get("status") == "finished":
                 print(f"botorl: {run.root} has finished already; nothing to resume.", file=sys.stderr)
-                print(format_summary(s))
+                try:
+                    print(format_summary(s))
+                except (KeyError, TypeError, ValueError, AttributeError):  # a summary edited by hand
+                    print(f"status finished (the rest of {run.summary} cannot be shown)")
                 return 0
         spec = get_task(cfg.task)
         d_raw = _load_run_data(cfg, spec, run, args.allow_pickle)
@@ -303,7 +330,8 @@ def _eval(args, run, cfg) -> int:
     from botorl.agents import checkpoint as agent_ckpt
     from botorl.envs.registry import get_task
     from botorl.pipeline import stages as S
-    from botorl.pipeline.checkpoint import CheckpointManager
+    from botorl.configs.schema import run_identity
+    from botorl.pipeline.checkpoint import CheckpointManager, check_identity
     from botorl.pipeline.evaluation import QProbe, make_eval_envs, run_episodes
     from botorl.io import atomic_write_json
     from botorl.pipeline.runner import transform_dataset
@@ -322,12 +350,13 @@ def _eval(args, run, cfg) -> int:
             raise ConfigError(f"{run.root} has no checkpoint yet; wait for the first stage to finish.")
         name = latest["name"]
     state = ckpt.state(name)
+    check_identity(state, [run_identity(cfg)], run.checkpoints, name)
     spec = get_task(cfg.task)
     d = transform_dataset(cfg, spec, _load_run_data(cfg, spec, run, args.allow_pickle))
     stage = state["stage"]
     template = (S.make_online_agent_template if stage == "finetune" else S.make_pretrain_agent)(
         cfg, d.obs_dim, d.action_dim, cfg.seed)
-    agent = agent_ckpt.load(ckpt.path(name) / "agent.ckpt", like=template)
+    agent = agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=template)
     envs = make_eval_envs(spec, cfg.eval)
     t0 = time.perf_counter()
     stats = run_episodes(lambda o: agent.eval_actions(o[0])[None], [envs], episodes=cfg.eval.episodes,

@@ -68,7 +68,7 @@ def run_population_main(cfg) -> int:
     from botorl.envs.registry import get_task
     from botorl.jaxsetup import setup_jax
     from botorl.pipeline import population as P
-    from botorl.pipeline.rundir import io_fault, owned
+    from botorl.pipeline.rundir import check_out, io_fault, owned
     from botorl.io import atomic_write_json
     from botorl.pipeline.rundir import RunDir
     from botorl.pipeline.runner import POPULATION_FILE, load_offline, write_population_file
@@ -78,6 +78,7 @@ def run_population_main(cfg) -> int:
     setup_jax()
     members, member_cfgs = population(cfg)
     out = Path(cfg.out) if cfg.out else _default_out(cfg, len(members))
+    check_out(out)
 
     def already():
         if (out / POPULATION_FILE).exists() or (out / "config.json").exists():
@@ -156,8 +157,26 @@ def _mark_population_failed(out: Path, reason: str) -> None:
         pass
 
 
+def member_dir(root: Path, entry) -> Path:
+    """The run directory of a population member named in population.json: only a name botorl
+    itself makes (``seed<k>``, ``alpha<+0.50>-seed<k>``: configs.members.Member.name) of a
+    real folder directly inside ``root``; ConfigError (exit 2) for anything else."""
+    from botorl.configs.members import MEMBER_NAME
+
+    name = entry.get("name") if isinstance(entry, dict) else None
+    if not isinstance(name, str) or not MEMBER_NAME.fullmatch(name):
+        raise ConfigError(f"{root / 'population.json'} names a member {name!r}, which is not a member name botorl "
+                          f"makes (seed<k> or alpha<+a.aa>-seed<k>); the file was edited or is not botorl's.")
+    path = root / name
+    if path.is_symlink() or (path.exists() and path.resolve().parent != root.resolve()):
+        raise ConfigError(f"{path} is a link out of the population directory {root}; a member's run directory must "
+                          f"be a folder inside it.")
+    return path
+
+
 def load_population(directory: str | Path):
     """(shared config, member configs, member run dirs) of a population directory."""
+    from botorl.configs.members import member_config
     from botorl.configs.resolve import validate
     from botorl.configs.schema import RunConfig, from_dict
     from botorl.pipeline.rundir import RunDir, read_json
@@ -167,16 +186,29 @@ def load_population(directory: str | Path):
     try:
         data = read_json(root / POPULATION_FILE)
         cfg = from_dict(RunConfig, data["config"])
-        runs = [RunDir(root / m["name"]) for m in data["members"]]
+        if not isinstance(data["members"], list) or not data["members"]:
+            raise ValueError("no member list")
+        runs = [RunDir(member_dir(root, m)) for m in data["members"]]
         member_cfgs = [from_dict(RunConfig, read_json(r.config)) for r in runs]
-    except (OSError, ValueError, KeyError, TypeError) as err:
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
         raise ConfigError(f"{root / POPULATION_FILE} (or a member's config.json) cannot be read ({err}); "
                           f"was it edited by hand?") from None
+    if len({r.root.name for r in runs}) != len(runs):
+        raise ConfigError(f"{root / POPULATION_FILE} names a member twice; was it edited by hand?")
     validate(cfg)
-    return cfg, member_cfgs, runs, data
+    for r, mc in zip(runs, member_cfgs):
+        # a member differs from the population in its seed, alpha and folder only
+        want = member_config(cfg, mc.seed, mc.alpha, mc.out)
+        if replace(mc, progress=cfg.progress) != want:
+            raise ConfigError(f"{r.config} does not describe a member of the population in {root} (its settings "
+                              f"other than seed and alpha differ from {root / POPULATION_FILE}'s config); was it "
+                              f"edited by hand?")
+    # where the members are is where they were found, whatever the files say
+    member_cfgs = [replace(mc, out=str(r.root)) for r, mc in zip(runs, member_cfgs)]
+    return replace(cfg, out=str(root)), member_cfgs, runs, data
 
 
-def resume_population_main(directory: str, *, no_progress: bool = False) -> int:
+def resume_population_main(directory: str, *, no_progress: bool = False, allow_pickle: bool = False) -> int:
     from botorl.envs.registry import get_task
     from botorl.jaxsetup import setup_jax
     from botorl.pipeline.rundir import owned
@@ -195,9 +227,19 @@ def resume_population_main(directory: str, *, no_progress: bool = False) -> int:
             member_cfgs = [replace(c, progress=False) for c in member_cfgs]
         if data.get("status") == "finished":
             print(f"botorl: {root} has finished already; nothing to resume.", file=sys.stderr)
-            print(format_population([read_summary(r) for r in runs]))
+            summaries = [read_summary(r) for r in runs]
+            try:
+                print(format_population(summaries))
+            except (KeyError, TypeError, ValueError, AttributeError):  # a member's summary edited by hand
+                print("\n".join(f"{r.root.name}: status {s.get('status')!r}" for r, s in zip(runs, summaries)))
             return 0
-        d_raw = load_offline(cfg, get_task(cfg.task))
+        if allow_pickle:
+            d_raw = load_offline(cfg, get_task(cfg.task))
+        else:  # a pickle named in population.json is not the user's to run (as for a run's config.json)
+            from botorl.data.loaders import refuse_pickle
+
+            with refuse_pickle(f"the population directory's {root / 'population.json'}"):
+                d_raw = load_offline(cfg, get_task(cfg.task))
         with preempt.resumable(f"botorl resume {root}"):
             summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True)
     print(format_population(summaries))

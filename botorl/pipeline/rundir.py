@@ -31,17 +31,20 @@ import time
 from pathlib import Path
 from typing import Any
 
-from botorl.errors import BotorlError
-from botorl.io import IO_FAULTS, atomic_write_bytes, jsonable
+from botorl.errors import BotorlError, ConfigError
+from botorl.io import (IO_FAULTS, JSON_LIMIT, UnsafeFileError, append_text, atomic_write_bytes, jsonable,
+                       open_regular, read_bounded, read_bounded_bytes, read_json_bounded)
 
 LOCK_FILE = ".lock"
+LOG_LIMIT = 1 << 30  # a metrics or eval log botorl reads back (on resume, for the summary)
 
 EVAL_COLUMNS = ["stage", "env_step", "success", "return", "q_data", "q_uniform"]
 
 
-def read_json(path: Path) -> Any:
-    with open(path) as f:
-        return json.load(f)
+def read_json(path: Path, limit: int = JSON_LIMIT) -> Any:
+    """The JSON document in ``path``: a regular file (no link, FIFO or device) of at most
+    ``limit`` bytes; ValueError (saying what is wrong) or OSError otherwise."""
+    return read_json_bounded(path, limit)
 
 
 class RunDir:
@@ -59,8 +62,26 @@ class RunDir:
 
     def create(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
+        for sub in (self.metrics, self.checkpoints, self.tb):
+            # a folder replaced by a link would take the run's writes outside its directory
+            if sub.is_symlink():
+                raise UnsafeFileError(f"{sub} is a symbolic link; botorl writes a run's files only inside its "
+                                      f"directory. Remove the link (or give another --out) and run the command again.")
         self.metrics.mkdir(exist_ok=True)
         self.checkpoints.mkdir(exist_ok=True)
+
+
+def check_out(out: Path) -> None:
+    """ConfigError (exit 2) unless ``--out`` can be a run directory: not an existing file, not
+    inside the kernel's pseudo file systems (/proc, /sys, /dev)."""
+    resolved = Path(os.path.realpath(out))
+    if resolved.parts[1:2] and resolved.parts[1] in ("proc", "sys", "dev"):
+        raise ConfigError(f"--out {out} is inside /{resolved.parts[1]}, the kernel's view of the machine, not a place "
+                          f"for files; give a folder on a disk, e.g. --out runs/my-run.")
+    first = next((p for p in (out, *out.parents) if p.exists()), None)  # the nearest part that exists
+    if first is not None and not first.is_dir():
+        where = "is an existing file" if first == out else f"is inside {first}, an existing file"
+        raise ConfigError(f"--out {out} {where}, not a folder; give a new folder (or an existing one) for the run.")
 
 
 # ----------------------------------------------------------------------------- ownership
@@ -114,15 +135,15 @@ class RunLock:
 
     def holder(self) -> str:
         try:
-            return self.path.read_text().strip() or "unknown"
-        except OSError:
+            return read_bounded(self.path, 64).strip() or "unknown"
+        except (OSError, ValueError):
             return "unknown"
 
     def acquire(self) -> "RunLock":
         if self._fd is not None:
             return self
         self.root.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = open_regular(self.path, os.O_RDWR | os.O_CREAT, 0o644)  # never through a link
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as err:
@@ -155,15 +176,41 @@ class RunLock:
 
 
 # ----------------------------------------------------------------------------- line logs
+def log_lines(path: Path, *, warn: bool = False) -> list[str]:
+    """The complete lines of an append-only log: a last line cut by a kill (no newline yet) and
+    any line that is not UTF-8 text (a torn write, a damaged disk) are left out -- with
+    ``warn``, saying so on stderr -- so a damaged tail never makes a run unresumable."""
+    if not path.exists() and not path.is_symlink():
+        return []
+    try:
+        data = read_bounded_bytes(path, LOG_LIMIT)
+    except ValueError as err:  # a link, a FIFO, a device, a huge file
+        raise UnsafeFileError(f"{path} cannot be read as a botorl log: {err}. Remove it (or give another --out) and "
+                              f"run the command again.") from None
+    lines = data.split(b"\n")
+    torn = lines.pop()  # what follows the last newline: empty unless the last line was cut
+    out, bad = [], 0
+    for b in lines:
+        try:
+            out.append(b.decode("utf-8"))
+        except UnicodeDecodeError:
+            bad += 1
+    if warn and (torn or bad):
+        what = [f"{bad} line(s) that are not UTF-8 text"] if bad else []
+        what += ["a last line cut short"] if torn else []
+        _warn(f"{path}: {' and '.join(what)} left out; the log goes on from its last complete record.")
+    return out
+
+
 class CsvLog:
     """Append-only CSV with a fixed header (the first row's keys; later extra keys dropped)."""
 
     def __init__(self, path: Path, columns: list[str] | None = None):
         self.path = Path(path)
         self.columns = list(columns) if columns else None
-        if self.path.exists() and self.path.stat().st_size > 0:
-            with open(self.path, newline="") as f:
-                header = next(csv.reader(f), None)
+        lines = log_lines(self.path)
+        if lines:
+            header = next(csv.reader(lines[:1]), None)
             if header:
                 self.columns = header
 
@@ -176,21 +223,17 @@ class CsvLog:
         if new:
             w.writeheader()
         w.writerow({k: _fmt(row.get(k, "")) for k in self.columns})
-        with open(self.path, "a", newline="") as f:
-            f.write(buf.getvalue())
-            f.flush()
+        append_text(self.path, buf.getvalue())
 
-    def rows(self) -> list[dict[str, str]]:
-        if not self.path.exists():
-            return []
-        with open(self.path, newline="") as f:
-            return [r for r in csv.DictReader(f) if r]
+    def rows(self, *, warn: bool = False) -> list[dict[str, str]]:
+        lines = log_lines(self.path, warn=warn)
+        return [r for r in csv.DictReader(lines) if r]
 
     def truncate(self, keep) -> None:
         """Keep only rows for which ``keep(row)`` is true (atomic rewrite)."""
         if not self.path.exists():
             return
-        rows = self.rows()
+        rows = self.rows(warn=True)
         buf = io.StringIO()
         cols = self.columns or (list(rows[0].keys()) if rows else [])
         w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
@@ -217,25 +260,22 @@ class JsonlLog:
         self.path = Path(path)
 
     def append(self, row: dict[str, Any]) -> None:
-        with open(self.path, "a") as f:
-            f.write(json.dumps(jsonable(row)) + "\n")
-            f.flush()
+        append_text(self.path, json.dumps(jsonable(row)) + "\n")
 
     def truncate(self, keep) -> None:
         if not self.path.exists():
             return
         out = []
-        with open(self.path) as f:
-            for line in f:
-                line = line.strip()
-                if not line:
-                    continue
-                try:
-                    row = json.loads(line)
-                except json.JSONDecodeError:  # a line cut by a kill
-                    continue
-                if keep(row):
-                    out.append(json.dumps(row))
+        for line in log_lines(self.path, warn=True):
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                row = json.loads(line)
+            except (ValueError, RecursionError):  # a line cut by a kill, or not botorl's
+                continue
+            if keep(row):
+                out.append(json.dumps(row))
         atomic_write_bytes(self.path, ("\n".join(out) + ("\n" if out else "")).encode())
 
 

@@ -20,13 +20,13 @@ import numpy as np
 from botorl.agents import population as AP
 from botorl.configs.members import Member, member_config  # noqa: F401 (importers of runner.member_config)
 from botorl.configs.methods import get_method
-from botorl.configs.schema import RunConfig, to_dict
+from botorl.configs.schema import RunConfig, run_identity, to_dict
 from botorl.data.dataset import Dataset, RewardTransform
-from botorl.errors import ConfigError, Interrupted, TrainingDivergedError
+from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDivergedError
 from botorl.io import atomic_write_json
 from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
 from botorl.pipeline import stages as S
-from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_name
+from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
 from botorl.pipeline.rundir import EVAL_COLUMNS, CsvLog, MetricsLogger, RunDir
 
@@ -54,7 +54,7 @@ def load_offline(cfg: RunConfig, spec) -> Dataset:
     elif spec.dataset_source.kind == "user":  # a user's task: its actions checked against the env's box
         ds = load_task_data(spec, cfg.data.path, action_tolerance=cfg.data.action_tolerance)
     else:
-        ds = load_task_data(spec, cfg.data.path)
+        ds = load_task_data(spec, cfg.data.path, action_tolerance=cfg.data.action_tolerance)
     return validate_dataset(ds, obs_dim=spec.obs_dim, action_dim=spec.action_dim,
                             action_tolerance=cfg.data.action_tolerance)
 
@@ -228,13 +228,14 @@ class RunContext:
     # -- checkpoints
     def load_agents(self, name: str, like):
         """The population's agents saved under ``name`` (``like``: a stacked template)."""
-        return self.layout.load(self.ckpt.path(name) / "agent.ckpt", like)
+        return self.layout.load(self.ckpt.file(name, "agent.ckpt"), like)
 
     def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None,
               documents=None):
         from botorl.agents import checkpoint as agent_ckpt
 
         state = {
+            "identity": [run_identity(mc.cfg) for mc in self.members],
             "stage": stage,
             "step": step,
             "stage_done": done,
@@ -251,7 +252,7 @@ class RunContext:
             # each member's own agent in its run directory, for `botorl eval MEMBER_DIR`
             for i, mc in enumerate(self.members):
                 CheckpointManager(mc.run.checkpoints).save(
-                    name, state={**state, "np_rng": None, "extra": {}, "member": i},
+                    name, state={**state, "np_rng": None, "extra": {}, "member": i, "identity": [state["identity"][i]]},
                     agent=AP.member_of(agents, i), save_agent=agent_ckpt.save)
         self.write_summary("running")
 
@@ -422,12 +423,13 @@ def execute(cfg: RunConfig, run: RunDir, d_offline_raw: Dataset, *, resume: bool
     return execute_population(cfg, [cfg], run.root, [run], d_offline_raw, resume=resume, single=True)[0]
 
 
-def _resume_point(ckpt: CheckpointManager):
+def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig]):
     """(the newest checkpoint, {done_stages, stage_seconds}, failed members, the mid-stage point or None)."""
     latest = ckpt.latest()
     if latest is None:
         return None, {"done_stages": [], "stage_seconds": {}}, {}, None
     st = ckpt.state(latest["name"])
+    check_identity(st, [run_identity(c) for c in member_cfgs], ckpt.root, latest["name"])
     mid = None if st["stage_done"] else {"name": latest["name"], "stage": st["stage"], "step": st["step"],
                                          "np_rng": st.get("np_rng"), "extra": st.get("extra", {})}
     return latest, {"done_stages": list(st["done_stages"]), "stage_seconds": dict(st["stage_seconds"])}, \
@@ -472,7 +474,7 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
     root.mkdir(parents=True, exist_ok=True)
     d_offline = transform_dataset(cfg, spec, d_offline_raw)
     ckpt = CheckpointManager(layout.checkpoints(root, member_runs))
-    latest, state, failed, mid = _resume_point(ckpt) if resume else (None, {"done_stages": [], "stage_seconds": {}},
+    latest, state, failed, mid = _resume_point(ckpt, member_cfgs) if resume else (None, {"done_stages": [], "stage_seconds": {}},
                                                                       {}, None)
     wandb_runs = tracking.start(member_cfgs, member_runs)  # one W&B run per member (None: no --wandb)
     members = [MemberRun(c, r, w) for c, r, w in zip(member_cfgs, member_runs, wandb_runs)]
@@ -538,10 +540,16 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
 
 
 def read_summary(run: RunDir) -> dict[str, Any]:
-    import json
+    from botorl.pipeline.rundir import read_json
 
-    with open(run.summary) as f:
-        return json.load(f)
+    try:
+        summary = read_json(run.summary)
+    except (OSError, ValueError) as err:
+        raise BotorlError(f"{run.summary} cannot be read ({err}); `botorl resume {run.root}` rewrites it.") from None
+    if not isinstance(summary, dict):
+        raise BotorlError(f"{run.summary} is not a run summary (a JSON object); `botorl resume {run.root}` "
+                          f"rewrites it.")
+    return summary
 
 
 def _load_warmups(ckpt: CheckpointManager, keys: list[str]) -> list[Dataset] | None:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -120,7 +120,11 @@ def load(ctx, member_cfgs, sources: list[Path]):
         agents.append(agent_ckpt.load(str(src / "checkpoints" / PRETRAIN_FINAL / "agent.ckpt"), like=like))
         for name in ("pretrain.csv", "pretrain.jsonl"):
             if (src / "metrics" / name).is_file() and src.resolve() != mc.run.root.resolve():
-                tmp = mc.run.metrics / f".{name}.tmp"
-                shutil.copyfile(src / "metrics" / name, tmp)
-                tmp.replace(mc.run.metrics / name)
+                from botorl.io import atomic_write_bytes, read_bounded_bytes
+                from botorl.pipeline.rundir import LOG_LIMIT
+
+                try:
+                    atomic_write_bytes(mc.run.metrics / name, read_bounded_bytes(src / "metrics" / name, LOG_LIMIT))
+                except ValueError as err:  # not a regular file, or a huge one: the logs only, not the run
+                    print(f"botorl: warning: {src / 'metrics' / name} not copied ({err}).", file=sys.stderr)
     return stack(agents)
