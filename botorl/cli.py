@@ -139,5 +139,26 @@ def _silence_stdout() -> None:
         pass
 
 
+def console_main() -> None:
+    """The `botorl` command: ``main``, then a quiet exit. Once the command's work is done, a
+    Ctrl-C while Python shuts down (atexit handlers; JAX's, Ray's and W&B's threads) ends the
+    process with 130 and nothing more, instead of a KeyboardInterrupt traceback from inside
+    one of them. Only here, not in ``main``, which tests and `botorl.run` call in-process."""
+    import signal
+
+    code = main()
+
+    def exit_130(signum, frame):
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except Exception:  # noqa: BLE001 - a closed pipe must not stop the exit
+                pass
+        os._exit(130)
+
+    signal.signal(signal.SIGINT, exit_130)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()

@@ -656,3 +656,22 @@ def test_action_tolerance_is_honoured_for_a_minari_path(tmp_path):
         load_offline(_smoke_config("--data.path", str(path)), spec)
     got = load_offline(_smoke_config("--data.path", str(path), "--data.action-tolerance", "0.5"), spec)
     assert got.raw_action_max == pytest.approx(1.2)
+
+
+def test_ctrl_c_during_shutdown_exits_130_quietly():
+    """A SIGINT after the command's work, while Python runs its atexit handlers, ends the
+    process with 130 and no traceback (it printed a KeyboardInterrupt from the handler)."""
+    import subprocess
+    import sys
+
+    from conftest import subprocess_env
+
+    code = ("import atexit, os, signal, sys, time\n"
+            "atexit.register(lambda: (os.kill(os.getpid(), signal.SIGINT), time.sleep(5)))\n"
+            "from botorl import cli\n"
+            "sys.argv = ['botorl', '--version']\n"
+            "cli.console_main()\n")
+    res = subprocess.run([sys.executable, "-c", code], env=subprocess_env(), capture_output=True, text=True, timeout=60)
+    assert res.returncode == 130, (res.returncode, res.stderr[-2000:])
+    assert "Traceback" not in res.stderr and "KeyboardInterrupt" not in res.stderr, res.stderr[-2000:]
+    assert res.stdout.strip()  # the version was printed and flushed
