@@ -96,21 +96,9 @@ def contract_path(model: str | Path) -> Path:
 # ------------------------------------------------------------------ the run
 def read_run(run_dir):
     """(RunDir, RunConfig) of a single run directory; ConfigError for anything else."""
-    from botorl.configs.schema import RunConfig, from_dict
-    from botorl.pipeline.rundir import RunDir, read_json
+    from botorl.pipeline.policy import read_run as read
 
-    root = Path(run_dir)
-    if (root / "population.json").exists():
-        members = sorted(p.name for p in root.iterdir() if (p / "config.json").exists())
-        raise ConfigError(f"{root} is a population; export one member's run directory, e.g. {root / (members or ['s0'])[0]}.")
-    run = RunDir(root)
-    if not run.config.exists():
-        raise ConfigError(f"{root} is not a botorl run directory (no config.json); give the --out folder of a `botorl run`.")
-    try:
-        cfg = from_dict(RunConfig, read_json(run.config))
-    except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
-        raise ConfigError(f"{run.config} cannot be read as a run config ({err}).") from None
-    return run, cfg
+    return read(run_dir, "export")
 
 
 def pick_checkpoint(run, checkpoint: str | None) -> str:

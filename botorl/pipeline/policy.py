@@ -25,17 +25,19 @@ import numpy as np
 from botorl.errors import ConfigError
 
 
-def _read_run(run_dir):
+def read_run(run_dir, verb: str = "load"):
+    """(RunDir, RunConfig) of a single run directory; ConfigError naming what to give instead
+    for anything else (``verb``: what the caller does with it, for the message)."""
     from botorl.configs.schema import RunConfig, from_dict
     from botorl.pipeline.rundir import RunDir, read_json
 
     root = Path(run_dir)
     if (root / "population.json").exists():
         members = sorted(p.name for p in root.iterdir() if (p / "config.json").exists())
-        raise ConfigError(f"{root} is a population; load one member's run directory, e.g. {root / (members or ['s0'])[0]}.")
+        raise ConfigError(f"{root} is a population; {verb} one member's run directory, e.g. {root / (members or ['s0'])[0]}.")
     run = RunDir(root)
     if not run.config.exists():
-        raise ConfigError(f"{root} is not a botorl run directory (no config.json); give the --out folder of a run.")
+        raise ConfigError(f"{root} is not a botorl run directory (no config.json); give the --out folder of a `botorl run`.")
     try:
         cfg = from_dict(RunConfig, read_json(run.config))
     except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
@@ -73,7 +75,7 @@ def _load(run_dir, checkpoint):
     from botorl.pipeline.checkpoint import CheckpointManager
 
     setup_jax()
-    run, cfg = _read_run(run_dir)
+    run, cfg = read_run(run_dir)
     ckpt = CheckpointManager(run.checkpoints)
     if checkpoint is not None:
         ckpt.verify_named(checkpoint)
