@@ -268,15 +268,20 @@ def test_memory_estimate_and_check():
 
 
 def test_env_bytes_measures_what_an_env_holds():
+    import mmap
+
     class Heavy:  # an env that holds 16 MiB once made and reset
         def __init__(self):
             self.state = None
 
         def reset(self, seed=None):
-            self.state = np.ones(2**21, np.float64)
+            # fresh pages, every one touched: heap memory freed earlier in this process (other
+            # tests) could be handed back already resident and hide the growth env_bytes measures
+            self.state = mmap.mmap(-1, 2**24)
+            np.frombuffer(self.state, np.uint8)[::4096] = 1
 
         def close(self):
-            pass
+            self.state.close()
 
     per = P.env_bytes(lambda i: Heavy(), probes=5)
     assert 15 * 2**20 <= per <= 20 * 2**20, per / 2**20
