@@ -29,6 +29,24 @@ from botorl.pipeline.runner import load_offline, transform_dataset
 from botorl.pipeline.stages import make_pretrain_agent
 
 
+def _set(obj, path: str, value: str):
+    """``obj`` with the field at dotted ``path`` set from the string ``value``, converted to the
+    field's current type (a tuple from comma-separated ints, a bool from true/false)."""
+    head, _, rest = path.partition(".")
+    if rest:
+        return replace(obj, **{head: _set(getattr(obj, head), rest, value)})
+    old = getattr(obj, head)
+    if isinstance(old, bool):
+        new = value.lower() in ("1", "true", "yes")
+    elif isinstance(old, tuple):
+        new = tuple(int(v) for v in value.split(","))
+    elif old is None:
+        new = None if value.lower() == "none" else float(value)
+    else:
+        new = type(old)(value)
+    return replace(obj, **{head: new})
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--task", default="pointmaze-medium")
@@ -41,15 +59,16 @@ def main(argv=None) -> int:
                         "policy at --steps is the one `botorl run` evaluates at online step 0")
     p.add_argument("--batch", type=int, default=None, help="offline batch size (default: the preset's)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                   help="a CQLConfig field, e.g. cql_n_actions=5 or cql_weight=1.0 (repeatable)")
+                   help="a CQLConfig field, e.g. cql_n_actions=5 or cql_weight=1.0, or a dotted RunConfig path, "
+                        "e.g. network.critic_hidden_dims=128,128 (repeatable)")
+    p.add_argument("--profile", default="quick", help="the preset the probe starts from")
     args = p.parse_args(argv)
 
-    cfg = make_preset(args.task, "quick", "wsrl", args.pretrain)
-    cql = cfg.offline.cql
+    cfg = make_preset(args.task, args.profile, "wsrl", args.pretrain)
     for item in args.set:
-        field, _, value = item.partition("=")
-        cql = replace(cql, **{field: type(getattr(cql, field))(value)})
-    offline = replace(cfg.offline, steps=args.steps, cql=cql, batch_size=args.batch or cfg.offline.batch_size)
+        path, _, value = item.partition("=")
+        cfg = _set(cfg, path if "." in path else f"offline.cql.{path}", value)
+    offline = replace(cfg.offline, steps=args.steps, batch_size=args.batch or cfg.offline.batch_size)
     cfg = resolve(replace(cfg, seed=args.seed, offline=offline, progress=False))
     spec = get_task(args.task)
     d = transform_dataset(cfg, spec, load_offline(cfg, spec))
@@ -64,7 +83,9 @@ def main(argv=None) -> int:
     agents = P.stack([make_pretrain_agent(cfg, d.obs_dim, d.action_dim, s) for s in seeds])
     envs = [make_eval_envs(spec, cfg.eval) for _ in seeds]
     print(f"{args.task} {args.pretrain} seeds {seeds}: {len(d.observations)} rows, batch {offline.batch_size}, "
-          f"cql_n_actions {cfg.offline.cql.cql_n_actions}, {cfg.network.num_critics} critics", flush=True)
+          f"cql_n_actions {cfg.offline.cql.cql_n_actions}, {cfg.network.num_critics} critics "
+          f"{cfg.network.critic_hidden_dims} LN {cfg.network.layer_norm}, lagrange {cfg.offline.cql.cql_lagrange}, "
+          f"max-target {cfg.offline.cql.max_target_backup}", flush=True)
     K, step, t0 = 50, 0, time.perf_counter()
     while step < args.steps:
         agents, metrics = P.update_many(agents, d.sample_members(rngs, offline.batch_size, K))
