@@ -18,7 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("botorl.pipeline.cli:run_main", "run one method on one task, offline to online"),
     "resume": ("botorl.pipeline.cli:resume_main", "continue a run directory from its last checkpoint"),
     "eval": ("botorl.pipeline.cli:eval_main", "evaluate the last checkpoint of a run directory"),
-    "export": ("botorl.pipeline.export_cli:main", "export a run's policy to ONNX, with its contract"),
+    "export": ("botorl.pipeline.cli:export_main", "export a run's policy to ONNX, with its contract"),
     "data": ("botorl.data.cli:main", "generate datasets and show their statistics"),
     "tasks": ("botorl.envs.cli:main", "list the tasks, or check one's environment"),
     "train-ant": ("botorl.experts.ant_train:main", "train the goal-reaching ant behind the antmaze data"),

@@ -172,7 +172,7 @@ def _edit(path: Path, fn) -> None:
 
 
 def test_population_members_stay_inside(tmp_path, capsys):
-    from botorl.pipeline.population_cli import load_population
+    from botorl.pipeline.cli import load_population
 
     pop = _crafted_population(tmp_path / "pop")
     cfg, member_cfgs, runs, _ = load_population(pop)  # control: botorl's own file is read

@@ -85,6 +85,18 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Sequ
                          length=float(np.mean(p["lengths"])), successes=p["successes"]) for p in per]
 
 
+def evaluate_policy(policy: Callable[[np.ndarray], np.ndarray], spec, cfg, episodes: int) -> EpisodeStats:
+    """``botorl eval``'s ``episodes`` of one policy ((1, E, O) -> (1, E, A)) on its own evaluation
+    envs, reset seeds from ``200_000 + cfg.seed`` (not those of the run's evaluations)."""
+    envs = make_eval_envs(spec, cfg.eval)
+    try:
+        return run_episodes(policy, [envs], episodes=episodes, success_mode=spec.success_mode,
+                            seeds=[200_000 + cfg.seed], max_steps=spec.max_episode_steps)[0]
+    finally:
+        for e in envs:
+            e.close()
+
+
 class QProbe:
     """A fixed set of dataset (s, a) pairs and uniform actions at the same states."""
 

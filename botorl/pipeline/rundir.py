@@ -3,11 +3,13 @@
     DIR/config.json           resolved config (top-level task, method, seed, alpha, pretrain, profile)
     DIR/eval.csv              stage, env_step, success, return, q_data, q_uniform
     DIR/metrics/<stage>.csv   one row per logged training step (+ .jsonl with the same rows)
+    DIR/metrics/q_probe.csv   q_data / q_uniform at the end of pretrain and boto
     DIR/tb/                   TensorBoard events (only when tensorboardX is importable)
     DIR/checkpoints/          see checkpoint.py
     DIR/curve.png             success against online env steps
     DIR/summary.json          task, method, seed, alpha, pretrain, success_initial,
                               success_10k, success_final, stage_seconds, status
+    DIR/eval-<checkpoint>.json   written by `botorl eval`
     DIR/.lock                 the owner's PID; flock-ed for the life of a run/resume/eval (RunLock)
 
 Every whole-file write is atomic (temp file in the same folder + os.replace), so a run killed
@@ -32,19 +34,15 @@ from pathlib import Path
 from typing import Any
 
 from botorl.errors import BotorlError, ConfigError
-from botorl.io import (IO_FAULTS, JSON_LIMIT, UnsafeFileError, append_text, atomic_write_bytes, jsonable,
-                       open_regular, read_bounded, read_bounded_bytes, read_json_bounded)
+from botorl.io import (IO_FAULTS, UnsafeFileError, append_text, atomic_write_bytes, jsonable, open_regular,
+                       read_bounded, read_bounded_bytes)
+from botorl.io import read_json_bounded as read_json  # what every reader of a run's JSON files calls
 
 LOCK_FILE = ".lock"
+POPULATION_FILE = "population.json"  # what makes a directory a population's (botorl/pipeline/cli.py)
 LOG_LIMIT = 1 << 30  # a metrics or eval log botorl reads back (on resume, for the summary)
 
 EVAL_COLUMNS = ["stage", "env_step", "success", "return", "q_data", "q_uniform"]
-
-
-def read_json(path: Path, limit: int = JSON_LIMIT) -> Any:
-    """The JSON document in ``path``: a regular file (no link, FIFO or device) of at most
-    ``limit`` bytes; ValueError (saying what is wrong) or OSError otherwise."""
-    return read_json_bounded(path, limit)
 
 
 class RunDir:
@@ -101,15 +99,22 @@ def io_fault(err: OSError, where) -> RunIOError | None:
 
 
 @contextlib.contextmanager
-def owned(root: Path):
-    """Hold the run directory's lock; turn I/O faults while taking it into exit 2."""
+def io_guard(where):
+    """I/O faults inside (a full disk, read-only, no permission) become exit 2 (``io_fault``)."""
     try:
-        lock = RunLock(root).acquire()
+        yield
     except OSError as err:
-        fault = io_fault(err, root)
+        fault = io_fault(err, where)
         if fault is None:
             raise
         raise fault from None
+
+
+@contextlib.contextmanager
+def owned(root: Path):
+    """Hold the run directory's lock; turn I/O faults while taking it into exit 2."""
+    with io_guard(root):
+        lock = RunLock(root).acquire()
     try:
         yield lock
     finally:
@@ -415,8 +420,8 @@ class MetricsLogger:
     def truncate(self, stage: str, max_step: int) -> None:
         """Drop rows of ``stage`` logged after ``max_step`` (they are redone after a resume)."""
         c, j = self._logs(stage)
-        c.truncate(lambda r: _num(r.get("step")) <= max_step)
-        j.truncate(lambda r: _num(r.get("step")) <= max_step)
+        c.truncate(lambda r: number(r.get("step")) <= max_step)
+        j.truncate(lambda r: number(r.get("step")) <= max_step)
 
     def close(self) -> None:
         if self._tb is not None:
@@ -433,7 +438,8 @@ def _scalar(v: Any) -> Any:
     return v
 
 
-def _num(v: Any) -> float:
+def number(v: Any) -> float:
+    """A log row's value as a number; inf for what is none (a row cut by a kill comes after every step)."""
     try:
         return float(v)
     except (TypeError, ValueError):

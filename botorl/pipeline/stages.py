@@ -68,11 +68,12 @@ def make_pretrain_agent(cfg, obs_dim: int, action_dim: int, seed: int):
     return CQLAgent.create(cfg.offline.cql, obs_dim, action_dim, seed)
 
 
-def make_online_agent_template(cfg, obs_dim: int, action_dim: int, seed: int):
-    """An agent with the structure of the fine-tuning learner (for checkpoint loading)."""
+def agent_template(cfg, stage: str, obs_dim: int, action_dim: int, seed: int):
+    """An agent with the structure a checkpoint of ``stage`` holds (for loading it): the
+    fine-tuning learner in fine-tuning, the pre-training agent before."""
     from botorl.configs.methods import get_method
 
-    if get_method(cfg.method).finetune_start == "continue":
+    if stage != "finetune" or get_method(cfg.method).finetune_start == "continue":
         return make_pretrain_agent(cfg, obs_dim, action_dim, seed)
     from botorl.agents.sac import SACAgent
 
