@@ -46,11 +46,8 @@ def _usage() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv:
+    if not argv or argv[0] in ("-h", "--help", "help"):
         # a bare `botorl` trains nothing: it says what there is (the main job is `botorl run`)
-        print(_usage())
-        return 0
-    if argv[0] in ("-h", "--help", "help"):
         print(_usage())
         return 0
     if argv[0] in ("-V", "--version"):
@@ -108,18 +105,10 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as err:
         # argparse / tyro exit after printing help or a usage error; flush here so that a
         # closed pipe surfaces now, not as a traceback at interpreter exit
-        try:
-            sys.stdout.flush()
-        except BrokenPipeError:
-            _silence_stdout()
+        if not _flushed():
             return 2
         raise err
-    try:
-        sys.stdout.flush()
-    except BrokenPipeError:
-        _silence_stdout()
-        return 2
-    return int(code or 0)
+    return int(code or 0) if _flushed() else 2
 
 
 def _hdf5_errno(err: OSError) -> int | None:
@@ -129,6 +118,16 @@ def _hdf5_errno(err: OSError) -> int | None:
 
     m = re.search(r"errno = (\d+)", str(err))
     return int(m.group(1)) if m else None
+
+
+def _flushed() -> bool:
+    """Flush stdout; False (and stdout silenced) when it was closed early (`botorl run --help | head`)."""
+    try:
+        sys.stdout.flush()
+        return True
+    except BrokenPipeError:
+        _silence_stdout()
+        return False
 
 
 def _silence_stdout() -> None:

@@ -157,9 +157,7 @@ class CheckpointManager:
         faults.checkpoint(name, "files")
         for key, group in (arrays or {}).items():
             _save_npz(tmp / f"{key}.npz", group)
-        for key, doc in (documents or {}).items():
-            if key in ("state", "MANIFEST"):
-                raise ValueError(f"checkpoint document name {key!r} is reserved")
+        for key, doc in (documents or {}).items():  # "state" and "MANIFEST" are the checkpoint's own
             # plain json (NaN / Infinity kept as such: an env's state must come back exactly)
             atomic_write_json(tmp / f"{key}.json", doc, indent=None, exact=True)
         atomic_write_json(tmp / "state.json", state)
@@ -328,7 +326,8 @@ class CheckpointManager:
             return name
         latest = self.latest()
         if latest is None:
-            raise ConfigError(f"{self.root.parent} has no checkpoint yet; wait for the first stage to finish.")
+            raise ConfigError(f"{self.root.parent} has no checkpoint that passes its check yet; wait for the first "
+                              f"stage to finish, or name a checkpoint.")
         return latest["name"]
 
     def select(self, name: str) -> dict[str, Any]:

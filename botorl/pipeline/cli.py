@@ -41,7 +41,7 @@ import tyro
 from botorl.configs.build import build_config
 from botorl.errors import BotorlError, ConfigError
 from botorl.pipeline import preempt
-from botorl.pipeline.rundir import POPULATION_FILE, RunDir, check_out, io_fault, io_guard, owned, read_json
+from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_fault, io_guard, read_json
 
 
 def _mark_failed(path: Path, reason: str, fresh=None) -> None:
@@ -184,7 +184,7 @@ def run_main(argv: list[str]) -> int:
         check_fits(cfg, len(members), d_raw, spec)
     runs = [RunDir(out)] if single else [RunDir(out / m.name) for m in members]
     member_cfgs = [replace(c, out=str(r.root)) for c, r in zip(member_cfgs, runs)]
-    with owned(out):
+    with RunLock(out):
         already()  # again, under the lock: another `run` may have started meanwhile
         with io_guard(out):
             for c, r in zip(member_cfgs, runs):
@@ -336,7 +336,7 @@ def resume_main(argv: list[str]) -> int:
         cfg, member_cfgs, runs, _ = load_population(root)
         status_file = origin = root / POPULATION_FILE
     _require_wandb(cfg)
-    with owned(root):
+    with RunLock(root):
         if args.no_progress:
             cfg = replace(cfg, progress=False)
             member_cfgs = [replace(c, progress=False) for c in member_cfgs]
@@ -382,10 +382,10 @@ def eval_main(argv: list[str]) -> int:
             raise ConfigError("--policy and --checkpoint: the model names its checkpoint (in FILE.onnx.json); give one.")
         from botorl.pipeline.export import evaluate_exported
 
-        with owned(run.root):
+        with RunLock(run.root):
             _print_result(evaluate_exported(run, cfg, args.policy, episodes=args.episodes))
         return 0
-    with owned(run.root), io_guard(run.root):
+    with RunLock(run.root), io_guard(run.root):
         _print_result(_eval(args, run, cfg))
     return 0
 

@@ -31,7 +31,6 @@ class EpisodeStats:
     success: float
     episode_return: float
     length: float
-    successes: list[float]
 
 
 def make_eval_envs(spec, eval_cfg) -> list[Any]:
@@ -82,7 +81,7 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Sequ
             per[m]["lengths"] += length[m, :n].tolist()
         episode_index += n
     return [EpisodeStats(success=float(np.mean(p["successes"])), episode_return=float(np.mean(p["returns"])),
-                         length=float(np.mean(p["lengths"])), successes=p["successes"]) for p in per]
+                         length=float(np.mean(p["lengths"]))) for p in per]
 
 
 def evaluate_policy(policy: Callable[[np.ndarray], np.ndarray], spec, cfg, episodes: int) -> EpisodeStats:

@@ -92,20 +92,13 @@ def pick_checkpoint(run, checkpoint: str | None) -> str:
     """The checkpoint to export: the named one (verified), else the latest; a run with no
     finished stage has nothing worth exporting unless a checkpoint is named."""
     ckpt = CheckpointManager(run.checkpoints)
-    if checkpoint is not None:
-        ckpt.verify_named(checkpoint)  # ConfigError naming the ones there are
-        return checkpoint
-    finished = [n for n in ckpt.names() if ckpt.exists(n) and _stage_done(ckpt, n)]
-    if not finished:
+    if checkpoint is None and not any(_stage_done(ckpt, n) for n in ckpt.names()):
         there = [n for n in ckpt.names() if ckpt.exists(n)]
         more = (f" Its checkpoints ({', '.join(there)}) are mid-stage; name one with --checkpoint NAME to export it "
                 f"anyway." if there else "")
         raise ConfigError(f"{run.root} has no finished stage yet, so no policy to export; wait for the first stage "
                           f"(pre-training) to finish.{more}")
-    latest = ckpt.latest()
-    if latest is None:
-        raise ConfigError(f"{run.root} has no checkpoint that passes its check; name one with --checkpoint NAME.")
-    return latest["name"]
+    return ckpt.chosen(checkpoint)  # the named one (ConfigError naming the ones there are), else the latest
 
 
 def _stage_done(ckpt, name: str) -> bool:

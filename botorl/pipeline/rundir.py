@@ -110,16 +110,6 @@ def io_guard(where):
         raise fault from None
 
 
-@contextlib.contextmanager
-def owned(root: Path):
-    """Hold the run directory's lock; turn I/O faults while taking it into exit 2."""
-    with io_guard(root):
-        lock = RunLock(root).acquire()
-    try:
-        yield lock
-    finally:
-        lock.release()
-
 class RunLockedError(BotorlError):
     """Another live process owns the run directory."""
 
@@ -130,7 +120,8 @@ class RunLock:
     The kernel drops a flock when its process dies (kill -9 included), so a lock left by a
     killed run is simply taken over by the next one; the file itself is never deleted (deleting
     it would let two processes lock two different files). A second live process gets
-    ``RunLockedError`` (exit 2) naming the holder's PID.
+    ``RunLockedError`` (exit 2) naming the holder's PID. ``with RunLock(DIR)`` holds it for
+    the life of a command, I/O faults while taking it turned into exit 2.
     """
 
     def __init__(self, root: str | os.PathLike):
@@ -174,7 +165,8 @@ class RunLock:
             self._fd = None
 
     def __enter__(self) -> "RunLock":
-        return self.acquire()
+        with io_guard(self.root):
+            return self.acquire()
 
     def __exit__(self, *exc) -> None:
         self.release()
@@ -347,13 +339,6 @@ class TBWriter:
         except OSError as err:
             self._disable(err)
 
-    def flush(self) -> None:
-        if self._writer is not None:
-            try:
-                self._writer.flush()
-            except OSError as err:
-                self._disable(err)
-
     def close(self) -> None:
         if self._writer is not None:
             w, self._writer = self._writer, None
@@ -368,8 +353,7 @@ class MetricsLogger:
 
     def __init__(self, run: RunDir, *, tensorboard: bool = True, wandb_run: Any = None):
         self.run = run
-        self._csv: dict[str, CsvLog] = {}
-        self._jsonl: dict[str, JsonlLog] = {}
+        self._by_stage: dict[str, tuple[CsvLog, JsonlLog]] = {}
         self._tb: TBWriter | None = None
         self._wandb = wandb_run
         if tensorboard:
@@ -387,10 +371,9 @@ class MetricsLogger:
             self._wandb = None
 
     def _logs(self, stage: str) -> tuple[CsvLog, JsonlLog]:
-        if stage not in self._csv:
-            self._csv[stage] = CsvLog(self.run.metrics / f"{stage}.csv")
-            self._jsonl[stage] = JsonlLog(self.run.metrics / f"{stage}.jsonl")
-        return self._csv[stage], self._jsonl[stage]
+        if stage not in self._by_stage:
+            self._by_stage[stage] = CsvLog(self.run.metrics / f"{stage}.csv"), JsonlLog(self.run.metrics / f"{stage}.jsonl")
+        return self._by_stage[stage]
 
     def log(self, stage: str, step: int, metrics: dict[str, Any]) -> None:
         row = {"step": int(step)}

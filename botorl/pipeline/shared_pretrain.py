@@ -14,7 +14,6 @@ one and the first setting in which it differs.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import sys
 from pathlib import Path
@@ -42,7 +41,7 @@ def fingerprint_of(d: dict[str, Any]) -> dict[str, Any]:
 
 
 def _key(fp: dict) -> str:
-    return hashlib.sha256(json.dumps(fp, sort_keys=True, default=str).encode()).hexdigest()
+    return json.dumps(fp, sort_keys=True, default=str)
 
 
 def _first_difference(a: Any, b: Any, path: str = "") -> str | None:

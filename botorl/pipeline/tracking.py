@@ -75,16 +75,12 @@ def job_type(cfg) -> str:
     return "+".join(stages)
 
 
-# W&B's keys: MetricsLogger logs "<stage>/<metric>" with "<stage>/step", evaluations "eval/<metric>";
-# rows on the online axis also carry "env_step"
-ENV_STEP = "env_step"
-ONLINE = ("eval", "warmup", "finetune")
-
-
 def define_metrics(wb) -> None:
-    wb.define_metric(ENV_STEP)
-    for stage in ONLINE:
-        wb.define_metric(f"{stage}/*", step_metric=ENV_STEP)
+    # W&B's keys: MetricsLogger logs "<stage>/<metric>" with "<stage>/step", evaluations "eval/<metric>";
+    # rows on the online axis also carry "env_step"
+    wb.define_metric("env_step")
+    for stage in ("eval", "warmup", "finetune"):
+        wb.define_metric(f"{stage}/*", step_metric="env_step")
     for stage in ("pretrain", "boto"):
         wb.define_metric(f"{stage}/step")
         wb.define_metric(f"{stage}/*", step_metric=f"{stage}/step")
