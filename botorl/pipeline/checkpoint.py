@@ -240,11 +240,7 @@ class CheckpointManager:
         if Path(fname).name != fname or fname in ("", ".", ".."):
             raise CheckpointCorrupt(f"checkpoint {name}: {MANIFEST} lists {fname!r}, which is not a file of the folder.")
         path = self.root / name / fname
-        try:
-            st = os.lstat(path)
-        except OSError:
-            st = None
-        if st is not None and not stat.S_ISREG(st.st_mode):  # a link, FIFO or device: never opened
+        if os.path.lexists(path) and not stat.S_ISREG(os.lstat(path).st_mode):  # a link, FIFO or device: never opened
             raise CheckpointCorrupt(f"checkpoint {name}: {fname} is not a regular file.")
         if m is None:
             return

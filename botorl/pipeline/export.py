@@ -21,6 +21,7 @@ nothing is written.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -141,10 +142,8 @@ def observation_spaces(cfg):
         own = inner.env.observation_space if isinstance(inner, TaskEnv) else None
         return env.observation_space, own
     finally:
-        try:
+        with contextlib.suppress(Exception):
             env.close()
-        except Exception:  # noqa: BLE001
-            pass
 
 
 def _bounds(x) -> list[float | None]:

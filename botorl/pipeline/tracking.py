@@ -1,20 +1,12 @@
-"""Weights & Biases (``--wandb``): one W&B run per member, grouped as runs are compared.
+"""Weights & Biases (``--wandb``): one W&B run per run directory (docs/running.md lists the fields).
 
-* one W&B run per run directory (a single run's, each population member's, each sweep
-  trial's), id ``botorl-<sha256 of its resolved path>``: unique to the directory, so
-  ``/a/boto/seed0`` and ``/b/wsrl/seed0`` stay two runs, and a ``botorl resume`` continues
-  the same one (``resume="allow"``);
-* group ``TASK/METHOD[/alpha+A.AA]``: the members of a population and the seeds of a sweep
-  cell fall into one group; job type: the stages the run trains (``pretrain+warmup+boto+
-  finetune``; without ``pretrain`` when it starts from ``--pretrained``); name
-  ``METHOD TASK [alpha A] seed S``; the member's whole config as the run's config;
-* ``define_metric``: evaluation, warm-up and fine-tuning curves against ``env_step`` (online
-  env steps, warm-up included: eval.csv's axis), pre-training and BOTO against their own step.
-
-W&B is optional: ``--wandb`` without it (or older than ``MIN_VERSION``, which the members'
-runs in one process need: ``reinit="create_new"``) fails before any work with exit 2;
-a W&B that fails or does not answer within $BOTORL_WANDB_TIMEOUT seconds (default 120) is
-turned off with a warning, not the run.
+The id is ``botorl-<sha256 of the directory's resolved path>``, so ``/a/boto/seed0`` and
+``/b/wsrl/seed0`` stay two runs and ``botorl resume`` continues the same one; the group
+``TASK/METHOD[/alpha+A.AA]`` holds a population's members and a sweep cell's seeds. W&B is
+optional: ``--wandb`` without it (or older than ``MIN_VERSION``, which the members' runs in one
+process need: ``reinit="create_new"``) fails before any work with exit 2; a W&B that fails or
+does not answer within $BOTORL_WANDB_TIMEOUT seconds (default 120) is turned off with a
+warning, not the run.
 """
 
 from __future__ import annotations
