@@ -94,9 +94,6 @@ def override_args(overrides: Mapping) -> list[str]:
 
 def _call(main, argv: list[str]) -> int:
     """A command's main from Python: its usage errors (tyro/argparse exit) become a ConfigError."""
-    from botorl.jaxsetup import setup_jax
-
-    setup_jax()
     try:
         return main(argv)
     except SystemExit as err:

@@ -204,12 +204,8 @@ class CsvLog:
 
     def __init__(self, path: Path, columns: list[str] | None = None):
         self.path = Path(path)
-        self.columns = list(columns) if columns else None
-        lines = log_lines(self.path)
-        if lines:
-            header = next(csv.reader(lines[:1]), None)
-            if header:
-                self.columns = header
+        header = next(csv.reader(log_lines(self.path)[:1]), None)  # an existing log keeps its own columns
+        self.columns = header or (list(columns) if columns else None)
 
     def append(self, row: dict[str, Any]) -> None:
         new = not self.path.exists() or self.path.stat().st_size == 0
@@ -235,9 +231,7 @@ class CsvLog:
         cols = self.columns or (list(rows[0].keys()) if rows else [])
         w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
         w.writeheader()
-        for r in rows:
-            if keep(r):
-                w.writerow(r)
+        w.writerows(r for r in rows if keep(r))
         atomic_write_bytes(self.path, buf.getvalue().encode())
 
 
@@ -264,12 +258,9 @@ class JsonlLog:
             return
         out = []
         for line in log_lines(self.path, warn=True):
-            line = line.strip()
-            if not line:
-                continue
             try:
                 row = json.loads(line)
-            except (ValueError, RecursionError):  # a line cut by a kill, or not botorl's
+            except (ValueError, RecursionError):  # an empty line, one cut by a kill, or not botorl's
                 continue
             if keep(row):
                 out.append(json.dumps(row))

@@ -78,10 +78,7 @@ def _dataset_arrays(ds: Dataset) -> dict[str, np.ndarray]:
 
 
 def _dataset_from_arrays(arrays: dict[str, np.ndarray], source: str) -> Dataset:
-    return Dataset(
-        arrays["observations"], arrays["actions"], arrays["rewards"], arrays["next_observations"],
-        arrays["terminals"], arrays["episode_ends"], arrays.get("mc_returns"), metadata={"source": source},
-    )
+    return Dataset(**{k: arrays.get(k) for k in _DS_FIELDS}, metadata={"source": source})
 
 
 # ---------------------------------------------------------------------------- context
@@ -136,23 +133,21 @@ class RunContext:
     def check(self, stage: str, step: int, ms: list[dict[str, float]]) -> None:
         """Each live member's metrics must be finite: a population of one raises (the last good
         checkpoint stays); in a larger one a diverged member is marked failed and the rest go on."""
-        bad = [{k: v for k, v in m.items() if not math.isfinite(v)} for m in ms]
+        bad = [", ".join(f"{k} = {v}" for k, v in sorted(m.items()) if not math.isfinite(v)) for m in ms]
+        diverged = f"training diverged in stage {stage!r} near step {step}: "
         if self.n == 1:
             if bad and bad[0]:
                 last = self.ckpt.latest()
                 where = f"checkpoint {last['name']}" if last else "no checkpoint yet"
                 raise TrainingDivergedError(
-                    f"training diverged in stage {stage!r} near step {step}: "
-                    + ", ".join(f"{k} = {v}" for k, v in sorted(bad[0].items()))
-                    + f". The last good state is kept ({where} in {self.ckpt.root}). Lower the learning rates "
-                    f"(e.g. --offline.cql.critic_lr, --online.sac.critic_lr), check the data's reward scale, or run "
-                    f"another seed; `botorl resume` would start again from that checkpoint.")
+                    f"{diverged}{bad[0]}. The last good state is kept ({where} in {self.ckpt.root}). Lower the "
+                    f"learning rates (e.g. --offline.cql.critic_lr, --online.sac.critic_lr), check the data's reward "
+                    f"scale, or run another seed; `botorl resume` would start again from that checkpoint.")
             return
         for i, b in enumerate(bad):
             if b and i not in self.failed:
-                self.fail_member(i, f"training diverged in stage {stage!r} near step {step}: "
-                                 + ", ".join(f"{k} = {v}" for k, v in sorted(b.items()))
-                                 + ". The other members went on. Lower the learning rates or run another seed.")
+                self.fail_member(i, f"{diverged}{b}. The other members went on. Lower the learning rates or run "
+                                    f"another seed.")
         if len(self.failed) == self.n:
             raise TrainingDivergedError(
                 f"every member of the population diverged (stage {stage!r}, near step {step}); each member's "
@@ -352,8 +347,7 @@ def _eval_rows(run: RunDir) -> list[dict[str, float]]:
 
 def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict, error: str | None = None) -> dict:
     rows = _eval_rows(run)
-    at = {r["env_step"]: r for r in rows}
-    initial = at.get(0)
+    initial = {r["env_step"]: r for r in rows}.get(0)
     after_10k = [r for r in rows if r["env_step"] >= 10_000]
     final = rows[-1] if rows else None
     out = {
