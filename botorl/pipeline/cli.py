@@ -1,30 +1,19 @@
-"""``botorl run``, ``botorl resume DIR``, ``botorl eval DIR``, ``botorl export RUN_DIR``.
+"""``botorl run``, ``botorl resume DIR``, ``botorl eval DIR``, ``botorl export RUN_DIR`` (docs/running.md).
 
     botorl run [--task T] [--method M] [--seed S] [--alpha A] [--profile quick|full|smoke]
                [--pretrain calql|cql|iql] [--out DIR] [--demos PATH] [--<dotted.path> VALUE ...]
-    botorl run --seeds 0-7                                  # 8 seeds of BOTO, quick, one program
-    botorl run --method boto --seeds 0-3 --alphas -1:1:0.5  # 4 seeds x 5 alphas = 20 members
-    botorl resume runs/pointmaze-umaze-boto-pop8-...        # after a crash or kill -9
+    botorl run --method boto --seeds 0-3 --alphas -1:1:0.5  # a population: 4 seeds x 5 alphas, one program
 
 ``run`` first reads --task, --method, --profile and --pretrain to pick the preset
 (botorl.configs.presets), then tyro parses every argument over it, so any field of the
-config can be set as ``--<dotted.path> VALUE`` (``botorl run --help`` lists them all). Bare
-``botorl run`` is BOTO on pointmaze-umaze with the quick profile; its data are made on first
-use. ``--demos PATH`` is short for ``--data.demos PATH`` (door-binary-local; default
-$BOTORL_DOOR_DEMOS, else the copy shipped in botorl/data/assets).
-
-With ``--seeds`` / ``--alphas`` the run is a population: its members are every (seed, alpha)
-pair, all other settings shared. The population directory holds ``population.json``
-(members, status, the shared config), ``checkpoints/`` (one checkpoint of the whole
-population) and one ordinary run directory per member, named ``seed<k>`` or
-``alpha<+0.50>-seed<k>`` (botorl.configs.members.Member.name), which `botorl report` and
-`botorl eval` read like any run. Before any work the population's memory is estimated and
-compared with what the machine has (exit 2 if it does not fit).
-
-``export`` writes the run's deterministic policy as an ONNX model and its contract
-``FILE.json`` (botorl/pipeline/export.py; the docs' Deploy a policy page). Exit 0: written and
-verified; 1: the written model does not act as ``botorl.load_policy`` (the gap is named); 2:
-bad input, or the export extra is not installed.
+config can be set as ``--<dotted.path> VALUE``. ``--demos PATH`` is short for ``--data.demos
+PATH`` (door-binary-local). A population's directory holds ``population.json`` (members, status,
+the shared config), ``checkpoints/`` (one checkpoint of the whole population) and one ordinary
+run directory per member, named ``seed<k>`` or ``alpha<+0.50>-seed<k>``, which `botorl report`
+and `botorl eval` read like any run; before any work its memory is estimated and compared
+with what the machine has (exit 2 if it does not fit). ``export`` exits 0 when the model is
+written and verified, 1 when it does not act as ``botorl.load_policy``, 2 on bad input or
+without the export extra.
 """
 
 from __future__ import annotations
