@@ -7,6 +7,7 @@ module only dispatches, so ``botorl --help`` stays fast (no JAX import) and a us
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import sys
@@ -61,8 +62,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     target, _ = COMMANDS[name]
     module_name, func_name = target.split(":")
-    import contextlib
-
     from botorl.errors import BotorlError, Interrupted
 
     try:
@@ -131,11 +130,8 @@ def _flushed() -> bool:
 
 
 def _silence_stdout() -> None:
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError):
-        pass
+    with contextlib.suppress(OSError, ValueError):
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def console_main() -> None:
@@ -149,10 +145,8 @@ def console_main() -> None:
 
     def exit_130(signum, frame):
         for stream in (sys.stdout, sys.stderr):
-            try:
+            with contextlib.suppress(Exception):  # a closed pipe must not stop the exit
                 stream.flush()
-            except Exception:  # noqa: BLE001 - a closed pipe must not stop the exit
-                pass
         os._exit(130)
 
     signal.signal(signal.SIGINT, exit_130)

@@ -58,13 +58,12 @@ def _mark_failed(path: Path, reason: str, fresh=None) -> None:
     except OSError:
         # A full disk has no room for the temp file of an atomic write; rewriting the old
         # file in place reuses its blocks. Not atomic, so only as the fallback.
-        try:
+        # (read-only, gone or not a regular file: the exit code and the message still say it)
+        with contextlib.suppress(OSError, BotorlError):
             with os.fdopen(open_regular(path, os.O_RDWR | os.O_CREAT), "r+") as f:  # never through a link
                 f.seek(0)
                 f.truncate()
                 f.write(json.dumps(data, indent=2, default=str) + "\n")
-        except (OSError, BotorlError):
-            pass  # read-only, gone or not a regular file: the exit code and the message still say it
 
 
 def _execute(cfg, member_cfgs, root: Path, runs: list[RunDir], d_raw, *, resume: bool, resume_from: str | None = None):

@@ -37,24 +37,19 @@ def tree_bytes(tree) -> int:
 def available_memory() -> tuple[int, str]:
     """(bytes, what): the accelerator's memory off the CPU, else the host's MemAvailable."""
     if jax.default_backend() != "cpu":
-        try:
+        with contextlib.suppress(Exception):
             stats = jax.devices()[0].memory_stats() or {}
             limit = int(stats.get("bytes_limit", 0)) - int(stats.get("bytes_in_use", 0))
             if limit > 0:
                 return limit, f"{jax.devices()[0].device_kind} memory"
-        except Exception:
-            pass
     return host_memory()
 
 
 def host_memory() -> tuple[int, str]:
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024, "available host memory (MemAvailable)"
-    except OSError:
-        pass
+    with contextlib.suppress(OSError), open("/proc/meminfo") as f:
+        for line in f:
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024, "available host memory (MemAvailable)"
     return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")), "free host memory"
 
 

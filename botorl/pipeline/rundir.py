@@ -237,10 +237,8 @@ class CsvLog:
 
 def _fmt(v: Any) -> Any:
     if hasattr(v, "item") and callable(v.item):
-        try:
+        with contextlib.suppress(ValueError, TypeError):
             v = v.item()
-        except (ValueError, TypeError):
-            pass
     if isinstance(v, float):
         return f"{v:.6g}"
     return v
@@ -305,10 +303,8 @@ class TBWriter:
               "the CSV/JSONL logs in metrics/ go on.")
         w, self._writer = self._writer, None
         if w is not None:
-            try:
+            with contextlib.suppress(Exception):
                 w.close()
-            except Exception:
-                pass
 
     def add_scalar(self, tag: str, value: Any, step: int) -> None:
         if self._writer is None:

@@ -397,12 +397,12 @@ def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig], resume:
         st.get("failed") or {}, mid
 
 
-def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | None, member_cfgs: list[RunConfig]):
+def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | None):
     """One stage of the method: (agents, D_warmups, the arrays its end-of-stage checkpoint keeps)."""
-    cfg, arrays = ctx.cfg, None
+    cfg, arrays, member_cfgs = ctx.cfg, None, [mc.cfg for mc in ctx.members]
     if stage == "pretrain":
         if cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
-            agents = shared_pretrain.load(ctx, member_cfgs, shared_pretrain.match(member_cfgs, cfg.pretrained))
+            agents = shared_pretrain.load(ctx, shared_pretrain.match(member_cfgs, cfg.pretrained))
         else:
             agents = S.pretrain(ctx, resume)
         ctx.log_q("pretrain", cfg.offline.steps, agents)
@@ -462,9 +462,8 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
                 if preempt.requested():  # between two stages: the last one's final checkpoint is the point
                     raise preempt.interrupted()
                 ctx.begin_stage(stage)
-                agents, d_warmups, arrays = _run_stage(ctx, stage, agents, d_warmups,
-                                                       mid if (mid is not None and mid["stage"] == stage) else None,
-                                                       member_cfgs)
+                resume_at = mid if (mid is not None and mid["stage"] == stage) else None
+                agents, d_warmups, arrays = _run_stage(ctx, stage, agents, d_warmups, resume_at)
                 ctx.end_stage()
                 state["done_stages"].append(stage)
                 ctx.save_stage_end(stage, agents, arrays=arrays)
@@ -518,15 +517,15 @@ def _load_warmups(ckpt: CheckpointManager, keys: list[str]) -> list[Dataset] | N
 
 def _truncate_logs(mc: "MemberRun", stages: tuple[str, ...], mid: dict | None, done: list[str]) -> None:
     """Forget a member's log rows written after the checkpoint a resume starts from."""
+    def kept(stage: str) -> int:  # the last step of a stage's logs that stays: its mid-stage checkpoint's
+        return int(mid["step"]) if (mid is not None and mid["stage"] == stage) else -1
+
     for stage in stages:
-        if stage in done:
-            continue
-        keep_to = int(mid["step"]) if (mid is not None and mid["stage"] == stage) else -1
-        mc.logger.truncate(stage, keep_to)
-    ft_keep = int(mid["step"]) if (mid is not None and mid["stage"] == "finetune") else -1
+        if stage not in done:
+            mc.logger.truncate(stage, kept(stage))
     if "finetune" not in done:
         # evaluations of finished stages (the warm-up's) stay; fine-tuning's up to its checkpoint
-        mc.eval_log.truncate(lambda r: r.get("stage") in done or number(r.get("env_step")) <= ft_keep)
+        mc.eval_log.truncate(lambda r: r.get("stage") in done or number(r.get("env_step")) <= kept("finetune"))
     mc.q_log.truncate(lambda r: r.get("stage") in done)
 
 

@@ -105,7 +105,7 @@ def match(member_cfgs, directory: str | Path, *, strict: bool = True) -> list[Pa
     return out
 
 
-def load(ctx, member_cfgs, sources: list[Path]):
+def load(ctx, sources: list[Path]):
     """The members' pre-trained agents (stacked), with each source's pre-training logs copied
     into the member's run directory so its metrics read as if it had pre-trained itself."""
     from botorl.agents import checkpoint as agent_ckpt
@@ -114,8 +114,8 @@ def load(ctx, member_cfgs, sources: list[Path]):
 
     d = ctx.d_offline
     agents = []
-    for cfg, src, mc in zip(member_cfgs, sources, ctx.members):
-        like = make_pretrain_agent(cfg, d.obs_dim, d.action_dim, cfg.seed)
+    for src, mc in zip(sources, ctx.members):
+        like = make_pretrain_agent(mc.cfg, d.obs_dim, d.action_dim, mc.cfg.seed)
         agents.append(agent_ckpt.load(str(src / "checkpoints" / PRETRAIN_FINAL / "agent.ckpt"), like=like))
         for name in ("pretrain.csv", "pretrain.jsonl"):
             if (src / "metrics" / name).is_file() and src.resolve() != mc.run.root.resolve():
