@@ -63,7 +63,7 @@ class OnlineLoop:
         ctx = SimpleNamespace(cfg=SimpleNamespace(online=online), n=1, members=[SimpleNamespace(cfg=RunConfig(seed=seed))],
                               spec=spec, method=get_method("wsrl"), d_offline=SimpleNamespace(obs_dim=obs_dim,
                                                                                              action_dim=action_dim))
-        self.state = OnlineState.begin(ctx, None)
+        self.state = OnlineState(ctx, None)
         self.agents, self.window = stack([agent]), Window(1)
         # WSRL starts fine-tuning with the warm-up data in the buffer; random actions here.
         rng = np.random.default_rng(seed)

@@ -1,11 +1,5 @@
-"""The offline-to-online pipeline: what ``botorl run`` / ``resume`` / ``eval`` / ``export`` do.
-
-    botorl run                                   # BOTO on pointmaze-umaze, quick profile, data made here
-    botorl run --task door-binary-v0 --method boto --profile full --data.path ~/calql-data
-    botorl run --task door-binary-local --profile quick        # demos shipped in botorl/data/assets
-    botorl run --task pointmaze-large --method wsrl --seed 1 --online.steps 50000
-    botorl resume runs/pointmaze-large-boto-s0-20260101-120000
-    botorl eval runs/pointmaze-large-boto-s0-20260101-120000 --episodes 50
+"""The offline-to-online pipeline: what ``botorl run`` / ``resume`` / ``eval`` / ``export`` do
+(docs/running.md).
 
 Modules: ``stages`` (pretrain, warmup, boto, finetune), ``online`` (fine-tuning's resumable
 state), ``runner`` (order, checkpoints, resume, summary, curve), ``evaluation`` (lockstep

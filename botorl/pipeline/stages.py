@@ -368,7 +368,7 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
     buffer with a member axis, one batched UTD update), saved and restored whole."""
     cfg, oc = ctx.cfg, ctx.cfg.online
     agents = start_finetuning(ctx, agents)
-    state = OnlineState.restore(ctx, resume, d_warmups) if resume is not None else OnlineState.begin(ctx, d_warmups)
+    state = OnlineState(ctx, d_warmups, resume)
     if resume is not None:
         agents = ctx.load_agents(resume["name"], agents)
     # where the updates keep them (a population's members split over the CPU devices), from the
