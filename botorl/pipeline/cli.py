@@ -19,6 +19,8 @@ without the export extra.
 from __future__ import annotations
 
 import contextlib
+import json
+import os
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -29,18 +31,17 @@ import tyro
 
 from botorl.configs.build import build_config
 from botorl.errors import BotorlError, ConfigError
+from botorl.io import atomic_write_json, open_regular
+from botorl.jaxsetup import setup_jax
 from botorl.pipeline import preempt
+from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step
+from botorl.pipeline.policy import read_run
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_fault, io_guard, read_json
 
 
 def _mark_failed(path: Path, reason: str, fresh=None) -> None:
     """``path`` (a summary.json or population.json) says ``failed`` with the reason, when it can
     still be written; where none can be read, ``fresh()``'s (a summary with every contract key)."""
-    import json
-    import os
-
-    from botorl.io import atomic_write_json, open_regular
-
     try:
         data = read_json(path) if path.exists() else None
     except (OSError, ValueError):
@@ -69,7 +70,6 @@ def _mark_failed(path: Path, reason: str, fresh=None) -> None:
 def _execute(cfg, member_cfgs, root: Path, runs: list[RunDir], d_raw, *, resume: bool, resume_from: str | None = None):
     """``runner.execute`` with I/O faults and corrupt checkpoints turned into exit 2 and a
     truthful status (the run's summary.json, a population's population.json)."""
-    from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager
     from botorl.pipeline.runner import build_summary, execute
 
     def mark(reason: str) -> None:
@@ -110,8 +110,6 @@ def _execute(cfg, member_cfgs, root: Path, runs: list[RunDir], d_raw, *, resume:
 def _resume_hint(root: Path, resume_from: str | None) -> str:
     """The command that resumes from the newest checkpoint that passes the check, other than
     the one that just failed (a hint that names a command that works)."""
-    from botorl.pipeline.checkpoint import CheckpointManager
-
     ckpt = CheckpointManager(RunDir(root).checkpoints)
     failed = resume_from or (ckpt.latest() or {}).get("name")
     good = [n for n in sorted(ckpt.names(), key=ckpt.order, reverse=True) if n != failed and ckpt.usable(n)]
@@ -138,8 +136,6 @@ def run_main(argv: list[str]) -> int:
     from botorl.configs.members import is_population, population
     from botorl.configs.schema import to_dict
     from botorl.envs.registry import get_task
-    from botorl.io import atomic_write_json
-    from botorl.jaxsetup import setup_jax
     from botorl.pipeline.runner import load_offline, write_population_file
 
     setup_jax()
@@ -309,9 +305,6 @@ class ExportArgs:
 
 def resume_main(argv: list[str]) -> int:
     args = tyro.cli(ResumeArgs, args=argv, prog="botorl resume")
-    from botorl.jaxsetup import setup_jax
-    from botorl.pipeline.checkpoint import CheckpointManager
-    from botorl.pipeline.policy import read_run
     from botorl.pipeline.runner import read_summary
 
     setup_jax()
@@ -358,9 +351,6 @@ def _print_result(result: dict) -> None:
 
 def eval_main(argv: list[str]) -> int:
     args = tyro.cli(EvalArgs, args=argv, prog="botorl eval")
-    from botorl.jaxsetup import setup_jax
-    from botorl.pipeline.policy import read_run
-
     setup_jax()
     run, cfg = read_run(args.dir, "evaluate", validate=True)
     if args.episodes is not None and args.episodes < 1:
@@ -382,9 +372,7 @@ def _eval(args, run, cfg) -> dict:
     from botorl.agents import checkpoint as agent_ckpt
     from botorl.configs.schema import run_identity
     from botorl.envs.registry import get_task
-    from botorl.io import atomic_write_json
     from botorl.pipeline import stages as S
-    from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_step
     from botorl.pipeline.evaluation import QProbe, evaluate_policy
     from botorl.pipeline.runner import transform_dataset
 

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from botorl.agents import checkpoint as agent_ckpt
 from botorl.agents import population as AP
 from botorl.configs.members import Member
 from botorl.configs.methods import get_method
@@ -192,8 +193,6 @@ class RunContext:
     # -- checkpoints
     def load_agents(self, name: str, like):
         """The population's agents saved under ``name`` (``like``: a stacked template)."""
-        from botorl.agents import checkpoint as agent_ckpt
-
         path = self.ckpt.file(name, "agent.ckpt")
         if self.single:  # the member's own agent
             return AP.stack([agent_ckpt.load(path, like=AP.member_of(like, 0))])
@@ -210,8 +209,6 @@ class RunContext:
 
     def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None,
               documents=None):
-        from botorl.agents import checkpoint as agent_ckpt
-
         state = {
             "identity": [run_identity(mc.cfg) for mc in self.members],
             "stage": stage,

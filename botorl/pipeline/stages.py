@@ -36,7 +36,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from botorl.agents import population as AP
+from botorl.agents.cql import CQLAgent
+from botorl.agents.iql import IQLAgent
+from botorl.agents.sac import SACAgent
 from botorl.boto.phase import train_boto
+from botorl.configs.methods import get_method
 from botorl.data.dataset import Dataset
 from botorl.errors import ConfigError
 from botorl.pipeline import faults, preempt
@@ -48,30 +52,20 @@ STAGES = ("pretrain", "warmup", "boto", "finetune")
 # ---------------------------------------------------------------------------- agents
 def make_pretrain_agent(cfg, obs_dim: int, action_dim: int, seed: int):
     if cfg.pretrain == "iql":
-        from botorl.agents.iql import IQLAgent
-
         return IQLAgent.create(cfg.offline.iql, obs_dim, action_dim, seed)
-    from botorl.agents.cql import CQLAgent
-
     return CQLAgent.create(cfg.offline.cql, obs_dim, action_dim, seed)
 
 
 def agent_template(cfg, stage: str, obs_dim: int, action_dim: int, seed: int):
     """An agent with the structure a checkpoint of ``stage`` holds (for loading it): the
     fine-tuning learner in fine-tuning, the pre-training agent before."""
-    from botorl.configs.methods import get_method
-
     if stage != "finetune" or get_method(cfg.method).finetune_start == "continue":
         return make_pretrain_agent(cfg, obs_dim, action_dim, seed)
-    from botorl.agents.sac import SACAgent
-
     return SACAgent.create(cfg.online.sac, obs_dim, action_dim, seed)
 
 
 def start_finetuning(ctx, agents):
     """The fine-tuning learners, as the method starts them (``Method.finetune_start``)."""
-    from botorl.agents.sac import SACAgent
-
     oc, start = ctx.cfg.online, ctx.method.finetune_start
     if start == "warm_start":
         # WSRL's warm start: SAC (10 critics) from the pre-trained (or BOTO-trained) networks.
