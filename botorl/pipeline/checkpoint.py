@@ -39,6 +39,7 @@ import numpy as np
 
 from botorl.errors import ConfigError, DataFormatError
 from botorl.io import atomic_write_json
+from botorl.pipeline import faults
 from botorl.pipeline.rundir import read_json
 
 LATEST = "latest.json"
@@ -145,8 +146,6 @@ class CheckpointManager:
         arrays: dict[str, dict[str, Any]] | None = None,
         documents: dict[str, Any] | None = None,
     ) -> Path:
-        from botorl.pipeline import faults
-
         tmp = self.root / f".tmp-{name}-{os.getpid()}"
         if tmp.exists():
             shutil.rmtree(tmp)

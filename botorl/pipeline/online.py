@@ -23,6 +23,8 @@ import numpy as np
 from botorl.agents import population as AP
 from botorl.data.dataset import RewardTransform
 from botorl.data.replay import ReplayBuffer
+from botorl.envs.state import get_env_state, set_env_state
+from botorl.pipeline.checkpoint import CheckpointCorrupt
 
 
 def rng_from(state: dict | None, seed_seq) -> np.random.Generator:
@@ -84,8 +86,6 @@ class OnlineState:
     def save(self, agents, window=None) -> None:
         """A mid-stage checkpoint of the agents and this whole state (and, from an interrupt
         between two log points, the metrics ``window`` since the last one: stages.Window)."""
-        from botorl.envs.state import get_env_state
-
         arrays = {"buffer": self.buffer.state_dict(), "online": {"obs": self.obs, "ep_succ": self.ep_succ}}
         w = None if window is None else window.state_dict()
         if w:
@@ -102,9 +102,6 @@ class OnlineState:
     def _load_envs(self, name: str) -> bool:
         """Each env, observation and running episode from checkpoint ``name``; False for a
         checkpoint without env states (older botorl)."""
-        from botorl.envs.state import set_env_state
-        from botorl.pipeline.checkpoint import CheckpointCorrupt
-
         doc, arrays = self.ctx.ckpt.document(name, "envs"), self.ctx.ckpt.arrays(name, "online")
         if doc is None or arrays is None:
             return False

@@ -22,7 +22,9 @@ import os
 import jax
 import numpy as np
 
+from botorl.configs.methods import get_method
 from botorl.errors import ConfigError
+from botorl.pipeline.stages import agent_template, make_pretrain_agent
 
 __all__ = ["estimate", "check_fits", "estimate_memory", "check_memory", "available_memory", "host_memory", "env_bytes",
            "tree_bytes"]
@@ -137,9 +139,6 @@ def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
     """The memory of a population of ``n`` members of ``cfg`` by part (``estimate_memory``), from
     one template member; with the task's ``spec``, its environments measured (one training env
     and eval.envs_per_member evaluation envs per member)."""
-    from botorl.configs.methods import get_method
-    from botorl.pipeline.stages import agent_template, make_pretrain_agent
-
     # envs first: made after JAX has built its first arrays, the first ~16 pointmaze envs grow the
     # process by twice what each later one does (allocator arenas), which would double the estimate.
     # Measured only for populations: one member's envs are a few hundred MB at most.

@@ -8,6 +8,7 @@ directory exists).
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import sys
@@ -23,8 +24,11 @@ from botorl.configs.members import Member
 from botorl.configs.methods import get_method
 from botorl.configs.schema import RunConfig, run_identity, to_dict
 from botorl.data.dataset import Dataset, RewardTransform
+from botorl.data.dataset import validate as validate_dataset
+from botorl.data.tasks import load_task_data
+from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDivergedError
-from botorl.io import atomic_write_json
+from botorl.io import atomic_write_bytes, atomic_write_json
 from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name
@@ -37,9 +41,6 @@ _DS_FIELDS = ("observations", "actions", "rewards", "next_observations", "termin
 # ---------------------------------------------------------------------------- data
 def load_offline(cfg: RunConfig, spec) -> Dataset:
     """The task's offline data with raw rewards; generated tasks are made when missing."""
-    from botorl.data.dataset import validate as validate_dataset
-    from botorl.data.tasks import load_task_data
-
     if spec.dataset_source.kind == "generated" and cfg.data.path is None:
         if cfg.data.demos:
             # the door generator reads the demos from this variable (botorl.data.generators.door)
@@ -426,8 +427,6 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
     ``root`` holds the population's checkpoints; ``member_runs[i]`` is member i's ordinary run
     directory (a single run: one member, whose run directory is ``root``). Returns every
     member's summary."""
-    from botorl.envs.registry import get_task
-
     spec, method, root = get_task(cfg.task), get_method(cfg.method), Path(root)
     root.mkdir(parents=True, exist_ok=True)
     d_offline = transform_dataset(cfg, spec, d_offline_raw)
@@ -559,13 +558,9 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
     ax.set_title(f"{cfg.task} / {cfg.method} / seed {cfg.seed}")
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    import io
-
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    from botorl.io import atomic_write_bytes
-
     atomic_write_bytes(run.curve, buf.getvalue())
     return run.curve
 

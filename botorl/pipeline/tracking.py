@@ -16,6 +16,7 @@ import os
 import sys
 from pathlib import Path
 
+from botorl.configs.methods import get_method
 from botorl.errors import ConfigError
 
 MIN_VERSION = (0, 19, 10)  # reinit="create_new": several live runs in one process (a population)
@@ -44,8 +45,6 @@ def run_id(run_root) -> str:
 
 
 def _alpha(cfg):
-    from botorl.configs.methods import get_method
-
     return cfg.alpha if cfg.alpha is not None and get_method(cfg.method).uses_alpha else None
 
 
@@ -61,8 +60,6 @@ def name(cfg) -> str:
 
 
 def job_type(cfg) -> str:
-    from botorl.configs.methods import get_method
-
     stages = [s for s in get_method(cfg.method).stages if not (s == "pretrain" and cfg.pretrained is not None)]
     return "+".join(stages)
 
