@@ -19,7 +19,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from botorl.agents import checkpoint as agent_ckpt
+from botorl.agents.population import stack
+from botorl.configs.schema import RunConfig, from_dict, to_dict
 from botorl.errors import ConfigError
+from botorl.io import atomic_write_bytes, read_bounded_bytes
+from botorl.pipeline.rundir import LOG_LIMIT, read_json
+from botorl.pipeline.stages import make_pretrain_agent
 
 PRETRAIN_FINAL = "pretrain-final"
 # settings that change what is logged, not what is learned
@@ -28,8 +34,6 @@ _NOT_LEARNED = {("offline", "log_every")}
 
 def fingerprint(cfg) -> dict[str, Any]:
     """The settings that decide a member's pre-trained agent."""
-    from botorl.configs.schema import to_dict
-
     return fingerprint_of(to_dict(cfg))
 
 
@@ -56,9 +60,6 @@ def _first_difference(a: Any, b: Any, path: str = "") -> str | None:
 
 def candidates(directory: str | Path) -> list[tuple[Path, dict]]:
     """(run directory, its fingerprint) for every run under ``directory`` with a finished pre-training."""
-    from botorl.configs.schema import RunConfig, from_dict
-    from botorl.pipeline.rundir import read_json
-
     root = Path(directory).expanduser()
     if not root.is_dir():
         raise ConfigError(f"--pretrained {directory}: no such directory. Point it at a run, population or sweep "
@@ -108,10 +109,6 @@ def match(member_cfgs, directory: str | Path, *, strict: bool = True) -> list[Pa
 def load(ctx, sources: list[Path]):
     """The members' pre-trained agents (stacked), with each source's pre-training logs copied
     into the member's run directory so its metrics read as if it had pre-trained itself."""
-    from botorl.agents import checkpoint as agent_ckpt
-    from botorl.agents.population import stack
-    from botorl.pipeline.stages import make_pretrain_agent
-
     d = ctx.d_offline
     agents = []
     for src, mc in zip(sources, ctx.members):
@@ -119,9 +116,6 @@ def load(ctx, sources: list[Path]):
         agents.append(agent_ckpt.load(str(src / "checkpoints" / PRETRAIN_FINAL / "agent.ckpt"), like=like))
         for name in ("pretrain.csv", "pretrain.jsonl"):
             if (src / "metrics" / name).is_file() and src.resolve() != mc.run.root.resolve():
-                from botorl.io import atomic_write_bytes, read_bounded_bytes
-                from botorl.pipeline.rundir import LOG_LIMIT
-
                 try:
                     atomic_write_bytes(mc.run.metrics / name, read_bounded_bytes(src / "metrics" / name, LOG_LIMIT))
                 except ValueError as err:  # not a regular file, or a huge one: the logs only, not the run
