@@ -307,13 +307,8 @@ class TBWriter:
                 w.close()
 
     def add_scalar(self, tag: str, value: Any, step: int) -> None:
-        if self._writer is None:
-            return
-        try:
-            v = float(value)
-        except (TypeError, ValueError):
-            return
-        if not math.isfinite(v):
+        v = number(value)
+        if self._writer is None or not math.isfinite(v):  # not a number, or one TensorBoard rejects
             return
         try:
             from tensorboardX.proto.event_pb2 import Event
@@ -344,10 +339,8 @@ class MetricsLogger:
         self._tb: TBWriter | None = None
         self._wandb = wandb_run
         if tensorboard:
-            try:
+            with contextlib.suppress(ImportError):  # tensorboardX is optional
                 self._tb = TBWriter(run.tb)
-            except ImportError:
-                self._tb = None
 
     def _wandb_log(self, data: dict[str, Any]) -> None:
         # W&B talks to its own service process; a failure there must not stop the run.
@@ -380,9 +373,7 @@ class MetricsLogger:
     def log_eval(self, row: dict[str, Any]) -> None:
         if self._tb is not None:
             for k in ("success", "return", "q_data", "q_uniform"):
-                v = row.get(k)
-                if isinstance(v, (int, float)):
-                    self._tb.add_scalar(f"eval/{k}", v, row["env_step"])
+                self._tb.add_scalar(f"eval/{k}", row.get(k), row["env_step"])
         if self._wandb is not None:
             self._wandb_log({f"eval/{k}": row[k] for k in ("success", "return", "q_data", "q_uniform")}
                             | {"eval/env_step": row["env_step"], "env_step": row["env_step"]})
