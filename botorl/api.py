@@ -19,6 +19,7 @@ from typing import Any, Callable
 from botorl.errors import BotorlError, ConfigError
 from botorl.pipeline.export import export_policy
 from botorl.pipeline.policy import load_agent, load_policy
+from botorl.pipeline.rundir import read_json
 
 
 def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_episode_steps: int,
@@ -150,8 +151,6 @@ def resume(run_dir: str | os.PathLike, *, checkpoint: str | None = None, progres
 
 
 def _summary(root: Path, population: bool) -> dict[str, Any]:
-    from botorl.pipeline.rundir import read_json
-
     if not population:
         return read_json(root / "summary.json")
     data = read_json(root / "population.json")

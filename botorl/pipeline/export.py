@@ -23,17 +23,23 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
+import importlib
 import logging
 import sys
+import time
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from botorl import __version__ as botorl_version
 from botorl.errors import BotorlError, ConfigError
+from botorl.io import atomic_write_bytes, atomic_write_json
+from botorl.jaxsetup import setup_jax
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_step, file_sha256
 from botorl.pipeline.policy import load_policy, read_run, task_io
+from botorl.pipeline.rundir import read_json
 
 INSTALL = 'pip install "botorl[export]"'
 OPSET = 17  # LayerNormalization's first opset; onnxruntime >= 1.13 runs it (robots' runtimes lag)
@@ -56,8 +62,6 @@ class ExportMismatch(BotorlError):
 
 def require(*modules: str) -> dict[str, Any]:
     """Import the export extra's ``modules`` (``onnx``, ``onnxruntime``, ``jax2onnx``) or say how to install them."""
-    import importlib
-
     # jax2onnx logs a traceback for each of its plugins whose library (equinox, dm-pix) is absent;
     # botorl's actor needs none of them
     logging.getLogger("jax2onnx").setLevel(logging.ERROR)
@@ -74,8 +78,6 @@ def require(*modules: str) -> dict[str, Any]:
 
 
 def _version(dist: str) -> str | None:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version(dist)
     except PackageNotFoundError:
@@ -274,10 +276,6 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     ``verify_rows`` of the run's dataset). ``ExportMismatch`` (exit 1) when onnxruntime's actions
     differ from ``load_policy``'s by more than ``tolerance``; nothing is written then. Needs
     ``pip install "botorl[export]"`` (else ``MissingExportDependency``, exit 2)."""
-    from botorl import __version__ as botorl_version
-    from botorl.io import atomic_write_bytes, atomic_write_json
-    from botorl.jaxsetup import setup_jax
-
     if format not in FORMATS:
         raise ConfigError(f"--format {format}: botorl exports {', '.join(FORMATS)}.")
     out = Path(path)
@@ -366,8 +364,7 @@ def read_contract(model: str | Path) -> dict[str, Any] | None:
     if not p.exists():
         return None
     try:
-        with open(p) as f:
-            c = json.load(f)
+        c = read_json(p)
     except (OSError, ValueError) as err:
         raise ConfigError(f"{p} cannot be read as a policy contract ({err}); export the policy again.") from None
     if not isinstance(c, dict):
@@ -398,11 +395,8 @@ def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, 
     """``botorl eval RUN --policy FILE``: the run's evaluation protocol (``botorl eval``: the same
     envs, reset seeds and success rule) with the exported model acting through onnxruntime;
     written to ``RUN/eval-<FILE stem>-onnx.json``."""
-    import time
-
     from botorl.envs.registry import get_task
     from botorl.envs.user import action_from_env, is_unit_box
-    from botorl.io import atomic_write_json
     from botorl.pipeline.evaluation import evaluate_policy
 
     path = Path(path)

@@ -23,6 +23,9 @@ from typing import Any
 import numpy as np
 
 from botorl.errors import ConfigError
+from botorl.jaxsetup import setup_jax
+from botorl.pipeline.checkpoint import CheckpointManager
+from botorl.pipeline.rundir import POPULATION_FILE, RunDir, read_json
 
 
 def read_run(run_dir, verb: str = "load", *, validate: bool = False):
@@ -31,10 +34,9 @@ def read_run(run_dir, verb: str = "load", *, validate: bool = False):
     check the config as `botorl run` does (which needs the run's task here)."""
     from botorl.configs.resolve import validate as check
     from botorl.configs.schema import RunConfig, from_dict
-    from botorl.pipeline.rundir import RunDir, read_json
 
     root = Path(run_dir)
-    if (root / "population.json").exists():
+    if (root / POPULATION_FILE).exists():
         members = sorted(p.name for p in root.iterdir() if (p / "config.json").exists())
         raise ConfigError(f"{root} is a population; {verb} one member's run directory, e.g. {root / (members or ['s0'])[0]}.")
     run = RunDir(root)
@@ -77,9 +79,7 @@ def load_agent(run_dir, checkpoint: str | None = None):
 
 def _load(run_dir, checkpoint):
     from botorl.agents import checkpoint as agent_ckpt
-    from botorl.jaxsetup import setup_jax
     from botorl.pipeline import stages as S
-    from botorl.pipeline.checkpoint import CheckpointManager
 
     setup_jax()
     run, cfg = read_run(run_dir)
