@@ -137,19 +137,18 @@ class RunContext:
         checkpoint stays); in a larger one a diverged member is marked failed and the rest go on."""
         bad = [", ".join(f"{k} = {v}" for k, v in sorted(m.items()) if not math.isfinite(v)) for m in ms]
         diverged = f"training diverged in stage {stage!r} near step {step}: "
-        if self.n == 1:
-            if bad and bad[0]:
+        for i, b in enumerate(bad):
+            if not b or i in self.failed:
+                continue
+            if self.n == 1:
                 last = self.ckpt.latest()
                 where = f"checkpoint {last['name']}" if last else "no checkpoint yet"
                 raise TrainingDivergedError(
-                    f"{diverged}{bad[0]}. The last good state is kept ({where} in {self.ckpt.root}). Lower the "
+                    f"{diverged}{b}. The last good state is kept ({where} in {self.ckpt.root}). Lower the "
                     f"learning rates (e.g. --offline.cql.critic_lr, --online.sac.critic_lr), check the data's reward "
                     f"scale, or run another seed; `botorl resume` would start again from that checkpoint.")
-            return
-        for i, b in enumerate(bad):
-            if b and i not in self.failed:
-                self.fail_member(i, f"{diverged}{b}. The other members went on. Lower the learning rates or run "
-                                    f"another seed.")
+            self.fail_member(i, f"{diverged}{b}. The other members went on. Lower the learning rates or run another "
+                                f"seed.")
         if len(self.failed) == self.n:
             raise TrainingDivergedError(
                 f"every member of the population diverged (stage {stage!r}, near step {step}); each member's "
