@@ -3,9 +3,9 @@
 ``OnlineState`` holds the members' envs stepped in lockstep (each mid-episode), their current
 observations and episode counters, the replay buffer with a member axis, each member's
 batch generator, the step, and the evaluation schedule's memory. It is saved whole into a
-mid-stage checkpoint (``save``) and restored whole (``restore``), so a resumed fine-tuning
-repeats an uninterrupted one exactly (CONTRACTS.md "Runs": ``buffer.npz``, ``online.npz``,
-``envs.json`` and the counters in ``state.json``).
+mid-stage checkpoint (``save``) and restored whole (``OnlineState(ctx, d_warmups, resume)``),
+so a resumed fine-tuning repeats an uninterrupted one exactly (CONTRACTS.md "Runs":
+``buffer.npz``, ``online.npz``, ``envs.json`` and the counters in ``state.json``).
 
 What a method needs from it is declared in its ``Method`` (botorl/configs/methods.py):
 ``finished_episodes_only`` -- batches hold rows of finished episodes only, whose Monte-Carlo
