@@ -97,12 +97,7 @@ class Dataset:
         act = np.asarray(actions, dtype=np.float32)
         rew = np.asarray(rewards, dtype=np.float32)
         term = np.asarray(terminals).astype(bool)
-        if obs.ndim == 1:
-            obs = obs[:, None]
-        if nobs.ndim == 1:
-            nobs = nobs[:, None]
-        if act.ndim == 1:
-            act = act[:, None]
+        obs, nobs, act = (x[:, None] if x.ndim == 1 else x for x in (obs, nobs, act))
         rew = rew.reshape(-1) if rew.ndim == 2 and rew.shape[1] == 1 else rew
         term = term.reshape(-1) if term.ndim == 2 and term.shape[1] == 1 else term
         n = obs.shape[0]
@@ -182,20 +177,11 @@ class Dataset:
         return int(self.episode_ends.sum())
 
     def _replace(self, **changes) -> "Dataset":
-        fields = dict(
-            observations=self.observations,
-            actions=self.actions,
-            rewards=self.rewards,
-            next_observations=self.next_observations,
-            terminals=self.terminals,
-            episode_ends=self.episode_ends,
-            mc_returns=self.mc_returns,
-            infos=self.infos,
-            metadata=copy.deepcopy(self.metadata),
-            raw_action_max=self.raw_action_max,
-        )
-        fields.update(changes)
-        return Dataset(**fields)
+        names = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends", "mc_returns",
+                 "infos", "raw_action_max")
+        fields = {k: getattr(self, k) for k in names}
+        fields["metadata"] = copy.deepcopy(self.metadata)
+        return Dataset(**{**fields, **changes})
 
     def episode_slices(self) -> list[slice]:
         """Row ranges of the episodes, in order."""
@@ -394,19 +380,18 @@ def sample_batch(arrays: dict, key, batch_size: int) -> dict:
     ``batch_size`` must be static under ``jax.jit`` (pass it via ``static_argnums`` or a
     closure). Usable inside ``lax.scan``: split the key per step.
     """
-    import jax
-
-    n = arrays["rewards"].shape[0]
-    idx = jax.random.randint(key, (batch_size,), 0, n)
-    return jax.tree_util.tree_map(lambda x: x[idx], arrays)
+    return _sample_rows(arrays, key, (batch_size,))
 
 
 def sample_batches(arrays: dict, key, num_batches: int, batch_size: int) -> dict:
     """``num_batches`` independent batches stacked as (K, B, ...) for ``update_many``."""
+    return _sample_rows(arrays, key, (num_batches, batch_size))
+
+
+def _sample_rows(arrays: dict, key, shape: tuple[int, ...]) -> dict:
     import jax
 
-    n = arrays["rewards"].shape[0]
-    idx = jax.random.randint(key, (num_batches, batch_size), 0, n)
+    idx = jax.random.randint(key, shape, 0, arrays["rewards"].shape[0])
     return jax.tree_util.tree_map(lambda x: x[idx], arrays)
 
 

@@ -259,10 +259,16 @@ def _minari_episodes(mds, data_path: Path):
 
     Minari's hdf5 storage is read directly with h5py (one group per episode): the same
     arrays ``iterate_episodes`` gives, without its per-episode overhead (about 10x faster
-    on 10^4 short episodes). Other storage formats go through Minari's API.
+    on 10^4 short episodes). Other storage formats go through Minari's API. A truncated or
+    damaged file is a DataFormatError (h5py raises OSError).
     """
     main = data_path / "main_data.hdf5"
-    if main.exists():
+    try:
+        if not main.exists():
+            for ep in mds.iterate_episodes():
+                yield ep.id, {"observations": ep.observations, "actions": ep.actions, "rewards": ep.rewards,
+                              "terminations": ep.terminations, "infos": ep.infos}
+            return
         import h5py
 
         with h5py.File(main, "r") as f:
@@ -276,28 +282,11 @@ def _minari_episodes(mds, data_path: Path):
                     "terminations": g["terminations"][()],
                     "infos": _h5_tree(g["infos"]) if "infos" in g else {},
                 }
-        return
-    for ep in mds.iterate_episodes():
-        yield ep.id, {"observations": ep.observations, "actions": ep.actions, "rewards": ep.rewards,
-                      "terminations": ep.terminations, "infos": ep.infos}
-
-
-def _checked_episodes(mds, data_path: Path):
-    """``_minari_episodes``, with a truncated or damaged file a DataFormatError (h5py raises OSError)."""
-    it = _minari_episodes(mds, data_path)
-    while True:
-        try:
-            item = next(it)
-        except StopIteration:
-            return
-        except DataFormatError:
-            raise
-        except Exception as err:
-            raise DataFormatError(
-                f"{data_path / 'main_data.hdf5'} cannot be read ({type(err).__name__}: {err}); the file is truncated "
-                "or damaged. Regenerate it (`botorl data generate TASK --overwrite`) or download the dataset again."
-            ) from None
-        yield item
+    except Exception as err:
+        raise DataFormatError(
+            f"{main} cannot be read ({type(err).__name__}: {err}); the file is truncated "
+            "or damaged. Regenerate it (`botorl data generate TASK --overwrite`) or download the dataset again."
+        ) from None
 
 
 def load_minari(
@@ -365,7 +354,7 @@ def load_minari(
         ) from None
     obs_l, nobs_l, act_l, rew_l, term_l, end_l, succ_l = [], [], [], [], [], [], []
     have_success = True
-    for ep_id, ep in _checked_episodes(mds, data_path):
+    for ep_id, ep in _minari_episodes(mds, data_path):
         try:
             o = flatten_observation(ep["observations"], obs_keys)
         except KeyError as err:
@@ -545,14 +534,11 @@ def load_calql_adroit(
         obs_l, nobs_l, act_l, rew_l, ends_l = [], [], [], [], []
         for i, tr in enumerate(trajs):
             _need(tr, ("observations", "next_observations", "actions", "rewards"), p, i)
-            key = "state_observation" if kind == "expert" else None
-            if kind == "bc" and len(tr["observations"]) and isinstance(tr["observations"][0], dict):
-                key = "state_observation"  # tolerate an expert-style BC file
-            if kind == "expert" and len(tr["observations"]) and not isinstance(tr["observations"][0], dict):
-                key = None
+            # the expert file's observations are dicts, the BC file's arrays (either file may be either)
+            key = "state_observation" if len(tr["observations"]) and isinstance(tr["observations"][0], dict) else None
             o = _stack_obs(tr["observations"], key, p, i)
             no = _stack_obs(tr["next_observations"], key, p, i)
-            a = np.asarray(tr["actions"], np.float32).reshape(len(o), -1) if len(o) else np.zeros((0, 1), np.float32)
+            a = np.asarray(tr["actions"], np.float32).reshape(len(o), -1)
             r = np.asarray(tr["rewards"], np.float32).squeeze()
             r = np.atleast_1d(r)[: len(o)]
             if not (len(o) == len(no) == len(a) == len(r)):

@@ -1,28 +1,20 @@
 """Writing botorl datasets as Minari datasets, so any Minari-aware tool can read them.
 
-Minari's own writer (``minari.create_dataset_from_buffers`` with one ``EpisodeBuffer`` per
-episode) costs about 2.5 ms per episode, 70 s for the 14.5k episodes of 1M pointmaze steps.
-So ``metadata.json`` is made by Minari itself (``create_dataset_from_buffers`` with no
-episodes, then ``update_metadata`` with the totals), and the episodes are written straight
-into ``main_data.hdf5`` with h5py's low-level API in the layout of Minari 0.5's
-``HDF5Storage.update_episodes`` (one group ``episode_<id>`` with attributes ``id`` and
-``total_steps``; datasets ``observations``, ``actions``, ``rewards``, ``terminations``,
-``truncations`` and a group ``infos``). Differences that Minari's readers do not see: the
-datasets are contiguous (Minari makes them chunked and resizable, which triples the file
-size and only matters for appending steps to an existing episode), and the file is built in
-memory and written once. About 0.7 ms of CPU per episode, 10 s for those 14.5k (tests compare with Minari's
-writer). Everything goes into a private temporary root next to the destination, then moves
-into place with one ``rename``: a crash leaves either no dataset or a complete one, never a
-half-written one under the final id.
+Minari's own writer (``create_dataset_from_buffers``, one ``EpisodeBuffer`` per episode) costs
+about 2.5 ms per episode, 70 s for the 14.5k episodes of 1M pointmaze steps. So Minari only
+makes ``metadata.json`` (an empty dataset, then ``update_metadata`` with the totals), and the
+episodes go straight into ``main_data.hdf5`` with h5py's low-level API, in the layout of Minari
+0.5's ``HDF5Storage.update_episodes`` (about 0.7 ms per episode; tests compare the two
+writers). Unlike Minari's, the datasets are contiguous (chunked, resizable ones triple the file
+size and only matter for appending to an episode) and the file is written once from memory.
+Everything goes into a private temporary root next to the destination, then moves into place
+with one ``rename``: a crash leaves no dataset or a complete one, never a half-written one.
 
-Layout (Minari's own): ``<root>/<dataset_id>/data/main_data.hdf5`` + ``metadata.json``.
-Per episode of T steps: T + 1 observations (``observations`` then the last
-``next_observation``), T actions/rewards/terminations/truncations; the last step of an
-episode is truncated unless it is terminal. ``infos`` holds every ``Dataset.infos`` field
-(e.g. ``success``) with T + 1 entries, the first (Minari's reset info) being 0. botorl's
-metadata (generator, steps, seed, ...) is a JSON string under the metadata key
-``botorl_metadata``; ``load_minari`` restores it to ``Dataset.metadata["botorl"]``. A flat ``botorl_flat.npz``
-copy of the rows sits beside ``data/`` for fast loading (see ``FLAT_FILE``).
+Per episode of T steps: T + 1 observations, T actions/rewards/terminations/truncations (the
+last step truncated unless terminal); ``infos`` holds every ``Dataset.infos`` field with T + 1
+entries, the first (Minari's reset info) 0. botorl's metadata (generator, steps, seed, ...) is
+a JSON string under the metadata key ``botorl_metadata`` (``Dataset.metadata["botorl"]`` when
+read back). A flat copy of the rows sits beside ``data/`` for fast loading (``FLAT_FILE``).
 """
 
 from __future__ import annotations
@@ -37,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
 from botorl.errors import BotorlError, ConfigError
@@ -250,11 +243,7 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
         a = np.asarray(value, np.int64)  # what h5py's ``attrs[key] = int`` stores
         h5a.create(gid, key, tid_of(a.dtype), scalar).write(a)
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=n_eps, desc=f"writing {name}", unit="episode", mininterval=1.0)
+    bar = tqdm(total=n_eps, desc=f"writing {name}", unit="episode", mininterval=1.0, disable=not progress)
     steps = eps = 0
     # As Minari: the root group tracks the creation order of its episode groups.
     with h5py.File(file_path, "w", track_order=True, driver="core", backing_store=True) as f:
@@ -279,11 +268,10 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
                 for k, v in infos.items():
                     write(ig, k.encode(), v)
             steps += len(rew)
-            if bar is not None and eps % 500 == 0:
+            if eps % 500 == 0:
                 bar.update(500)
-    if bar is not None:
-        bar.update(eps - bar.n)
-        bar.close()
+    bar.update(eps - bar.n)
+    bar.close()
     return eps, steps
 
 
@@ -361,7 +349,8 @@ def write_minari(
             extra = {"botorl_metadata": json.dumps(meta, default=_json_default)}
             if _minari_writer:  # Minari's own (slow) writer; tests compare the two
                 mds = minari.create_dataset_from_buffers(
-                    dataset_id, _progress(list(_episode_buffers(dataset)), progress, dataset_id), **kwargs)
+                    dataset_id, tqdm(list(_episode_buffers(dataset)), desc=f"writing {dataset_id}", unit="episode",
+                                     disable=not progress), **kwargs)
             else:  # Minari writes metadata.json for an empty dataset, botorl the episodes
                 mds = minari.create_dataset_from_buffers(dataset_id, [], **kwargs)
                 eps, steps = _write_episodes_h5(dataset, mds.storage.data_path / "main_data.hdf5", progress, dataset_id)
@@ -385,15 +374,6 @@ def write_minari(
     finally:
         shutil.rmtree(tmp_root, ignore_errors=True)
     return final
-
-
-def _progress(buffers: list, show: bool, name: str):
-    if not show:
-        return buffers
-    from tqdm import tqdm
-
-    # Minari only iterates the buffer list, so a tqdm wrapper shows the writing progress.
-    return tqdm(buffers, desc=f"writing {name}", unit="episode")
 
 
 def _write_flat(ds: Dataset, path: Path, meta: dict) -> None:
@@ -476,10 +456,4 @@ def rebuild_flat(ds: Dataset, folder: Path) -> bool:
 
 
 def _json_default(obj):
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.floating,)):
-        return float(obj)
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    return str(obj)
+    return obj.tolist() if isinstance(obj, (np.integer, np.floating, np.ndarray)) else str(obj)

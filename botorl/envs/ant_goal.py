@@ -29,15 +29,14 @@ Two implementations of the same dynamics and reward:
   ``AntEnv.step``), about 3x faster; training and data generation use it. Tests check both
   give the same transitions for the same actions.
 
-Import cost: this module needs ``mujoco`` and ``numpy`` only (Gymnasium for ``AntGoalEnv``),
-so the trainer runs on a machine that has no Gymnasium-Robotics.
+It needs no Gymnasium-Robotics, so the trainer runs on a machine that lacks it.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import os
 
+import gymnasium as gym
 import numpy as np
 
 FRAME_SKIP = 5  # Ant-v4
@@ -55,11 +54,8 @@ ACTION_DIM = 8
 
 
 def ant_xml_path() -> str:
-    """Gymnasium's ``envs/mujoco/assets/ant.xml``, found without importing Gymnasium."""
-    spec = importlib.util.find_spec("gymnasium")
-    if spec is None or spec.origin is None:
-        raise ImportError("the goal-reaching ant needs Gymnasium's ant.xml: pip install gymnasium")
-    return os.path.join(os.path.dirname(spec.origin), "envs", "mujoco", "assets", "ant.xml")
+    """Gymnasium's ``envs/mujoco/assets/ant.xml``."""
+    return os.path.join(os.path.dirname(gym.__file__), "envs", "mujoco", "assets", "ant.xml")
 
 
 def goal_observation(qpos: np.ndarray, qvel: np.ndarray, goal: np.ndarray) -> np.ndarray:
@@ -156,13 +152,7 @@ class AntGoalSim:
         return next_obs, reward, terminated, truncated, reached
 
 
-def _gym_base():
-    import gymnasium as gym
-
-    return gym.Env
-
-
-class AntGoalEnv(_gym_base()):
+class AntGoalEnv(gym.Env):
     """Gymnasium wrapper around ``AntEnv`` (Ant-v4, positions kept in its observation) with a
     goal drawn around the ant; observation, reward and termination as the module says."""
 

@@ -55,12 +55,13 @@ BANDIT_1D_SPACING = 0.03
 # ----------------------------------------------------------------------------- pinwheel
 
 
-def _radius_pdf(rho: np.ndarray) -> np.ndarray:
+def _radius_distribution():
+    """rho ~ Normal(mean, std^2) truncated to ``PINWHEEL_RADIUS_RANGE`` (scipy's frozen truncnorm)."""
     from scipy.stats import truncnorm
 
     lo, hi = PINWHEEL_RADIUS_RANGE
     a, b = (lo - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD, (hi - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD
-    return truncnorm.pdf(rho, a, b, loc=PINWHEEL_RADIUS_MEAN, scale=PINWHEEL_RADIUS_STD)
+    return truncnorm(a, b, loc=PINWHEEL_RADIUS_MEAN, scale=PINWHEEL_RADIUS_STD)
 
 
 def _arm_angle_pdf(rho: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -76,12 +77,8 @@ def _arm_angle_pdf(rho: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 def sample_pinwheel(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
     """n actions (n, 2) from the pinwheel density, and their arm indices (n,)."""
-    from scipy.stats import truncnorm
-
-    lo, hi = PINWHEEL_RADIUS_RANGE
-    a, b = (lo - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD, (hi - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD
     arm = rng.integers(0, PINWHEEL_ARMS, size=n)
-    rho = truncnorm.rvs(a, b, loc=PINWHEEL_RADIUS_MEAN, scale=PINWHEEL_RADIUS_STD, size=n, random_state=rng)
+    rho = _radius_distribution().rvs(size=n, random_state=rng)
     theta = 2 * np.pi * arm / PINWHEEL_ARMS + PINWHEEL_TWIST * rho + rng.normal(0.0, PINWHEEL_ANGLE_STD, size=n)
     acts = np.stack([rho * np.cos(theta), rho * np.sin(theta)], axis=-1)
     return acts.astype(np.float32), arm
@@ -92,7 +89,7 @@ def pinwheel_density(actions: np.ndarray) -> np.ndarray:
     a = np.asarray(actions, np.float64)
     rho = np.hypot(a[..., 0], a[..., 1])
     theta = np.arctan2(a[..., 1], a[..., 0])
-    polar = _radius_pdf(rho) * _arm_angle_pdf(rho, theta).mean(axis=-1)
+    polar = _radius_distribution().pdf(rho) * _arm_angle_pdf(rho, theta).mean(axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(rho > 0, polar / np.maximum(rho, 1e-300), 0.0)
 
@@ -144,12 +141,9 @@ def sample_1d(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- the env
-DIMS = {kind: (OBS_DIM, a) for kind, a in ACTION_DIM.items()}
-
-
 def bandit_dims(kind: str) -> tuple[int, int]:
     """(obs_dim, action_dim) of a bandit."""
-    return DIMS[kind]
+    return OBS_DIM, ACTION_DIM[kind]
 
 
 def reward_function(kind: str):
@@ -162,7 +156,7 @@ class BanditEnv(gym.Env):
     metadata = {"render_modes": []}
 
     def __init__(self, kind: str, reward_fn=None, seed: int | None = None):
-        obs_dim, action_dim = DIMS[kind]
+        obs_dim, action_dim = bandit_dims(kind)
         self.kind = kind
         self.reward_fn = reward_fn or reward_function(kind)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(obs_dim,), dtype=np.float32)

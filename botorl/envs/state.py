@@ -101,14 +101,9 @@ def _layers(env: gym.Env) -> list[tuple[str, Any]]:
     return out
 
 
-def _rng_state(obj) -> dict | None:
-    rng = getattr(obj, "_np_random", None)
-    if isinstance(rng, np.random.Generator):
-        return _encode_rng(rng)
-    return None
-
-
-def _encode_rng(rng: np.random.Generator) -> dict:
+def _encode_rng(rng) -> dict | None:
+    if not isinstance(rng, np.random.Generator):
+        return None
     st = rng.bit_generator.state
     return {"bit_generator": st["bit_generator"], "state": _encode(st)}
 
@@ -121,10 +116,8 @@ def _decode_rng(d: dict) -> np.random.Generator:
 
 def _mujoco(obj):
     """(model, data) if ``obj`` holds a MuJoCo simulation of its own, else None."""
-    try:
-        import mujoco
-    except ImportError:  # pragma: no cover - mujoco is a dependency
-        return None
+    import mujoco
+
     model, data = obj.__dict__.get("model"), obj.__dict__.get("data")
     if isinstance(model, mujoco.MjModel) and isinstance(data, mujoco.MjData):
         return model, data
@@ -145,13 +138,11 @@ def get_env_state(env: gym.Env) -> dict[str, Any]:
                 attrs[name] = _encode(val)
             except _Skip:
                 continue
-        space = getattr(obj, "action_space", None)
-        space_rng = getattr(space, "_np_random", None) if space is not None else None
         layers[path] = {
             "class": type(obj).__name__,
             "attrs": attrs,
-            "np_random": _rng_state(obj),
-            "action_space_rng": _encode_rng(space_rng) if isinstance(space_rng, np.random.Generator) else None,
+            "np_random": _encode_rng(getattr(obj, "_np_random", None)),
+            "action_space_rng": _encode_rng(getattr(getattr(obj, "action_space", None), "_np_random", None)),
         }
         sim = _mujoco(obj)
         if sim is not None and id(sim[1]) not in seen:

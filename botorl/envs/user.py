@@ -21,6 +21,7 @@ outside botorl (``botorl.load_policy``, an exporter) applies exactly the same tr
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import sys
@@ -187,22 +188,15 @@ def import_entry(entry: str, path: str | None = None) -> tuple[Callable[[int], g
     return func, _found_in(module, module_name)
 
 
-def _module_root(module, module_name: str) -> Path | None:
-    """The sys.path folder ``module_name`` is imported from (its top package's parent)."""
+def _found_in(module, module_name: str) -> str | None:
+    """The sys.path folder ``module_name`` was imported from (its top package's parent), to search
+    again in another process; None for an installed module (site-packages) that any process finds."""
     file = getattr(module, "__file__", None)
     if not file:
         return None
     root = Path(file).resolve().parents[module_name.count(".")]
-    return root.parent if Path(file).name == "__init__.py" else root
-
-
-def _found_in(module, module_name: str) -> str | None:
-    """The folder to search again for ``module_name`` in another process, None for an installed
-    module (site-packages) that any process finds."""
-    root = _module_root(module, module_name)
-    if root is None or {"site-packages", "dist-packages"} & set(root.parts):
-        return None
-    return str(root)
+    root = root.parent if Path(file).name == "__init__.py" else root
+    return None if {"site-packages", "dist-packages"} & set(root.parts) else str(root)
 
 
 def entry_of(make_env: Callable) -> tuple[str | None, str | None]:
@@ -220,13 +214,6 @@ def entry_of(make_env: Callable) -> tuple[str | None, str | None]:
 
 
 # ------------------------------------------------------------------ probing the env
-def _close(env) -> None:
-    try:
-        env.close()
-    except Exception:
-        pass
-
-
 def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_key: str | None,
           *, name: str, key_given: bool = False) -> UserTask:
     """Make one env and look at it: the spaces (a Box action space with finite bounds, a Box or Dict
@@ -270,12 +257,12 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
             if terminated or truncated:
                 break
     except ConfigError:
-        _close(env)
         raise
     except Exception as err:
-        _close(env)
         raise ConfigError(f"task {name!r}: the env failed on reset/step ({type(err).__name__}: {err}).") from None
-    _close(env)
+    finally:
+        with contextlib.suppress(Exception):
+            env.close()
     off = None
     if success_key is None:
         off = "success_key=None: success is off"
@@ -323,7 +310,7 @@ def make_spec(name: str, make_env: Callable[[int], gym.Env], task: UserTask, *, 
     return TaskSpec(
         name=name, domain=dom, env_factory=factory, max_episode_steps=int(max_episode_steps),
         success_mode="any", reward_scale=float(reward_scale), reward_bias=float(reward_bias),
-        dataset_source=DatasetSource("user", data_ref or ""), generated=False,
+        dataset_source=DatasetSource("user", data_ref or ""),
         obs_dim=task.obs_dim, action_dim=task.action_dim, networks=DOMAIN_NETS[dom],
         description=f"your task ({task.entry or 'registered from Python'})", user=task,
     )

@@ -45,6 +45,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
 from botorl.envs.adroit import DOOR_SUCCESS_ANGLE
@@ -164,21 +165,16 @@ def train_bc(demos, steps: int, seed: int, progress: bool = True) -> list[tuple[
     key = keys[0]
     chunk = 500
     done = 0
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=steps, desc="door BC", unit="step")
+    bar = tqdm(total=steps, desc="door BC", unit="step", disable=not progress)
     while done < steps:
         n = min(chunk, steps - done)
         key, sub = jax.random.split(key)
         params, state, loss = run(params, state, sub, n)  # compiled once per chunk length
         done += n
-        if bar is not None:
-            bar.update(n)
+        bar.update(n)
+        if progress:
             bar.set_postfix(loss=float(loss))
-    if bar is not None:
-        bar.close()
+    bar.close()
     return [(np.asarray(w, np.float64), np.asarray(b, np.float64)) for w, b in params]
 
 
@@ -201,11 +197,7 @@ def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = Tr
     env = finish(make_door(seed), HORIZON)
     rng = np.random.default_rng(seed)
     trajs, n_eps, n_succ, collected = [], 0, 0, 0
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=steps, desc="door BC rollouts", unit="step")
+    bar = tqdm(total=steps, desc="door BC rollouts", unit="step", disable=not progress)
     while collected < steps:
         obs, _ = env.reset()
         o, a, no = [], [], []
@@ -219,17 +211,11 @@ def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = Tr
         n_eps += 1
         n_succ += int(info["success"] > 0)
         collected += len(o)
-        if bar is not None:
-            bar.update(len(o))
+        bar.update(len(o))
         trajs.append((np.array(o, np.float64), np.array(a, np.float64), np.array(no, np.float64)))
-    if bar is not None:
-        bar.close()
+    bar.close()
     env.close()
     return trajs, n_eps, n_succ
-
-
-def _concat(trajs: list[dict]) -> dict[str, np.ndarray]:
-    return {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0]}
 
 
 def generate(
@@ -264,7 +250,7 @@ def generate(
                 parts.append(t)
     if not parts:
         raise DataFormatError(f"{path}: no demonstration and no rollout succeeded; nothing to keep.")
-    arr = _concat(parts)
+    arr = {k: np.concatenate([t[k] for t in parts]) for k in parts[0]}
     is_demo = np.zeros(len(arr["rewards"]), dtype=np.float32)
     is_demo[: sum(len(p["rewards"]) for p in parts[:n_demo_kept])] = 1.0
     return Dataset(
