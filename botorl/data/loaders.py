@@ -34,20 +34,7 @@ from botorl.errors import DataFormatError, DatasetNotFoundError
 
 # ----------------------------------------------------------------------------- hints
 
-# The paper's D4RL tasks and their current Minari ports (minari.farama.org dataset pages;
-# `minari download <id>` fetches one into $MINARI_DATASETS_PATH or ~/.minari/datasets).
-MINARI_PORTS: dict[str, str] = {
-    "antmaze-large-diverse-v2": "D4RL/antmaze/large-diverse-v1",
-    "antmaze-large-play-v2": "D4RL/antmaze/large-play-v1",
-    "kitchen-partial-v0": "D4RL/kitchen/partial-v2",
-    "kitchen-mixed-v0": "D4RL/kitchen/mixed-v2",
-}
-
 # Where Cal-QL's adroit-binary data come from (nakamotoo/Cal-QL README, "Adroit Binary").
-CALQL_ADROIT_FILES: dict[str, tuple[str, str]] = {
-    "door-binary-v0": ("door2_sparse.npy", "door_bc_sparse4.npy"),
-    "pen-binary-v0": ("pen2_sparse.npy", "pen_bc_sparse4.npy"),
-}
 CALQL_DATA_INSTRUCTIONS = (
     "Download the adroit-binary offline data linked in the Cal-QL README "
     "(https://github.com/nakamotoo/Cal-QL, section 'Adroit Binary': a Google Drive zip of "
@@ -59,15 +46,17 @@ CALQL_DATA_INSTRUCTIONS = (
 
 def download_hint(name: str) -> str:
     """How a user gets the data of a task name or Minari id (one sentence or two)."""
-    if name in MINARI_PORTS:
-        mid = MINARI_PORTS[name]
+    from botorl.envs.registry import get_task, is_registered
+
+    src = get_task(name).dataset_source if is_registered(name) else None
+    if src is not None and src.kind == "minari":  # the paper's D4RL tasks' current Minari ports
         return (
-            f"{name} is read from its Minari port {mid}: run `minari download {mid}` (needs "
+            f"{name} is read from its Minari port {src.ref}: run `minari download {src.ref}` (needs "
             f"`pip install \"minari[hdf5]\"` and network) once; it lands in {minari_root()} "
             "(set MINARI_DATASETS_PATH to use another folder)."
         )
-    if name in CALQL_ADROIT_FILES:
-        expert, bc = CALQL_ADROIT_FILES[name]
+    if src is not None and src.kind == "calql_npy":
+        expert, bc = src.ref.split(",")
         return f"{name} needs Cal-QL's {expert} and {bc}. {CALQL_DATA_INSTRUCTIONS}"
     if "/" in name or name.rsplit("-v", 1)[-1].isdigit():
         return (
@@ -95,6 +84,17 @@ def _require_file(path: str | os.PathLike, what: str) -> Path:
     if not p.exists():
         raise dataset_not_found(str(p), [p], f"Check the path of the {what} file.")
     return p
+
+
+def _join_episodes(episodes: list[dict], metadata: dict) -> Dataset:
+    """One Dataset of per-episode rows: dicts of observations, next_observations, actions,
+    rewards, terminals, optionally episode_ends (default: the last row) and success (an info
+    kept only when every episode has it)."""
+    for e in episodes:
+        e.setdefault("episode_ends", np.arange(len(e["rewards"])) == len(e["rewards"]) - 1)
+    rows = {k: np.concatenate([e[k] for e in episodes]) for k in episodes[0] if all(k in e for e in episodes)}
+    success = rows.pop("success", None)
+    return Dataset(**rows, infos=None if success is None else {"success": success}, metadata=metadata)
 
 
 # ----------------------------------------------------------------------------- D4RL hdf5
@@ -352,8 +352,7 @@ def load_minari(
             f"{data_path}: not a readable Minari dataset ({type(err).__name__}: {err}). "
             "Re-download it with `minari download <id>` or rewrite it."
         ) from None
-    obs_l, nobs_l, act_l, rew_l, term_l, end_l, succ_l = [], [], [], [], [], [], []
-    have_success = True
+    episodes = []
     for ep_id, ep in _minari_episodes(mds, data_path):
         try:
             o = flatten_observation(ep["observations"], obs_keys)
@@ -373,23 +372,16 @@ def load_minari(
             )
         if t == 0:
             continue
-        obs_l.append(o[:-1])
-        nobs_l.append(o[1:])
-        act_l.append(actions.reshape(t, -1))
-        rew_l.append(np.asarray(ep["rewards"], np.float32).reshape(t))
-        term = np.asarray(ep["terminations"]).reshape(t).astype(bool)
-        term_l.append(term)
         info = ep["infos"] if isinstance(ep["infos"], dict) else {}
         end = np.zeros(t, bool)
         # botorl's writer splits an episode where it is not continuous; join it back.
         end[-1] = not (SPLIT_KEY in info and np.asarray(info[SPLIT_KEY]).reshape(-1)[-1] > 0)
-        end_l.append(end)
-        if have_success and success_info_key in info:
-            s = np.asarray(info[success_info_key], np.float32).reshape(-1)
-            succ_l.append(s[-t:])
-        else:
-            have_success = False
-    if not obs_l:
+        episodes.append({"observations": o[:-1], "next_observations": o[1:], "actions": actions.reshape(t, -1),
+                         "rewards": np.asarray(ep["rewards"], np.float32).reshape(t),
+                         "terminals": np.asarray(ep["terminations"]).reshape(t).astype(bool), "episode_ends": end})
+        if success_info_key in info:
+            episodes[-1]["success"] = np.asarray(info[success_info_key], np.float32).reshape(-1)[-t:]
+    if not episodes:
         raise DataFormatError(f"{data_path}: the Minari dataset has no steps.")
     meta = {"source": str(data_path.parent if data_path.name == "data" else data_path), "format": "minari",
             "minari_id": mds.id}
@@ -401,12 +393,7 @@ def load_minari(
             meta["botorl"] = json.loads(extra)
     except Exception:
         pass
-    ds = Dataset(
-        np.concatenate(obs_l), np.concatenate(act_l), np.concatenate(rew_l), np.concatenate(nobs_l),
-        np.concatenate(term_l), np.concatenate(end_l),
-        infos={"success": np.concatenate(succ_l)} if have_success and succ_l else None,
-        metadata=meta,
-    )
+    ds = _join_episodes(episodes, meta)
     if rebuild and "botorl" in meta:  # only botorl's own datasets carry a flat copy
         rebuild_flat(ds, data_path.parent)
     return validate(ds, obs_dim, action_dim, action_tolerance)
@@ -531,7 +518,7 @@ def load_calql_adroit(
             continue
         p = _require_file(path, f"Cal-QL {kind} .npy")
         trajs = _as_list_of_dicts(_load_pickle_array(p, "Cal-QL .npy"), p, "Cal-QL adroit .npy file")
-        obs_l, nobs_l, act_l, rew_l, ends_l = [], [], [], [], []
+        episodes = []
         for i, tr in enumerate(trajs):
             _need(tr, ("observations", "next_observations", "actions", "rewards"), p, i)
             # the expert file's observations are dicts, the BC file's arrays (either file may be either)
@@ -550,18 +537,12 @@ def load_calql_adroit(
             if len(succ) == 0:
                 continue  # never succeeds: Cal-QL drops it
             cut = int(succ[-1]) + 1
-            obs_l.append(o[:cut]); nobs_l.append(no[:cut]); act_l.append(a[:cut]); rew_l.append(r[:cut])
-            e = np.zeros(cut, bool); e[-1] = True
-            ends_l.append(e)
-        if not obs_l:
+            r = r[:cut]
+            episodes.append({"observations": o[:cut], "next_observations": no[:cut], "actions": a[:cut], "rewards": r,
+                             "terminals": r == 0.0, "success": (r == 0.0).astype(np.float32)})
+        if not episodes:
             raise DataFormatError(f"{p}: no trajectory reaches a success (reward 0); nothing to load.")
-        rew = np.concatenate(rew_l)
-        parts.append(Dataset(
-            np.concatenate(obs_l), np.concatenate(act_l), rew, np.concatenate(nobs_l),
-            rew == 0.0, np.concatenate(ends_l),
-            infos={"success": (rew == 0.0).astype(np.float32)},
-            metadata={"source": str(p), "format": f"calql-adroit-{kind}"},
-        ))
+        parts.append(_join_episodes(episodes, {"source": str(p), "format": f"calql-adroit-{kind}"}))
     if not parts:
         raise dataset_not_found("door-binary-v0 / pen-binary-v0", ["(no path given)"], CALQL_DATA_INSTRUCTIONS)
     ds = parts[0] if len(parts) == 1 else parts[0].concat(parts[1])
@@ -650,7 +631,7 @@ def load_dapg_demos(
         raise ValueError("binary_reward=True needs a success_fn")
     p = _require_file(path, "DAPG demo")
     trajs = _dapg_trajectories(p)
-    obs_l, nobs_l, act_l, rew_l, term_l, end_l, succ_l = [], [], [], [], [], [], []
+    episodes = []
     for tr in trajs:
         o, a, r = tr["observations"], tr["actions"], tr["rewards"]
         if len(o) < 2:
@@ -668,19 +649,12 @@ def load_dapg_demos(
             elif drop_unsuccessful:
                 continue
             r_ = succ.astype(np.float32) - 1.0
-        end = np.zeros(len(o_), bool)
-        end[-1] = True
-        obs_l.append(o_); nobs_l.append(no_); act_l.append(a_); rew_l.append(r_)
-        term_l.append(term); end_l.append(end); succ_l.append(succ.astype(np.float32))
-    if not obs_l:
+        episodes.append({"observations": o_, "next_observations": no_, "actions": a_, "rewards": r_,
+                         "terminals": term, "success": succ.astype(np.float32)})
+    if not episodes:
         raise DataFormatError(f"{p}: no usable demo (all shorter than 2 steps or none succeeds).")
-    ds = Dataset(
-        np.concatenate(obs_l), np.concatenate(act_l), np.concatenate(rew_l), np.concatenate(nobs_l),
-        np.concatenate(term_l), np.concatenate(end_l),
-        infos={"success": np.concatenate(succ_l)},
-        metadata={"source": str(p), "format": "dapg-" + ("npz" if p.suffix == ".npz" else "pickle"),
-                  "binary_reward": binary_reward},
-    )
+    ds = _join_episodes(episodes, {"source": str(p), "format": "dapg-" + ("npz" if p.suffix == ".npz" else "pickle"),
+                                   "binary_reward": binary_reward})
     return validate(ds, obs_dim, action_dim, action_tolerance)
 
 

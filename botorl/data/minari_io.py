@@ -20,6 +20,8 @@ read back). A flat copy of the rows sits beside ``data/`` for fast loading (``FL
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
 import json
 import os
 import shutil
@@ -57,19 +59,12 @@ class FlatCacheInvalid(BotorlError):
 
 
 def _sha256_file(path: Path) -> str:
-    import hashlib
-
-    h = hashlib.sha256()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 22), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def _content_sha256(arrays: dict[str, np.ndarray]) -> str:
     """Checksum of named arrays (name, dtype, shape and bytes, in name order)."""
-    import hashlib
-
     h = hashlib.sha256()
     for k in sorted(arrays):
         a = np.ascontiguousarray(arrays[k])
@@ -224,13 +219,7 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
     from h5py import h5a, h5d, h5g, h5s, h5t
 
     n_eps = len(_cuts(ds)[1])
-    tids: dict = {}
-
-    def tid_of(dtype):
-        t = tids.get(dtype)
-        if t is None:
-            t = tids[dtype] = h5t.py_create(dtype, logical=True)
-        return t
+    tid_of = functools.cache(functools.partial(h5t.py_create, logical=True))  # one datatype per dtype
 
     def write(gid, key: bytes, arr: np.ndarray):
         arr = np.ascontiguousarray(arr)
@@ -277,7 +266,6 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
 
 def _resolve(dataset_id: str | None, path: str | os.PathLike | None, root: str | os.PathLike | None):
     from minari.dataset.minari_dataset import parse_dataset_id
-
 
     if path is not None:
         p = Path(path).expanduser().resolve()
