@@ -6,16 +6,9 @@ episodes. ``episode_ends[i]`` marks the last row of an episode (terminal or trun
 adroit data have several terminal rows inside one trajectory, and a truncated episode ends
 without a terminal.
 
-Two ways to draw batches:
-
-* ``Dataset.sample(rng, batch_size)``: numpy fancy indexing on the host.
-* ``Dataset.to_device()`` + ``sample_batch(arrays, key, batch_size)``: the arrays live on the
-  accelerator and sampling is a pure function, so it can run inside ``jax.jit`` /
-  ``lax.scan`` (no host round trip per update).
-
-Both return a ``Batch`` (CONTRACTS.md): a dict of float32 arrays with the keys in
-``BATCH_KEYS``; ``dones`` is 1.0 on true terminals only; ``mc_returns`` is zeros where the
-Monte-Carlo returns are unknown.
+Batches (``BATCH_KEYS``, CONTRACTS.md) come from ``Dataset.sample(rng, batch_size)`` on the
+host, or from ``Dataset.to_device()`` + the pure ``sample_batch(arrays, key, batch_size)``
+inside ``jax.jit`` / ``lax.scan`` (no host round trip per update).
 """
 
 from __future__ import annotations

@@ -1,9 +1,6 @@
-"""Readers for the real dataset formats of the paper's tasks, each returning a ``Dataset``.
-
-* ``load_d4rl_hdf5``: D4RL hdf5 files, with D4RL's ``qlearning_dataset`` semantics.
-* ``load_minari``: Minari datasets by id (offline, ``$MINARI_DATASETS_PATH``) or by folder.
-* ``load_calql_adroit``: Cal-QL's adroit-binary ``.npy`` pair (pickle: explicit path only).
-* ``load_dapg_demos``: DAPG human demos, the original pickle or botorl's ``.npz``.
+"""Readers for the real dataset formats of the paper's tasks, each returning a ``Dataset``:
+D4RL hdf5 (``qlearning_dataset`` semantics), Minari (by id from ``$MINARI_DATASETS_PATH``, or
+by folder), Cal-QL's adroit-binary ``.npy`` pair, DAPG human demos (pickle or botorl's ``.npz``).
 
 Every loader returns raw rewards (the pipeline applies the task's ``RewardTransform``) and
 runs ``validate``; bad files raise ``DataFormatError`` naming the file and the problem, and

@@ -2,21 +2,13 @@
 
 ``make_env(seed)`` (a callable of the user's, or ``MODULE:FUNCTION`` imported by name) returns a
 Gymnasium env with a ``Box`` action space and a ``Box`` or (nested) ``Dict`` of ``Box``
-observation space. ``UserTaskEnv`` makes it look like every botorl task (CONTRACTS.md,
-"Tasks"):
-
-* observations: a ``Dict`` is flattened by ``flatten_obs`` in the order of ``obs_keys_of``:
-  the keys sorted alphabetically at every level (nested keys written ``"a/b"``), each leaf
-  row-major, concatenated; the same order ``botorl.data.loaders.flatten_observation`` gives
-  dict observations in data. Then float32. There is no other observation transform (no
-  normalisation).
-* actions: the agent acts in [-1, 1]^A; ``action_to_env`` maps that affinely onto the env's own
-  ``[low, high]`` (``action_from_env`` is its inverse, used on logged actions).
-* ``info["success"]``: the value of the env's ``info[success_key]`` (0 where it is absent);
-  ``success_key`` None: success is off (always 0; the run's summary says so).
-
-``flatten_obs``, ``action_to_env`` and ``action_from_env`` are pure NumPy functions so that code
-outside botorl (``botorl.load_policy``, an exporter) applies exactly the same transformations.
+observation space; ``UserTaskEnv`` makes it look like every botorl task (CONTRACTS.md,
+"Tasks"): a ``Dict`` observation flattened by ``flatten_obs`` in sorted key order (the order
+``botorl.data.loaders.flatten_observation`` gives dict observations in data), float32, no
+normalisation; actions in [-1, 1]^A mapped onto the env's box by ``action_to_env``;
+``info["success"]`` from the env's ``info[success_key]`` (always 0 with ``success_key`` None).
+These are pure NumPy functions so that code outside botorl (``botorl.load_policy``, an
+exporter) applies exactly the same transformations.
 """
 
 from __future__ import annotations
