@@ -49,6 +49,12 @@ class RewardTransform:
         return self.scale * rewards + self.bias
 
 
+def segments(last_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(starts, stops) of the row ranges that end at the marked rows."""
+    stops = np.flatnonzero(last_rows) + 1
+    return np.concatenate([[0], stops[:-1]]).astype(stops.dtype), stops
+
+
 def _source(metadata: dict | None) -> str:
     return str((metadata or {}).get("source", "<in-memory dataset>"))
 
@@ -91,8 +97,7 @@ class Dataset:
         rew = np.asarray(rewards, dtype=np.float32)
         term = np.asarray(terminals).astype(bool)
         obs, nobs, act = (x[:, None] if x.ndim == 1 else x for x in (obs, nobs, act))
-        rew = rew.reshape(-1) if rew.ndim == 2 and rew.shape[1] == 1 else rew
-        term = term.reshape(-1) if term.ndim == 2 and term.shape[1] == 1 else term
+        rew, term = (x.reshape(-1) if x.ndim == 2 and x.shape[1] == 1 else x for x in (rew, term))
         n = obs.shape[0]
         shapes = {
             "observations": obs.shape,
@@ -116,17 +121,13 @@ class Dataset:
             )
         if n == 0:
             raise DataFormatError(f"{src}: the dataset has no transitions.")
-        if episode_ends is None:
-            ends = term.copy()
-        else:
-            ends = np.asarray(episode_ends).astype(bool).reshape(-1)
-            if ends.shape != (n,):
-                raise DataFormatError(f"{src}: episode_ends has shape {ends.shape}, expected ({n},).")
-        ends[-1] = True
+        ends = term.copy() if episode_ends is None else np.asarray(episode_ends).astype(bool).reshape(-1)
         if mc_returns is not None:
             mc_returns = np.asarray(mc_returns, dtype=np.float32).reshape(-1)
-            if mc_returns.shape != (n,):
-                raise DataFormatError(f"{src}: mc_returns has shape {mc_returns.shape}, expected ({n},).")
+        for name, v in (("episode_ends", ends), ("mc_returns", mc_returns)):
+            if v is not None and v.shape != (n,):
+                raise DataFormatError(f"{src}: {name} has shape {v.shape}, expected ({n},).")
+        ends[-1] = True
         infos = {k: np.asarray(v) for k, v in (infos or {}).items()}
         for k, v in infos.items():
             if v.shape[:1] != (n,):
@@ -178,9 +179,7 @@ class Dataset:
 
     def episode_slices(self) -> list[slice]:
         """Row ranges of the episodes, in order."""
-        ends = np.flatnonzero(self.episode_ends) + 1
-        starts = np.concatenate([[0], ends[:-1]])
-        return [slice(int(s), int(e)) for s, e in zip(starts, ends)]
+        return [slice(int(s), int(e)) for s, e in zip(*segments(self.episode_ends))]
 
     def episodes(self) -> Iterator[dict[str, np.ndarray]]:
         """Yield each episode as a dict of its rows (views, not copies)."""
@@ -249,10 +248,7 @@ class Dataset:
         rew = self.rewards.astype(np.float64)
         # Segments end at episode ends and at terminals; inside a segment the recursion has
         # the constant coefficient gamma, so a reversed IIR filter computes it exactly.
-        seg_end = self.episode_ends | self.terminals
-        ends = np.flatnonzero(seg_end) + 1
-        starts = np.concatenate([[0], ends[:-1]])
-        for s, e in zip(starts, ends):
+        for s, e in zip(*segments(self.episode_ends | self.terminals)):
             r = rew[s:e]
             g = lfilter([1.0], [1.0, -gamma], r[::-1])[::-1]
             if infinite_horizon and not self.terminals[e - 1]:

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from botorl.data.dataset import Dataset
+from botorl.data.dataset import Dataset, segments
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import pid_alive
 
@@ -133,9 +133,7 @@ def _cuts(ds: Dataset):
     jump = np.zeros(n, bool)
     if n > 1:
         jump[:-1] = ~ds.episode_ends[:-1] & np.any(ds.next_observations[:-1] != ds.observations[1:], axis=1)
-    ends = np.flatnonzero(ds.episode_ends | jump) + 1
-    starts = np.concatenate([[0], ends[:-1]]).astype(ends.dtype)
-    return starts, ends, jump
+    return *segments(ds.episode_ends | jump), jump
 
 
 def _episodes(ds: Dataset):

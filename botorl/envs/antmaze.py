@@ -1,20 +1,15 @@
 """AntMaze, D4RL-style evaluation on the Gymnasium-Robotics ant (antmaze-large-*-v2).
 
-- Maze: the large D4RL map (``maps.LARGE_MAZE``), start cell (1, 1), goal cell (7, 9), the
-  D4RL antmaze-large evaluation pair (row, column in the map list).
+- Maze: D4RL's large map, start cell (1, 1), goal cell (7, 9) (row, column), D4RL's
+  antmaze-large evaluation pair; the medium and umaze maps (``layout``) are the
+  antmaze-*-local tasks', with D4RL's evaluation pair of that map.
 - ``continuing_task=False``: reward 1 and termination when the ant's (x, y) is within 0.45 of
   the goal. D4RL used a radius of 0.5; we keep Gymnasium-Robotics' 0.45 because the Minari
   ``D4RL/antmaze/*-v1`` datasets (the offline data of these tasks) were regenerated in this env
-  and label their rewards with 0.45.
-- Goal and start positions get Gymnasium-Robotics' uniform noise (+-0.25 cells), as the
-  evaluation env of the Minari datasets does.
-- Observation (29, float32): ``achieved_goal`` (x, y) followed by the 27-dim ``observation``
-  (ant qpos without x, y, then qvel). This is D4RL's layout; the Minari datasets store the
-  same three keys, so a loader concatenates ``ANTMAZE_OBS_KEYS`` in this order.
-- Horizon 1000 (D4RL antmaze evaluation; set by the registry).
-- The medium and umaze maps (``layout``, ``make_antmaze_task``) are the antmaze-*-local tasks'
-  (their data made by botorl.data.generators.antmaze): the same wrapper, D4RL's evaluation
-  start and goal of that map.
+  and label their rewards with 0.45. Goal and start get Gymnasium-Robotics' +-0.25-cell noise,
+  as the evaluation env of the Minari datasets does.
+- Observation (29, float32): ``achieved_goal`` (x, y) then the 27-dim ``observation`` (ant qpos
+  without x, y, then qvel): D4RL's layout, ``ANTMAZE_OBS_KEYS`` of the Minari datasets.
 """
 
 from __future__ import annotations

@@ -1,33 +1,23 @@
 """One-step bandits (``bandit-pinwheel``, ``bandit-1d``): the task definitions behind the
 paper's Figures 2 and 3 and their env, so the registry is uniform.
 
-Both tasks have one step per episode (gamma = 0 semantics: every transition is terminal), a
-constant observation ``zeros(1)``, and rewards that are a deterministic function R(a) of the
-action, so the BOTO fixed point can be computed exactly (algorithms.md section 4):
+Both tasks have one step per episode (every transition terminal), a constant observation
+``zeros(1)``, and rewards that are a deterministic function R(a) of the action, so the BOTO
+fixed point can be computed exactly (algorithms.md section 4):
 ``Q*(a_bar) = ∫ p_D(a) q(a_bar|a) (R(a) - alpha ||a - a_bar||^2) da / ∫ p_D(a) q(a_bar|a) da``.
 
-* ``bandit-pinwheel`` (Figure 2): 2-D actions from a pinwheel density, the standard toy
-  density with curved arms (here ``PINWHEEL_ARMS`` = 5 spiral arms). In polar coordinates
-  ``(rho, theta)``: ``rho`` ~ Normal(0.55, 0.15^2) truncated to [0.05, 0.98], and on arm k
-  ``theta = 2 pi k / 5 + twist * rho + Normal(0, 0.12^2)`` with twist = 2.5 rad, so each arm
-  bends as it goes out. All mass lies inside the unit disk, hence inside [-1, 1]^2. The
-  density ``pinwheel_density(a)`` is exact (polar density / rho, wrapped normal in angle).
-  Reward: ``R(a) = (k(a) + rho) / 5`` where k(a) is the arm with the largest density at a, so
-  arm k's rewards lie in [k/5, (k+1)/5): a distinct range per arm.
-* ``bandit-1d`` (Figure 3): 1-D actions drawn uniformly from a finite support of
-  ``BANDIT_1D_CLUSTERS`` (3 clusters of 7 evenly spaced points, each cluster with its own
-  reward). ``bandit_1d_support()`` returns the support points, their rewards and their
-  probabilities: p_D is that discrete distribution (integrals become weighted sums), and the
-  red dots of Figure 3 are its (action, reward) pairs.
+* ``bandit-pinwheel`` (Figure 2): 2-D actions from a pinwheel density (the standard toy density
+  with curved arms). In polar coordinates ``rho`` is a truncated normal and, on arm k,
+  ``theta = 2 pi k / K + twist * rho + Normal(0, std^2)``, so each arm bends as it goes out; all
+  mass lies inside the unit disk. ``pinwheel_density(a)`` is exact (polar density / rho,
+  wrapped normal in angle). Reward ``R(a) = (k(a) + rho) / K``, k(a) the arm with the largest
+  density at a: a distinct reward range per arm.
+* ``bandit-1d`` (Figure 3): 1-D actions drawn uniformly from a finite support of clusters of
+  evenly spaced points, each cluster with its own reward (``bandit_1d_support()``: points,
+  rewards, probabilities; integrals become weighted sums; the red dots of Figure 3).
 
-``sample_*`` functions are deterministic for a given ``np.random.Generator``; the data are
-made from them by botorl.data.generators.bandit.
-
-The env: the observation is a constant (a single 0.0); the action is in [-1, 1]^A (A = 2 for
-the pinwheel, 1 for the 1-D bandit); the reward is the bandit's R(a), as in the data; every
-episode ends after one step (terminated; gamma is irrelevant).
-``info["success"]`` = (R(a) - min R) / (max R - min R), R's range estimated once on a grid
-over the action box, i.e. how close the action is to the best one.
+The env's reward is R(a), as in the data; ``info["success"]`` = (R(a) - min R) / (max R -
+min R), R's range estimated once on a grid over the action box.
 """
 
 from __future__ import annotations
@@ -75,6 +65,11 @@ def _arm_angle_pdf(rho: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return tot / (s * np.sqrt(2 * np.pi))
 
 
+def _polar(actions) -> tuple[np.ndarray, np.ndarray]:
+    a = np.asarray(actions, np.float64)
+    return np.hypot(a[..., 0], a[..., 1]), np.arctan2(a[..., 1], a[..., 0])
+
+
 def sample_pinwheel(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
     """n actions (n, 2) from the pinwheel density, and their arm indices (n,)."""
     arm = rng.integers(0, PINWHEEL_ARMS, size=n)
@@ -86,9 +81,7 @@ def sample_pinwheel(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.nd
 
 def pinwheel_density(actions: np.ndarray) -> np.ndarray:
     """p_D(a) for actions (..., 2): exact density w.r.t. Lebesgue measure on the plane."""
-    a = np.asarray(actions, np.float64)
-    rho = np.hypot(a[..., 0], a[..., 1])
-    theta = np.arctan2(a[..., 1], a[..., 0])
+    rho, theta = _polar(actions)
     polar = _radius_distribution().pdf(rho) * _arm_angle_pdf(rho, theta).mean(axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(rho > 0, polar / np.maximum(rho, 1e-300), 0.0)
@@ -96,10 +89,7 @@ def pinwheel_density(actions: np.ndarray) -> np.ndarray:
 
 def pinwheel_arm(actions: np.ndarray) -> np.ndarray:
     """Index of the arm whose density is largest at each action (..., 2) -> (...)."""
-    a = np.asarray(actions, np.float64)
-    rho = np.hypot(a[..., 0], a[..., 1])
-    theta = np.arctan2(a[..., 1], a[..., 0])
-    return np.argmax(_arm_angle_pdf(rho, theta), axis=-1)
+    return np.argmax(_arm_angle_pdf(*_polar(actions)), axis=-1)
 
 
 def pinwheel_reward(actions: np.ndarray) -> np.ndarray:
