@@ -15,7 +15,7 @@ from __future__ import annotations
 import difflib
 import importlib
 from dataclasses import dataclass, field
-from functools import partial
+from functools import cache, partial
 from typing import Callable
 
 import gymnasium as gym
@@ -201,14 +201,10 @@ def _build() -> dict[str, TaskSpec]:
     return {s.name: s for s in specs}
 
 
-_TASKS: dict[str, TaskSpec] | None = None
-
-
+@cache
 def _tasks() -> dict[str, TaskSpec]:
-    global _TASKS
-    if _TASKS is None:
-        _TASKS = _build()
-    return _TASKS
+    """The registry of this process (built on first use; ``register`` adds to it)."""
+    return _build()
 
 
 def list_tasks() -> list[TaskSpec]:
