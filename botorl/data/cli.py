@@ -137,19 +137,16 @@ def _load_for_info(cfg: _Target) -> list[tuple[str, object]]:
 
 
 def _info(cfg: Info) -> int:
+    from botorl.data.generators.antmaze import maze_stats
+
     results = []
     for name, ds in _load_for_info(cfg):
         st = ds.stats()
         st["dataset"] = name
         meta = ds.metadata.get("botorl") or {}
-        for k in ("generator", "steps", "seed"):
-            if k in meta:
-                st[f"meta_{k}"] = meta[k]
-        from botorl.data.generators.antmaze import maze_stats
-
-        maze = maze_stats(ds)  # generated antmaze data: coverage of the maze
-        if maze is not None:
-            st.update({f"maze_{k}": v for k, v in maze.items()})
+        st.update({f"meta_{k}": meta[k] for k in ("generator", "steps", "seed") if k in meta})
+        # generated antmaze data: coverage of the maze
+        st.update({f"maze_{k}": v for k, v in (maze_stats(ds) or {}).items()})
         results.append(st)
     if cfg.json:
         print(json.dumps(results if len(results) > 1 else results[0], indent=2))
