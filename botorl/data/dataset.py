@@ -22,6 +22,8 @@ import numpy as np
 from botorl.errors import DataFormatError
 
 BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones", "mc_returns")
+# The per-row fields of a Dataset, in the order of its constructor's arguments.
+_ROWS = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends")
 
 # Actions are kept strictly inside the open box so that atanh (tanh-squashed policies'
 # log-probabilities of dataset actions) stays finite; 1e-5 as in jaxrl/IQL/Cal-QL.
@@ -171,9 +173,7 @@ class Dataset:
         return int(self.episode_ends.sum())
 
     def _replace(self, **changes) -> "Dataset":
-        names = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends", "mc_returns",
-                 "infos", "raw_action_max")
-        fields = {k: getattr(self, k) for k in names}
+        fields = {k: getattr(self, k) for k in _ROWS + ("mc_returns", "infos", "raw_action_max")}
         fields["metadata"] = copy.deepcopy(self.metadata)
         return Dataset(**{**fields, **changes})
 
@@ -184,13 +184,7 @@ class Dataset:
     def episodes(self) -> Iterator[dict[str, np.ndarray]]:
         """Yield each episode as a dict of its rows (views, not copies)."""
         for sl in self.episode_slices():
-            ep = {
-                "observations": self.observations[sl],
-                "actions": self.actions[sl],
-                "rewards": self.rewards[sl],
-                "next_observations": self.next_observations[sl],
-                "terminals": self.terminals[sl],
-            }
+            ep = {k: getattr(self, k)[sl] for k in _ROWS[:5]}
             if self.mc_returns is not None:
                 ep["mc_returns"] = self.mc_returns[sl]
             for k, v in self.infos.items():
@@ -288,12 +282,7 @@ class Dataset:
         if self.metadata.get("mc_returns") != other.metadata.get("mc_returns"):
             meta.pop("mc_returns", None)
         return Dataset(
-            np.concatenate([self.observations, other.observations]),
-            np.concatenate([self.actions, other.actions]),
-            np.concatenate([self.rewards, other.rewards]),
-            np.concatenate([self.next_observations, other.next_observations]),
-            np.concatenate([self.terminals, other.terminals]),
-            np.concatenate([self.episode_ends, other.episode_ends]),
+            *(np.concatenate([getattr(self, k), getattr(other, k)]) for k in _ROWS),
             mc,
             {k: np.concatenate([self.infos[k], other.infos[k]]) for k in keys},
             meta,
@@ -303,15 +292,10 @@ class Dataset:
     # ------------------------------------------------------------------ sampling
     def batch_at(self, idx: np.ndarray) -> dict[str, np.ndarray]:
         """The Batch of the given row indices (any index shape: (B,) or (K, B))."""
-        mc = self.mc_returns[idx] if self.mc_returns is not None else np.zeros(idx.shape, np.float32)
-        return {
-            "observations": self.observations[idx],
-            "actions": self.actions[idx],
-            "rewards": self.rewards[idx],
-            "next_observations": self.next_observations[idx],
-            "dones": self.terminals[idx].astype(np.float32),
-            "mc_returns": mc,
-        }
+        batch = {k: getattr(self, k)[idx] for k in _ROWS[:4]}
+        batch["dones"] = self.terminals[idx].astype(np.float32)
+        batch["mc_returns"] = self.mc_returns[idx] if self.mc_returns is not None else np.zeros(idx.shape, np.float32)
+        return batch
 
     def sample(self, rng: np.random.Generator, batch_size: int, num_batches: int | None = None) -> dict:
         """Uniform rows with replacement: a Batch of (B, ...) or, with ``num_batches=K``, (K, B, ...)."""
