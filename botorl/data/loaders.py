@@ -176,15 +176,11 @@ def load_d4rl_hdf5(
         rew = np.asarray(f["rewards"], np.float32).reshape(-1)
         term = np.asarray(f["terminals"]).reshape(-1).astype(bool)
         tout = np.asarray(f["timeouts"]).reshape(-1).astype(bool) if "timeouts" in f else None
-        success = None
-        for key in ("infos/success", "infos/goal_achieved"):
-            if key in f:
-                success = np.asarray(f[key]).reshape(-1).astype(np.float32)
-                break
+        key = next((k for k in ("infos/success", "infos/goal_achieved") if k in f), None)
+        success = None if key is None else np.asarray(f[key]).reshape(-1).astype(np.float32)
     n = obs.shape[0]
-    lens = {"observations": n, "actions": act.shape[0], "rewards": rew.shape[0], "terminals": term.shape[0]}
-    if tout is not None:
-        lens["timeouts"] = tout.shape[0]
+    lens = {k: v.shape[0] for k, v in (("observations", obs), ("actions", act), ("rewards", rew), ("terminals", term),
+                                       ("timeouts", tout)) if v is not None}
     if len(set(lens.values())) != 1:
         raise DataFormatError(f"{p}: fields have different lengths {lens}; the file is truncated or corrupt.")
     if n < 2:

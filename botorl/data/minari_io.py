@@ -93,7 +93,6 @@ def clean_stale_tmp(root: Path) -> list[Path]:
         if not p.name.startswith(TMP_PREFIX) or not p.is_dir():
             continue
         parts = p.name[len(TMP_PREFIX):].rsplit("-", 2)
-        stale = False
         if len(parts) == 3 and parts[0] == host and parts[1].isdigit():
             stale = not pid_alive(int(parts[1]))
         else:  # another host's, or the old unnamed form: only when clearly abandoned
@@ -345,17 +344,14 @@ def write_minari(
             mds.storage.update_metadata(extra)
         _write_flat(dataset, tmp_root / dataset_id / FLAT_FILE, meta)
         # Carry Minari's namespace marker files over if the destination has none.
-        ns = Path(dataset_id).parent
-        while str(ns) not in ("", "."):
+        for ns in Path(dataset_id).parents[:-1]:
             src, dst = tmp_root / ns / "namespace_metadata.json", root_p / ns / "namespace_metadata.json"
             if src.exists() and not dst.exists():
                 dst.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(src, dst)
-            ns = ns.parent
         final.parent.mkdir(parents=True, exist_ok=True)
         if final.exists():  # overwrite: move the old one aside first, delete it after
-            old = tmp_root / "old"
-            os.replace(final, old)
+            os.replace(final, tmp_root / "old")
         os.replace(tmp_root / dataset_id, final)
     finally:
         shutil.rmtree(tmp_root, ignore_errors=True)
