@@ -1,10 +1,8 @@
 """The cache of generated datasets: ``ensure_dataset(task, steps, seed)``.
 
 Generated datasets are Minari datasets under ``$BOTORL_DATA_DIR`` (default
-``~/.botorl/datasets``), which is laid out as a Minari root, one dataset per (task, steps,
-seed) with id ``botorl/<task>/steps<steps>-seed<seed>-v0``. So they can be inspected with
-Minari's own tools, e.g. ``MINARI_DATASETS_PATH=~/.botorl/datasets minari show
-botorl/pointmaze-large/steps1000000-seed0-v0``.
+``~/.botorl/datasets``, laid out as a Minari root so Minari's own tools read it; docs/tasks.md),
+one per (task, steps, seed) with id ``botorl/<task>/steps<steps>-seed<seed>-v0``.
 """
 
 from __future__ import annotations

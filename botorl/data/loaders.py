@@ -416,14 +416,6 @@ def refuse_pickle(origin: str):
         _PICKLE_REFUSED.reset(token)
 
 
-def _pickle_refused(path: Path, what: str, origin: str) -> DataFormatError:
-    return DataFormatError(
-        f"{path}: this {what} is a pickle, and its path comes from {origin}, not from you; a pickle can "
-        "run code when loaded, so botorl does not open it. If you trust the file, pass --allow-pickle to "
-        f"`botorl resume`/`botorl eval`, or name it yourself: `botorl run ... --data.path {path}`."
-    )
-
-
 def _load_pickle_array(path: Path, what: str):
     """A pickle-based file: without pickle when the data allow it, else only from a path the user named."""
     origin = _PICKLE_REFUSED.get()
@@ -436,7 +428,11 @@ def _load_pickle_array(path: Path, what: str):
         except Exception as err:
             raise DataFormatError(f"{path}: cannot be read as a {what} ({type(err).__name__}: {err}).") from None
     if origin is not None:
-        raise _pickle_refused(path, what, origin)
+        raise DataFormatError(
+            f"{path}: this {what} is a pickle, and its path comes from {origin}, not from you; a pickle can "
+            "run code when loaded, so botorl does not open it. If you trust the file, pass --allow-pickle to "
+            f"`botorl resume`/`botorl eval`, or name it yourself: `botorl run ... --data.path {path}`."
+        )
     try:
         if path.suffix == ".npy":
             return np.load(path, allow_pickle=True)

@@ -195,15 +195,6 @@ def _observation_space(ds: Dataset):
     return gym.spaces.Dict({k: gym.spaces.Box(-np.inf, np.inf, (d,), np.float64) for k, d in dims.items()})
 
 
-def _episode_buffers(ds: Dataset):
-    """The same episodes as Minari ``EpisodeBuffer``s (for Minari's own writer)."""
-    from minari.data_collector import EpisodeBuffer
-
-    for ep_id, (obs, act, rew, term, trunc, infos) in enumerate(_episodes(ds)):
-        yield EpisodeBuffer(id=ep_id, observations=obs, actions=act, rewards=rew, terminations=term.copy(),
-                            truncations=trunc, infos=infos or None)
-
-
 def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) -> tuple[int, int]:
     """Write every episode of ``ds`` into ``file_path`` in Minari's HDF5 layout.
 
@@ -332,10 +323,15 @@ def write_minari(
                           observation_space=obs_space, description=description or f"botorl dataset {dataset_id}",
                           env=env_spec)
             extra = {"botorl_metadata": json.dumps(meta, default=_json_default)}
-            if _minari_writer:  # Minari's own (slow) writer; tests compare the two
+            if _minari_writer:  # Minari's own (slow) writer, one EpisodeBuffer per episode; tests compare the two
+                from minari.data_collector import EpisodeBuffer
+
+                buffers = [EpisodeBuffer(id=i, observations=obs, actions=act, rewards=rew, terminations=term.copy(),
+                                         truncations=trunc, infos=infos or None)
+                           for i, (obs, act, rew, term, trunc, infos) in enumerate(_episodes(dataset))]
                 mds = minari.create_dataset_from_buffers(
-                    dataset_id, tqdm(list(_episode_buffers(dataset)), desc=f"writing {dataset_id}", unit="episode",
-                                     disable=not progress), **kwargs)
+                    dataset_id, tqdm(buffers, desc=f"writing {dataset_id}", unit="episode", disable=not progress),
+                    **kwargs)
             else:  # Minari writes metadata.json for an empty dataset, botorl the episodes
                 mds = minari.create_dataset_from_buffers(dataset_id, [], **kwargs)
                 eps, steps = _write_episodes_h5(dataset, mds.storage.data_path / "main_data.hdf5", progress, dataset_id)

@@ -228,8 +228,7 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
                 f"{what}(0) has the action space {act}; botorl's agents act in continuous boxes and need a "
                 f"gymnasium.spaces.Box action space (a discrete task needs another library)."
             )
-        low = np.broadcast_to(np.asarray(act.low, np.float64), act.shape).reshape(-1)
-        high = np.broadcast_to(np.asarray(act.high, np.float64), act.shape).reshape(-1)
+        low, high = (np.broadcast_to(np.asarray(b, np.float64), act.shape).reshape(-1) for b in (act.low, act.high))
         if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(high > low)):
             raise ConfigError(f"{what}(0) has the action space {act} with unbounded or empty dimensions; botorl "
                               f"rescales the box to [-1, 1] and needs finite low < high in every dimension.")
@@ -269,7 +268,7 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
         off = (f"the env's info has no {success_key!r} key (keys seen: {found}), so success is off: every "
                f"success rate is 0; pass success_key (--success-key) naming the info key that marks success")
     return UserTask(obs_keys=keys, obs_dim=int(flat.shape[0]), action_dim=int(low.shape[0]),
-                    action_low=tuple(float(x) for x in low), action_high=tuple(float(x) for x in high),
+                    action_low=tuple(low.tolist()), action_high=tuple(high.tolist()),
                     success_key=None if off else success_key, success_off=off)
 
 
