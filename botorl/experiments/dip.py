@@ -11,9 +11,7 @@ always to never solving the task. Per group: mean +- SE, a percentile bootstrap 
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import math
 from collections import defaultdict
 from pathlib import Path
@@ -24,18 +22,20 @@ import numpy as np
 from botorl.experiments.runs import Run, Skipped, from_scratch, key_order, relative
 from botorl.experiments.stats import (
     alpha_text,
-    line_label,
     bootstrap_mean_ci,
+    csv_text,
     fmt_ci,
     fmt_float,
+    line_label,
     mean_se,
+    pyplot,
+    save_figure,
     stratified_bootstrap_iqm,
-    suptitle,
 )
-from botorl.io import atomic_save_figure
 
 DIP_WINDOW = 10_000
 DIP_KEYS = ("mean", "se", "n", "lo", "hi", "iqm", "iqm_lo", "iqm_hi")  # lo/hi: CI of the mean
+
 
 @dataclasses.dataclass
 class Dip:
@@ -111,10 +111,6 @@ class DipCell:
     from_scratch: bool = False
 
 
-
-
-
-
 def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int) -> list[DipCell]:
     groups: dict[tuple[str, str, float | None], list[Dip]] = defaultdict(list)
     for d in dips:
@@ -134,16 +130,16 @@ def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int)
 
 def dip_runs_csv(dips: Sequence[Dip], relative_to: Path | None = None) -> str:
     """One row per run; paths relative to ``relative_to`` (the report's folder) when given."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["task", "method", "alpha", "seed", "success_0", "lowest", "lowest_step", "evals_in_window",
-                "last_step_in_window", "dip", "path"])
-    for d in dips:
+    header = ["task", "method", "alpha", "seed", "success_0", "lowest", "lowest_step", "evals_in_window",
+              "last_step_in_window", "dip", "path"]
+
+    def row(d: Dip) -> list:
         r = d.run
-        w.writerow([r.task, r.label, "" if r.alpha is None else repr(r.alpha), "" if r.seed is None else r.seed,
-                    fmt_float(d.initial), fmt_float(d.lowest), f"{d.lowest_step:g}", d.evals, f"{d.last_step:g}", fmt_float(d.value),
-                    relative(r.path, relative_to)])
-    return buf.getvalue()
+        return [r.task, r.label, "" if r.alpha is None else repr(r.alpha), "" if r.seed is None else r.seed,
+                fmt_float(d.initial), fmt_float(d.lowest), f"{d.lowest_step:g}", d.evals, f"{d.last_step:g}",
+                fmt_float(d.value), relative(r.path, relative_to)]
+
+    return csv_text(header, map(row, dips))
 
 
 def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> str:
@@ -174,11 +170,7 @@ def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> 
 def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidence: float) -> None:
     """Per task, one point per method (and alpha): the mean dip with its bootstrap CI, and
     each run's dip as a small dot beside it."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     tasks = list(dict.fromkeys(c.task for c in cells))  # in the cells' order (dip_table sorts them)
     ncols = 2 if len(tasks) == 4 else min(3, max(1, len(tasks)))
     nrows = math.ceil(len(tasks) / ncols)
@@ -214,8 +206,5 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
         ax.grid(alpha=0.3, axis="y")
     for ax in list(axes.flat)[len(tasks):]:
         ax.set_visible(False)
-    suptitle(fig, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs")
-    fig.tight_layout()
-    atomic_save_figure(fig, path, dpi=120)
-    plt.close(fig)
-
+    save_figure(fig, path, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs",
+                dpi=120)

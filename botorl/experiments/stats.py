@@ -14,8 +14,10 @@ report's files share.
 
 from __future__ import annotations
 
+import csv
+import io
 import math
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -106,7 +108,15 @@ def wilcoxon_p(values: Sequence[float]) -> float:
     return float(stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
 
 
-# Formats shared by the report's files
+# Formats and figures shared by the report's files
+
+
+def csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    w.writerows(rows)
+    return buf.getvalue()
 
 
 def fmt_float(x: float) -> str:
@@ -117,12 +127,28 @@ def alpha_text(alpha: float | None) -> str:
     return "" if alpha is None else f"{alpha:+.2f}"
 
 
-def suptitle(fig, text: str) -> None:
-    """A figure title wrapped to the figure's width (a one-task figure is narrower than the line)."""
+def pyplot():
+    """matplotlib's pyplot drawing to files only (reports are made on machines without a display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path, title: str, **savefig: Any) -> None:
+    """The figure with its title wrapped to its width (a one-task figure is narrower than the
+    line), written atomically and closed."""
     import textwrap
 
+    from botorl.io import atomic_save_figure
+
     chars = max(20, int(fig.get_figwidth() * 11))  # ~11 characters an inch at 10 pt
-    fig.suptitle("\n".join(textwrap.wrap(text, chars)), fontsize=10)
+    fig.suptitle("\n".join(textwrap.wrap(title, chars)), fontsize=10)
+    fig.tight_layout()
+    atomic_save_figure(fig, path, **savefig)
+    pyplot().close(fig)
 
 
 def line_label(label: str, alpha: float | None, multi_alpha: bool) -> str:
