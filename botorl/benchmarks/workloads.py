@@ -15,7 +15,7 @@ agent the previous one returned, as training does) and blocks until done; ``flop
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import jax
@@ -88,7 +88,6 @@ class Bound:
     flop_fn: Callable[..., Any]
     flop_args: tuple
     updates_per_call: int = 1  # flop_fn does this many updates (the FLOPs are divided by it)
-    extra: dict = field(default_factory=dict)
 
 
 def make_batch(rows: int, obs_dim: int, action_dim: int, seed: int = 0, lead: tuple[int, ...] = ()) -> dict:

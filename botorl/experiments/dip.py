@@ -26,6 +26,8 @@ from botorl.experiments.stats import (
     csv_text,
     fmt_ci,
     fmt_float,
+    fmt_iqm,
+    fmt_mean_se,
     line_label,
     mean_se,
     pyplot,
@@ -151,13 +153,9 @@ def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> 
     ]
     for c in cells:
         st = c.stats
-        ms = "-" if st["n"] == 0 else (f"{st['mean']:+.2f} (n=1)" if not math.isfinite(st["se"])
-                                       else f"{st['mean']:+.2f} ± {st['se']:.2f}")
-        iq = "-" if not math.isfinite(st["iqm"]) else (f"{st['iqm']:+.2f}" + (
-            f" {fmt_ci(st['iqm_lo'], st['iqm_hi'])}" if math.isfinite(st["iqm_lo"]) else ""))
         lines.append(
             f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {int(st['n'])} | {c.initial:.2f} | {c.lowest:.2f} | "
-            f"{ms} | {fmt_ci(st['lo'], st['hi'])} | {iq} |"
+            f"{fmt_mean_se(st, '+')} | {fmt_ci(st['lo'], st['hi'])} | {fmt_iqm(st, '+')} |"
         )
     scratch = sorted({(c.task, c.label) for c in cells if c.from_scratch})
     if scratch:

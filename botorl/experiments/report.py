@@ -39,6 +39,8 @@ from botorl.experiments.stats import (
     check_bootstrap,
     csv_text,
     fmt_float,
+    fmt_iqm,
+    fmt_mean_se,
     line_label,
     mean_se,
     pyplot,
@@ -66,14 +68,6 @@ class Cell:
     seeds: list[int | None]
     stats: dict[str, dict[str, float]]  # point -> mean, se, n, iqm, iqm_lo, iqm_hi
     dip: dict[str, float] | None = None  # dip_stats of the runs that have a dip
-
-
-def _fmt_ms(mean: float, se: float, n: int) -> str:
-    if n == 0:
-        return "-"
-    if not math.isfinite(se):
-        return f"{mean:.2f} (n=1)"
-    return f"{mean:.2f} ± {se:.2f}"
 
 
 def _group(runs: Sequence[Run]) -> dict[tuple[str, str, float | None], list[Run]]:
@@ -163,17 +157,9 @@ def cells_markdown(cells: Sequence[Cell]) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for c in cells:
-        parts = [_fmt_ms(c.stats[p]["mean"], c.stats[p]["se"], int(c.stats[p]["n"])) for p, _ in POINTS]
+        parts = [fmt_mean_se(c.stats[p]) for p, _ in POINTS]
         lines.append(f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {len(c.seeds)} | " + " | ".join(parts) + " |")
     return "\n".join(lines)
-
-
-def _fmt_iqm(st: dict[str, float]) -> str:
-    if not math.isfinite(st["iqm"]):
-        return "-"
-    if not math.isfinite(st["iqm_lo"]):
-        return f"{st['iqm']:.2f}"
-    return f"{st['iqm']:.2f} [{st['iqm_lo']:.2f}, {st['iqm_hi']:.2f}]"
 
 
 def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: float) -> str:
@@ -185,12 +171,12 @@ def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: f
     for c in cells:
         lines.append(
             f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | "
-            + " | ".join(_fmt_iqm(c.stats[p]) for p, _ in POINTS) + " |"
+            + " | ".join(fmt_iqm(c.stats[p]) for p, _ in POINTS) + " |"
         )
     for a in aggs:
         lines.append(
             f"| **all ({len(a.tasks)} task{'s' if len(a.tasks) != 1 else ''})** | {a.label} | | "
-            + " | ".join(_fmt_iqm(a.stats[p]) for p, _ in POINTS) + " |"
+            + " | ".join(fmt_iqm(a.stats[p]) for p, _ in POINTS) + " |"
         )
     return "\n".join(lines)
 

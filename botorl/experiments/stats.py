@@ -123,6 +123,24 @@ def fmt_float(x: float) -> str:
     return "" if x is None or (isinstance(x, float) and not math.isfinite(x)) else repr(float(x))
 
 
+def fmt_mean_se(st: dict[str, float], sign: str = "") -> str:
+    """Mean ± s.e. to 2 places; "(n=1)" where one run has no s.e.; "-" without runs."""
+    if st["n"] == 0:
+        return "-"
+    if not math.isfinite(st["se"]):
+        return f"{st['mean']:{sign}.2f} (n=1)"
+    return f"{st['mean']:{sign}.2f} ± {st['se']:.2f}"
+
+
+def fmt_iqm(st: dict[str, float], sign: str = "") -> str:
+    """The IQM and its CI to 2 places; the IQM alone where there is no CI; "-" without runs."""
+    if not math.isfinite(st["iqm"]):
+        return "-"
+    if not math.isfinite(st["iqm_lo"]):
+        return f"{st['iqm']:{sign}.2f}"
+    return f"{st['iqm']:{sign}.2f} [{st['iqm_lo']:{sign}.2f}, {st['iqm_hi']:{sign}.2f}]"
+
+
 def alpha_text(alpha: float | None) -> str:
     return "" if alpha is None else f"{alpha:+.2f}"
 
