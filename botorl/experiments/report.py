@@ -533,16 +533,10 @@ class ReportResult:
     selection: AlphaSelection | None = None  # None when held-out selection was impossible (see notes)
 
     def summary_text(self) -> str:
-        lines = [f"botorl report: {len(self.runs)} finished runs, {len(self.skipped)} skipped -> {self.out}"]
-        for s in self.skipped:
-            lines.append(f"  skipped {s.path}: {s.reason}")
-        for s in self.no_dip:
-            lines.append(f"  no dip for {s.path}: {s.reason}")
-        for note in self.notes:
-            lines.append(f"  note: {note}")
-        for f in self.files:
-            lines.append(f"  wrote {f}")
-        return "\n".join(lines)
+        return "\n".join([f"botorl report: {len(self.runs)} finished runs, {len(self.skipped)} skipped -> {self.out}"]
+                         + [f"  skipped {s.path}: {s.reason}" for s in self.skipped]
+                         + [f"  no dip for {s.path}: {s.reason}" for s in self.no_dip]
+                         + [f"  note: {note}" for note in self.notes] + [f"  wrote {f}" for f in self.files])
 
 
 def make_report(

@@ -1,6 +1,6 @@
 """What BOTO's alpha does to Q on a real task: Q after BOTO at several distances from the data.
 
-    python -m botorl.experiments.alpha_q --task pointmaze-medium --seeds 100-101 --out alpha-q
+    python benchmarks/alpha_q.py --task pointmaze-medium --seeds 100-101 --out alpha-q
 
 For each seed, one pre-training and warm-up (a `botorl run` of WSRL that stops after its
 warm-up, reused when it exists), then BOTO from that same pre-trained agent for every *arm*:
@@ -128,7 +128,7 @@ def arms(preset_alpha: float) -> dict[str, dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m botorl.experiments.alpha_q", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python benchmarks/alpha_q.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--task", default="pointmaze-medium")
     p.add_argument("--profile", default="quick")
     p.add_argument("--seeds", default="100-101", help="e.g. 100-101 or 100,105")
