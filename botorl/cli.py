@@ -24,7 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "tasks": ("botorl.envs.cli:main", "list the tasks, or check one's environment"),
     "train-ant": ("botorl.experts.ant_train:main", "train the goal-reaching ant behind the antmaze data"),
     "bandit": ("botorl.boto.bandit:main", "reproduce the paper's bandit figures 2 and 3"),
-    "bench": ("botorl.benchmarks.suite:main", "measure update speed (optionally against d3rlpy)"),
+    "bench": ("botorl.benchmarks.suite:main", "measure update speed, or what a paper run costs"),
     "sweep": ("botorl.experiments.cli:sweep_main", "run a grid of tasks x methods x seeds x alphas"),
     "report": ("botorl.experiments.cli:report_main", "Table 1 and Figure 5 from finished runs"),
 }

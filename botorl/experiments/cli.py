@@ -252,9 +252,6 @@ def report_main(argv: list[str]) -> int:
         for f in write_paired_report(extra_pairs, Path(args.out), sources=args.pairs_from, **stats):
             print(f"  wrote {f}")
         return 0
-    for d in args.dirs:
-        if not Path(d).is_dir():
-            raise ConfigError(f"{d} is not a directory; give run or sweep directories.")
     from botorl.experiments.runs import find_runs
 
     runs, skipped = find_runs([Path(d) for d in args.dirs])
@@ -264,8 +261,6 @@ def report_main(argv: list[str]) -> int:
                           f"--out of `botorl run` or a `botorl sweep` folder whose runs have finished.")
     select_seeds = _seed_flag("--select-seeds", args.select_seeds)
     report_seeds = _seed_flag("--report-seeds", args.report_seeds)
-    if args.dip_window <= 0:
-        raise ConfigError(f"--dip-window must be a positive number of online env steps, got {args.dip_window}.")
     if args.select_alpha:  # refuse before writing anything when held-out selection is impossible
         select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **stats)
     out = Path(args.out) if args.out else Path(args.dirs[0]) / "report"
