@@ -24,7 +24,8 @@ from botorl.experiments.cli import sweep_main
 from botorl.experiments.grid import build_grid
 from botorl.experiments.runner import Sweep, SweepOptions, next_action
 
-# Speaks the `botorl run ... --out DIR` / `botorl resume DIR` protocol of CONTRACTS.md "Runs".
+# Speaks the `botorl run --config FILE --out DIR` / `botorl resume DIR` protocol of CONTRACTS.md "Runs"
+# (FILE: the trial's config, here the grid's fields of a task botorl does not know).
 FAKE = textwrap.dedent(
     """
     import json, os, sys, time
@@ -37,8 +38,8 @@ FAKE = textwrap.dedent(
         a = dict(zip(toks[0::2], toks[1::2]))
         out = Path(a["--out"])
         out.mkdir(parents=True, exist_ok=True)
-        cfg = {"task": a["--task"], "method": a["--method"], "seed": int(a["--seed"]),
-               "alpha": float(a["--alpha"]) if "--alpha" in a else None, "pretrain": a.get("--pretrain")}
+        given = json.loads(Path(a["--config"]).read_text())
+        cfg = {k: given[k] for k in ("task", "method", "seed", "alpha", "pretrain")}
         (out / "config.json").write_text(json.dumps(cfg))
         start_at = 0
     else:

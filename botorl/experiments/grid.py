@@ -1,4 +1,4 @@
-"""The grid of a sweep: which trials exist, what each is called, and how each is launched.
+"""The grid of a sweep: which trials exist, what each is called, and the config each runs.
 
 A grid is tasks x methods x seeds (x alphas for BOTO only: alpha is BOTO's bias controller,
 the other methods have no alpha, so they get one trial per seed with alpha recorded as
@@ -22,7 +22,7 @@ PROFILES_HINT = "quick, full (or another profile botorl run accepts, e.g. smoke)
 
 @dataclasses.dataclass(frozen=True)
 class Trial:
-    """One run of the grid: a `botorl run` invocation and its run directory."""
+    """One run of the grid: its config's fields and its run directory."""
 
     task: str
     method: str
@@ -47,12 +47,11 @@ class Trial:
     def id(self) -> str:
         return self.relpath
 
-    def run_args(self, profile: str | None, overrides: dict[str, str]) -> list[str]:
-        """Arguments after `botorl run` (without `--out`)."""
-        args = ["--task", self.task, "--method", self.method, "--seed", str(self.seed)]
-        if self.alpha is not None:
-            args.append(f"--alpha={format_alpha(self.alpha)}")  # "=": a leading '-' is no flag
-        return args + _shared_args(self.pretrain, profile, overrides)
+    @property
+    def fields(self) -> dict[str, Any]:
+        """The fields of its RunConfig it sets (None: the preset's)."""
+        return {"task": self.task, "method": self.method, "seed": self.seed, "alpha": self.alpha,
+                "pretrain": self.pretrain}
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -70,7 +69,7 @@ class PopulationJob:
     --seeds ... [--alphas ...]`): the unit of work of `botorl sweep --population-size K`.
 
     Its members are the product of ``seeds`` and ``alphas`` (a population is always a
-    product, so one `botorl run` command line describes it). Each member's run directory is
+    product, so one config's ``seeds`` and ``alphas`` describe it). Each member's run directory is
     ``<relpath>/<member name>`` (botorl.configs.members.Member.name)."""
 
     task: str
@@ -106,11 +105,11 @@ class PopulationJob:
 
         return f"{self.relpath}/{Member(trial.seed, trial.alpha).name}"
 
-    def run_args(self, profile: str | None, overrides: dict[str, str]) -> list[str]:
-        args = ["--task", self.task, "--method", self.method, "--seeds", ",".join(str(s) for s in self.seeds)]
-        if any(a is not None for a in self.alphas):
-            args.append("--alphas=" + ",".join(format_alpha(a) for a in self.alphas))
-        return args + _shared_args(self.pretrain, profile, overrides)
+    @property
+    def fields(self) -> dict[str, Any]:
+        alphas = ",".join(format_alpha(a) for a in self.alphas) if any(a is not None for a in self.alphas) else None
+        return {"task": self.task, "method": self.method, "seeds": ",".join(str(s) for s in self.seeds),
+                "alphas": alphas, "pretrain": self.pretrain}
 
     def to_json(self) -> dict[str, Any]:
         return {"task": self.task, "method": self.method, "pretrain": self.pretrain, "seeds": list(self.seeds),
@@ -273,6 +272,12 @@ class Grid:
                         out.append(Trial(task, method, seed, alpha, pretrain))
         return out
 
+    def config(self, unit: Trial | PopulationJob):
+        """The resolved, validated RunConfig a trial or population runs (configs.build.make_config)."""
+        from botorl.configs.build import make_config
+
+        return make_config(self.overrides, **unit.fields, profile=self.profile)
+
     def populations(self, size: int) -> list[PopulationJob]:
         """The trials as populations of at most ``size`` members (``group_populations``)."""
         return group_populations(self.trials(), size)
@@ -380,35 +385,3 @@ def build_grid(
     grid.validate()
     return grid
 
-
-def _is_flag(key: str) -> bool:
-    """Whether ``key`` (a dotted path) is a plain bool field of the run config, which tyro
-    makes a flag pair (``bool | None`` fields take a value)."""
-    import dataclasses
-    import typing
-
-    from botorl.configs.schema import RunConfig
-
-    cls = RunConfig
-    for part in key.replace("-", "_").split("."):
-        if not dataclasses.is_dataclass(cls):
-            return False
-        hints = typing.get_type_hints(cls)
-        if part not in hints:
-            return False
-        cls = hints[part]
-    return cls is bool
-
-
-def _shared_args(pretrain: str | None, profile: str | None, overrides: dict[str, str]) -> list[str]:
-    """The `botorl run` arguments a trial and a population have alike."""
-    args = [] if pretrain is None else ["--pretrain", pretrain]
-    if profile:
-        args += ["--profile", profile]
-    for key, value in overrides.items():
-        if value.lower() in ("true", "false") and _is_flag(key):  # tyro's bools: --wandb / --no-wandb, --a.no-b
-            head, _, leaf = key.rpartition(".")
-            args.append(f"--{key}" if value.lower() == "true" else f"--{head + '.' if head else ''}no-{leaf.replace('_', '-')}")
-            continue
-        args += [f"--{key}={value}"] if value.startswith("-") else [f"--{key}", value]  # "=": a leading '-' is no flag
-    return args
