@@ -50,17 +50,11 @@ class Trial:
     @property
     def fields(self) -> dict[str, Any]:
         """The fields of its RunConfig it sets (None: the preset's)."""
-        return {"task": self.task, "method": self.method, "seed": self.seed, "alpha": self.alpha,
-                "pretrain": self.pretrain}
+        return {"task": self.task, "method": self.method, "pretrain": self.pretrain, "alpha": self.alpha,
+                "seed": self.seed}
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "task": self.task,
-            "method": self.method,
-            "pretrain": self.pretrain,
-            "alpha": self.alpha,
-            "seed": self.seed,
-        }
+        return self.fields
 
 
 @dataclasses.dataclass(frozen=True)
