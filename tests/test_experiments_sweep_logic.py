@@ -86,7 +86,7 @@ def test_failed_trial_resumes_from_checkpoint(tmp_path, fake, monkeypatch):
     for trial in sweep.trials:
         d = sweep.run_dir(trial)
         assert starts(d) == ["run", "resume"]  # the retry continued from the checkpoint
-        entry = manifest["trials"][trial.id]
+        entry = manifest["trials"][trial.relpath]
         assert entry["state"] == "finished" and entry["launches"] == 2
         assert next_action(d) == "done"
         assert (d / "sweep-trial.log").read_text().count("===== botorl sweep: attempt") == 2
@@ -213,7 +213,7 @@ def test_local_workers_are_pinned_single_threaded(tmp_path, fake):
         worker = json.loads((sweep.run_dir(trial) / "worker.json").read_text())
         assert len(worker["cpus"]) == 1 and worker["cpus"][0] in cores
         assert worker["omp"] == "1" and worker["openblas"] == "1"
-        assert [manifest["trials"][trial.id]["cpu"]] == worker["cpus"]
+        assert [manifest["trials"][trial.relpath]["cpu"]] == worker["cpus"]
         used += worker["cpus"]
     assert set(used) == set(cores)  # every core got work
     seq = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0"),
@@ -234,7 +234,7 @@ def test_fewer_workers_than_cores_get_blocks_of_cores(tmp_path, fake):
     for trial in sweep.trials:
         worker = json.loads((sweep.run_dir(trial) / "worker.json").read_text())
         assert worker["cpus"] == cores and worker["omp"] is None
-        assert manifest["trials"][trial.id]["cpus"] == cores and manifest["trials"][trial.id]["cpu"] is None
+        assert manifest["trials"][trial.relpath]["cpus"] == cores and manifest["trials"][trial.relpath]["cpu"] is None
     # two workers, two trials launched together (slots 0 and 1): disjoint blocks covering every core
     sweep = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0-1"),
                   SweepOptions(out=tmp_path / "two", backend="local", workers=2, command=fake, progress=False))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Mapping
 from typing import Any
 
 from botorl.errors import ConfigError
@@ -71,12 +72,12 @@ def _pre_parse(argv: list[str]) -> argparse.Namespace:
     return ns
 
 
-def make_config(overrides: dict[str, Any] | None = None, **fields: Any):
+def make_config(overrides: Mapping | None = None, **fields: Any):
     """The config of `botorl run` with ``fields`` (task, method, profile, pretrain, seed, alpha,
-    seeds, alphas) and then ``overrides`` ({dotted.path: value}): each value, a Python value or the
-    command line's text (None: the preset's), becomes the flag that sets it, so every config is
-    made the one way, with `botorl run`'s checks and tyro's reading of each field."""
-    return build_config(_flags(fields) + _flags(overrides or {}))
+    seeds, alphas; None: the preset's) and then ``overrides`` ({dotted.path: value}): each value
+    becomes the flag that sets it (``override_args``), so every config is made the one way, with
+    `botorl run`'s checks and tyro's reading of each field."""
+    return build_config(override_args({k: v for k, v in fields.items() if v is not None}) + override_args(overrides or {}))
 
 
 def build_config(argv: list[str]):
@@ -152,24 +153,39 @@ def _is_flag(key: str) -> bool:
     return cls is bool
 
 
-def _flags(values: dict[str, Any]) -> list[str]:
-    args = []
-    for key, value in values.items():
-        if value is None:
-            continue
-        text = str(value)
-        if text.lower() in ("true", "false") and _is_flag(key):  # tyro's bools: --wandb / --no-wandb, --a.no-b
-            head, _, leaf = key.rpartition(".")
-            args.append(f"--{key}" if text.lower() == "true" else f"--{head + '.' if head else ''}no-{leaf.replace('_', '-')}")
-            continue
-        args += [f"--{key}={text}"] if text.startswith("-") else [f"--{key}", text]  # "=": a leading '-' is no flag
-    return args
+def flat_overrides(overrides: Mapping, prefix: str = "") -> dict[str, Any]:
+    """``{"network": {"layer_norm": False}}`` (or ``network__layer_norm=False``) -> ``{"network.layer_norm": False}``."""
+    out: dict[str, Any] = {}
+    for k, v in overrides.items():
+        key = prefix + str(k).replace("__", ".")
+        if isinstance(v, Mapping):
+            out.update(flat_overrides(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def override_args(overrides: Mapping) -> list[str]:
+    """``{"online.steps": 5000, "network": {"layer_norm": False}}`` (or ``online__steps=5000``) ->
+    the command line's ``--online.steps 5000 --network.no-layer-norm``; a value may be the command
+    line's text too ("False", "-0.5")."""
+    argv: list[str] = []
+    for key, v in flat_overrides(overrides).items():
+        text = "None" if v is None else str(v)
+        if text.lower() in ("true", "false") and _is_flag(key):  # tyro's flags: --x / --no-x (--a.b.no-x nested)
+            head, _, last = key.rpartition(".")
+            argv.append(f"--{key}" if text.lower() == "true" else f"--{head + '.' if head else ''}no-{last.replace('_', '-')}")
+        elif isinstance(v, (list, tuple)):
+            argv += [f"--{key}", *map(str, v)]
+        else:
+            argv += [f"--{key}={text}"] if text.startswith("-") else [f"--{key}", text]  # "=": a leading '-' is no flag
+    return argv
 
 
 # ------------------------------------------------------------------ botorl run --config FILE
 def _load_config(argv: list[str]):
-    """The config in FILE (``schema.to_dict`` as JSON, as `botorl sweep` writes it for a trial),
-    with the run's own --out, --pretrained and --no-progress; validated again."""
+    """The config in FILE as botorl wrote it (`botorl sweep`, for each trial), with the run's own
+    --out, --pretrained and --no-progress; validated again."""
     from dataclasses import replace
 
     from botorl.configs.resolve import validate
@@ -188,7 +204,7 @@ def _load_config(argv: list[str]):
     try:
         data = read_json_bounded(ns.config)
         cfg = from_dict(RunConfig, data)
-        if json.dumps(to_dict(cfg), sort_keys=True) != json.dumps(data, sort_keys=True):
+        if json.dumps(to_dict(cfg), sort_keys=True) != json.dumps(data, sort_keys=True):  # missing, unknown, mistyped
             raise ValueError("not every field of a run config, as botorl writes it")
     except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
         raise ConfigError(f"--config {ns.config} cannot be read as a run config ({err}); give a file botorl wrote "

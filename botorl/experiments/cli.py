@@ -26,7 +26,9 @@ minus the success at env_step 0.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import re
 import shlex
 import sys
@@ -35,7 +37,7 @@ from typing import Literal, Optional
 
 import tyro
 
-from botorl.errors import ConfigError
+from botorl.errors import BotorlError, ConfigError
 
 
 @dataclasses.dataclass
@@ -138,7 +140,7 @@ def sweep_main(argv: list[str]) -> int:
         print(f"{len(sweep.trials)} trials in {sweep.out}")
         return 0
     manifest = sweep.run()
-    states = {t.id: manifest["trials"][t.id] for t in sweep.trials}
+    states = {t.relpath: manifest["trials"][t.relpath] for t in sweep.trials}
     failed = [tid for tid, e in states.items() if e["state"] != "finished"]
     n = len(states)
     print(f"botorl sweep: {n - len(failed)}/{n} trials finished in {sweep.out}")
@@ -159,17 +161,10 @@ def _check_trial_configs(sweep) -> None:
     """Build the config of each (task, method, pre-training)'s first trial, which the sweep keeps
     for it, so an unknown task, a typo in --set or a bad profile fails once, now, instead of in
     every trial."""
-    import contextlib
-    import io
-
-    from botorl.errors import BotorlError
-
-    seen = set()
+    firsts: dict[tuple, object] = {}
     for trial in sweep.trials:
-        key = (trial.task, trial.method, trial.pretrain)
-        if key in seen:
-            continue
-        seen.add(key)
+        firsts.setdefault((trial.task, trial.method, trial.pretrain), trial)
+    for trial in firsts.values():
         captured = io.StringIO()
         try:
             with contextlib.redirect_stderr(captured), contextlib.redirect_stdout(captured):
@@ -179,12 +174,12 @@ def _check_trial_configs(sweep) -> None:
 
                 require_wandb()
         except BotorlError as err:
-            raise ConfigError(f"Sweep trial {trial.id}: {err}") from None
+            raise ConfigError(f"Sweep trial {trial.relpath}: {err}") from None
         except SystemExit:
             text = re.sub(r"[-─━│╭╮╰╯]{3,}|[│╭╮╰╯]", " ", captured.getvalue())  # tyro's box drawing
             tail = " ".join(text.split())[-500:]
             raise ConfigError(
-                f"Sweep trial {trial.id}: `botorl run` rejects its settings ({tail}). Check --profile and the "
+                f"Sweep trial {trial.relpath}: `botorl run` rejects its settings ({tail}). Check --profile and the "
                 "--set / grid overrides (dotted.path=value; `botorl run --help` lists the fields)."
             ) from None
 

@@ -13,11 +13,9 @@ import json
 from pathlib import Path
 from typing import Any
 
+from botorl.configs.build import flat_overrides, make_config
+from botorl.configs.methods import METHODS, PRETRAIN_ALGOS
 from botorl.errors import ConfigError
-
-METHODS = ("boto", "wsrl", "calql", "cql", "iql", "rlpd")
-PRETRAINS = ("calql", "cql", "iql")
-PROFILES_HINT = "quick, full (or another profile botorl run accepts, e.g. smoke)"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,10 +42,6 @@ class Trial:
         return "/".join(parts)
 
     @property
-    def id(self) -> str:
-        return self.relpath
-
-    @property
     def fields(self) -> dict[str, Any]:
         """The fields of its RunConfig it sets (None: the preset's)."""
         return {"task": self.task, "method": self.method, "pretrain": self.pretrain, "alpha": self.alpha,
@@ -59,8 +53,8 @@ class Trial:
 
 @dataclasses.dataclass(frozen=True)
 class PopulationJob:
-    """Trials of one (task, method, pre-training) trained as one population (`botorl run
-    --seeds ... [--alphas ...]`): the unit of work of `botorl sweep --population-size K`.
+    """Trials of one (task, method, pre-training) trained as one population (one `botorl run`
+    of a config with ``seeds`` [and ``alphas``]): the unit of work of `botorl sweep --population-size K`.
 
     Its members are the product of ``seeds`` and ``alphas`` (a population is always a
     product, so one config's ``seeds`` and ``alphas`` describe it). Each member's run directory is
@@ -88,10 +82,6 @@ class PopulationJob:
         key = json.dumps([list(self.seeds), [None if a is None else round(a, 6) for a in self.alphas]])
         digest = hashlib.sha1(key.encode()).hexdigest()[:8]
         return f"{self.task}/{self.method_label}/pop-{len(self.seeds) * len(self.alphas)}m-{digest}"
-
-    @property
-    def id(self) -> str:
-        return self.relpath
 
     def member_dir(self, trial: Trial) -> str:
         """A member's run directory, relative to the sweep directory."""
@@ -194,10 +184,10 @@ def parse_methods(value: Any) -> list[tuple[str, str | None]]:
                 f"Grid field 'methods': unknown method {item!r}. Known: {', '.join(METHODS)}; "
                 "BOTO with another pre-training is written boto-cql (or boto+cql)."
             )
-        if pretrain is not None and (method != "boto" or pretrain not in PRETRAINS):
+        if pretrain is not None and (method != "boto" or pretrain not in PRETRAIN_ALGOS):
             raise ConfigError(
                 f"Grid field 'methods': {item!r} is not valid; only boto takes a pre-training "
-                f"suffix, one of {', '.join(PRETRAINS)} (e.g. boto-iql)."
+                f"suffix, one of {', '.join(PRETRAIN_ALGOS)} (e.g. boto-iql)."
             )
         out.append((method, pretrain))
     return list(dict.fromkeys(out))
@@ -208,7 +198,7 @@ def parse_overrides(value: Any) -> dict[str, str]:
     if value is None:
         return {}
     if isinstance(value, dict):
-        items = list(_flatten(value).items())
+        items = list(flat_overrides(value).items())
     else:
         items = []
         for item in _as_list(value, "overrides") if not isinstance(value, (list, tuple)) else value:
@@ -224,27 +214,8 @@ def parse_overrides(value: Any) -> dict[str, str]:
     for key, val in items:
         if not key:
             raise ConfigError("An override has an empty name; write dotted.path=value.")
-        out[key] = _yaml_scalar_to_arg(val)
+        out[key] = str(val)  # YAML's true, null: "True", "None", as the command line writes them
     return out
-
-
-def _flatten(mapping: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    flat: dict[str, Any] = {}
-    for key, val in mapping.items():
-        name = f"{prefix}{key}"
-        if isinstance(val, dict):
-            flat.update(_flatten(val, name + "."))
-        else:
-            flat[name] = val
-    return flat
-
-
-def _yaml_scalar_to_arg(val: Any) -> str:
-    if isinstance(val, bool):
-        return "True" if val else "False"
-    if val is None:
-        return "None"
-    return str(val)
 
 
 @dataclasses.dataclass
@@ -268,8 +239,6 @@ class Grid:
 
     def config(self, unit: Trial | PopulationJob):
         """The resolved, validated RunConfig a trial or population runs (configs.build.make_config)."""
-        from botorl.configs.build import make_config
-
         return make_config(self.overrides, **unit.fields, profile=self.profile)
 
     def populations(self, size: int) -> list[PopulationJob]:

@@ -187,9 +187,9 @@ class Sweep:
         self.opt = options
         self.out = Path(options.out).resolve()
         # the units of work: trials, or populations of trials (grid.PopulationJob) that
-        # quack like trials (id, relpath, fields, to_json)
+        # quack like trials (relpath, fields, to_json)
         self.trials = grid.trials() if options.population_size <= 1 else grid.populations(options.population_size)
-        self.configs: dict[str, Any] = {}  # id -> RunConfig, each built once (config)
+        self.configs: dict[str, Any] = {}  # relpath -> RunConfig, each built once (config)
         self.manifest: dict[str, Any] = {}
         self._lock_file = None
         self._pbar = None
@@ -203,14 +203,14 @@ class Sweep:
     def config(self, trial: Trial):
         """The trial's RunConfig, built once (grid.Grid.config); None for a stand-in command's
         own task, which botorl does not know."""
-        if trial.id not in self.configs:
+        if trial.relpath not in self.configs:
             try:
-                self.configs[trial.id] = self.grid.config(trial)
+                self.configs[trial.relpath] = self.grid.config(trial)
             except BotorlError:
                 if not self.opt.command:
                     raise
-                self.configs[trial.id] = None
-        return self.configs[trial.id]
+                self.configs[trial.relpath] = None
+        return self.configs[trial.relpath]
 
     def _load_manifest(self) -> None:
         old = read_json(self.out / MANIFEST, SWEEP_JSON_LIMIT) or {}
@@ -240,7 +240,7 @@ class Sweep:
             "trials": trials,
         }
         for trial in self.trials:
-            entry = trials.setdefault(trial.id, {})
+            entry = trials.setdefault(trial.relpath, {})
             entry.update(trial.to_json())
             entry["dir"] = trial.relpath
             entry.setdefault("launches", 0)
@@ -253,12 +253,12 @@ class Sweep:
 
     def save(self) -> None:
         self.manifest["updated"] = _now()
-        states = [self.manifest["trials"][t.id]["state"] for t in self.trials]
+        states = [self.manifest["trials"][t.relpath]["state"] for t in self.trials]
         self.manifest["counts"] = {s: states.count(s) for s in sorted(set(states))}
         atomic_write_json(self.out / MANIFEST, self.manifest)
 
     def entry(self, trial: Trial) -> dict[str, Any]:
-        return self.manifest["trials"][trial.id]
+        return self.manifest["trials"][trial.relpath]
 
     # -- locking: two sweeps in one directory would launch every trial twice ---------------------
 
@@ -346,7 +346,7 @@ class Sweep:
         if entry["state"] == "failed":
             self._tick(1)
         what = "retrying" if entry["state"] == "retrying" else "gave up"
-        self._say(f"botorl sweep: {trial.id} {reason} ({what}; log {run_dir / TRIAL_LOG})")
+        self._say(f"botorl sweep: {trial.relpath} {reason} ({what}; log {run_dir / TRIAL_LOG})")
 
     def _say(self, line: str) -> None:
         if self._pbar is not None and not self._pbar.disable:
