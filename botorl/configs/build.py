@@ -77,7 +77,8 @@ def make_config(overrides: Mapping | None = None, **fields: Any):
     seeds, alphas; None: the preset's) and then ``overrides`` ({dotted.path: value}): each value
     becomes the flag that sets it (``override_args``), so every config is made the one way, with
     `botorl run`'s checks and tyro's reading of each field."""
-    return build_config(override_args({k: v for k, v in fields.items() if v is not None}) + override_args(overrides or {}))
+    given = {k: v for k, v in fields.items() if v is not None}
+    return build_config(override_args(given) + override_args(overrides or {}))
 
 
 def build_config(argv: list[str]):
