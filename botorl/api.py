@@ -12,10 +12,10 @@ from __future__ import annotations
 import os
 import sys
 import time
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Callable
 
+from botorl.configs.build import override_args
 from botorl.errors import BotorlError, ConfigError
 from botorl.pipeline.export import export_policy
 from botorl.pipeline.policy import load_agent, load_policy
@@ -67,30 +67,6 @@ def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_
     return spec
 
 
-def _flat_overrides(overrides: Mapping, prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in overrides.items():
-        key = prefix + str(k).replace("__", ".")
-        if isinstance(v, Mapping):
-            out.update(_flat_overrides(v, key + "."))
-        else:
-            out[key] = v
-    return out
-
-
-def override_args(overrides: Mapping) -> list[str]:
-    """``{"online.steps": 5000, "network": {"layer_norm": False}}`` (or ``online__steps=5000``) ->
-    the command line's ``--online.steps 5000 --network.no-layer-norm``."""
-    argv: list[str] = []
-    for key, v in _flat_overrides(overrides).items():
-        if isinstance(v, bool):  # tyro's flags: --x / --no-x (--a.b.no-x for a nested field)
-            head, _, last = key.rpartition(".")
-            argv.append(f"--{key}" if v else f"--{head + '.' if head else ''}no-{last.replace('_', '-')}")
-        elif isinstance(v, (list, tuple)):
-            argv += [f"--{key}", *map(str, v)]
-        else:
-            argv += [f"--{key}", "None" if v is None else str(v)]
-    return argv
 
 
 def _call(main, argv: list[str]) -> int:
