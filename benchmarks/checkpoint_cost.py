@@ -64,7 +64,7 @@ def _run(argv: list[str], out: Path) -> dict:
     runner.RunContext.save_mid, runner.RunContext.evaluate = save_mid, evaluate
     try:
         out.mkdir(parents=True)
-        summary = runner.execute(cfg, RunDir(out), d_raw)
+        (summary,) = runner.execute(cfg, [cfg], out, [RunDir(out)], d_raw)
     finally:
         runner.RunContext.save_mid, runner.RunContext.evaluate = orig_save, orig_eval
     ft = summary["stage_seconds"]["finetune"]

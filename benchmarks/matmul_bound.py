@@ -10,7 +10,7 @@ XLA's CPU kernels, since everything else in the update (elementwise ops, reducti
 sampling) only adds to it. ``botorl % of bound`` says how close the whole update is to
 that floor.
 
-With ``--d3rlpy-json`` (a ``botorl bench --against d3rlpy --json`` result from this
+With ``--d3rlpy-json`` (a ``benchmarks/against_d3rlpy.py --json`` result from this
 machine) it also prints the ratio to d3rlpy that the floor allows:
 ``bound ratio = ratio x (botorl ms / matmul ms)``, the botorl/d3rlpy ratio of an update
 that spent no time outside its matmuls. Below 2, "2x d3rlpy" needs fewer FLOPs (or faster
@@ -100,7 +100,7 @@ def matmul_seconds(flop_fn, flop_args) -> tuple[float, int]:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--only", nargs="*", default=None, help="workload names (default: all)")
-    p.add_argument("--d3rlpy-json", default=None, help="a `botorl bench --against d3rlpy --json` result")
+    p.add_argument("--d3rlpy-json", default=None, help="a `benchmarks/against_d3rlpy.py --json` result")
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
 

@@ -12,11 +12,14 @@ from __future__ import annotations
 import os
 import sys
 import time
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Callable
 
+from botorl.configs.build import override_args
 from botorl.errors import BotorlError, ConfigError
+from botorl.pipeline.export import export_policy
+from botorl.pipeline.policy import load_agent, load_policy
+from botorl.pipeline.rundir import read_json
 
 
 def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_episode_steps: int,
@@ -64,44 +67,10 @@ def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_
     return spec
 
 
-def _flat_overrides(overrides: Mapping, prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in overrides.items():
-        key = prefix + str(k).replace("__", ".")
-        if isinstance(v, Mapping):
-            out.update(_flat_overrides(v, key + "."))
-        else:
-            out[key] = v
-    return out
-
-
-def override_args(overrides: Mapping) -> list[str]:
-    """``{"online.steps": 5000, "network": {"layer_norm": False}}`` (or ``online__steps=5000``) ->
-    the command line's ``--online.steps 5000 --network.no-layer-norm``."""
-    argv: list[str] = []
-    for key, v in _flat_overrides(overrides).items():
-        if isinstance(v, bool):  # tyro's flags: --x / --no-x (--a.b.no-x for a nested field)
-            head, _, last = key.rpartition(".")
-            argv.append(f"--{key}" if v else f"--{head + '.' if head else ''}no-{last.replace('_', '-')}")
-        elif isinstance(v, (list, tuple)):
-            argv += [f"--{key}", *map(str, v)]
-        else:
-            argv += [f"--{key}", "None" if v is None else str(v)]
-    return argv
-
-
-def _read_json(path: Path) -> dict:
-    import json
-
-    with open(path) as f:
-        return json.load(f)
 
 
 def _call(main, argv: list[str]) -> int:
     """A command's main from Python: its usage errors (tyro/argparse exit) become a ConfigError."""
-    from botorl.jaxsetup import setup_jax
-
-    setup_jax()
     try:
         return main(argv)
     except SystemExit as err:
@@ -159,39 +128,10 @@ def resume(run_dir: str | os.PathLike, *, checkpoint: str | None = None, progres
 
 def _summary(root: Path, population: bool) -> dict[str, Any]:
     if not population:
-        return _read_json(root / "summary.json")
-    data = _read_json(root / "population.json")
-    members = [_read_json(root / m["name"] / "summary.json") for m in data.get("members", [])]
+        return read_json(root / "summary.json")
+    data = read_json(root / "population.json")
+    members = [read_json(root / m["name"] / "summary.json") for m in data.get("members", [])]
     return {"status": data.get("status"), "run_dir": str(root), "members": members}
-
-
-def load_agent(run_dir: str | os.PathLike, checkpoint: str | None = None):
-    """The whole agent (actor, critics, temperature) of a run's checkpoint (default: the latest)."""
-    from botorl.pipeline.policy import load_agent as _load_agent
-
-    return _load_agent(run_dir, checkpoint)
-
-
-def load_policy(run_dir: str | os.PathLike, checkpoint: str | None = None, deterministic: bool = True):
-    """A run's policy: a NumPy callable (B, obs_dim) -> (B, action_dim) in the env's own action
-    bounds, with botorl's observation transformation (Dict flattening) inside; needs no other
-    botorl call (botorl/pipeline/policy.py, ``Policy``)."""
-    from botorl.pipeline.policy import load_policy as _load_policy
-
-    return _load_policy(run_dir, checkpoint, deterministic)
-
-
-def export_policy(run_dir: str | os.PathLike, path: str | os.PathLike, checkpoint: str | None = None,
-                  format: str = "onnx", force: bool = False, observations=None) -> dict[str, Any]:
-    """``botorl export RUN_DIR --out PATH``: the run's deterministic policy as an ONNX model at
-    ``path`` and its contract at ``path + ".json"``, verified with onnxruntime against
-    ``load_policy`` before they are written; returns the contract. ``observations``: the (N,
-    obs_dim) batch to verify on (default: 256 of the run's dataset). Needs ``pip install
-    "botorl[export]"`` (else ``BotorlError``); a model that does not act as ``load_policy`` raises
-    ``BotorlError`` (``exit_code`` 1) and writes nothing (botorl/pipeline/export.py)."""
-    from botorl.pipeline.export import export_policy as _export_policy
-
-    return _export_policy(run_dir, path, checkpoint=checkpoint, format=format, force=force, observations=observations)
 
 
 __all__ = ["BotorlError", "register_task", "run", "resume", "load_policy", "load_agent", "export_policy",

@@ -7,6 +7,7 @@ module only dispatches, so ``botorl --help`` stays fast (no JAX import) and a us
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import sys
@@ -18,12 +19,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("botorl.pipeline.cli:run_main", "run one method on one task, offline to online"),
     "resume": ("botorl.pipeline.cli:resume_main", "continue a run directory from its last checkpoint"),
     "eval": ("botorl.pipeline.cli:eval_main", "evaluate the last checkpoint of a run directory"),
-    "export": ("botorl.pipeline.export_cli:main", "export a run's policy to ONNX, with its contract"),
+    "export": ("botorl.pipeline.cli:export_main", "export a run's policy to ONNX, with its contract"),
     "data": ("botorl.data.cli:main", "generate datasets and show their statistics"),
     "tasks": ("botorl.envs.cli:main", "list the tasks, or check one's environment"),
     "train-ant": ("botorl.experts.ant_train:main", "train the goal-reaching ant behind the antmaze data"),
     "bandit": ("botorl.boto.bandit:main", "reproduce the paper's bandit figures 2 and 3"),
-    "bench": ("botorl.benchmarks.suite:main", "measure update speed (optionally against d3rlpy)"),
+    "bench": ("botorl.benchmarks.suite:main", "measure update speed, or what a paper run costs"),
     "sweep": ("botorl.experiments.cli:sweep_main", "run a grid of tasks x methods x seeds x alphas"),
     "report": ("botorl.experiments.cli:report_main", "Table 1 and Figure 5 from finished runs"),
 }
@@ -46,11 +47,8 @@ def _usage() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if not argv:
+    if not argv or argv[0] in ("-h", "--help", "help"):
         # a bare `botorl` trains nothing: it says what there is (the main job is `botorl run`)
-        print(_usage())
-        return 0
-    if argv[0] in ("-h", "--help", "help"):
         print(_usage())
         return 0
     if argv[0] in ("-V", "--version"):
@@ -64,8 +62,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     target, _ = COMMANDS[name]
     module_name, func_name = target.split(":")
-    import contextlib
-
     from botorl.errors import BotorlError, Interrupted
 
     try:
@@ -108,18 +104,10 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as err:
         # argparse / tyro exit after printing help or a usage error; flush here so that a
         # closed pipe surfaces now, not as a traceback at interpreter exit
-        try:
-            sys.stdout.flush()
-        except BrokenPipeError:
-            _silence_stdout()
+        if not _flushed():
             return 2
         raise err
-    try:
-        sys.stdout.flush()
-    except BrokenPipeError:
-        _silence_stdout()
-        return 2
-    return int(code or 0)
+    return int(code or 0) if _flushed() else 2
 
 
 def _hdf5_errno(err: OSError) -> int | None:
@@ -131,12 +119,19 @@ def _hdf5_errno(err: OSError) -> int | None:
     return int(m.group(1)) if m else None
 
 
-def _silence_stdout() -> None:
+def _flushed() -> bool:
+    """Flush stdout; False (and stdout silenced) when it was closed early (`botorl run --help | head`)."""
     try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError):
-        pass
+        sys.stdout.flush()
+        return True
+    except BrokenPipeError:
+        _silence_stdout()
+        return False
+
+
+def _silence_stdout() -> None:
+    with contextlib.suppress(OSError, ValueError):
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def console_main() -> None:
@@ -150,10 +145,8 @@ def console_main() -> None:
 
     def exit_130(signum, frame):
         for stream in (sys.stdout, sys.stderr):
-            try:
+            with contextlib.suppress(Exception):  # a closed pipe must not stop the exit
                 stream.flush()
-            except Exception:  # noqa: BLE001 - a closed pipe must not stop the exit
-                pass
         os._exit(130)
 
     signal.signal(signal.SIGINT, exit_130)

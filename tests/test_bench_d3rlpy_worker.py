@@ -1,14 +1,29 @@
-"""The d3rlpy worker's command line (no d3rlpy or torch needed: they load only to time)."""
+"""benchmarks/against_d3rlpy.py and its worker's command line (no d3rlpy or torch needed: they
+load only to time)."""
 
 from __future__ import annotations
 
+import importlib.util
 import io
 import json
+from pathlib import Path
 
 import pytest
 
-from botorl.benchmarks import d3rlpy_worker as worker
 from botorl.benchmarks.workloads import WORKLOADS
+from botorl.errors import BotorlError
+
+
+def _script(name: str):
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+worker = _script("d3rlpy_worker")
+against = _script("against_d3rlpy")
 
 
 def test_parses_its_options():
@@ -29,9 +44,9 @@ def test_rejects_bad_options(bad):
 
 def test_every_workload_spec_round_trips_through_the_command_line():
     for w in WORKLOADS.values():
-        spec = w.d3rlpy_spec()
-        if spec is None:
+        if w.d3rlpy_algo is None:
             continue
+        spec = against.d3rlpy_spec(w)
         args = worker.parse_args(worker.spec_to_argv(spec))
         assert args.algo == spec["algo"] and args.n_critics == w.num_critics
         assert args.critic_hidden == list(w.critic_hidden) and args.actor_hidden == list(w.actor_hidden)
@@ -48,3 +63,9 @@ def test_serve_answers_bad_requests_without_dying(monkeypatch):
     answers = [json.loads(line) for line in out.getvalue().splitlines()]
     assert answers[0]["ready"] and answers[1]["ok"] is False and "bad spec" in answers[1]["error"]
     assert answers[2]["ok"] is False and answers[3] == {"ok": True}
+
+
+def test_a_bad_workload_is_refused_before_any_venv_is_made(monkeypatch):
+    monkeypatch.setattr(against, "ensure_venv", lambda: pytest.fail("made the venv"))
+    with pytest.raises(BotorlError, match="unknown workload"):
+        against.main(["--only", "nope"])

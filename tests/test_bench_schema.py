@@ -40,15 +40,6 @@ def test_unknown_workload_is_a_user_error():
         main(["--only", "nope"])
 
 
-def test_botorl_bench_against_routes_to_the_comparison(capsys):
-    # `botorl bench --against d3rlpy` reaches botorl.benchmarks (its workload names), and
-    # rejects a bad one before any venv is made: exit 2 with the message.
-    from botorl.cli import main as botorl_main
-
-    assert botorl_main(["bench", "--against", "d3rlpy", "--only", "nope"]) == 2
-    assert "unknown workload" in capsys.readouterr().err
-
-
 def test_online_loop_times_the_fine_tuning_loop():
     """The loop benchmark runs fine-tuning's own step (OnlineState.advance): every env step
     lands in the replay buffer and updates the agent."""

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from botorl.data import loaders
+from botorl.envs.registry import get_task
 from botorl.errors import DataFormatError, DatasetNotFoundError
 
 
@@ -148,7 +149,7 @@ def test_minari_by_id_and_path_dict_obs(tmp_path, monkeypatch):
 def test_minari_missing_gives_download_command(tmp_path, monkeypatch):
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
     with pytest.raises(DatasetNotFoundError) as err:
-        loaders.load_minari(loaders.MINARI_PORTS["antmaze-large-diverse-v2"])
+        loaders.load_minari(get_task("antmaze-large-diverse-v2").dataset_source.ref)
     msg = str(err.value)
     assert "minari download D4RL/antmaze/large-diverse-v1" in msg and str(tmp_path) in msg
     assert "minari download D4RL/kitchen/mixed-v2" in loaders.download_hint("kitchen-mixed-v0")

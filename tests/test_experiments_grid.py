@@ -1,4 +1,4 @@
-"""botorl sweep: the grid (parsing, trial names, run arguments) and the command line."""
+"""botorl sweep: the grid (parsing, trial names, each trial's config) and the command line."""
 
 from __future__ import annotations
 
@@ -41,13 +41,11 @@ def test_trials_names_and_arguments():
     assert "t1/wsrl/seed0" in names
     assert all(t.alpha is None for t in trials if t.method == "wsrl")
     boto = next(t for t in trials if t.relpath == "t1/boto-cql/alpha-0.50/seed1")
-    assert boto.run_args(grid.profile, grid.overrides) == [
-        "--task", "t1", "--method", "boto", "--seed", "1", "--alpha=-0.5", "--pretrain", "cql",
-        "--profile", "smoke", "--online.steps", "2000"]
+    assert boto.fields == {"task": "t1", "method": "boto", "seed": 1, "alpha": -0.5, "pretrain": "cql"}
     # no --alphas: boto runs with the task's preset alpha
     preset = G.build_grid(tasks="t1", methods="boto", seeds="0").trials()
     assert [t.relpath for t in preset] == ["t1/boto/alpha_preset/seed0"]
-    assert "--alpha" not in " ".join(preset[0].run_args(None, {}))
+    assert preset[0].fields["alpha"] is None
 
 
 def test_grid_file_and_command_line_merge(tmp_path):
@@ -92,3 +90,39 @@ def test_sweep_cli_dry_run_and_errors(tmp_path, capsys):
         sweep_main(["--tasks", "pointmaze-umaze", "--methods", "wsrl", "--seeds", "0", "--out", str(out),
                     "--profile", "fast"])
     assert not (out / "sweep.json").exists()
+
+
+def test_each_trial_runs_the_config_its_old_command_line_built(tmp_path):
+    """A trial's config, built once in the sweep (Grid.config), equals field for field what
+    `botorl run` built from the command line sweeps used to give the trial; the trial's
+    command reads it back (--config) and sets nothing else but --out and --no-progress."""
+    from botorl.configs.build import build_config
+    from botorl.configs.schema import to_dict
+    from botorl.experiments.runner import Sweep, SweepOptions
+
+    task = "pointmaze-umaze"
+    cases = [  # (grid, population size, each unit's old `botorl run` arguments)
+        (G.build_grid(tasks=task, methods="boto", seeds="0-1", alphas="-0.5,0.5", profile="smoke",
+                      overrides=["online.steps=60"]), 4,
+         [["--task", task, "--method", "boto", "--seeds", "0,1", "--alphas=-0.5,0.5", "--profile", "smoke",
+           "--online.steps", "60"]]),
+        (G.build_grid(tasks=task, methods="wsrl", seeds="1", profile="smoke",
+                      overrides=["pretrain=iql", "tensorboard=False", "boto.log_sigma=-25", "eval.episodes=3"]), 1,
+         [["--task", task, "--method", "wsrl", "--seed", "1", "--profile", "smoke", "--pretrain", "iql",
+           "--no-tensorboard", "--boto.log_sigma=-25", "--eval.episodes", "3"]]),
+        (G.build_grid(tasks=task, methods="boto-cql", seeds="0", alphas="-0.5"), 1,
+         [["--task", task, "--method", "boto", "--seed", "0", "--alpha=-0.5", "--pretrain", "cql"]]),
+    ]
+    for i, (grid, size, old_args) in enumerate(cases):
+        (tmp_path / f"sw{i}").mkdir()
+        sweep = Sweep(grid, SweepOptions(out=tmp_path / f"sw{i}", population_size=size, progress=False))
+        sweep._load_manifest()
+        assert len(sweep.trials) == len(old_args)
+        for unit, old in zip(sweep.trials, old_args):
+            assert to_dict(sweep.config(unit)) == to_dict(build_config(old))
+            run_dir, cmd, _ = sweep.prepare(unit)
+            args = cmd[cmd.index("run") + 1:]
+            assert {a for a in args if a.startswith("-")} == {"--config", "--out", "--no-progress"}
+            ran = build_config(args)  # what the trial's `botorl run` runs
+            assert to_dict(ran) == to_dict(build_config(old + ["--out", str(run_dir), "--no-progress"]))
+    assert ran.pretrain == "cql" and ran.alpha == -0.5

@@ -24,7 +24,8 @@ from botorl.experiments.cli import sweep_main
 from botorl.experiments.grid import build_grid
 from botorl.experiments.runner import Sweep, SweepOptions, next_action
 
-# Speaks the `botorl run ... --out DIR` / `botorl resume DIR` protocol of CONTRACTS.md "Runs".
+# Speaks the `botorl run --config FILE --out DIR` / `botorl resume DIR` protocol of CONTRACTS.md "Runs"
+# (FILE: the trial's config, here the grid's fields of a task botorl does not know).
 FAKE = textwrap.dedent(
     """
     import json, os, sys, time
@@ -37,8 +38,8 @@ FAKE = textwrap.dedent(
         a = dict(zip(toks[0::2], toks[1::2]))
         out = Path(a["--out"])
         out.mkdir(parents=True, exist_ok=True)
-        cfg = {"task": a["--task"], "method": a["--method"], "seed": int(a["--seed"]),
-               "alpha": float(a["--alpha"]) if "--alpha" in a else None, "pretrain": a.get("--pretrain")}
+        given = json.loads(Path(a["--config"]).read_text())
+        cfg = {k: given[k] for k in ("task", "method", "seed", "alpha", "pretrain")}
         (out / "config.json").write_text(json.dumps(cfg))
         start_at = 0
     else:
@@ -85,7 +86,7 @@ def test_failed_trial_resumes_from_checkpoint(tmp_path, fake, monkeypatch):
     for trial in sweep.trials:
         d = sweep.run_dir(trial)
         assert starts(d) == ["run", "resume"]  # the retry continued from the checkpoint
-        entry = manifest["trials"][trial.id]
+        entry = manifest["trials"][trial.relpath]
         assert entry["state"] == "finished" and entry["launches"] == 2
         assert next_action(d) == "done"
         assert (d / "sweep-trial.log").read_text().count("===== botorl sweep: attempt") == 2
@@ -212,7 +213,7 @@ def test_local_workers_are_pinned_single_threaded(tmp_path, fake):
         worker = json.loads((sweep.run_dir(trial) / "worker.json").read_text())
         assert len(worker["cpus"]) == 1 and worker["cpus"][0] in cores
         assert worker["omp"] == "1" and worker["openblas"] == "1"
-        assert [manifest["trials"][trial.id]["cpu"]] == worker["cpus"]
+        assert [manifest["trials"][trial.relpath]["cpu"]] == worker["cpus"]
         used += worker["cpus"]
     assert set(used) == set(cores)  # every core got work
     seq = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0"),
@@ -233,7 +234,7 @@ def test_fewer_workers_than_cores_get_blocks_of_cores(tmp_path, fake):
     for trial in sweep.trials:
         worker = json.loads((sweep.run_dir(trial) / "worker.json").read_text())
         assert worker["cpus"] == cores and worker["omp"] is None
-        assert manifest["trials"][trial.id]["cpus"] == cores and manifest["trials"][trial.id]["cpu"] is None
+        assert manifest["trials"][trial.relpath]["cpus"] == cores and manifest["trials"][trial.relpath]["cpu"] is None
     # two workers, two trials launched together (slots 0 and 1): disjoint blocks covering every core
     sweep = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0-1"),
                   SweepOptions(out=tmp_path / "two", backend="local", workers=2, command=fake, progress=False))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
@@ -31,9 +32,52 @@ def test_goal_observation_and_reward_on_known_positions():
     assert ag.goal_reward(np.array([-4.0, 3.0]), np.array([3.0, 4.0]), np.zeros(8)) == pytest.approx(1.0)
 
 
+class AntGoalEnv(gym.Env):
+    """The reference for ``AntGoalSim``: a Gymnasium wrapper around ``AntEnv`` (Ant-v4, positions
+    kept in its observation) with a goal drawn around the ant, as botorl.envs.ant_goal says."""
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, seed: int | None = None, goal_threshold: float = ag.GOAL_THRESHOLD,
+                 reset_noise: float = ag.RESET_NOISE, goal_radius: float = ag.GOAL_REGION_RADIUS):
+        from gymnasium import spaces
+        from gymnasium.envs.mujoco.ant_v4 import AntEnv
+
+        self.ant = AntEnv(xml_file=ag.ant_xml_path(), exclude_current_positions_from_observation=False,
+                          reset_noise_scale=reset_noise, healthy_z_range=ag.HEALTHY_Z)
+        self.action_space = self.ant.action_space
+        self.observation_space = spaces.Box(-np.inf, np.inf, (ag.OBS_DIM,), np.float64)
+        self.goal_threshold, self.goal_radius = goal_threshold, goal_radius
+        self._seed = seed
+        self.goal = np.zeros(2)
+
+    def reset(self, *, seed: int | None = None, options=None):
+        super().reset(seed=seed if seed is not None else self._seed)
+        self._seed = None
+        ant_obs, info = self.ant.reset(seed=seed)
+        self.goal = ag.draw_goal(self.np_random, ant_obs[:2].copy(), self.goal_radius)
+        return self._obs(ant_obs), dict(info, goal=self.goal.copy())
+
+    def _obs(self, ant_obs):
+        return np.concatenate([ant_obs[2:], self.goal - ant_obs[:2]])
+
+    def step(self, action):
+        ant_obs, _, terminated, truncated, info = self.ant.step(action)
+        xy = ant_obs[:2]
+        v = np.array([info["x_velocity"], info["y_velocity"]])
+        # Ant-v4's own ctrl and survive terms (info), velocity towards the goal in place of x.
+        reward = ag.FORWARD_REWARD_SCALE * float(np.dot(v, self.goal - xy) / max(np.linalg.norm(self.goal - xy), 1e-8))
+        reward += float(info["reward_ctrl"]) + float(info["reward_survive"])
+        reached = bool(np.linalg.norm(xy - self.goal) <= self.goal_threshold)
+        if reached:
+            self.goal = ag.draw_goal(self.np_random, xy.copy(), self.goal_radius)
+        info = dict(info, reached=reached, goal=self.goal.copy())
+        return self._obs(ant_obs), reward, bool(terminated), bool(truncated), info
+
+
 def test_sim_matches_the_gymnasium_wrapper():
     """AntGoalSim (mj_step) and AntGoalEnv (Gymnasium's AntEnv) give the same transitions."""
-    env = ag.AntGoalEnv(seed=0)
+    env = AntGoalEnv(seed=0)
     env.reset(seed=0)
     sim = ag.AntGoalSim(1, seed=0)
     d = sim.datas[0]

@@ -16,6 +16,7 @@ from botorl.configs.schema import RunConfig, from_dict, to_dict
 from botorl.envs.registry import get_task
 from botorl.pipeline.cli import build_config
 from botorl.configs.methods import METHODS
+from botorl.errors import ConfigError
 
 PAPER_TASKS = ["antmaze-large-diverse-v2", "antmaze-large-play-v2", "kitchen-partial-v0", "kitchen-mixed-v0",
                "door-binary-v0", "pen-binary-v0"]
@@ -112,6 +113,35 @@ def test_dotted_overrides_and_shortcuts():
     bare = build_config([])
     assert (bare.task, bare.method, bare.profile, bare.pretrain) == ("pointmaze-umaze", "boto", "quick", "calql")
     assert bare.offline.steps == QUICK_POINTMAZE_PRETRAIN
+
+
+def test_run_config_file(tmp_path, capsys):
+    """`botorl run --config FILE` (what a sweep's trial runs): the config to_dict wrote, with the
+    run's own --out, --pretrained and --no-progress; anything else, or a file that is not such a
+    config, is exit 2 naming it."""
+    import json
+
+    from botorl.configs.build import make_config
+
+    cfg = make_config({"online.steps": "70"}, task="pointmaze-umaze", method="wsrl", seeds="0-1", profile="smoke")
+    path = tmp_path / "cfg.json"
+    path.write_text(json.dumps(to_dict(cfg)))
+    back = build_config(["--config", str(path), "--out", "d", "--pretrained", "p", "--no-progress"])
+    assert back == from_dict(RunConfig, {**to_dict(cfg), "out": "d", "pretrained": "p", "progress": False})
+    assert back.seeds == "0-1" and back.online.steps == 70
+    assert build_config([f"--config={path}"]) == cfg
+    code, err = _run(capsys, tmp_path, "--config", str(path), "--seed", "3", "--online.steps=9")
+    assert code == 2 and "--seed, --online.steps cannot go with it" in err, err
+    for text in ("{not json", json.dumps({"task": "pointmaze-umaze"}), json.dumps({**to_dict(cfg), "extra": 1}),
+                 json.dumps({**to_dict(cfg), "seed": "zero"})):
+        path.write_text(text)
+        with pytest.raises(ConfigError, match="cannot be read as a run config"):
+            build_config(["--config", str(path)])
+    path.write_text(json.dumps({**to_dict(cfg), "online": {**to_dict(cfg.online), "steps": -5}}))
+    with pytest.raises(ConfigError, match="--online.steps = -5"):  # validated again
+        build_config(["--config", str(path)])
+    with pytest.raises(ConfigError, match="cannot be read"):
+        build_config(["--config", str(tmp_path / "missing.json")])
 
 
 def test_quick_pointmaze_pretrain_default_and_budget():

@@ -107,15 +107,18 @@ def test_sweep_set_passes_boolean_flags(monkeypatch, tmp_path, capsys):
     """`--set wandb=True` becomes `--wandb` (tyro's bools are flags), `x=False` `--no-x`
     (nested: `--a.no-b`); a `bool | None` field keeps its value. With wandb missing the sweep
     stops before its first trial."""
+    from botorl.configs.build import build_config
     from botorl.experiments.grid import build_grid
 
     grid = build_grid(tasks=TASK, methods="boto", seeds="0", profile="smoke",
-                      overrides=["wandb=True", "tensorboard=false", "offline.cql.cql_lagrange=False",
-                                 "offline.sample_on_device=True"])
-    args = grid.trials()[0].run_args(grid.profile, grid.overrides)
-    assert "--wandb" in args and "--no-tensorboard" in args and "--offline.cql.no-cql-lagrange" in args
-    i = args.index("--offline.sample_on_device")
-    assert args[i + 1] == "True"
+                      overrides=["wandb=True", "tensorboard=false", "offline.cql.cql_lagrange=True",
+                                 "network.layer_norm=False", "offline.sample_on_device=True"])
+    cfg = grid.config(grid.trials()[0])  # each the opposite of the smoke preset's
+    assert cfg.wandb and not cfg.tensorboard and cfg.offline.cql.cql_lagrange and not cfg.network.layer_norm
+    assert cfg.offline.sample_on_device is True
+    assert cfg == build_config(["--task", TASK, "--method", "boto", "--seed", "0", "--profile", "smoke", "--wandb",
+                                "--no-tensorboard", "--offline.cql.cql-lagrange", "--network.no-layer-norm",
+                                "--offline.sample_on_device", "True"])
     monkeypatch.setitem(sys.modules, "wandb", None)
     out = tmp_path / "sweep"
     assert botorl_main(["sweep", "--tasks", TASK, "--methods", "boto", "--seeds", "0", "--profile", "smoke",

@@ -1,6 +1,6 @@
 """`botorl sweep --population-size K`: trials grouped by (task, method, pre-training) into
-populations (each a product seeds x alphas), one `botorl run --seeds ... --alphas ...`
-process per population under every backend's bookkeeping. A stand-in command speaks the
+populations (each a product seeds x alphas), one `botorl run` process (its config's seeds and
+alphas) per population under every backend's bookkeeping. A stand-in command speaks the
 population protocol (population.json + one ordinary run directory per member); the real
 pipeline is tested in test_population_pipeline.py."""
 
@@ -26,8 +26,9 @@ FAKE_POP = textwrap.dedent(
             toks += t.split("=", 1) if t.startswith("--") and "=" in t else [t]
         a = dict(zip(toks[0::2], toks[1::2]))
         out = Path(a["--out"])
-        seeds = [int(s) for s in a["--seeds"].split(",")]
-        alphas = [float(x) for x in a["--alphas"].split(",")] if "--alphas" in a else [None]
+        cfg = json.loads(Path(a["--config"]).read_text())
+        seeds = [int(s) for s in cfg["seeds"].split(",")]
+        alphas = [float(x) for x in cfg["alphas"].split(",")] if cfg["alphas"] else [None]
     else:
         out = Path(argv[1])
         pop = json.loads((out / "population.json").read_text())
@@ -63,9 +64,7 @@ def test_group_populations_are_products():
     jobs = group_populations(trials, 6)  # 3 seeds -> 2 alphas per boto population
     boto = [j for j in jobs if j.task == "t1" and j.method_label == "boto"]
     assert [j.alphas for j in boto] == [(-1.0, 0.0), (0.5, 1.0)]
-    args = boto[0].run_args("smoke", {"online.steps": "10"})
-    assert args[:6] == ["--task", "t1", "--method", "boto", "--seeds", "0,1,2"]
-    assert "--alphas=-1,0" in args and args[-2:] == ["--online.steps", "10"]
+    assert boto[0].fields == {"task": "t1", "method": "boto", "seeds": "0,1,2", "alphas": "-1,0", "pretrain": None}
 
 
 @pytest.mark.parametrize("backend", ["sequential", "local"])

@@ -172,7 +172,7 @@ def _edit(path: Path, fn) -> None:
 
 
 def test_population_members_stay_inside(tmp_path, capsys):
-    from botorl.pipeline.population_cli import load_population
+    from botorl.pipeline.cli import load_population
 
     pop = _crafted_population(tmp_path / "pop")
     cfg, member_cfgs, runs, _ = load_population(pop)  # control: botorl's own file is read
@@ -538,7 +538,6 @@ def test_resume_hint_names_a_checkpoint_that_passes(two_seeds, tmp_path, capsys)
 
 
 def test_sweep_resumes_pickle_tasks_with_the_users_own_data_path(tmp_path):
-    from botorl.configs.build import build_config
     from botorl.configs.schema import to_dict
     from botorl.experiments.grid import build_grid
     from botorl.experiments.runner import trial_command
@@ -547,15 +546,15 @@ def test_sweep_resumes_pickle_tasks_with_the_users_own_data_path(tmp_path):
     grid = build_grid(tasks="door-binary-v0", methods="wsrl", seeds="0", profile="smoke",
                       overrides={"data.path": str(npy)})
     trial = grid.trials()[0]
+    cfg = grid.config(trial)
     run_dir = tmp_path / "sw" / trial.relpath
     run_dir.mkdir(parents=True)
-    (run_dir / "config.json").write_text(json.dumps(to_dict(build_config(trial.run_args(grid.profile,
-                                                                                          grid.overrides)))))
-    action, cmd = trial_command(trial, run_dir, grid, ["botorl"])
+    (run_dir / "config.json").write_text(json.dumps(to_dict(cfg)))
+    action, cmd = trial_command(cfg, run_dir, ["botorl"])
     assert action == "resume" and cmd[-1] == "--allow-pickle", cmd
-    # a data path the directory names but this sweep's command line does not: no consent
+    # a data path the directory names but this sweep's config does not: no consent
     _edit(run_dir / "config.json", lambda c: c["data"].update(path=str(tmp_path / "other.npy")))
-    assert "--allow-pickle" not in trial_command(trial, run_dir, grid, ["botorl"])[1]
+    assert "--allow-pickle" not in trial_command(cfg, run_dir, ["botorl"])[1]
 
 
 def test_population_resume_does_not_unpickle_what_its_file_names(tmp_path, capsys):

@@ -1,4 +1,3 @@
-"""Speed benchmarks: botorl's updates against d3rlpy's, FLOP counts, the online loop.
-
-``python -m botorl.benchmarks --against d3rlpy`` (or ``botorl bench --against d3rlpy``).
+"""``botorl bench``: botorl's update speed, FLOP counts, the online loop, and what a paper run
+costs (``--paper``); benchmarks/against_d3rlpy.py times the same updates against d3rlpy's.
 """

@@ -8,7 +8,7 @@ Two counts, both of one call of the function:
 - ``jaxpr``: our own count from the traced program (``jax.make_jaxpr``). ``dot_general``
   costs ``2 * prod(batch) * M * N * K``; each elementwise or reduction op costs one FLOP
   per element it reads or writes (as XLA counts them; transcendentals such as exp/log/tanh
-  are counted apart, as XLA does); the body of a ``scan`` counts ``length`` times, the
+  are not FLOPs, as XLA counts them apart); the body of a ``scan`` counts ``length`` times, the
   dearer branch of a ``cond`` once. Gradients are explicit in the traced program, so the
   backward pass is counted.
 
@@ -27,12 +27,6 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 
-# Elementwise primitives XLA counts as transcendentals, not FLOPs.
-_TRANSCENDENTAL = {
-    "exp", "exp2", "log", "log1p", "expm1", "tanh", "logistic", "sin", "cos", "tan",
-    "atan2", "asin", "acos", "atan", "sinh", "cosh", "asinh", "acosh", "atanh", "sqrt",
-    "rsqrt", "cbrt", "pow", "erf", "erfc", "erf_inv", "lgamma", "digamma", "igamma",
-}
 # Elementwise arithmetic (one FLOP per output element).
 _ELEMENTWISE = {
     "add", "sub", "mul", "div", "neg", "max", "min", "abs", "sign", "square", "rem",
@@ -47,15 +41,13 @@ _REDUCE = {"reduce_sum", "reduce_max", "reduce_min", "reduce_prod", "argmax", "a
 class FlopCount:
     flops: float = 0.0  # matmul + elementwise + reductions
     matmul_flops: float = 0.0
-    transcendentals: float = 0.0
 
     def scaled(self, k: float) -> "FlopCount":
-        return FlopCount(self.flops * k, self.matmul_flops * k, self.transcendentals * k)
+        return FlopCount(self.flops * k, self.matmul_flops * k)
 
     def __iadd__(self, other: "FlopCount") -> "FlopCount":
         self.flops += other.flops
         self.matmul_flops += other.matmul_flops
-        self.transcendentals += other.transcendentals
         return self
 
 
@@ -92,7 +84,7 @@ def _count_jaxpr(jaxpr: Any) -> FlopCount:
         name = eqn.primitive.name
         if name == "dot_general":
             f = _dot_flops(eqn)
-            total += FlopCount(f, f, 0.0)
+            total += FlopCount(f, f)
         elif name == "scan":
             total += _count_jaxpr(eqn.params["jaxpr"].jaxpr).scaled(eqn.params["length"])
         elif name == "cond":
@@ -102,13 +94,11 @@ def _count_jaxpr(jaxpr: Any) -> FlopCount:
             # Trip count unknown when tracing: count the body once (as XLA does).
             total += _count_jaxpr(eqn.params["body_jaxpr"].jaxpr)
             total += _count_jaxpr(eqn.params["cond_jaxpr"].jaxpr)
-        elif name in _TRANSCENDENTAL:
-            total += FlopCount(0.0, 0.0, float(_size(eqn.outvars[0].aval)))
         elif name in _ELEMENTWISE:
-            total += FlopCount(float(_size(eqn.outvars[0].aval)), 0.0, 0.0)
+            total += FlopCount(float(_size(eqn.outvars[0].aval)))
         elif name in _REDUCE:
-            total += FlopCount(float(_size(eqn.invars[0].aval)), 0.0, 0.0)
-        else:
+            total += FlopCount(float(_size(eqn.invars[0].aval)))
+        else:  # a call (pjit, custom_jvp, remat, ...) counts its body; any other primitive is free
             for sub in _sub_jaxprs(eqn):
                 total += _count_jaxpr(sub)
     return total

@@ -19,32 +19,6 @@ import jax
 import numpy as np
 
 
-def make_env(task: str = "antmaze", seed: int = 0) -> tuple[Any, str]:
-    """A task whose env the loop steps: (a TaskSpec-like object, its name). The task registry's
-    where it is there, else the antmaze wrapper, else gymnasium's Hopper-v5 (all real MuJoCo envs)."""
-    try:
-        from botorl.envs.registry import list_tasks
-
-        for spec in list_tasks():
-            if spec.domain == task or spec.name == task:
-                spec.make_env(seed).close()
-                return spec, spec.name
-    except Exception:
-        pass
-    fixed = dict(reward_scale=1.0, reward_bias=0.0, success_mode="any")
-    if task == "antmaze":
-        try:
-            from botorl.envs.antmaze import make_antmaze
-
-            make_antmaze(seed).close()
-            return SimpleNamespace(make_env=lambda seed: make_antmaze(seed), **fixed), "antmaze (botorl.envs.antmaze)"
-        except Exception:
-            pass
-    import gymnasium as gym
-
-    return SimpleNamespace(make_env=lambda seed: gym.make("Hopper-v5"), **fixed), "Hopper-v5"
-
-
 class OnlineLoop:
     """A running fine-tuning loop (a population of one) whose ``run(n)`` does n env steps."""
 
@@ -63,7 +37,7 @@ class OnlineLoop:
         ctx = SimpleNamespace(cfg=SimpleNamespace(online=online), n=1, members=[SimpleNamespace(cfg=RunConfig(seed=seed))],
                               spec=spec, method=get_method("wsrl"), d_offline=SimpleNamespace(obs_dim=obs_dim,
                                                                                              action_dim=action_dim))
-        self.state = OnlineState.begin(ctx, None)
+        self.state = OnlineState(ctx, None)
         self.agents, self.window = stack([agent]), Window(1)
         # WSRL starts fine-tuning with the warm-up data in the buffer; random actions here.
         rng = np.random.default_rng(seed)

@@ -1,7 +1,7 @@
-"""``botorl bench --against d3rlpy``: botorl's updates beside d3rlpy's, in one run.
+"""``botorl bench``: botorl's updates timed, and beside d3rlpy's (benchmarks/against_d3rlpy.py).
 
-Per workload (``workloads.WORKLOADS``): botorl updates/s, d3rlpy updates/s on identical
-shapes, their ratio, botorl's achieved GFLOP/s (FLOPs per update counted on the traced
+Per workload (``workloads.WORKLOADS``): botorl updates/s (against d3rlpy: d3rlpy updates/s
+on identical shapes and their ratio), botorl's achieved GFLOP/s (FLOPs per update counted on the traced
 program, ``flops.jaxpr_flops``; XLA's cost analysis beside it) and its share of the fp32
 matmul peak measured in the same run. Then env steps/s of the online loop (UTD 4, 10
 critics) and its ratio to the online update alone (``online_loop_efficiency``).
@@ -22,7 +22,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, Callable, Optional
 
 from botorl.benchmarks import flops as flopmod
 from botorl.benchmarks import workloads as wl
@@ -34,10 +34,8 @@ SCHEMA_VERSION = 1
 
 @dataclass
 class BenchConfig:
-    """Options of ``botorl bench --against d3rlpy``."""
+    """Options of ``botorl bench`` (and of benchmarks/against_d3rlpy.py)."""
 
-    against: Optional[Literal["d3rlpy"]] = None
-    """compare with d3rlpy (runs in its own venv, made on first use)"""
     json: Optional[str] = None
     """also write the results to this JSON file"""
     quick: bool = False
@@ -89,7 +87,9 @@ def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def run(cfg: BenchConfig) -> dict[str, Any]:
+def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> dict[str, Any]:
+    """``twin``: starts the d3rlpy worker (benchmarks/against_d3rlpy.py) whose same updates are
+    timed in the same rounds, once the options are checked."""
     if cfg.threads == 1:
         if "jax" in sys.modules and sys.modules["jax"].__dict__.get("_src") is not None:
             _log("bench: --threads 1 must be set before JAX starts; XLA keeps its threads")
@@ -113,13 +113,7 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
                           f"choose from {', '.join(wl.WORKLOADS)}.")
     chosen = [wl.WORKLOADS[n].tiny() if cfg.tiny else wl.WORKLOADS[n] for n in names]
 
-    worker = None
-    d3_info: dict[str, Any] = {}
-    if cfg.against == "d3rlpy":
-        from botorl.benchmarks.d3rlpy_env import D3rlpyWorker, ensure_venv
-
-        worker = D3rlpyWorker(ensure_venv(), threads=cfg.threads)
-        d3_info = {k: v for k, v in worker.info.items() if k != "ready"}
+    worker = None if twin is None else twin(cfg)
 
     load_start = _load()
     _log(f"bench: {len(chosen)} workloads x {repeats} rounds of {min_time:.1f} s; load {load_start}")
@@ -133,24 +127,19 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
                               "flops_per_update": None, "flops_per_update_xla": None,
                               "botorl_samples": [], "d3rlpy_samples": [],
                               "botorl_cpu_samples": [], "d3rlpy_cpu_samples": []}
+        b = bound[w.name] = wl.build(w)
+        k = b.updates_per_call
+        count = flopmod.jaxpr_flops(b.flop_fn, *b.flop_args)
+        row["flops_per_update"] = count.flops / k
+        row["matmul_flops_per_update"] = count.matmul_flops / k
+        row["updates_per_call"] = k
         try:
-            b = bound[w.name] = wl.build(w)
-        except wl.Unavailable as err:
-            row["botorl_error"] = str(err)
-            _log(f"bench: {w.name}: botorl side unavailable: {err}")
-        else:
-            k = b.updates_per_call
-            count = flopmod.jaxpr_flops(b.flop_fn, *b.flop_args)
-            row["flops_per_update"] = count.flops / k
-            row["matmul_flops_per_update"] = count.matmul_flops / k
-            row["updates_per_call"] = k
-            try:
-                row["flops_per_update_xla"] = flopmod.xla_flops(jax.jit(b.flop_fn), *b.flop_args) / k
-            except Exception as err:  # the cross-check must not sink the run
-                row["flops_per_update_xla_error"] = str(err)
-            calls[w.name] = _calibrate(b.step, min_time)
-        if worker is not None and w.d3rlpy_spec() is not None:
-            err = worker.setup(w.name, w.d3rlpy_spec())
+            row["flops_per_update_xla"] = flopmod.xla_flops(jax.jit(b.flop_fn), *b.flop_args) / k
+        except Exception as err:  # the cross-check must not sink the run
+            row["flops_per_update_xla_error"] = str(err)
+        calls[w.name] = _calibrate(b.step, min_time)
+        if worker is not None and w.d3rlpy_algo is not None:
+            err = worker.setup(w)
             if err:
                 row["d3rlpy_error"] = err
 
@@ -158,13 +147,11 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
     for r in range(repeats):
         peaks.append(flopmod.matmul_peak_gflops())
         for w in chosen:
-            row = rows[w.name]
-            if w.name in bound:
-                b = bound[w.name]
-                wall, cpu = _time_block(b.step, calls[w.name])
-                row["botorl_samples"].append(wall * b.updates_per_call)
-                row["botorl_cpu_samples"].append(cpu * b.updates_per_call)
-            if worker is not None and w.d3rlpy_spec() is not None and "d3rlpy_error" not in row:
+            row, b = rows[w.name], bound[w.name]
+            wall, cpu = _time_block(b.step, calls[w.name])
+            row["botorl_samples"].append(wall * b.updates_per_call)
+            row["botorl_cpu_samples"].append(cpu * b.updates_per_call)
+            if worker is not None and w.d3rlpy_algo is not None and "d3rlpy_error" not in row:
                 try:
                     wall, cpu = worker.time(w.name, min_time)
                     row["d3rlpy_samples"].append(wall)
@@ -174,7 +161,7 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
         _log(f"bench: round {r + 1}/{repeats} done")
 
     loop = None
-    if cfg.loop and "online_utd4" in bound:
+    if cfg.loop and "online_utd4" in rows:
         loop = _loop_benchmark(wl.WORKLOADS["online_utd4"].tiny() if cfg.tiny else wl.WORKLOADS["online_utd4"],
                                repeats, min_time)
     if worker is not None:
@@ -182,10 +169,10 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
 
     peak = max(peaks)
     for w in chosen:  # rows that share another row's d3rlpy update (same round, same figures)
-        twin = rows.get(w.d3rlpy_same_as or "")
-        if twin is not None:
-            rows[w.name]["d3rlpy_samples"] = list(twin["d3rlpy_samples"])
-            rows[w.name]["d3rlpy_cpu_samples"] = list(twin["d3rlpy_cpu_samples"])
+        same = rows.get(w.d3rlpy_same_as or "")
+        if same is not None:
+            rows[w.name]["d3rlpy_samples"] = list(same["d3rlpy_samples"])
+            rows[w.name]["d3rlpy_cpu_samples"] = list(same["d3rlpy_cpu_samples"])
             rows[w.name]["d3rlpy_same_as"] = w.d3rlpy_same_as
     for name, row in rows.items():
         row["botorl_updates_per_s"] = _median(row["botorl_samples"])
@@ -203,15 +190,14 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
             row["gflops"] = row["flops_per_update"] * row["botorl_updates_per_s"] / 1e9
             row["peak_fraction"] = row["gflops"] / peak
 
-    efficiency = None
-    if loop is not None:
-        efficiency = loop["online_loop_efficiency"]
+    machine = {"platform": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,
+               "jax_backend": jax.default_backend(), "load_start": load_start, "load_end": _load()}
+    if worker is not None:
+        machine["d3rlpy_worker"] = {k: v for k, v in worker.info.items() if k != "ready"}
     return {
         "schema": SCHEMA_VERSION,
-        "command": "botorl bench" + (" --against d3rlpy" if cfg.against else "") + (" --quick" if cfg.quick else ""),
-        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
-                    "jax": jax.__version__, "jax_backend": jax.default_backend(),
-                    "load_start": load_start, "load_end": _load(), **({"d3rlpy_worker": d3_info} if d3_info else {})},
+        "command": ("python benchmarks/against_d3rlpy.py" if worker else "botorl bench") + (" --quick" if cfg.quick else ""),
+        "machine": machine,
         "settings": {"repeats": repeats, "min_time_s": min_time, "tiny": cfg.tiny,
                      "flop_count": "jaxpr (dot_general exact, elementwise 1/elem, scan x length); "
                                    "flops_per_update_xla = XLA cost analysis (counts a scan body once)"},
@@ -219,7 +205,7 @@ def run(cfg: BenchConfig) -> dict[str, Any]:
         "matmul_peak_samples": peaks,
         "updates": rows,
         "online_loop": loop,
-        "online_loop_efficiency": efficiency,
+        "online_loop_efficiency": None if loop is None else loop["online_loop_efficiency"],
     }
 
 
@@ -235,9 +221,10 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
     import dataclasses
 
     from botorl.agents.sac import SACAgent, SACConfig
-    from botorl.benchmarks.online_loop import OnlineLoop, make_env
+    from botorl.benchmarks.online_loop import OnlineLoop
+    from botorl.envs.registry import get_task
 
-    spec, env_name = make_env("antmaze")
+    spec = get_task("antmaze-large-diverse-v2")
     env = spec.make_env(0)
     obs_dim = int(env.observation_space.shape[0])
     action_dim = int(env.action_space.shape[0])
@@ -259,7 +246,7 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
         alone_rates.append(ar)
         ratios.append(lr / ar)
     loop.close()
-    return {"env": env_name, "obs_dim": obs_dim, "action_dim": action_dim,
+    return {"env": spec.name, "obs_dim": obs_dim, "action_dim": action_dim,
             "env_steps_per_s": _median(loop_rates), "samples": loop_rates,
             "update_alone_per_s": _median(alone_rates), "update_alone_samples": alone_rates,
             "online_loop_efficiency": _median(ratios)}
@@ -290,9 +277,8 @@ def format_table(result: dict[str, Any]) -> str:
                      f"{_fmt(r.get('ratio_cpu'), '9.2f')} "
                      f"{_fmt(r['flops_per_update'] and r['flops_per_update'] / 1e6, '10.1f')} "
                      f"{_fmt(r['gflops'], '8.1f')} {_fmt(r['peak_fraction'] and 100 * r['peak_fraction'], '6.1f')}")
-        for key in ("botorl_error", "d3rlpy_error"):
-            if key in r:
-                lines.append(f"    {key.split('_')[0]}: {r[key]}")
+        if "d3rlpy_error" in r:
+            lines.append(f"    d3rlpy: {r['d3rlpy_error']}")
     loop = result.get("online_loop")
     if loop:
         lines.append(f"online loop ({loop['env']}, UTD 4, 10 critics): {loop['env_steps_per_s']:.1f} env steps/s, "
@@ -308,9 +294,8 @@ def write_json(result: dict[str, Any], path: str) -> None:
     atomic_write_json(Path(path).expanduser(), result, exact=True)
 
 
-def main(argv: list[str] | None = None) -> int:
-    import sys
-
+def main(argv: list[str] | None = None, twin: Callable[[BenchConfig], Any] | None = None,
+         prog: str = "botorl bench") -> int:
     import tyro
 
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -319,9 +304,9 @@ def main(argv: list[str] | None = None) -> int:
         from botorl.benchmarks.paper import main as paper_main
 
         return paper_main(argv)
-    cfg = tyro.cli(BenchConfig, args=argv, prog="botorl bench",
+    cfg = tyro.cli(BenchConfig, args=argv, prog=prog,
                    description=__doc__.split("\n")[0] + " (`botorl bench --paper --help`: what a whole paper run costs)")
-    result = run(cfg)
+    result = run(cfg, twin)
     print(format_table(result))
     if cfg.json:
         write_json(result, cfg.json)

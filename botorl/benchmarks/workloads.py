@@ -1,7 +1,7 @@
 """The named updates the benchmark times, built on botorl's real agents.
 
 Each ``Workload`` is one kind of update at fixed shapes, with the matching d3rlpy update
-(``d3rlpy_spec``, run by ``d3rlpy_worker.py``) where d3rlpy has one. Sizes are the reference
+(``d3rlpy_algo``; benchmarks/against_d3rlpy.py times it) where d3rlpy has one. Sizes are the reference
 ones of docs/methods.md: 2 critics of (256, 256) for offline pre-training as in the
 d3rlpy reference figures; WSRL's 10 critics of 4 x 256 (antmaze, obs 29 / action 8) for the
 online SAC step and BOTO; adroit's 3 x 512 critic / 2 x 512 actor (door: obs 39 /
@@ -9,23 +9,17 @@ action 28) for one Cal-QL row. Batch 256 per critic step everywhere.
 
 A builder returns a ``Bound`` workload: ``step(n)`` runs n updates (chained: each on the
 agent the previous one returned, as training does) and blocks until done; ``flop_fn`` and
-``flop_args`` give one update to the FLOP counter. A piece of botorl that is not there
-yet (another developer's module) makes the builder raise ``Unavailable``; the row then
-says why instead of failing the whole run.
+``flop_args`` give one update to the FLOP counter.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import jax
 import numpy as np
-
-
-class Unavailable(Exception):
-    """This botorl update cannot be built here (module missing or API not as expected)."""
 
 
 @dataclass(frozen=True)
@@ -46,16 +40,6 @@ class Workload:
     layer_norm: bool = True  # WSRL/Cal-QL: LayerNorm after hidden layers; IQL: none
     scan_k: int = 1  # > 1: K updates per call via update_many (lax.scan), as the pipeline pre-trains
     d3rlpy_same_as: str | None = None  # compare with that row's d3rlpy figures (same update)
-
-    def d3rlpy_spec(self) -> dict[str, Any] | None:
-        if self.d3rlpy_algo is None:
-            return None
-        return {
-            "algo": self.d3rlpy_algo, "n_critics": self.num_critics,
-            "critic_hidden": list(self.critic_hidden), "actor_hidden": list(self.actor_hidden),
-            "obs_dim": self.obs_dim, "action_dim": self.action_dim, "batch": self.batch,
-            "n_action_samples": self.n_action_samples, "utd": self.utd, "layer_norm": int(self.layer_norm),
-        }
 
     def tiny(self) -> "Workload":
         """Same update on toy sizes (tests: compiles in seconds)."""
@@ -104,7 +88,6 @@ class Bound:
     flop_fn: Callable[..., Any]
     flop_args: tuple
     updates_per_call: int = 1  # flop_fn does this many updates (the FLOPs are divided by it)
-    extra: dict = field(default_factory=dict)
 
 
 def make_batch(rows: int, obs_dim: int, action_dim: int, seed: int = 0, lead: tuple[int, ...] = ()) -> dict:
@@ -118,20 +101,6 @@ def make_batch(rows: int, obs_dim: int, action_dim: int, seed: int = 0, lead: tu
         "mc_returns": u(rows) * 10,
     }
     return jax.device_put(batch)
-
-
-def _config(cls: type, **wanted: Any) -> Any:
-    """A config with the wanted fields that ``cls`` has; a missing one is Unavailable."""
-    names = {f.name for f in dataclasses.fields(cls)}
-    missing = [k for k in wanted if k not in names]
-    if missing:
-        raise Unavailable(f"{cls.__name__} has no field(s) {', '.join(missing)}")
-    return cls(**wanted)
-
-
-def _net_fields(w: Workload, utd: int = 1) -> dict[str, Any]:
-    return dict(actor_hidden_dims=tuple(w.actor_hidden), critic_hidden_dims=tuple(w.critic_hidden),
-                num_critics=w.num_critics, utd_ratio=utd)
 
 
 def _agent_step(agent: Any, batch: dict, scan_k: int = 1) -> tuple:
@@ -154,75 +123,42 @@ def _agent_step(agent: Any, batch: dict, scan_k: int = 1) -> tuple:
 
 
 def build(w: Workload, seed: int = 0) -> Bound:
-    """The botorl side of a workload; raises Unavailable when that piece is not there."""
-    try:
-        if w.algo in ("sac", "online"):
-            from botorl.agents.sac import SACAgent, SACConfig
+    """The botorl side of a workload."""
+    from botorl.agents.cql import CQLAgent, CQLConfig
+    from botorl.agents.iql import IQLAgent, IQLConfig
+    from botorl.agents.sac import SACAgent, SACConfig
 
-            cfg = _config(SACConfig, **_net_fields(w, w.utd))
-            agent = SACAgent.create(cfg, w.obs_dim, w.action_dim, seed)
-            batch = make_batch(w.batch * w.utd, w.obs_dim, w.action_dim, seed)
-            return Bound(w, *_agent_step(agent, batch, w.scan_k))
-        if w.algo in ("calql", "cql"):
-            from botorl.agents.cql import CQLAgent, CQLConfig
-
-            cfg = _cql_config(CQLConfig, w)
-            agent = CQLAgent.create(cfg, w.obs_dim, w.action_dim, seed)
-            return Bound(w, *_agent_step(agent, make_batch(w.batch, w.obs_dim, w.action_dim, seed), w.scan_k))
-        if w.algo == "iql":
-            from botorl.agents.iql import IQLAgent, IQLConfig
-
-            cfg = _iql_config(IQLConfig, w)
-            agent = IQLAgent.create(cfg, w.obs_dim, w.action_dim, seed)
-            return Bound(w, *_agent_step(agent, make_batch(w.batch, w.obs_dim, w.action_dim, seed)))
-        if w.algo == "boto":
-            return _build_boto(w, seed)
-    except ImportError as err:
-        raise Unavailable(f"not in botorl yet ({err})") from None
-    raise ValueError(f"unknown workload algo {w.algo!r}")
-
-
-def _cql_config(cls: type, w: Workload) -> Any:
-    names = {f.name for f in dataclasses.fields(cls)}
-    fields = _net_fields(w)
-    fields["calql"] = w.algo == "calql"
-    # CQL sample count and backup: take whichever field name the agent uses.
-    for name in ("cql_n_actions", "num_cql_actions", "cql_num_actions", "n_action_samples"):
-        if name in names:
-            fields[name] = w.n_action_samples
-            break
-    if "max_target_backup" in names:
-        fields["max_target_backup"] = True
-        fields["num_backup_actions"] = w.n_action_samples
-    if "cql_lagrange" in names:
-        fields["cql_lagrange"] = False  # d3rlpy side runs with a fixed weight too
-    return _config(cls, **fields)
-
-
-def _iql_config(cls: type, w: Workload) -> Any:
-    names = {f.name for f in dataclasses.fields(cls)}
-    fields = {k: v for k, v in _net_fields(w).items() if k in names or k in ("actor_hidden_dims", "critic_hidden_dims")}
-    if "value_hidden_dims" in names:
-        fields["value_hidden_dims"] = tuple(w.critic_hidden)
-    if "num_critics" in names:
-        fields["num_critics"] = w.num_critics
-    return _config(cls, **fields)
+    nets = dict(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden, num_critics=w.num_critics)
+    rows = w.batch
+    if w.algo == "boto":
+        return _build_boto(w, SACAgent.create(SACConfig(**nets, utd_ratio=1), w.obs_dim, w.action_dim, seed), seed)
+    if w.algo in ("sac", "online"):
+        agent = SACAgent.create(SACConfig(**nets, utd_ratio=w.utd), w.obs_dim, w.action_dim, seed)
+        rows = w.batch * w.utd
+    elif w.algo in ("calql", "cql"):
+        # a fixed CQL weight (no Lagrange step), as on the d3rlpy side
+        cfg = CQLConfig(**nets, utd_ratio=1, calql=w.algo == "calql", cql_n_actions=w.n_action_samples,
+                        max_target_backup=True, num_backup_actions=w.n_action_samples, cql_lagrange=False)
+        agent = CQLAgent.create(cfg, w.obs_dim, w.action_dim, seed)
+    elif w.algo == "iql":
+        agent = IQLAgent.create(IQLConfig(**nets, value_hidden_dims=w.critic_hidden), w.obs_dim, w.action_dim, seed)
+    else:
+        raise ValueError(f"unknown workload algo {w.algo!r}")
+    return Bound(w, *_agent_step(agent, make_batch(rows, w.obs_dim, w.action_dim, seed), w.scan_k))
 
 
 BOTO_STEPS_PER_CALL = 10
 
 
-def _build_boto(w: Workload, seed: int) -> Bound:
+def _build_boto(w: Workload, agent: Any, seed: int) -> Bound:
     """BOTO critic steps as the BOTO phase runs them: K steps per jitted call (lax.scan).
 
     ``boto_update_many`` also computes q_data/q_uniform once per call (two forward passes);
     with K = 10 that is a few % of a step. The phase itself uses steps_per_call = 1,000.
     """
-    from botorl.agents.sac import SACAgent, SACConfig
     from botorl.boto.config import BOTOConfig
     from botorl.boto.objective import ObjectiveSettings, boto_update_many
 
-    agent = SACAgent.create(_config(SACConfig, **_net_fields(w)), w.obs_dim, w.action_dim, seed)
     settings = ObjectiveSettings.resolve(BOTOConfig(), agent)
     k = BOTO_STEPS_PER_CALL
     batches = make_batch(w.batch, w.obs_dim, w.action_dim, seed, lead=(k,))

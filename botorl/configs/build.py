@@ -3,12 +3,16 @@
 ``build_config`` first reads --task, --method, --profile and --pretrain to pick the preset
 (botorl/configs/presets.py), then tyro parses every argument over it, so any field of the
 config can be set as ``--<dotted.path> VALUE``; ``resolve`` and ``validate`` follow, so a bad
-configuration is a ConfigError before any work.
+configuration is a ConfigError before any work. ``make_config`` makes the same config from
+field values (a sweep's trials); ``--config FILE`` reads back one it wrote.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+from collections.abc import Mapping
+from typing import Any
 
 from botorl.errors import ConfigError
 
@@ -68,8 +72,19 @@ def _pre_parse(argv: list[str]) -> argparse.Namespace:
     return ns
 
 
+def make_config(overrides: Mapping | None = None, **fields: Any):
+    """The config of `botorl run` with ``fields`` (task, method, profile, pretrain, seed, alpha,
+    seeds, alphas; None: the preset's) and then ``overrides`` ({dotted.path: value}): each value
+    becomes the flag that sets it (``override_args``), so every config is made the one way, with
+    `botorl run`'s checks and tyro's reading of each field."""
+    given = {k: v for k, v in fields.items() if v is not None}
+    return build_config(override_args(given) + override_args(overrides or {}))
+
+
 def build_config(argv: list[str]):
     """Preset + command line -> resolved, validated RunConfig (ConfigError on bad input)."""
+    if _given(argv, "--config"):
+        return _load_config(argv)
     import tyro
 
     from botorl.configs.custom import expand_argv
@@ -98,7 +113,8 @@ def build_config(argv: list[str]):
         "--method boto --alphas -1:1:0.5 (or -1,0,1) for several alphas, each member its own run "
         "directory under --out; --pretrained DIR starts every member from the finished pre-training "
         "of the same seed and settings under DIR. A task of your own: --env MODULE:FUNCTION --data.path FILE "
-        "--env-max-steps N [--success-key K] (the docs' Your own task page).",
+        "--env-max-steps N [--success-key K] (the docs' Your own task page). --config FILE [--out DIR] runs "
+        "the config `botorl sweep` wrote for a trial.",
     )
     _check_population_flags(argv, cfg)
     cfg = resolve(cfg)
@@ -116,3 +132,85 @@ def _check_population_flags(argv: list[str], cfg) -> None:
         raise ConfigError("--seed and --seeds are both given; a population takes --seeds (e.g. --seeds 0-7) only.")
     if cfg.alphas is not None and _given(argv, "--alpha"):
         raise ConfigError("--alpha and --alphas are both given; a population takes --alphas (e.g. --alphas -1:1:0.25) only.")
+
+
+# ------------------------------------------------------------------ field values as flags
+def _is_flag(key: str) -> bool:
+    """Whether ``key`` (a dotted path) is a plain bool field, which tyro makes a flag pair
+    (``bool | None`` fields take a value)."""
+    import dataclasses
+    import typing
+
+    from botorl.configs.schema import RunConfig
+
+    cls = RunConfig
+    for part in key.replace("-", "_").split("."):
+        if not dataclasses.is_dataclass(cls):
+            return False
+        hints = typing.get_type_hints(cls)
+        if part not in hints:
+            return False
+        cls = hints[part]
+    return cls is bool
+
+
+def flat_overrides(overrides: Mapping, prefix: str = "") -> dict[str, Any]:
+    """``{"network": {"layer_norm": False}}`` (or ``network__layer_norm=False``) -> ``{"network.layer_norm": False}``."""
+    out: dict[str, Any] = {}
+    for k, v in overrides.items():
+        key = prefix + str(k).replace("__", ".")
+        if isinstance(v, Mapping):
+            out.update(flat_overrides(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def override_args(overrides: Mapping) -> list[str]:
+    """``{"online.steps": 5000, "network": {"layer_norm": False}}`` (or ``online__steps=5000``) ->
+    the command line's ``--online.steps 5000 --network.no-layer-norm``; a value may be the command
+    line's text too ("False", "-0.5")."""
+    argv: list[str] = []
+    for key, v in flat_overrides(overrides).items():
+        text = "None" if v is None else str(v)
+        if text.lower() in ("true", "false") and _is_flag(key):  # tyro's flags: --x / --no-x (--a.b.no-x nested)
+            head, _, last = key.rpartition(".")
+            argv.append(f"--{key}" if text.lower() == "true" else f"--{head + '.' if head else ''}no-{last.replace('_', '-')}")
+        elif isinstance(v, (list, tuple)):
+            argv += [f"--{key}", *map(str, v)]
+        else:
+            argv += [f"--{key}={text}"] if text.startswith("-") else [f"--{key}", text]  # "=": a leading '-' is no flag
+    return argv
+
+
+# ------------------------------------------------------------------ botorl run --config FILE
+def _load_config(argv: list[str]):
+    """The config in FILE as botorl wrote it (`botorl sweep`, for each trial), with the run's own
+    --out, --pretrained and --no-progress; validated again."""
+    from dataclasses import replace
+
+    from botorl.configs.resolve import validate
+    from botorl.configs.schema import RunConfig, from_dict, to_dict
+    from botorl.io import read_json_bounded
+
+    p = argparse.ArgumentParser(prog="botorl run", add_help=False, allow_abbrev=False)
+    for flag in ("--config", "--out", "--pretrained"):
+        p.add_argument(flag)
+    p.add_argument("--no-progress", action="store_true")
+    ns, rest = p.parse_known_args(argv)
+    if rest:
+        others = [a.split("=", 1)[0] for a in rest if a.startswith("-")] or rest
+        raise ConfigError(f"--config {ns.config} holds the whole config; {', '.join(others)} cannot go with it (only "
+                          f"--out, --pretrained and --no-progress can). Drop them, or give the flags without --config.")
+    try:
+        data = read_json_bounded(ns.config)
+        cfg = from_dict(RunConfig, data)
+        if json.dumps(to_dict(cfg), sort_keys=True) != json.dumps(data, sort_keys=True):  # missing, unknown, mistyped
+            raise ValueError("not every field of a run config, as botorl writes it")
+    except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
+        raise ConfigError(f"--config {ns.config} cannot be read as a run config ({err}); give a file botorl wrote "
+                          f"(`botorl sweep` writes one per trial).") from None
+    cfg = replace(cfg, out=ns.out or cfg.out, pretrained=ns.pretrained or cfg.pretrained,
+                  progress=cfg.progress and not ns.no_progress)
+    validate(cfg)
+    return cfg

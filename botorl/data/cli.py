@@ -44,29 +44,27 @@ class Generate:
 
 
 @dataclasses.dataclass
-class Info:
-    """Size, episodes, return statistics and success rate of a dataset."""
-
+class _Target:
     target: Annotated[str, tyro.conf.Positional]
     """a task name (its cached generated data, or its downloaded data), or a dataset path"""
     steps: Optional[int] = None
     """only the cached dataset of this size"""
     seed: Optional[int] = None
     """only the cached dataset of this seed"""
+
+
+@dataclasses.dataclass
+class Info(_Target):
+    """Size, episodes, return statistics and success rate of a dataset."""
+
     json: bool = False
     """print JSON instead of a table"""
 
 
 @dataclasses.dataclass
-class Plot:
+class Plot(_Target):
     """Draw the visited (x, y) positions of an antmaze dataset over its maze map (PNG)."""
 
-    target: Annotated[str, tyro.conf.Positional]
-    """a task with generated antmaze data (its cached dataset), or a dataset path"""
-    steps: Optional[int] = None
-    """only the cached dataset of this size"""
-    seed: Optional[int] = None
-    """only the cached dataset of this seed"""
     out: Optional[Path] = None
     """the PNG to write (default: coverage_<task>.png in the current folder)"""
 
@@ -74,7 +72,7 @@ class Plot:
 def _plot(cfg: Plot) -> int:
     from botorl.data.generators.antmaze import plot_coverage
 
-    name, ds = _load_for_info(Info(cfg.target, cfg.steps, cfg.seed))[0]
+    name, ds = _load_for_info(cfg)[0]
     out = cfg.out or Path(f"coverage_{Path(cfg.target).name}.png")
     print(f"{plot_coverage(ds, out)} ({name})")
     return 0
@@ -97,17 +95,16 @@ def _generate(cfg: Generate) -> int:
     print(f"{cfg.task}: {verb}: {len(ds):,} transitions, {ds.num_episodes:,} episodes -> {path}")
     if cfg.out is not None:
         out = cfg.out.expanduser()
-        if re.fullmatch(r"[-\w]+-v\d+", out.name):
-            dest = write_minari(ds, path=out, overwrite=cfg.overwrite, metadata=ds.metadata.get("botorl", {}),
-                                env_spec=get_task(cfg.task).gym_spec())
-        else:
-            dest = write_minari(ds, cache_id(cfg.task, steps, cfg.seed), root=out, overwrite=cfg.overwrite,
-                                metadata=ds.metadata.get("botorl", {}), env_spec=get_task(cfg.task).gym_spec())
+        # a folder named like name-v0 becomes that dataset, any other one a Minari root
+        where = dict(path=out) if re.fullmatch(r"[-\w]+-v\d+", out.name) else dict(
+            dataset_id=cache_id(cfg.task, steps, cfg.seed), root=out)
+        dest = write_minari(ds, **where, overwrite=cfg.overwrite, metadata=ds.metadata.get("botorl", {}),
+                            env_spec=get_task(cfg.task).gym_spec())
         print(f"copy written to {dest}")
     return 0
 
 
-def _load_for_info(cfg: Info) -> list[tuple[str, object]]:
+def _load_for_info(cfg: _Target) -> list[tuple[str, object]]:
     from botorl.data.generate import cached_datasets
     from botorl.data.generators import GENERATORS
     from botorl.data.loaders import load_minari, load_path
@@ -115,11 +112,7 @@ def _load_for_info(cfg: Info) -> list[tuple[str, object]]:
     target = cfg.target
     if target in GENERATORS:
         found = cached_datasets(target)
-        chosen = []
-        for p in found:
-            m = re.fullmatch(r"steps(\d+)-seed(\d+)-v0", p.name)
-            if (cfg.steps is None or int(m.group(1)) == cfg.steps) and (cfg.seed is None or int(m.group(2)) == cfg.seed):
-                chosen.append(p)
+        chosen = cached_datasets(target, cfg.steps, cfg.seed)
         if not chosen:
             sel = "".join(f" --{k} {v}" for k, v in (("steps", cfg.steps), ("seed", cfg.seed)) if v is not None)
             raise BotorlError(
@@ -130,37 +123,30 @@ def _load_for_info(cfg: Info) -> list[tuple[str, object]]:
         return [(str(p), load_minari(p)) for p in chosen]
     if Path(target).expanduser().exists():
         return [(target, load_path(target))]
-    try:
-        from botorl.data.tasks import load_task_data
-        from botorl.envs.registry import get_task
+    from botorl.data.tasks import load_task_data
+    from botorl.envs.registry import get_task
 
+    try:
         task = get_task(target)
-    except ImportError:
-        task = None
     except BotorlError:
         raise BotorlError(
             f"{target!r} is neither a task name nor an existing dataset path. Tasks with "
             f"generated data: {', '.join(GENERATORS)}; `botorl tasks` lists all tasks."
         ) from None
-    if task is None:
-        raise BotorlError(f"{target!r} is not a dataset path or a generated task.")
     return [(target, load_task_data(task))]
 
 
 def _info(cfg: Info) -> int:
+    from botorl.data.generators.antmaze import maze_stats
+
     results = []
     for name, ds in _load_for_info(cfg):
         st = ds.stats()
         st["dataset"] = name
         meta = ds.metadata.get("botorl") or {}
-        for k in ("generator", "steps", "seed"):
-            if k in meta:
-                st[f"meta_{k}"] = meta[k]
-        from botorl.data.generators.antmaze import maze_stats
-
-        maze = maze_stats(ds)  # generated antmaze data: coverage of the maze
-        if maze is not None:
-            st.update({f"maze_{k}": v for k, v in maze.items()})
+        st.update({f"meta_{k}": meta[k] for k in ("generator", "steps", "seed") if k in meta})
+        # generated antmaze data: coverage of the maze
+        st.update({f"maze_{k}": v for k, v in (maze_stats(ds) or {}).items()})
         results.append(st)
     if cfg.json:
         print(json.dumps(results if len(results) > 1 else results[0], indent=2))

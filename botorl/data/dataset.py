@@ -6,16 +6,9 @@ episodes. ``episode_ends[i]`` marks the last row of an episode (terminal or trun
 adroit data have several terminal rows inside one trajectory, and a truncated episode ends
 without a terminal.
 
-Two ways to draw batches:
-
-* ``Dataset.sample(rng, batch_size)``: numpy fancy indexing on the host.
-* ``Dataset.to_device()`` + ``sample_batch(arrays, key, batch_size)``: the arrays live on the
-  accelerator and sampling is a pure function, so it can run inside ``jax.jit`` /
-  ``lax.scan`` (no host round trip per update).
-
-Both return a ``Batch`` (CONTRACTS.md): a dict of float32 arrays with the keys in
-``BATCH_KEYS``; ``dones`` is 1.0 on true terminals only; ``mc_returns`` is zeros where the
-Monte-Carlo returns are unknown.
+Batches (``BATCH_KEYS``, CONTRACTS.md) come from ``Dataset.sample(rng, batch_size)`` on the
+host, or from ``Dataset.to_device()`` + the pure ``sample_batch(arrays, key, batch_size)``
+inside ``jax.jit`` / ``lax.scan`` (no host round trip per update).
 """
 
 from __future__ import annotations
@@ -29,6 +22,8 @@ import numpy as np
 from botorl.errors import DataFormatError
 
 BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones", "mc_returns")
+# The per-row fields of a Dataset, in the order of its constructor's arguments.
+_ROWS = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends")
 
 # Actions are kept strictly inside the open box so that atanh (tanh-squashed policies'
 # log-probabilities of dataset actions) stays finite; 1e-5 as in jaxrl/IQL/Cal-QL.
@@ -54,6 +49,12 @@ class RewardTransform:
 
     def __call__(self, rewards):
         return self.scale * rewards + self.bias
+
+
+def segments(last_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(starts, stops) of the row ranges that end at the marked rows."""
+    stops = np.flatnonzero(last_rows) + 1
+    return np.concatenate([[0], stops[:-1]]).astype(stops.dtype), stops
 
 
 def _source(metadata: dict | None) -> str:
@@ -97,14 +98,8 @@ class Dataset:
         act = np.asarray(actions, dtype=np.float32)
         rew = np.asarray(rewards, dtype=np.float32)
         term = np.asarray(terminals).astype(bool)
-        if obs.ndim == 1:
-            obs = obs[:, None]
-        if nobs.ndim == 1:
-            nobs = nobs[:, None]
-        if act.ndim == 1:
-            act = act[:, None]
-        rew = rew.reshape(-1) if rew.ndim == 2 and rew.shape[1] == 1 else rew
-        term = term.reshape(-1) if term.ndim == 2 and term.shape[1] == 1 else term
+        obs, nobs, act = (x[:, None] if x.ndim == 1 else x for x in (obs, nobs, act))
+        rew, term = (x.reshape(-1) if x.ndim == 2 and x.shape[1] == 1 else x for x in (rew, term))
         n = obs.shape[0]
         shapes = {
             "observations": obs.shape,
@@ -128,17 +123,13 @@ class Dataset:
             )
         if n == 0:
             raise DataFormatError(f"{src}: the dataset has no transitions.")
-        if episode_ends is None:
-            ends = term.copy()
-        else:
-            ends = np.asarray(episode_ends).astype(bool).reshape(-1)
-            if ends.shape != (n,):
-                raise DataFormatError(f"{src}: episode_ends has shape {ends.shape}, expected ({n},).")
-        ends[-1] = True
+        ends = term.copy() if episode_ends is None else np.asarray(episode_ends).astype(bool).reshape(-1)
         if mc_returns is not None:
             mc_returns = np.asarray(mc_returns, dtype=np.float32).reshape(-1)
-            if mc_returns.shape != (n,):
-                raise DataFormatError(f"{src}: mc_returns has shape {mc_returns.shape}, expected ({n},).")
+        for name, v in (("episode_ends", ends), ("mc_returns", mc_returns)):
+            if v is not None and v.shape != (n,):
+                raise DataFormatError(f"{src}: {name} has shape {v.shape}, expected ({n},).")
+        ends[-1] = True
         infos = {k: np.asarray(v) for k, v in (infos or {}).items()}
         for k, v in infos.items():
             if v.shape[:1] != (n,):
@@ -182,37 +173,18 @@ class Dataset:
         return int(self.episode_ends.sum())
 
     def _replace(self, **changes) -> "Dataset":
-        fields = dict(
-            observations=self.observations,
-            actions=self.actions,
-            rewards=self.rewards,
-            next_observations=self.next_observations,
-            terminals=self.terminals,
-            episode_ends=self.episode_ends,
-            mc_returns=self.mc_returns,
-            infos=self.infos,
-            metadata=copy.deepcopy(self.metadata),
-            raw_action_max=self.raw_action_max,
-        )
-        fields.update(changes)
-        return Dataset(**fields)
+        fields = {k: getattr(self, k) for k in _ROWS + ("mc_returns", "infos", "raw_action_max")}
+        fields["metadata"] = copy.deepcopy(self.metadata)
+        return Dataset(**{**fields, **changes})
 
     def episode_slices(self) -> list[slice]:
         """Row ranges of the episodes, in order."""
-        ends = np.flatnonzero(self.episode_ends) + 1
-        starts = np.concatenate([[0], ends[:-1]])
-        return [slice(int(s), int(e)) for s, e in zip(starts, ends)]
+        return [slice(int(s), int(e)) for s, e in zip(*segments(self.episode_ends))]
 
     def episodes(self) -> Iterator[dict[str, np.ndarray]]:
         """Yield each episode as a dict of its rows (views, not copies)."""
         for sl in self.episode_slices():
-            ep = {
-                "observations": self.observations[sl],
-                "actions": self.actions[sl],
-                "rewards": self.rewards[sl],
-                "next_observations": self.next_observations[sl],
-                "terminals": self.terminals[sl],
-            }
+            ep = {k: getattr(self, k)[sl] for k in _ROWS[:5]}
             if self.mc_returns is not None:
                 ep["mc_returns"] = self.mc_returns[sl]
             for k, v in self.infos.items():
@@ -270,10 +242,7 @@ class Dataset:
         rew = self.rewards.astype(np.float64)
         # Segments end at episode ends and at terminals; inside a segment the recursion has
         # the constant coefficient gamma, so a reversed IIR filter computes it exactly.
-        seg_end = self.episode_ends | self.terminals
-        ends = np.flatnonzero(seg_end) + 1
-        starts = np.concatenate([[0], ends[:-1]])
-        for s, e in zip(starts, ends):
+        for s, e in zip(*segments(self.episode_ends | self.terminals)):
             r = rew[s:e]
             g = lfilter([1.0], [1.0, -gamma], r[::-1])[::-1]
             if infinite_horizon and not self.terminals[e - 1]:
@@ -313,12 +282,7 @@ class Dataset:
         if self.metadata.get("mc_returns") != other.metadata.get("mc_returns"):
             meta.pop("mc_returns", None)
         return Dataset(
-            np.concatenate([self.observations, other.observations]),
-            np.concatenate([self.actions, other.actions]),
-            np.concatenate([self.rewards, other.rewards]),
-            np.concatenate([self.next_observations, other.next_observations]),
-            np.concatenate([self.terminals, other.terminals]),
-            np.concatenate([self.episode_ends, other.episode_ends]),
+            *(np.concatenate([getattr(self, k), getattr(other, k)]) for k in _ROWS),
             mc,
             {k: np.concatenate([self.infos[k], other.infos[k]]) for k in keys},
             meta,
@@ -328,15 +292,10 @@ class Dataset:
     # ------------------------------------------------------------------ sampling
     def batch_at(self, idx: np.ndarray) -> dict[str, np.ndarray]:
         """The Batch of the given row indices (any index shape: (B,) or (K, B))."""
-        mc = self.mc_returns[idx] if self.mc_returns is not None else np.zeros(idx.shape, np.float32)
-        return {
-            "observations": self.observations[idx],
-            "actions": self.actions[idx],
-            "rewards": self.rewards[idx],
-            "next_observations": self.next_observations[idx],
-            "dones": self.terminals[idx].astype(np.float32),
-            "mc_returns": mc,
-        }
+        batch = {k: getattr(self, k)[idx] for k in _ROWS[:4]}
+        batch["dones"] = self.terminals[idx].astype(np.float32)
+        batch["mc_returns"] = self.mc_returns[idx] if self.mc_returns is not None else np.zeros(idx.shape, np.float32)
+        return batch
 
     def sample(self, rng: np.random.Generator, batch_size: int, num_batches: int | None = None) -> dict:
         """Uniform rows with replacement: a Batch of (B, ...) or, with ``num_batches=K``, (K, B, ...)."""
@@ -394,19 +353,18 @@ def sample_batch(arrays: dict, key, batch_size: int) -> dict:
     ``batch_size`` must be static under ``jax.jit`` (pass it via ``static_argnums`` or a
     closure). Usable inside ``lax.scan``: split the key per step.
     """
-    import jax
-
-    n = arrays["rewards"].shape[0]
-    idx = jax.random.randint(key, (batch_size,), 0, n)
-    return jax.tree_util.tree_map(lambda x: x[idx], arrays)
+    return _sample_rows(arrays, key, (batch_size,))
 
 
 def sample_batches(arrays: dict, key, num_batches: int, batch_size: int) -> dict:
     """``num_batches`` independent batches stacked as (K, B, ...) for ``update_many``."""
+    return _sample_rows(arrays, key, (num_batches, batch_size))
+
+
+def _sample_rows(arrays: dict, key, shape: tuple[int, ...]) -> dict:
     import jax
 
-    n = arrays["rewards"].shape[0]
-    idx = jax.random.randint(key, (num_batches, batch_size), 0, n)
+    idx = jax.random.randint(key, shape, 0, arrays["rewards"].shape[0])
     return jax.tree_util.tree_map(lambda x: x[idx], arrays)
 
 

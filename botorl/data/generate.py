@@ -1,10 +1,8 @@
 """The cache of generated datasets: ``ensure_dataset(task, steps, seed)``.
 
 Generated datasets are Minari datasets under ``$BOTORL_DATA_DIR`` (default
-``~/.botorl/datasets``), which is laid out as a Minari root, one dataset per (task, steps,
-seed) with id ``botorl/<task>/steps<steps>-seed<seed>-v0``. So they can be inspected with
-Minari's own tools, e.g. ``MINARI_DATASETS_PATH=~/.botorl/datasets minari show
-botorl/pointmaze-large/steps1000000-seed0-v0``.
+``~/.botorl/datasets``, laid out as a Minari root so Minari's own tools read it; docs/tasks.md),
+one per (task, steps, seed) with id ``botorl/<task>/steps<steps>-seed<seed>-v0``.
 """
 
 from __future__ import annotations
@@ -14,7 +12,7 @@ import re
 from pathlib import Path
 
 from botorl.data.dataset import Dataset
-from botorl.data.generators import DEFAULT_STEPS, get_generator
+from botorl.data.generators import DEFAULT_STEPS, GENERATORS, get_generator
 from botorl.errors import BotorlError, ConfigError
 
 
@@ -42,15 +40,16 @@ def _complete(path: Path) -> bool:
     return (path / "data" / "metadata.json").exists() and (path / "data" / "main_data.hdf5").exists()
 
 
-def cached_datasets(task: str) -> list[Path]:
-    """Folders of the cached datasets of ``task`` (largest first, then by seed)."""
+def cached_datasets(task: str, steps: int | None = None, seed: int | None = None) -> list[Path]:
+    """Folders of the cached datasets of ``task`` (largest first, then by seed), only those of
+    ``steps`` / ``seed`` when given."""
     folder = data_dir() / "botorl" / task
     if not folder.is_dir():
         return []
     found = []
     for p in folder.iterdir():
         m = re.fullmatch(r"steps(\d+)-seed(\d+)-v0", p.name)
-        if m and _complete(p):
+        if m and _complete(p) and steps in (None, int(m.group(1))) and seed in (None, int(m.group(2))):
             found.append((-int(m.group(1)), int(m.group(2)), p))
     return [p for *_, p in sorted(found)]
 
@@ -70,6 +69,7 @@ def ensure_dataset(
     """
     from botorl.data.loaders import load_minari
     from botorl.data.minari_io import write_minari
+    from botorl.envs.registry import get_task
 
     steps = default_steps(task) if steps is None else int(steps)
     if steps <= 0:
@@ -85,7 +85,7 @@ def ensure_dataset(
     try:
         write_minari(ds, cache_id(task, steps, seed), root=data_dir(), overwrite=regenerate, metadata=meta,
                      description=f"botorl generated data for {task} ({steps} steps, seed {seed})",
-                     progress=progress, env_spec=_env_spec(task))
+                     progress=progress, env_spec=get_task(task).gym_spec())
     except (BotorlError, OSError):
         if not _complete(path):  # not a concurrent writer that finished first
             raise
@@ -94,13 +94,4 @@ def ensure_dataset(
 
 
 def get_generator_name(task: str) -> str:
-    from botorl.data.generators import GENERATORS
-
     return GENERATORS[task]
-
-
-def _env_spec(task: str):
-    """The task's Gymnasium spec, recorded in its Minari data (``recover_environment()``)."""
-    from botorl.envs.registry import get_task
-
-    return get_task(task).gym_spec()

@@ -1,9 +1,6 @@
-"""Readers for the real dataset formats of the paper's tasks, each returning a ``Dataset``.
-
-* ``load_d4rl_hdf5``: D4RL hdf5 files, with D4RL's ``qlearning_dataset`` semantics.
-* ``load_minari``: Minari datasets by id (offline, ``$MINARI_DATASETS_PATH``) or by folder.
-* ``load_calql_adroit``: Cal-QL's adroit-binary ``.npy`` pair (pickle: explicit path only).
-* ``load_dapg_demos``: DAPG human demos, the original pickle or botorl's ``.npz``.
+"""Readers for the real dataset formats of the paper's tasks, each returning a ``Dataset``:
+D4RL hdf5 (``qlearning_dataset`` semantics), Minari (by id from ``$MINARI_DATASETS_PATH``, or
+by folder), Cal-QL's adroit-binary ``.npy`` pair, DAPG human demos (pickle or botorl's ``.npz``).
 
 Every loader returns raw rewards (the pipeline applies the task's ``RewardTransform``) and
 runs ``validate``; bad files raise ``DataFormatError`` naming the file and the problem, and
@@ -34,20 +31,7 @@ from botorl.errors import DataFormatError, DatasetNotFoundError
 
 # ----------------------------------------------------------------------------- hints
 
-# The paper's D4RL tasks and their current Minari ports (minari.farama.org dataset pages;
-# `minari download <id>` fetches one into $MINARI_DATASETS_PATH or ~/.minari/datasets).
-MINARI_PORTS: dict[str, str] = {
-    "antmaze-large-diverse-v2": "D4RL/antmaze/large-diverse-v1",
-    "antmaze-large-play-v2": "D4RL/antmaze/large-play-v1",
-    "kitchen-partial-v0": "D4RL/kitchen/partial-v2",
-    "kitchen-mixed-v0": "D4RL/kitchen/mixed-v2",
-}
-
 # Where Cal-QL's adroit-binary data come from (nakamotoo/Cal-QL README, "Adroit Binary").
-CALQL_ADROIT_FILES: dict[str, tuple[str, str]] = {
-    "door-binary-v0": ("door2_sparse.npy", "door_bc_sparse4.npy"),
-    "pen-binary-v0": ("pen2_sparse.npy", "pen_bc_sparse4.npy"),
-}
 CALQL_DATA_INSTRUCTIONS = (
     "Download the adroit-binary offline data linked in the Cal-QL README "
     "(https://github.com/nakamotoo/Cal-QL, section 'Adroit Binary': a Google Drive zip of "
@@ -59,15 +43,17 @@ CALQL_DATA_INSTRUCTIONS = (
 
 def download_hint(name: str) -> str:
     """How a user gets the data of a task name or Minari id (one sentence or two)."""
-    if name in MINARI_PORTS:
-        mid = MINARI_PORTS[name]
+    from botorl.envs.registry import get_task, is_registered
+
+    src = get_task(name).dataset_source if is_registered(name) else None
+    if src is not None and src.kind == "minari":  # the paper's D4RL tasks' current Minari ports
         return (
-            f"{name} is read from its Minari port {mid}: run `minari download {mid}` (needs "
+            f"{name} is read from its Minari port {src.ref}: run `minari download {src.ref}` (needs "
             f"`pip install \"minari[hdf5]\"` and network) once; it lands in {minari_root()} "
             "(set MINARI_DATASETS_PATH to use another folder)."
         )
-    if name in CALQL_ADROIT_FILES:
-        expert, bc = CALQL_ADROIT_FILES[name]
+    if src is not None and src.kind == "calql_npy":
+        expert, bc = src.ref.split(",")
         return f"{name} needs Cal-QL's {expert} and {bc}. {CALQL_DATA_INSTRUCTIONS}"
     if "/" in name or name.rsplit("-v", 1)[-1].isdigit():
         return (
@@ -95,6 +81,17 @@ def _require_file(path: str | os.PathLike, what: str) -> Path:
     if not p.exists():
         raise dataset_not_found(str(p), [p], f"Check the path of the {what} file.")
     return p
+
+
+def _join_episodes(episodes: list[dict], metadata: dict) -> Dataset:
+    """One Dataset of per-episode rows: dicts of observations, next_observations, actions,
+    rewards, terminals, optionally episode_ends (default: the last row) and success (an info
+    kept only when every episode has it)."""
+    for e in episodes:
+        e.setdefault("episode_ends", np.arange(len(e["rewards"])) == len(e["rewards"]) - 1)
+    rows = {k: np.concatenate([e[k] for e in episodes]) for k in episodes[0] if all(k in e for e in episodes)}
+    success = rows.pop("success", None)
+    return Dataset(**rows, infos=None if success is None else {"success": success}, metadata=metadata)
 
 
 # ----------------------------------------------------------------------------- D4RL hdf5
@@ -179,15 +176,11 @@ def load_d4rl_hdf5(
         rew = np.asarray(f["rewards"], np.float32).reshape(-1)
         term = np.asarray(f["terminals"]).reshape(-1).astype(bool)
         tout = np.asarray(f["timeouts"]).reshape(-1).astype(bool) if "timeouts" in f else None
-        success = None
-        for key in ("infos/success", "infos/goal_achieved"):
-            if key in f:
-                success = np.asarray(f[key]).reshape(-1).astype(np.float32)
-                break
+        key = next((k for k in ("infos/success", "infos/goal_achieved") if k in f), None)
+        success = None if key is None else np.asarray(f[key]).reshape(-1).astype(np.float32)
     n = obs.shape[0]
-    lens = {"observations": n, "actions": act.shape[0], "rewards": rew.shape[0], "terminals": term.shape[0]}
-    if tout is not None:
-        lens["timeouts"] = tout.shape[0]
+    lens = {k: v.shape[0] for k, v in (("observations", obs), ("actions", act), ("rewards", rew), ("terminals", term),
+                                       ("timeouts", tout)) if v is not None}
     if len(set(lens.values())) != 1:
         raise DataFormatError(f"{p}: fields have different lengths {lens}; the file is truncated or corrupt.")
     if n < 2:
@@ -259,10 +252,16 @@ def _minari_episodes(mds, data_path: Path):
 
     Minari's hdf5 storage is read directly with h5py (one group per episode): the same
     arrays ``iterate_episodes`` gives, without its per-episode overhead (about 10x faster
-    on 10^4 short episodes). Other storage formats go through Minari's API.
+    on 10^4 short episodes). Other storage formats go through Minari's API. A truncated or
+    damaged file is a DataFormatError (h5py raises OSError).
     """
     main = data_path / "main_data.hdf5"
-    if main.exists():
+    try:
+        if not main.exists():
+            for ep in mds.iterate_episodes():
+                yield ep.id, {"observations": ep.observations, "actions": ep.actions, "rewards": ep.rewards,
+                              "terminations": ep.terminations, "infos": ep.infos}
+            return
         import h5py
 
         with h5py.File(main, "r") as f:
@@ -276,28 +275,11 @@ def _minari_episodes(mds, data_path: Path):
                     "terminations": g["terminations"][()],
                     "infos": _h5_tree(g["infos"]) if "infos" in g else {},
                 }
-        return
-    for ep in mds.iterate_episodes():
-        yield ep.id, {"observations": ep.observations, "actions": ep.actions, "rewards": ep.rewards,
-                      "terminations": ep.terminations, "infos": ep.infos}
-
-
-def _checked_episodes(mds, data_path: Path):
-    """``_minari_episodes``, with a truncated or damaged file a DataFormatError (h5py raises OSError)."""
-    it = _minari_episodes(mds, data_path)
-    while True:
-        try:
-            item = next(it)
-        except StopIteration:
-            return
-        except DataFormatError:
-            raise
-        except Exception as err:
-            raise DataFormatError(
-                f"{data_path / 'main_data.hdf5'} cannot be read ({type(err).__name__}: {err}); the file is truncated "
-                "or damaged. Regenerate it (`botorl data generate TASK --overwrite`) or download the dataset again."
-            ) from None
-        yield item
+    except Exception as err:
+        raise DataFormatError(
+            f"{main} cannot be read ({type(err).__name__}: {err}); the file is truncated "
+            "or damaged. Regenerate it (`botorl data generate TASK --overwrite`) or download the dataset again."
+        ) from None
 
 
 def load_minari(
@@ -363,9 +345,8 @@ def load_minari(
             f"{data_path}: not a readable Minari dataset ({type(err).__name__}: {err}). "
             "Re-download it with `minari download <id>` or rewrite it."
         ) from None
-    obs_l, nobs_l, act_l, rew_l, term_l, end_l, succ_l = [], [], [], [], [], [], []
-    have_success = True
-    for ep_id, ep in _checked_episodes(mds, data_path):
+    episodes = []
+    for ep_id, ep in _minari_episodes(mds, data_path):
         try:
             o = flatten_observation(ep["observations"], obs_keys)
         except KeyError as err:
@@ -384,23 +365,16 @@ def load_minari(
             )
         if t == 0:
             continue
-        obs_l.append(o[:-1])
-        nobs_l.append(o[1:])
-        act_l.append(actions.reshape(t, -1))
-        rew_l.append(np.asarray(ep["rewards"], np.float32).reshape(t))
-        term = np.asarray(ep["terminations"]).reshape(t).astype(bool)
-        term_l.append(term)
         info = ep["infos"] if isinstance(ep["infos"], dict) else {}
         end = np.zeros(t, bool)
         # botorl's writer splits an episode where it is not continuous; join it back.
         end[-1] = not (SPLIT_KEY in info and np.asarray(info[SPLIT_KEY]).reshape(-1)[-1] > 0)
-        end_l.append(end)
-        if have_success and success_info_key in info:
-            s = np.asarray(info[success_info_key], np.float32).reshape(-1)
-            succ_l.append(s[-t:])
-        else:
-            have_success = False
-    if not obs_l:
+        episodes.append({"observations": o[:-1], "next_observations": o[1:], "actions": actions.reshape(t, -1),
+                         "rewards": np.asarray(ep["rewards"], np.float32).reshape(t),
+                         "terminals": np.asarray(ep["terminations"]).reshape(t).astype(bool), "episode_ends": end})
+        if success_info_key in info:
+            episodes[-1]["success"] = np.asarray(info[success_info_key], np.float32).reshape(-1)[-t:]
+    if not episodes:
         raise DataFormatError(f"{data_path}: the Minari dataset has no steps.")
     meta = {"source": str(data_path.parent if data_path.name == "data" else data_path), "format": "minari",
             "minari_id": mds.id}
@@ -412,12 +386,7 @@ def load_minari(
             meta["botorl"] = json.loads(extra)
     except Exception:
         pass
-    ds = Dataset(
-        np.concatenate(obs_l), np.concatenate(act_l), np.concatenate(rew_l), np.concatenate(nobs_l),
-        np.concatenate(term_l), np.concatenate(end_l),
-        infos={"success": np.concatenate(succ_l)} if have_success and succ_l else None,
-        metadata=meta,
-    )
+    ds = _join_episodes(episodes, meta)
     if rebuild and "botorl" in meta:  # only botorl's own datasets carry a flat copy
         rebuild_flat(ds, data_path.parent)
     return validate(ds, obs_dim, action_dim, action_tolerance)
@@ -447,14 +416,6 @@ def refuse_pickle(origin: str):
         _PICKLE_REFUSED.reset(token)
 
 
-def _pickle_refused(path: Path, what: str, origin: str) -> DataFormatError:
-    return DataFormatError(
-        f"{path}: this {what} is a pickle, and its path comes from {origin}, not from you; a pickle can "
-        "run code when loaded, so botorl does not open it. If you trust the file, pass --allow-pickle to "
-        f"`botorl resume`/`botorl eval`, or name it yourself: `botorl run ... --data.path {path}`."
-    )
-
-
 def _load_pickle_array(path: Path, what: str):
     """A pickle-based file: without pickle when the data allow it, else only from a path the user named."""
     origin = _PICKLE_REFUSED.get()
@@ -467,7 +428,11 @@ def _load_pickle_array(path: Path, what: str):
         except Exception as err:
             raise DataFormatError(f"{path}: cannot be read as a {what} ({type(err).__name__}: {err}).") from None
     if origin is not None:
-        raise _pickle_refused(path, what, origin)
+        raise DataFormatError(
+            f"{path}: this {what} is a pickle, and its path comes from {origin}, not from you; a pickle can "
+            "run code when loaded, so botorl does not open it. If you trust the file, pass --allow-pickle to "
+            f"`botorl resume`/`botorl eval`, or name it yourself: `botorl run ... --data.path {path}`."
+        )
     try:
         if path.suffix == ".npy":
             return np.load(path, allow_pickle=True)
@@ -542,17 +507,14 @@ def load_calql_adroit(
             continue
         p = _require_file(path, f"Cal-QL {kind} .npy")
         trajs = _as_list_of_dicts(_load_pickle_array(p, "Cal-QL .npy"), p, "Cal-QL adroit .npy file")
-        obs_l, nobs_l, act_l, rew_l, ends_l = [], [], [], [], []
+        episodes = []
         for i, tr in enumerate(trajs):
             _need(tr, ("observations", "next_observations", "actions", "rewards"), p, i)
-            key = "state_observation" if kind == "expert" else None
-            if kind == "bc" and len(tr["observations"]) and isinstance(tr["observations"][0], dict):
-                key = "state_observation"  # tolerate an expert-style BC file
-            if kind == "expert" and len(tr["observations"]) and not isinstance(tr["observations"][0], dict):
-                key = None
+            # the expert file's observations are dicts, the BC file's arrays (either file may be either)
+            key = "state_observation" if len(tr["observations"]) and isinstance(tr["observations"][0], dict) else None
             o = _stack_obs(tr["observations"], key, p, i)
             no = _stack_obs(tr["next_observations"], key, p, i)
-            a = np.asarray(tr["actions"], np.float32).reshape(len(o), -1) if len(o) else np.zeros((0, 1), np.float32)
+            a = np.asarray(tr["actions"], np.float32).reshape(len(o), -1)
             r = np.asarray(tr["rewards"], np.float32).squeeze()
             r = np.atleast_1d(r)[: len(o)]
             if not (len(o) == len(no) == len(a) == len(r)):
@@ -564,18 +526,12 @@ def load_calql_adroit(
             if len(succ) == 0:
                 continue  # never succeeds: Cal-QL drops it
             cut = int(succ[-1]) + 1
-            obs_l.append(o[:cut]); nobs_l.append(no[:cut]); act_l.append(a[:cut]); rew_l.append(r[:cut])
-            e = np.zeros(cut, bool); e[-1] = True
-            ends_l.append(e)
-        if not obs_l:
+            r = r[:cut]
+            episodes.append({"observations": o[:cut], "next_observations": no[:cut], "actions": a[:cut], "rewards": r,
+                             "terminals": r == 0.0, "success": (r == 0.0).astype(np.float32)})
+        if not episodes:
             raise DataFormatError(f"{p}: no trajectory reaches a success (reward 0); nothing to load.")
-        rew = np.concatenate(rew_l)
-        parts.append(Dataset(
-            np.concatenate(obs_l), np.concatenate(act_l), rew, np.concatenate(nobs_l),
-            rew == 0.0, np.concatenate(ends_l),
-            infos={"success": (rew == 0.0).astype(np.float32)},
-            metadata={"source": str(p), "format": f"calql-adroit-{kind}"},
-        ))
+        parts.append(_join_episodes(episodes, {"source": str(p), "format": f"calql-adroit-{kind}"}))
     if not parts:
         raise dataset_not_found("door-binary-v0 / pen-binary-v0", ["(no path given)"], CALQL_DATA_INSTRUCTIONS)
     ds = parts[0] if len(parts) == 1 else parts[0].concat(parts[1])
@@ -664,7 +620,7 @@ def load_dapg_demos(
         raise ValueError("binary_reward=True needs a success_fn")
     p = _require_file(path, "DAPG demo")
     trajs = _dapg_trajectories(p)
-    obs_l, nobs_l, act_l, rew_l, term_l, end_l, succ_l = [], [], [], [], [], [], []
+    episodes = []
     for tr in trajs:
         o, a, r = tr["observations"], tr["actions"], tr["rewards"]
         if len(o) < 2:
@@ -682,19 +638,12 @@ def load_dapg_demos(
             elif drop_unsuccessful:
                 continue
             r_ = succ.astype(np.float32) - 1.0
-        end = np.zeros(len(o_), bool)
-        end[-1] = True
-        obs_l.append(o_); nobs_l.append(no_); act_l.append(a_); rew_l.append(r_)
-        term_l.append(term); end_l.append(end); succ_l.append(succ.astype(np.float32))
-    if not obs_l:
+        episodes.append({"observations": o_, "next_observations": no_, "actions": a_, "rewards": r_,
+                         "terminals": term, "success": succ.astype(np.float32)})
+    if not episodes:
         raise DataFormatError(f"{p}: no usable demo (all shorter than 2 steps or none succeeds).")
-    ds = Dataset(
-        np.concatenate(obs_l), np.concatenate(act_l), np.concatenate(rew_l), np.concatenate(nobs_l),
-        np.concatenate(term_l), np.concatenate(end_l),
-        infos={"success": np.concatenate(succ_l)},
-        metadata={"source": str(p), "format": "dapg-" + ("npz" if p.suffix == ".npz" else "pickle"),
-                  "binary_reward": binary_reward},
-    )
+    ds = _join_episodes(episodes, {"source": str(p), "format": "dapg-" + ("npz" if p.suffix == ".npz" else "pickle"),
+                                   "binary_reward": binary_reward})
     return validate(ds, obs_dim, action_dim, action_tolerance)
 
 

@@ -1,33 +1,27 @@
 """Writing botorl datasets as Minari datasets, so any Minari-aware tool can read them.
 
-Minari's own writer (``minari.create_dataset_from_buffers`` with one ``EpisodeBuffer`` per
-episode) costs about 2.5 ms per episode, 70 s for the 14.5k episodes of 1M pointmaze steps.
-So ``metadata.json`` is made by Minari itself (``create_dataset_from_buffers`` with no
-episodes, then ``update_metadata`` with the totals), and the episodes are written straight
-into ``main_data.hdf5`` with h5py's low-level API in the layout of Minari 0.5's
-``HDF5Storage.update_episodes`` (one group ``episode_<id>`` with attributes ``id`` and
-``total_steps``; datasets ``observations``, ``actions``, ``rewards``, ``terminations``,
-``truncations`` and a group ``infos``). Differences that Minari's readers do not see: the
-datasets are contiguous (Minari makes them chunked and resizable, which triples the file
-size and only matters for appending steps to an existing episode), and the file is built in
-memory and written once. About 0.7 ms of CPU per episode, 10 s for those 14.5k (tests compare with Minari's
-writer). Everything goes into a private temporary root next to the destination, then moves
-into place with one ``rename``: a crash leaves either no dataset or a complete one, never a
-half-written one under the final id.
+Minari's own writer (``create_dataset_from_buffers``, one ``EpisodeBuffer`` per episode) costs
+about 2.5 ms per episode, 70 s for the 14.5k episodes of 1M pointmaze steps. So Minari only
+makes ``metadata.json`` (an empty dataset, then ``update_metadata`` with the totals), and the
+episodes go straight into ``main_data.hdf5`` with h5py's low-level API, in the layout of Minari
+0.5's ``HDF5Storage.update_episodes`` (about 0.7 ms per episode; tests compare the two
+writers). Unlike Minari's, the datasets are contiguous (chunked, resizable ones triple the file
+size and only matter for appending to an episode) and the file is written once from memory.
+Everything goes into a private temporary root next to the destination, then moves into place
+with one ``rename``: a crash leaves no dataset or a complete one, never a half-written one.
 
-Layout (Minari's own): ``<root>/<dataset_id>/data/main_data.hdf5`` + ``metadata.json``.
-Per episode of T steps: T + 1 observations (``observations`` then the last
-``next_observation``), T actions/rewards/terminations/truncations; the last step of an
-episode is truncated unless it is terminal. ``infos`` holds every ``Dataset.infos`` field
-(e.g. ``success``) with T + 1 entries, the first (Minari's reset info) being 0. botorl's
-metadata (generator, steps, seed, ...) is a JSON string under the metadata key
-``botorl_metadata``; ``load_minari`` restores it to ``Dataset.metadata["botorl"]``. A flat ``botorl_flat.npz``
-copy of the rows sits beside ``data/`` for fast loading (see ``FLAT_FILE``).
+Per episode of T steps: T + 1 observations, T actions/rewards/terminations/truncations (the
+last step truncated unless terminal); ``infos`` holds every ``Dataset.infos`` field with T + 1
+entries, the first (Minari's reset info) 0. botorl's metadata (generator, steps, seed, ...) is
+a JSON string under the metadata key ``botorl_metadata`` (``Dataset.metadata["botorl"]`` when
+read back). A flat copy of the rows sits beside ``data/`` for fast loading (``FLAT_FILE``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
 import json
 import os
 import shutil
@@ -37,8 +31,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
-from botorl.data.dataset import Dataset
+from botorl.data.dataset import Dataset, segments
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import pid_alive
 
@@ -64,19 +59,12 @@ class FlatCacheInvalid(BotorlError):
 
 
 def _sha256_file(path: Path) -> str:
-    import hashlib
-
-    h = hashlib.sha256()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 22), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def _content_sha256(arrays: dict[str, np.ndarray]) -> str:
     """Checksum of named arrays (name, dtype, shape and bytes, in name order)."""
-    import hashlib
-
     h = hashlib.sha256()
     for k in sorted(arrays):
         a = np.ascontiguousarray(arrays[k])
@@ -105,7 +93,6 @@ def clean_stale_tmp(root: Path) -> list[Path]:
         if not p.name.startswith(TMP_PREFIX) or not p.is_dir():
             continue
         parts = p.name[len(TMP_PREFIX):].rsplit("-", 2)
-        stale = False
         if len(parts) == 3 and parts[0] == host and parts[1].isdigit():
             stale = not pid_alive(int(parts[1]))
         else:  # another host's, or the old unnamed form: only when clearly abandoned
@@ -145,9 +132,7 @@ def _cuts(ds: Dataset):
     jump = np.zeros(n, bool)
     if n > 1:
         jump[:-1] = ~ds.episode_ends[:-1] & np.any(ds.next_observations[:-1] != ds.observations[1:], axis=1)
-    ends = np.flatnonzero(ds.episode_ends | jump) + 1
-    starts = np.concatenate([[0], ends[:-1]]).astype(ends.dtype)
-    return starts, ends, jump
+    return *segments(ds.episode_ends | jump), jump
 
 
 def _episodes(ds: Dataset):
@@ -210,15 +195,6 @@ def _observation_space(ds: Dataset):
     return gym.spaces.Dict({k: gym.spaces.Box(-np.inf, np.inf, (d,), np.float64) for k, d in dims.items()})
 
 
-def _episode_buffers(ds: Dataset):
-    """The same episodes as Minari ``EpisodeBuffer``s (for Minari's own writer)."""
-    from minari.data_collector import EpisodeBuffer
-
-    for ep_id, (obs, act, rew, term, trunc, infos) in enumerate(_episodes(ds)):
-        yield EpisodeBuffer(id=ep_id, observations=obs, actions=act, rewards=rew, terminations=term.copy(),
-                            truncations=trunc, infos=infos or None)
-
-
 def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) -> tuple[int, int]:
     """Write every episode of ``ds`` into ``file_path`` in Minari's HDF5 layout.
 
@@ -231,13 +207,7 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
     from h5py import h5a, h5d, h5g, h5s, h5t
 
     n_eps = len(_cuts(ds)[1])
-    tids: dict = {}
-
-    def tid_of(dtype):
-        t = tids.get(dtype)
-        if t is None:
-            t = tids[dtype] = h5t.py_create(dtype, logical=True)
-        return t
+    tid_of = functools.cache(functools.partial(h5t.py_create, logical=True))  # one datatype per dtype
 
     def write(gid, key: bytes, arr: np.ndarray):
         arr = np.ascontiguousarray(arr)
@@ -250,11 +220,7 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
         a = np.asarray(value, np.int64)  # what h5py's ``attrs[key] = int`` stores
         h5a.create(gid, key, tid_of(a.dtype), scalar).write(a)
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=n_eps, desc=f"writing {name}", unit="episode", mininterval=1.0)
+    bar = tqdm(total=n_eps, desc=f"writing {name}", unit="episode", mininterval=1.0, disable=not progress)
     steps = eps = 0
     # As Minari: the root group tracks the creation order of its episode groups.
     with h5py.File(file_path, "w", track_order=True, driver="core", backing_store=True) as f:
@@ -279,17 +245,15 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
                 for k, v in infos.items():
                     write(ig, k.encode(), v)
             steps += len(rew)
-            if bar is not None and eps % 500 == 0:
+            if eps % 500 == 0:
                 bar.update(500)
-    if bar is not None:
-        bar.update(eps - bar.n)
-        bar.close()
+    bar.update(eps - bar.n)
+    bar.close()
     return eps, steps
 
 
 def _resolve(dataset_id: str | None, path: str | os.PathLike | None, root: str | os.PathLike | None):
     from minari.dataset.minari_dataset import parse_dataset_id
-
 
     if path is not None:
         p = Path(path).expanduser().resolve()
@@ -359,9 +323,15 @@ def write_minari(
                           observation_space=obs_space, description=description or f"botorl dataset {dataset_id}",
                           env=env_spec)
             extra = {"botorl_metadata": json.dumps(meta, default=_json_default)}
-            if _minari_writer:  # Minari's own (slow) writer; tests compare the two
+            if _minari_writer:  # Minari's own (slow) writer, one EpisodeBuffer per episode; tests compare the two
+                from minari.data_collector import EpisodeBuffer
+
+                buffers = [EpisodeBuffer(id=i, observations=obs, actions=act, rewards=rew, terminations=term.copy(),
+                                         truncations=trunc, infos=infos or None)
+                           for i, (obs, act, rew, term, trunc, infos) in enumerate(_episodes(dataset))]
                 mds = minari.create_dataset_from_buffers(
-                    dataset_id, _progress(list(_episode_buffers(dataset)), progress, dataset_id), **kwargs)
+                    dataset_id, tqdm(buffers, desc=f"writing {dataset_id}", unit="episode", disable=not progress),
+                    **kwargs)
             else:  # Minari writes metadata.json for an empty dataset, botorl the episodes
                 mds = minari.create_dataset_from_buffers(dataset_id, [], **kwargs)
                 eps, steps = _write_episodes_h5(dataset, mds.storage.data_path / "main_data.hdf5", progress, dataset_id)
@@ -370,30 +340,18 @@ def write_minari(
             mds.storage.update_metadata(extra)
         _write_flat(dataset, tmp_root / dataset_id / FLAT_FILE, meta)
         # Carry Minari's namespace marker files over if the destination has none.
-        ns = Path(dataset_id).parent
-        while str(ns) not in ("", "."):
+        for ns in Path(dataset_id).parents[:-1]:
             src, dst = tmp_root / ns / "namespace_metadata.json", root_p / ns / "namespace_metadata.json"
             if src.exists() and not dst.exists():
                 dst.parent.mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(src, dst)
-            ns = ns.parent
         final.parent.mkdir(parents=True, exist_ok=True)
         if final.exists():  # overwrite: move the old one aside first, delete it after
-            old = tmp_root / "old"
-            os.replace(final, old)
+            os.replace(final, tmp_root / "old")
         os.replace(tmp_root / dataset_id, final)
     finally:
         shutil.rmtree(tmp_root, ignore_errors=True)
     return final
-
-
-def _progress(buffers: list, show: bool, name: str):
-    if not show:
-        return buffers
-    from tqdm import tqdm
-
-    # Minari only iterates the buffer list, so a tqdm wrapper shows the writing progress.
-    return tqdm(buffers, desc=f"writing {name}", unit="episode")
 
 
 def _write_flat(ds: Dataset, path: Path, meta: dict) -> None:
@@ -476,10 +434,4 @@ def rebuild_flat(ds: Dataset, folder: Path) -> bool:
 
 
 def _json_default(obj):
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.floating,)):
-        return float(obj)
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    return str(obj)
+    return obj.tolist() if isinstance(obj, (np.integer, np.floating, np.ndarray)) else str(obj)

@@ -1,24 +1,17 @@
 """Online replay buffer (fixed-capacity ring), with a member axis for populations, and
-mixed sampling from several sources.
+mixed sampling from several sources (CONTRACTS.md, "Data").
 
-``ReplayBuffer(capacity, obs_dim, action_dim)`` is one buffer: ``insert`` one transition,
-``sample(rng, B)``. ``ReplayBuffer(..., members=N)`` holds N such rings in one set of arrays
-(N, capacity, ...) for a population whose members step in lockstep: ``insert`` writes one row
-per member with one vectorised assignment per field, and ``sample_members`` draws each
-member's batch with the member's own generator, exactly as that member's own buffer would
-(``sample`` / ``sample_mixed``). The fine-tuning stage always uses the member form (a single
-run: N = 1).
+``ReplayBuffer(..., members=N)`` holds N rings in one set of arrays (N, capacity, ...) for a
+population whose members step in lockstep: ``insert`` writes one row per member with one
+vectorised assignment per field, and ``sample_members`` draws each member's batch with the
+member's own generator exactly as that member's own buffer would (``sample`` /
+``sample_mixed``). ``sample_mixed`` counts are exact: ``ratios=(0.5, 0.5)`` with
+``batch_size=256`` gives 128 rows from each source (largest-remainder rounding otherwise).
 
-``sample_mixed`` draws one batch whose rows come from several sources (replay buffers and/or
-``Dataset``s) in fixed proportions, e.g. RLPD's and the Cal-QL/CQL/IQL fine-tuning baselines'
-50/50 offline/online batches. Counts are exact: ``ratios=(0.5, 0.5)`` with ``batch_size=256``
-gives exactly 128 rows from each source (largest-remainder rounding otherwise).
-
-Finished episodes: the buffer knows which rows belong to each member's episode still running
-(the newest ``open_rows``; ``end_episode()`` closes it). Cal-QL online needs each row's
-Monte-Carlo return-to-go, known only once its episode ends, so it samples finished rows only
-(``finished()``, or ``sample_members(..., finished=True)``) -- as WSRL does for Cal-QL, which
-samples finished trajectories and waits one episode before its first update.
+Finished episodes: Cal-QL online needs each row's Monte-Carlo return-to-go, known only once its
+episode ends, so it samples finished rows only (``finished()``, ``sample_members(...,
+finished=True)``; the running episode's rows are the newest ``open_rows``) -- as WSRL does for
+Cal-QL, which samples finished trajectories and waits one episode before its first update.
 """
 
 from __future__ import annotations
@@ -227,8 +220,8 @@ class ReplayBuffer:
     def state_dict(self) -> dict[str, np.ndarray]:
         """Filled rows plus counters, as numpy arrays (np.savez-able); a member buffer's also
         ``num_members`` and one ``open_rows`` per member."""
-        n = self.size
-        state = {k: self._fields_state(k, n) for k in _FIELDS}
+        lead = 0 if self.members is None else slice(None)  # a single buffer's fields have no member axis
+        state = {k: self._arrays[k][lead, :self.size].copy() for k in _FIELDS}
         if self.members is not None:
             state["num_members"] = np.asarray(self.members)
         state.update(capacity=np.asarray(self.capacity), obs_dim=np.asarray(self.obs_dim),
@@ -236,10 +229,6 @@ class ReplayBuffer:
                      insert_index=np.asarray(self.insert_index), total_inserted=np.asarray(self.total_inserted),
                      open_rows=self._open.copy() if self.members is not None else np.asarray(self.open_rows))
         return state
-
-    def _fields_state(self, k: str, n: int) -> np.ndarray:
-        arr = self._arrays[k][:, :n].copy()
-        return arr[0] if self.members is None else arr
 
     @classmethod
     def from_state_dict(cls, state: dict) -> "ReplayBuffer":

@@ -57,12 +57,9 @@ def data_status(spec) -> tuple[str, str]:
         return "missing", loaders.download_hint(spec.name)
     if src.kind == "calql_npy":
         return "missing", "pass --data.path: " + loaders.download_hint(spec.name)
-    try:
-        from botorl.data.generate import cached_datasets
+    from botorl.data.generate import cached_datasets
 
-        cached = cached_datasets(spec.name)
-    except Exception:  # the data package may not offer a cache listing; stay informative
-        cached = []
+    cached = cached_datasets(spec.name)
     if cached:
         return "generated-cached", str(cached[0])
     return "generate", f"made on first use, or now with `botorl data generate {spec.name}`"

@@ -101,9 +101,8 @@ def from_arrays(arrays: Mapping, task: UserTask, *, source: str) -> Dataset:
     _check_obs(nobs.shape[1], task, source, "next_observations")
     act = np.asarray(arrays["actions"], dtype=np.float64)
     act = act.reshape(-1, 1) if act.ndim == 1 else act.reshape(act.shape[0], -1)
-    if act.shape[1] == task.action_dim:
-        conv = _unit(task)
-        act = conv(act) if conv is not None else act
+    if act.shape[1] == task.action_dim and not is_unit_box(task.action_low, task.action_high):
+        act = action_from_env(act, task.action_low, task.action_high)
     flags = {}
     for k in ("terminals",) + OPTIONAL:
         if k in arrays and arrays[k] is not None:

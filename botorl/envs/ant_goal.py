@@ -21,23 +21,18 @@ Our choices: the ant terminates when unhealthy (torso z outside Ant-v4's ``healt
 (0.2, 1.0)) as Ant-v4 itself does (Minari's wrapper ignored Ant-v4's termination); episodes
 are truncated at 1,000 steps; reset noise is Ant-v4's default (0.1; Minari 0.15).
 
-Two implementations of the same dynamics and reward:
+``AntGoalSim`` steps N ants directly with ``mujoco.mj_step`` (``nstep=5``) and ``AntEnv.step``'s
+semantics (velocity from the torso body position before and after), about 3x faster than
+Gymnasium's ``AntEnv``; tests check it against a Gymnasium wrapper around ``AntEnv``.
 
-- ``AntGoalEnv``: a Gymnasium wrapper around ``AntEnv`` (the reference);
-- ``AntGoalSim``: N ants stepped directly with ``mujoco.mj_step`` (``nstep=5``) and the same
-  step semantics (velocity from the torso body position before and after, as
-  ``AntEnv.step``), about 3x faster; training and data generation use it. Tests check both
-  give the same transitions for the same actions.
-
-Import cost: this module needs ``mujoco`` and ``numpy`` only (Gymnasium for ``AntGoalEnv``),
-so the trainer runs on a machine that has no Gymnasium-Robotics.
+It needs no Gymnasium-Robotics, so the trainer runs on a machine that lacks it.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import os
 
+import gymnasium as gym
 import numpy as np
 
 FRAME_SKIP = 5  # Ant-v4
@@ -55,11 +50,8 @@ ACTION_DIM = 8
 
 
 def ant_xml_path() -> str:
-    """Gymnasium's ``envs/mujoco/assets/ant.xml``, found without importing Gymnasium."""
-    spec = importlib.util.find_spec("gymnasium")
-    if spec is None or spec.origin is None:
-        raise ImportError("the goal-reaching ant needs Gymnasium's ant.xml: pip install gymnasium")
-    return os.path.join(os.path.dirname(spec.origin), "envs", "mujoco", "assets", "ant.xml")
+    """Gymnasium's ``envs/mujoco/assets/ant.xml``."""
+    return os.path.join(os.path.dirname(gym.__file__), "envs", "mujoco", "assets", "ant.xml")
 
 
 def goal_observation(qpos: np.ndarray, qvel: np.ndarray, goal: np.ndarray) -> np.ndarray:
@@ -154,55 +146,6 @@ class AntGoalSim:
             else:
                 self.obs[i] = next_obs[i]
         return next_obs, reward, terminated, truncated, reached
-
-
-def _gym_base():
-    import gymnasium as gym
-
-    return gym.Env
-
-
-class AntGoalEnv(_gym_base()):
-    """Gymnasium wrapper around ``AntEnv`` (Ant-v4, positions kept in its observation) with a
-    goal drawn around the ant; observation, reward and termination as the module says."""
-
-    metadata = {"render_modes": []}
-
-    def __init__(self, seed: int | None = None, goal_threshold: float = GOAL_THRESHOLD,
-                 reset_noise: float = RESET_NOISE, goal_radius: float = GOAL_REGION_RADIUS):
-        from gymnasium import spaces
-        from gymnasium.envs.mujoco.ant_v4 import AntEnv
-
-        self.ant = AntEnv(xml_file=ant_xml_path(), exclude_current_positions_from_observation=False,
-                          reset_noise_scale=reset_noise, healthy_z_range=HEALTHY_Z)
-        self.action_space = self.ant.action_space
-        self.observation_space = spaces.Box(-np.inf, np.inf, (OBS_DIM,), np.float64)
-        self.goal_threshold, self.goal_radius = goal_threshold, goal_radius
-        self._seed = seed
-        self.goal = np.zeros(2)
-
-    def reset(self, *, seed: int | None = None, options=None):
-        super().reset(seed=seed if seed is not None else self._seed)
-        self._seed = None
-        ant_obs, info = self.ant.reset(seed=seed)
-        self.goal = draw_goal(self.np_random, ant_obs[:2].copy(), self.goal_radius)
-        return self._obs(ant_obs), dict(info, goal=self.goal.copy())
-
-    def _obs(self, ant_obs):
-        return np.concatenate([ant_obs[2:], self.goal - ant_obs[:2]])
-
-    def step(self, action):
-        ant_obs, _, terminated, truncated, info = self.ant.step(action)
-        xy = ant_obs[:2]
-        v = np.array([info["x_velocity"], info["y_velocity"]])
-        # Ant-v4's own ctrl and survive terms (info), velocity towards the goal in place of x.
-        reward = FORWARD_REWARD_SCALE * float(np.dot(v, self.goal - xy) / max(np.linalg.norm(self.goal - xy), 1e-8))
-        reward += float(info["reward_ctrl"]) + float(info["reward_survive"])
-        reached = bool(np.linalg.norm(xy - self.goal) <= self.goal_threshold)
-        if reached:
-            self.goal = draw_goal(self.np_random, xy.copy(), self.goal_radius)
-        info = dict(info, reached=reached, goal=self.goal.copy())
-        return self._obs(ant_obs), reward, bool(terminated), bool(truncated), info
 
 
 # ------------------------------------------------------------------ the policy, in numpy

@@ -1,33 +1,23 @@
 """One-step bandits (``bandit-pinwheel``, ``bandit-1d``): the task definitions behind the
 paper's Figures 2 and 3 and their env, so the registry is uniform.
 
-Both tasks have one step per episode (gamma = 0 semantics: every transition is terminal), a
-constant observation ``zeros(1)``, and rewards that are a deterministic function R(a) of the
-action, so the BOTO fixed point can be computed exactly (algorithms.md section 4):
+Both tasks have one step per episode (every transition terminal), a constant observation
+``zeros(1)``, and rewards that are a deterministic function R(a) of the action, so the BOTO
+fixed point can be computed exactly (algorithms.md section 4):
 ``Q*(a_bar) = ∫ p_D(a) q(a_bar|a) (R(a) - alpha ||a - a_bar||^2) da / ∫ p_D(a) q(a_bar|a) da``.
 
-* ``bandit-pinwheel`` (Figure 2): 2-D actions from a pinwheel density, the standard toy
-  density with curved arms (here ``PINWHEEL_ARMS`` = 5 spiral arms). In polar coordinates
-  ``(rho, theta)``: ``rho`` ~ Normal(0.55, 0.15^2) truncated to [0.05, 0.98], and on arm k
-  ``theta = 2 pi k / 5 + twist * rho + Normal(0, 0.12^2)`` with twist = 2.5 rad, so each arm
-  bends as it goes out. All mass lies inside the unit disk, hence inside [-1, 1]^2. The
-  density ``pinwheel_density(a)`` is exact (polar density / rho, wrapped normal in angle).
-  Reward: ``R(a) = (k(a) + rho) / 5`` where k(a) is the arm with the largest density at a, so
-  arm k's rewards lie in [k/5, (k+1)/5): a distinct range per arm.
-* ``bandit-1d`` (Figure 3): 1-D actions drawn uniformly from a finite support of
-  ``BANDIT_1D_CLUSTERS`` (3 clusters of 7 evenly spaced points, each cluster with its own
-  reward). ``bandit_1d_support()`` returns the support points, their rewards and their
-  probabilities: p_D is that discrete distribution (integrals become weighted sums), and the
-  red dots of Figure 3 are its (action, reward) pairs.
+* ``bandit-pinwheel`` (Figure 2): 2-D actions from a pinwheel density (the standard toy density
+  with curved arms). In polar coordinates ``rho`` is a truncated normal and, on arm k,
+  ``theta = 2 pi k / K + twist * rho + Normal(0, std^2)``, so each arm bends as it goes out; all
+  mass lies inside the unit disk. ``pinwheel_density(a)`` is exact (polar density / rho,
+  wrapped normal in angle). Reward ``R(a) = (k(a) + rho) / K``, k(a) the arm with the largest
+  density at a: a distinct reward range per arm.
+* ``bandit-1d`` (Figure 3): 1-D actions drawn uniformly from a finite support of clusters of
+  evenly spaced points, each cluster with its own reward (``bandit_1d_support()``: points,
+  rewards, probabilities; integrals become weighted sums; the red dots of Figure 3).
 
-``sample_*`` functions are deterministic for a given ``np.random.Generator``; the data are
-made from them by botorl.data.generators.bandit.
-
-The env: the observation is a constant (a single 0.0); the action is in [-1, 1]^A (A = 2 for
-the pinwheel, 1 for the 1-D bandit); the reward is the bandit's R(a), as in the data; every
-episode ends after one step (terminated; gamma is irrelevant).
-``info["success"]`` = (R(a) - min R) / (max R - min R), R's range estimated once on a grid
-over the action box, i.e. how close the action is to the best one.
+The env's reward is R(a), as in the data; ``info["success"]`` = (R(a) - min R) / (max R -
+min R), R's range estimated once on a grid over the action box.
 """
 
 from __future__ import annotations
@@ -55,12 +45,13 @@ BANDIT_1D_SPACING = 0.03
 # ----------------------------------------------------------------------------- pinwheel
 
 
-def _radius_pdf(rho: np.ndarray) -> np.ndarray:
+def _radius_distribution():
+    """rho ~ Normal(mean, std^2) truncated to ``PINWHEEL_RADIUS_RANGE`` (scipy's frozen truncnorm)."""
     from scipy.stats import truncnorm
 
     lo, hi = PINWHEEL_RADIUS_RANGE
     a, b = (lo - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD, (hi - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD
-    return truncnorm.pdf(rho, a, b, loc=PINWHEEL_RADIUS_MEAN, scale=PINWHEEL_RADIUS_STD)
+    return truncnorm(a, b, loc=PINWHEEL_RADIUS_MEAN, scale=PINWHEEL_RADIUS_STD)
 
 
 def _arm_angle_pdf(rho: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -74,14 +65,15 @@ def _arm_angle_pdf(rho: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return tot / (s * np.sqrt(2 * np.pi))
 
 
+def _polar(actions) -> tuple[np.ndarray, np.ndarray]:
+    a = np.asarray(actions, np.float64)
+    return np.hypot(a[..., 0], a[..., 1]), np.arctan2(a[..., 1], a[..., 0])
+
+
 def sample_pinwheel(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
     """n actions (n, 2) from the pinwheel density, and their arm indices (n,)."""
-    from scipy.stats import truncnorm
-
-    lo, hi = PINWHEEL_RADIUS_RANGE
-    a, b = (lo - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD, (hi - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD
     arm = rng.integers(0, PINWHEEL_ARMS, size=n)
-    rho = truncnorm.rvs(a, b, loc=PINWHEEL_RADIUS_MEAN, scale=PINWHEEL_RADIUS_STD, size=n, random_state=rng)
+    rho = _radius_distribution().rvs(size=n, random_state=rng)
     theta = 2 * np.pi * arm / PINWHEEL_ARMS + PINWHEEL_TWIST * rho + rng.normal(0.0, PINWHEEL_ANGLE_STD, size=n)
     acts = np.stack([rho * np.cos(theta), rho * np.sin(theta)], axis=-1)
     return acts.astype(np.float32), arm
@@ -89,20 +81,15 @@ def sample_pinwheel(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.nd
 
 def pinwheel_density(actions: np.ndarray) -> np.ndarray:
     """p_D(a) for actions (..., 2): exact density w.r.t. Lebesgue measure on the plane."""
-    a = np.asarray(actions, np.float64)
-    rho = np.hypot(a[..., 0], a[..., 1])
-    theta = np.arctan2(a[..., 1], a[..., 0])
-    polar = _radius_pdf(rho) * _arm_angle_pdf(rho, theta).mean(axis=-1)
+    rho, theta = _polar(actions)
+    polar = _radius_distribution().pdf(rho) * _arm_angle_pdf(rho, theta).mean(axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(rho > 0, polar / np.maximum(rho, 1e-300), 0.0)
 
 
 def pinwheel_arm(actions: np.ndarray) -> np.ndarray:
     """Index of the arm whose density is largest at each action (..., 2) -> (...)."""
-    a = np.asarray(actions, np.float64)
-    rho = np.hypot(a[..., 0], a[..., 1])
-    theta = np.arctan2(a[..., 1], a[..., 0])
-    return np.argmax(_arm_angle_pdf(rho, theta), axis=-1)
+    return np.argmax(_arm_angle_pdf(*_polar(actions)), axis=-1)
 
 
 def pinwheel_reward(actions: np.ndarray) -> np.ndarray:
@@ -144,12 +131,9 @@ def sample_1d(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- the env
-DIMS = {kind: (OBS_DIM, a) for kind, a in ACTION_DIM.items()}
-
-
 def bandit_dims(kind: str) -> tuple[int, int]:
     """(obs_dim, action_dim) of a bandit."""
-    return DIMS[kind]
+    return OBS_DIM, ACTION_DIM[kind]
 
 
 def reward_function(kind: str):
@@ -162,7 +146,7 @@ class BanditEnv(gym.Env):
     metadata = {"render_modes": []}
 
     def __init__(self, kind: str, reward_fn=None, seed: int | None = None):
-        obs_dim, action_dim = DIMS[kind]
+        obs_dim, action_dim = bandit_dims(kind)
         self.kind = kind
         self.reward_fn = reward_fn or reward_function(kind)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(obs_dim,), dtype=np.float32)

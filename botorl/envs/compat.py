@@ -14,74 +14,61 @@ once, at make time of a kitchen env, and is a no-op where the originals already 
 
 from __future__ import annotations
 
+import functools
+
 import mujoco
 import numpy as np
 
 from botorl.envs.wrappers import import_robotics
-
-_applied = False
 
 # Width of a joint in qpos / qvel, by integer joint type (mjtJoint: FREE=0, BALL=1, SLIDE=2, HINGE=3).
 _QPOS_WIDTH = {0: 7, 1: 4, 2: 1, 3: 1}
 _QVEL_WIDTH = {0: 6, 1: 3, 2: 1, 3: 1}
 
 
-def _joint(model, name: str) -> tuple[int, int]:
+def _joint(model, name: str, qpos: bool) -> slice:
+    """The joint's slice of qpos (``qpos``) or qvel: address by joint name, width by joint type."""
     joint_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
     if joint_id == -1:
         raise KeyError(f"joint {name!r} is not part of the model")
-    return joint_id, int(model.jnt_type[joint_id])
+    start = int((model.jnt_qposadr if qpos else model.jnt_dofadr)[joint_id])
+    return slice(start, start + (_QPOS_WIDTH if qpos else _QVEL_WIDTH)[int(model.jnt_type[joint_id])])
 
 
 def get_joint_qpos(model, data, name):
-    joint_id, kind = _joint(model, name)
-    start = int(model.jnt_qposadr[joint_id])
-    return data.qpos[start : start + _QPOS_WIDTH[kind]].copy()
+    return data.qpos[_joint(model, name, True)].copy()
 
 
 def get_joint_qvel(model, data, name):
-    joint_id, kind = _joint(model, name)
-    start = int(model.jnt_dofadr[joint_id])
     # A ball joint has 3 dofs (the original helper slices 4; kitchen has no ball joints).
-    return data.qvel[start : start + _QVEL_WIDTH[kind]].copy()
+    return data.qvel[_joint(model, name, False)].copy()
 
 
 def set_joint_qpos(model, data, name, value):
-    joint_id, kind = _joint(model, name)
-    start = int(model.jnt_qposadr[joint_id])
-    width = _QPOS_WIDTH[kind]
-    data.qpos[start : start + width] = np.asarray(value).reshape(width)
+    where = _joint(model, name, True)
+    data.qpos[where] = np.asarray(value).reshape(where.stop - where.start)
 
 
 def set_joint_qvel(model, data, name, value):
-    joint_id, kind = _joint(model, name)
-    start = int(model.jnt_dofadr[joint_id])
-    width = _QVEL_WIDTH[kind]
-    data.qvel[start : start + width] = np.asarray(value).reshape(width)
+    where = _joint(model, name, False)
+    data.qvel[where] = np.asarray(value).reshape(where.stop - where.start)
 
 
 def needs_patch() -> bool:
     """True where the installed mujoco breaks the original tuple-membership check."""
-    return np.int32(int(mujoco.mjtJoint.mjJNT_HINGE)) not in (
-        mujoco.mjtJoint.mjJNT_HINGE,
-        mujoco.mjtJoint.mjJNT_SLIDE,
-    )
+    hinge, slide = mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE
+    return np.int32(int(hinge)) not in (hinge, slide)
 
 
+@functools.cache
 def apply() -> bool:
-    """Patch gymnasium-robotics' joint helpers if needed (idempotent). Returns True if patched."""
-    global _applied
-    if _applied:
-        return True
+    """Patch gymnasium-robotics' joint helpers if needed (once). Returns True if patched."""
     if not needs_patch():
         return False
     import_robotics()
     from gymnasium_robotics.utils import mujoco_utils
 
     # robot_get_obs and the kitchen env look these up as module globals at call time.
-    mujoco_utils.get_joint_qpos = get_joint_qpos
-    mujoco_utils.get_joint_qvel = get_joint_qvel
-    mujoco_utils.set_joint_qpos = set_joint_qpos
-    mujoco_utils.set_joint_qvel = set_joint_qvel
-    _applied = True
+    for helper in (get_joint_qpos, get_joint_qvel, set_joint_qpos, set_joint_qvel):
+        setattr(mujoco_utils, helper.__name__, helper)
     return True

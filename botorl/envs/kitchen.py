@@ -1,22 +1,16 @@
 """Franka kitchen as D4RL's kitchen-partial-v0 / kitchen-mixed-v0, on ``FrankaKitchen-v1``.
 
 - Target sub-tasks (D4RL's registrations, checked against d4rl/kitchen/__init__.py):
-  kitchen-partial-v0 = ``KitchenMicrowaveKettleLightSliderV0``: microwave, kettle, light
-  switch, slide cabinet; kitchen-mixed-v0 = ``KitchenMicrowaveKettleBottomBurnerLightV0``:
-  microwave, kettle, bottom burner, light switch.
+  kitchen-partial-v0 = ``KitchenMicrowaveKettleLightSliderV0``, kitchen-mixed-v0 =
+  ``KitchenMicrowaveKettleBottomBurnerLightV0`` (``PARTIAL_TASKS``, ``MIXED_TASKS``).
 - ``remove_task_when_completed=False``: the env's reward is the number of target sub-tasks
   whose objects are within 0.3 of their goal at this step (0-4), the reward the D4RL datasets
-  (and WSRL's fork) carry.
-- Termination when all 4 are done at the same step; horizon 280 (set by the registry).
-- ``info["success"]`` = reward / 4, the fraction done now; the registry reads it at the last
-  step of an episode (success_mode "last").
-- Observation (59, float32): the env's ``observation`` entry only, i.e. robot joint qpos (9)
-  and qvel (9), object qpos (21) and object qvel (20). The ``achieved_goal`` / ``desired_goal``
-  dicts are left out: the desired goal is a constant of the task and the achieved goal is a
-  (noise-free) copy of object qpos already in ``observation``. A loader of the Minari
-  ``D4RL/kitchen/*`` datasets takes the ``observation`` key (``KITCHEN_OBS_KEYS``).
-- Observation noise: Gymnasium-Robotics' defaults (``robot_noise_ratio=0.01``,
-  ``object_noise_ratio=0.0005``), with which the Minari kitchen datasets were recorded.
+  (and WSRL's fork) carry. Termination when all 4 are done at the same step;
+  ``info["success"]`` = reward / 4, read at an episode's last step (success_mode "last").
+- Observation (59, float32): the env's ``observation`` entry only (robot qpos and qvel, object
+  qpos and qvel): the desired goal is a constant of the task and the achieved goal a
+  (noise-free) copy of object qpos. Gymnasium-Robotics' default observation noise, with which
+  the Minari kitchen datasets were recorded.
 - mujoco >= 3.12 needs ``botorl.envs.compat.apply()`` (applied here at make time).
 """
 

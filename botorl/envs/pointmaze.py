@@ -3,17 +3,13 @@
 The generated ``pointmaze-*`` tasks (data: ``botorl.data.generators.pointmaze``) are a small
 stand-in for antmaze. Decisions, shared by the env and the generator:
 
-- Maps: Gymnasium-Robotics' ``U_MAZE``, ``MEDIUM_MAZE``, ``LARGE_MAZE`` (the D4RL maze2d
-  layouts), cell size 1.
-- Evaluation: start cell and goal cell below (D4RL's maze2d goals; start = a far cell). The goal
-  is the goal cell's centre exactly (Gymnasium-Robotics' +-0.25 goal noise is removed so the
-  offline data, labelled against this same point, reward exactly what evaluation rewards);
-  the start keeps Gymnasium-Robotics' +-0.25 position noise.
-- Reward 1 and termination when the point is within 0.45 of the goal (Gymnasium-Robotics'
-  radius; D4RL used 0.5); 0 otherwise.
-- Observation (4, float32): (x, y, vx, vy) = qpos, qvel after the step. The goal is fixed, so it
-  is not part of the observation.
-- Horizons as D4RL maze2d: umaze 300, medium 600, large 800.
+- Maps: Gymnasium-Robotics' ``U_MAZE``, ``MEDIUM_MAZE``, ``LARGE_MAZE`` (D4RL maze2d's), cell
+  size 1; start and goal cells below (D4RL's maze2d goals; start = a far cell).
+- The goal is the goal cell's centre exactly (Gymnasium-Robotics' +-0.25 goal noise is removed
+  so the offline data, labelled against this same point, reward exactly what evaluation
+  rewards); the start keeps its +-0.25 position noise.
+- Reward 1 and termination within 0.45 of the goal (Gymnasium-Robotics' radius; D4RL: 0.5).
+- Observation (4, float32): (x, y, vx, vy); the goal is fixed, so it is not observed.
 """
 
 from __future__ import annotations

@@ -1,26 +1,15 @@
 """The full state of a botorl env mid-episode, as plain JSON, for an exact resume.
 
 ``get_env_state(env) -> dict`` and ``set_env_state(env, state)`` work on every env
-``TaskSpec.make_env`` builds (pointmaze, adroit door/pen, antmaze, kitchen, bandit): the
-wrapper chain (``TimeLimit`` -> the task's ``TaskEnv`` -> the Gymnasium(-Robotics) env and the
-MuJoCo envs it holds, e.g. ``point_env``, ``ant_env``, ``robot_env``). What is captured:
-
-* MuJoCo, per model: ``mj_getState(..., mjSTATE_INTEGRATION)`` -- time, qpos, qvel, act,
-  the solver's warm start, ctrl, applied forces, mocap poses, userdata, plugin state -- which
-  MuJoCo documents as everything ``mj_step`` reads; plus the model fields the envs move at
-  reset (``body_pos``, ``body_quat``, ``site_pos``, ``site_quat``: the door's position, the pen's
-  target orientation, the maze's target marker).
-* Every layer's plain attributes: counters, flags, goals and targets (``TimeLimit``'s
-  ``_elapsed_steps``, ``TaskEnv``'s pending seed, the maze's ``goal`` and ``reset_pos``,
-  the kitchen's completed sub-tasks, ...): every attribute whose value is a number, string,
-  bool, None, NumPy array, or a list / tuple / set / dict of those. Objects (models, spaces,
-  renderers) are not state and are left alone.
-* Every random generator: each layer's ``np_random`` and its action space's generator.
-
-The result is JSON (arrays as ``{"__ndarray__": [...], "dtype": ..., "shape": ...}``, exact for
-float64/float32 since Python's float repr round-trips). ``set_env_state`` restores it into an
-env built the same way (same task; it need not have been reset): stepping both with the same
-actions then gives bit-identical observations, rewards and infos (tests/test_envs_state.py).
+``TaskSpec.make_env`` builds: the wrapper chain (``TimeLimit`` -> the task's ``TaskEnv`` -> the
+Gymnasium(-Robotics) env and the MuJoCo envs it holds, e.g. ``point_env``, ``ant_env``). What
+is captured (CONTRACTS.md, "Tasks"): per MuJoCo model ``mj_getState(mjSTATE_INTEGRATION)``,
+which MuJoCo documents as everything ``mj_step`` reads, plus the model fields the envs move at
+reset (the door's position, the pen's target orientation, the maze's target marker); every
+layer's plain attributes (numbers, strings, arrays and containers of them: counters, goals,
+the kitchen's completed sub-tasks; objects such as models and spaces are not state); every
+layer's ``np_random`` and its action space's generator. Floats round-trip exactly through
+JSON, so stepping a restored env gives bit-identical results (tests/test_envs_state.py).
 """
 
 from __future__ import annotations
@@ -101,14 +90,9 @@ def _layers(env: gym.Env) -> list[tuple[str, Any]]:
     return out
 
 
-def _rng_state(obj) -> dict | None:
-    rng = getattr(obj, "_np_random", None)
-    if isinstance(rng, np.random.Generator):
-        return _encode_rng(rng)
-    return None
-
-
-def _encode_rng(rng: np.random.Generator) -> dict:
+def _encode_rng(rng) -> dict | None:
+    if not isinstance(rng, np.random.Generator):
+        return None
     st = rng.bit_generator.state
     return {"bit_generator": st["bit_generator"], "state": _encode(st)}
 
@@ -121,10 +105,8 @@ def _decode_rng(d: dict) -> np.random.Generator:
 
 def _mujoco(obj):
     """(model, data) if ``obj`` holds a MuJoCo simulation of its own, else None."""
-    try:
-        import mujoco
-    except ImportError:  # pragma: no cover - mujoco is a dependency
-        return None
+    import mujoco
+
     model, data = obj.__dict__.get("model"), obj.__dict__.get("data")
     if isinstance(model, mujoco.MjModel) and isinstance(data, mujoco.MjData):
         return model, data
@@ -145,13 +127,11 @@ def get_env_state(env: gym.Env) -> dict[str, Any]:
                 attrs[name] = _encode(val)
             except _Skip:
                 continue
-        space = getattr(obj, "action_space", None)
-        space_rng = getattr(space, "_np_random", None) if space is not None else None
         layers[path] = {
             "class": type(obj).__name__,
             "attrs": attrs,
-            "np_random": _rng_state(obj),
-            "action_space_rng": _encode_rng(space_rng) if isinstance(space_rng, np.random.Generator) else None,
+            "np_random": _encode_rng(getattr(obj, "_np_random", None)),
+            "action_space_rng": _encode_rng(getattr(getattr(obj, "action_space", None), "_np_random", None)),
         }
         sim = _mujoco(obj)
         if sim is not None and id(sim[1]) not in seen:

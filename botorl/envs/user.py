@@ -2,25 +2,18 @@
 
 ``make_env(seed)`` (a callable of the user's, or ``MODULE:FUNCTION`` imported by name) returns a
 Gymnasium env with a ``Box`` action space and a ``Box`` or (nested) ``Dict`` of ``Box``
-observation space. ``UserTaskEnv`` makes it look like every botorl task (CONTRACTS.md,
-"Tasks"):
-
-* observations: a ``Dict`` is flattened by ``flatten_obs`` in the order of ``obs_keys_of``:
-  the keys sorted alphabetically at every level (nested keys written ``"a/b"``), each leaf
-  row-major, concatenated; the same order ``botorl.data.loaders.flatten_observation`` gives
-  dict observations in data. Then float32. There is no other observation transform (no
-  normalisation).
-* actions: the agent acts in [-1, 1]^A; ``action_to_env`` maps that affinely onto the env's own
-  ``[low, high]`` (``action_from_env`` is its inverse, used on logged actions).
-* ``info["success"]``: the value of the env's ``info[success_key]`` (0 where it is absent);
-  ``success_key`` None: success is off (always 0; the run's summary says so).
-
-``flatten_obs``, ``action_to_env`` and ``action_from_env`` are pure NumPy functions so that code
-outside botorl (``botorl.load_policy``, an exporter) applies exactly the same transformations.
+observation space; ``UserTaskEnv`` makes it look like every botorl task (CONTRACTS.md,
+"Tasks"): a ``Dict`` observation flattened by ``flatten_obs`` in sorted key order (the order
+``botorl.data.loaders.flatten_observation`` gives dict observations in data), float32, no
+normalisation; actions in [-1, 1]^A mapped onto the env's box by ``action_to_env``;
+``info["success"]`` from the env's ``info[success_key]`` (always 0 with ``success_key`` None).
+These are pure NumPy functions so that code outside botorl (``botorl.load_policy``, an
+exporter) applies exactly the same transformations.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
 import sys
@@ -187,22 +180,15 @@ def import_entry(entry: str, path: str | None = None) -> tuple[Callable[[int], g
     return func, _found_in(module, module_name)
 
 
-def _module_root(module, module_name: str) -> Path | None:
-    """The sys.path folder ``module_name`` is imported from (its top package's parent)."""
+def _found_in(module, module_name: str) -> str | None:
+    """The sys.path folder ``module_name`` was imported from (its top package's parent), to search
+    again in another process; None for an installed module (site-packages) that any process finds."""
     file = getattr(module, "__file__", None)
     if not file:
         return None
     root = Path(file).resolve().parents[module_name.count(".")]
-    return root.parent if Path(file).name == "__init__.py" else root
-
-
-def _found_in(module, module_name: str) -> str | None:
-    """The folder to search again for ``module_name`` in another process, None for an installed
-    module (site-packages) that any process finds."""
-    root = _module_root(module, module_name)
-    if root is None or {"site-packages", "dist-packages"} & set(root.parts):
-        return None
-    return str(root)
+    root = root.parent if Path(file).name == "__init__.py" else root
+    return None if {"site-packages", "dist-packages"} & set(root.parts) else str(root)
 
 
 def entry_of(make_env: Callable) -> tuple[str | None, str | None]:
@@ -220,13 +206,6 @@ def entry_of(make_env: Callable) -> tuple[str | None, str | None]:
 
 
 # ------------------------------------------------------------------ probing the env
-def _close(env) -> None:
-    try:
-        env.close()
-    except Exception:
-        pass
-
-
 def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_key: str | None,
           *, name: str, key_given: bool = False) -> UserTask:
     """Make one env and look at it: the spaces (a Box action space with finite bounds, a Box or Dict
@@ -249,8 +228,7 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
                 f"{what}(0) has the action space {act}; botorl's agents act in continuous boxes and need a "
                 f"gymnasium.spaces.Box action space (a discrete task needs another library)."
             )
-        low = np.broadcast_to(np.asarray(act.low, np.float64), act.shape).reshape(-1)
-        high = np.broadcast_to(np.asarray(act.high, np.float64), act.shape).reshape(-1)
+        low, high = (np.broadcast_to(np.asarray(b, np.float64), act.shape).reshape(-1) for b in (act.low, act.high))
         if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(high > low)):
             raise ConfigError(f"{what}(0) has the action space {act} with unbounded or empty dimensions; botorl "
                               f"rescales the box to [-1, 1] and needs finite low < high in every dimension.")
@@ -270,12 +248,12 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
             if terminated or truncated:
                 break
     except ConfigError:
-        _close(env)
         raise
     except Exception as err:
-        _close(env)
         raise ConfigError(f"task {name!r}: the env failed on reset/step ({type(err).__name__}: {err}).") from None
-    _close(env)
+    finally:
+        with contextlib.suppress(Exception):
+            env.close()
     off = None
     if success_key is None:
         off = "success_key=None: success is off"
@@ -290,7 +268,7 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
         off = (f"the env's info has no {success_key!r} key (keys seen: {found}), so success is off: every "
                f"success rate is 0; pass success_key (--success-key) naming the info key that marks success")
     return UserTask(obs_keys=keys, obs_dim=int(flat.shape[0]), action_dim=int(low.shape[0]),
-                    action_low=tuple(float(x) for x in low), action_high=tuple(float(x) for x in high),
+                    action_low=tuple(low.tolist()), action_high=tuple(high.tolist()),
                     success_key=None if off else success_key, success_off=off)
 
 
@@ -323,7 +301,7 @@ def make_spec(name: str, make_env: Callable[[int], gym.Env], task: UserTask, *, 
     return TaskSpec(
         name=name, domain=dom, env_factory=factory, max_episode_steps=int(max_episode_steps),
         success_mode="any", reward_scale=float(reward_scale), reward_bias=float(reward_bias),
-        dataset_source=DatasetSource("user", data_ref or ""), generated=False,
+        dataset_source=DatasetSource("user", data_ref or ""),
         obs_dim=task.obs_dim, action_dim=task.action_dim, networks=DOMAIN_NETS[dom],
         description=f"your task ({task.entry or 'registered from Python'})", user=task,
     )

@@ -11,7 +11,8 @@ finished trials are never rerun, the others resume from their checkpoints. A swe
 keeps one profile and one set of overrides; tasks, methods, seeds and alphas may be added.
 
 On a Ray cluster (--ray-address) every node needs botorl installed and the sweep directory
-on a shared file system: each trial is `python -m botorl.cli run ... --out <dir>` on some node.
+on a shared file system: each trial is `python -m botorl.cli run --config <dir>/sweep-trial-config.json
+--out <dir>` on some node.
 
 `botorl report --select-alpha` criterion: the highest mean over seeds of
 (success_10k + success_final) / 2; ties go to the smaller |alpha| (the less biased critic).
@@ -25,7 +26,9 @@ minus the success at env_step 0.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import re
 import shlex
 import sys
@@ -34,7 +37,7 @@ from typing import Literal, Optional
 
 import tyro
 
-from botorl.errors import ConfigError
+from botorl.errors import BotorlError, ConfigError
 
 
 @dataclasses.dataclass
@@ -56,7 +59,7 @@ class SweepArgs:
     profile: Optional[str] = None
     """botorl run profile: quick, full or smoke"""
     set: tuple[str, ...] = ()
-    """config overrides dotted.path=value, passed as --dotted.path value to every trial"""
+    """config overrides dotted.path=value, set in every trial's config as `botorl run --dotted.path value` sets it"""
     backend: Literal["sequential", "local", "ray"] = "local"
     """sequential: one at a time; local: --workers pinned processes (one per core unless given); ray: Ray tasks"""
     workers: Optional[int] = None
@@ -116,9 +119,6 @@ def sweep_main(argv: list[str]) -> int:
         overrides=list(args.set) if args.set else None,
         profile=args.profile,
     )
-    if not args.trial_command:  # a stand-in command may know other tasks and options
-        _check_tasks(grid.tasks)
-        _check_trial_configs(grid)
     command = shlex.split(args.trial_command) if args.trial_command else None
     options = SweepOptions(
         out=Path(args.out),
@@ -132,13 +132,15 @@ def sweep_main(argv: list[str]) -> int:
         share_pretraining=args.share_pretraining,
     )
     sweep = Sweep(grid, options)
+    if not args.trial_command:  # a stand-in command may know other tasks and options
+        _check_trial_configs(sweep)
     if args.dry_run:
         for trial in sweep.trials:
             print(f"{next_action(sweep.run_dir(trial)):6s}  {trial.relpath}")
         print(f"{len(sweep.trials)} trials in {sweep.out}")
         return 0
     manifest = sweep.run()
-    states = {t.id: manifest["trials"][t.id] for t in sweep.trials}
+    states = {t.relpath: manifest["trials"][t.relpath] for t in sweep.trials}
     failed = [tid for tid, e in states.items() if e["state"] != "finished"]
     n = len(states)
     print(f"botorl sweep: {n - len(failed)}/{n} trials finished in {sweep.out}")
@@ -155,55 +157,30 @@ def sweep_main(argv: list[str]) -> int:
     return 1 if failed else 0
 
 
-def _check_tasks(tasks: list[str]) -> None:
-    """Fail before launching anything when a task name is wrong (if the registry exists)."""
-    try:
-        from botorl.envs.registry import get_task
-    except ImportError:
-        return
-    for task in tasks:
-        try:
-            get_task(task)
-        except (KeyError, ValueError) as err:
-            raise ConfigError(f"Sweep grid: unknown task {task!r} ({err}). `botorl tasks` lists them.") from None
-
-
-def _check_trial_configs(grid) -> None:
-    """Build each (task, method) config as `botorl run` would, so a typo in --set or a bad
-    profile fails once, now, instead of in every trial."""
-    import contextlib
-    import io
-
-    from botorl.errors import BotorlError
-
-    try:
-        from botorl.configs.build import build_config
-    except ImportError:
-        return
-    seen = set()
-    for trial in grid.trials():
-        key = (trial.task, trial.method, trial.pretrain)
-        if key in seen:
-            continue
-        seen.add(key)
-        args = trial.run_args(grid.profile, grid.overrides) + ["--out", "botorl-sweep-config-check"]
+def _check_trial_configs(sweep) -> None:
+    """Build the config of each (task, method, pre-training)'s first trial, which the sweep keeps
+    for it, so an unknown task, a typo in --set or a bad profile fails once, now, instead of in
+    every trial."""
+    firsts: dict[tuple, object] = {}
+    for trial in sweep.trials:
+        firsts.setdefault((trial.task, trial.method, trial.pretrain), trial)
+    for trial in firsts.values():
         captured = io.StringIO()
         try:
             with contextlib.redirect_stderr(captured), contextlib.redirect_stdout(captured):
-                cfg = build_config(args)
+                cfg = sweep.config(trial)
             if cfg.wandb:  # once, now, rather than exit 2 in every trial
                 from botorl.pipeline.tracking import require_wandb
 
                 require_wandb()
         except BotorlError as err:
-            raise ConfigError(f"Sweep trial {trial.id}: {err}") from None
+            raise ConfigError(f"Sweep trial {trial.relpath}: {err}") from None
         except SystemExit:
             text = re.sub(r"[-─━│╭╮╰╯]{3,}|[│╭╮╰╯]", " ", captured.getvalue())  # tyro's box drawing
             tail = " ".join(text.split())[-500:]
             raise ConfigError(
-                f"Sweep trial {trial.id}: `botorl run {' '.join(args[:-2])}` rejects its arguments "
-                f"({tail}). Check --profile and the --set / grid overrides (dotted.path=value; "
-                "`botorl run --help` lists the fields)."
+                f"Sweep trial {trial.relpath}: `botorl run` rejects its settings ({tail}). Check --profile and the "
+                "--set / grid overrides (dotted.path=value; `botorl run --help` lists the fields)."
             ) from None
 
 
@@ -252,9 +229,6 @@ def report_main(argv: list[str]) -> int:
         for f in write_paired_report(extra_pairs, Path(args.out), sources=args.pairs_from, **stats):
             print(f"  wrote {f}")
         return 0
-    for d in args.dirs:
-        if not Path(d).is_dir():
-            raise ConfigError(f"{d} is not a directory; give run or sweep directories.")
     from botorl.experiments.runs import find_runs
 
     runs, skipped = find_runs([Path(d) for d in args.dirs])
@@ -264,8 +238,6 @@ def report_main(argv: list[str]) -> int:
                           f"--out of `botorl run` or a `botorl sweep` folder whose runs have finished.")
     select_seeds = _seed_flag("--select-seeds", args.select_seeds)
     report_seeds = _seed_flag("--report-seeds", args.report_seeds)
-    if args.dip_window <= 0:
-        raise ConfigError(f"--dip-window must be a positive number of online env steps, got {args.dip_window}.")
     if args.select_alpha:  # refuse before writing anything when held-out selection is impossible
         select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **stats)
     out = Path(args.out) if args.out else Path(args.dirs[0]) / "report"

@@ -11,9 +11,7 @@ always to never solving the task. Per group: mean +- SE, a percentile bootstrap 
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import math
 from collections import defaultdict
 from pathlib import Path
@@ -24,18 +22,22 @@ import numpy as np
 from botorl.experiments.runs import Run, Skipped, from_scratch, key_order, relative
 from botorl.experiments.stats import (
     alpha_text,
-    line_label,
     bootstrap_mean_ci,
+    csv_text,
     fmt_ci,
     fmt_float,
+    fmt_iqm,
+    fmt_mean_se,
+    line_label,
     mean_se,
+    pyplot,
+    save_figure,
     stratified_bootstrap_iqm,
-    suptitle,
 )
-from botorl.io import atomic_save_figure
 
 DIP_WINDOW = 10_000
 DIP_KEYS = ("mean", "se", "n", "lo", "hi", "iqm", "iqm_lo", "iqm_hi")  # lo/hi: CI of the mean
+
 
 @dataclasses.dataclass
 class Dip:
@@ -111,10 +113,6 @@ class DipCell:
     from_scratch: bool = False
 
 
-
-
-
-
 def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int) -> list[DipCell]:
     groups: dict[tuple[str, str, float | None], list[Dip]] = defaultdict(list)
     for d in dips:
@@ -134,16 +132,16 @@ def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int)
 
 def dip_runs_csv(dips: Sequence[Dip], relative_to: Path | None = None) -> str:
     """One row per run; paths relative to ``relative_to`` (the report's folder) when given."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["task", "method", "alpha", "seed", "success_0", "lowest", "lowest_step", "evals_in_window",
-                "last_step_in_window", "dip", "path"])
-    for d in dips:
+    header = ["task", "method", "alpha", "seed", "success_0", "lowest", "lowest_step", "evals_in_window",
+              "last_step_in_window", "dip", "path"]
+
+    def row(d: Dip) -> list:
         r = d.run
-        w.writerow([r.task, r.label, "" if r.alpha is None else repr(r.alpha), "" if r.seed is None else r.seed,
-                    fmt_float(d.initial), fmt_float(d.lowest), f"{d.lowest_step:g}", d.evals, f"{d.last_step:g}", fmt_float(d.value),
-                    relative(r.path, relative_to)])
-    return buf.getvalue()
+        return [r.task, r.label, "" if r.alpha is None else repr(r.alpha), "" if r.seed is None else r.seed,
+                fmt_float(d.initial), fmt_float(d.lowest), f"{d.lowest_step:g}", d.evals, f"{d.last_step:g}",
+                fmt_float(d.value), relative(r.path, relative_to)]
+
+    return csv_text(header, map(row, dips))
 
 
 def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> str:
@@ -155,13 +153,9 @@ def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> 
     ]
     for c in cells:
         st = c.stats
-        ms = "-" if st["n"] == 0 else (f"{st['mean']:+.2f} (n=1)" if not math.isfinite(st["se"])
-                                       else f"{st['mean']:+.2f} ± {st['se']:.2f}")
-        iq = "-" if not math.isfinite(st["iqm"]) else (f"{st['iqm']:+.2f}" + (
-            f" {fmt_ci(st['iqm_lo'], st['iqm_hi'])}" if math.isfinite(st["iqm_lo"]) else ""))
         lines.append(
             f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {int(st['n'])} | {c.initial:.2f} | {c.lowest:.2f} | "
-            f"{ms} | {fmt_ci(st['lo'], st['hi'])} | {iq} |"
+            f"{fmt_mean_se(st, '+')} | {fmt_ci(st['lo'], st['hi'])} | {fmt_iqm(st, '+')} |"
         )
     scratch = sorted({(c.task, c.label) for c in cells if c.from_scratch})
     if scratch:
@@ -174,11 +168,7 @@ def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> 
 def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidence: float) -> None:
     """Per task, one point per method (and alpha): the mean dip with its bootstrap CI, and
     each run's dip as a small dot beside it."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     tasks = list(dict.fromkeys(c.task for c in cells))  # in the cells' order (dip_table sorts them)
     ncols = 2 if len(tasks) == 4 else min(3, max(1, len(tasks)))
     nrows = math.ceil(len(tasks) / ncols)
@@ -214,8 +204,5 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
         ax.grid(alpha=0.3, axis="y")
     for ax in list(axes.flat)[len(tasks):]:
         ax.set_visible(False)
-    suptitle(fig, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs")
-    fig.tight_layout()
-    atomic_save_figure(fig, path, dpi=120)
-    plt.close(fig)
-
+    save_figure(fig, path, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs",
+                dpi=120)

@@ -1,4 +1,4 @@
-"""The grid of a sweep: which trials exist, what each is called, and how each is launched.
+"""The grid of a sweep: which trials exist, what each is called, and the config each runs.
 
 A grid is tasks x methods x seeds (x alphas for BOTO only: alpha is BOTO's bias controller,
 the other methods have no alpha, so they get one trial per seed with alpha recorded as
@@ -13,16 +13,14 @@ import json
 from pathlib import Path
 from typing import Any
 
+from botorl.configs.build import flat_overrides, make_config
+from botorl.configs.methods import METHODS, PRETRAIN_ALGOS
 from botorl.errors import ConfigError
-
-METHODS = ("boto", "wsrl", "calql", "cql", "iql", "rlpd")
-PRETRAINS = ("calql", "cql", "iql")
-PROFILES_HINT = "quick, full (or another profile botorl run accepts, e.g. smoke)"
 
 
 @dataclasses.dataclass(frozen=True)
 class Trial:
-    """One run of the grid: a `botorl run` invocation and its run directory."""
+    """One run of the grid: its config's fields and its run directory."""
 
     task: str
     method: str
@@ -44,33 +42,22 @@ class Trial:
         return "/".join(parts)
 
     @property
-    def id(self) -> str:
-        return self.relpath
-
-    def run_args(self, profile: str | None, overrides: dict[str, str]) -> list[str]:
-        """Arguments after `botorl run` (without `--out`)."""
-        args = ["--task", self.task, "--method", self.method, "--seed", str(self.seed)]
-        if self.alpha is not None:
-            args.append(f"--alpha={format_alpha(self.alpha)}")  # "=": a leading '-' is no flag
-        return args + _shared_args(self.pretrain, profile, overrides)
+    def fields(self) -> dict[str, Any]:
+        """The fields of its RunConfig it sets (None: the preset's)."""
+        return {"task": self.task, "method": self.method, "pretrain": self.pretrain, "alpha": self.alpha,
+                "seed": self.seed}
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "task": self.task,
-            "method": self.method,
-            "pretrain": self.pretrain,
-            "alpha": self.alpha,
-            "seed": self.seed,
-        }
+        return self.fields
 
 
 @dataclasses.dataclass(frozen=True)
 class PopulationJob:
-    """Trials of one (task, method, pre-training) trained as one population (`botorl run
-    --seeds ... [--alphas ...]`): the unit of work of `botorl sweep --population-size K`.
+    """Trials of one (task, method, pre-training) trained as one population (one `botorl run`
+    of a config with ``seeds`` [and ``alphas``]): the unit of work of `botorl sweep --population-size K`.
 
     Its members are the product of ``seeds`` and ``alphas`` (a population is always a
-    product, so one `botorl run` command line describes it). Each member's run directory is
+    product, so one config's ``seeds`` and ``alphas`` describe it). Each member's run directory is
     ``<relpath>/<member name>`` (botorl.configs.members.Member.name)."""
 
     task: str
@@ -96,21 +83,17 @@ class PopulationJob:
         digest = hashlib.sha1(key.encode()).hexdigest()[:8]
         return f"{self.task}/{self.method_label}/pop-{len(self.seeds) * len(self.alphas)}m-{digest}"
 
-    @property
-    def id(self) -> str:
-        return self.relpath
-
     def member_dir(self, trial: Trial) -> str:
         """A member's run directory, relative to the sweep directory."""
         from botorl.configs.members import Member
 
         return f"{self.relpath}/{Member(trial.seed, trial.alpha).name}"
 
-    def run_args(self, profile: str | None, overrides: dict[str, str]) -> list[str]:
-        args = ["--task", self.task, "--method", self.method, "--seeds", ",".join(str(s) for s in self.seeds)]
-        if any(a is not None for a in self.alphas):
-            args.append("--alphas=" + ",".join(format_alpha(a) for a in self.alphas))
-        return args + _shared_args(self.pretrain, profile, overrides)
+    @property
+    def fields(self) -> dict[str, Any]:
+        alphas = ",".join(format_alpha(a) for a in self.alphas) if any(a is not None for a in self.alphas) else None
+        return {"task": self.task, "method": self.method, "seeds": ",".join(str(s) for s in self.seeds),
+                "alphas": alphas, "pretrain": self.pretrain}
 
     def to_json(self) -> dict[str, Any]:
         return {"task": self.task, "method": self.method, "pretrain": self.pretrain, "seeds": list(self.seeds),
@@ -201,10 +184,10 @@ def parse_methods(value: Any) -> list[tuple[str, str | None]]:
                 f"Grid field 'methods': unknown method {item!r}. Known: {', '.join(METHODS)}; "
                 "BOTO with another pre-training is written boto-cql (or boto+cql)."
             )
-        if pretrain is not None and (method != "boto" or pretrain not in PRETRAINS):
+        if pretrain is not None and (method != "boto" or pretrain not in PRETRAIN_ALGOS):
             raise ConfigError(
                 f"Grid field 'methods': {item!r} is not valid; only boto takes a pre-training "
-                f"suffix, one of {', '.join(PRETRAINS)} (e.g. boto-iql)."
+                f"suffix, one of {', '.join(PRETRAIN_ALGOS)} (e.g. boto-iql)."
             )
         out.append((method, pretrain))
     return list(dict.fromkeys(out))
@@ -215,7 +198,7 @@ def parse_overrides(value: Any) -> dict[str, str]:
     if value is None:
         return {}
     if isinstance(value, dict):
-        items = list(_flatten(value).items())
+        items = list(flat_overrides(value).items())
     else:
         items = []
         for item in _as_list(value, "overrides") if not isinstance(value, (list, tuple)) else value:
@@ -231,27 +214,8 @@ def parse_overrides(value: Any) -> dict[str, str]:
     for key, val in items:
         if not key:
             raise ConfigError("An override has an empty name; write dotted.path=value.")
-        out[key] = _yaml_scalar_to_arg(val)
+        out[key] = str(val)  # YAML's true, null: "True", "None", as the command line writes them
     return out
-
-
-def _flatten(mapping: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    flat: dict[str, Any] = {}
-    for key, val in mapping.items():
-        name = f"{prefix}{key}"
-        if isinstance(val, dict):
-            flat.update(_flatten(val, name + "."))
-        else:
-            flat[name] = val
-    return flat
-
-
-def _yaml_scalar_to_arg(val: Any) -> str:
-    if isinstance(val, bool):
-        return "True" if val else "False"
-    if val is None:
-        return "None"
-    return str(val)
 
 
 @dataclasses.dataclass
@@ -272,6 +236,10 @@ class Grid:
                     for seed in self.seeds:
                         out.append(Trial(task, method, seed, alpha, pretrain))
         return out
+
+    def config(self, unit: Trial | PopulationJob):
+        """The resolved, validated RunConfig a trial or population runs (configs.build.make_config)."""
+        return make_config(self.overrides, **unit.fields, profile=self.profile)
 
     def populations(self, size: int) -> list[PopulationJob]:
         """The trials as populations of at most ``size`` members (``group_populations``)."""
@@ -380,35 +348,3 @@ def build_grid(
     grid.validate()
     return grid
 
-
-def _is_flag(key: str) -> bool:
-    """Whether ``key`` (a dotted path) is a plain bool field of the run config, which tyro
-    makes a flag pair (``bool | None`` fields take a value)."""
-    import dataclasses
-    import typing
-
-    from botorl.configs.schema import RunConfig
-
-    cls = RunConfig
-    for part in key.replace("-", "_").split("."):
-        if not dataclasses.is_dataclass(cls):
-            return False
-        hints = typing.get_type_hints(cls)
-        if part not in hints:
-            return False
-        cls = hints[part]
-    return cls is bool
-
-
-def _shared_args(pretrain: str | None, profile: str | None, overrides: dict[str, str]) -> list[str]:
-    """The `botorl run` arguments a trial and a population have alike."""
-    args = [] if pretrain is None else ["--pretrain", pretrain]
-    if profile:
-        args += ["--profile", profile]
-    for key, value in overrides.items():
-        if value.lower() in ("true", "false") and _is_flag(key):  # tyro's bools: --wandb / --no-wandb, --a.no-b
-            head, _, leaf = key.rpartition(".")
-            args.append(f"--{key}" if value.lower() == "true" else f"--{head + '.' if head else ''}no-{leaf.replace('_', '-')}")
-            continue
-        args += [f"--{key}={value}"] if value.startswith("-") else [f"--{key}", value]  # "=": a leading '-' is no flag
-    return args

@@ -42,14 +42,16 @@ from botorl.experiments.stats import (
     alpha_text,
     bootstrap_mean_ci,
     check_bootstrap,
+    csv_text,
     fmt_ci,
     fmt_float,
     mean_se,
-    suptitle,
+    pyplot,
+    save_figure,
     t_interval,
     wilcoxon_p,
 )
-from botorl.io import atomic_save_figure
+from botorl.io import CSV_LIMIT, atomic_write_text, read_bounded
 
 REFERENCE = "wsrl"
 # quantities compared, in the order of paired.csv (each: the reference's, the other's, other - reference)
@@ -165,8 +167,6 @@ def find_pairs(runs: Sequence[Run], *, reference: str = REFERENCE, window: float
     return pairs, notes
 
 
-
-
 @dataclasses.dataclass
 class PairedCell:
     task: str
@@ -216,17 +216,13 @@ def paired_table(pairs: Sequence[Pair], *, quantities: Sequence[str] = QUANTITIE
 
 # ------------------------------------------------------------------------------------ files
 def pairs_csv(pairs: Sequence[Pair]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["task", "seed", "method", "alpha", "reference"]
-               + [f"{q}_{side}" for q in QUANTITIES for side in ("reference", "method", "diff")]
-               + ["reference_path", "path"])
-    for p in pairs:
-        w.writerow([p.task, "" if p.seed is None else p.seed, p.label, "" if p.alpha is None else repr(p.alpha),
-                    p.reference]
-                   + [fmt_float(v) for q in QUANTITIES for v in (p.ref[q], p.other[q], p.diff(q))]
-                   + [p.ref_path, p.other_path])
-    return buf.getvalue()
+    header = (["task", "seed", "method", "alpha", "reference"]
+              + [f"{q}_{side}" for q in QUANTITIES for side in ("reference", "method", "diff")]
+              + ["reference_path", "path"])
+    return csv_text(header, ([p.task, "" if p.seed is None else p.seed, p.label,
+                              "" if p.alpha is None else repr(p.alpha), p.reference]
+                             + [fmt_float(v) for q in QUANTITIES for v in (p.ref[q], p.other[q], p.diff(q))]
+                             + [p.ref_path, p.other_path] for p in pairs))
 
 
 def read_pairs_csv(path: Path) -> list[Pair]:
@@ -236,8 +232,6 @@ def read_pairs_csv(path: Path) -> list[Pair]:
             return float(v)
         except ValueError:
             return math.nan
-
-    from botorl.io import CSV_LIMIT, read_bounded
 
     pairs = []
     with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:
@@ -252,14 +246,9 @@ def read_pairs_csv(path: Path) -> list[Pair]:
 
 
 def paired_cells_csv(cells: Sequence[PairedCell]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
     fields = [f.name for f in dataclasses.fields(PairedCell)]
-    w.writerow(fields)
-    for c in cells:
-        w.writerow([fmt_float(v) if isinstance(v, float) else ("" if v is None else v)
-                    for v in (getattr(c, f) for f in fields)])
-    return buf.getvalue()
+    return csv_text(fields, ([fmt_float(v) if isinstance(v, float) else ("" if v is None else v)
+                              for v in (getattr(c, f) for f in fields)] for c in cells))
 
 
 _NAMES = {"success_0": "success at 0", "lowest": "lowest in window", "dip": "dip", "success_10k": "success at 10k",
@@ -290,15 +279,10 @@ def paired_markdown(cells: Sequence[PairedCell], confidence: float, *,
 def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") -> None:
     """One panel per (task, method, alpha): each pair a line from the reference run's value to
     the other run's (jittered a little so that equal pairs stay visible)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     groups = _groups(pairs)
     cols = min(4, len(groups))
     rows = math.ceil(len(groups) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False, sharey=True)
+    fig, axes = pyplot().subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False, sharey=True)
     rng = np.random.default_rng(0)
     for ax, group in zip(axes.flat, groups):
         for p in group:
@@ -315,25 +299,17 @@ def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") ->
     for ax in list(axes.flat)[len(groups):]:
         ax.axis("off")
     axes[0][0].set_ylabel(_NAMES[quantity], fontsize=8)
-    suptitle(fig, f"Paired runs (same pre-training): {_NAMES[quantity]}, one line per pair; "
-                  "green: the method above the reference, red: below")
-    fig.tight_layout()
-    atomic_save_figure(fig, path)
-    plt.close(fig)
+    save_figure(fig, path, f"Paired runs (same pre-training): {_NAMES[quantity]}, one line per pair; "
+                           "green: the method above the reference, red: below")
 
 
 def difference_figure(cells: Sequence[PairedCell], path: Path, *, confidence: float = 0.95,
                       quantities: Sequence[str] = TABLE_QUANTITIES) -> None:
     """Per quantity, each group's mean paired difference with its bootstrap CI (thick) and
     t-interval (thin); the noise floor's rows in grey."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     rows = [c for c in cells if c.quantity == quantities[0]]
     labels = [f"{c.task} {c.label}{'' if c.alpha is None else f' α={c.alpha:+.1f}'}" for c in rows]
-    fig, axes = plt.subplots(1, len(quantities), figsize=(3.6 * len(quantities), 0.45 * len(rows) + 1.4),
+    fig, axes = pyplot().subplots(1, len(quantities), figsize=(3.6 * len(quantities), 0.45 * len(rows) + 1.4),
                              squeeze=False, sharey=True)
     for ax, q in zip(axes[0], quantities):
         qc = {(c.task, c.label, c.alpha): c for c in cells if c.quantity == q}
@@ -351,18 +327,14 @@ def difference_figure(cells: Sequence[PairedCell], path: Path, *, confidence: fl
     axes[0][0].set_yticks(range(len(rows)), labels, fontsize=7)
     axes[0][0].invert_yaxis()
     reference = rows[0].reference if rows else "the reference"
-    suptitle(fig, f"Paired differences, method − {reference}: mean, {100 * confidence:g}% bootstrap CI (thick) and "
-                  "t-interval (thin); grey: the noise floor (the reference against itself, another online seed)")
-    fig.tight_layout()
-    atomic_save_figure(fig, path)
-    plt.close(fig)
+    save_figure(fig, path, f"Paired differences, method − {reference}: mean, {100 * confidence:g}% bootstrap CI "
+                           "(thick) and t-interval (thin); grey: the noise floor (the reference against itself, "
+                           "another online seed)")
 
 
 def write_paired(pairs: Sequence[Pair], out: Path, *, n_boot: int, confidence: float, seed: int
                  ) -> tuple[list[Path], list[str], list[PairedCell]]:
     """paired.csv, paired_table.csv, the two figures and the markdown section's lines."""
-    from botorl.io import atomic_write_text
-
     cells = paired_table(pairs, n_boot=n_boot, confidence=confidence, seed=seed)
     atomic_write_text(out / "paired.csv", pairs_csv(pairs))
     atomic_write_text(out / "paired_table.csv", paired_cells_csv(cells))
@@ -400,8 +372,6 @@ def merge_pairs(pairs: Sequence[Pair], extra: Sequence[Pair]) -> list[Pair]:
 def write_paired_report(pairs: Sequence[Pair], out: Path, *, sources: Sequence[str] = (), n_boot: int = 2000,
                         confidence: float = 0.95, seed: int = 0) -> list[Path]:
     """A report of pairs alone (``botorl report --pairs-from``): the paired files and report.md."""
-    from botorl.io import atomic_write_text
-
     check_bootstrap(n_boot, confidence)
     out.mkdir(parents=True, exist_ok=True)
     files, md, _ = write_paired(pairs, out, n_boot=n_boot, confidence=confidence, seed=seed)

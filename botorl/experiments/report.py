@@ -10,9 +10,7 @@ with the reason, in the report and on stdout.
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import math
 from collections import defaultdict
 from pathlib import Path
@@ -34,18 +32,22 @@ from botorl.experiments.dip import (
     run_dip,
 )
 from botorl.experiments.pairs import Pair, PairedCell, find_pairs, merge_pairs, write_paired
-from botorl.experiments.runs import Run, Skipped, find_runs, relative
+from botorl.experiments.runs import Run, Skipped, find_runs, key_order, relative
 from botorl.experiments.stats import (
     alpha_text,
     bootstrap_mean_ci,
     check_bootstrap,
+    csv_text,
     fmt_float,
+    fmt_iqm,
+    fmt_mean_se,
     line_label,
     mean_se,
+    pyplot,
+    save_figure,
     stratified_bootstrap_iqm,
-    suptitle,
 )
-from botorl.io import atomic_save_figure, atomic_write_text
+from botorl.io import atomic_write_text
 
 POINTS = (("initial", "success_initial"), ("10k", "success_10k"), ("final", "success_final"))
 SELECT_ALPHA_CRITERION = (
@@ -68,16 +70,6 @@ class Cell:
     dip: dict[str, float] | None = None  # dip_stats of the runs that have a dip
 
 
-
-
-def _fmt_ms(mean: float, se: float, n: int) -> str:
-    if n == 0:
-        return "-"
-    if not math.isfinite(se):
-        return f"{mean:.2f} (n=1)"
-    return f"{mean:.2f} ± {se:.2f}"
-
-
 def _group(runs: Sequence[Run]) -> dict[tuple[str, str, float | None], list[Run]]:
     groups: dict[tuple[str, str, float | None], list[Run]] = defaultdict(list)
     for r in runs:
@@ -89,10 +81,10 @@ def table1(
     runs: Sequence[Run], *, n_boot: int, confidence: float, seed: int, dips: Sequence[DipCell] = ()
 ) -> list[Cell]:
     dip_by_key = {(d.task, d.label, d.alpha): d.stats for d in dips}
+    groups = _group(runs)
     cells = []
-    for (task, label, alpha), group in sorted(
-        _group(runs).items(), key=lambda kv: (kv[0][0], kv[0][1], -99 if kv[0][2] is None else kv[0][2])
-    ):
+    for task, label, alpha in sorted(groups, key=key_order):
+        group = groups[(task, label, alpha)]
         stats: dict[str, dict[str, float]] = {}
         for point, fieldname in POINTS:
             values = [r.value(fieldname) for r in group]
@@ -137,41 +129,26 @@ def aggregate_iqm(runs: Sequence[Run], *, n_boot: int, confidence: float, seed: 
     return out, notes
 
 
+CELL_KEYS = ("mean", "se", "n", "iqm", "iqm_lo", "iqm_hi")
+
+
+def _csv_value(st: dict[str, float], k: str):
+    return st["n"] if k == "n" else fmt_float(st.get(k, math.nan))
 
 
 def cells_csv(cells: Sequence[Cell]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    header = ["task", "method", "alpha", "seeds"]
-    for point, _ in POINTS:
-        header += [f"{point}_{k}" for k in ("mean", "se", "n", "iqm", "iqm_lo", "iqm_hi")]
-    header += [f"dip_{k}" for k in DIP_KEYS]
-    w.writerow(header)
-    for c in cells:
-        row = [c.task, c.label, "" if c.alpha is None else repr(c.alpha), " ".join(str(s) for s in c.seeds)]
-        for point, _ in POINTS:
-            st = c.stats[point]
-            row += [fmt_float(st["mean"]), fmt_float(st["se"]), st["n"], fmt_float(st["iqm"]), fmt_float(st["iqm_lo"]), fmt_float(st["iqm_hi"])]
-        dip = c.dip or {"n": 0}
-        row += [dip["n"] if k == "n" else fmt_float(dip.get(k, math.nan)) for k in DIP_KEYS]
-        w.writerow(row)
-    return buf.getvalue()
+    header = ["task", "method", "alpha", "seeds"] + [f"{p}_{k}" for p, _ in POINTS for k in CELL_KEYS]
+    rows = ([c.task, c.label, "" if c.alpha is None else repr(c.alpha), " ".join(str(s) for s in c.seeds)]
+            + [_csv_value(c.stats[p], k) for p, _ in POINTS for k in CELL_KEYS]
+            + [_csv_value(c.dip or {"n": 0}, k) for k in DIP_KEYS] for c in cells)
+    return csv_text(header + [f"dip_{k}" for k in DIP_KEYS], rows)
 
 
 def aggregate_csv(aggs: Sequence[Aggregate]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    header = ["method", "tasks"]
-    for point, _ in POINTS:
-        header += [f"{point}_{k}" for k in ("iqm", "iqm_lo", "iqm_hi", "n")]
-    w.writerow(header)
-    for a in aggs:
-        row = [a.label, " ".join(a.tasks)]
-        for point, _ in POINTS:
-            st = a.stats[point]
-            row += [fmt_float(st["iqm"]), fmt_float(st["iqm_lo"]), fmt_float(st["iqm_hi"]), st["n"]]
-        w.writerow(row)
-    return buf.getvalue()
+    keys = ("iqm", "iqm_lo", "iqm_hi", "n")
+    header = ["method", "tasks"] + [f"{p}_{k}" for p, _ in POINTS for k in keys]
+    rows = ([a.label, " ".join(a.tasks)] + [_csv_value(a.stats[p], k) for p, _ in POINTS for k in keys] for a in aggs)
+    return csv_text(header, rows)
 
 
 def cells_markdown(cells: Sequence[Cell]) -> str:
@@ -180,17 +157,9 @@ def cells_markdown(cells: Sequence[Cell]) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for c in cells:
-        parts = [_fmt_ms(c.stats[p]["mean"], c.stats[p]["se"], int(c.stats[p]["n"])) for p, _ in POINTS]
+        parts = [fmt_mean_se(c.stats[p]) for p, _ in POINTS]
         lines.append(f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {len(c.seeds)} | " + " | ".join(parts) + " |")
     return "\n".join(lines)
-
-
-def _fmt_iqm(st: dict[str, float]) -> str:
-    if not math.isfinite(st["iqm"]):
-        return "-"
-    if not math.isfinite(st["iqm_lo"]):
-        return f"{st['iqm']:.2f}"
-    return f"{st['iqm']:.2f} [{st['iqm_lo']:.2f}, {st['iqm_hi']:.2f}]"
 
 
 def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: float) -> str:
@@ -202,20 +171,18 @@ def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: f
     for c in cells:
         lines.append(
             f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | "
-            + " | ".join(_fmt_iqm(c.stats[p]) for p, _ in POINTS) + " |"
+            + " | ".join(fmt_iqm(c.stats[p]) for p, _ in POINTS) + " |"
         )
     for a in aggs:
         lines.append(
             f"| **all ({len(a.tasks)} task{'s' if len(a.tasks) != 1 else ''})** | {a.label} | | "
-            + " | ".join(_fmt_iqm(a.stats[p]) for p, _ in POINTS) + " |"
+            + " | ".join(fmt_iqm(a.stats[p]) for p, _ in POINTS) + " |"
         )
     return "\n".join(lines)
 
 
 # ---------------------------------------------------------------------------------------------
 # Figures
-
-
 
 
 def curve_on_grid(run: Run, grid: np.ndarray) -> np.ndarray:
@@ -239,14 +206,10 @@ def mean_se_curves(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return mean, se, count
 
 
-
-
 def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter
+
+    plt = pyplot()
 
     tasks = sorted({r.task for r in runs})
     ncols = min(3, max(1, len(tasks)))
@@ -258,7 +221,7 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
     labels = sorted({k[1] for k in groups})
     colors = {lab: plt.cm.tab10(i % 10) for i, lab in enumerate(labels)}
     for ax, task in zip(axes.flat, tasks):
-        keys = sorted((k for k in groups if k[0] == task), key=lambda k: (k[1], -99 if k[2] is None else k[2]))
+        keys = sorted((k for k in groups if k[0] == task), key=key_order)
         per_label = {lab: [k for k in keys if k[1] == lab] for lab in {k[1] for k in keys}}
         max_step = max(float(r.steps[-1]) for k in keys for r in groups[k] if r.steps.size) if keys else 0.0
         grid = np.linspace(0.0, max(max_step, 1.0), grid_points)
@@ -290,19 +253,7 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
             ax.legend(fontsize=7, loc="best")
     for ax in list(axes.flat)[len(tasks):]:
         ax.set_visible(False)
-    suptitle(fig, "Success during online fine-tuning (mean ± standard error over seeds)")
-    fig.tight_layout()
-    atomic_save_figure(fig, path, dpi=120)
-    plt.close(fig)
-
-
-def alpha_runs(runs: Sequence[Run]) -> dict[tuple[str, str], dict[float, list[Run]]]:
-    """(task, boto label) -> alpha -> runs, for those with at least two alphas."""
-    out: dict[tuple[str, str], dict[float, list[Run]]] = defaultdict(lambda: defaultdict(list))
-    for r in runs:
-        if r.method == "boto" and r.alpha is not None:
-            out[(r.task, r.label)][r.alpha].append(r)
-    return {k: dict(v) for k, v in out.items() if len(v) >= 2}
+    save_figure(fig, path, "Success during online fine-tuning (mean ± standard error over seeds)", dpi=120)
 
 
 @dataclasses.dataclass
@@ -319,9 +270,16 @@ ALPHA_FIELDS = ("success_initial", "success_10k", "success_final", "dip")
 
 def alpha_table(runs: Sequence[Run], window: float = DIP_WINDOW) -> list[AlphaRow]:
     """Per (task, boto label, alpha) of a sweep: mean ± s.e. over seeds of the success at 0,
-    10k and final and of the dip (run_dip with ``window``; a run without one counts as nan)."""
+    10k and final and of the dip (run_dip with ``window``; a run without one counts as nan);
+    only (task, boto label) with at least two alphas."""
+    sweeps: dict[tuple[str, str], dict[float, list[Run]]] = defaultdict(lambda: defaultdict(list))
+    for r in runs:
+        if r.method == "boto" and r.alpha is not None:
+            sweeps[(r.task, r.label)][r.alpha].append(r)
     rows = []
-    for (task, label), by_alpha in sorted(alpha_runs(runs).items()):
+    for (task, label), by_alpha in sorted(sweeps.items()):
+        if len(by_alpha) < 2:
+            continue
         for a in sorted(by_alpha):
             rs = by_alpha[a]
             vals = {f: [r.value(f) for r in rs] for f in ALPHA_FIELDS[:3]}
@@ -344,13 +302,8 @@ def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WI
     False if there is no sweep. A sweep whose runs end at 10k plots one success curve."""
     if not rows:
         return False
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     tasks = sorted({r.task for r in rows})
-    fig, axes = plt.subplots(2, len(tasks), figsize=(4.6 * len(tasks), 6.4), squeeze=False, sharex=True)
+    fig, axes = pyplot().subplots(2, len(tasks), figsize=(4.6 * len(tasks), 6.4), squeeze=False, sharex=True)
     for col, task in enumerate(tasks):
         top, bottom = axes[0, col], axes[1, col]
         for label in sorted({r.label for r in rows if r.task == task}):
@@ -380,10 +333,7 @@ def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WI
             ax.set_xlim(-1.05, 1.05)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
-    suptitle(fig, "Alpha sensitivity (mean ± standard error over seeds)")
-    fig.tight_layout()
-    atomic_save_figure(fig, path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, "Alpha sensitivity (mean ± standard error over seeds)", dpi=120)
     return True
 
 
@@ -537,9 +487,6 @@ def select_alpha(
             else:
                 chosen = set(seeds) & sel_set
                 held = set(seeds) & rep_set if rep_set is not None else set(seeds) - sel_set
-            if chosen & held:  # cannot happen with the rules above; a guard against future edits
-                raise ConfigError(f"{where(task, label, a)}: seeds {seeds_text(chosen & held)} would both "
-                                  "select and report.")
             for name, got in (("selection", chosen), ("report", held)):
                 if not got:
                     raise ConfigError(
@@ -586,16 +533,10 @@ class ReportResult:
     selection: AlphaSelection | None = None  # None when held-out selection was impossible (see notes)
 
     def summary_text(self) -> str:
-        lines = [f"botorl report: {len(self.runs)} finished runs, {len(self.skipped)} skipped -> {self.out}"]
-        for s in self.skipped:
-            lines.append(f"  skipped {s.path}: {s.reason}")
-        for s in self.no_dip:
-            lines.append(f"  no dip for {s.path}: {s.reason}")
-        for note in self.notes:
-            lines.append(f"  note: {note}")
-        for f in self.files:
-            lines.append(f"  wrote {f}")
-        return "\n".join(lines)
+        return "\n".join([f"botorl report: {len(self.runs)} finished runs, {len(self.skipped)} skipped -> {self.out}"]
+                         + [f"  skipped {s.path}: {s.reason}" for s in self.skipped]
+                         + [f"  no dip for {s.path}: {s.reason}" for s in self.no_dip]
+                         + [f"  note: {note}" for note in self.notes] + [f"  wrote {f}" for f in self.files])
 
 
 def make_report(

@@ -1,6 +1,8 @@
 """Run every trial of a grid as its own `botorl run` process, and survive being killed.
 
-Each trial is a normal run directory under the sweep directory. What a trial needs next is
+Each trial is a normal run directory under the sweep directory. The sweep builds the trial's
+config once (grid.Grid.config) and writes it there, `sweep-trial-config.json`, for
+`botorl run --config FILE --out DIR` to run as it is. What a trial needs next is
 read from disk every time, never trusted from memory: `summary.json` with status finished
 means done (never rerun); a `checkpoints/` folder with a file means `botorl resume`; anything
 else means `botorl run`. So a sweep that was killed (or a machine that rebooted) is finished
@@ -16,7 +18,7 @@ Backends, one module each (``start``, ``launch``, ``poll``, ``abort``, ``close``
 
 With ``population_size`` K > 1 the unit of work of every backend is a population: the
 trials of one (task, method, pre-training) grouped K at a time (grid.group_populations) and
-trained by one `botorl run --seeds ... [--alphas ...]` process, each member in its own run
+trained by one `botorl run` process (its config's seeds x alphas), each member in its own run
 directory inside the population's.
 
 Trial processes get PR_SET_PDEATHSIG, so killing only the sweep process also stops them; a
@@ -50,6 +52,7 @@ from botorl.pipeline import preempt
 MANIFEST = "sweep.json"
 LOCKFILE = ".sweep.lock"
 TRIAL_LOG = "sweep-trial.log"  # stdout+stderr of every attempt, appended
+TRIAL_CONFIG = "sweep-trial-config.json"  # the config `botorl run --config` reads (configs.schema.to_dict)
 USER_ERROR_EXIT = 2  # BotorlError: retrying cannot help
 
 BACKENDS = ("sequential", "local", "ray")
@@ -96,58 +99,45 @@ def next_action(run_dir: Path) -> str:
     return "run"
 
 
-def trial_command(
-    trial: Trial, run_dir: Path, grid: Grid, command: Sequence[str] | None = None, share_in: Path | None = None
-) -> tuple[str, list[str]]:
-    """The command that runs (or resumes) ``trial``; with ``share_in`` (the sweep's directory) a
-    new trial whose every member's pre-training already finished there starts from it."""
+def trial_command(cfg, run_dir: Path, command: Sequence[str] | None = None,
+                  share_in: Path | None = None) -> tuple[str, list[str]]:
+    """The command that runs (or resumes) the trial in ``run_dir`` whose config is ``cfg`` (None: a
+    stand-in command's own task); with ``share_in`` (the sweep's directory) a new trial whose every
+    member's pre-training already finished there starts from it."""
     prefix = list(command) if command else default_command()
     action = next_action(run_dir)
     # no progress bars: a trial's output goes to its log file, where tqdm's redraws pile up
     if action == "resume":
-        consent = ["--allow-pickle"] if same_data(trial, run_dir, grid) else []
+        consent = ["--allow-pickle"] if cfg is not None and same_data(cfg, run_dir) else []
         return action, prefix + ["resume", str(run_dir), "--no-progress", *consent]
-    args = trial.run_args(grid.profile, grid.overrides)
-    if share_in is not None:
-        args += shared_pretraining_args(args, share_in)
-    return action, prefix + ["run", *args, "--out", str(run_dir), "--no-progress"]
+    shared = shared_pretraining_args(cfg, share_in) if cfg is not None and share_in is not None else []
+    return action, prefix + ["run", "--config", str(run_dir / TRIAL_CONFIG), *shared, "--out", str(run_dir),
+                             "--no-progress"]
 
 
-def same_data(trial: Trial, run_dir: Path, grid: Grid) -> bool:
-    """Whether the trial's run directory reads its offline data from where this sweep's own
-    command line says (data.path, data.demos). Then the sweep passes --allow-pickle to its
+def same_data(cfg, run_dir: Path) -> bool:
+    """Whether the trial's run directory reads its offline data from where this sweep's config
+    ``cfg`` says (data.path, data.demos). Then the sweep passes --allow-pickle to its
     `botorl resume`: the user named that data when starting the sweep, as for `botorl run`, so a
     pickle-format task (door-binary-v0, pen-binary-v0 with a Cal-QL .npy) resumes. A path the
-    directory's files name and the command line does not stays refused."""
-    from botorl.configs.build import build_config
-
-    try:
-        want = build_config(trial.run_args(grid.profile, grid.overrides)).data
-    except BotorlError:  # not a botorl run (a stand-in command's task)
-        return False
+    directory's files name and the sweep does not stays refused."""
     pop = read_json(Path(run_dir) / POPULATION_FILE)
-    cfg = pop.get("config") if pop is not None else read_json(Path(run_dir) / "config.json")
-    data = cfg.get("data") if isinstance(cfg, dict) else None
-    return isinstance(data, dict) and data.get("path") == want.path and data.get("demos") == want.demos
+    saved = pop.get("config") if pop is not None else read_json(Path(run_dir) / "config.json")
+    data = saved.get("data") if isinstance(saved, dict) else None
+    return isinstance(data, dict) and data.get("path") == cfg.data.path and data.get("demos") == cfg.data.demos
 
 
-def shared_pretraining_args(args: list[str], directory: Path) -> list[str]:
-    """``["--pretrained", directory]`` when every member of the run ``args`` describe has a
+def shared_pretraining_args(cfg, directory: Path) -> list[str]:
+    """``["--pretrained", directory]`` when every member of the run ``cfg`` describes has a
     finished pre-training with its own settings under ``directory`` (BOTO's, for WSRL at the
     same seeds), else ``[]``: the trial then pre-trains itself."""
     from botorl.pipeline import shared_pretrain
     from botorl.configs.methods import get_method
-    from botorl.configs.build import build_config
     from botorl.configs.members import population
 
-    try:
-        cfg = build_config(args)  # the trial's config, as its `botorl run` will build it
-        member_cfgs = population(cfg)[1]
-    except BotorlError:  # not a botorl run (a stand-in command's task): nothing to share
-        return []
     if cfg.pretrained is not None or "pretrain" not in get_method(cfg.method).stages:
         return []
-    if shared_pretrain.match(member_cfgs, directory, strict=False) is None:
+    if shared_pretrain.match(population(cfg)[1], directory, strict=False) is None:
         return []
     return ["--pretrained", str(directory)]
 
@@ -197,8 +187,9 @@ class Sweep:
         self.opt = options
         self.out = Path(options.out).resolve()
         # the units of work: trials, or populations of trials (grid.PopulationJob) that
-        # quack like trials (id, relpath, run_args, to_json)
+        # quack like trials (relpath, fields, to_json)
         self.trials = grid.trials() if options.population_size <= 1 else grid.populations(options.population_size)
+        self.configs: dict[str, Any] = {}  # relpath -> RunConfig, each built once (config)
         self.manifest: dict[str, Any] = {}
         self._lock_file = None
         self._pbar = None
@@ -208,6 +199,18 @@ class Sweep:
 
     def run_dir(self, trial: Trial) -> Path:
         return self.out / trial.relpath
+
+    def config(self, trial: Trial):
+        """The trial's RunConfig, built once (grid.Grid.config); None for a stand-in command's
+        own task, which botorl does not know."""
+        if trial.relpath not in self.configs:
+            try:
+                self.configs[trial.relpath] = self.grid.config(trial)
+            except BotorlError:
+                if not self.opt.command:
+                    raise
+                self.configs[trial.relpath] = None
+        return self.configs[trial.relpath]
 
     def _load_manifest(self) -> None:
         old = read_json(self.out / MANIFEST, SWEEP_JSON_LIMIT) or {}
@@ -237,7 +240,7 @@ class Sweep:
             "trials": trials,
         }
         for trial in self.trials:
-            entry = trials.setdefault(trial.id, {})
+            entry = trials.setdefault(trial.relpath, {})
             entry.update(trial.to_json())
             entry["dir"] = trial.relpath
             entry.setdefault("launches", 0)
@@ -250,12 +253,12 @@ class Sweep:
 
     def save(self) -> None:
         self.manifest["updated"] = _now()
-        states = [self.manifest["trials"][t.id]["state"] for t in self.trials]
+        states = [self.manifest["trials"][t.relpath]["state"] for t in self.trials]
         self.manifest["counts"] = {s: states.count(s) for s in sorted(set(states))}
         atomic_write_json(self.out / MANIFEST, self.manifest)
 
     def entry(self, trial: Trial) -> dict[str, Any]:
-        return self.manifest["trials"][trial.id]
+        return self.manifest["trials"][trial.relpath]
 
     # -- locking: two sweeps in one directory would launch every trial twice ---------------------
 
@@ -297,9 +300,14 @@ class Sweep:
     def prepare(self, trial: Trial) -> tuple[Path, list[str], Path]:
         run_dir = self.run_dir(trial)
         stop_orphan(run_dir)
-        action, cmd = trial_command(trial, run_dir, self.grid, self.opt.command,
-                                    self.out if self.opt.share_pretraining else None)
+        cfg = self.config(trial)
+        action, cmd = trial_command(cfg, run_dir, self.opt.command, self.out if self.opt.share_pretraining else None)
         run_dir.mkdir(parents=True, exist_ok=True)
+        if action == "run":
+            from botorl.configs.schema import to_dict
+
+            # a stand-in command's own task has no RunConfig: it gets the fields the grid gives it
+            atomic_write_json(run_dir / TRIAL_CONFIG, trial.fields if cfg is None else to_dict(cfg), exact=True)
         log = run_dir / TRIAL_LOG
         entry = self.entry(trial)
         entry["launches"] += 1
@@ -338,7 +346,7 @@ class Sweep:
         if entry["state"] == "failed":
             self._tick(1)
         what = "retrying" if entry["state"] == "retrying" else "gave up"
-        self._say(f"botorl sweep: {trial.id} {reason} ({what}; log {run_dir / TRIAL_LOG})")
+        self._say(f"botorl sweep: {trial.relpath} {reason} ({what}; log {run_dir / TRIAL_LOG})")
 
     def _say(self, line: str) -> None:
         if self._pbar is not None and not self._pbar.disable:

@@ -22,6 +22,7 @@ from botorl.errors import BotorlError
 from botorl.configs.methods import METHODS
 from botorl.io import CSV_LIMIT, JSON_LIMIT, read_bounded
 
+
 @dataclasses.dataclass
 class Run:
     path: Path
@@ -222,10 +223,10 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
     for top in dirs:
         top = Path(top)
         if not top.is_dir():
-            raise BotorlError(f"{top} is not a directory.")
+            raise BotorlError(f"{top} is not a directory; give run or sweep directories.")
         for root, subdirs, files in os.walk(top):
             root_p = Path(root).resolve()
-            if "summary.json" in files or ("config.json" in files and "eval.csv" in files):
+            if "summary.json" in files or ("config.json" in files and ("eval.csv" in files or "checkpoints" in subdirs)):
                 subdirs[:] = []
                 if root_p in seen:
                     continue
@@ -235,11 +236,6 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
                     continue
                 loaded = _load_run(Path(root))
                 (runs if isinstance(loaded, Run) else skipped).append(loaded)
-            elif "config.json" in files and "checkpoints" in subdirs:
-                subdirs[:] = []
-                if root_p not in seen:
-                    seen.add(root_p)
-                    skipped.append(Skipped(Path(root), "no summary.json (the run never got far enough to write one)"))
             elif "population.json" in files:  # a population: its members are run directories
                 subdirs[:] = sorted(d for d in subdirs if not d.startswith(".") and d != "checkpoints")
             elif "sweep-trial.log" in files:  # a sweep trial whose `botorl run` failed before starting
@@ -253,7 +249,6 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
     label_variants(runs)
     runs.sort(key=lambda r: (r.task, r.label, -99 if r.alpha is None else r.alpha, r.seed or 0))
     return runs, skipped
-
 
 
 def from_scratch(method: str) -> bool:

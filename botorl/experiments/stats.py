@@ -14,8 +14,10 @@ report's files share.
 
 from __future__ import annotations
 
+import csv
+import io
 import math
-from typing import Any, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -106,23 +108,65 @@ def wilcoxon_p(values: Sequence[float]) -> float:
     return float(stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
 
 
-# Formats shared by the report's files
+# Formats and figures shared by the report's files
+
+
+def csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    w.writerows(rows)
+    return buf.getvalue()
 
 
 def fmt_float(x: float) -> str:
     return "" if x is None or (isinstance(x, float) and not math.isfinite(x)) else repr(float(x))
 
 
+def fmt_mean_se(st: dict[str, float], sign: str = "") -> str:
+    """Mean ± s.e. to 2 places; "(n=1)" where one run has no s.e.; "-" without runs."""
+    if st["n"] == 0:
+        return "-"
+    if not math.isfinite(st["se"]):
+        return f"{st['mean']:{sign}.2f} (n=1)"
+    return f"{st['mean']:{sign}.2f} ± {st['se']:.2f}"
+
+
+def fmt_iqm(st: dict[str, float], sign: str = "") -> str:
+    """The IQM and its CI to 2 places; the IQM alone where there is no CI; "-" without runs."""
+    if not math.isfinite(st["iqm"]):
+        return "-"
+    if not math.isfinite(st["iqm_lo"]):
+        return f"{st['iqm']:{sign}.2f}"
+    return f"{st['iqm']:{sign}.2f} [{st['iqm_lo']:{sign}.2f}, {st['iqm_hi']:{sign}.2f}]"
+
+
 def alpha_text(alpha: float | None) -> str:
     return "" if alpha is None else f"{alpha:+.2f}"
 
 
-def suptitle(fig, text: str) -> None:
-    """A figure title wrapped to the figure's width (a one-task figure is narrower than the line)."""
+def pyplot():
+    """matplotlib's pyplot drawing to files only (reports are made on machines without a display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path, title: str, **savefig: Any) -> None:
+    """The figure with its title wrapped to its width (a one-task figure is narrower than the
+    line), written atomically and closed."""
     import textwrap
 
+    from botorl.io import atomic_save_figure
+
     chars = max(20, int(fig.get_figwidth() * 11))  # ~11 characters an inch at 10 pt
-    fig.suptitle("\n".join(textwrap.wrap(text, chars)), fontsize=10)
+    fig.suptitle("\n".join(textwrap.wrap(title, chars)), fontsize=10)
+    fig.tight_layout()
+    atomic_save_figure(fig, path, **savefig)
+    pyplot().close(fig)
 
 
 def line_label(label: str, alpha: float | None, multi_alpha: bool) -> str:

@@ -25,6 +25,7 @@ the start of the resume. Checkpoints written before manifests existed are accept
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import shutil
@@ -38,6 +39,7 @@ import numpy as np
 
 from botorl.errors import ConfigError, DataFormatError
 from botorl.io import atomic_write_json
+from botorl.pipeline import faults
 from botorl.pipeline.rundir import read_json
 
 LATEST = "latest.json"
@@ -73,19 +75,9 @@ def check_identity(state: dict[str, Any], expected: list[dict[str, Any]], where:
     )
 
 
-def file_sha256(path: Path, chunk: int = 1 << 22) -> str:
-    h = hashlib.sha256()
+def file_sha256(path: str | os.PathLike) -> str:
     with open(path, "rb") as f:
-        while True:
-            b = f.read(chunk)
-            if not b:
-                break
-            h.update(b)
-    return h.hexdigest()
-
-
-def _describe(path: Path) -> dict[str, Any]:
-    return {"size": path.stat().st_size, "sha256": file_sha256(path)}
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 class CheckpointCorrupt(DataFormatError):
@@ -96,27 +88,28 @@ def checkpoint_name(stage: str, step: int | None) -> str:
     return f"{stage}-final" if step is None else f"{stage}-step{int(step):09d}"
 
 
+def checkpoint_step(cfg, state: dict) -> int | None:
+    """The step of a checkpoint within its stage: ``state.json``'s, or the stage's whole budget
+    for a stage's final checkpoint (as ``botorl eval`` and ``botorl export`` report it)."""
+    step = state.get("step")
+    if step is None and state.get("stage_done"):
+        step = {"pretrain": cfg.offline.steps, "warmup": cfg.warmup.steps, "boto": cfg.boto.boto_steps,
+                "finetune": cfg.online.steps}.get(state.get("stage"))
+    return None if step is None else int(step)
+
+
 def _fsync_dir(path: Path) -> None:
-    try:
+    with contextlib.suppress(OSError):
         fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def _save_npz(path: Path, arrays: dict[str, Any]) -> None:
-    flat = {}
-    for k, v in arrays.items():
-        if v is None:
-            continue
-        flat[k] = np.asarray(v)
     with open(path, "wb") as f:
-        np.savez(f, **flat)
+        np.savez(f, **{k: np.asarray(v) for k, v in arrays.items() if v is not None})
         f.flush()
         os.fsync(f.fileno())
 
@@ -129,6 +122,12 @@ def load_npz(path: Path) -> dict[str, np.ndarray]:
         raise CheckpointCorrupt(
             f"{path} cannot be read ({type(err).__name__}: {err}); the checkpoint is damaged."
         ) from None
+
+
+def _info(name: str, state: dict[str, Any]) -> dict[str, Any]:
+    """What latest.json says of checkpoint ``name`` (and ``latest()`` returns)."""
+    return {"name": name, "stage": state.get("stage"), "step": state.get("step"),
+            "stage_done": bool(state.get("stage_done", False))}
 
 
 class CheckpointManager:
@@ -147,8 +146,6 @@ class CheckpointManager:
         arrays: dict[str, dict[str, Any]] | None = None,
         documents: dict[str, Any] | None = None,
     ) -> Path:
-        from botorl.pipeline import faults
-
         tmp = self.root / f".tmp-{name}-{os.getpid()}"
         if tmp.exists():
             shutil.rmtree(tmp)
@@ -159,13 +156,12 @@ class CheckpointManager:
         faults.checkpoint(name, "files")
         for key, group in (arrays or {}).items():
             _save_npz(tmp / f"{key}.npz", group)
-        for key, doc in (documents or {}).items():
-            if key in ("state", "MANIFEST"):
-                raise ValueError(f"checkpoint document name {key!r} is reserved")
+        for key, doc in (documents or {}).items():  # "state" and "MANIFEST" are the checkpoint's own
             # plain json (NaN / Infinity kept as such: an env's state must come back exactly)
             atomic_write_json(tmp / f"{key}.json", doc, indent=None, exact=True)
         atomic_write_json(tmp / "state.json", state)
-        files = {q.name: _describe(q) for q in sorted(tmp.iterdir()) if q.is_file() and not q.name.startswith(".")}
+        files = {q.name: {"size": q.stat().st_size, "sha256": file_sha256(q)} for q in sorted(tmp.iterdir())
+                 if q.is_file() and not q.name.startswith(".")}
         atomic_write_json(tmp / MANIFEST, {"name": name, "seq": self._next_seq(), "time": time.time(), "files": files})
         _fsync_dir(tmp)
         final = self.root / name
@@ -186,11 +182,7 @@ class CheckpointManager:
         return final
 
     def _point_latest(self, name: str, state: dict[str, Any]) -> None:
-        atomic_write_json(
-            self.root / LATEST,
-            {"name": name, "stage": state.get("stage"), "step": state.get("step"),
-             "stage_done": bool(state.get("stage_done", False))},
-        )
+        atomic_write_json(self.root / LATEST, _info(name, state))
 
     def _latest_name(self) -> str | None:
         try:
@@ -247,11 +239,7 @@ class CheckpointManager:
         if Path(fname).name != fname or fname in ("", ".", ".."):
             raise CheckpointCorrupt(f"checkpoint {name}: {MANIFEST} lists {fname!r}, which is not a file of the folder.")
         path = self.root / name / fname
-        try:
-            st = os.lstat(path)
-        except OSError:
-            st = None
-        if st is not None and not stat.S_ISREG(st.st_mode):  # a link, FIFO or device: never opened
+        if os.path.lexists(path) and not stat.S_ISREG(os.lstat(path).st_mode):  # a link, FIFO or device: never opened
             raise CheckpointCorrupt(f"checkpoint {name}: {fname} is not a regular file.")
         if m is None:
             return
@@ -325,6 +313,18 @@ class CheckpointManager:
             good = [n for n in self.names() if n != name and self.verify(n) is None]
             raise ConfigError(f"{reason} Pick another: {', '.join(good) or 'none passes the check'}.")
 
+    def chosen(self, name: str | None) -> str:
+        """``name`` if it is a checkpoint of this run that passes the check (ConfigError naming the
+        others if not), else the latest one (``botorl eval``, ``load_policy``)."""
+        if name is not None:
+            self.verify_named(name)
+            return name
+        latest = self.latest()
+        if latest is None:
+            raise ConfigError(f"{self.root.parent} has no checkpoint that passes its check yet; wait for the first "
+                              f"stage to finish, or name a checkpoint.")
+        return latest["name"]
+
     def select(self, name: str) -> dict[str, Any]:
         """Make checkpoint ``name`` the one ``latest()`` returns (``botorl resume --from NAME``)."""
         self.verify_named(name)
@@ -355,44 +355,31 @@ class CheckpointManager:
         p = self.root / LATEST
         named = self._latest_name()
         bad: list[str] = []
-        if p.exists() and named is None:
+        if named is None and p.exists():
             bad.append(f"{p} cannot be read")
-        if named is not None:
-            if named not in self.names():  # also refuses "../elsewhere": only folders of this run
-                bad.append(f"{p} names {named}, which does not exist")
-            else:
-                reason = self.verify(named)
-                if reason is None:
-                    return self._info(named)
-                bad.append(reason)
-        elif not p.exists() and not self.names():
-            return None
+        elif named is not None and named not in self.names():  # also refuses "../elsewhere": only this run's
+            bad.append(f"{p} names {named}, which does not exist")
+        elif named is not None:
+            reason = self.verify(named)
+            if reason is None:
+                return _info(named, self.state(named))
+            bad.append(reason)
         for name in sorted(self.names(), key=self.order, reverse=True):
             if name == named:
-                continue
+                continue  # checked above
             reason = self.verify(name)
-            if reason is None:
-                if bad:
-                    print(f"botorl: warning: {'; '.join(bad)}. Falling back to the previous checkpoint, {name}.",
-                          file=sys.stderr)
-                    try:
-                        self._point_latest(name, self.state(name))
-                    except OSError:
-                        pass  # a read-only run directory (eval): nothing to repair
-                return self._info(name)
-            if name not in (named,):
+            if reason is not None:
                 bad.append(reason)
+                continue
+            if bad:
+                print(f"botorl: warning: {'; '.join(bad)}. Falling back to the previous checkpoint, {name}.",
+                      file=sys.stderr)
+                with contextlib.suppress(OSError):  # a read-only run directory (eval): nothing to repair
+                    self._point_latest(name, self.state(name))
+            return _info(name, self.state(name))
         if bad:
             print(f"botorl: warning: {'; '.join(bad)}; no checkpoint passes the check.", file=sys.stderr)
         return None
-
-    def _info(self, name: str) -> dict[str, Any]:
-        st = self.state(name)
-        return {"name": name, "stage": st.get("stage"), "step": st.get("step"),
-                "stage_done": bool(st.get("stage_done", False))}
-
-    def path(self, name: str) -> Path:
-        return self.root / name
 
     def exists(self, name: str) -> bool:
         return (self.root / name / "state.json").exists()

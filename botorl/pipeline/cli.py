@@ -1,208 +1,255 @@
-"""``botorl run``, ``botorl resume DIR``, ``botorl eval DIR``.
+"""``botorl run``, ``botorl resume DIR``, ``botorl eval DIR``, ``botorl export RUN_DIR`` (docs/running.md).
 
     botorl run [--task T] [--method M] [--seed S] [--alpha A] [--profile quick|full|smoke]
                [--pretrain calql|cql|iql] [--out DIR] [--demos PATH] [--<dotted.path> VALUE ...]
+    botorl run --method boto --seeds 0-3 --alphas -1:1:0.5  # a population: 4 seeds x 5 alphas, one program
 
 ``run`` first reads --task, --method, --profile and --pretrain to pick the preset
 (botorl.configs.presets), then tyro parses every argument over it, so any field of the
-config can be set as ``--<dotted.path> VALUE`` (``botorl run --help`` lists them all). Bare
-``botorl run`` is BOTO on pointmaze-umaze with the quick profile; its data are made on first
-use. ``--demos PATH`` is short for ``--data.demos PATH`` (door-binary-local; default
-$BOTORL_DOOR_DEMOS, else the copy shipped in botorl/data/assets).
+config can be set as ``--<dotted.path> VALUE``. ``--demos PATH`` is short for ``--data.demos
+PATH`` (door-binary-local). A population's directory holds ``population.json`` (members, status,
+the shared config), ``checkpoints/`` (one checkpoint of the whole population) and one ordinary
+run directory per member, named ``seed<k>`` or ``alpha<+0.50>-seed<k>``, which `botorl report`
+and `botorl eval` read like any run; before any work its memory is estimated and compared
+with what the machine has (exit 2 if it does not fit). ``export`` exits 0 when the model is
+written and verified, 1 when it does not act as ``botorl.load_policy``, 2 on bad input or
+without the export extra.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
+import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 
 from botorl.configs.build import build_config
 from botorl.errors import BotorlError, ConfigError
+from botorl.io import atomic_write_json, open_regular
+from botorl.jaxsetup import setup_jax
 from botorl.pipeline import preempt
-from botorl.pipeline.rundir import check_out, io_fault, owned
+from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step
+from botorl.pipeline.policy import read_run
+from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_fault, io_guard, read_json
 
 
-def _mark_failed(run, reason: str, cfg=None) -> None:
-    """summary.json says ``failed`` with the reason, when it can still be written."""
-    from botorl.io import atomic_write_json
-    from botorl.pipeline.rundir import read_json
-
+def _mark_failed(path: Path, reason: str, fresh=None) -> None:
+    """``path`` (a summary.json or population.json) says ``failed`` with the reason, when it can
+    still be written; where none can be read, ``fresh()``'s (a summary with every contract key)."""
     try:
-        summary = read_json(run.summary) if run.summary.exists() else None
+        data = read_json(path) if path.exists() else None
     except (OSError, ValueError):
-        summary = None
-    if not isinstance(summary, dict):
-        summary = {}
-        if cfg is not None:  # no usable summary yet: one with every contract key
-            try:
-                from botorl.pipeline.runner import build_summary
-
-                summary = build_summary(cfg, run, "failed", {}, reason)
-            except Exception:
-                summary = {}
-    summary.update(status="failed", error=reason)
+        data = None
+    if not isinstance(data, dict):
+        if fresh is None:
+            return
+        try:
+            data = fresh()
+        except Exception:
+            data = {}
+    data.update(status="failed", error=reason)
     try:
-        atomic_write_json(run.summary, summary)
+        atomic_write_json(path, data)
     except OSError:
         # A full disk has no room for the temp file of an atomic write; rewriting the old
-        # summary in place reuses its blocks. Not atomic, so only as the fallback.
-        try:
-            import json
-            import os
-
-            from botorl.io import open_regular
-
-            text = json.dumps(summary, indent=2, default=str) + "\n"
-            with os.fdopen(open_regular(run.summary, os.O_RDWR | os.O_CREAT), "r+") as f:  # never through a link
+        # file in place reuses its blocks. Not atomic, so only as the fallback.
+        # (read-only, gone or not a regular file: the exit code and the message still say it)
+        with contextlib.suppress(OSError, BotorlError):
+            with os.fdopen(open_regular(path, os.O_RDWR | os.O_CREAT), "r+") as f:  # never through a link
                 f.seek(0)
                 f.truncate()
-                f.write(text)
-        except (OSError, BotorlError):
-            pass  # read-only, gone or not a regular file: the exit code and the message still say it
+                f.write(json.dumps(data, indent=2, default=str) + "\n")
 
 
-def _execute_guarded(cfg, run, d_raw, *, resume: bool, resume_from: str | None = None):
-    """``execute`` with I/O faults and corrupt checkpoints turned into exit 2 and a truthful status."""
-    from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager
-    from botorl.pipeline.runner import execute
+def _execute(cfg, member_cfgs, root: Path, runs: list[RunDir], d_raw, *, resume: bool, resume_from: str | None = None):
+    """``runner.execute`` with I/O faults and corrupt checkpoints turned into exit 2 and a
+    truthful status (the run's summary.json, a population's population.json)."""
+    from botorl.pipeline.runner import build_summary, execute
+
+    def mark(reason: str) -> None:
+        if runs[0].root == root:  # a single run
+            _mark_failed(runs[0].summary, reason, lambda: build_summary(cfg, runs[0], "failed", {}, reason))
+        else:
+            _mark_failed(root / POPULATION_FILE, reason)
 
     try:
         if resume_from is not None:
             # latest.json is pointed at the chosen (verified) checkpoint; execute(resume=True)
             # starts from ckpt.latest(), so the runner needs no argument for it.
-            CheckpointManager(run.checkpoints).select(resume_from)
-        return execute(cfg, run, d_raw, resume=resume)
+            CheckpointManager(RunDir(root).checkpoints).select(resume_from)
+        return execute(cfg, member_cfgs, root, runs, d_raw, resume=resume)
     except OSError as err:
-        fault = io_fault(err, run.root)
+        fault = io_fault(err, root)
         if fault is None:
             raise
-        _mark_failed(run, str(fault), cfg)
+        mark(str(fault))
         raise fault from None
     except CheckpointCorrupt as err:
-        msg = f"{err} {_resume_hint(run, resume_from)}" if resume else str(err)
-        _mark_failed(run, msg, cfg)
+        msg = f"{err} {_resume_hint(root, resume_from)}" if resume else str(err)
+        mark(msg)
         raise BotorlError(msg) from None
     except BotorlError as err:
-        _mark_failed(run, str(err), cfg)
+        mark(str(err))
         raise
     except (ValueError, KeyError) as err:
         if not resume:
             raise
         # a damaged latest.json / state.json / buffer.npz read during the resume
-        msg = (f"{run.root}: a checkpoint file could not be read on resume ({type(err).__name__}: {err}). "
-               f"{_resume_hint(run, resume_from)}")
-        _mark_failed(run, msg, cfg)
+        msg = (f"{root}: a checkpoint file could not be read on resume ({type(err).__name__}: {err}). "
+               f"{_resume_hint(root, resume_from)}")
+        mark(msg)
         raise BotorlError(msg) from None
 
 
-def _resume_hint(run, resume_from: str | None) -> str:
+def _resume_hint(root: Path, resume_from: str | None) -> str:
     """The command that resumes from the newest checkpoint that passes the check, other than
     the one that just failed (a hint that names a command that works)."""
-    from botorl.pipeline.checkpoint import CheckpointManager
-
-    ckpt = CheckpointManager(run.checkpoints)
+    ckpt = CheckpointManager(RunDir(root).checkpoints)
     failed = resume_from or (ckpt.latest() or {}).get("name")
     good = [n for n in sorted(ckpt.names(), key=ckpt.order, reverse=True) if n != failed and ckpt.usable(n)]
     if not good:
         return "No other checkpoint passes the check; start the run again with `botorl run` and another --out."
     others = f" (others that pass: {', '.join(good[1:])})" if good[1:] else ""
-    return f"Resume from an earlier checkpoint: `botorl resume {run.root} --from {good[0]}`{others}."
+    return f"Resume from an earlier checkpoint: `botorl resume {root} --from {good[0]}`{others}."
 
 
-def _default_out(cfg) -> Path:
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    return Path("runs") / f"{cfg.task}-{cfg.method}-s{cfg.seed}-{stamp}"
-
-
-def run_main(argv: list[str]) -> int:
-    from botorl.configs.members import is_population
-    from botorl.jaxsetup import setup_jax
-
-    setup_jax()
-    cfg = build_config(argv)
+def _require_wandb(cfg) -> None:
     if cfg.wandb:  # before any work: a missing wandb must not leave a run directory behind
         from botorl.pipeline.tracking import require_wandb
 
         require_wandb()
-    if is_population(cfg):  # --seeds / --alphas: a population (botorl/pipeline/population_cli.py)
-        from botorl.pipeline.population_cli import run_population_main
 
-        return run_population_main(cfg)
-    from dataclasses import replace
 
+def _print_summaries(summaries: list[dict], single: bool) -> None:
+    from botorl.pipeline.runner import format_population, format_summary
+
+    print(format_summary(summaries[0]) if single else format_population(summaries))
+
+
+def run_main(argv: list[str]) -> int:
+    from botorl.configs.members import is_population, population
     from botorl.configs.schema import to_dict
     from botorl.envs.registry import get_task
-    from botorl.io import atomic_write_json
-    from botorl.pipeline.rundir import RunDir
-    from botorl.pipeline.runner import format_summary, load_offline
+    from botorl.pipeline.runner import load_offline, write_population_file
 
-    out = Path(cfg.out) if cfg.out else _default_out(cfg)
+    setup_jax()
+    cfg = build_config(argv)
+    _require_wandb(cfg)
+    single = not is_population(cfg)  # --seeds / --alphas: a population
+    members, member_cfgs = (None, [cfg]) if single else population(cfg)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    name = f"s{cfg.seed}" if single else f"pop{len(members)}"
+    out = Path(cfg.out) if cfg.out else Path("runs") / f"{cfg.task}-{cfg.method}-{name}-{stamp}"
     check_out(out)
 
-    def already_a_run():
-        if (out / "config.json").exists():
-            raise ConfigError(
-                f"--out {out} already holds a run (config.json). Continue it with `botorl resume {out}`, "
-                f"or pick another --out."
-            )
+    def already():
+        for f in ("config.json", POPULATION_FILE):
+            if (out / f).exists():
+                raise ConfigError(f"--out {out} already holds a run or population ({f}). Continue it with "
+                                  f"`botorl resume {out}`, or pick another --out.")
 
-    already_a_run()
+    already()
     cfg = replace(cfg, out=str(out))
     spec = get_task(cfg.task)
-    d_raw = load_offline(cfg, spec)  # a missing dataset fails here, before the run directory exists
-    if cfg.pretrained is not None:  # so does a --pretrained without this seed's pre-training
+    d_raw = load_offline(cfg, spec)  # a missing dataset fails here, before any directory exists
+    if cfg.pretrained is not None:  # so does a --pretrained without every member's pre-training
         from botorl.pipeline import shared_pretrain
 
-        shared_pretrain.match([cfg], cfg.pretrained)
-    run = RunDir(out)
-    with owned(out):
-        already_a_run()  # again, under the lock: another `run` may have started meanwhile
-        try:
-            run.create()
-            atomic_write_json(run.config, to_dict(cfg))
-        except OSError as err:
-            fault = io_fault(err, out)
-            if fault is None:
-                raise
-            raise fault from None
-        print(f"botorl: {cfg.method} on {cfg.task} (profile {cfg.profile}, seed {cfg.seed}) -> {out}", file=sys.stderr)
+        shared_pretrain.match(member_cfgs, cfg.pretrained)
+    if not single:
+        from botorl.pipeline.population import check_fits
+
+        check_fits(cfg, len(members), d_raw, spec)
+    runs = [RunDir(out)] if single else [RunDir(out / m.name) for m in members]
+    member_cfgs = [replace(c, out=str(r.root)) for c, r in zip(member_cfgs, runs)]
+    with RunLock(out):
+        already()  # again, under the lock: another `run` may have started meanwhile
+        with io_guard(out):
+            for c, r in zip(member_cfgs, runs):
+                r.create()
+                atomic_write_json(r.config, to_dict(c))
+            if not single:
+                write_population_file(out, cfg, member_cfgs, "running", ["running"] * len(members), {})
+        what = (f"(profile {cfg.profile}, seed {cfg.seed})" if single else
+                f"(profile {cfg.profile}), a population of {len(members)}: {', '.join(m.name for m in members)}")
+        print(f"botorl: {cfg.method} on {cfg.task} {what} -> {out}", file=sys.stderr)
         with preempt.resumable(f"botorl resume {out}"):
-            summary = _execute_guarded(cfg, run, d_raw, resume=False)
-    print(format_summary(summary))
+            summaries = _execute(cfg, member_cfgs, out, runs, d_raw, resume=False)
+    _print_summaries(summaries, single)
     return 0
 
 
-def _load_run_config(directory: str):
+def member_dir(root: Path, entry) -> Path:
+    """The run directory of a population member named in population.json: only a name botorl
+    itself makes (``seed<k>``, ``alpha<+0.50>-seed<k>``: configs.members.Member.name) of a
+    real folder directly inside ``root``; ConfigError (exit 2) for anything else."""
+    from botorl.configs.members import MEMBER_NAME
+
+    name = entry.get("name") if isinstance(entry, dict) else None
+    if not isinstance(name, str) or not MEMBER_NAME.fullmatch(name):
+        raise ConfigError(f"{root / POPULATION_FILE} names a member {name!r}, which is not a member name botorl "
+                          f"makes (seed<k> or alpha<+a.aa>-seed<k>); the file was edited or is not botorl's.")
+    path = root / name
+    if path.is_symlink() or (path.exists() and path.resolve().parent != root.resolve()):
+        raise ConfigError(f"{path} is a link out of the population directory {root}; a member's run directory must "
+                          f"be a folder inside it.")
+    return path
+
+
+def load_population(directory: str | Path):
+    """(shared config, member configs, member run dirs, population.json) of a population directory."""
+    from botorl.configs.members import member_config
     from botorl.configs.resolve import validate
     from botorl.configs.schema import RunConfig, from_dict
-    from botorl.pipeline.rundir import RunDir, read_json
 
-    run = RunDir(directory)
-    if not run.config.exists():
-        raise ConfigError(
-            f"{directory} is not a botorl run directory (no config.json). Give the --out folder of a "
-            f"`botorl run`."
-        )
+    root = Path(directory)
     try:
-        data = read_json(run.config)
-        if not isinstance(data, dict):
-            raise ValueError("not a JSON object")
-        cfg = from_dict(RunConfig, data)
-    except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
-        raise ConfigError(f"{run.config} cannot be read as a run config ({err}); was it edited by hand?") from None
+        data = read_json(root / POPULATION_FILE)
+        cfg = from_dict(RunConfig, data["config"])
+        if not isinstance(data["members"], list) or not data["members"]:
+            raise ValueError("no member list")
+        runs = [RunDir(member_dir(root, m)) for m in data["members"]]
+        member_cfgs = [from_dict(RunConfig, read_json(r.config)) for r in runs]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
+        raise ConfigError(f"{root / POPULATION_FILE} (or a member's config.json) cannot be read ({err}); "
+                          f"was it edited by hand?") from None
+    if len({r.root.name for r in runs}) != len(runs):
+        raise ConfigError(f"{root / POPULATION_FILE} names a member twice; was it edited by hand?")
     validate(cfg)
-    return run, cfg
+    for r, mc in zip(runs, member_cfgs):
+        # a member differs from the population in its seed, alpha and folder only
+        want = member_config(cfg, mc.seed, mc.alpha, mc.out)
+        if replace(mc, progress=cfg.progress) != want:
+            raise ConfigError(f"{r.config} does not describe a member of the population in {root} (its settings "
+                              f"other than seed and alpha differ from {root / POPULATION_FILE}'s config); was it "
+                              f"edited by hand?")
+    # where the members are is where they were found, whatever the files say
+    member_cfgs = [replace(mc, out=str(r.root)) for r, mc in zip(runs, member_cfgs)]
+    return replace(cfg, out=str(root)), member_cfgs, runs, data
+
+
+def _load_data(cfg, origin: Path, allow_pickle: bool):
+    """The offline data of a run or population read back from its directory's ``origin``
+    (config.json, population.json): no pickle unless allowed, as a pickle there could run code."""
+    from botorl.data.loaders import refuse_pickle
+    from botorl.envs.registry import get_task
+    from botorl.pipeline.runner import load_offline
+
+    where = "population" if origin.name == POPULATION_FILE else "run"
+    with contextlib.nullcontext() if allow_pickle else refuse_pickle(f"the {where} directory's {origin}"):
+        return load_offline(cfg, get_task(cfg.task))
 
 
 ALLOW_PICKLE_HELP = ("open a pickle-based dataset (Cal-QL .npy, DAPG .pickle) named in the run's config.json; "
                      "without it botorl refuses, as a pickle from a run directory could run code")
 
-# resume and eval parse with tyro as run, sweep and report do: one help style for every command
+# resume, eval and export parse with tyro as run, sweep and report do: one help style for every command
 _Dir = Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="DIR")]
 _Flag = tyro.conf.FlagCreatePairsOff[bool]  # --no-progress alone, not --no-progress / --no-no-progress
 
@@ -238,140 +285,129 @@ class EvalArgs:
     allow_pickle: Annotated[_Flag, tyro.conf.arg(help=ALLOW_PICKLE_HELP)] = False
 
 
+@dataclass
+class ExportArgs:
+    """Export a run's policy to ONNX, with its contract (FILE.json), verified against
+    `botorl.load_policy` with onnxruntime before it exits. Needs the export extra:
+    pip install "botorl[export]"."""
+
+    dir: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="RUN_DIR")]
+    """the run directory (the --out of `botorl run`)"""
+    checkpoint: Annotated[str | None, tyro.conf.arg(metavar="NAME", help_behavior_hint="(default: the latest)")] = None
+    """checkpoint folder name in RUN_DIR/checkpoints"""
+    format: Literal["onnx"] = "onnx"
+    """the model format"""
+    out: Annotated[str | None, tyro.conf.arg(metavar="FILE", help_behavior_hint="(default: RUN_DIR/policy.onnx)")] = None
+    """the model file; its contract is FILE.json"""
+    force: _Flag = False
+    """overwrite FILE and FILE.json if they exist"""
+
+
 def resume_main(argv: list[str]) -> int:
     args = tyro.cli(ResumeArgs, args=argv, prog="botorl resume")
-    if (Path(args.dir) / "population.json").exists():  # a population (botorl/pipeline/population_cli.py)
-        from botorl.pipeline.population_cli import resume_population_main
-
-        return resume_population_main(args.dir, no_progress=args.no_progress, allow_pickle=args.allow_pickle)
-    from botorl.jaxsetup import setup_jax
+    from botorl.pipeline.runner import read_summary
 
     setup_jax()
-    from dataclasses import replace
-
-    from botorl.envs.registry import get_task
-    from botorl.pipeline.checkpoint import CheckpointManager
-    from botorl.pipeline.rundir import read_json
-    from botorl.pipeline.runner import format_summary
-
-    run, cfg = _load_run_config(args.dir)
-    if cfg.wandb:
-        from botorl.pipeline.tracking import require_wandb
-
-        require_wandb()
-    with owned(run.root):
+    root = Path(args.dir)
+    single = not (root / POPULATION_FILE).exists()
+    if single:
+        run, cfg = read_run(root, "resume", validate=True)
+        member_cfgs, runs, status_file, origin = [cfg], [run], run.summary, run.config
+    else:
+        cfg, member_cfgs, runs, _ = load_population(root)
+        status_file = origin = root / POPULATION_FILE
+    _require_wandb(cfg)
+    with RunLock(root):
         if args.no_progress:
             cfg = replace(cfg, progress=False)
+            member_cfgs = [replace(c, progress=False) for c in member_cfgs]
         if args.from_ is not None:
-            CheckpointManager(run.checkpoints).verify_named(args.from_)  # exit 2 naming the choices
+            CheckpointManager(RunDir(root).checkpoints).verify_named(args.from_)  # exit 2 naming the choices
             print(f"botorl: resuming from the chosen checkpoint {args.from_}", file=sys.stderr)
-        elif run.summary.exists():
+        else:
             try:
-                s = read_json(run.summary)
-            except (OSError, ValueError):
-                s = {}  # a damaged summary is rewritten by the resume
-            if isinstance(s, dict) and s.get("status") == "finished":
-                print(f"botorl: {run.root} has finished already; nothing to resume.", file=sys.stderr)
+                finished = read_json(status_file).get("status") == "finished"
+            except (OSError, ValueError, AttributeError):
+                finished = False  # no summary yet, or a damaged one: the resume rewrites it
+            if finished:
+                print(f"botorl: {root} has finished already; nothing to resume.", file=sys.stderr)
+                summaries = [read_summary(r) for r in runs]
                 try:
-                    print(format_summary(s))
+                    _print_summaries(summaries, single)
                 except (KeyError, TypeError, ValueError, AttributeError):  # a summary edited by hand
-                    print(f"status finished (the rest of {run.summary} cannot be shown)")
+                    print("\n".join(f"{r.root.name}: status {s.get('status')!r}" for r, s in zip(runs, summaries)))
                 return 0
-        spec = get_task(cfg.task)
-        d_raw = _load_run_data(cfg, spec, run, args.allow_pickle)
-        with preempt.resumable(f"botorl resume {run.root}"):
-            summary = _execute_guarded(cfg, run, d_raw, resume=True, resume_from=args.from_)
-    print(format_summary(summary))
+        d_raw = _load_data(cfg, origin, args.allow_pickle)
+        with preempt.resumable(f"botorl resume {root}"):
+            summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True, resume_from=args.from_)
+    _print_summaries(summaries, single)
     return 0
 
 
-def _load_run_data(cfg, spec, run, allow_pickle: bool):
-    """The offline data of a run read back from its config.json: no pickle unless allowed."""
-    from botorl.data.loaders import refuse_pickle
-    from botorl.pipeline.runner import load_offline
-
-    if allow_pickle:
-        return load_offline(cfg, spec)
-    with refuse_pickle(f"the run directory's {run.config}"):
-        return load_offline(cfg, spec)
+def _print_result(result: dict) -> None:
+    for k, v in result.items():
+        print(f"{k:<15} {v:.4g}" if isinstance(v, float) else f"{k:<15} {v}")
 
 
 def eval_main(argv: list[str]) -> int:
     args = tyro.cli(EvalArgs, args=argv, prog="botorl eval")
-    from botorl.jaxsetup import setup_jax
-
     setup_jax()
-    run, cfg = _load_run_config(args.dir)
+    run, cfg = read_run(args.dir, "evaluate", validate=True)
+    if args.episodes is not None and args.episodes < 1:
+        raise ConfigError(f"--episodes {args.episodes}: give at least 1 episode.")
     if args.policy is not None:  # an exported model through onnxruntime (botorl/pipeline/export.py)
         if args.checkpoint is not None:
             raise ConfigError("--policy and --checkpoint: the model names its checkpoint (in FILE.onnx.json); give one.")
-        if args.episodes is not None and args.episodes < 1:
-            raise ConfigError(f"--episodes {args.episodes}: give at least 1 episode.")
         from botorl.pipeline.export import evaluate_exported
 
-        with owned(run.root):
-            result = evaluate_exported(run, cfg, args.policy, episodes=args.episodes)
-        for k, v in result.items():
-            print(f"{k:<15} {v:.4g}" if isinstance(v, float) else f"{k:<15} {v}")
+        with RunLock(run.root):
+            _print_result(evaluate_exported(run, cfg, args.policy, episodes=args.episodes))
         return 0
-    with owned(run.root):
-        try:
-            return _eval(args, run, cfg)
-        except OSError as err:
-            fault = io_fault(err, run.root)
-            if fault is None:
-                raise
-            raise fault from None
+    with RunLock(run.root), io_guard(run.root):
+        _print_result(_eval(args, run, cfg))
+    return 0
 
 
-def _eval(args, run, cfg) -> int:
-    from dataclasses import replace
-
+def _eval(args, run, cfg) -> dict:
     from botorl.agents import checkpoint as agent_ckpt
+    from botorl.configs.schema import run_identity
     from botorl.envs.registry import get_task
     from botorl.pipeline import stages as S
-    from botorl.configs.schema import run_identity
-    from botorl.pipeline.checkpoint import CheckpointManager, check_identity
-    from botorl.pipeline.evaluation import QProbe, make_eval_envs, run_episodes
-    from botorl.io import atomic_write_json
+    from botorl.pipeline.evaluation import QProbe, evaluate_policy
     from botorl.pipeline.runner import transform_dataset
 
     if args.episodes is not None:
-        if args.episodes < 1:
-            raise ConfigError(f"--episodes {args.episodes}: give at least 1 episode.")
         cfg = replace(cfg, eval=replace(cfg.eval, episodes=args.episodes))
     ckpt = CheckpointManager(run.checkpoints)
-    if args.checkpoint:
-        ckpt.verify_named(args.checkpoint)
-        name = args.checkpoint
-    else:
-        latest = ckpt.latest()
-        if latest is None:
-            raise ConfigError(f"{run.root} has no checkpoint yet; wait for the first stage to finish.")
-        name = latest["name"]
+    name = ckpt.chosen(args.checkpoint)
     state = ckpt.state(name)
     check_identity(state, [run_identity(cfg)], run.checkpoints, name)
     spec = get_task(cfg.task)
-    d = transform_dataset(cfg, spec, _load_run_data(cfg, spec, run, args.allow_pickle))
-    stage = state["stage"]
-    template = (S.make_online_agent_template if stage == "finetune" else S.make_pretrain_agent)(
-        cfg, d.obs_dim, d.action_dim, cfg.seed)
-    agent = agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=template)
-    envs = make_eval_envs(spec, cfg.eval)
+    d = transform_dataset(cfg, spec, _load_data(cfg, run.config, args.allow_pickle))
+    like = S.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)
+    agent = agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like)
     t0 = time.perf_counter()
-    stats = run_episodes(lambda o: agent.eval_actions(o[0])[None], [envs], episodes=cfg.eval.episodes,
-                         success_mode=spec.success_mode, seeds=[200_000 + cfg.seed], max_steps=spec.max_episode_steps)[0]
+    stats = evaluate_policy(lambda o: agent.eval_actions(o[0])[None], spec, cfg, cfg.eval.episodes)
     q_data, q_uniform = QProbe(d.observations, d.actions, seed=12345, size=cfg.eval.q_pairs)(S.q_fn(agent))
-    for e in envs:
-        e.close()
-    step = state.get("step")
-    if step is None and state.get("stage_done"):  # a stage's final checkpoint: the stage's whole budget
-        step = {"pretrain": cfg.offline.steps, "warmup": cfg.warmup.steps, "boto": cfg.boto.boto_steps,
-                "finetune": cfg.online.steps}.get(stage)
-    result = {"checkpoint": name, "stage": stage, "step": step, "episodes": cfg.eval.episodes,
-              "success": stats.success, "return": stats.episode_return, "episode_length": stats.length,
-              "q_data": q_data, "q_uniform": q_uniform, "seconds": round(time.perf_counter() - t0, 2)}
+    result = {"checkpoint": name, "stage": state["stage"], "step": checkpoint_step(cfg, state),
+              "episodes": cfg.eval.episodes, "success": stats.success, "return": stats.episode_return,
+              "episode_length": stats.length, "q_data": q_data, "q_uniform": q_uniform,
+              "seconds": round(time.perf_counter() - t0, 2)}
     atomic_write_json(run.root / f"eval-{name}.json", result)
-    for k, v in result.items():
-        print(f"{k:<15} {v:.4g}" if isinstance(v, float) else f"{k:<15} {v}")
+    return result
+
+
+def export_main(argv: list[str]) -> int:
+    args = tyro.cli(ExportArgs, args=argv, prog="botorl export")
+    from botorl.pipeline.export import contract_path, export_policy
+
+    out = Path(args.out) if args.out else Path(args.dir) / "policy.onnx"
+    c = export_policy(args.dir, out, checkpoint=args.checkpoint, format=args.format, force=args.force)
+    v = c["verification"]
+    print(f"botorl: {c['task']} {c['method']} seed {c['seed']}, checkpoint {c['checkpoint']} (step {c['step']}) "
+          f"-> {out} and {contract_path(out).name}", file=sys.stderr)
+    print(f"model          {out}\ncontract       {contract_path(out)}\nobservations   (batch, {c['input']['shape'][1]}) "
+          f"float32\nactions        (batch, {c['output']['shape'][1]}) float32\nverified       max |onnxruntime - "
+          f"load_policy| = {v['max_abs_gap']:.2g} on {v['observations']} {v['source']} observations "
+          f"(tolerance {v['tolerance']:g})\nsha256         {c['sha256']}")
     return 0

@@ -31,7 +31,6 @@ class EpisodeStats:
     success: float
     episode_return: float
     length: float
-    successes: list[float]
 
 
 def make_eval_envs(spec, eval_cfg) -> list[Any]:
@@ -51,38 +50,42 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Sequ
     if success_mode not in ("any", "last"):
         raise ValueError(f"success_mode must be 'any' or 'last', not {success_mode!r}")
     n_mem, n_envs = len(envs), len(envs[0])
-    per = [{"successes": [], "returns": [], "lengths": []} for _ in range(n_mem)]
-    episode_index = 0
-    while episode_index < episodes:
-        n = min(n_envs, episodes - episode_index)
-        obs = np.stack([np.stack([np.asarray(envs[m][i].reset(seed=int(seeds[m]) + episode_index + i)[0], np.float32)
+    rounds = []  # each round's (success, return, length) of its counted episodes, (N, n) each
+    for first in range(0, episodes, n_envs):
+        n = min(n_envs, episodes - first)
+        obs = np.stack([np.stack([np.asarray(envs[m][i].reset(seed=int(seeds[m]) + first + i)[0], np.float32)
                                   for i in range(n_envs)]) for m in range(n_mem)])
         active = np.zeros((n_mem, n_envs), dtype=bool)
         active[:, :n] = True
-        ret = np.zeros((n_mem, n_envs))
+        ret, succ = np.zeros((n_mem, n_envs)), np.zeros((n_mem, n_envs))
         length = np.zeros((n_mem, n_envs), dtype=np.int64)
-        succ_any = np.zeros((n_mem, n_envs))
-        succ_last = np.zeros((n_mem, n_envs))
         while active.any():
             actions = np.asarray(policy(obs))
             for m, i in zip(*np.nonzero(active)):
                 o, r, terminated, truncated, info = envs[m][i].step(actions[m, i])
                 s = float(info.get("success", 0.0))
-                succ_any[m, i] = max(succ_any[m, i], s)
-                succ_last[m, i] = s
+                succ[m, i] = max(succ[m, i], s) if success_mode == "any" else s
                 ret[m, i] += float(r)
                 length[m, i] += 1
                 obs[m, i] = np.asarray(o, dtype=np.float32)
                 if terminated or truncated or (max_steps is not None and length[m, i] >= max_steps):
                     active[m, i] = False
-        got = succ_any if success_mode == "any" else succ_last
-        for m in range(n_mem):
-            per[m]["successes"] += got[m, :n].tolist()
-            per[m]["returns"] += ret[m, :n].tolist()
-            per[m]["lengths"] += length[m, :n].tolist()
-        episode_index += n
-    return [EpisodeStats(success=float(np.mean(p["successes"])), episode_return=float(np.mean(p["returns"])),
-                         length=float(np.mean(p["lengths"])), successes=p["successes"]) for p in per]
+        rounds.append((succ[:, :n], ret[:, :n], length[:, :n]))
+    succ, ret, length = (np.concatenate(x, axis=1) for x in zip(*rounds))
+    return [EpisodeStats(success=float(np.mean(succ[m])), episode_return=float(np.mean(ret[m])),
+                         length=float(np.mean(length[m]))) for m in range(n_mem)]
+
+
+def evaluate_policy(policy: Callable[[np.ndarray], np.ndarray], spec, cfg, episodes: int) -> EpisodeStats:
+    """``botorl eval``'s ``episodes`` of one policy ((1, E, O) -> (1, E, A)) on its own evaluation
+    envs, reset seeds from ``200_000 + cfg.seed`` (not those of the run's evaluations)."""
+    envs = make_eval_envs(spec, cfg.eval)
+    try:
+        return run_episodes(policy, [envs], episodes=episodes, success_mode=spec.success_mode,
+                            seeds=[200_000 + cfg.seed], max_steps=spec.max_episode_steps)[0]
+    finally:
+        for e in envs:
+            e.close()
 
 
 class QProbe:
@@ -96,9 +99,7 @@ class QProbe:
         self.actions = np.asarray(actions[idx], dtype=np.float32)
         self.uniform = rng.uniform(-1.0, 1.0, size=self.actions.shape).astype(np.float32)
 
-    def __call__(self, q_fn: Callable[[np.ndarray, np.ndarray], np.ndarray] | None) -> tuple[float, float]:
-        if q_fn is None:
-            return float("nan"), float("nan")
+    def __call__(self, q_fn: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> tuple[float, float]:
         q_data = float(np.mean(np.asarray(q_fn(self.observations, self.actions))))
         q_uniform = float(np.mean(np.asarray(q_fn(self.observations, self.uniform))))
         return q_data, q_uniform

@@ -21,16 +21,25 @@ nothing is written.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
-import json
+import importlib
 import logging
 import sys
+import time
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from botorl import __version__ as botorl_version
 from botorl.errors import BotorlError, ConfigError
+from botorl.io import atomic_write_bytes, atomic_write_json
+from botorl.jaxsetup import setup_jax
+from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_step, file_sha256
+from botorl.pipeline.policy import load_policy, read_run, task_io
+from botorl.pipeline.rundir import read_json
 
 INSTALL = 'pip install "botorl[export]"'
 OPSET = 17  # LayerNormalization's first opset; onnxruntime >= 1.13 runs it (robots' runtimes lag)
@@ -53,8 +62,6 @@ class ExportMismatch(BotorlError):
 
 def require(*modules: str) -> dict[str, Any]:
     """Import the export extra's ``modules`` (``onnx``, ``onnxruntime``, ``jax2onnx``) or say how to install them."""
-    import importlib
-
     # jax2onnx logs a traceback for each of its plugins whose library (equinox, dm-pix) is absent;
     # botorl's actor needs none of them
     logging.getLogger("jax2onnx").setLevel(logging.ERROR)
@@ -71,20 +78,10 @@ def require(*modules: str) -> dict[str, Any]:
 
 
 def _version(dist: str) -> str | None:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version(dist)
     except PackageNotFoundError:
         return None
-
-
-def sha256_of(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def contract_path(model: str | Path) -> Path:
@@ -94,33 +91,17 @@ def contract_path(model: str | Path) -> Path:
 
 
 # ------------------------------------------------------------------ the run
-def read_run(run_dir):
-    """(RunDir, RunConfig) of a single run directory; ConfigError for anything else."""
-    from botorl.pipeline.policy import read_run as read
-
-    return read(run_dir, "export")
-
-
 def pick_checkpoint(run, checkpoint: str | None) -> str:
     """The checkpoint to export: the named one (verified), else the latest; a run with no
     finished stage has nothing worth exporting unless a checkpoint is named."""
-    from botorl.pipeline.checkpoint import CheckpointManager
-
     ckpt = CheckpointManager(run.checkpoints)
-    if checkpoint is not None:
-        ckpt.verify_named(checkpoint)  # ConfigError naming the ones there are
-        return checkpoint
-    finished = [n for n in ckpt.names() if ckpt.exists(n) and _stage_done(ckpt, n)]
-    if not finished:
+    if checkpoint is None and not any(_stage_done(ckpt, n) for n in ckpt.names()):
         there = [n for n in ckpt.names() if ckpt.exists(n)]
         more = (f" Its checkpoints ({', '.join(there)}) are mid-stage; name one with --checkpoint NAME to export it "
                 f"anyway." if there else "")
         raise ConfigError(f"{run.root} has no finished stage yet, so no policy to export; wait for the first stage "
                           f"(pre-training) to finish.{more}")
-    latest = ckpt.latest()
-    if latest is None:
-        raise ConfigError(f"{run.root} has no checkpoint that passes its check; name one with --checkpoint NAME.")
-    return latest["name"]
+    return ckpt.chosen(checkpoint)  # the named one (ConfigError naming the ones there are), else the latest
 
 
 def _stage_done(ckpt, name: str) -> bool:
@@ -128,16 +109,6 @@ def _stage_done(ckpt, name: str) -> bool:
         return bool(ckpt.state(name).get("stage_done"))
     except BotorlError:
         return False  # a damaged checkpoint is not a finished stage
-
-
-def checkpoint_step(cfg, state: dict) -> int | None:
-    """The step of a checkpoint within its stage: ``state.json``'s, or the stage's whole budget
-    for a stage's final checkpoint (as ``botorl eval`` reports it)."""
-    step = state.get("step")
-    if step is None and state.get("stage_done"):
-        step = {"pretrain": cfg.offline.steps, "warmup": cfg.warmup.steps, "boto": cfg.boto.boto_steps,
-                "finetune": cfg.online.steps}.get(state.get("stage"))
-    return None if step is None else int(step)
 
 
 def task_here(cfg) -> str | None:
@@ -173,10 +144,8 @@ def observation_spaces(cfg):
         own = inner.env.observation_space if isinstance(inner, TaskEnv) else None
         return env.observation_space, own
     finally:
-        try:
+        with contextlib.suppress(Exception):
             env.close()
-        except Exception:  # noqa: BLE001
-            pass
 
 
 def _bounds(x) -> list[float | None]:
@@ -220,16 +189,11 @@ def verification_observations(cfg, run, n: int, seed: int = 0, why: str | None =
     except BotorlError as err:
         print(f"botorl export: the run's dataset cannot be read here ({err}); verifying on {n} standard normal "
               f"observations instead (the contract's verification.source says so).", file=sys.stderr)
-        return np.random.default_rng(seed).standard_normal((n, _obs_dim(cfg))).astype(np.float32), "standard-normal"
+        obs = np.random.default_rng(seed).standard_normal((n, int(task_io(cfg)["obs_dim"])))
+        return obs.astype(np.float32), "standard-normal"
     rng = np.random.default_rng(seed)
     idx = rng.choice(len(obs), size=n, replace=len(obs) < n)
     return obs[idx], "dataset"
-
-
-def _obs_dim(cfg) -> int:
-    from botorl.pipeline.policy import task_io
-
-    return int(task_io(cfg)["obs_dim"])
 
 
 # ------------------------------------------------------------------ the graph
@@ -310,13 +274,8 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     """Write ``path`` (the ONNX model) and ``path.json`` (its contract) for a run's policy and
     return the contract. ``observations``: the (N, obs_dim) batch to verify on (default:
     ``verify_rows`` of the run's dataset). ``ExportMismatch`` (exit 1) when onnxruntime's actions
-    differ from ``load_policy``'s by more than ``tolerance``; nothing is written then."""
-    from botorl import __version__ as botorl_version
-    from botorl.io import atomic_write_bytes, atomic_write_json
-    from botorl.jaxsetup import setup_jax
-    from botorl.pipeline.checkpoint import CheckpointManager
-    from botorl.pipeline.policy import load_policy
-
+    differ from ``load_policy``'s by more than ``tolerance``; nothing is written then. Needs
+    ``pip install "botorl[export]"`` (else ``MissingExportDependency``, exit 2)."""
     if format not in FORMATS:
         raise ConfigError(f"--format {format}: botorl exports {', '.join(FORMATS)}.")
     out = Path(path)
@@ -327,7 +286,7 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
                 raise ConfigError(f"{p} exists; pass --force (force=True) to overwrite it, or give another --out.")
     if out.is_dir():
         raise ConfigError(f"--out {out} is a folder; give a file name such as {out / 'policy.onnx'}.")
-    run, cfg = read_run(run_dir)
+    run, cfg = read_run(run_dir, "export")
     name = pick_checkpoint(run, checkpoint)
     mods = require("onnx", "onnxruntime", "jax2onnx")  # before any JAX work: a missing extra costs nothing
     setup_jax()
@@ -393,7 +352,7 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     }
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out, model)
-    if sha256_of(out) != contract["sha256"]:  # what is on disk is what was verified
+    if file_sha256(out) != contract["sha256"]:  # what is on disk is what was verified
         raise BotorlError(f"{out} does not read back as written (sha256 differs); check the disk and export again.")
     atomic_write_json(meta, contract)
     return contract
@@ -405,8 +364,7 @@ def read_contract(model: str | Path) -> dict[str, Any] | None:
     if not p.exists():
         return None
     try:
-        with open(p) as f:
-            c = json.load(f)
+        c = read_json(p)
     except (OSError, ValueError) as err:
         raise ConfigError(f"{p} cannot be read as a policy contract ({err}); export the policy again.") from None
     if not isinstance(c, dict):
@@ -417,8 +375,6 @@ def read_contract(model: str | Path) -> dict[str, Any] | None:
 # ------------------------------------------------------------------ the round trip
 def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path) -> None:
     """ConfigError unless the model is this run's policy as exported (task, dims, sha256)."""
-    from botorl.pipeline.policy import task_io
-
     io = task_io(cfg)
     if contract is None:
         print(f"botorl eval: {contract_path(path)} is missing; checking the model's shapes only.", file=sys.stderr)
@@ -427,7 +383,7 @@ def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path)
             raise ConfigError(f"{path} is a policy of task {contract.get('task')!r} (its contract says), not of this "
                               f"run's {cfg.task!r}; give the run it was exported from.")
         want = contract.get("sha256")
-        if want is not None and sha256_of(path) != want:
+        if want is not None and file_sha256(path) != want:
             raise ConfigError(f"{path} is not the file its contract describes (sha256 differs): it changed since "
                               f"`botorl export`; export it again.")
     if model.obs_dim is not None and model.obs_dim != io["obs_dim"]:
@@ -439,13 +395,9 @@ def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, 
     """``botorl eval RUN --policy FILE``: the run's evaluation protocol (``botorl eval``: the same
     envs, reset seeds and success rule) with the exported model acting through onnxruntime;
     written to ``RUN/eval-<FILE stem>-onnx.json``."""
-    import time
-
     from botorl.envs.registry import get_task
     from botorl.envs.user import action_from_env, is_unit_box
-    from botorl.io import atomic_write_json
-    from botorl.pipeline.evaluation import make_eval_envs, run_episodes
-    from botorl.pipeline.policy import task_io
+    from botorl.pipeline.evaluation import evaluate_policy
 
     path = Path(path)
     model = OnnxPolicy(path)  # exit 2 when onnxruntime is missing or the file is not a model
@@ -459,15 +411,8 @@ def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, 
         a = model(obs[0])
         return (a if unit_box else action_from_env(a, io["action_low"], io["action_high"]).astype(np.float32))[None]
 
-    spec = get_task(cfg.task)
-    envs = make_eval_envs(spec, cfg.eval)
     t0 = time.perf_counter()
-    try:
-        stats = run_episodes(act, [envs], episodes=n, success_mode=spec.success_mode, seeds=[200_000 + cfg.seed],
-                             max_steps=spec.max_episode_steps)[0]
-    finally:
-        for e in envs:
-            e.close()
+    stats = evaluate_policy(act, get_task(cfg.task), cfg, n)
     result = {"policy": str(path), "checkpoint": (contract or {}).get("checkpoint"), "stage": (contract or {}).get("stage"),
               "step": (contract or {}).get("step"), "episodes": n, "success": stats.success,
               "return": stats.episode_return, "episode_length": stats.length,

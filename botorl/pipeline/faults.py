@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 from typing import Callable
 
 _hook: Callable[[str, str, object], None] | None = None
@@ -77,8 +78,6 @@ def step(stage: str, step_: int) -> None:
 
 def _pause(path: str) -> None:
     global _pause_at
-    import time
-
     _pause_at = None  # once
     with open(path, "w") as f:
         f.write(str(os.getpid()))

@@ -3,9 +3,9 @@
 ``OnlineState`` holds the members' envs stepped in lockstep (each mid-episode), their current
 observations and episode counters, the replay buffer with a member axis, each member's
 batch generator, the step, and the evaluation schedule's memory. It is saved whole into a
-mid-stage checkpoint (``save``) and restored whole (``restore``), so a resumed fine-tuning
-repeats an uninterrupted one exactly (CONTRACTS.md "Runs": ``buffer.npz``, ``online.npz``,
-``envs.json`` and the counters in ``state.json``).
+mid-stage checkpoint (``save``) and restored whole (``OnlineState(ctx, d_warmups, resume)``),
+so a resumed fine-tuning repeats an uninterrupted one exactly (CONTRACTS.md "Runs":
+``buffer.npz``, ``online.npz``, ``envs.json`` and the counters in ``state.json``).
 
 What a method needs from it is declared in its ``Method`` (botorl/configs/methods.py):
 ``finished_episodes_only`` -- batches hold rows of finished episodes only, whose Monte-Carlo
@@ -23,6 +23,8 @@ import numpy as np
 from botorl.agents import population as AP
 from botorl.data.dataset import RewardTransform
 from botorl.data.replay import ReplayBuffer
+from botorl.envs.state import get_env_state, set_env_state
+from botorl.pipeline.checkpoint import CheckpointCorrupt
 
 
 def rng_from(state: dict | None, seed_seq) -> np.random.Generator:
@@ -36,57 +38,47 @@ def rng_from(state: dict | None, seed_seq) -> np.random.Generator:
 class OnlineState:
     """The state of fine-tuning beside the agents (see the module docstring)."""
 
-    def __init__(self, ctx, *, step: int, start: int, buffer: ReplayBuffer, rng_states, episodes, last_eval: int,
-                 resumes: int):
-        oc, n = ctx.cfg.online, ctx.n
-        self.ctx, self.step, self.start, self.buffer = ctx, step, start, buffer
+    def __init__(self, ctx, d_warmups, resume: dict | None = None):
+        """Fine-tuning from its start: the step after the warm-up, a buffer holding D_warmup for
+        WSRL's warm start (the offline data are dropped), every member's episode starting. Or,
+        given ``resume`` (a mid-stage checkpoint's name, step, np_rng, extra), the state it saved,
+        each env set to its saved state mid-episode."""
+        oc, d, n = ctx.cfg.online, ctx.d_offline, ctx.n
+        n_warm = len(d_warmups[0]) if d_warmups is not None else 0
+        extra = {} if resume is None else resume.get("extra", {})
+        if resume is None:
+            self.buffer = ReplayBuffer(oc.buffer_capacity or (oc.steps + n_warm + 1), d.obs_dim, d.action_dim, members=n)
+            if d_warmups is not None and ctx.method.finetune_start == "warm_start":
+                self.buffer.insert_dataset(d_warmups)  # WSRL: the online buffer starts with D_warmup
+        else:
+            self.buffer = ReplayBuffer.from_state_dict(ctx.ckpt.arrays(resume["name"], "buffer"))
+        self.ctx, self.start = ctx, int(extra.get("start", n_warm))
+        self.step = n_warm if resume is None else int(resume["step"])
+        rng_states = None if resume is None else resume.get("np_rng")
         self.rngs = [rng_from(st, [mc.cfg.online_seed, 3])
                      for mc, st in zip(ctx.members, rng_states if isinstance(rng_states, list) else [rng_states] * n)]
+        episodes = extra.get("episodes", 0)
         self.episodes = list(episodes) if isinstance(episodes, list) else [int(episodes)] * n
-        self.last_eval, self.resumes = last_eval, resumes
+        self.last_eval = int(extra.get("last_eval", -1))
+        self.resumes = 0 if resume is None else int(extra.get("resumes", 0)) + 1
         self.env_seeds = [mc.cfg.online_seed * 1000 + 11 for mc in ctx.members]
         self.envs = [ctx.spec.make_env(seed=s) for s in self.env_seeds]
-        self.obs = np.zeros((n, buffer.obs_dim), np.float32)
+        self.obs = np.zeros((n, self.buffer.obs_dim), np.float32)
         self.ep_succ = np.zeros(n)
         self.ep_rows: list[list[int]] = [[] for _ in range(n)]
         self.recent_success: list[list[float]] = [[] for _ in range(n)]
         self.finished_only = ctx.method.finished_episodes_only
         self.reward = RewardTransform.of(ctx.spec)
         self.offline = ctx.d_offline if oc.offline_ratio > 0 else None
-
-    # ------------------------------------------------------------------ start and resume
-    @classmethod
-    def begin(cls, ctx, d_warmups) -> "OnlineState":
-        """Fine-tuning from its start: the step after the warm-up, a buffer holding D_warmup for
-        WSRL's warm start (the offline data are dropped), every member's episode starting."""
-        oc, d = ctx.cfg.online, ctx.d_offline
-        n_warm = len(d_warmups[0]) if d_warmups is not None else 0
-        buffer = ReplayBuffer(oc.buffer_capacity or (oc.steps + n_warm + 1), d.obs_dim, d.action_dim, members=ctx.n)
-        if d_warmups is not None and ctx.method.finetune_start == "warm_start":
-            buffer.insert_dataset(d_warmups)  # WSRL: the online buffer starts with D_warmup
-        state = cls(ctx, step=n_warm, start=n_warm, buffer=buffer, rng_states=None, episodes=0, last_eval=-1,
-                    resumes=0)
-        state._reset_all(state.env_seeds)
-        return state
-
-    @classmethod
-    def restore(cls, ctx, resume: dict, d_warmups) -> "OnlineState":
-        """The state a mid-stage checkpoint (``resume``: name, step, np_rng, extra) saved; each env
-        set to its saved state mid-episode."""
-        extra = resume.get("extra", {})
-        n_warm = len(d_warmups[0]) if d_warmups is not None else 0
-        state = cls(ctx, step=int(resume["step"]), start=int(extra.get("start", n_warm)),
-                    buffer=ReplayBuffer.from_state_dict(ctx.ckpt.arrays(resume["name"], "buffer")),
-                    rng_states=resume.get("np_rng"), episodes=extra.get("episodes", 0),
-                    last_eval=int(extra.get("last_eval", -1)), resumes=int(extra.get("resumes", 0)) + 1)
-        if not state._load_envs(resume["name"]):
+        if resume is None:
+            self._reset_all(self.env_seeds)
+        elif not self._load_envs(resume["name"]):
             # a checkpoint written before env states were saved: each member starts a new episode,
             # with seeds not used before (the run is then not exact)
             print("botorl: warning: this checkpoint has no env state (written by an older botorl); fine-tuning "
                   "continues with new episodes, so the run will not repeat an uninterrupted one exactly.",
                   file=sys.stderr)
-            state._reset_all([s + 100_003 * state.resumes for s in state.env_seeds])
-        return state
+            self._reset_all([s + 100_003 * self.resumes for s in self.env_seeds])
 
     def _reset_all(self, seeds) -> None:
         self.obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(self.envs, seeds)])
@@ -94,8 +86,6 @@ class OnlineState:
     def save(self, agents, window=None) -> None:
         """A mid-stage checkpoint of the agents and this whole state (and, from an interrupt
         between two log points, the metrics ``window`` since the last one: stages.Window)."""
-        from botorl.envs.state import get_env_state
-
         arrays = {"buffer": self.buffer.state_dict(), "online": {"obs": self.obs, "ep_succ": self.ep_succ}}
         w = None if window is None else window.state_dict()
         if w:
@@ -112,9 +102,6 @@ class OnlineState:
     def _load_envs(self, name: str) -> bool:
         """Each env, observation and running episode from checkpoint ``name``; False for a
         checkpoint without env states (older botorl)."""
-        from botorl.envs.state import set_env_state
-        from botorl.pipeline.checkpoint import CheckpointCorrupt
-
         doc, arrays = self.ctx.ckpt.document(name, "envs"), self.ctx.ckpt.arrays(name, "online")
         if doc is None or arrays is None:
             return False

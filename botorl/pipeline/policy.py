@@ -23,25 +23,34 @@ from typing import Any
 import numpy as np
 
 from botorl.errors import ConfigError
+from botorl.jaxsetup import setup_jax
+from botorl.pipeline.checkpoint import CheckpointManager
+from botorl.pipeline.rundir import POPULATION_FILE, RunDir, read_json
 
 
-def read_run(run_dir, verb: str = "load"):
+def read_run(run_dir, verb: str = "load", *, validate: bool = False):
     """(RunDir, RunConfig) of a single run directory; ConfigError naming what to give instead
-    for anything else (``verb``: what the caller does with it, for the message)."""
+    for anything else (``verb``: what the caller does with it, for the message). ``validate``:
+    check the config as `botorl run` does (which needs the run's task here)."""
+    from botorl.configs.resolve import validate as check
     from botorl.configs.schema import RunConfig, from_dict
-    from botorl.pipeline.rundir import RunDir, read_json
 
     root = Path(run_dir)
-    if (root / "population.json").exists():
+    if (root / POPULATION_FILE).exists():
         members = sorted(p.name for p in root.iterdir() if (p / "config.json").exists())
         raise ConfigError(f"{root} is a population; {verb} one member's run directory, e.g. {root / (members or ['s0'])[0]}.")
     run = RunDir(root)
     if not run.config.exists():
         raise ConfigError(f"{root} is not a botorl run directory (no config.json); give the --out folder of a `botorl run`.")
     try:
-        cfg = from_dict(RunConfig, read_json(run.config))
+        data = read_json(run.config)
+        if not isinstance(data, dict):
+            raise ValueError("not a JSON object")
+        cfg = from_dict(RunConfig, data)
     except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
-        raise ConfigError(f"{run.config} cannot be read as a run config ({err}).") from None
+        raise ConfigError(f"{run.config} cannot be read as a run config ({err}); was it edited by hand?") from None
+    if validate:
+        check(cfg)
     return run, cfg
 
 
@@ -70,26 +79,15 @@ def load_agent(run_dir, checkpoint: str | None = None):
 
 def _load(run_dir, checkpoint):
     from botorl.agents import checkpoint as agent_ckpt
-    from botorl.jaxsetup import setup_jax
     from botorl.pipeline import stages as S
-    from botorl.pipeline.checkpoint import CheckpointManager
 
     setup_jax()
     run, cfg = read_run(run_dir)
     ckpt = CheckpointManager(run.checkpoints)
-    if checkpoint is not None:
-        ckpt.verify_named(checkpoint)
-        name = checkpoint
-    else:
-        latest = ckpt.latest()
-        if latest is None:
-            raise ConfigError(f"{run.root} has no checkpoint yet; wait for the first stage to finish.")
-        name = latest["name"]
-    stage = ckpt.state(name)["stage"]
+    name = ckpt.chosen(checkpoint)
     io = task_io(cfg)
-    make = S.make_online_agent_template if stage == "finetune" else S.make_pretrain_agent
-    template = make(cfg, io["obs_dim"], io["action_dim"], cfg.seed)
-    return agent_ckpt.load(ckpt.path(name) / "agent.ckpt", like=template), cfg, io, name
+    like = S.agent_template(cfg, ckpt.state(name)["stage"], io["obs_dim"], io["action_dim"], cfg.seed)
+    return agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like), cfg, io, name
 
 
 class Policy:

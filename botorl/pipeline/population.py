@@ -22,9 +22,12 @@ import os
 import jax
 import numpy as np
 
+from botorl.configs.methods import get_method
 from botorl.errors import ConfigError
+from botorl.pipeline.stages import agent_template, make_pretrain_agent
 
-__all__ = ["estimate_memory", "check_memory", "available_memory", "host_memory", "env_bytes", "tree_bytes"]
+__all__ = ["estimate", "check_fits", "estimate_memory", "check_memory", "available_memory", "host_memory", "env_bytes",
+           "tree_bytes"]
 
 
 # ============================================================================ memory
@@ -36,24 +39,19 @@ def tree_bytes(tree) -> int:
 def available_memory() -> tuple[int, str]:
     """(bytes, what): the accelerator's memory off the CPU, else the host's MemAvailable."""
     if jax.default_backend() != "cpu":
-        try:
+        with contextlib.suppress(Exception):
             stats = jax.devices()[0].memory_stats() or {}
             limit = int(stats.get("bytes_limit", 0)) - int(stats.get("bytes_in_use", 0))
             if limit > 0:
                 return limit, f"{jax.devices()[0].device_kind} memory"
-        except Exception:
-            pass
     return host_memory()
 
 
 def host_memory() -> tuple[int, str]:
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024, "available host memory (MemAvailable)"
-    except OSError:
-        pass
+    with contextlib.suppress(OSError), open("/proc/meminfo") as f:
+        for line in f:
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024, "available host memory (MemAvailable)"
     return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")), "free host memory"
 
 
@@ -135,3 +133,46 @@ def check_memory(parts: dict[str, int], num_members: int, *, available: tuple[in
             "smaller --offline.updates_per_call" + (", or fewer --eval.num_envs (each member holds that many "
             "evaluation envs)" if parts.get("environments") else "") + "."
         )
+
+
+def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
+    """The memory of a population of ``n`` members of ``cfg`` by part (``estimate_memory``), from
+    one template member; with the task's ``spec``, its environments measured (one training env
+    and eval.envs_per_member evaluation envs per member)."""
+    # envs first: made after JAX has built its first arrays, the first ~16 pointmaze envs grow the
+    # process by twice what each later one does (allocator arenas), which would double the estimate.
+    # Measured only for populations: one member's envs are a few hundred MB at most.
+    per_env = 0 if spec is None or n < 2 else env_bytes(lambda i: spec.make_env(seed=i, evaluation=True))
+    method = get_method(cfg.method)
+    O, A = d_raw.obs_dim, d_raw.action_dim
+    agent_bytes = tree_bytes(agent_template(cfg, "finetune", O, A, 0))
+    if method.pretrains:
+        agent_bytes += tree_bytes(make_pretrain_agent(cfg, O, A, 0))
+    oc = cfg.online
+    warm = cfg.warmup.steps if "warmup" in method.stages else 0
+    rows = oc.buffer_capacity or (oc.steps + warm + 1)
+    cql = cfg.offline.cql
+    width = max(max(cfg.network.critic_hidden_dims), max(cfg.network.actor_hidden_dims))
+    layers = len(cfg.network.critic_hidden_dims)
+    act = max(cfg.offline.batch_size * (3 * cql.cql_n_actions + 1) * cql.num_critics,
+              oc.utd * oc.batch_size * cfg.network.num_critics) * width * layers * 2
+    batch_rows = max(cfg.offline.updates_per_call * cfg.offline.batch_size, cfg.boto.steps_per_call * cfg.boto.batch_size,
+                     oc.utd * oc.batch_size)
+    offline_bytes = 3 * sum(getattr(d_raw, k).nbytes for k in ("observations", "actions", "rewards",
+                                                             "next_observations", "terminals"))
+    envs = 1 + cfg.eval.envs_per_member
+    return estimate_memory(num_members=n, agent_bytes=agent_bytes, buffer_rows=rows, warmup_rows=warm, obs_dim=O,
+                           action_dim=A, batch_rows=batch_rows, activation_floats=act, offline_bytes=offline_bytes,
+                           env_bytes_per_member=envs * per_env)
+
+
+def check_fits(cfg, n: int, d_raw, spec) -> None:
+    """ConfigError (exit 2) before any work when the population does not fit the machine."""
+    parts = estimate(cfg, n, d_raw, spec)
+    if jax.default_backend() == "cpu":
+        check_memory(parts, n)
+    else:  # environments live in host memory, the rest on the accelerator
+        envs = parts.pop("environments")
+        parts["total"] -= envs
+        check_memory(parts, n)
+        check_memory({"environments": envs, "total": envs}, n, available=host_memory())

@@ -1,23 +1,15 @@
-"""SIGTERM and SIGINT: stop at the next step boundary with a checkpoint there, exit 143 / 130.
+"""SIGTERM and SIGINT: stop at the next step boundary with a checkpoint there, exit 143 / 130
+(docs/reliability.md, "Preemption"; schedulers send SIGTERM some seconds before they kill a job).
 
-Schedulers (SLURM, Kubernetes, Ray) send SIGTERM some seconds before they kill a job. The
-commands that train (``botorl run``, ``resume``, populations, sweeps) install ``handling()``;
-a first signal then
-
-* outside training (data loading, setup) raises ``Interrupted`` at once, like Ctrl-C;
-* inside training (``deferred()``, the runner's stage loop) only sets a flag, which the
-  stages read at their step boundaries (after an update chunk, a BOTO call, an env step):
-  there they write a checkpoint of that step -- the same one a periodic checkpoint writes,
-  so the resume is exact -- and raise ``Interrupted``. The runner writes the status
-  ``interrupted``, the command line says how to resume and exits 128 + the signal number.
-
-A second signal exits at once (``os._exit``) and leaves the last complete checkpoint
-(checkpoints are written whole or not at all). Copies of one preemption that arrive within
-``DUPLICATE_S`` of the first count as the first: SLURM signals every process of a job, so a
-sweep's trial gets the signal from the scheduler and again from the sweep forwarding it.
-
-Without ``handling()`` (the Python API, tests calling the runner) nothing changes: the flag
-is never set and the stages' checks cost one comparison per step.
+The commands that train install ``handling()``. A first signal outside training (data
+loading, setup) raises ``Interrupted`` at once, like Ctrl-C; inside ``deferred()`` (the
+runner's stage loop) it only sets the flag the stages read at their step boundaries
+(``stages.step_end``), where they write the checkpoint of that step -- the one a periodic
+checkpoint would be, so the resume is exact -- and raise ``Interrupted``. A second signal
+exits at once (``os._exit``), leaving the last complete checkpoint. Copies of one preemption
+within ``DUPLICATE_S`` of the first count as the first: SLURM signals every process of a job,
+so a sweep's trial gets the signal from the scheduler and again from the sweep forwarding it.
+Without ``handling()`` (the Python API, tests calling the runner) the flag is never set.
 """
 
 from __future__ import annotations

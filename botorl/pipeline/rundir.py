@@ -3,11 +3,13 @@
     DIR/config.json           resolved config (top-level task, method, seed, alpha, pretrain, profile)
     DIR/eval.csv              stage, env_step, success, return, q_data, q_uniform
     DIR/metrics/<stage>.csv   one row per logged training step (+ .jsonl with the same rows)
+    DIR/metrics/q_probe.csv   q_data / q_uniform at the end of pretrain and boto
     DIR/tb/                   TensorBoard events (only when tensorboardX is importable)
     DIR/checkpoints/          see checkpoint.py
     DIR/curve.png             success against online env steps
     DIR/summary.json          task, method, seed, alpha, pretrain, success_initial,
                               success_10k, success_final, stage_seconds, status
+    DIR/eval-<checkpoint>.json   written by `botorl eval`
     DIR/.lock                 the owner's PID; flock-ed for the life of a run/resume/eval (RunLock)
 
 Every whole-file write is atomic (temp file in the same folder + os.replace), so a run killed
@@ -32,19 +34,15 @@ from pathlib import Path
 from typing import Any
 
 from botorl.errors import BotorlError, ConfigError
-from botorl.io import (IO_FAULTS, JSON_LIMIT, UnsafeFileError, append_text, atomic_write_bytes, jsonable,
-                       open_regular, read_bounded, read_bounded_bytes, read_json_bounded)
+from botorl.io import (IO_FAULTS, UnsafeFileError, append_text, atomic_write_bytes, jsonable, open_regular,
+                       read_bounded, read_bounded_bytes)
+from botorl.io import read_json_bounded as read_json  # what every reader of a run's JSON files calls
 
 LOCK_FILE = ".lock"
+POPULATION_FILE = "population.json"  # what makes a directory a population's (botorl/pipeline/cli.py)
 LOG_LIMIT = 1 << 30  # a metrics or eval log botorl reads back (on resume, for the summary)
 
 EVAL_COLUMNS = ["stage", "env_step", "success", "return", "q_data", "q_uniform"]
-
-
-def read_json(path: Path, limit: int = JSON_LIMIT) -> Any:
-    """The JSON document in ``path``: a regular file (no link, FIFO or device) of at most
-    ``limit`` bytes; ValueError (saying what is wrong) or OSError otherwise."""
-    return read_json_bounded(path, limit)
 
 
 class RunDir:
@@ -101,19 +99,16 @@ def io_fault(err: OSError, where) -> RunIOError | None:
 
 
 @contextlib.contextmanager
-def owned(root: Path):
-    """Hold the run directory's lock; turn I/O faults while taking it into exit 2."""
+def io_guard(where):
+    """I/O faults inside (a full disk, read-only, no permission) become exit 2 (``io_fault``)."""
     try:
-        lock = RunLock(root).acquire()
+        yield
     except OSError as err:
-        fault = io_fault(err, root)
+        fault = io_fault(err, where)
         if fault is None:
             raise
         raise fault from None
-    try:
-        yield lock
-    finally:
-        lock.release()
+
 
 class RunLockedError(BotorlError):
     """Another live process owns the run directory."""
@@ -125,7 +120,8 @@ class RunLock:
     The kernel drops a flock when its process dies (kill -9 included), so a lock left by a
     killed run is simply taken over by the next one; the file itself is never deleted (deleting
     it would let two processes lock two different files). A second live process gets
-    ``RunLockedError`` (exit 2) naming the holder's PID.
+    ``RunLockedError`` (exit 2) naming the holder's PID. ``with RunLock(DIR)`` holds it for
+    the life of a command, I/O faults while taking it turned into exit 2.
     """
 
     def __init__(self, root: str | os.PathLike):
@@ -169,7 +165,8 @@ class RunLock:
             self._fd = None
 
     def __enter__(self) -> "RunLock":
-        return self.acquire()
+        with io_guard(self.root):
+            return self.acquire()
 
     def __exit__(self, *exc) -> None:
         self.release()
@@ -207,12 +204,8 @@ class CsvLog:
 
     def __init__(self, path: Path, columns: list[str] | None = None):
         self.path = Path(path)
-        self.columns = list(columns) if columns else None
-        lines = log_lines(self.path)
-        if lines:
-            header = next(csv.reader(lines[:1]), None)
-            if header:
-                self.columns = header
+        header = next(csv.reader(log_lines(self.path)[:1]), None)  # an existing log keeps its own columns
+        self.columns = header or (list(columns) if columns else None)
 
     def append(self, row: dict[str, Any]) -> None:
         new = not self.path.exists() or self.path.stat().st_size == 0
@@ -238,18 +231,14 @@ class CsvLog:
         cols = self.columns or (list(rows[0].keys()) if rows else [])
         w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
         w.writeheader()
-        for r in rows:
-            if keep(r):
-                w.writerow(r)
+        w.writerows(r for r in rows if keep(r))
         atomic_write_bytes(self.path, buf.getvalue().encode())
 
 
 def _fmt(v: Any) -> Any:
     if hasattr(v, "item") and callable(v.item):
-        try:
+        with contextlib.suppress(ValueError, TypeError):
             v = v.item()
-        except (ValueError, TypeError):
-            pass
     if isinstance(v, float):
         return f"{v:.6g}"
     return v
@@ -267,12 +256,9 @@ class JsonlLog:
             return
         out = []
         for line in log_lines(self.path, warn=True):
-            line = line.strip()
-            if not line:
-                continue
             try:
                 row = json.loads(line)
-            except (ValueError, RecursionError):  # a line cut by a kill, or not botorl's
+            except (ValueError, RecursionError):  # an empty line, one cut by a kill, or not botorl's
                 continue
             if keep(row):
                 out.append(json.dumps(row))
@@ -317,19 +303,12 @@ class TBWriter:
               "the CSV/JSONL logs in metrics/ go on.")
         w, self._writer = self._writer, None
         if w is not None:
-            try:
+            with contextlib.suppress(Exception):
                 w.close()
-            except Exception:
-                pass
 
     def add_scalar(self, tag: str, value: Any, step: int) -> None:
-        if self._writer is None:
-            return
-        try:
-            v = float(value)
-        except (TypeError, ValueError):
-            return
-        if not math.isfinite(v):
+        v = number(value)
+        if self._writer is None or not math.isfinite(v):  # not a number, or one TensorBoard rejects
             return
         try:
             from tensorboardX.proto.event_pb2 import Event
@@ -341,13 +320,6 @@ class TBWriter:
                 self._writer.flush()
         except OSError as err:
             self._disable(err)
-
-    def flush(self) -> None:
-        if self._writer is not None:
-            try:
-                self._writer.flush()
-            except OSError as err:
-                self._disable(err)
 
     def close(self) -> None:
         if self._writer is not None:
@@ -363,15 +335,12 @@ class MetricsLogger:
 
     def __init__(self, run: RunDir, *, tensorboard: bool = True, wandb_run: Any = None):
         self.run = run
-        self._csv: dict[str, CsvLog] = {}
-        self._jsonl: dict[str, JsonlLog] = {}
+        self._by_stage: dict[str, tuple[CsvLog, JsonlLog]] = {}
         self._tb: TBWriter | None = None
         self._wandb = wandb_run
         if tensorboard:
-            try:
+            with contextlib.suppress(ImportError):  # tensorboardX is optional
                 self._tb = TBWriter(run.tb)
-            except ImportError:
-                self._tb = None
 
     def _wandb_log(self, data: dict[str, Any]) -> None:
         # W&B talks to its own service process; a failure there must not stop the run.
@@ -382,10 +351,9 @@ class MetricsLogger:
             self._wandb = None
 
     def _logs(self, stage: str) -> tuple[CsvLog, JsonlLog]:
-        if stage not in self._csv:
-            self._csv[stage] = CsvLog(self.run.metrics / f"{stage}.csv")
-            self._jsonl[stage] = JsonlLog(self.run.metrics / f"{stage}.jsonl")
-        return self._csv[stage], self._jsonl[stage]
+        if stage not in self._by_stage:
+            self._by_stage[stage] = CsvLog(self.run.metrics / f"{stage}.csv"), JsonlLog(self.run.metrics / f"{stage}.jsonl")
+        return self._by_stage[stage]
 
     def log(self, stage: str, step: int, metrics: dict[str, Any]) -> None:
         row = {"step": int(step)}
@@ -405,9 +373,7 @@ class MetricsLogger:
     def log_eval(self, row: dict[str, Any]) -> None:
         if self._tb is not None:
             for k in ("success", "return", "q_data", "q_uniform"):
-                v = row.get(k)
-                if isinstance(v, (int, float)):
-                    self._tb.add_scalar(f"eval/{k}", v, row["env_step"])
+                self._tb.add_scalar(f"eval/{k}", row.get(k), row["env_step"])
         if self._wandb is not None:
             self._wandb_log({f"eval/{k}": row[k] for k in ("success", "return", "q_data", "q_uniform")}
                             | {"eval/env_step": row["env_step"], "env_step": row["env_step"]})
@@ -415,8 +381,8 @@ class MetricsLogger:
     def truncate(self, stage: str, max_step: int) -> None:
         """Drop rows of ``stage`` logged after ``max_step`` (they are redone after a resume)."""
         c, j = self._logs(stage)
-        c.truncate(lambda r: _num(r.get("step")) <= max_step)
-        j.truncate(lambda r: _num(r.get("step")) <= max_step)
+        c.truncate(lambda r: number(r.get("step")) <= max_step)
+        j.truncate(lambda r: number(r.get("step")) <= max_step)
 
     def close(self) -> None:
         if self._tb is not None:
@@ -433,7 +399,8 @@ def _scalar(v: Any) -> Any:
     return v
 
 
-def _num(v: Any) -> float:
+def number(v: Any) -> float:
+    """A log row's value as a number; inf for what is none (a row cut by a kill comes after every step)."""
     try:
         return float(v)
     except (TypeError, ValueError):

@@ -1,13 +1,14 @@
 """Drive a run: the method's stages in order, checkpoints, resume, evaluation, summary.
 
-``execute(cfg, run_dir, d_offline_raw, resume=...)`` is what ``botorl run`` and ``botorl
-resume`` call after the config is resolved and validated and the offline data are loaded
-(so a bad configuration or a missing dataset fails before any work and before a run
+``execute(cfg, member_cfgs, root, runs, d_offline_raw, resume=...)`` is what ``botorl run`` and
+``botorl resume`` call after the config is resolved and validated and the offline data are
+loaded (so a bad configuration or a missing dataset fails before any work and before a run
 directory exists).
 """
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import sys
@@ -17,18 +18,22 @@ from typing import Any
 
 import numpy as np
 
+from botorl.agents import checkpoint as agent_ckpt
 from botorl.agents import population as AP
-from botorl.configs.members import Member, member_config  # noqa: F401 (importers of runner.member_config)
+from botorl.configs.members import Member
 from botorl.configs.methods import get_method
 from botorl.configs.schema import RunConfig, run_identity, to_dict
 from botorl.data.dataset import Dataset, RewardTransform
+from botorl.data.dataset import validate as validate_dataset
+from botorl.data.tasks import load_task_data
+from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDivergedError
-from botorl.io import atomic_write_json
+from botorl.io import atomic_write_bytes, atomic_write_json
 from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
-from botorl.pipeline.rundir import EVAL_COLUMNS, CsvLog, MetricsLogger, RunDir
+from botorl.pipeline.rundir import EVAL_COLUMNS, POPULATION_FILE, CsvLog, MetricsLogger, RunDir, number, read_json
 
 _DS_FIELDS = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends", "mc_returns")
 
@@ -36,9 +41,6 @@ _DS_FIELDS = ("observations", "actions", "rewards", "next_observations", "termin
 # ---------------------------------------------------------------------------- data
 def load_offline(cfg: RunConfig, spec) -> Dataset:
     """The task's offline data with raw rewards; generated tasks are made when missing."""
-    from botorl.data.dataset import validate as validate_dataset
-    from botorl.data.tasks import load_task_data
-
     if spec.dataset_source.kind == "generated" and cfg.data.path is None:
         if cfg.data.demos:
             # the door generator reads the demos from this variable (botorl.data.generators.door)
@@ -51,9 +53,7 @@ def load_offline(cfg: RunConfig, spec) -> Dataset:
                 )
             os.environ["BOTORL_DOOR_DEMOS"] = str(demos.resolve())
         ds = load_task_data(spec, None, steps=cfg.data.steps, seed=cfg.data.seed, progress=cfg.progress)
-    elif spec.dataset_source.kind == "user":  # a user's task: its actions checked against the env's box
-        ds = load_task_data(spec, cfg.data.path, action_tolerance=cfg.data.action_tolerance)
-    else:
+    else:  # a user's task: its actions checked against the env's box, as every dataset's
         ds = load_task_data(spec, cfg.data.path, action_tolerance=cfg.data.action_tolerance)
     return validate_dataset(ds, obs_dim=spec.obs_dim, action_dim=spec.action_dim,
                             action_tolerance=cfg.data.action_tolerance)
@@ -80,10 +80,7 @@ def _dataset_arrays(ds: Dataset) -> dict[str, np.ndarray]:
 
 
 def _dataset_from_arrays(arrays: dict[str, np.ndarray], source: str) -> Dataset:
-    return Dataset(
-        arrays["observations"], arrays["actions"], arrays["rewards"], arrays["next_observations"],
-        arrays["terminals"], arrays["episode_ends"], arrays.get("mc_returns"), metadata={"source": source},
-    )
+    return Dataset(**{k: arrays.get(k) for k in _DS_FIELDS}, metadata={"source": source})
 
 
 # ---------------------------------------------------------------------------- context
@@ -100,53 +97,24 @@ class MemberRun:
         self.error: str | None = None  # set when this member diverged (the others go on)
 
 
-class Layout:
-    """How a population's checkpoints are written. A single run (a population of one) keeps the
-    single-run format of CONTRACTS.md "Runs" in its own run directory: the member's own agent,
-    its generator state and counters as plain values, D_warmup as ``warmup.npz``. A larger
-    population keeps one checkpoint of the stacked members in its own directory, with
-    per-member lists and ``warmup-m<i>.npz``, and at every stage end also each member's own
-    agent in the member's run directory (so `botorl eval MEMBER_DIR` reads it)."""
-
-    def __init__(self, single: bool):
-        self.single = single
-
-    def checkpoints(self, root: Path, member_runs: list[RunDir]) -> Path:
-        return (member_runs[0] if self.single else RunDir(root)).checkpoints
-
-    def agent(self, agents):
-        """What agent.ckpt holds: the member's own agent, or the stacked population."""
-        return AP.member_of(agents, 0) if self.single else agents
-
-    def load(self, path: Path, like):
-        from botorl.agents import checkpoint as agent_ckpt
-
-        return AP.stack([agent_ckpt.load(path, like=AP.member_of(like, 0))]) if self.single else \
-            agent_ckpt.load(path, like=like)
-
-    def values(self, x):
-        """Per-member lists (alone, or as the values of a dict) as a single run stores them: its item."""
-        if isinstance(x, dict):
-            return {k: self.values(v) for k, v in x.items()}
-        return x[0] if self.single and isinstance(x, list) else x
-
-    def warmup_keys(self, n: int) -> list[str]:
-        return ["warmup"] if self.single else [f"warmup-m{i}" for i in range(n)]
-
-
 class RunContext:
     """What the stages share: the population's members (a single run: one; each its config,
     run directory and logs), the method and task, the offline data (held once) and its probe,
-    evaluation, the divergence check, and the checkpoints of the whole population (``layout``).
+    evaluation, the divergence check, and the checkpoints of the whole population.
 
     ``cfg`` is the population's config (its members' configs differ in seed and alpha only);
-    ``members[i].cfg`` is member i's."""
+    ``members[i].cfg`` is member i's. A single run (a population of one in its own run
+    directory) keeps the single-run checkpoint format of CONTRACTS.md "Runs": the member's own
+    agent, its generator state and counters as plain values, D_warmup as ``warmup.npz``. A
+    larger population keeps one checkpoint of the stacked members in its own directory, with
+    per-member lists and ``warmup-m<i>.npz``, and at every stage end also each member's own
+    agent in the member's run directory (so `botorl eval MEMBER_DIR` reads it)."""
 
-    def __init__(self, cfg: RunConfig, spec, root: Path, members: list[MemberRun], d_offline: Dataset, state: dict,
-                 layout: Layout):
+    def __init__(self, cfg: RunConfig, spec, root: Path, members: list[MemberRun], d_offline: Dataset, state: dict):
         self.cfg, self.method, self.spec = cfg, get_method(cfg.method), spec
-        self.root, self.members, self.n, self.layout = Path(root), members, len(members), layout
-        self.ckpt = CheckpointManager(layout.checkpoints(root, [m.run for m in members]))
+        self.root, self.members, self.n = Path(root), members, len(members)
+        self.single = members[0].run.root == self.root
+        self.ckpt = CheckpointManager(RunDir(root).checkpoints)
         self.d_offline = d_offline
         self.probe = QProbe(d_offline.observations, d_offline.actions, seed=12345, size=cfg.eval.q_pairs)
         self.state = state  # done_stages, stage_seconds
@@ -167,23 +135,20 @@ class RunContext:
     def check(self, stage: str, step: int, ms: list[dict[str, float]]) -> None:
         """Each live member's metrics must be finite: a population of one raises (the last good
         checkpoint stays); in a larger one a diverged member is marked failed and the rest go on."""
-        bad = [{k: v for k, v in m.items() if not math.isfinite(v)} for m in ms]
-        if self.n == 1:
-            if bad and bad[0]:
+        bad = [", ".join(f"{k} = {v}" for k, v in sorted(m.items()) if not math.isfinite(v)) for m in ms]
+        diverged = f"training diverged in stage {stage!r} near step {step}: "
+        for i, b in enumerate(bad):
+            if not b or i in self.failed:
+                continue
+            if self.n == 1:
                 last = self.ckpt.latest()
                 where = f"checkpoint {last['name']}" if last else "no checkpoint yet"
                 raise TrainingDivergedError(
-                    f"training diverged in stage {stage!r} near step {step}: "
-                    + ", ".join(f"{k} = {v}" for k, v in sorted(bad[0].items()))
-                    + f". The last good state is kept ({where} in {self.ckpt.root}). Lower the learning rates "
-                    f"(e.g. --offline.cql.critic_lr, --online.sac.critic_lr), check the data's reward scale, or run "
-                    f"another seed; `botorl resume` would start again from that checkpoint.")
-            return
-        for i, b in enumerate(bad):
-            if b and i not in self.failed:
-                self.fail_member(i, f"training diverged in stage {stage!r} near step {step}: "
-                                 + ", ".join(f"{k} = {v}" for k, v in sorted(b.items()))
-                                 + ". The other members went on. Lower the learning rates or run another seed.")
+                    f"{diverged}{b}. The last good state is kept ({where} in {self.ckpt.root}). Lower the "
+                    f"learning rates (e.g. --offline.cql.critic_lr, --online.sac.critic_lr), check the data's reward "
+                    f"scale, or run another seed; `botorl resume` would start again from that checkpoint.")
+            self.fail_member(i, f"{diverged}{b}. The other members went on. Lower the learning rates or run another "
+                                f"seed.")
         if len(self.failed) == self.n:
             raise TrainingDivergedError(
                 f"every member of the population diverged (stage {stage!r}, near step {step}); each member's "
@@ -228,12 +193,22 @@ class RunContext:
     # -- checkpoints
     def load_agents(self, name: str, like):
         """The population's agents saved under ``name`` (``like``: a stacked template)."""
-        return self.layout.load(self.ckpt.file(name, "agent.ckpt"), like)
+        path = self.ckpt.file(name, "agent.ckpt")
+        if self.single:  # the member's own agent
+            return AP.stack([agent_ckpt.load(path, like=AP.member_of(like, 0))])
+        return agent_ckpt.load(path, like=like)
+
+    def _stored(self, x):
+        """Per-member lists (alone, or as the values of a dict) as a single run stores them: its item."""
+        if isinstance(x, dict):
+            return {k: self._stored(v) for k, v in x.items()}
+        return x[0] if self.single and isinstance(x, list) else x
+
+    def warmup_keys(self) -> list[str]:
+        return ["warmup"] if self.single else [f"warmup-m{i}" for i in range(self.n)]
 
     def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None,
               documents=None):
-        from botorl.agents import checkpoint as agent_ckpt
-
         state = {
             "identity": [run_identity(mc.cfg) for mc in self.members],
             "stage": stage,
@@ -241,14 +216,14 @@ class RunContext:
             "stage_done": done,
             "done_stages": list(self.state["done_stages"]),
             "stage_seconds": self.stage_seconds(),
-            "np_rng": self.layout.values(np_rng),
-            "extra": self.layout.values(extra or {}),
+            "np_rng": self._stored(np_rng),
+            "extra": self._stored(extra or {}),
             "failed": {str(i): self.members[i].error for i in sorted(self.failed)},
             "time": time.time(),
         }
-        self.ckpt.save(name, state=state, agent=self.layout.agent(agents), save_agent=agent_ckpt.save, arrays=arrays,
-                       documents=documents)
-        if not self.layout.single and done:
+        self.ckpt.save(name, state=state, agent=AP.member_of(agents, 0) if self.single else agents,
+                       save_agent=agent_ckpt.save, arrays=arrays, documents=documents)
+        if not self.single and done:
             # each member's own agent in its run directory, for `botorl eval MEMBER_DIR`
             for i, mc in enumerate(self.members):
                 CheckpointManager(mc.run.checkpoints).save(
@@ -279,9 +254,8 @@ class RunContext:
         return [(float(q_d[i].mean()), float(q_u[i].mean())) for i in range(self.n)]
 
     def log_q(self, stage: str, step: int, agents) -> None:
-        for i, (q_data, q_uniform) in enumerate(self.q_stats(agents)):
-            if i not in self.failed:
-                self.members[i].q_log.append({"stage": stage, "step": step, "q_data": q_data, "q_uniform": q_uniform})
+        for mc, (q_data, q_uniform) in self.live(self.q_stats(agents)):
+            mc.q_log.append({"stage": stage, "step": step, "q_data": q_data, "q_uniform": q_uniform})
 
     def evaluate(self, agents, env_step: int) -> list[dict[str, Any]]:
         """All members' evaluation episodes, one batched policy call per env step; a row per member."""
@@ -302,10 +276,9 @@ class RunContext:
         unchanged policies, which deterministic episodes from the same seeds would repeat)."""
         if env_step is not None:
             rows = [dict(r, env_step=int(env_step)) for r in rows]
-        for i, (mc, row) in enumerate(zip(self.members, rows)):
-            if i not in self.failed:
-                mc.eval_log.append(row)
-                mc.logger.log_eval(row)
+        for mc, row in self.live(rows):
+            mc.eval_log.append(row)
+            mc.logger.log_eval(row)
         return rows
 
     def close(self) -> None:
@@ -322,7 +295,7 @@ class RunContext:
         if i in self.failed:
             status, error = "failed", mc.error
         summary = build_summary(mc.cfg, mc.run, status, self.stage_seconds(), error)
-        if not self.layout.single:
+        if not self.single:
             summary["population"] = str(self.root)
         atomic_write_json(mc.run.summary, summary)
         return summary
@@ -330,13 +303,10 @@ class RunContext:
     def write_summary(self, status: str, error: str | None = None) -> dict[str, Any]:
         """Every member's summary.json (and a population's population.json); returns member 0's."""
         out = [self.write_member_summary(i, status, error) for i in range(self.n)]
-        if not self.layout.single:
+        if not self.single:
             write_population_file(self.root, self.cfg, [mc.cfg for mc in self.members], status,
                                   [s["status"] for s in out], self.stage_seconds(), error)
         return out[0]
-
-
-POPULATION_FILE = "population.json"
 
 
 def write_population_file(root: Path, cfg: RunConfig, member_cfgs: list[RunConfig], status: str,
@@ -374,8 +344,7 @@ def _eval_rows(run: RunDir) -> list[dict[str, float]]:
 
 def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict, error: str | None = None) -> dict:
     rows = _eval_rows(run)
-    at = {r["env_step"]: r for r in rows}
-    initial = at.get(0)
+    initial = {r["env_step"]: r for r in rows}.get(0)
     after_10k = [r for r in rows if r["env_step"] >= 10_000]
     final = rows[-1] if rows else None
     out = {
@@ -408,24 +377,13 @@ def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict,
 
 
 # ---------------------------------------------------------------------------- the run
-def _template(cfg, stage: str, d: Dataset):
-    if stage == "finetune":
-        return S.make_online_agent_template(cfg, d.obs_dim, d.action_dim, cfg.seed)
-    return S.make_pretrain_agent(cfg, d.obs_dim, d.action_dim, cfg.seed)
-
-
 def _templates(member_cfgs: list[RunConfig], stage: str, d: Dataset):
-    return AP.stack([_template(c, stage, d) for c in member_cfgs])
+    return AP.stack([S.agent_template(c, stage, d.obs_dim, d.action_dim, c.seed) for c in member_cfgs])
 
 
-def execute(cfg: RunConfig, run: RunDir, d_offline_raw: Dataset, *, resume: bool = False) -> dict[str, Any]:
-    """One run: a population of one member, in the run directory ``run``. Returns its summary."""
-    return execute_population(cfg, [cfg], run.root, [run], d_offline_raw, resume=resume, single=True)[0]
-
-
-def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig]):
+def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig], resume: bool):
     """(the newest checkpoint, {done_stages, stage_seconds}, failed members, the mid-stage point or None)."""
-    latest = ckpt.latest()
+    latest = ckpt.latest() if resume else None
     if latest is None:
         return None, {"done_stages": [], "stage_seconds": {}}, {}, None
     st = ckpt.state(latest["name"])
@@ -436,19 +394,19 @@ def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig]):
         st.get("failed") or {}, mid
 
 
-def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | None, member_cfgs: list[RunConfig]):
+def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | None):
     """One stage of the method: (agents, D_warmups, the arrays its end-of-stage checkpoint keeps)."""
-    cfg, arrays = ctx.cfg, None
+    cfg, arrays, member_cfgs = ctx.cfg, None, [mc.cfg for mc in ctx.members]
     if stage == "pretrain":
         if cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
-            agents = shared_pretrain.load(ctx, member_cfgs, shared_pretrain.match(member_cfgs, cfg.pretrained))
+            agents = shared_pretrain.load(ctx, shared_pretrain.match(member_cfgs, cfg.pretrained))
         else:
             agents = S.pretrain(ctx, resume)
         ctx.log_q("pretrain", cfg.offline.steps, agents)
     elif stage == "warmup":
         d_warmups, agents = S.warmup(ctx, agents)
         if d_warmups is not None:
-            arrays = {k: _dataset_arrays(d) for k, d in zip(ctx.layout.warmup_keys(ctx.n), d_warmups)}
+            arrays = {k: _dataset_arrays(d) for k, d in zip(ctx.warmup_keys(), d_warmups)}
     elif stage == "boto":
         if resume is not None and agents is None:
             agents = _templates(member_cfgs, "boto", ctx.d_offline)
@@ -461,26 +419,23 @@ def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | No
     return agents, d_warmups, arrays
 
 
-def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_runs: list[RunDir],
-                       d_offline_raw: Dataset, *, resume: bool = False, single: bool = False) -> list[dict[str, Any]]:
+def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_runs: list[RunDir],
+            d_offline_raw: Dataset, *, resume: bool = False) -> list[dict[str, Any]]:
     """Train the members (configs that differ in seed and alpha only) as one population.
 
-    ``root`` holds the population's checkpoints (a single run: its own run directory);
-    ``member_runs[i]`` is member i's ordinary run directory. Returns every member's summary."""
-    from botorl.envs.registry import get_task
-
-    spec, method, layout = get_task(cfg.task), get_method(cfg.method), Layout(single)
-    root = Path(root)
+    ``root`` holds the population's checkpoints; ``member_runs[i]`` is member i's ordinary run
+    directory (a single run: one member, whose run directory is ``root``). Returns every
+    member's summary."""
+    spec, method, root = get_task(cfg.task), get_method(cfg.method), Path(root)
     root.mkdir(parents=True, exist_ok=True)
     d_offline = transform_dataset(cfg, spec, d_offline_raw)
-    ckpt = CheckpointManager(layout.checkpoints(root, member_runs))
-    latest, state, failed, mid = _resume_point(ckpt, member_cfgs) if resume else (None, {"done_stages": [], "stage_seconds": {}},
-                                                                      {}, None)
+    ckpt = CheckpointManager(RunDir(root).checkpoints)
+    latest, state, failed, mid = _resume_point(ckpt, member_cfgs, resume)
     wandb_runs = tracking.start(member_cfgs, member_runs)  # one W&B run per member (None: no --wandb)
     members = [MemberRun(c, r, w) for c, r, w in zip(member_cfgs, member_runs, wandb_runs)]
     for i, err in failed.items():
         members[int(i)].error = err
-    ctx = RunContext(cfg, spec, root, members, d_offline, state, layout)
+    ctx = RunContext(cfg, spec, root, members, d_offline, state)
     for mc in members:
         _truncate_logs(mc, method.stages, mid, state["done_stages"])
     if latest is not None:
@@ -495,41 +450,36 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
                 last = state["done_stages"][-1]
                 agents = ctx.load_agents(checkpoint_name(last, None), _templates(member_cfgs, last, d_offline))
             if "warmup" in state["done_stages"]:
-                d_warmups = _load_warmups(ckpt, layout.warmup_keys(len(members)))
+                d_warmups = _load_warmups(ckpt, ctx.warmup_keys())
             for stage in method.stages:
                 if stage in state["done_stages"]:
                     continue
                 if preempt.requested():  # between two stages: the last one's final checkpoint is the point
                     raise preempt.interrupted()
                 ctx.begin_stage(stage)
-                agents, d_warmups, arrays = _run_stage(ctx, stage, agents, d_warmups,
-                                                       mid if (mid is not None and mid["stage"] == stage) else None,
-                                                       member_cfgs)
+                resume_at = mid if (mid is not None and mid["stage"] == stage) else None
+                agents, d_warmups, arrays = _run_stage(ctx, stage, agents, d_warmups, resume_at)
                 ctx.end_stage()
                 state["done_stages"].append(stage)
                 ctx.save_stage_end(stage, agents, arrays=arrays)
-    except Interrupted as err:
+    except BaseException as err:  # a signal, a divergence, a Ctrl-C or a bug: the run can be resumed
         ctx.end_stage()
-        ctx.write_summary("interrupted")
+        if isinstance(err, Interrupted):
+            ctx.write_summary("interrupted")
+        elif isinstance(err, TrainingDivergedError):
+            ctx.write_summary("failed", error=str(err))
+            _finish_outputs(ctx)
+        else:
+            ctx.write_summary("interrupted" if isinstance(err, KeyboardInterrupt) else "failed",
+                              error=f"{type(err).__name__}: {err}")
         ctx.close()
+        if not isinstance(err, Interrupted):
+            tracking.finish(wandb_runs, 1)
+            raise
         latest = ctx.ckpt.latest()
         err.checkpoint = latest["name"] if latest else None
         err.how = err.how or f"botorl resume {root}"
         tracking.finish(wandb_runs, 128 + err.signum, seconds=min(tracking.timeout(), 10.0))
-        raise
-    except TrainingDivergedError as err:
-        ctx.end_stage()
-        ctx.write_summary("failed", error=str(err))
-        _finish_outputs(ctx)
-        ctx.close()
-        tracking.finish(wandb_runs, 1)
-        raise
-    except BaseException as err:  # an interrupt or a bug: the run can be resumed
-        ctx.end_stage()
-        status = "interrupted" if isinstance(err, KeyboardInterrupt) else "failed"
-        ctx.write_summary(status, error=None if status == "running" else f"{type(err).__name__}: {err}")
-        ctx.close()
-        tracking.finish(wandb_runs, 1)
         raise
     ctx.write_summary("finished")
     summaries = [read_summary(mc.run) for mc in members]
@@ -540,8 +490,6 @@ def execute_population(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path,
 
 
 def read_summary(run: RunDir) -> dict[str, Any]:
-    from botorl.pipeline.rundir import read_json
-
     try:
         summary = read_json(run.summary)
     except (OSError, ValueError) as err:
@@ -564,21 +512,15 @@ def _load_warmups(ckpt: CheckpointManager, keys: list[str]) -> list[Dataset] | N
 
 def _truncate_logs(mc: "MemberRun", stages: tuple[str, ...], mid: dict | None, done: list[str]) -> None:
     """Forget a member's log rows written after the checkpoint a resume starts from."""
-    def num(r, key):
-        try:
-            return float(r.get(key))
-        except (TypeError, ValueError):
-            return math.inf
+    def kept(stage: str) -> int:  # the last step of a stage's logs that stays: its mid-stage checkpoint's
+        return int(mid["step"]) if (mid is not None and mid["stage"] == stage) else -1
 
     for stage in stages:
-        if stage in done:
-            continue
-        keep_to = int(mid["step"]) if (mid is not None and mid["stage"] == stage) else -1
-        mc.logger.truncate(stage, keep_to)
-    ft_keep = int(mid["step"]) if (mid is not None and mid["stage"] == "finetune") else -1
+        if stage not in done:
+            mc.logger.truncate(stage, kept(stage))
     if "finetune" not in done:
         # evaluations of finished stages (the warm-up's) stay; fine-tuning's up to its checkpoint
-        mc.eval_log.truncate(lambda r: r.get("stage") in done or num(r, "env_step") <= ft_keep)
+        mc.eval_log.truncate(lambda r: r.get("stage") in done or number(r.get("env_step")) <= kept("finetune"))
     mc.q_log.truncate(lambda r: r.get("stage") in done)
 
 
@@ -615,24 +557,32 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
     ax.set_title(f"{cfg.task} / {cfg.method} / seed {cfg.seed}")
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    import io
-
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    from botorl.io import atomic_write_bytes
-
     atomic_write_bytes(run.curve, buf.getvalue())
     return run.curve
 
 
-def format_summary(summary: dict) -> str:
-    def f(v):
-        return "-" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))
+def _f(v) -> str:
+    return "-" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))
 
+
+def format_population(summaries: list[dict]) -> str:
+    lines = [f"{'member':<22} {'status':<9} {'initial':>8} {'10k':>8} {'final':>8}  run directory"]
+    for s in summaries:
+        name = Path(s["run_dir"]).name
+        lines.append(f"{name:<22} {s['status']:<9} {_f(s['success_initial']):>8} {_f(s['success_10k']):>8} "
+                     f"{_f(s['success_final']):>8}  {s['run_dir']}")
+    secs = summaries[0].get("stage_seconds", {}) if summaries else {}
+    lines.append("stage seconds (whole population): " + ", ".join(f"{k} {v:.1f}" for k, v in secs.items()))
+    return "\n".join(lines)
+
+
+def format_summary(summary: dict) -> str:
     lines = [
-        f"task {summary['task']}  method {summary['method']}  seed {summary['seed']}  alpha {f(summary['alpha'])}  "
-        f"pretrain {f(summary['pretrain'])}  profile {summary.get('profile')}  status {summary['status']}",
+        f"task {summary['task']}  method {summary['method']}  seed {summary['seed']}  alpha {_f(summary['alpha'])}  "
+        f"pretrain {_f(summary['pretrain'])}  profile {summary.get('profile')}  status {summary['status']}",
         "",
         f"{'stage':<10} {'seconds':>9}",
     ]
@@ -642,10 +592,10 @@ def format_summary(summary: dict) -> str:
     lines += [
         "",
         f"{'success':<10} {'initial':>8} {'10k':>8} {'final':>8}",
-        f"{'':<10} {f(summary['success_initial']):>8} {f(summary['success_10k']):>8} {f(summary['success_final']):>8}",
-        (f"(10k = eval at env step {summary['env_step_10k']}, final = {f(summary.get('env_step_final'))})"
+        f"{'':<10} {_f(summary['success_initial']):>8} {_f(summary['success_10k']):>8} {_f(summary['success_final']):>8}",
+        (f"(10k = eval at env step {summary['env_step_10k']}, final = {_f(summary.get('env_step_final'))})"
          if summary.get("env_step_10k") is not None else
-         f"(no evaluation at 10k: the run ends at env step {f(summary.get('env_step_final'))})"),
+         f"(no evaluation at 10k: the run ends at env step {_f(summary.get('env_step_final'))})"),
         f"run directory: {summary['run_dir']}",
     ]
     if summary.get("success_off"):

@@ -14,13 +14,18 @@ one and the first setting in which it differs.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import sys
 from pathlib import Path
 from typing import Any
 
+from botorl.agents import checkpoint as agent_ckpt
+from botorl.agents.population import stack
+from botorl.configs.schema import RunConfig, from_dict, to_dict
 from botorl.errors import ConfigError
+from botorl.io import atomic_write_bytes, read_bounded_bytes
+from botorl.pipeline.rundir import LOG_LIMIT, read_json
+from botorl.pipeline.stages import make_pretrain_agent
 
 PRETRAIN_FINAL = "pretrain-final"
 # settings that change what is logged, not what is learned
@@ -29,8 +34,6 @@ _NOT_LEARNED = {("offline", "log_every")}
 
 def fingerprint(cfg) -> dict[str, Any]:
     """The settings that decide a member's pre-trained agent."""
-    from botorl.configs.schema import to_dict
-
     return fingerprint_of(to_dict(cfg))
 
 
@@ -42,7 +45,7 @@ def fingerprint_of(d: dict[str, Any]) -> dict[str, Any]:
 
 
 def _key(fp: dict) -> str:
-    return hashlib.sha256(json.dumps(fp, sort_keys=True, default=str).encode()).hexdigest()
+    return json.dumps(fp, sort_keys=True, default=str)
 
 
 def _first_difference(a: Any, b: Any, path: str = "") -> str | None:
@@ -57,9 +60,6 @@ def _first_difference(a: Any, b: Any, path: str = "") -> str | None:
 
 def candidates(directory: str | Path) -> list[tuple[Path, dict]]:
     """(run directory, its fingerprint) for every run under ``directory`` with a finished pre-training."""
-    from botorl.configs.schema import RunConfig, from_dict
-    from botorl.pipeline.rundir import read_json
-
     root = Path(directory).expanduser()
     if not root.is_dir():
         raise ConfigError(f"--pretrained {directory}: no such directory. Point it at a run, population or sweep "
@@ -106,23 +106,16 @@ def match(member_cfgs, directory: str | Path, *, strict: bool = True) -> list[Pa
     return out
 
 
-def load(ctx, member_cfgs, sources: list[Path]):
+def load(ctx, sources: list[Path]):
     """The members' pre-trained agents (stacked), with each source's pre-training logs copied
     into the member's run directory so its metrics read as if it had pre-trained itself."""
-    from botorl.agents import checkpoint as agent_ckpt
-    from botorl.agents.population import stack
-    from botorl.pipeline.stages import make_pretrain_agent
-
     d = ctx.d_offline
     agents = []
-    for cfg, src, mc in zip(member_cfgs, sources, ctx.members):
-        like = make_pretrain_agent(cfg, d.obs_dim, d.action_dim, cfg.seed)
+    for src, mc in zip(sources, ctx.members):
+        like = make_pretrain_agent(mc.cfg, d.obs_dim, d.action_dim, mc.cfg.seed)
         agents.append(agent_ckpt.load(str(src / "checkpoints" / PRETRAIN_FINAL / "agent.ckpt"), like=like))
         for name in ("pretrain.csv", "pretrain.jsonl"):
             if (src / "metrics" / name).is_file() and src.resolve() != mc.run.root.resolve():
-                from botorl.io import atomic_write_bytes, read_bounded_bytes
-                from botorl.pipeline.rundir import LOG_LIMIT
-
                 try:
                     atomic_write_bytes(mc.run.metrics / name, read_bounded_bytes(src / "metrics" / name, LOG_LIMIT))
                 except ValueError as err:  # not a regular file, or a huge one: the logs only, not the run

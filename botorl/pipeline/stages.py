@@ -5,36 +5,24 @@
     boto(ctx, agents, d_warmups)        -> agents     BOTO critic training on D_offline u D_warmup
     finetune(ctx, agents, d_warmups)    -> agents     online learning (WSRL / continued / scratch)
 
-Every stage runs a population (botorl/agents/population.py): ``agents`` is the members' agent
-pytrees stacked on a leading axis, ``d_warmups`` one D_warmup per member, and every update,
-policy call and evaluation is ONE jitted call for all members. A single run is a population
-of one, on this same path (its calls are then the agent's own jitted functions). Members run
-in lockstep on the same step counts; each draws its batches, actions, env seeds and noise
-from streams seeded by its own seed only (``ctx.members[i].cfg``), so a member's numbers do
-not depend on the others.
+Every stage runs a population (botorl/agents/population.py; a single run is a population of
+one on this same path): ``agents`` is the members' agent pytrees stacked on a leading axis,
+``d_warmups`` one D_warmup per member, and every update, policy call and evaluation is ONE
+jitted call for all members. Members run in lockstep on the same step counts; each draws its
+batches, actions, env seeds and noise from streams seeded by its own seed only
+(``ctx.members[i].cfg``), so a member's numbers do not depend on the others.
 
-``ctx`` (RunContext, runner.py) holds the config, the method, the task, the members' logs,
-the transformed offline data, evaluation and the checkpoints. Each stage checkpoints at its
-end (the runner does that) and pre-training, BOTO and fine-tuning every ``checkpoint_every``
-steps inside; log, checkpoint and evaluation points are functions of the step alone
-(``Schedule``). Given ``resume`` (the state of a mid-stage checkpoint) a stage continues from
-it exactly: a mid-stage checkpoint holds everything that decides the stage's future (agents
-with their JAX keys, every NumPy generator, and for fine-tuning its whole ``OnlineState``:
-the replay buffer, each env's full state mid-episode, the episode counters, the metric
-windows, the evaluation schedule). The warm-up has no mid-stage checkpoint: it is short, and a
-resume after a kill inside it runs it again from its start, which gives the same D_warmup
-(its envs, seeds and the policy's key come from the pre-training checkpoint and the member's
-seed). tests/test_reliability_resume.py checks that a resumed run's eval.csv, summary and
-metrics equal an uninterrupted run's.
-
-Preemption (pipeline/preempt.py): under a command that handles SIGTERM / SIGINT each stage
-checks at its step boundaries whether one arrived; if so it writes the checkpoint of that
-step (with the metrics window since the last log point) and raises ``Interrupted``.
-
-Divergence: every stage checks each member's losses for NaN/inf before each checkpoint and
-at each log point (``ctx.check``). A population of one raises TrainingDivergedError there
-without writing a checkpoint, so the last good one stays; in a larger population that member
-is marked failed (its summary says why) and the others go on, unless none is left.
+``ctx`` (RunContext, runner.py) holds the members and their logs, the method, the task, the
+transformed offline data, evaluation and the checkpoints. Log, checkpoint and evaluation
+points are functions of the step alone (``Schedule``). Pre-training, BOTO and fine-tuning
+write a mid-stage checkpoint every ``checkpoint_every`` steps, and at the step where a
+SIGTERM / SIGINT arrived (pipeline/preempt.py; with the metrics window since the last log
+point), then raise ``Interrupted``. A checkpoint holds everything that decides the stage's
+future (agents with their JAX keys, every NumPy generator, fine-tuning's whole
+``OnlineState``), so a stage given ``resume`` continues from it exactly
+(tests/test_reliability_resume.py). The warm-up has none: it is short, and run again from its
+start it gives the same D_warmup. Before each checkpoint and at each log point every member's
+losses are checked for NaN/inf (``ctx.check``).
 """
 
 from __future__ import annotations
@@ -48,7 +36,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from botorl.agents import population as AP
+from botorl.agents.cql import CQLAgent
+from botorl.agents.iql import IQLAgent
+from botorl.agents.sac import SACAgent
 from botorl.boto.phase import train_boto
+from botorl.configs.methods import get_method
 from botorl.data.dataset import Dataset
 from botorl.errors import ConfigError
 from botorl.pipeline import faults, preempt
@@ -60,29 +52,20 @@ STAGES = ("pretrain", "warmup", "boto", "finetune")
 # ---------------------------------------------------------------------------- agents
 def make_pretrain_agent(cfg, obs_dim: int, action_dim: int, seed: int):
     if cfg.pretrain == "iql":
-        from botorl.agents.iql import IQLAgent
-
         return IQLAgent.create(cfg.offline.iql, obs_dim, action_dim, seed)
-    from botorl.agents.cql import CQLAgent
-
     return CQLAgent.create(cfg.offline.cql, obs_dim, action_dim, seed)
 
 
-def make_online_agent_template(cfg, obs_dim: int, action_dim: int, seed: int):
-    """An agent with the structure of the fine-tuning learner (for checkpoint loading)."""
-    from botorl.configs.methods import get_method
-
-    if get_method(cfg.method).finetune_start == "continue":
+def agent_template(cfg, stage: str, obs_dim: int, action_dim: int, seed: int):
+    """An agent with the structure a checkpoint of ``stage`` holds (for loading it): the
+    fine-tuning learner in fine-tuning, the pre-training agent before."""
+    if stage != "finetune" or get_method(cfg.method).finetune_start == "continue":
         return make_pretrain_agent(cfg, obs_dim, action_dim, seed)
-    from botorl.agents.sac import SACAgent
-
     return SACAgent.create(cfg.online.sac, obs_dim, action_dim, seed)
 
 
 def start_finetuning(ctx, agents):
     """The fine-tuning learners, as the method starts them (``Method.finetune_start``)."""
-    from botorl.agents.sac import SACAgent
-
     oc, start = ctx.cfg.online, ctx.method.finetune_start
     if start == "warm_start":
         # WSRL's warm start: SAC (10 critics) from the pre-trained (or BOTO-trained) networks.
@@ -183,6 +166,20 @@ class Rate:
         return rate
 
 
+def step_end(stage: str, step: int, total: int, due: Points, save: Callable[[bool], None]) -> None:
+    """What ends every step of a stage: the checkpoint the schedule asks for (``save(False)``),
+    the fault-injection point, and, once a SIGTERM / SIGINT has arrived, the checkpoint of this
+    very step (``save(True)``: with the metrics window since the last log point; none twice) and
+    ``Interrupted``. A resume from it is exact: what comes next follows from the step."""
+    if due.checkpoint:
+        save(False)
+    faults.step(stage, step)
+    if step < total and preempt.requested():
+        if not due.checkpoint:
+            save(True)
+        raise preempt.interrupted()
+
+
 def pretrain_groups(members) -> tuple[list[int], list[int]]:
     """(the first member of each seed, each member's index into that list)."""
     first: dict[int, int] = {}
@@ -223,6 +220,12 @@ def pretrain(ctx, resume: dict | None = None):
     if resume is not None:
         window.load(ctx.ckpt.arrays(resume["name"], "window"))
     shared = f" x {len(reps)} seeds for {ctx.n} members" if len(reps) < ctx.n else f" x {ctx.n} members"
+
+    def save(interrupted: bool) -> None:
+        w = window.state_dict() if interrupted else None
+        ctx.save_mid("pretrain", step, agents, np_rng=[r.bit_generator.state for r in rngs],
+                     arrays={"window": w} if w else None)
+
     with ctx.bar(oc.steps, step, f"pretrain ({cfg.pretrain})" + (shared if ctx.n > 1 else "")) as bar:
         while step < oc.steps:
             # chunk ends at the next checkpoint boundary so that checkpoints land on multiples
@@ -245,15 +248,7 @@ def pretrain(ctx, resume: dict | None = None):
                     ctx.log("pretrain", step, [{**m, "steps_per_s": steps_per_s} for m in ms])
                     bar.set_postfix(loss=f"{ms[0].get('critic_loss', float('nan')):.3g}",
                                     q=f"{ms[0].get('q_data', float('nan')):.3g}")
-            if due.checkpoint:
-                ctx.save_mid("pretrain", step, agents, np_rng=[r.bit_generator.state for r in rngs])
-            faults.step("pretrain", step)
-            if step < oc.steps and preempt.requested():  # SIGTERM / SIGINT: stop here, resumable exactly
-                if not due.checkpoint:
-                    w = window.state_dict()
-                    ctx.save_mid("pretrain", step, agents, np_rng=[r.bit_generator.state for r in rngs],
-                                 arrays={"window": w} if w else None)
-                raise preempt.interrupted()
+            step_end("pretrain", step, oc.steps, due, save)
     if len(reps) < ctx.n:
         agents = jax.tree_util.tree_map(lambda x: x[np.asarray(group)], agents)
     return agents
@@ -350,13 +345,7 @@ def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = Non
         if due.log:
             secs = time.perf_counter() - t0
             ctx.log("boto", step, [{"seconds": secs, **m} for m in ms])
-        if due.checkpoint:
-            ctx.save_mid("boto", step, agents)
-        faults.step("boto", step)
-        if step < bc.boto_steps and preempt.requested():  # the batches follow from the step: exact
-            if not due.checkpoint:
-                ctx.save_mid("boto", step, agents)
-            raise preempt.interrupted()
+        step_end("boto", step, bc.boto_steps, due, lambda interrupted: ctx.save_mid("boto", step, agents))
 
     return train_boto(agents, ctx.d_offline, d_warmups or [None] * ctx.n, bc,
                       [mc.cfg.alpha for mc in ctx.members], [mc.cfg.online_seed for mc in ctx.members],
@@ -366,19 +355,14 @@ def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = Non
 # ---------------------------------------------------------------------------- stage 3
 def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = None):
     """Online learning, from the online step after the warm-up (0 for methods without one) to
-    ``online.steps``: act, step the envs, store, update; log, evaluate and checkpoint where the
-    schedule says. Evaluates when it starts, every ``eval.interval`` steps (and the dense dip
-    window's points) and at the end.
-
-    One online axis for every method: the warm-up's env steps are online steps (WSRL), so a
-    method with a 5,000-step warm-up fine-tunes for ``online.steps - 5,000`` env steps. Members
-    step their own envs in lockstep: one policy call for all per env step, one replay buffer
-    with a member axis (each member's rows its own), one batched UTD update. Everything but
-    the agents that decides what comes next is the ``OnlineState`` (pipeline/online.py),
-    saved and restored whole."""
+    ``online.steps``: one online axis for every method, the warm-up's env steps counted (WSRL).
+    Evaluates when it starts, every ``eval.interval`` steps (and the dense dip window's points)
+    and at the end. Everything but the agents that decides what comes next is the
+    ``OnlineState`` (pipeline/online.py: the members' envs stepped in lockstep, one replay
+    buffer with a member axis, one batched UTD update), saved and restored whole."""
     cfg, oc = ctx.cfg, ctx.cfg.online
     agents = start_finetuning(ctx, agents)
-    state = OnlineState.restore(ctx, resume, d_warmups) if resume is not None else OnlineState.begin(ctx, d_warmups)
+    state = OnlineState(ctx, d_warmups, resume)
     if resume is not None:
         agents = ctx.load_agents(resume["name"], agents)
     # where the updates keep them (a population's members split over the CPU devices), from the
@@ -409,11 +393,6 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
                 rows = ctx.evaluate(agents, state.step)
                 state.last_eval = state.step
                 bar.set_postfix(success=f"{rows[0]['success']:.2f}")
-            if due.checkpoint:
-                state.save(agents)
-            faults.step("finetune", state.step)
-            if state.step < oc.steps and preempt.requested():  # a periodic checkpoint's state, and the window
-                if not due.checkpoint:
-                    state.save(agents, window)
-                raise preempt.interrupted()
+            step_end("finetune", state.step, oc.steps, due,
+                     lambda interrupted: state.save(agents, window if interrupted else None))
     return agents

@@ -1,20 +1,12 @@
-"""Weights & Biases (``--wandb``): one W&B run per member, grouped as runs are compared.
+"""Weights & Biases (``--wandb``): one W&B run per run directory (docs/running.md lists the fields).
 
-* one W&B run per run directory (a single run's, each population member's, each sweep
-  trial's), id ``botorl-<sha256 of its resolved path>``: unique to the directory, so
-  ``/a/boto/seed0`` and ``/b/wsrl/seed0`` stay two runs, and a ``botorl resume`` continues
-  the same one (``resume="allow"``);
-* group ``TASK/METHOD[/alpha+A.AA]``: the members of a population and the seeds of a sweep
-  cell fall into one group; job type: the stages the run trains (``pretrain+warmup+boto+
-  finetune``; without ``pretrain`` when it starts from ``--pretrained``); name
-  ``METHOD TASK [alpha A] seed S``; the member's whole config as the run's config;
-* ``define_metric``: evaluation, warm-up and fine-tuning curves against ``env_step`` (online
-  env steps, warm-up included: eval.csv's axis), pre-training and BOTO against their own step.
-
-W&B is optional: ``--wandb`` without it (or older than ``MIN_VERSION``, which the members'
-runs in one process need: ``reinit="create_new"``) fails before any work with exit 2;
-a W&B that fails or does not answer within $BOTORL_WANDB_TIMEOUT seconds (default 120) is
-turned off with a warning, not the run.
+The id is ``botorl-<sha256 of the directory's resolved path>``, so ``/a/boto/seed0`` and
+``/b/wsrl/seed0`` stay two runs and ``botorl resume`` continues the same one; the group
+``TASK/METHOD[/alpha+A.AA]`` holds a population's members and a sweep cell's seeds. W&B is
+optional: ``--wandb`` without it (or older than ``MIN_VERSION``, which the members' runs in one
+process need: ``reinit="create_new"``) fails before any work with exit 2; a W&B that fails or
+does not answer within $BOTORL_WANDB_TIMEOUT seconds (default 120) is turned off with a
+warning, not the run.
 """
 
 from __future__ import annotations
@@ -24,6 +16,7 @@ import os
 import sys
 from pathlib import Path
 
+from botorl.configs.methods import get_method
 from botorl.errors import ConfigError
 
 MIN_VERSION = (0, 19, 10)  # reinit="create_new": several live runs in one process (a population)
@@ -52,8 +45,6 @@ def run_id(run_root) -> str:
 
 
 def _alpha(cfg):
-    from botorl.configs.methods import get_method
-
     return cfg.alpha if cfg.alpha is not None and get_method(cfg.method).uses_alpha else None
 
 
@@ -69,22 +60,16 @@ def name(cfg) -> str:
 
 
 def job_type(cfg) -> str:
-    from botorl.configs.methods import get_method
-
     stages = [s for s in get_method(cfg.method).stages if not (s == "pretrain" and cfg.pretrained is not None)]
     return "+".join(stages)
 
 
-# W&B's keys: MetricsLogger logs "<stage>/<metric>" with "<stage>/step", evaluations "eval/<metric>";
-# rows on the online axis also carry "env_step"
-ENV_STEP = "env_step"
-ONLINE = ("eval", "warmup", "finetune")
-
-
 def define_metrics(wb) -> None:
-    wb.define_metric(ENV_STEP)
-    for stage in ONLINE:
-        wb.define_metric(f"{stage}/*", step_metric=ENV_STEP)
+    # W&B's keys: MetricsLogger logs "<stage>/<metric>" with "<stage>/step", evaluations "eval/<metric>";
+    # rows on the online axis also carry "env_step"
+    wb.define_metric("env_step")
+    for stage in ("eval", "warmup", "finetune"):
+        wb.define_metric(f"{stage}/*", step_metric="env_step")
     for stage in ("pretrain", "boto"):
         wb.define_metric(f"{stage}/step")
         wb.define_metric(f"{stage}/*", step_metric=f"{stage}/step")

@@ -12,38 +12,26 @@ from typing import Callable
 
 from botorl.errors import BotorlError, ConfigError
 
-GENERATORS: dict[str, str] = {
-    "pointmaze-umaze": "botorl.data.generators.pointmaze:generate_umaze",
-    "pointmaze-medium": "botorl.data.generators.pointmaze:generate_medium",
-    "pointmaze-large": "botorl.data.generators.pointmaze:generate_large",
-    "door-binary-local": "botorl.data.generators.door:generate",
-    "bandit-pinwheel": "botorl.data.generators.bandit:generate_pinwheel",
-    "bandit-1d": "botorl.data.generators.bandit:generate_1d",
-    "antmaze-large-diverse-local": "botorl.data.generators.antmaze:generate_large_diverse",
-    "antmaze-large-play-local": "botorl.data.generators.antmaze:generate_large_play",
-    "antmaze-medium-diverse-local": "botorl.data.generators.antmaze:generate_medium_diverse",
-    "antmaze-medium-play-local": "botorl.data.generators.antmaze:generate_medium_play",
-    "antmaze-umaze-diverse-local": "botorl.data.generators.antmaze:generate_umaze_diverse",
-}
-
-# Default dataset sizes (transitions / env steps) when none is given; pointmaze as D4RL
-# maze2d-large (1M); door: BC rollout steps on top of the 25 demos (our choice); bandits:
-# enough samples for the figures, few enough that Minari's one-group-per-episode files
+# task -> (generator in this package, default dataset size in transitions / env steps). Sizes:
+# pointmaze as D4RL maze2d-large (1M); antmaze D4RL's / Minari's 1M per dataset
+# (create_antmaze_dataset.py); door: BC rollout steps on top of the 25 demos (our choice);
+# bandits: enough samples for the figures, few enough that Minari's one-group-per-episode files
 # stay quick to write (botorl.data.minari_io: about 0.7 ms per episode) (our choice).
-DEFAULT_STEPS: dict[str, int] = {
-    "pointmaze-umaze": 1_000_000,
-    "pointmaze-medium": 1_000_000,
-    "pointmaze-large": 1_000_000,
-    "door-binary-local": 100_000,
-    "bandit-pinwheel": 5_000,
-    "bandit-1d": 1_000,
-    # antmaze: D4RL's / Minari's 1M steps per dataset (create_antmaze_dataset.py)
-    "antmaze-large-diverse-local": 1_000_000,
-    "antmaze-large-play-local": 1_000_000,
-    "antmaze-medium-diverse-local": 1_000_000,
-    "antmaze-medium-play-local": 1_000_000,
-    "antmaze-umaze-diverse-local": 1_000_000,
+_TABLE: dict[str, tuple[str, int]] = {
+    "pointmaze-umaze": ("pointmaze:generate_umaze", 1_000_000),
+    "pointmaze-medium": ("pointmaze:generate_medium", 1_000_000),
+    "pointmaze-large": ("pointmaze:generate_large", 1_000_000),
+    "door-binary-local": ("door:generate", 100_000),
+    "bandit-pinwheel": ("bandit:generate_pinwheel", 5_000),
+    "bandit-1d": ("bandit:generate_1d", 1_000),
+    "antmaze-large-diverse-local": ("antmaze:generate_large_diverse", 1_000_000),
+    "antmaze-large-play-local": ("antmaze:generate_large_play", 1_000_000),
+    "antmaze-medium-diverse-local": ("antmaze:generate_medium_diverse", 1_000_000),
+    "antmaze-medium-play-local": ("antmaze:generate_medium_play", 1_000_000),
+    "antmaze-umaze-diverse-local": ("antmaze:generate_umaze_diverse", 1_000_000),
 }
+GENERATORS: dict[str, str] = {task: f"botorl.data.generators.{entry}" for task, (entry, _) in _TABLE.items()}
+DEFAULT_STEPS: dict[str, int] = {task: steps for task, (_, steps) in _TABLE.items()}
 
 
 def get_generator(task: str) -> Callable:

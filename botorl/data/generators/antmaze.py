@@ -1,38 +1,15 @@
 """AntMaze data made here, in the D4RL recipe (tasks ``antmaze-<maze>-<diverse|play>-local``).
 
-Facts (Farama-Foundation/minari-dataset-generation-scripts, ``scripts/antmaze/``, which made
-Minari's ``D4RL/antmaze/*``; D4RL, Fu et al. 2020, section 5):
-
-- the robot is Gymnasium-Robotics' AntMaze ant (maze cells of 4 x 4 units,
-  ``maze_size_scaling=4``); its low-level policy is a goal-reaching SAC ant whose observation
-  is AntMaze's 27-dim ``observation`` followed by ``waypoint - achieved_goal``
-  (``create_antmaze_dataset.py: wrap_maze_obs``); here the ant of ``botorl train-ant``,
-  shipped as ``assets/ant_goal_actor.npz``;
-- a waypoint controller (``controller.py``) follows a maze planner's path of cells: the
-  waypoint is the centre of the next cell of the path, minus U(0, 1) * 0.2 in x and y
-  (intermediate waypoints only), and the controller moves to the following cell when the
-  ant's (x, y) is within 0.45 of the waypoint; in the goal cell the waypoint is the goal;
-- Gaussian action noise: ``a + 0.2 * N(0, 1)``, clipped to [-1, 1] (``--action-noise 0.2``);
-- 1M steps per dataset; episodes of 1,000 steps (the AntMaze envs' ``max_episode_steps``);
-  at each episode's start the goal and the start are drawn from the maze's goal and reset
-  cells, each with uniform noise of +-0.25 cells (Gymnasium-Robotics ``position_noise_range``),
-  the start at least half a cell (2 units) from the goal; the ant starts at rest in its
-  default pose (AntMaze: ``reset_noise_scale=0``); the goal stays fixed for the episode
-  (``reset_target=False``);
-- stored per step: dict observations ``observation`` (27), ``achieved_goal`` (x, y),
-  ``desired_goal`` (the episode's goal), and infos ``qpos`` (15), ``qvel`` (14), ``goal``,
-  ``success`` (within 0.45 of ``desired_goal``), as Minari's ``AntMazeStepDataCallback``.
-
-"diverse" and "play" follow D4RL's description: "diverse" draws goals and starts from every
-free cell; "play" from a hand-picked set of locations (here the cells that Gymnasium-
-Robotics marks 'c' in ``LARGE_MAZE_DIVERSE_GR`` / ``MEDIUM_MAZE_DIVERSE_GR``). (Minari's v1
-data used those two maps the other way round.)
-
-Rewards and terminals are those of the evaluation task (``botorl.envs.antmaze``: start cell
-(1, 1), goal cell (7, 9) on the large map), as D4RL's antmaze rewards are for its evaluation
-goal and as botorl's pointmaze data do: reward 1 where the next (x, y) is within 0.45 of the
-evaluation goal's centre, and such rows are terminal (the evaluation env ends there), so an
-episode is cut there and the trajectory goes on in a new episode with the same goal.
+docs/antmaze.md describes the recipe and where botorl's version differs from Minari's files.
+Facts cited below are from Farama-Foundation/minari-dataset-generation-scripts,
+``scripts/antmaze/`` (``create_antmaze_dataset.py``, ``controller.py``), which made Minari's
+``D4RL/antmaze/*``, and Gymnasium-Robotics' AntMaze. In short: the goal-reaching ant of
+``botorl.envs.ant_goal`` (shipped as ``assets/ant_goal_actor.npz``) reads AntMaze's 27-dim
+``observation`` followed by ``waypoint - achieved_goal``; a ``WaypointController`` steers it
+along the BFS planner's path of cells; episodes of 1,000 steps with a goal and a start drawn
+from the free cells ("diverse") or the hand-picked ones ("play"); rewards and terminals are
+those of the evaluation task (``botorl.envs.antmaze``), so an episode is cut where the ant
+reaches the evaluation goal and the trajectory goes on in a new episode with the same goal.
 
 Speed: the MuJoCo model is the one ``AntMazeEnv`` builds (ant + walls), stepped with
 ``mujoco.mj_step(nstep=5)`` as ``AntEnv.step`` does (``ctrl = action``, 5 substeps; AntMaze
@@ -44,9 +21,11 @@ from __future__ import annotations
 
 import math
 import os
+from functools import partial
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
 from botorl.envs.antmaze import SUCCESS_RADIUS, layout  # the mazes: botorl/envs/antmaze.py
@@ -186,32 +165,30 @@ class _Sim:
         self._step(self.model, self.data, FRAME_SKIP)
 
 
+def _controller(maze: str, actor, seed: int):
+    """(layout, maze map, simulator, generator, waypoint controller) of a run on ``maze``."""
+    from botorl.envs.pointmaze import next_cell_table
+
+    spec = layout(maze)
+    maze_map = [list(r) for r in spec.maze_map]
+    policy = actor if actor is not None else load_actor()
+    rng = np.random.default_rng(seed)
+    return spec, maze_map, _Sim(maze), rng, WaypointController(maze_map, next_cell_table(maze_map), policy, rng)
+
+
 def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True, *, actor=None,
              action_noise: float = ACTION_NOISE, episode_steps: int = EPISODE_STEPS) -> Dataset:
     """``steps`` transitions of the waypoint-following ant; see the module docstring."""
-    from botorl.envs.pointmaze import free_cells, next_cell_table
+    from botorl.envs.pointmaze import free_cells
 
     if kind not in ("diverse", "play"):
         raise ValueError(f"kind must be 'diverse' or 'play', not {kind!r}")
     if steps <= 0:
         raise ValueError("steps must be positive")
-    spec = layout(maze)
-    maze_map = [list(r) for r in spec.maze_map]
+    spec, maze_map, sim, rng, ctl = _controller(maze, actor, seed)
     cells = free_cells(maze_map) if kind == "diverse" else list(spec.locations)
-    table = next_cell_table(maze_map)
-    policy = actor if actor is not None else load_actor()
-    sim = _Sim(maze)
-    rng = np.random.default_rng(seed)
-    ctl = WaypointController(maze_map, table, policy, rng)
     eval_goal = cell_xy(maze_map, spec.eval_goal)
     noise = POSITION_NOISE * SCALE
-
-    qpos_all = np.empty((steps + 1, 15))
-    qvel_all = np.empty((steps + 1, 14))
-    goals = np.empty((steps, 2))
-    actions = np.empty((steps, 8))
-    ends = np.zeros(steps, bool)
-    starts_row = np.zeros(steps, bool)  # a row whose state is an episode's reset state
 
     def new_episode():
         while True:
@@ -225,25 +202,20 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
         ctl.set_goal(gxy, sxy)
         return gxy
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=steps, desc=f"antmaze-{maze}-{kind}", unit="step", mininterval=1.0)
+    obs_qpos, next_qpos = np.empty((steps, 15)), np.empty((steps, 15))
+    obs_qvel, next_qvel = np.empty((steps, 14)), np.empty((steps, 14))
+    goals = np.empty((steps, 2))
+    actions = np.empty((steps, 8))
+    ends = np.zeros(steps, bool)
+    bar = tqdm(total=steps, desc=f"antmaze-{maze}-{kind}", unit="step", mininterval=1.0, disable=not progress)
     d = sim.data
-    goal = new_episode()
-    prev_qpos, prev_qvel = d.qpos.copy(), d.qvel.copy()
-    obs_qpos = np.empty((steps, 15))
-    obs_qvel = np.empty((steps, 14))
     t_ep = 0
     for t in range(steps):
-        if t_ep == 0 and t > 0:
+        if t_ep == 0:
             goal = new_episode()
             prev_qpos, prev_qvel = d.qpos.copy(), d.qvel.copy()
-            starts_row[t] = True
         obs_qpos[t], obs_qvel[t] = prev_qpos, prev_qvel
-        xy = prev_qpos[:2]
-        a = ctl.act(np.concatenate([prev_qpos[2:], prev_qvel]), xy)
+        a = ctl.act(np.concatenate([prev_qpos[2:], prev_qvel]), prev_qpos[:2])
         if action_noise > 0:
             a = a + action_noise * rng.standard_normal(8)
         a = np.clip(a, -1.0, 1.0)
@@ -251,18 +223,16 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
         actions[t] = a
         goals[t] = goal
         prev_qpos, prev_qvel = d.qpos.copy(), d.qvel.copy()
-        qpos_all[t + 1], qvel_all[t + 1] = prev_qpos, prev_qvel
+        next_qpos[t], next_qvel[t] = prev_qpos, prev_qvel
         t_ep += 1
         if t_ep >= episode_steps:
             ends[t] = True
             t_ep = 0
-        if bar is not None and (t + 1) % 10000 == 0:
+        if (t + 1) % 10000 == 0:
             bar.update(10000)
-    if bar is not None:
-        bar.update(steps - bar.n)
-        bar.close()
+    bar.update(steps - bar.n)
+    bar.close()
 
-    next_qpos, next_qvel = qpos_all[1:], qvel_all[1:]
     next_xy = next_qpos[:, :2]
     rewards = (np.sum((next_xy - eval_goal) ** 2, axis=1) <= SUCCESS_RADIUS**2).astype(np.float32)
     success = (np.sum((next_xy - goals) ** 2, axis=1) <= SUCCESS_RADIUS**2).astype(np.float32)
@@ -298,19 +268,11 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
     )
 
 
-def _gen(maze, kind):
-    def f(steps: int, seed: int, progress: bool = True) -> Dataset:
-        return generate(maze, kind, steps, seed, progress)
-
-    f.__name__ = f"generate_{maze}_{kind}"
-    return f
-
-
-generate_large_diverse = _gen("large", "diverse")
-generate_large_play = _gen("large", "play")
-generate_medium_diverse = _gen("medium", "diverse")
-generate_medium_play = _gen("medium", "play")
-generate_umaze_diverse = _gen("umaze", "diverse")
+generate_large_diverse = partial(generate, "large", "diverse")
+generate_large_play = partial(generate, "large", "play")
+generate_medium_diverse = partial(generate, "medium", "diverse")
+generate_medium_play = partial(generate, "medium", "play")
+generate_umaze_diverse = partial(generate, "umaze", "diverse")
 
 
 # ------------------------------------------------------------------ the quality check
@@ -321,15 +283,7 @@ def evaluate_controller(maze: str = "large", episodes: int = 20, seed: int = 0, 
     """The waypoint controller from the evaluation start to the evaluation goal (D4RL's pair;
     both with the evaluation env's +-0.25-cell noise), no action noise by default: success
     (within 0.45 of the goal within ``max_steps``) and steps to success."""
-    from botorl.envs.pointmaze import next_cell_table
-
-    spec = layout(maze)
-    maze_map = [list(r) for r in spec.maze_map]
-    table = next_cell_table(maze_map)
-    policy = actor if actor is not None else load_actor()
-    sim = _Sim(maze)
-    rng = np.random.default_rng(seed)
-    ctl = WaypointController(maze_map, table, policy, rng)
+    spec, maze_map, sim, rng, ctl = _controller(maze, actor, seed)
     noise = POSITION_NOISE * SCALE
     results = []
     for ep in range(episodes):

@@ -1,41 +1,35 @@
 """``door-binary-local``: Cal-QL-style door data made from the 25 DAPG human demos.
 
 Cal-QL's door-binary-v0 data are the human demos (``door2_sparse.npy``) plus rollouts of a
-behaviour-cloned policy (``door_bc_sparse4.npy``). Both halves are made here:
+behaviour-cloned policy (``door_bc_sparse4.npy``). Both halves are made here (docs/tasks.md,
+"Generated data"), with Cal-QL's binary reward and loading rule (``_binary_trajectory``):
 
-1. Demos: the recorded observations/actions of ``door_human_demos.npz`` are used as they are.
-   Transition t is (obs[t], act[t], obs[t+1]), so each demo's last recorded row, which has no
-   successor, gives no transition. Why resetting to the stored state differs (checked in
-   gymnasium-robotics 1.4.2 / mujoco 4): every stored ``init_qpos`` is all zeros (the env's
-   default pose), while the recordings start with the arm already moved (obs 0-4 = qpos 1-5,
-   e.g. ARRz 0.39), hence the palm (obs 29-31, 35-37) differs too. Setting qpos 1-27 from
-   obs[0] (hinge, latch from obs 28, 27) and solving the unobserved slide qpos 0 from the palm
-   position reproduces the recorded first observation exactly (max error < 1e-4), and
+1. Demos: the recorded observations/actions of ``door_human_demos.npz`` as they are
+   (transition t is (obs[t], act[t], obs[t+1])). Why not replay them from the stored state
+   (checked in gymnasium-robotics 1.4.2 / mujoco 4): every stored ``init_qpos`` is all zeros
+   (the env's default pose), while the recordings start with the arm already moved (obs 0-4 =
+   qpos 1-5, e.g. ARRz 0.39), hence the palm (obs 29-31, 35-37) differs too. Setting qpos 1-27
+   from obs[0] (hinge, latch from obs 28, 27) and solving the unobserved slide qpos 0 from the
+   palm position reproduces the recorded first observation exactly (max error < 1e-4), and
    open-loop replay of the demo actions from there, *as normalised actions* (the env maps
    a in [-1, 1] to act_mean + a * act_rng and clips |a| > 1, 5.6% of the entries), follows the
    recorded hinge angle to 0.007 rad on average and succeeds in 8 of 25 demos (7 of 25 in the
    recording; replaying them as raw actuator targets: 0 of 25, 0.36 rad off). So the demos
    do match this env; only 7 of them reach 1.35 at all, and only 6 before step 200 (the
    horizon): the humans reach hinge 1.0 only after 157-277 steps.
-2. BC rollouts: a 2 x 256 MLP (tanh output) is fit to all 25 demos by mean squared error
-   (optax Adam 1e-3, ``bc_steps`` steps, batch 256), then rolled out in ``AdroitHandDoor-v1``
-   from the env's own random resets, with Gaussian action noise ``N(0, noise_std^2)``, through
-   the door-binary task wrapper (reward success - 1, ends at the first success, 200 steps).
+2. BC rollouts (``steps`` env steps; their success rate in ``metadata["bc_success_rate"]``): a
+   2 x 256 MLP (tanh output) fit to all 25 demos by mean squared error (optax Adam 1e-3,
+   ``bc_steps`` steps, batch 256), rolled out in ``AdroitHandDoor-v1`` from the env's own
+   random resets with action noise ``N(0, noise_std^2)``, through the door-binary task wrapper.
 
-Both halves get the binary reward (``obs'[28] >= 1.35`` -> 0, else -1), every success step is
-terminal, and successful trajectories are cut right after their last success step (Cal-QL's
-loading rule). Cal-QL also drops trajectories that never succeed; here that is
-``drop_unsuccessful=True``. The default keeps them (as truncated, all -1 trajectories)
-because this BC policy rarely succeeds, and only 7 of the 25 demos reach the 1.35 hinge
-angle, so the filter would leave a handful of demos. Measured BC success in AdroitHandDoor-v1
-(20 episodes from the env's random resets, horizon 200; deterministic / noise 0.1):
-2x256, 3k steps: 0.00 / 0.00 (mean max hinge 0.01); with observation normalisation:
-0.00 / 0.00; 20k steps + normalisation: 0.05 / 0.00; 3x512, 20k steps + normalisation
-(loss 0.0033): 0.10 / 0.00 (mean max hinge 0.23). The policy mostly never unlatches the
-door: the env starts with the arm at its zero pose, which no demo state shows, and the demos
-are slow (see 1.).
-``steps`` counts BC-rollout env steps collected. The success rate of the rollouts is stored
-in ``metadata["bc_success_rate"]``.
+Cal-QL also drops trajectories that never succeed (``drop_unsuccessful=True``); the default
+keeps them (as truncated, all -1 trajectories) because this BC policy rarely succeeds and the
+filter would leave a handful of demos. Measured BC success in AdroitHandDoor-v1 (20 episodes,
+horizon 200; deterministic / noise 0.1): 2x256, 3k steps: 0.00 / 0.00 (mean max hinge 0.01);
+with observation normalisation: 0.00 / 0.00; 20k steps + normalisation: 0.05 / 0.00; 3x512,
+20k steps + normalisation (loss 0.0033): 0.10 / 0.00 (mean max hinge 0.23). The policy mostly
+never unlatches the door: the env starts with the arm at its zero pose, which no demo state
+shows, and the demos are slow (see 1.).
 """
 
 from __future__ import annotations
@@ -45,6 +39,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
 from botorl.envs.adroit import DOOR_SUCCESS_ANGLE
@@ -164,21 +159,16 @@ def train_bc(demos, steps: int, seed: int, progress: bool = True) -> list[tuple[
     key = keys[0]
     chunk = 500
     done = 0
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=steps, desc="door BC", unit="step")
+    bar = tqdm(total=steps, desc="door BC", unit="step", disable=not progress)
     while done < steps:
         n = min(chunk, steps - done)
         key, sub = jax.random.split(key)
         params, state, loss = run(params, state, sub, n)  # compiled once per chunk length
         done += n
-        if bar is not None:
-            bar.update(n)
+        bar.update(n)
+        if progress:
             bar.set_postfix(loss=float(loss))
-    if bar is not None:
-        bar.close()
+    bar.close()
     return [(np.asarray(w, np.float64), np.asarray(b, np.float64)) for w, b in params]
 
 
@@ -201,11 +191,7 @@ def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = Tr
     env = finish(make_door(seed), HORIZON)
     rng = np.random.default_rng(seed)
     trajs, n_eps, n_succ, collected = [], 0, 0, 0
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=steps, desc="door BC rollouts", unit="step")
+    bar = tqdm(total=steps, desc="door BC rollouts", unit="step", disable=not progress)
     while collected < steps:
         obs, _ = env.reset()
         o, a, no = [], [], []
@@ -219,17 +205,11 @@ def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = Tr
         n_eps += 1
         n_succ += int(info["success"] > 0)
         collected += len(o)
-        if bar is not None:
-            bar.update(len(o))
+        bar.update(len(o))
         trajs.append((np.array(o, np.float64), np.array(a, np.float64), np.array(no, np.float64)))
-    if bar is not None:
-        bar.close()
+    bar.close()
     env.close()
     return trajs, n_eps, n_succ
-
-
-def _concat(trajs: list[dict]) -> dict[str, np.ndarray]:
-    return {k: np.concatenate([t[k] for t in trajs]) for k in trajs[0]}
 
 
 def generate(
@@ -246,11 +226,8 @@ def generate(
     path = find_demos(demos_path)
     demos = load_demos(path)
 
-    parts = []
-    for d in demos:
-        t = _binary_trajectory(d["observations"][:-1], d["actions"][:-1], d["observations"][1:], drop_unsuccessful)
-        if t is not None:
-            parts.append(t)
+    parts = [t for d in demos if (t := _binary_trajectory(d["observations"][:-1], d["actions"][:-1],
+                                                          d["observations"][1:], drop_unsuccessful))]
     n_demo_kept = len(parts)
 
     bc_rate, n_eps = float("nan"), 0
@@ -258,22 +235,14 @@ def generate(
         params = train_bc(demos, bc_steps, seed, progress)
         trajs, n_eps, n_succ = rollout(bc_policy(params), steps, seed, noise_std, progress)
         bc_rate = n_succ / max(n_eps, 1)
-        for o, a, no in trajs:
-            t = _binary_trajectory(o, a, no, drop_unsuccessful)
-            if t is not None:
-                parts.append(t)
+        parts += [t for o, a, no in trajs if (t := _binary_trajectory(o, a, no, drop_unsuccessful))]
     if not parts:
         raise DataFormatError(f"{path}: no demonstration and no rollout succeeded; nothing to keep.")
-    arr = _concat(parts)
+    arr = {k: np.concatenate([t[k] for t in parts]) for k in parts[0]}
     is_demo = np.zeros(len(arr["rewards"]), dtype=np.float32)
     is_demo[: sum(len(p["rewards"]) for p in parts[:n_demo_kept])] = 1.0
     return Dataset(
-        observations=arr["observations"],
-        actions=arr["actions"],
-        rewards=arr["rewards"],
-        next_observations=arr["next_observations"],
-        terminals=arr["terminals"],
-        episode_ends=arr["episode_ends"],
+        **arr,
         infos={"success": arr["terminals"].astype(np.float32), "is_demo": is_demo},
         metadata={
             "source": f"generated: door-binary-local (steps={steps}, seed={seed}, demos={path})",

@@ -1,21 +1,8 @@
 """PointMaze data in the style of D4RL maze2d (tasks ``pointmaze-umaze|medium|large``).
 
-Recipe (docs/tasks.md, "Generated data"):
-
-- one long trajectory; a planner goal is a random free cell (centre + uniform +-0.25 noise);
-  when the point is within 0.45 of it, a new one is drawn;
-- the next waypoint is the centre of the neighbouring cell on a shortest path to the goal
-  cell (BFS over maze cells), or the goal itself once in the goal cell;
-- action = clip(10 * (waypoint - xy) - 1 * velocity + N(0, 0.5^2), -1, 1);
-- the start is a random free cell (+-0.25 noise), with zero velocity.
-
-Rewards and episode boundaries are those of the *evaluation* task (``botorl.envs.pointmaze``):
-as in D4RL maze2d, the reward is 1 where the next position is within 0.45 of the fixed
-evaluation goal, whatever goal the planner is heading for, so the data describe the task the
-agent is evaluated on. Because the evaluation env terminates there, such rows are also
-``terminals`` (and episode ends; the trajectory simply goes on in a new episode). A planner
-goal switch, or 1,000 steps without reaching the planner goal, ends an episode by truncation
-(D4RL's ``timeouts``).
+The recipe is docs/tasks.md's ("Generated data"): one long trajectory of a noisy PD controller
+steered along BFS paths to random planner goals; rewards, terminals and episode ends are the
+*evaluation* task's (``botorl.envs.pointmaze``), as in D4RL maze2d.
 
 Speed: the MuJoCo model is the one the env builds (``PointMazeEnv``'s generated XML), stepped
 directly with ``mujoco.mj_step`` and the env's own step semantics (velocity clipped to +-5
@@ -27,9 +14,11 @@ Deterministic for a given seed.
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import mujoco
 import numpy as np
+from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
 from botorl.envs.pointmaze import MAZES, SUCCESS_RADIUS, cell_to_xy, free_cells, make_inner, next_cell_table
@@ -88,11 +77,7 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
     states[0] = (qpos[0], qpos[1], qvel[0], qvel[1])
     half_r, half_c = rows / 2, cols / 2
 
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=steps, desc=f"pointmaze-{maze}", unit="step", mininterval=1.0)
+    bar = tqdm(total=steps, desc=f"pointmaze-{maze}", unit="step", mininterval=1.0, disable=not progress)
     nextc = table[goal_cell]
     for t in range(steps):
         x, y, vx, vy = qpos[0], qpos[1], qvel[0], qvel[1]
@@ -121,11 +106,10 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
             goal_cell, gx, gy = draw_goal(goal_cell)
             nextc = table[goal_cell]
             steps_on_goal = 0
-        if bar is not None and (t + 1) % 10000 == 0:
+        if (t + 1) % 10000 == 0:
             bar.update(10000)
-    if bar is not None:
-        bar.update(steps - bar.n)
-        bar.close()
+    bar.update(steps - bar.n)
+    bar.close()
 
     terminals = rewards > 0
     return Dataset(
@@ -150,13 +134,6 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
     )
 
 
-def generate_umaze(steps: int, seed: int, progress: bool = True) -> Dataset:
-    return generate("umaze", steps, seed, progress)
-
-
-def generate_medium(steps: int, seed: int, progress: bool = True) -> Dataset:
-    return generate("medium", steps, seed, progress)
-
-
-def generate_large(steps: int, seed: int, progress: bool = True) -> Dataset:
-    return generate("large", steps, seed, progress)
+generate_umaze = partial(generate, "umaze")
+generate_medium = partial(generate, "medium")
+generate_large = partial(generate, "large")

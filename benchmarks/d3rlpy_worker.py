@@ -1,8 +1,7 @@
 """Times d3rlpy updates; runs with the d3rlpy virtual environment's python, not botorl's.
 
 d3rlpy 2.8 pins gymnasium 1.0 and needs PyTorch, neither of which botorl may depend on,
-so ``botorl bench --against d3rlpy`` runs this file as a subprocess in its own venv
-(``botorl.benchmarks.d3rlpy_env``). This file imports nothing from botorl, and torch /
+so ``against_d3rlpy.py`` runs this file as a subprocess in its own venv. This file imports nothing from botorl, and torch /
 d3rlpy only inside the functions that need them, so botorl's tests can check its argument
 parsing without either installed.
 

@@ -1,10 +1,14 @@
-"""The virtual environment d3rlpy runs in, and the subprocess that times it.
+"""botorl's updates beside d3rlpy's on identical shapes, timed in the same rounds.
 
-d3rlpy 2.8.1 pins gymnasium 1.0 and needs PyTorch; botorl has neither as a dependency, so
-the comparison runs d3rlpy in its own venv (default ``~/.cache/botorl/d3rlpy-venv``,
-``BOTORL_D3RLPY_VENV`` to move it), made on first use with ``python -m venv`` and pip.
-torch is pinned to the CPU build the reference figures used (docs/performance.md): an
-unpinned ``torch`` would pull a multi-GB CUDA build.
+    python benchmarks/against_d3rlpy.py [--json out.json] [--threads 1] [--quick] [--only sac2,calql]
+
+The options are `botorl bench`'s (``botorl.benchmarks.suite``, which times botorl's side).
+This file and ``d3rlpy_worker.py`` live outside the package because d3rlpy 2.8.1 pins
+gymnasium 1.0 and needs PyTorch, neither of which botorl has as a dependency: d3rlpy runs in
+its own venv (default ``~/.cache/botorl/d3rlpy-venv``, ``BOTORL_D3RLPY_VENV`` to move it),
+made on first use with ``python -m venv`` and pip. torch is pinned to the CPU build the
+reference figures used (docs/performance.md): an unpinned ``torch`` would pull a multi-GB
+CUDA build.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from botorl.benchmarks.workloads import Workload
 from botorl.errors import BotorlError
 
 D3RLPY_VERSION = "2.8.1"
@@ -59,12 +64,20 @@ def ensure_venv(venv: Path | None = None, log: Any = None) -> Path:
                 f"Could not make the d3rlpy virtual environment in {venv}: `{' '.join(cmd)}` "
                 f"failed ({' | '.join(tail)}). Check that pip can reach a package index with "
                 f"d3rlpy=={D3RLPY_VERSION} and torch=={TORCH_VERSION}, or point "
-                f"BOTORL_D3RLPY_VENV at a venv that has both, or run `botorl bench` without "
-                f"--against d3rlpy.")
+                f"BOTORL_D3RLPY_VENV at a venv that has both, or run `botorl bench` (botorl alone).")
     if not _has_d3rlpy(python):
         raise BotorlError(f"The venv {venv} was made but `import d3rlpy, torch` fails in it; "
                           f"delete the folder and run again.")
     return python
+
+
+def d3rlpy_spec(w: Workload) -> dict[str, Any]:
+    """The worker's options for the d3rlpy update that matches ``w``."""
+    return {
+        "algo": w.d3rlpy_algo, "n_critics": w.num_critics, "critic_hidden": list(w.critic_hidden),
+        "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim, "batch": w.batch,
+        "n_action_samples": w.n_action_samples, "utd": w.utd, "layer_norm": int(w.layer_norm),
+    }
 
 
 class D3rlpyWorker:
@@ -96,10 +109,12 @@ class D3rlpyWorker:
         self.proc.stdin.flush()
         return self._read()
 
-    def setup(self, name: str, spec: dict[str, Any]) -> str | None:
-        """Build a workload; returns an error text instead of raising (the row shows it)."""
-        spec = dict(spec, threads=self.threads) if self.threads > 0 else dict(spec)
-        answer = self.request(cmd="setup", name=name, spec=spec)
+    def setup(self, w: Workload) -> str | None:
+        """Build a workload's d3rlpy twin; returns an error text instead of raising (the row shows it)."""
+        spec = d3rlpy_spec(w)
+        if self.threads > 0:
+            spec["threads"] = self.threads
+        answer = self.request(cmd="setup", name=w.name, spec=spec)
         return None if answer.get("ok") else str(answer.get("error"))
 
     def time(self, name: str, min_time: float) -> tuple[float, float]:
@@ -118,3 +133,18 @@ class D3rlpyWorker:
             self.proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             self.proc.kill()
+
+
+def main(argv: list[str] | None = None) -> int:
+    from botorl.benchmarks.suite import main as bench_main
+
+    return bench_main(argv, twin=lambda cfg: D3rlpyWorker(ensure_venv(), threads=cfg.threads),
+                      prog="python benchmarks/against_d3rlpy.py")
+
+
+if __name__ == "__main__":
+    try:
+        sys.exit(main())
+    except BotorlError as err:  # as the CLI does: one paragraph, exit code 2
+        print(f"against_d3rlpy: error: {err}", file=sys.stderr)
+        sys.exit(err.exit_code)

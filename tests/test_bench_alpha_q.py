@@ -1,14 +1,19 @@
-"""python -m botorl.experiments.alpha_q end to end on the smoke profile: one pre-training run,
+"""python benchmarks/alpha_q.py end to end on the smoke profile: one pre-training run,
 the chosen arms measured at each step, a second call resumes (keeps the measured arms)."""
 
 from __future__ import annotations
 
 import csv
+import importlib.util
+from pathlib import Path
 
 import pytest
 
 from botorl.errors import ConfigError
-from botorl.experiments import alpha_q as AQ
+
+_spec = importlib.util.spec_from_file_location("alpha_q", Path(__file__).resolve().parents[1] / "benchmarks" / "alpha_q.py")
+AQ = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(AQ)
 
 
 def _rows(path):

@@ -1,6 +1,6 @@
 """What BOTO's alpha does to Q on a real task: Q after BOTO at several distances from the data.
 
-    python -m botorl.experiments.alpha_q --task pointmaze-medium --seeds 100-101 --out alpha-q
+    python benchmarks/alpha_q.py --task pointmaze-medium --seeds 100-101 --out alpha-q
 
 For each seed, one pre-training and warm-up (a `botorl run` of WSRL that stops after its
 warm-up, reused when it exists), then BOTO from that same pre-trained agent for every *arm*:
@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
-import io
 import math
 import re
 import subprocess
@@ -129,7 +128,7 @@ def arms(preset_alpha: float) -> dict[str, dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m botorl.experiments.alpha_q", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python benchmarks/alpha_q.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--task", default="pointmaze-medium")
     p.add_argument("--profile", default="quick")
     p.add_argument("--seeds", default="100-101", help="e.g. 100-101 or 100,105")
@@ -147,10 +146,9 @@ def main(argv: list[str] | None = None) -> int:
 
     setup_jax()
     from botorl.boto.phase import run_boto
-    from botorl.io import atomic_save_figure, atomic_write_text
+    from botorl.configs.members import parse_seeds
 
-    lo_hi = args.seeds.split("-")
-    seeds = list(range(int(lo_hi[0]), int(lo_hi[1]) + 1)) if len(lo_hi) == 2 else [int(s) for s in args.seeds.split(",")]
+    seeds = parse_seeds(args.seeds)
     steps = sorted(int(s) for s in args.steps.split(","))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -204,18 +202,17 @@ def main(argv: list[str] | None = None) -> int:
                      seed=cfg.online_seed, callback=measure,
                      progress=False)
             print(f"seed {seed} {name}: done", flush=True)
-            _write(out, rows, scales, steps, atomic_write_text, atomic_save_figure)
-        _write(out, rows, scales, steps, atomic_write_text, atomic_save_figure)
+            _write(out, rows, scales, steps)
+        _write(out, rows, scales, steps)
     return 0
 
 
-def _write(out: Path, rows, scales, steps, write_text, save_figure) -> None:
+def _write(out: Path, rows, scales, steps) -> None:
+    from botorl.experiments.stats import csv_text, pyplot
+    from botorl.io import atomic_save_figure, atomic_write_text
+
     keys = list(rows[0])
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=keys, lineterminator="\n")
-    w.writeheader()
-    w.writerows(rows)
-    write_text(out / "alpha_q.csv", buf.getvalue())
+    atomic_write_text(out / "alpha_q.csv", csv_text(keys, ([r[k] for k in keys] for r in rows)))
     qcols = ["q_data"] + [f"q_d{d:g}" for d in DISTANCES] + ["q_uniform"]
     md = ["# alpha on Q after BOTO", "",
           f"Means over seeds {sorted({r['seed'] for r in rows})}; Q of the ensemble, mean over dataset states.", "",
@@ -234,18 +231,10 @@ def _write(out: Path, rows, scales, steps, write_text, save_figure) -> None:
            "|---|" + "---|" * (len(scales[0]) - 1)]
     for s in scales:
         md.append(f"| {s['seed']} | " + " | ".join(f"{v:.4g}" for k, v in s.items() if k != "seed") + " |")
-    write_text(out / "alpha_q.md", "\n".join(md) + "\n")
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(scales[0]), lineterminator="\n")
-    w.writeheader()
-    w.writerows(scales)
-    write_text(out / "alpha_q_scale.csv", buf.getvalue())
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    atomic_write_text(out / "alpha_q.md", "\n".join(md) + "\n")
+    keys = list(scales[0])
+    atomic_write_text(out / "alpha_q_scale.csv", csv_text(keys, ([s[k] for k in keys] for s in scales)))
+    plt = pyplot()
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.8))
     names = [a for a in dict.fromkeys(r["arm"] for r in rows) if a != "pre-trained"]
     color = {a: f"C{i}" for i, a in enumerate(names)} | {"pre-trained": "grey"}
@@ -277,7 +266,7 @@ def _write(out: Path, rows, scales, steps, write_text, save_figure) -> None:
     ax2.set_title("the gap between data and uniform actions", fontsize=9)
     ax2.legend(fontsize=7)
     fig.tight_layout()
-    save_figure(fig, out / "alpha_q.png")
+    atomic_save_figure(fig, out / "alpha_q.png")
     plt.close(fig)
 
 
