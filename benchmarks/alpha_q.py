@@ -61,7 +61,7 @@ def _pretrained(task: str, seed: int, root: Path, profile: str):
     spec = get_task(cfg.task)
     d_off = transform_dataset(cfg, spec, load_offline(cfg, spec))
     ckpt = CheckpointManager(run / "checkpoints")
-    agent = agent_ckpt.load(ckpt.path("pretrain-final") / "agent.ckpt",
+    agent = agent_ckpt.load(ckpt.file("pretrain-final", "agent.ckpt"),
                             like=make_pretrain_agent(cfg, d_off.obs_dim, d_off.action_dim, cfg.seed))
     a = ckpt.arrays("warmup-final", "warmup")
     d_warm = Dataset(a["observations"], a["actions"], a["rewards"], a["next_observations"], a["terminals"],
