@@ -304,8 +304,8 @@ def main(argv: list[str] | None = None, twin: Callable[[BenchConfig], Any] | Non
         from botorl.benchmarks.paper import main as paper_main
 
         return paper_main(argv)
-    cfg = tyro.cli(BenchConfig, args=argv, prog=prog,
-                   description=__doc__.split("\n")[0] + " (`botorl bench --paper --help`: what a whole paper run costs)")
+    paper = "" if twin else " (`botorl bench --paper --help`: what a whole paper run costs)"
+    cfg = tyro.cli(BenchConfig, args=argv, prog=prog, description=__doc__.split("\n")[0] + paper)
     result = run(cfg, twin)
     print(format_table(result))
     if cfg.json:
