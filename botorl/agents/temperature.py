@@ -42,11 +42,6 @@ MIN_TEMP = 1e-4
 _CHUNK = 128
 
 
-def _q_mean(critic, observation, action):
-    """Ensemble-mean Q of one (observation, action) pair: a scalar."""
-    return critic.apply_fn({"params": critic.params}, observation[None], action[None]).mean()
-
-
 @jax.jit
 def curvature_and_spread(actor, critic, observations):
     """``(k, sigma_eff)``, each (B, A): ``k = -diag d^2 Q / da^2`` of the ensemble-mean Q at
@@ -60,7 +55,8 @@ def curvature_and_spread(actor, critic, observations):
 
     def one(xs):
         obs, act = xs
-        hess = jax.hessian(lambda a: _q_mean(critic, obs, a))(act)
+        # the ensemble-mean Q of this one (observation, action) pair, a scalar
+        hess = jax.hessian(lambda a: critic.apply_fn({"params": critic.params}, obs[None], a[None]).mean())(act)
         return -jnp.diagonal(hess)
 
     k = jax.lax.map(one, (observations, a0), batch_size=min(_CHUNK, observations.shape[0]))

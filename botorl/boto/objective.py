@@ -144,16 +144,6 @@ def boto_critic_step(agent, batch, alpha, settings: ObjectiveSettings):
     return agent, info
 
 
-def q_diagnostics(agent, batch, key) -> dict:
-    """Mean Q (over members and rows) at the dataset actions and at uniform actions in the box."""
-    obs, act = batch["observations"], batch["actions"]
-    uni = jax.random.uniform(key, act.shape, act.dtype, -1.0, 1.0)
-    return {
-        "q_data": agent.critic_values(agent.critic.params, obs, act).mean(),
-        "q_uniform": agent.critic_values(agent.critic.params, obs, uni).mean(),
-    }
-
-
 def boto_update_many_fn(agent, batches, alpha, settings: ObjectiveSettings):
     """K BOTO critic steps under one ``lax.scan`` (traced; ``boto_update_many`` jits it, and
     ``population_update_many`` maps it over a population)."""
@@ -163,9 +153,12 @@ def boto_update_many_fn(agent, batches, alpha, settings: ObjectiveSettings):
 
     agent, infos = jax.lax.scan(body, agent, batches)
     info = jax.tree_util.tree_map(jnp.mean, infos)
-    last = jax.tree_util.tree_map(lambda x: x[-1], batches)
+    # mean Q (over members and rows) at the last batch's dataset actions and at uniform actions
+    obs, act = batches["observations"][-1], batches["actions"][-1]
     rng, key = jax.random.split(agent.rng)
-    info.update(q_diagnostics(agent, last, key))
+    uni = jax.random.uniform(key, act.shape, act.dtype, -1.0, 1.0)
+    info.update(q_data=agent.critic_values(agent.critic.params, obs, act).mean(),
+                q_uniform=agent.critic_values(agent.critic.params, obs, uni).mean())
     return agent.replace(rng=rng), info
 
 

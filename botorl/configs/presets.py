@@ -122,9 +122,11 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     sac = replace(SACConfig(), max_target_backup=(dom == "antmaze"), backup_entropy=False, **std)
     online = OnlineConfig(steps=300_000, sac=sac)
     boto = replace(BOTOConfig(), boto_steps=boto_steps, log_sigma=log_sigma)
+    # A user's task reads the file it was registered with (None: data held in memory).
+    data_path = (spec.dataset_source.ref or None) if spec.user is not None else None
     cfg = RunConfig(
         task=task, method=method, pretrain=pretrain, profile=profile,
-        data=DataConfig(path=_user_data_path(spec)), env=env_record(spec), network=net, offline=offline, warmup=WarmupConfig(5_000),
+        data=DataConfig(path=data_path), env=env_record(spec), network=net, offline=offline, warmup=WarmupConfig(5_000),
         boto=boto, online=online, eval=EvalConfig(), checkpoint_every=50_000,
     )
     if spec.domain == "adroit":
@@ -148,11 +150,6 @@ def env_record(spec) -> EnvConfig:
                      success_off=u.success_off, domain=None if spec.domain == "custom" else spec.domain,
                      reward_scale=spec.reward_scale, reward_bias=spec.reward_bias, obs_keys=u.obs_keys,
                      obs_dim=u.obs_dim, action_dim=u.action_dim, action_low=u.action_low, action_high=u.action_high)
-
-
-def _user_data_path(spec) -> str | None:
-    """A user's task reads the file it was registered with (None: data held in memory)."""
-    return (spec.dataset_source.ref or None) if spec.user is not None else None
 
 
 # Cal-QL pre-training steps of the quick profile on pointmaze (see _quick).
