@@ -92,7 +92,7 @@ def main(argv=None) -> int:
     else:
         batch = make_batch(256, s["obs"], s["act"], 0, lead=(n, k))
         per_member = k
-    batch = C.ensure_mc_returns({kk: jnp.asarray(np.asarray(v, np.float32)) for kk, v in batch.items()})
+    batch = C.checked_batch({kk: jnp.asarray(np.asarray(v, np.float32)) for kk, v in batch.items()})
     agents = P.stack(bench._agents(w, "quick", n))
     devices = jax.local_devices()
     print(f"{w}, quick sizes, N = {n}, {len(devices)} CPU device(s) "

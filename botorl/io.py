@@ -10,6 +10,7 @@ to what the process umask allows, so run directories stay readable by a shared g
 from __future__ import annotations
 
 import errno
+import io
 import json
 import math
 import os
@@ -80,19 +81,10 @@ IO_FAULTS = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is 
 
 
 def atomic_save_figure(fig: Any, path: str | os.PathLike, **savefig_kwargs: Any) -> Path:
-    """``fig.savefig`` through a temp file; the format comes from ``path``'s suffix."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        os.chmod(tmp, 0o666 & ~_UMASK)
-        fig.savefig(tmp, **savefig_kwargs)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    """``fig.savefig`` written atomically; the format comes from ``path``'s suffix."""
+    out = io.BytesIO()
+    fig.savefig(out, format=Path(path).suffix.lstrip(".") or None, **savefig_kwargs)
+    return atomic_write_bytes(path, out.getvalue())
 
 
 def pid_alive(pid: int) -> bool:

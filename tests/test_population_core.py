@@ -154,7 +154,7 @@ def test_member_equals_population_of_one(make, dataset):
 def test_boto_each_member_its_alpha(dataset):
     from botorl.boto.config import BOTOConfig
     from botorl.boto.objective import ObjectiveSettings, boto_update_many, population_update_many
-    from botorl.boto.phase import boto_batches, boto_dataset
+    from botorl.boto.phase import boto_batches
 
     seeds, alphas = [0, 1, 2], np.array([-1.0, 0.0, 0.5], np.float32)
     agents = [_calql(s) for s in seeds]
@@ -164,7 +164,7 @@ def test_boto_each_member_its_alpha(dataset):
     b = boto_batches(dataset, warm, rngs, 16, 3)
     pop, m = population_update_many(AP.stack(agents), b, alphas, settings)
     for i, s in enumerate(seeds):
-        bi = boto_dataset(dataset, None).sample(np.random.default_rng([s, 0]), 16, num_batches=3)
+        bi = dataset.sample(np.random.default_rng([s, 0]), 16, num_batches=3)
         np.testing.assert_array_equal(b["actions"][i], bi["actions"])
         _, mi = boto_update_many(agents[i], bi, float(alphas[i]), settings)
         np.testing.assert_allclose(np.asarray(m["critic_loss"])[i], float(mi["critic_loss"]), rtol=1e-4)
@@ -173,7 +173,7 @@ def test_boto_each_member_its_alpha(dataset):
 
 # ------------------------------------------------------------------ sampling and replay
 def test_union_sampling_matches_concat(dataset):
-    from botorl.boto.phase import boto_batches, boto_dataset
+    from botorl.boto.phase import boto_batches
     from botorl.data.dataset import Dataset
 
     rng = np.random.default_rng(1)
@@ -181,7 +181,7 @@ def test_union_sampling_matches_concat(dataset):
                     rng.normal(size=(40, O)), rng.random(40) < 0.1) for _ in range(2)]
     b = boto_batches(dataset, warm, [np.random.default_rng([s, 7]) for s in (4, 9)], 64, 3)
     for i, s in enumerate((4, 9)):
-        ref = boto_dataset(dataset, warm[i]).sample(np.random.default_rng([s, 7]), 64, num_batches=3)
+        ref = dataset.concat(warm[i]).sample(np.random.default_rng([s, 7]), 64, num_batches=3)
         for k in ("observations", "actions", "rewards", "next_observations", "dones"):
             np.testing.assert_array_equal(b[k][i], ref[k])
 

@@ -8,8 +8,8 @@ so ``load(path, like=agent)`` returns exactly the saved pytree and an update aft
 is bit-identical to one without the round trip. Writes are atomic (temp file + os.replace).
 
 Verified: the state is stored as msgpack bytes together with their sha256 (format v2); ``load``
-and ``read_header`` refuse a file whose bytes no longer match (``DataFormatError`` naming the
-file). v1 files (no checksum) are still read.
+refuses a file whose bytes no longer match (``DataFormatError`` naming the file). v1 files (no
+checksum) are still read.
 """
 
 from __future__ import annotations
@@ -32,13 +32,6 @@ FORMATS = ("botorl-agent-v1", FORMAT)
 AGENT_LIMIT = 1 << 36  # bytes of one agent file: a population of large agents, far under any real one
 
 
-def _config_json(config) -> str:
-    try:
-        return json.dumps(dataclasses.asdict(config), sort_keys=True, default=str)
-    except TypeError:
-        return json.dumps(repr(config))
-
-
 def save(path: str | os.PathLike, agent) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -47,18 +40,12 @@ def save(path: str | os.PathLike, agent) -> Path:
     payload = {
         "format": FORMAT,
         "agent_class": type(agent).__name__,
-        "config": _config_json(agent.config),
+        "config": json.dumps(dataclasses.asdict(agent.config), sort_keys=True, default=str),
         "state_msgpack": state_bytes,
         "sha256": hashlib.sha256(state_bytes).hexdigest(),
     }
     atomic_write_bytes(path, serialization.msgpack_serialize(payload))
     return path
-
-
-def read_header(path: str | os.PathLike) -> dict:
-    """Format, agent class and config (as a dict) of a checkpoint, without a template."""
-    payload = _read(Path(path))
-    return {"format": payload["format"], "agent_class": payload["agent_class"], "config": json.loads(payload["config"])}
 
 
 def _read(path: Path) -> dict:

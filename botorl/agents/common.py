@@ -1,4 +1,4 @@
-"""Pieces every agent shares: jitted entry points, Polyak averaging, batch checks.
+"""Pieces every agent shares: jitted entry points, the actor-critic base, Polyak averaging, checks.
 
 Agents are ``flax.struct.PyTreeNode``s whose config is a static field, so one module-level
 ``jax.jit`` serves every agent class: the class and config are part of the pytree
@@ -9,8 +9,8 @@ config therefore compiles once, whatever agent instance it is called with.
 from __future__ import annotations
 
 import dataclasses
-
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -18,12 +18,19 @@ import optax
 from flax.training.train_state import TrainState
 
 from botorl.errors import ConfigError
-from botorl.networks import sample_tanh_gaussian, tanh_gaussian_mode
+from botorl.networks import (
+    CriticEnsemble,
+    TanhGaussianActor,
+    sample_tanh_gaussian,
+    subsample_ensemble,
+    tanh_gaussian_mode,
+)
 
 __all__ = [
     "TrainState", "polyak", "acting_view", "update_fn", "update_many_fn", "sample_fn", "eval_fn", "q_mean_fn",
     "update_many_on_device_fn", "jit_update", "jit_update_many", "jit_sample", "jit_eval", "jit_q_mean", "adam",
-    "check_batch", "chunk_size", "summed_value_and_grad", "update_many_on_device", "sample_batches",
+    "checked_batch", "chunk_size", "summed_value_and_grad", "update_many_on_device", "sample_batches",
+    "actor_def", "critic_def", "ActorCriticAgent", "check_fields",
 ]
 
 BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones", "mc_returns")
@@ -154,27 +161,6 @@ jit_update_many = jax.jit(update_many_fn)
 jit_sample = jax.jit(sample_fn)
 jit_eval = jax.jit(eval_fn)
 jit_q_mean = jax.jit(q_mean_fn)
-
-
-class AgentAPI:
-    """The public entry points every agent shares (SAC, CQL, IQL): the jitted functions above."""
-
-    def update(self, batch):
-        """One learning step (SAC: UTD u critic steps + 1 actor + 1 temperature); jitted."""
-        check_batch(batch)
-        return jit_update(self, ensure_mc_returns(batch))
-
-    def update_many(self, batches):
-        """K updates in one call (``lax.scan``); batches have a leading axis K."""
-        check_batch(batches)
-        return jit_update_many(self, ensure_mc_returns(batches))
-
-    def sample_actions(self, observations):
-        actions, rng = jit_sample(acting_view(self), jnp.asarray(observations, jnp.float32))
-        return actions, self.replace(rng=rng)
-
-    def eval_actions(self, observations):
-        return jit_eval(acting_view(self), jnp.asarray(observations, jnp.float32))
 _jit_update_many_on_device = jax.jit(update_many_on_device_fn, static_argnames=("num_updates", "batch_size"))
 
 
@@ -186,12 +172,12 @@ def update_many_on_device(agent, arrays: dict, key: jax.Array, num_updates: int,
     the CPU host sampling costs ~0.5 ms of a 5-80 ms update, so the pipeline uses this only
     off the CPU unless asked (``offline.sample_on_device``). Same key, same batches.
     """
-    check_batch(arrays)
-    return _jit_update_many_on_device(agent, ensure_mc_returns(arrays), key, num_updates, batch_size)
+    return _jit_update_many_on_device(agent, checked_batch(arrays), key, num_updates, batch_size)
 
 
-def check_batch(batch, *, many: bool = False) -> None:
-    """Raise ConfigError for a batch missing a key (cheap; runs before jit)."""
+def checked_batch(batch) -> dict:
+    """``batch`` with ``mc_returns`` (zeros when missing); ConfigError for a batch missing a key
+    (cheap; runs before jit)."""
     if not isinstance(batch, dict):
         raise ConfigError(
             f"an agent update got a {type(batch).__name__}, not a batch dict; pass a dict with "
@@ -204,10 +190,115 @@ def check_batch(batch, *, many: bool = False) -> None:
             f"{', '.join(BATCH_KEYS)} (mc_returns may be zeros). Build it with "
             f"Dataset.sample or ReplayBuffer.sample."
         )
-
-
-def ensure_mc_returns(batch):
     if "mc_returns" not in batch:
         batch = dict(batch)
         batch["mc_returns"] = jnp.zeros_like(batch["rewards"])
     return batch
+
+
+# ------------------------------------------------------------------ configs and networks
+def check_fields(config, checks) -> None:
+    """ConfigError for the first ``(field, ok(config), why)`` of ``checks`` whose ``ok`` is
+    false; ``why`` may name other fields of the config in braces."""
+    for field, ok, why in checks:
+        if not ok(config):
+            raise ConfigError(f"{type(config).__name__}.{field} = {getattr(config, field)!r} is invalid: "
+                              f"{why.format_map(vars(config))}.")
+
+
+def is_rate(v) -> bool:
+    return math.isfinite(v) and v >= 0  # a negative rate climbs the loss
+
+
+RATE_WHY = "a learning rate must be a finite number >= 0, e.g. 3e-4"
+# The checks SAC, CQL and IQL share.
+ACTOR_CRITIC_CHECKS = (
+    ("num_critics", lambda c: c.num_critics >= 1, "need at least one critic"),
+    *((f, lambda c, f=f: is_rate(getattr(c, f)), RATE_WHY) for f in ("actor_lr", "critic_lr")),
+    ("log_std_min", lambda c: math.isfinite(c.log_std_min) and math.isfinite(c.log_std_max)
+     and c.log_std_min < c.log_std_max, "the actor's log-std range needs log_std_min < log_std_max (= {log_std_max!r})"),
+)
+
+
+@functools.lru_cache(maxsize=None)
+def actor_def(config, action_dim: int) -> TanhGaussianActor:
+    """Actor module for a config (cached: equal configs give the same object -> one jit)."""
+    return TanhGaussianActor(
+        hidden_dims=config.actor_hidden_dims,
+        action_dim=action_dim,
+        use_layer_norm=config.actor_layer_norm,
+        dropout_rate=getattr(config, "actor_dropout", None),
+        state_dependent_std=config.state_dependent_std,
+        log_std_min=config.log_std_min,
+        log_std_max=config.log_std_max,
+    )
+
+
+@functools.lru_cache(maxsize=None)
+def critic_def(hidden_dims: tuple[int, ...], num: int, layer_norm: bool) -> CriticEnsemble:
+    return CriticEnsemble(hidden_dims=hidden_dims, num=num, use_layer_norm=layer_norm)
+
+
+class ActorCriticAgent:
+    """The public entry points (the jitted functions above) and the networks every agent has
+    (SAC, CQL, IQL): a tanh-Gaussian actor, a critic ensemble and its target parameters."""
+
+    def update(self, batch):
+        """One learning step (SAC: UTD u critic steps + 1 actor + 1 temperature); jitted."""
+        return jit_update(self, checked_batch(batch))
+
+    def update_many(self, batches):
+        """K updates in one call (``lax.scan``); batches have a leading axis K."""
+        return jit_update_many(self, checked_batch(batches))
+
+    def sample_actions(self, observations):
+        actions, rng = jit_sample(acting_view(self), jnp.asarray(observations, jnp.float32))
+        return actions, self.replace(rng=rng)
+
+    def eval_actions(self, observations):
+        return jit_eval(acting_view(self), jnp.asarray(observations, jnp.float32))
+
+    @classmethod
+    def _init(cls, config, obs_dim: int, action_dim: int, seed: int):
+        """``(rng, actor, critic, the key of the agent's own third network, a dummy observation)``."""
+        config.validate()
+        if obs_dim < 1 or action_dim < 1:
+            raise ConfigError(f"{cls.__name__}.create needs obs_dim >= 1 and action_dim >= 1, got {obs_dim}, {action_dim}.")
+        rng = jax.random.PRNGKey(seed)
+        rng, k_actor, k_critic, k_third = jax.random.split(rng, 4)
+        obs = jnp.zeros((1, obs_dim), jnp.float32)
+        act = jnp.zeros((1, action_dim), jnp.float32)
+        a_def = actor_def(config, action_dim)
+        actor = TrainState.create(apply_fn=a_def.apply, params=a_def.init(k_actor, obs)["params"], tx=adam(config.actor_lr))
+        c_def = critic_def(config.critic_hidden_dims, config.num_critics, config.critic_layer_norm)
+        critic = TrainState.create(apply_fn=c_def.apply, params=c_def.init(k_critic, obs, act)["params"],
+                                   tx=adam(config.critic_lr))
+        return rng, actor, critic, k_third, obs
+
+    @property
+    def action_dim(self) -> int:
+        return self.actor.params["mean"]["kernel"].shape[-1]
+
+    def policy(self, observations, actor_params=None, *, dropout_key=None):
+        """``(mean, log_std)`` of the pre-tanh Gaussian; dropout active when given its key."""
+        params = self.actor.params if actor_params is None else actor_params
+        if dropout_key is None:
+            return self.actor.apply_fn({"params": params}, observations)
+        return self.actor.apply_fn({"params": params}, observations, training=True, rngs={"dropout": dropout_key})
+
+    def critic_values(self, params, observations, actions) -> jax.Array:
+        """All members: (N, B)."""
+        return self.critic.apply_fn({"params": params}, observations, actions)
+
+    def critic_stepped(self, grads, tau: float):
+        """The agent after one gradient step of its critic and the Polyak update of its targets."""
+        critic = self.critic.apply_gradients(grads=grads)
+        return self.replace(critic=critic, target_critic_params=polyak(critic.params, self.target_critic_params, tau))
+
+    def target_min(self, key, observations, actions, num: int, replace: bool) -> jax.Array:
+        """min over a random subset of ``num`` target critics of Q'(s, a), drawn with or without
+        replacement: (B,)."""
+        cfg = self.config
+        sub = subsample_ensemble(key, self.target_critic_params, num, cfg.num_critics, replace)
+        sub_def = critic_def(cfg.critic_hidden_dims, num, cfg.critic_layer_norm)
+        return sub_def.apply({"params": sub}, observations, actions).min(axis=0)

@@ -36,8 +36,10 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
-from botorl.agents.common import TrainState, adam, chunk_size, polyak, summed_value_and_grad
-from botorl.agents.sac import SACAgent, SACConfig, critic_def, temp_def
+from botorl.agents.common import (
+    RATE_WHY, TrainState, adam, check_fields, chunk_size, critic_def, is_rate, summed_value_and_grad,
+)
+from botorl.agents.sac import SAC_CHECKS, SACAgent, SACConfig, temp_def
 from botorl.networks import sample_tanh_gaussian
 
 
@@ -67,21 +69,16 @@ class CQLConfig(SACConfig):
     cql_penalty_critics: int | None = None
 
     def validate(self) -> None:
-        super().validate()
-        from botorl.errors import ConfigError
+        check_fields(self, CQL_CHECKS)
 
-        if self.cql_n_actions < 1:
-            raise ConfigError(f"CQLConfig.cql_n_actions = {self.cql_n_actions} is invalid: need at least 1 sample.")
-        if not (self.cql_lagrange_lr >= 0 and self.cql_lagrange_lr < float("inf")):
-            raise ConfigError(f"CQLConfig.cql_lagrange_lr = {self.cql_lagrange_lr} is invalid: a learning rate must be "
-                              f"a finite number >= 0.")
-        if self.cql_temp <= 0:
-            raise ConfigError(f"CQLConfig.cql_temp = {self.cql_temp} is invalid: must be positive.")
-        if self.cql_penalty_critics is not None and self.cql_penalty_critics < 1:
-            raise ConfigError(
-                f"CQLConfig.cql_penalty_critics = {self.cql_penalty_critics} is invalid: give a member count >= 1, "
-                f"or None to penalise every member."
-            )
+
+CQL_CHECKS = SAC_CHECKS + (
+    ("cql_n_actions", lambda c: c.cql_n_actions >= 1, "need at least 1 sample"),
+    ("cql_lagrange_lr", lambda c: is_rate(c.cql_lagrange_lr), RATE_WHY),
+    ("cql_temp", lambda c: c.cql_temp > 0, "must be positive"),
+    ("cql_penalty_critics", lambda c: c.cql_penalty_critics is None or c.cql_penalty_critics >= 1,
+     "give a member count >= 1, or None to penalise every member"),
+)
 
 
 class CQLAgent(SACAgent):
@@ -90,14 +87,12 @@ class CQLAgent(SACAgent):
     lagrange: TrainState = None  # CQL weight multiplier alpha' (used when cql_lagrange)
 
     @classmethod
-    def _default_config(cls):
-        return CQLConfig()
-
-    @classmethod
-    def _extra_fields(cls, config, rng) -> dict:
-        l_def = temp_def(math.exp(config.cql_lagrange_init_log))
-        params = l_def.init(jax.random.PRNGKey(0))["params"]
-        return {"lagrange": TrainState.create(apply_fn=l_def.apply, params=params, tx=adam(config.cql_lagrange_lr))}
+    def create(cls, config: CQLConfig | None = None, obs_dim: int = 0, action_dim: int = 0, seed: int = 0):
+        agent = super().create(CQLConfig() if config is None else config, obs_dim, action_dim, seed)
+        l_def = temp_def(math.exp(agent.config.cql_lagrange_init_log))
+        lagrange = TrainState.create(apply_fn=l_def.apply, params=l_def.init(jax.random.PRNGKey(0))["params"],
+                                     tx=adam(agent.config.cql_lagrange_lr))
+        return agent.replace(lagrange=lagrange)
 
     def lagrange_value(self, params=None) -> jax.Array:
         params = self.lagrange.params if params is None else params
@@ -239,14 +234,9 @@ class CQLAgent(SACAgent):
         return chunk_size(bsz, 3 * self.config.cql_n_actions + 1, self.config.chunk_rows, self.critic_floats_per_row)
 
     def critic_grads(self, params, batch, target, key) -> tuple[dict, dict]:
-        """Gradient of ``critic_loss`` and its info, summed over chunks of states.
-
-        The penalty scores 3n + 1 actions per state, so its activations are ~31x the batch
-        (2 x 7,936 x 256 floats per layer at the reference size) and on a CPU they leave the
-        caches between the forward and the backward pass; chunks of ~250-500 rows make the step
-        2x faster there (``summed_value_and_grad``). The random actions are drawn once for
-        the whole batch, so chunking does not change them.
-        """
+        """Gradient of ``critic_loss`` and its info, summed over chunks of states: the penalty's
+        3n + 1 actions per state outgrow a CPU's caches (agents/common.py, chunked gradients).
+        The random actions are drawn once for the whole batch, so chunking does not change them."""
         bsz = batch["rewards"].shape[0]
         rows = self._rows(batch, key, target)
         members = self.penalty_members(key)  # the same members in every chunk
@@ -266,9 +256,7 @@ class CQLAgent(SACAgent):
         target, t_info = self.target_values(batch, k_target)
         grads, info = self.critic_grads(self.critic.params, batch, target, k_loss)
         diff = info.pop("_diff")
-        critic = self.critic.apply_gradients(grads=grads)
-        target_params = polyak(critic.params, self.target_critic_params, self.config.tau)
-        agent = self.replace(critic=critic, target_critic_params=target_params)
+        agent = self.critic_stepped(grads, self.config.tau)
         if self.config.cql_lagrange:
             l_loss, l_grads = jax.value_and_grad(self.lagrange_loss)(self.lagrange.params, diff)
             agent = agent.replace(lagrange=self.lagrange.apply_gradients(grads=l_grads))

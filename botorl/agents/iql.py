@@ -21,6 +21,7 @@ actor learning rate with a cosine schedule; we use a constant rate.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,12 +29,10 @@ import flax.struct as struct
 import jax
 import jax.numpy as jnp
 
-from botorl.agents.common import AgentAPI, TrainState, adam, polyak
-from botorl.agents.sac import actor_def, critic_def
-from botorl.errors import ConfigError
-from botorl.networks import ValueNetwork, subsample_ensemble, tanh_gaussian_log_prob
-
-import functools
+from botorl.agents.common import (
+    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, adam, check_fields, is_rate,
+)
+from botorl.networks import ValueNetwork, tanh_gaussian_log_prob
 
 
 @dataclass(frozen=True)
@@ -66,26 +65,16 @@ class IQLConfig:
     exp_adv_max: float = 100.0
 
     def validate(self) -> None:
-        if not 0.0 < self.expectile < 1.0:
-            raise ConfigError(f"IQLConfig.expectile = {self.expectile} is invalid: must be in (0, 1), e.g. 0.7 or 0.9.")
-        if self.awr_beta < 0:
-            raise ConfigError(f"IQLConfig.awr_beta = {self.awr_beta} is invalid: must be >= 0.")
-        if self.num_critics < 1:
-            raise ConfigError(f"IQLConfig.num_critics = {self.num_critics} is invalid: need at least one.")
-        if not 1 <= self.num_min_critics <= self.num_critics:
-            raise ConfigError(
-                f"IQLConfig.num_min_critics = {self.num_min_critics} is invalid: must be in [1, num_critics = "
-                f"{self.num_critics}]."
-            )
-        for f in ("actor_lr", "critic_lr", "value_lr"):
-            v = getattr(self, f)
-            if not (v >= 0 and v < float("inf")):  # a negative rate climbs the loss
-                raise ConfigError(f"IQLConfig.{f} = {v} is invalid: a learning rate must be a finite number >= 0.")
-        if not (-float("inf") < self.log_std_min < self.log_std_max < float("inf")):
-            raise ConfigError(f"IQLConfig.log_std_min = {self.log_std_min} is invalid: the actor's log-std range "
-                              f"needs log_std_min < log_std_max (= {self.log_std_max}).")
-        if self.actor_dropout is not None and not 0.0 <= self.actor_dropout < 1.0:
-            raise ConfigError(f"IQLConfig.actor_dropout = {self.actor_dropout} is invalid: must be in [0, 1) or None.")
+        check_fields(self, IQL_CHECKS)
+
+
+IQL_CHECKS = ACTOR_CRITIC_CHECKS + (
+    ("expectile", lambda c: 0.0 < c.expectile < 1.0, "must be in (0, 1), e.g. 0.7 or 0.9"),
+    ("awr_beta", lambda c: c.awr_beta >= 0, "must be >= 0"),
+    ("num_min_critics", lambda c: 1 <= c.num_min_critics <= c.num_critics, "must be in [1, num_critics = {num_critics}]"),
+    ("value_lr", lambda c: is_rate(c.value_lr), RATE_WHY),
+    ("actor_dropout", lambda c: c.actor_dropout is None or 0.0 <= c.actor_dropout < 1.0, "must be in [0, 1) or None"),
+)
 
 
 @functools.lru_cache(maxsize=None)
@@ -99,7 +88,7 @@ def expectile_loss(diff: jax.Array, expectile: float) -> jax.Array:
     return jnp.mean(weight * diff**2)
 
 
-class IQLAgent(AgentAPI, struct.PyTreeNode):
+class IQLAgent(ActorCriticAgent, struct.PyTreeNode):
     actor: TrainState
     critic: TrainState  # Q ensemble, leading axis num_critics
     target_critic_params: Any
@@ -110,38 +99,15 @@ class IQLAgent(AgentAPI, struct.PyTreeNode):
     @classmethod
     def create(cls, config: IQLConfig | None = None, obs_dim: int = 0, action_dim: int = 0, seed: int = 0):
         config = IQLConfig() if config is None else config
-        config.validate()
-        if obs_dim < 1 or action_dim < 1:
-            raise ConfigError(f"IQLAgent.create needs obs_dim >= 1 and action_dim >= 1, got {obs_dim}, {action_dim}.")
-        rng = jax.random.PRNGKey(seed)
-        rng, k_actor, k_critic, k_value = jax.random.split(rng, 4)
-        obs = jnp.zeros((1, obs_dim), jnp.float32)
-        act = jnp.zeros((1, action_dim), jnp.float32)
-        a_def = actor_def(config, action_dim)
-        actor = TrainState.create(apply_fn=a_def.apply, params=a_def.init(k_actor, obs)["params"], tx=adam(config.actor_lr))
-        c_def = critic_def(config.critic_hidden_dims, config.num_critics, config.critic_layer_norm)
-        critic_params = c_def.init(k_critic, obs, act)["params"]
-        critic = TrainState.create(apply_fn=c_def.apply, params=critic_params, tx=adam(config.critic_lr))
+        rng, actor, critic, k_value, obs = cls._init(config, obs_dim, action_dim, seed)
         v_def = value_def(config.value_hidden_dims, config.critic_layer_norm)
         value = TrainState.create(apply_fn=v_def.apply, params=v_def.init(k_value, obs)["params"], tx=adam(config.value_lr))
-        return cls(actor=actor, critic=critic, target_critic_params=critic_params, value=value, rng=rng, config=config)
+        return cls(actor=actor, critic=critic, target_critic_params=critic.params, value=value, rng=rng, config=config)
 
     # ------------------------------------------------------------------ pieces
-    def policy(self, observations, actor_params=None, *, dropout_key=None):
-        params = self.actor.params if actor_params is None else actor_params
-        if dropout_key is None:
-            return self.actor.apply_fn({"params": params}, observations)
-        return self.actor.apply_fn({"params": params}, observations, training=True, rngs={"dropout": dropout_key})
-
-    def critic_values(self, params, observations, actions):
-        return self.critic.apply_fn({"params": params}, observations, actions)
-
     def target_q(self, batch, key):
         """Q'(s, a) on the batch: min over a random subset of distinct target members."""
-        cfg = self.config
-        sub = subsample_ensemble(key, self.target_critic_params, cfg.num_min_critics, cfg.num_critics, False)
-        sub_def = critic_def(cfg.critic_hidden_dims, cfg.num_min_critics, cfg.critic_layer_norm)
-        return sub_def.apply({"params": sub}, batch["observations"], batch["actions"]).min(axis=0)
+        return self.target_min(key, batch["observations"], batch["actions"], self.config.num_min_critics, False)
 
     def value_loss(self, value_params, batch, q):
         v = self.value.apply_fn({"params": value_params}, batch["observations"])
@@ -177,6 +143,5 @@ class IQLAgent(AgentAPI, struct.PyTreeNode):
         g, a_info = jax.grad(agent.actor_loss, has_aux=True)(agent.actor.params, batch, k_actor, q)
         agent = agent.replace(actor=agent.actor.apply_gradients(grads=g))
         g, c_info = jax.grad(agent.critic_loss, has_aux=True)(agent.critic.params, batch)
-        critic = agent.critic.apply_gradients(grads=g)
-        agent = agent.replace(critic=critic, target_critic_params=polyak(critic.params, agent.target_critic_params, agent.config.tau))
+        agent = agent.critic_stepped(g, agent.config.tau)
         return agent, {**v_info, **a_info, **c_info}

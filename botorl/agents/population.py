@@ -203,8 +203,7 @@ def as_f32(x):
 
 
 def _f32(batch: dict) -> dict:
-    C.check_batch(batch)
-    batch = C.ensure_mc_returns(batch)
+    batch = C.checked_batch(batch)
     return {k: as_f32(batch[k]) for k in C.BATCH_KEYS}
 
 
@@ -226,8 +225,7 @@ def update_masked(agents, batches, mask, *, many: bool = False):
 
 def update_many_on_device(agents, arrays: dict, keys, num_updates: int, batch_size: int):
     """``update_many_on_device`` per member from one shared on-device dataset; ``keys`` (N, 2)."""
-    C.check_batch(arrays)
-    return jit_update_many_on_device(agents, C.ensure_mc_returns(arrays), keys, num_updates=num_updates,
+    return jit_update_many_on_device(agents, C.checked_batch(arrays), keys, num_updates=num_updates,
                                      batch_size=batch_size)
 
 

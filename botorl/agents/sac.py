@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -33,23 +32,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from botorl.agents.common import (
-    AgentAPI,
+    ACTOR_CRITIC_CHECKS,
+    RATE_WHY,
+    ActorCriticAgent,
     TrainState,
     adam,
+    check_fields,
     chunk_size,
-    polyak,
+    is_rate,
     summed_value_and_grad,
 )
 from botorl.agents.temperature import INIT_TEMP_RULES, log_temp_params, stationary_temperature
 from botorl.errors import ConfigError
-from botorl.networks import (
-    CriticEnsemble,
-    TanhGaussianActor,
-    Temperature,
-    sample_tanh_gaussian,
-    subsample_ensemble,
-    tanh_gaussian_from_noise,
-)
+from botorl.networks import Temperature, sample_tanh_gaussian, tanh_gaussian_from_noise
 
 
 @dataclass(frozen=True)
@@ -89,72 +84,30 @@ class SACConfig:
     chunk_rows: int | None = None
 
     def validate(self) -> None:
-        def bad(field, why):
-            raise ConfigError(f"{type(self).__name__}.{field} = {getattr(self, field)!r} is invalid: {why}.")
-
-        if self.num_critics < 1:
-            bad("num_critics", "need at least one critic")
-        if self.num_min_critics < 1 or (not self.subsample_replace and self.num_min_critics > self.num_critics):
-            bad("num_min_critics", "must be >= 1 and, without replacement, <= num_critics")
-        if self.actor_objective not in ("min", "mean"):
-            bad("actor_objective", 'use "min" (WSRL) or "mean" (RLPD)')
-        if self.utd_ratio < 1:
-            bad("utd_ratio", "must be >= 1")
-        if not 0.0 < self.tau <= 1.0:
-            bad("tau", "the Polyak rate must be in (0, 1]")
-        if not 0.0 <= self.discount <= 1.0:
-            bad("discount", "must be in [0, 1]")
-        if self.init_temp <= 0:
-            bad("init_temp", "the temperature must be positive")
-        if self.init_temp_rule not in INIT_TEMP_RULES:
-            bad("init_temp_rule", 'use "stationary" (the temperature at which SAC keeps the pre-trained actor\'s std) '
-                'or "fixed" (init_temp)')
-        if self.num_backup_actions < 1:
-            bad("num_backup_actions", "must be >= 1")
-        for f in ("actor_lr", "critic_lr", "temp_lr"):
-            if not (math.isfinite(getattr(self, f)) and getattr(self, f) >= 0):  # a negative rate climbs the loss
-                bad(f, "a learning rate must be a finite number >= 0, e.g. 3e-4")
-        if not (math.isfinite(self.log_std_min) and math.isfinite(self.log_std_max)
-                and self.log_std_min < self.log_std_max):
-            bad("log_std_min", f"the actor's log-std range needs log_std_min < log_std_max (= {self.log_std_max!r})")
-        if self.chunk_rows is not None and (not isinstance(self.chunk_rows, int) or self.chunk_rows < 0):
-            bad("chunk_rows", "give a row count, 0 for no chunking, or None for the device's default")
-        for f in ("actor_hidden_dims", "critic_hidden_dims"):
-            v = getattr(self, f)
-            if not isinstance(v, tuple) or not all(isinstance(h, int) and h > 0 for h in v):
-                bad(f, "give a tuple of positive layer widths, e.g. (256, 256)")
+        check_fields(self, SAC_CHECKS)
 
 
-# The fields that fix the shapes of the parameters (must agree for a warm start).
-ARCHITECTURE_FIELDS = (
-    "actor_hidden_dims",
-    "critic_hidden_dims",
-    "actor_layer_norm",
-    "critic_layer_norm",
-    "state_dependent_std",
-    "log_std_min",
-    "log_std_max",
-    "num_critics",
+def _widths(v) -> bool:
+    return isinstance(v, tuple) and all(isinstance(h, int) and h > 0 for h in v)
+
+
+SAC_CHECKS = ACTOR_CRITIC_CHECKS + (
+    ("num_min_critics", lambda c: c.num_min_critics >= 1 and (c.subsample_replace or c.num_min_critics <= c.num_critics),
+     "must be >= 1 and, without replacement, <= num_critics"),
+    ("actor_objective", lambda c: c.actor_objective in ("min", "mean"), 'use "min" (WSRL) or "mean" (RLPD)'),
+    ("utd_ratio", lambda c: c.utd_ratio >= 1, "must be >= 1"),
+    ("tau", lambda c: 0.0 < c.tau <= 1.0, "the Polyak rate must be in (0, 1]"),
+    ("discount", lambda c: 0.0 <= c.discount <= 1.0, "must be in [0, 1]"),
+    ("init_temp", lambda c: c.init_temp > 0, "the temperature must be positive"),
+    ("init_temp_rule", lambda c: c.init_temp_rule in INIT_TEMP_RULES,
+     'use "stationary" (the temperature at which SAC keeps the pre-trained actor\'s std) or "fixed" (init_temp)'),
+    ("num_backup_actions", lambda c: c.num_backup_actions >= 1, "must be >= 1"),
+    ("temp_lr", lambda c: is_rate(c.temp_lr), RATE_WHY),
+    ("chunk_rows", lambda c: c.chunk_rows is None or (isinstance(c.chunk_rows, int) and c.chunk_rows >= 0),
+     "give a row count, 0 for no chunking, or None for the device's default"),
+    *((f, lambda c, f=f: _widths(getattr(c, f)), "give a tuple of positive layer widths, e.g. (256, 256)")
+      for f in ("actor_hidden_dims", "critic_hidden_dims")),
 )
-
-
-@functools.lru_cache(maxsize=None)
-def actor_def(config, action_dim: int) -> TanhGaussianActor:
-    """Actor module for a config (cached: equal configs give the same object -> one jit)."""
-    return TanhGaussianActor(
-        hidden_dims=config.actor_hidden_dims,
-        action_dim=action_dim,
-        use_layer_norm=config.actor_layer_norm,
-        dropout_rate=getattr(config, "actor_dropout", None),
-        state_dependent_std=config.state_dependent_std,
-        log_std_min=config.log_std_min,
-        log_std_max=config.log_std_max,
-    )
-
-
-@functools.lru_cache(maxsize=None)
-def critic_def(hidden_dims: tuple[int, ...], num: int, layer_norm: bool) -> CriticEnsemble:
-    return CriticEnsemble(hidden_dims=hidden_dims, num=num, use_layer_norm=layer_norm)
 
 
 @functools.lru_cache(maxsize=None)
@@ -162,7 +115,7 @@ def temp_def(init_temp: float) -> Temperature:
     return Temperature(init_temp)
 
 
-class SACAgent(AgentAPI, struct.PyTreeNode):
+class SACAgent(ActorCriticAgent, struct.PyTreeNode):
     """SAC-family agent. Fields shared with CQL/Cal-QL (CONTRACTS.md)."""
 
     actor: TrainState
@@ -175,68 +128,27 @@ class SACAgent(AgentAPI, struct.PyTreeNode):
     # ------------------------------------------------------------------ construction
     @classmethod
     def create(cls, config: SACConfig | None = None, obs_dim: int = 0, action_dim: int = 0, seed: int = 0):
-        config = cls._default_config() if config is None else config
-        config.validate()
-        if obs_dim < 1 or action_dim < 1:
-            raise ConfigError(f"{cls.__name__}.create needs obs_dim >= 1 and action_dim >= 1, got {obs_dim}, {action_dim}.")
+        config = SACConfig() if config is None else config
         if config.target_entropy is None:
             config = dataclasses.replace(config, target_entropy=-float(action_dim))
-        rng = jax.random.PRNGKey(seed)
-        rng, k_actor, k_critic, k_temp = jax.random.split(rng, 4)
-        obs = jnp.zeros((1, obs_dim), jnp.float32)
-        act = jnp.zeros((1, action_dim), jnp.float32)
-
-        a_def = actor_def(config, action_dim)
-        actor = TrainState.create(
-            apply_fn=a_def.apply, params=a_def.init(k_actor, obs)["params"], tx=adam(config.actor_lr)
-        )
-        c_def = critic_def(config.critic_hidden_dims, config.num_critics, config.critic_layer_norm)
-        critic_params = c_def.init(k_critic, obs, act)["params"]
-        critic = TrainState.create(apply_fn=c_def.apply, params=critic_params, tx=adam(config.critic_lr))
+        rng, actor, critic, k_temp, _ = cls._init(config, obs_dim, action_dim, seed)
         t_def = temp_def(config.init_temp)
         temp = TrainState.create(apply_fn=t_def.apply, params=t_def.init(k_temp)["params"], tx=adam(config.temp_lr))
-        return cls(
-            actor=actor,
-            critic=critic,
-            target_critic_params=critic_params,
-            temp=temp,
-            rng=rng,
-            config=config,
-            **cls._extra_fields(config, rng),
-        )
+        return cls(actor=actor, critic=critic, target_critic_params=critic.params, temp=temp, rng=rng, config=config)
 
     @classmethod
-    def _default_config(cls):
-        return SACConfig()
+    def from_pretrained(cls, agent, config: SACConfig, seed: int | None = None, observations=None) -> "SACAgent":
+        """WSRL warm start: the online SAC learner from a pre-trained agent (SAC, CQL, Cal-QL, IQL).
 
-    @classmethod
-    def _extra_fields(cls, config, rng) -> dict:
-        return {}
-
-    @classmethod
-    def from_pretrained(
-        cls, agent, config: SACConfig | None = None, seed: int | None = None, observations=None
-    ) -> "SACAgent":
-        """WSRL warm start: the online SAC learner from a pre-trained agent.
-
-        Takes the actor, the critic ensemble and its target critics (IQL keeps its target Q
-        under the same field name) and, where the agent has one (SAC, CQL, Cal-QL), the
-        temperature -- each with its optimiser state (Adam moments and count), as WSRL restores
-        the whole pre-trained agent. From IQL, which has no temperature, it starts with
-        ``config.init_temp_rule == "stationary"`` and ``observations`` given (a probe of
-        ~1,000 offline states) at the value where SAC's actor objective is stationary in the
-        pre-trained actor's std (``stationary_temperature``, agents/temperature.py: the mean of
-        Q's action curvature times the squashed policy's variance, clipped to
-        ``[1e-4, init_temp]``), else (rule "fixed", no observations, or a critic without
-        curvature, with a warning) at ``config.init_temp``; its Adam state is fresh. The
-        networks in ``config`` must be the pre-trained ones (hidden sizes, LayerNorm, std
-        parameterisation, ensemble size): an ensemble of N critics is N
-        pre-trained critics, never copies of fewer (copies given the same batches and targets
-        stay identical forever).
+        Takes the actor, the critic ensemble, its target critics and, where the agent has one,
+        the temperature, each with its optimiser state, as WSRL restores the whole pre-trained
+        agent. From IQL, which has no temperature, it starts at ``stationary_temperature``
+        (agents/temperature.py) when ``config.init_temp_rule == "stationary"`` and probe
+        ``observations`` are given, else (or with a warning, when the critic has no curvature)
+        at ``config.init_temp``, with a fresh Adam state. The networks in ``config`` must be the
+        pre-trained ones: an ensemble of N critics is N pre-trained critics, never copies of
+        fewer (copies given the same batches and targets stay identical forever).
         """
-        if config is None:
-            # Default online settings, the pre-trained agent's network architecture.
-            config = SACConfig(**{f: getattr(agent.config, f) for f in ARCHITECTURE_FIELDS if hasattr(agent.config, f)})
         obs_dim, action_dim = _dims_of(agent)
         fresh = cls.create(config, obs_dim, action_dim, seed=0)
         m = jax.tree_util.tree_leaves(agent.critic.params)[0].shape[0]
@@ -269,23 +181,12 @@ class SACAgent(AgentAPI, struct.PyTreeNode):
 
     # ------------------------------------------------------------------ pieces (traced)
     @property
-    def action_dim(self) -> int:
-        return self.actor.params["mean"]["kernel"].shape[-1]
-
-    @property
     def critic_floats_per_row(self) -> int:
         """Activations per input row in the widest layer of the critic ensemble."""
         return self.config.num_critics * max(self.config.critic_hidden_dims)
 
     def temperature(self) -> jax.Array:
         return self.temp.apply_fn({"params": self.temp.params})
-
-    def critic_values(self, params, observations, actions) -> jax.Array:
-        """All members: (N, B)."""
-        return self.critic.apply_fn({"params": params}, observations, actions)
-
-    def policy(self, observations, actor_params=None):
-        return self.actor.apply_fn({"params": self.actor.params if actor_params is None else actor_params}, observations)
 
     def target_values(self, batch, key) -> tuple[jax.Array, dict]:
         """TD target y = r + discount (1 - done) V'(s'), shape (B,)."""
@@ -294,20 +195,18 @@ class SACAgent(AgentAPI, struct.PyTreeNode):
         next_obs = batch["next_observations"]
         bsz = next_obs.shape[0]
         mean, log_std = self.policy(next_obs)
-        sub = subsample_ensemble(k_sub, self.target_critic_params, cfg.num_min_critics, cfg.num_critics, cfg.subsample_replace)
-        sub_def = critic_def(cfg.critic_hidden_dims, cfg.num_min_critics, cfg.critic_layer_norm)
+        k, replace = cfg.num_min_critics, cfg.subsample_replace
         if cfg.max_target_backup:
             n = cfg.num_backup_actions
             next_a, next_logp = sample_tanh_gaussian(k_act, mean, log_std, n)  # (B, n, A), (B, n)
             obs_rep = jnp.repeat(next_obs, n, axis=0)  # row b*n + j <-> (b, j)
-            q = sub_def.apply({"params": sub}, obs_rep, next_a.reshape(bsz * n, -1))
-            q = q.min(axis=0).reshape(bsz, n)
+            q = self.target_min(k_sub, obs_rep, next_a.reshape(bsz * n, -1), k, replace).reshape(bsz, n)
             best = jnp.argmax(q, axis=1)[:, None]
             next_q = jnp.take_along_axis(q, best, axis=1)[:, 0]
             next_logp = jnp.take_along_axis(next_logp, best, axis=1)[:, 0]
         else:
             next_a, next_logp = sample_tanh_gaussian(k_act, mean, log_std)
-            next_q = sub_def.apply({"params": sub}, next_obs, next_a).min(axis=0)
+            next_q = self.target_min(k_sub, next_obs, next_a, k, replace)
         if cfg.backup_entropy:
             next_q = next_q - self.temperature() * next_logp
         target = batch["rewards"] + cfg.discount * (1.0 - batch["dones"]) * next_q
@@ -323,9 +222,7 @@ class SACAgent(AgentAPI, struct.PyTreeNode):
         k_target, k_loss = jax.random.split(key)
         target, t_info = self.target_values(batch, k_target)
         grads, info = jax.grad(self.critic_loss, has_aux=True)(self.critic.params, batch, target, k_loss)
-        critic = self.critic.apply_gradients(grads=grads)
-        target_params = polyak(critic.params, self.target_critic_params, self.config.tau)
-        return self.replace(critic=critic, target_critic_params=target_params), {**info, **t_info}
+        return self.critic_stepped(grads, self.config.tau), {**info, **t_info}
 
     def _actor_rows(self, batch, key) -> dict:
         obs = batch["observations"]

@@ -1,36 +1,25 @@
 """The SAC temperature at which a pre-trained actor's spread is already optimal.
 
-A warm start from IQL carries an actor and critics but no temperature. Starting SAC's at an
-arbitrary 1.0 while IQL's actor is narrow (entropy about -3 on antmaze) makes the entropy
-bonus widen the policy for thousands of steps before the temperature loss has brought the
-temperature down. ``stationary_temperature`` instead picks the temperature at which SAC's
-actor objective, under the pre-trained critic, does not want to change the actor's spread.
+A warm start from IQL carries no temperature. Starting SAC's at 1.0 while IQL's actor is narrow
+(entropy about -3 on antmaze) makes the entropy bonus widen the policy for thousands of steps
+before the temperature loss brings it down. ``stationary_temperature`` instead picks the one at
+which SAC's actor objective, under the pre-trained critic, does not want to change the spread.
 
-Derivation. SAC's actor maximises, per state, ``J = E_{a~pi}[Q(s, a)] + tau H(pi(.|s))``.
-Take a Gaussian policy with std ``sigma_d`` per action dimension around the mean action
-``mu`` and ``Q`` locally quadratic there with curvature ``-k_d`` along dimension d
-(``k_d = -d^2 Q / da_d^2``). Then ``E[Q] ~ Q(mu) - sum_d k_d sigma_d^2 / 2`` and
-``H = sum_d log sigma_d + const``, so ``dJ / dlog sigma_d = -k_d sigma_d^2 + tau``: the
-spread along d is stationary exactly when ``tau = k_d sigma_d^2`` (a maximum when k_d > 0).
-One temperature cannot satisfy every (state, dimension) pair; the mean of ``k_d sigma_d^2``
-over them is the one at which the derivative along a common rescaling of all stds,
-``sum_{s,d} dJ/dlog sigma_d``, is zero -- for a state-independent std (IQL's on antmaze),
-whose log-std is shared across states, it is exactly that parameter's gradient direction.
+Derivation (the docs' Methods page, "The temperature after IQL"). For a Gaussian policy with
+std ``sigma_d`` and Q locally quadratic with curvature ``-k_d`` along action dimension d,
+``J = E[Q] + tau H`` has ``dJ / dlog sigma_d = -k_d sigma_d^2 + tau``: stationary (a maximum
+when k_d > 0) at ``tau = k_d sigma_d^2``. The mean of ``k_d sigma_d^2`` over (state, dimension)
+pairs zeroes the derivative along a common rescaling of all stds -- for a state-independent std
+(IQL's on antmaze) exactly that parameter's gradient direction. For botorl's tanh-squashed
+actor, ``a = tanh(u)`` is to first order Gaussian around ``tanh(mean)`` with std
+``sigma_eff = (1 - tanh(mean)^2) exp(log_std)``, so the rule holds in action space with
+``sigma_eff`` (up to terms O(sigma^2) relative).
 
-botorl's actor is a tanh-squashed Gaussian (networks/actor.py): ``a = tanh(u)``,
-``u ~ N(mean, exp(log_std)^2)``. To first order in the std, ``a`` is Gaussian around
-``tanh(mean)`` with std ``sigma_eff = (1 - tanh(mean)^2) exp(log_std)``, and its entropy is
-``sum_d log sigma_eff_d + const`` (the tanh Jacobian depends on the mean only at this order),
-so the rule holds in action space with ``sigma_eff`` and Q's curvature in ``a``. The
-remaining terms are O(sigma^2) relative (the tanh's own curvature).
-
-What is measured: ``k_d(s)`` is minus the diagonal of the Hessian, w.r.t. the action, of the
-mean over the ensemble of the agent's (online) critics at the deterministic action
-``tanh(mean)``. Where ``k_d(s) <= 0`` (Q flat or convex along d) no temperature makes the
-spread stationary, so that pair is left out. ``tau0 = mean of k sigma_eff^2`` over the
-remaining pairs, clipped to ``[min_temp, init_temp]``; with no pair left (e.g. a critic
-without LayerNorm: a ReLU network is piecewise linear in the action, Hessian 0) it falls back
-to ``init_temp`` and says so in ``info``.
+Measured: ``k_d(s)`` is minus the diagonal of the action Hessian of the ensemble-mean online
+critic at ``tanh(mean)``. Pairs with ``k_d(s) <= 0`` (no stationary spread) are left out;
+``tau0`` is the mean over the rest, clipped to ``[min_temp, init_temp]``; with none left (e.g.
+a ReLU critic without LayerNorm: piecewise linear in the action) it falls back to ``init_temp``
+and says so in ``info``.
 """
 
 from __future__ import annotations
@@ -53,11 +42,6 @@ MIN_TEMP = 1e-4
 _CHUNK = 128
 
 
-def _q_mean(critic, observation, action):
-    """Ensemble-mean Q of one (observation, action) pair: a scalar."""
-    return critic.apply_fn({"params": critic.params}, observation[None], action[None]).mean()
-
-
 @jax.jit
 def curvature_and_spread(actor, critic, observations):
     """``(k, sigma_eff)``, each (B, A): ``k = -diag d^2 Q / da^2`` of the ensemble-mean Q at
@@ -71,7 +55,8 @@ def curvature_and_spread(actor, critic, observations):
 
     def one(xs):
         obs, act = xs
-        hess = jax.hessian(lambda a: _q_mean(critic, obs, a))(act)
+        # the ensemble-mean Q of this one (observation, action) pair, a scalar
+        hess = jax.hessian(lambda a: critic.apply_fn({"params": critic.params}, obs[None], a[None]).mean())(act)
         return -jnp.diagonal(hess)
 
     k = jax.lax.map(one, (observations, a0), batch_size=min(_CHUNK, observations.shape[0]))

@@ -64,27 +64,27 @@ class BanditConfig:
     progress: bool = True
 
 
-def _tree_stack(tree, n: int):
-    import jax
-    import jax.numpy as jnp
-
-    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)), tree)
+# The small networks of every bandit critic (gamma = 0: every transition is terminal).
+SMALL_SAC = dict(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), actor_layer_norm=False, critic_layer_norm=False,
+                 num_critics=2, num_min_critics=2, subsample_replace=False, discount=0.0, utd_ratio=1)
 
 
-def _small_sac_config(discount: float = 0.0, critic_hidden=(64, 64)):
-    from botorl.agents.sac import SACConfig
+def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):
+    """``state, loss = step(state, k)`` on chunks of at most ``chunk`` of ``steps`` steps, with a
+    progress bar (its postfix the loss, when there is one)."""
+    from tqdm.auto import tqdm
 
-    return SACConfig(
-        actor_hidden_dims=(16,),
-        critic_hidden_dims=critic_hidden,
-        actor_layer_norm=False,
-        critic_layer_norm=False,
-        num_critics=2,
-        num_min_critics=2,
-        subsample_replace=False,
-        discount=discount,
-        utd_ratio=1,
-    )
+    bar = tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True, disable=not progress)
+    done = 0
+    while done < steps:
+        k = min(chunk, steps - done)
+        state, loss = step(state, k)
+        done += k
+        bar.update(k)
+        if progress and loss is not None:
+            bar.set_postfix(loss=f"{float(loss):.3g}")
+    bar.close()
+    return state
 
 
 def train_boto_bandit(
@@ -111,11 +111,13 @@ def train_boto_bandit(
     import optax
 
     from botorl.agents.common import TrainState
-    from botorl.agents.sac import SACAgent
+    from botorl.agents.population import q_mean
+    from botorl.agents.sac import SACAgent, SACConfig
     from botorl.boto.objective import ObjectiveSettings, boto_update_many_fn, check_alpha
 
     check_alpha(list(alphas))
-    agent = SACAgent.create(_small_sac_config(critic_hidden=critic_hidden), dataset.obs_dim, dataset.action_dim, seed=seed)
+    cfg = SACConfig(**{**SMALL_SAC, "critic_hidden_dims": critic_hidden})
+    agent = SACAgent.create(cfg, dataset.obs_dim, dataset.action_dim, seed=seed)
     if lr is not None:
         sched = optax.cosine_decay_schedule(lr, steps)
         agent = agent.replace(
@@ -123,7 +125,7 @@ def train_boto_bandit(
         )
     settings = ObjectiveSettings.resolve(boto_config, agent)
     n = len(alphas)
-    agents = _tree_stack(agent, n)
+    agents = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)), agent)
     alpha_arr = jnp.asarray(alphas, jnp.float32)
 
     @jax.jit
@@ -131,44 +133,22 @@ def train_boto_bandit(
         return jax.vmap(partial(boto_update_many_fn, settings=settings), in_axes=(0, None, 0))(ags, batches, alpha_arr)
 
     rng = np.random.default_rng(seed)
-    done = 0
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
 
-        bar = tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True)
-    while done < steps:
-        k = min(chunk, steps - done)
+    def step(ags, k):
         batches = dataset.sample(rng, batch_size, num_batches=k)
-        batches = {key: jnp.asarray(batches[key], jnp.float32) for key in ("observations", "actions", "rewards", "next_observations", "dones")}
-        agents, info = train_chunk(agents, batches)
-        done += k
-        if bar is not None:
-            bar.update(k)
-            bar.set_postfix(loss=f"{float(info['critic_loss'].mean()):.3g}")
-    if bar is not None:
-        bar.close()
+        ags, info = train_chunk(ags, {key: jnp.asarray(batches[key], jnp.float32) for key in
+                                      ("observations", "actions", "rewards", "next_observations", "dones")})
+        return ags, info["critic_loss"].mean()
 
-    obs_dim = dataset.obs_dim
-
-    @jax.jit
-    def _q(ags, actions):
-        obs = jnp.zeros((actions.shape[0], obs_dim), jnp.float32)
-        return jax.vmap(lambda a: a.critic_values(a.critic.params, obs, actions).mean(axis=0))(ags)
+    agents = _in_chunks(agents, step, steps, chunk, desc, progress)
 
     def q_fn(actions):
-        return np.asarray(_q(agents, jnp.asarray(actions, jnp.float32)))
+        return np.asarray(q_mean(agents, np.zeros((len(actions), dataset.obs_dim), np.float32), actions))
 
     return agents, q_fn
 
 
 # ----------------------------------------------------------------------------- Figure 3
-
-
-def fig3_dataset(transitions: int = 1000, seed: int = 0):
-    from botorl.data.generators.bandit import generate_1d
-
-    return generate_1d(transitions, seed, progress=False)
 
 
 def ood_mask(grid: np.ndarray, actions: np.ndarray, distance: float = OOD_DISTANCE) -> np.ndarray:
@@ -181,8 +161,9 @@ def run_fig3(cfg: BanditConfig, dataset=None) -> dict:
     """Train the Figure 3 critics and compare them with Q* and the bounds: the bandit.json part."""
     from botorl.boto.config import BOTOConfig
     from botorl.boto.theory import gaussian_log_density, namdp_exact
+    from botorl.data.generators.bandit import generate_1d
 
-    ds = fig3_dataset(cfg.fig3_transitions, cfg.seed) if dataset is None else dataset
+    ds = generate_1d(cfg.fig3_transitions, cfg.seed, progress=False) if dataset is None else dataset
     boto_cfg = BOTOConfig(noise="gaussian", sigma=FIG3_SIGMA, clip=False, discount=0.0, backup_entropy=False)
     t0 = time.perf_counter()
     _, q_fn = train_boto_bandit(
@@ -290,13 +271,10 @@ def _offline_agents(ds, cfg: BanditConfig):
     from botorl.agents.cql import CQLAgent, CQLConfig
     from botorl.agents.iql import IQLAgent, IQLConfig
 
-    base = {f: getattr(_small_sac_config(), f) for f in (
-        "actor_hidden_dims", "critic_hidden_dims", "actor_layer_norm", "critic_layer_norm", "num_critics",
-        "num_min_critics", "subsample_replace", "discount", "utd_ratio")}
     # CQL weight 5 with a fixed weight (no Lagrange): the one-step problem has no bootstrapping, so
     # the penalty is what shapes Q off the data (Cal-QL's kitchen setting).
     # 5 (not 10) penalty samples of each kind keep `botorl bandit` within its time budget.
-    cql_common = dict(base, max_target_backup=False, cql_lagrange=False, cql_weight=5.0, cql_n_actions=5)
+    cql_common = dict(SMALL_SAC, max_target_backup=False, cql_lagrange=False, cql_weight=5.0, cql_n_actions=5)
     makers = {
         "CQL": lambda: CQLAgent.create(CQLConfig(**cql_common, calql=False), ds.obs_dim, ds.action_dim, cfg.seed),
         "Cal-QL": lambda: CQLAgent.create(CQLConfig(**cql_common, calql=True), ds.obs_dim, ds.action_dim, cfg.seed),
@@ -307,32 +285,20 @@ def _offline_agents(ds, cfg: BanditConfig):
     }
     out = {}
     for name, make in makers.items():
-        agent = make()
         rng = np.random.default_rng(cfg.seed + 1)
-        chunk = 250
-        bar = None
-        if cfg.progress:
-            from tqdm.auto import tqdm
 
-            bar = tqdm(total=cfg.fig2_offline_steps, desc=f"Figure 2: {name}", unit="step", dynamic_ncols=True)
-        done = 0
-        while done < cfg.fig2_offline_steps:
-            k = min(chunk, cfg.fig2_offline_steps - done)
-            batches = {key: jnp.asarray(v) for key, v in ds.sample(rng, 256, num_batches=k).items()}
-            agent, _ = agent.update_many(batches)
-            done += k
-            if bar is not None:
-                bar.update(k)
-        if bar is not None:
-            bar.close()
-        out[name] = agent
+        def step(agent, k):
+            agent, _ = agent.update_many({key: jnp.asarray(v) for key, v in ds.sample(rng, 256, num_batches=k).items()})
+            return agent, None
+
+        out[name] = _in_chunks(make(), step, cfg.fig2_offline_steps, 250, f"Figure 2: {name}", cfg.progress)
     return out
 
 
 def run_fig2(cfg: BanditConfig) -> dict:
-    import jax
     import jax.numpy as jnp
 
+    from botorl.agents.common import jit_q_mean
     from botorl.boto.config import BOTOConfig
     from botorl.data.generators.bandit import generate_pinwheel
 
@@ -352,13 +318,10 @@ def run_fig2(cfg: BanditConfig) -> dict:
     uniform = np.random.default_rng(cfg.seed + 2).uniform(-1, 1, (4000, 2)).astype(np.float32)
     data_acts = ds.actions.astype(np.float32)
     q_grid_b, q_uni_b, q_data_b = q_boto(grid), q_boto(uniform), q_boto(data_acts)
-    methods = {}
-    for i, a in enumerate(FIG2_ALPHAS):
-        methods[f"BOTO alpha={a:+.0f}"] = (q_grid_b[i], q_uni_b[i], q_data_b[i])
+    methods = {f"BOTO alpha={a:+.0f}": (q_grid_b[i], q_uni_b[i], q_data_b[i]) for i, a in enumerate(FIG2_ALPHAS)}
 
     def q_of(agent, acts):
-        obs = jnp.zeros((len(acts), ds.obs_dim), jnp.float32)
-        return np.asarray(jax.jit(lambda ag, o, x: ag.critic_values(ag.critic.params, o, x).mean(0))(agent, obs, jnp.asarray(acts)))
+        return np.asarray(jit_q_mean(agent, jnp.zeros((len(acts), ds.obs_dim), jnp.float32), jnp.asarray(acts)))
 
     for name, agent in offline.items():
         methods[name] = (q_of(agent, grid), q_of(agent, uniform), q_of(agent, data_acts))

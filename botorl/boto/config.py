@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from botorl.agents.common import check_fields
+from botorl.boto.noise import resolve_weight_fn
 from botorl.errors import ConfigError
 
 
@@ -74,27 +76,20 @@ class BOTOConfig:
     train_actor: bool = False
 
     def validate(self) -> None:
-        def bad(field: str, why: str) -> None:
-            raise ConfigError(f"BOTOConfig.{field} = {getattr(self, field)!r} is invalid: {why}.")
-
-        if self.boto_steps < 0:
-            bad("boto_steps", "must be >= 0")
-        if self.noise not in ("hybrid", "gaussian"):
-            bad("noise", 'use "hybrid" (paper B.1) or "gaussian"')
-        if not (self.log_sigma < 0) or math.isinf(self.log_sigma):
-            bad("log_sigma", "must be a finite negative number (paper: -20, or -30 on antmaze-large-diverse)")
-        if not self.sigma > 0:
-            bad("sigma", "the Gaussian noise scale must be positive, e.g. 0.25")
-        if self.batch_size < 1:
-            bad("batch_size", "must be >= 1")
-        if self.steps_per_call < 1:
-            bad("steps_per_call", "must be >= 1")
-        if self.num_min_critics is not None and self.num_min_critics < 1:
-            bad("num_min_critics", "must be >= 1 or None (use the agent's setting)")
-        if self.discount is not None and not 0.0 <= self.discount <= 1.0:
-            bad("discount", "must be in [0, 1] or None")
-        if self.tau is not None and not 0.0 < self.tau <= 1.0:
-            bad("tau", "the Polyak rate must be in (0, 1] or None")
-        from botorl.boto.noise import resolve_weight_fn
-
+        check_fields(self, BOTO_CHECKS)
         resolve_weight_fn(self.weight_fn)
+
+
+BOTO_CHECKS = (
+    ("boto_steps", lambda c: c.boto_steps >= 0, "must be >= 0"),
+    ("noise", lambda c: c.noise in ("hybrid", "gaussian"), 'use "hybrid" (paper B.1) or "gaussian"'),
+    ("log_sigma", lambda c: c.log_sigma < 0 and not math.isinf(c.log_sigma),
+     "must be a finite negative number (paper: -20, or -30 on antmaze-large-diverse)"),
+    ("sigma", lambda c: c.sigma > 0, "the Gaussian noise scale must be positive, e.g. 0.25"),
+    ("batch_size", lambda c: c.batch_size >= 1, "must be >= 1"),
+    ("steps_per_call", lambda c: c.steps_per_call >= 1, "must be >= 1"),
+    ("num_min_critics", lambda c: c.num_min_critics is None or c.num_min_critics >= 1,
+     "must be >= 1 or None (use the agent's setting)"),
+    ("discount", lambda c: c.discount is None or 0.0 <= c.discount <= 1.0, "must be in [0, 1] or None"),
+    ("tau", lambda c: c.tau is None or 0.0 < c.tau <= 1.0, "the Polyak rate must be in (0, 1] or None"),
+)

@@ -1,26 +1,18 @@
 """Action-noise distributions q_sigma(a_bar | a) for the BOTO objective, vectorised in JAX.
 
-Two kinds:
-
 * **hybrid** (paper B.1, after Oh & Lee 2025): ``lambda ~ U(log_sigma, 0)``, ``t = exp(lambda)``,
-  then ``a_bar ~ w(t) * Uniform([-1, 1]^A) + (1 - w(t)) * Normal(a, t^2 I)``. One ``t`` per
-  row (per transition), shared by all action dimensions.
-* **gaussian**: ``a_bar ~ Normal(a, sigma^2 I)``; the paper's bandit figure 3 uses sigma = 0.25.
+  then ``a_bar ~ w(t) * Uniform([-1, 1]^A) + (1 - w(t)) * Normal(a, t^2 I)``, one ``t`` per row.
+* **gaussian**: ``a_bar ~ Normal(a, sigma^2 I)`` (the paper's bandit figure 3: sigma = 0.25).
 
-The mixing weight w(t) is not given by the paper nor, as far as we could find, by any other
-source: **w(t) = t is OUR choice** ("linear"). It makes the uniform component take over as the
-noise scale approaches the size of the box; with log_sigma = -20 about 5% of draws are uniform
-(E[w] = (1 - sigma) / |log sigma|). A constant weight p (``weight_fn=0.1``) or any callable
+No source gives the mixing weight: **w(t) = t is OUR choice** ("linear"): the uniform component
+takes over as the noise scale approaches the size of the box; with log_sigma = -20 about 5% of
+draws are uniform (E[w] = (1 - sigma) / |log sigma|). A constant weight p or any callable
 ``t -> w`` in [0, 1] can be given instead.
 
-Perturbed actions are clipped to the box [-1, 1]^A by default (the critic is only ever asked
-about actions the actor can produce). ``clip=False`` keeps the unclipped draw; the bandit
-figure 3 uses it so that the learned critic can be compared with the closed-form Q* of the
-unclipped Gaussian (clipping would put point masses on the box edges).
-
-Both samplers return ``(a_bar, info)`` where ``info`` holds per-row diagnostics used by the
-BOTO metrics and the tests: ``uniform`` (bool, the row was drawn from the uniform component)
-and ``t`` (the row's noise scale; sigma for the Gaussian kind).
+Perturbed actions are clipped to the box by default (the critic is only asked about actions the
+actor can produce); the bandit figure 3 keeps them unclipped to compare with the closed-form Q*.
+Both samplers return ``(a_bar, info)``, ``info`` per row: ``uniform`` (drawn from the uniform
+component) and ``t`` (the noise scale; sigma for the Gaussian kind).
 """
 
 from __future__ import annotations

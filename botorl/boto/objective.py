@@ -6,24 +6,12 @@ For a batch (s, a, r, s', done) of D_BOTO and a perturbed action a_bar ~ q_sigma
               + gamma (1 - done) (min_{j in subset} Q'_j(s', a~) - tau log pi(a~|s')),  a~ ~ pi(.|s')
     loss  = mean_i mean_B (Q_i(s, a_bar) - y_bar)^2
 
-followed by a Polyak update of the target critics after every step.
-
-Decisions (ours where the paper is silent; docs/methods.md, "BOTO: the choices the paper leaves
-open"):
-- Entropy sign: the paper prints ``+ tau log pi``; we use SAC's soft value ``- tau log pi``
-  (``backup_entropy=False`` drops the term).
-- The actor and the SAC temperature are frozen by default (Theorem 1 is stated for a fixed
-  policy pi). ``train_actor=True`` also runs the agent's own SAC actor and temperature steps
-  after every critic step (SAC-family agents only).
-- One next action a~ per row (the paper's target), even for agents pre-trained with the
-  max-target backup.
-- Works on any agent with ``actor``, ``critic`` (ensemble), ``target_critic_params``, ``rng``,
-  ``config`` and the methods ``policy(obs)`` / ``critic_values(params, obs, act)``: SAC, CQL,
-  Cal-QL and IQL. IQL has no SAC temperature: its AWR tanh-Gaussian actor gives a~ and
-  log pi, and tau = 0 (the entropy term vanishes). The critic keeps the agent's optimiser (and
-  its Adam state) from pre-training.
-- ``alpha`` is a traced argument, not part of the static settings: changing it does not
-  recompile, and ``jax.vmap`` over alpha trains several critics in one program (bandit.py).
+followed by a Polyak update of the target critics after every step. The choices the paper leaves
+open (the entropy sign, the frozen actor, IQL's tau = 0, one a~ per row) are the docs' Methods
+page, "BOTO: the choices the paper leaves open". Any botorl agent works (SAC, CQL, Cal-QL, IQL);
+its critic keeps its optimiser and Adam state from pre-training. ``alpha`` is a traced argument,
+not a static setting: changing it does not recompile, and ``jax.vmap`` over alpha trains several
+critics in one program (bandit.py).
 """
 
 from __future__ import annotations
@@ -35,10 +23,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from botorl.agents.common import ActorCriticAgent, checked_batch
 from botorl.agents.population import as_f32, over_members, placed
 from botorl.boto.config import BOTOConfig, check_alpha
 from botorl.boto.noise import make_noise_fn
 from botorl.errors import ConfigError
+from botorl.networks import sample_tanh_gaussian
 
 _BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones")
 
@@ -63,13 +53,9 @@ class ObjectiveSettings:
     def resolve(cls, config: BOTOConfig, agent) -> "ObjectiveSettings":
         config.validate()
         acfg = agent.config
-        for field in ("actor", "critic", "target_critic_params", "rng"):
-            if not hasattr(agent, field):
-                raise ConfigError(
-                    f"BOTO needs an agent with a critic ensemble and a policy (fields actor, critic, "
-                    f"target_critic_params, rng); {type(agent).__name__} has no {field!r}. Pass a "
-                    f"SACAgent, CQLAgent (Cal-QL) or IQLAgent."
-                )
+        if not isinstance(agent, ActorCriticAgent):
+            raise ConfigError(f"BOTO needs an agent with a critic ensemble and a policy; {type(agent).__name__} is "
+                              f"none. Pass a SACAgent, CQLAgent (Cal-QL) or IQLAgent.")
         n = int(jax.tree_util.tree_leaves(agent.critic.params)[0].shape[0])
         k = config.num_min_critics or getattr(acfg, "num_min_critics", n)
         replace = config.subsample_replace
@@ -109,46 +95,21 @@ class ObjectiveSettings:
 # ----------------------------------------------------------------------------- pure pieces
 
 
-def boto_target(rewards, dones, actions, a_bar, next_v, alpha, discount):
-    """y_bar = r - alpha ||a - a_bar||^2 + discount (1 - done) next_v; also returns ||a - a_bar||^2."""
-    sq_dist = jnp.sum((actions - a_bar) ** 2, axis=-1)
-    return rewards - alpha * sq_dist + discount * (1.0 - dones) * next_v, sq_dist
+def compute_target(agent, batch, alpha, settings: ObjectiveSettings, k_noise, k_next):
+    """The BOTO target of every row: ``(y_bar (B,), a_bar (B, A), ||a - a_bar||^2 (B,), noise info)``.
 
-
-def _subset_min(agent, key, obs, actions, k: int, replace: bool):
-    """min over a random subset of k target critics of Q'_j(obs, actions), shape (B,)."""
-    from botorl.agents.sac import critic_def
-    from botorl.networks import subsample_ensemble
-
-    cfg = agent.config
-    n = int(jax.tree_util.tree_leaves(agent.target_critic_params)[0].shape[0])
-    if k == n and not replace:
-        return agent.critic_values(agent.target_critic_params, obs, actions).min(axis=0)
-    sub = subsample_ensemble(key, agent.target_critic_params, k, n, replace)
-    sub_def = critic_def(tuple(cfg.critic_hidden_dims), k, bool(cfg.critic_layer_norm))
-    return sub_def.apply({"params": sub}, obs, actions).min(axis=0)
-
-
-def next_value(agent, next_obs, key, settings: ObjectiveSettings):
-    """min_{j in subset} Q'_j(s', a~) - tau log pi(a~|s') with a~ ~ pi(.|s'), shape (B,)."""
-    from botorl.networks import sample_tanh_gaussian
-
-    k_act, k_sub = jax.random.split(key)
+    y_bar = r - alpha ||a - a_bar||^2 + discount (1 - done) (min_{j in subset} Q'_j(s', a~) -
+    tau log pi(a~|s')) with a~ ~ pi(.|s')."""
+    a_bar, ninfo = settings.noise_fn()(k_noise, batch["actions"])
+    next_obs = batch["next_observations"]
+    k_act, k_sub = jax.random.split(k_next)
     mean, log_std = agent.policy(next_obs)
     next_a, next_logp = sample_tanh_gaussian(k_act, mean, log_std)
-    v = _subset_min(agent, k_sub, next_obs, next_a, settings.num_min_critics, settings.subsample_replace)
+    next_v = agent.target_min(k_sub, next_obs, next_a, settings.num_min_critics, settings.subsample_replace)
     if settings.backup_entropy:
-        v = v - agent.temperature() * next_logp
-    return v
-
-
-def compute_target(agent, batch, alpha, settings: ObjectiveSettings, k_noise, k_next):
-    """The BOTO target of every row: ``(y_bar (B,), a_bar (B, A), ||a - a_bar||^2 (B,), noise info)``."""
-    a_bar, ninfo = settings.noise_fn()(k_noise, batch["actions"])
-    next_v = next_value(agent, batch["next_observations"], k_next, settings)
-    target, sq_dist = boto_target(
-        batch["rewards"], batch["dones"], batch["actions"], a_bar, next_v, alpha, settings.discount
-    )
+        next_v = next_v - agent.temperature() * next_logp
+    sq_dist = jnp.sum((batch["actions"] - a_bar) ** 2, axis=-1)
+    target = batch["rewards"] - alpha * sq_dist + settings.discount * (1.0 - batch["dones"]) * next_v
     return jax.lax.stop_gradient(target), a_bar, sq_dist, ninfo
 
 
@@ -157,8 +118,6 @@ def boto_critic_step(agent, batch, alpha, settings: ObjectiveSettings):
 
     The keys come from ``agent.rng``: ``rng, k_noise, k_next, k_actor = split(agent.rng, 4)``.
     """
-    from botorl.agents.common import polyak
-
     rng, k_noise, k_next, k_actor = jax.random.split(agent.rng, 4)
     agent = agent.replace(rng=rng)
     target, a_bar, sq_dist, ninfo = compute_target(agent, batch, alpha, settings, k_noise, k_next)
@@ -169,8 +128,7 @@ def boto_critic_step(agent, batch, alpha, settings: ObjectiveSettings):
         return jnp.mean((q - target[None]) ** 2), q
 
     (loss, q_bar), grads = jax.value_and_grad(loss_fn, has_aux=True)(agent.critic.params)
-    critic = agent.critic.apply_gradients(grads=grads)
-    agent = agent.replace(critic=critic, target_critic_params=polyak(critic.params, agent.target_critic_params, settings.tau))
+    agent = agent.critic_stepped(grads, settings.tau)
     info = {
         "critic_loss": loss,
         "q_perturbed": q_bar.mean(),
@@ -186,16 +144,6 @@ def boto_critic_step(agent, batch, alpha, settings: ObjectiveSettings):
     return agent, info
 
 
-def q_diagnostics(agent, batch, key) -> dict:
-    """Mean Q (over members and rows) at the dataset actions and at uniform actions in the box."""
-    obs, act = batch["observations"], batch["actions"]
-    uni = jax.random.uniform(key, act.shape, act.dtype, -1.0, 1.0)
-    return {
-        "q_data": agent.critic_values(agent.critic.params, obs, act).mean(),
-        "q_uniform": agent.critic_values(agent.critic.params, obs, uni).mean(),
-    }
-
-
 def boto_update_many_fn(agent, batches, alpha, settings: ObjectiveSettings):
     """K BOTO critic steps under one ``lax.scan`` (traced; ``boto_update_many`` jits it, and
     ``population_update_many`` maps it over a population)."""
@@ -205,9 +153,12 @@ def boto_update_many_fn(agent, batches, alpha, settings: ObjectiveSettings):
 
     agent, infos = jax.lax.scan(body, agent, batches)
     info = jax.tree_util.tree_map(jnp.mean, infos)
-    last = jax.tree_util.tree_map(lambda x: x[-1], batches)
+    # mean Q (over members and rows) at the last batch's dataset actions and at uniform actions
+    obs, act = batches["observations"][-1], batches["actions"][-1]
     rng, key = jax.random.split(agent.rng)
-    info.update(q_diagnostics(agent, last, key))
+    uni = jax.random.uniform(key, act.shape, act.dtype, -1.0, 1.0)
+    info.update(q_data=agent.critic_values(agent.critic.params, obs, act).mean(),
+                q_uniform=agent.critic_values(agent.critic.params, obs, uni).mean())
     return agent.replace(rng=rng), info
 
 
@@ -217,12 +168,7 @@ _jit_population_update_many = jax.jit(over_members(boto_update_many_fn, (0, 0, 0
 
 
 def _check_batches(batches, many: bool) -> None:
-    if not isinstance(batches, dict) or any(k not in batches for k in _BATCH_KEYS):
-        missing = [k for k in _BATCH_KEYS if not isinstance(batches, dict) or k not in batches]
-        raise ConfigError(
-            f"a BOTO update needs a Batch dict with {', '.join(_BATCH_KEYS)}; missing {', '.join(missing)} "
-            "(CONTRACTS.md, Batch)."
-        )
+    checked_batch(batches)
     want = 3 if many else 2
     if jnp.ndim(batches["actions"]) != want:
         raise ConfigError(

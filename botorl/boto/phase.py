@@ -1,26 +1,16 @@
 """The BOTO phase (stage 2b): train the critic with the BOTO objective on D_BOTO.
 
-``train_boto(agents, d_offline, d_warmups, config, alphas, seeds)`` is the phase of a
-population (agents/population.py): member i trains its critic with its own alpha on
-D_offline u D_warmup_i for ``config.boto_steps`` critic steps, each batch drawn uniformly
-(with replacement) from the union of the rows, ``config.steps_per_call`` steps per jitted
-``lax.scan`` call for all members. The pipeline's BOTO stage runs it with its logging and
-checkpoints in ``on_call``; ``run_boto(agent, d_offline, d_warmup, config)`` is a population of
-one on this same loop (its alpha and batch seed given with it). The actor (and SAC temperature) stay frozen unless ``config.train_actor``.
+``train_boto`` is the phase of a population (agents/population.py): member i trains its critic
+with its own alpha on D_offline u D_warmup_i, ``config.steps_per_call`` steps per jitted call for
+all members; the pipeline's BOTO stage runs it, and ``run_boto`` is a population of one on the
+same loop. The actor (and SAC temperature) stay frozen unless ``config.train_actor``. An IQL
+agent comes back unchanged but for its critic, target critics and rng, so
+``SACAgent.from_pretrained`` then takes the BOTO-trained critic into fine-tuning. (Converting it
+first would put a fresh SAC temperature into the target; set ``backup_entropy=False`` then.)
 
-Agents: any SAC-family agent (SAC, CQL, Cal-QL) and IQL. For IQL, which has an AWR
-tanh-Gaussian actor and no SAC temperature, the target's next action a~ comes from IQL's own
-actor and tau = 0 (no entropy term); the IQL fields (value network included) are returned
-unchanged except the critic, its target and the rng, so ``SACAgent.from_pretrained`` then
-takes the BOTO-trained critic into online fine-tuning. (Converting first with
-``SACAgent.from_pretrained`` would instead put a fresh temperature -- ``init_temp``, or the
-stationary rule's value when probe observations are given (agents/temperature.py) -- into
-the target; set ``backup_entropy=False`` if you do that.)
-
-Resumable: ``start_step`` says how many steps were done before (e.g. restored from a
-checkpoint). The batches of call c are drawn from ``np.random.default_rng([seed, c])`` and the
-noise from the agent's own rng, so a resumed phase sees the same data stream as an
-uninterrupted one when it is cut at a multiple of ``steps_per_call``.
+Resumable: the batches of call c are drawn from ``np.random.default_rng([seed, c])`` and the
+noise from the agent's own rng, so a phase resumed at ``start_step`` (a multiple of
+``steps_per_call``) sees the same data stream as an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -36,28 +26,18 @@ from botorl.boto.config import BOTOConfig
 from botorl.boto.objective import ObjectiveSettings, check_alpha, population_update_many
 from botorl.errors import ConfigError, TrainingDivergedError
 
-__all__ = ["BOTOConfig", "run_boto", "train_boto", "boto_dataset", "boto_batches"]
+__all__ = ["BOTOConfig", "run_boto", "train_boto", "boto_batches"]
 
 Callback = Callable[[int, Any, dict], None]
 _KEYS = ("observations", "actions", "rewards", "next_observations", "dones")
 
 
-def boto_dataset(d_offline, d_warmup=None):
-    """D_BOTO = D_offline u D_warmup as one Dataset (rows of both; uniform sampling over them)."""
-    if d_offline is None or len(d_offline) == 0:
-        if d_warmup is None or len(d_warmup) == 0:
-            raise ConfigError("run_boto got no data: D_offline and D_warmup are both empty; pass the offline dataset.")
-        return d_warmup
-    if d_warmup is None or len(d_warmup) == 0:
-        return d_offline
-    return d_offline.concat(d_warmup)
-
-
 def boto_batches(d_offline, d_warmups: Sequence, rngs: Sequence[np.random.Generator], batch_size: int,
                  num_batches: int) -> dict:
-    """Batches from D_offline u D_warmup_i per member i, as ``boto_dataset(...).sample`` draws
-    them (row r < len(D_offline) from the offline data, else from the member's warm-up data),
-    without copying the offline data once per member. Stacked (N, K, B, ...)."""
+    """Batches from D_BOTO = D_offline u D_warmup_i per member i, as
+    ``d_offline.concat(d_warmups[i]).sample`` draws them (row r < len(D_offline) from the offline
+    data, else from the member's warm-up data), without copying the offline data once per member.
+    Stacked (N, K, B, ...)."""
     out = []
     n_off = 0 if d_offline is None else len(d_offline)
     for rng, d_w in zip(rngs, d_warmups):
@@ -135,12 +115,10 @@ def run_boto(
     far from the data, < 0 raises it; 1 is Oh & Lee's NAMDP), its batches drawn from ``seed``
     (``train_boto`` on a population of one); returns ``(agent, history)``.
 
-    ``history`` has one dict per call: ``step`` (steps done after the call), ``seconds`` (wall
-    time since this invocation started) and the metrics of ``boto_update_many`` (means over the
-    call's steps: critic_loss, q_perturbed, target, penalty, sq_dist, uniform_share; at its
-    end: q_data, q_uniform). ``callback(step, agent, metrics)`` runs after every call (logging,
-    checkpointing). A NaN/inf loss raises TrainingDivergedError (the agent passed to the last
-    callback is the last good one).
+    ``history`` has one dict per call: ``step``, ``seconds`` (since this call of run_boto) and
+    the metrics of ``boto_update_many``. ``callback(step, agent, metrics)`` runs after every
+    call. A NaN/inf loss raises TrainingDivergedError (the agent passed to the last callback is
+    the last good one).
     """
     config.validate()
     check_alpha(alpha)

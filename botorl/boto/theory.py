@@ -40,13 +40,11 @@ def gaussian_log_density(sigma: float) -> Callable[[np.ndarray, np.ndarray], np.
 
 @dataclass
 class ExactSolution:
-    """Q*, the Theorem 2 bounds and Rbar on a set of query actions."""
+    """Q* and the Theorem 2 bounds on a set of query actions."""
 
     q: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
-    rbar: np.ndarray
-    reward: np.ndarray  # posterior mean reward E_{p_D(a|a_bar)}[r]
 
 
 def namdp_exact(
@@ -57,7 +55,7 @@ def namdp_exact(
     log_density: Callable[[np.ndarray, np.ndarray], np.ndarray],
     chunk: int = 512,
 ) -> ExactSolution:
-    """Q*(a_bar), bounds and Rbar at ``query`` (M, A) for the dataset (``actions`` (N, A), ``rewards`` (N,))."""
+    """Q*(a_bar) and its bounds at ``query`` (M, A) for the dataset (``actions`` (N, A), ``rewards`` (N,))."""
     query = np.atleast_2d(np.asarray(query, np.float64))
     actions = np.asarray(actions, np.float64).reshape(len(rewards), -1)
     rewards = np.asarray(rewards, np.float64)
@@ -77,6 +75,4 @@ def namdp_exact(
         q=rmean_a - alpha * rbar_a,
         lower=min(0.0, -alpha) * rbar_a + r_lo,
         upper=max(0.0, -alpha) * rbar_a + r_hi,
-        rbar=rbar_a,
-        reward=rmean_a,
     )

@@ -128,11 +128,10 @@ def ensure_task(cfg) -> None:
     u = registry.get_task(cfg.task).user
     if u is None:
         return
-    now = {"observation width": u.obs_dim, "action width": u.action_dim, "action low": u.action_low,
-           "action high": u.action_high, "dict observation keys": u.obs_keys}
-    then = {"observation width": e.obs_dim, "action width": e.action_dim, "action low": e.action_low,
-            "action high": e.action_high, "dict observation keys": e.obs_keys}
-    changed = [f"{k} {then[k]} -> {now[k]}" for k in now if then[k] is not None and _as_tuple(then[k]) != _as_tuple(now[k])]
+    fields = {"observation width": "obs_dim", "action width": "action_dim", "action low": "action_low",
+              "action high": "action_high", "dict observation keys": "obs_keys"}
+    changed = [f"{k} {getattr(e, f)} -> {getattr(u, f)}" for k, f in fields.items()
+               if getattr(e, f) is not None and _as_tuple(getattr(e, f)) != _as_tuple(getattr(u, f))]
     if changed:
         raise ConfigError(f"task {cfg.task!r}: the env is not the one this run was trained on ({'; '.join(changed)}). "
                           f"Restore the env (entry {e.entry or 'registered from Python'}) or start a new run.")

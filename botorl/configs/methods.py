@@ -8,16 +8,7 @@ hold only rows of finished episodes (Cal-QL: a row's Monte-Carlo return is known
 episode ends) and their layout (``batch_layout``: one update on utd x batch rows split into
 utd critic minibatches, or IQL's utd separate updates of a batch each).
 
-| method | stages                               | online phase                                         |
-|--------|--------------------------------------|------------------------------------------------------|
-| boto   | pretrain, warmup, boto, finetune     | WSRL: SAC, 10 critics, from the BOTO-trained nets,   |
-|        |                                      | buffer = D_warmup, offline data dropped, UTD 4       |
-| wsrl   | pretrain, warmup, finetune           | WSRL, from the pre-trained nets                      |
-| calql  | pretrain, finetune                   | Cal-QL's own loss continued, 50/50 offline/online,   |
-| cql    |                                      | UTD 1, offline data kept (as in the paper's          |
-| iql    |                                      | baselines, algorithms.md section 5)                  |
-| rlpd   | finetune                             | SAC from scratch, 10 critics, 50/50 offline/online,  |
-|        |                                      | UTD 4 with WSRL's batch layout, 5,000 random steps   |
+The methods themselves, stage by stage: the docs' Methods page, "The methods".
 
 ``pretrain`` picks the offline algorithm for boto and wsrl (calql by default); calql, cql and
 iql pre-train with themselves; rlpd has no pre-training.

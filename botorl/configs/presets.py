@@ -32,7 +32,6 @@ Lagrange), IQL expectile 0.7 / temperature 3, alpha 0, 100k BOTO steps, log sigm
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import replace
 
 from botorl.agents.cql import CQLConfig
@@ -73,15 +72,10 @@ _IQL = {
     "bandit": dict(expectile=0.7, awr_beta=0.5, actor_dropout=None),
     "custom": dict(expectile=0.7, awr_beta=3.0, actor_dropout=None),
 }
-# Cal-QL MC returns: raw reward of a failing sparse trajectory; finite horizon everywhere
-# (WSRL computes kitchen's returns with infinite_horizon=False; Cal-QL's code has no kitchen).
-_MC = {
-    "antmaze": dict(mc_sparse_negative_reward=0.0, mc_infinite_horizon=False),
-    "adroit": dict(mc_sparse_negative_reward=-1.0, mc_infinite_horizon=False),
-    "kitchen": dict(mc_sparse_negative_reward=None, mc_infinite_horizon=False),
-    "bandit": dict(mc_sparse_negative_reward=None, mc_infinite_horizon=False),
-    "custom": dict(mc_sparse_negative_reward=None, mc_infinite_horizon=False),
-}
+# Cal-QL MC returns: raw reward of a failing sparse trajectory (None elsewhere); finite horizon
+# everywhere (WSRL computes kitchen's returns with infinite_horizon=False; Cal-QL's code has no
+# kitchen).
+_MC_SPARSE_NEGATIVE_REWARD = {"antmaze": 0.0, "adroit": -1.0}
 # Our choices for tasks the paper does not have (see the module docstring).
 _DEFAULT_PAPER = {"pointmaze": (-1.0, 100_000, -20.0), "adroit": (0.0, 100_000, -20.0), "bandit": (0.0, 20_000, -20.0),
                   "custom": (0.0, 100_000, -20.0)}
@@ -123,13 +117,16 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     cql = replace(CQLConfig(), max_target_backup=True, backup_entropy=False, cql_penalty_critics=2, **std,
                   **_CQL[dom])
     iql = replace(IQLConfig(), **_IQL[dom])
-    offline = OfflineConfig(steps=_PRETRAIN_STEPS[dom], cql=cql, iql=iql, **_MC[dom])
+    offline = OfflineConfig(steps=_PRETRAIN_STEPS[dom], cql=cql, iql=iql, mc_infinite_horizon=False,
+                            mc_sparse_negative_reward=_MC_SPARSE_NEGATIVE_REWARD.get(dom))
     sac = replace(SACConfig(), max_target_backup=(dom == "antmaze"), backup_entropy=False, **std)
     online = OnlineConfig(steps=300_000, sac=sac)
     boto = replace(BOTOConfig(), boto_steps=boto_steps, log_sigma=log_sigma)
+    # A user's task reads the file it was registered with (None: data held in memory).
+    data_path = (spec.dataset_source.ref or None) if spec.user is not None else None
     cfg = RunConfig(
         task=task, method=method, pretrain=pretrain, profile=profile,
-        data=DataConfig(path=_user_data_path(spec)), env=env_record(spec), network=net, offline=offline, warmup=WarmupConfig(5_000),
+        data=DataConfig(path=data_path), env=env_record(spec), network=net, offline=offline, warmup=WarmupConfig(5_000),
         boto=boto, online=online, eval=EvalConfig(), checkpoint_every=50_000,
     )
     if spec.domain == "adroit":
@@ -155,11 +152,6 @@ def env_record(spec) -> EnvConfig:
                      obs_dim=u.obs_dim, action_dim=u.action_dim, action_low=u.action_low, action_high=u.action_high)
 
 
-def _user_data_path(spec) -> str | None:
-    """A user's task reads the file it was registered with (None: data held in memory)."""
-    return (spec.dataset_source.ref or None) if spec.user is not None else None
-
-
 # Cal-QL pre-training steps of the quick profile on pointmaze (see _quick).
 QUICK_POINTMAZE_PRETRAIN = 20_000
 
@@ -178,12 +170,8 @@ def _quick(cfg: RunConfig, spec) -> RunConfig:
     batch = cfg.offline.batch_size
     if spec.domain == "pointmaze":
         data = replace(data, steps=200_000)
-        # Cal-QL (the paper's pre-training, the default here too) with 2 action samples per
-        # kind and 128-row batches: ~3x cheaper a step than 5 samples and 256 rows. 20k steps
-        # solve the umaze (the main job; 0.99 over 8 seeds at 15k) and bring the medium maze to
-        # where more steps stop helping (0.6 over 8 seeds from 20k to 40k;
-        # docs/results/pretraining.md).
-        # Every pre-training algorithm gets the same budget.
+        # Why 2 samples, 128 rows and 20k steps: the module docstring; more steps stop helping
+        # the medium maze (0.6 over 8 seeds from 20k to 40k; docs/results/pretraining.md).
         cql = replace(cql, cql_n_actions=2)
         batch = 128
         offline_steps = QUICK_POINTMAZE_PRETRAIN
@@ -263,7 +251,3 @@ def _method_defaults(cfg: RunConfig, spec) -> RunConfig:
         sac = replace(online.sac, target_entropy=-spec.action_dim / 2.0)
         online = replace(online, utd=4, offline_ratio=0.0, random_steps=0, sac=sac)
     return replace(cfg, network=network, online=online)
-
-
-def describe(cfg: RunConfig) -> dict:
-    return dataclasses.asdict(cfg)

@@ -33,11 +33,16 @@ DERIVED = {
 }
 
 
+def _at(cfg: RunConfig, path: str):
+    """The field at a dotted path, e.g. ``network.num_critics``."""
+    return functools.reduce(getattr, path.split("."), cfg)
+
+
 def derive(agent_cfg, cfg: RunConfig, **special):
     """``agent_cfg`` (an agent's config) with its ``DERIVED`` fields taken from ``cfg``; ``special``
     gives the values that are no copy (Cal-QL's switch, a method's own UTD)."""
     def value(path: str):
-        v = functools.reduce(getattr, path.split("."), cfg)
+        v = _at(cfg, path)
         return tuple(v) if isinstance(v, list) else v  # hashable: the jitted functions key on configs
 
     derived = {f: value(src) for f, src in DERIVED.items() if hasattr(agent_cfg, f)}
@@ -52,14 +57,10 @@ def resolve(cfg: RunConfig) -> RunConfig:
     spec = get_task(cfg.task)
     method = get_method(cfg.method)
     pretrain = resolve_pretrain(cfg.method, cfg.pretrain)
-    if cfg.alpha is not None and not method.uses_alpha:
-        raise ConfigError(
-            f"--alpha is BOTO's bias controller; --method {cfg.method} has no BOTO phase. Drop --alpha, "
-            f"or use --method boto."
-        )
-    if cfg.alphas is not None and not method.uses_alpha:
-        raise ConfigError(f"--alphas sets BOTO's bias controller; --method {cfg.method} has no BOTO phase. "
-                          f"Drop --alphas, or use --method boto.")
+    for flag, given in (("--alpha", cfg.alpha), ("--alphas", cfg.alphas)):
+        if given is not None and not method.uses_alpha:
+            raise ConfigError(f"{flag} sets BOTO's bias controller; --method {cfg.method} has no BOTO phase. Drop "
+                              f"{flag}, or use --method boto.")
     # a population's shared config holds its first member's seed and alpha
     seed = cfg.seed if cfg.seeds is None else parse_seeds(cfg.seeds)[0]
     given = cfg.alpha if cfg.alphas is None else parse_alphas(cfg.alphas)[0]
@@ -90,6 +91,11 @@ def resolve(cfg: RunConfig) -> RunConfig:
     )
 
 
+# The fields ``validate`` checks are step budgets (0 skips the work) and positive integers.
+BUDGETS = ("offline.steps", "warmup.steps", "boto.boto_steps", "online.steps", "online.random_steps")
+POSITIVE = ("offline.batch_size", "offline.updates_per_call", "offline.log_every", "online.batch_size", "online.utd",
+            "online.log_every", "eval.episodes", "eval.interval", "eval.num_envs", "eval.q_pairs", "eval.dense_until",
+            "checkpoint_every", "network.num_critics")
 MAX_BATCH = 1 << 20  # rows of one batch: 4096x the paper's 256
 MAX_WIDTH = 1 << 16  # units of one hidden layer
 
@@ -103,16 +109,12 @@ def machine_memory() -> int:
 
 
 def _check_sizes(cfg: RunConfig, method, need) -> None:
-    """Batch sizes, layer widths and the replay buffer against a cap and against this machine's
-    memory, before anything is allocated (a huge value is exit 2, not a MemoryError)."""
+    """Batch sizes and the replay buffer against a cap and against this machine's memory, before
+    anything is allocated (a huge value is exit 2, not a MemoryError)."""
     batches = {"offline.batch_size": cfg.offline.batch_size, "online.batch_size": cfg.online.batch_size,
                "boto.batch_size": cfg.boto.batch_size}
     for name, v in batches.items():
         need(isinstance(v, int) and 1 <= v <= MAX_BATCH, name, v, f"a batch size must be an integer in [1, {MAX_BATCH:,}]")
-    for name, dims in (("network.actor_hidden_dims", cfg.network.actor_hidden_dims),
-                       ("network.critic_hidden_dims", cfg.network.critic_hidden_dims)):
-        need(all(isinstance(d, int) and d <= MAX_WIDTH for d in dims), name, dims,
-             f"a layer is at most {MAX_WIDTH:,} units wide")
     try:
         from botorl.envs.registry import get_task
 
@@ -170,31 +172,11 @@ def validate(cfg: RunConfig) -> None:
         # NumPy's generators take only non-negative seeds; 2**31 keeps JAX keys in int32
         need(isinstance(v, int) and 0 <= v < 2**31, name, v, "a seed must be an integer in [0, 2**31)")
 
-    budgets = {
-        "offline.steps": cfg.offline.steps,
-        "warmup.steps": cfg.warmup.steps,
-        "boto.boto_steps": cfg.boto.boto_steps,
-        "online.steps": cfg.online.steps,
-        "online.random_steps": cfg.online.random_steps,
-    }
-    for name, v in budgets.items():
+    for name in BUDGETS:
+        v = _at(cfg, name)
         need(isinstance(v, int) and v >= 0, name, v, "a step budget must be a non-negative integer (0 skips the work)")
-    positive = {
-        "offline.batch_size": cfg.offline.batch_size,
-        "offline.updates_per_call": cfg.offline.updates_per_call,
-        "offline.log_every": cfg.offline.log_every,
-        "online.batch_size": cfg.online.batch_size,
-        "online.utd": cfg.online.utd,
-        "online.log_every": cfg.online.log_every,
-        "eval.episodes": cfg.eval.episodes,
-        "eval.interval": cfg.eval.interval,
-        "eval.num_envs": cfg.eval.num_envs,
-        "eval.q_pairs": cfg.eval.q_pairs,
-        "eval.dense_until": cfg.eval.dense_until,
-        "checkpoint_every": cfg.checkpoint_every,
-        "network.num_critics": cfg.network.num_critics,
-    }
-    for name, v in positive.items():
+    for name in POSITIVE:
+        v = _at(cfg, name)
         need(isinstance(v, int) and v >= 1, name, v, "must be a positive integer")
     need(isinstance(cfg.eval.dense_interval, int) and cfg.eval.dense_interval >= 0, "eval.dense_interval",
          cfg.eval.dense_interval, "give the env steps between dense evaluations, or 0 for none")
@@ -204,6 +186,8 @@ def validate(cfg: RunConfig) -> None:
     _check_sizes(cfg, method, need)
     for name, dims in (("network.actor_hidden_dims", cfg.network.actor_hidden_dims),
                        ("network.critic_hidden_dims", cfg.network.critic_hidden_dims)):
+        need(all(isinstance(d, int) and d <= MAX_WIDTH for d in dims), name, dims,
+             f"a layer is at most {MAX_WIDTH:,} units wide")
         need(len(dims) >= 1 and all(int(d) >= 1 for d in dims), name, dims, "give positive layer widths, e.g. 256 256")
     if method.uses_alpha:
         check_alpha(cfg.alpha)

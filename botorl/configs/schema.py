@@ -313,22 +313,12 @@ def _convert(tp: Any, value: Any) -> Any:
         args = typing.get_args(tp)
         inner = args[0] if args else Any
         return tuple(_convert(inner, v) for v in value)
+    if (tp in (str, bool) and not isinstance(value, tp)) or (tp in (int, float) and isinstance(value, bool)):
+        raise TypeError
     if tp is float:
-        if isinstance(value, str):
-            return float(value)  # "inf", "-inf"
-        if isinstance(value, bool):
-            raise TypeError
-        return float(value)
+        return float(value)  # also to_dict's "inf", "-inf"
     if tp is int:
-        if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+        if isinstance(value, float) and not value.is_integer():
             raise TypeError
         return int(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise TypeError
-        return value
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise TypeError
-        return value
     return value

@@ -17,10 +17,8 @@ the same ``out`` continues from them. The replay buffer is not saved (2M rows ar
 a resumed run refills it from the restored policy (``start_steps`` of fresh data before the
 first update), which costs a few seconds of simulation.
 
-Files under ``out``: ``agent.ckpt``, ``state.json``, ``curve.csv`` (one row per evaluation:
-env steps, updates, seconds, evaluation goals reached per 1,000 steps, mean return of
-finished training episodes, temperature, critic loss), ``actor.npz`` (the numpy actor,
-``NumpyActor``), ``curve.png``.
+Files under ``out``: ``agent.ckpt``, ``state.json``, ``curve.csv`` (one row per evaluation,
+``CURVE_FIELDS``), ``actor.npz`` (the numpy actor, ``NumpyActor``), ``curve.png``.
 
 SAC settings (ours unless noted): actor and critic 3 x 256 with LayerNorm, 2 critics,
 discount 0.99, learning rates 3e-4, initial temperature 0.1 (Minari's ``ent_coef
@@ -31,6 +29,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import multiprocessing as mp
 import os
@@ -42,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from botorl.envs.ant_goal import ACTION_DIM, HORIZON, OBS_DIM, AntGoalSim, NumpyActor, actor_arrays
+from botorl.io import atomic_save_figure, atomic_write_bytes, atomic_write_json
 
 
 @dataclass
@@ -98,6 +98,9 @@ def sac_config(cfg: AntTrainConfig):
 
 
 # ------------------------------------------------------------------ simulation workers
+# The fields of a transition (the replay buffer's) and the shape of one row of each.
+FIELDS = (("observations", (OBS_DIM,)), ("actions", (ACTION_DIM,)), ("rewards", ()), ("next_observations", (OBS_DIM,)),
+          ("dones", ()))
 
 
 class _Ants:
@@ -110,30 +113,30 @@ class _Ants:
         self.ep_return = np.zeros(n)
         self.finished: list[float] = []
 
+    def run(self, kind: str, *args):
+        """A message of the main process: ("collect" | "eval", arguments)."""
+        return (self.collect if kind == "collect" else self.evaluate)(*args)
+
     def collect(self, params, steps: int, random: bool):
         sim, n = self.sim, self.sim.n
         actor = None if random else NumpyActor(params)
-        out = {k: np.empty((steps, n) + s, np.float32) for k, s in
-               (("observations", (OBS_DIM,)), ("actions", (ACTION_DIM,)), ("rewards", ()),
-                ("next_observations", (OBS_DIM,)), ("dones", ()))}
-        reached = 0
+        out = {k: np.empty((steps, n) + s, np.float32) for k, s in FIELDS}
         for t in range(steps):
             obs = sim.obs.copy()
             if actor is None:
                 act = self.rng.uniform(-1, 1, (n, ACTION_DIM))
             else:
                 act = actor(obs, self.rng)
-            nobs, rew, term, trunc, got = sim.step(act)
+            nobs, rew, term, trunc, _ = sim.step(act)
             out["observations"][t], out["actions"][t], out["rewards"][t] = obs, act, rew
             out["next_observations"][t], out["dones"][t] = nobs, term
-            reached += int(got.sum())
             self.ep_return += rew
             for i in np.flatnonzero(term | trunc):
                 self.finished.append(float(self.ep_return[i]))
                 self.ep_return[i] = 0.0
         flat = {k: v.reshape((steps * n,) + v.shape[2:]) for k, v in out.items()}
         done_returns, self.finished = self.finished, []
-        return flat, reached, done_returns
+        return flat, done_returns
 
     def evaluate(self, params, episodes_steps: int, seed: int):
         """Deterministic actor on fresh ants for ``episodes_steps`` steps: goals reached per
@@ -154,14 +157,8 @@ class _Ants:
 def _worker(conn, n: int, seed: int, index: int):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     ants = _Ants(n, seed, index)
-    while True:
-        msg = conn.recv()
-        if msg[0] == "stop":
-            return
-        if msg[0] == "collect":
-            conn.send(ants.collect(msg[1], msg[2], msg[3]))
-        elif msg[0] == "eval":
-            conn.send(ants.evaluate(msg[1], msg[2], msg[3]))
+    while (msg := conn.recv())[0] != "stop":
+        conn.send(ants.run(*msg))
 
 
 class Collector:
@@ -187,9 +184,7 @@ class Collector:
 
     def recv(self):
         if self.local is not None:
-            msg = self._pending
-            fn = self.local.collect if msg[0] == "collect" else self.local.evaluate
-            return [fn(*msg[1:])]
+            return [self.local.run(*self._pending)]
         return [c.recv() for c in self.conns]
 
     def close(self):
@@ -227,27 +222,16 @@ def _make_train_step(batch_size: int, updates: int):
     return insert, train
 
 
-def _host_actor(agent, cfg) -> dict:
+def _host_actor(agent) -> dict:
     import jax
 
     return actor_arrays(jax.device_get(agent.actor.params), agent.config.log_std_min, agent.config.log_std_max)
 
 
-def _atomic_json(path: Path, obj) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=1))
-    os.replace(tmp, path)
-
-
 def export_actor(params: dict, path: str | os.PathLike, meta: dict | None = None) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = dict(params)
-    arrays["meta_json"] = np.asarray(json.dumps(meta or {}))
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
-    return path
+    out = io.BytesIO()
+    np.savez_compressed(out, **params, meta_json=np.asarray(json.dumps(meta or {})))
+    return atomic_write_bytes(path, out.getvalue())
 
 
 CURVE_FIELDS = ["env_steps", "updates", "seconds", "eval_goals_per_1000", "eval_return_per_step", "eval_falls",
@@ -281,13 +265,7 @@ def train(cfg: AntTrainConfig) -> dict:
     n_envs = max(cfg.num_workers, 1) * cfg.envs_per_worker
     chunk = n_envs * cfg.rollout_len
     capacity = max(chunk, (cfg.buffer_size // chunk) * chunk)
-    buf = {
-        "observations": jnp.zeros((capacity, OBS_DIM), jnp.float32),
-        "actions": jnp.zeros((capacity, ACTION_DIM), jnp.float32),
-        "rewards": jnp.zeros((capacity,), jnp.float32),
-        "next_observations": jnp.zeros((capacity, OBS_DIM), jnp.float32),
-        "dones": jnp.zeros((capacity,), jnp.float32),
-    }
+    buf = {k: jnp.zeros((capacity,) + s, jnp.float32) for k, s in FIELDS}
     insert, train_step = _make_train_step(cfg.batch_size, cfg.updates_per_iter)
     seed_call = cfg.seed * 7_919 + state["calls"]
     collector = Collector(cfg.num_workers, cfg.envs_per_worker, seed_call)
@@ -298,7 +276,7 @@ def train(cfg: AntTrainConfig) -> dict:
     last_ckpt = last_eval = time.time()
     returns: list[float] = []
     metrics = {}
-    params = _host_actor(agent, cfg)
+    params = _host_actor(agent)
     bar = None
     if cfg.progress:
         from tqdm import tqdm
@@ -309,7 +287,7 @@ def train(cfg: AntTrainConfig) -> dict:
     def save():
         checkpoint.save(out / "agent.ckpt", agent)
         state["seconds"] = base_seconds + time.time() - t0
-        _atomic_json(out / "state.json", state)
+        atomic_write_json(out / "state.json", state, indent=1)
         export_actor(params, out / "actor.npz", {"env_steps": state["env_steps"], "updates": state["updates"],
                                                  "hidden": list(cfg.hidden)})
 
@@ -329,26 +307,26 @@ def train(cfg: AntTrainConfig) -> dict:
         print("eval " + " ".join(f"{k}={v}" for k, v in zip(CURVE_FIELDS, row)), flush=True)
         returns.clear()
 
-    def settle(pending):
-        """The updates dispatched last: wait for them, count them, and take their actor."""
-        agent, metrics = pending
-        state["updates"] += cfg.updates_per_iter
-        return agent, {k: float(v) for k, v in metrics.items()}, _host_actor(agent, cfg)
+    def settle():
+        """The updates dispatched last, if any: wait for them, count them, and take their actor."""
+        nonlocal agent, metrics, params, pending
+        if pending is not None:
+            agent, metrics = pending[0], {k: float(v) for k, v in pending[1].items()}
+            state["updates"] += cfg.updates_per_iter
+            params, pending = _host_actor(agent), None
 
+    pending = None
     try:
         warm = 0
         collector.send("collect", params, cfg.rollout_len, not resumed)
-        pending = None
         while state["env_steps"] < cfg.total_env_steps:
             results = collector.recv()
             new = {k: np.concatenate([r[0][k] for r in results]) for k in results[0][0]}
             for r in results:
-                returns.extend(r[2])
+                returns.extend(r[1])
             state["env_steps"] += chunk
             warm += chunk
-            if pending is not None:  # the updates dispatched last iteration are done by now
-                agent, metrics, params = settle(pending)
-                pending = None
+            settle()  # the updates dispatched last iteration are done by now
             buf = insert(buf, {k: jnp.asarray(v) for k, v in new.items()}, ptr)
             ptr = (ptr + chunk) % capacity
             size = min(size + chunk, capacity)
@@ -363,24 +341,19 @@ def train(cfg: AntTrainConfig) -> dict:
             now = time.time()
             if now - last_eval >= cfg.eval_every_s and metrics:
                 collector.recv()  # finish the rollout in flight before the evaluation
-                if pending is not None:
-                    agent, metrics, params = settle(pending)
-                    pending = None
+                settle()
                 evaluate()
                 last_eval = time.time()
                 collector.send("collect", params, cfg.rollout_len, False)
             if now - last_ckpt >= cfg.checkpoint_every_s:
-                if pending is not None:
-                    agent, metrics, params = settle(pending)
-                    pending = None
+                settle()
                 save()
                 last_ckpt = time.time()
             if cfg.time_limit_s and now - t0 >= cfg.time_limit_s:
                 print(f"time limit reached after {now - t0:.0f} s", flush=True)
                 break
         collector.recv()
-        if pending is not None:
-            agent, metrics, params = settle(pending)
+        settle()
         evaluate()
         save()
     finally:
@@ -413,10 +386,8 @@ def plot_curve(csv_path, png_path) -> None:
     ax.set_title(f"goal-reaching ant, SAC ({u[-1]:.2f}M updates, {float(rows[-1]['seconds']):.0f} s)")
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    tmp = Path(str(png_path) + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
+    atomic_save_figure(fig, png_path, dpi=110)
     plt.close(fig)
-    os.replace(tmp, png_path)
 
 
 def main(argv: list[str]) -> int:

@@ -1,15 +1,6 @@
-"""Network building blocks shared by every agent (flax linen, pure functions).
-
-- ``MLP``: Dense layers, optional dropout and LayerNorm after each hidden layer (RLPD/WSRL
-  put LayerNorm after every hidden layer of actor and critic; docs/methods.md).
-- ``QNetwork`` / ``CriticEnsemble``: Q(s, a); the ensemble is an ``nn.vmap`` over N members,
-  so every parameter has leading axis N and the output is (N, B).
-- ``ValueNetwork``: V(s) for IQL.
-- ``TanhGaussianActor``: returns ``(mean, log_std)`` of the pre-tanh Gaussian; the helpers
-  ``sample_tanh_gaussian`` / ``tanh_gaussian_log_prob`` / ``tanh_gaussian_mode`` turn them into
-  actions and log-probs with the tanh change-of-variables correction.
-- ``Temperature``: the SAC entropy temperature ``exp(log_temp)``. It is NOT BOTO's ``alpha``.
-"""
+"""Network building blocks shared by every agent (flax linen): the MLP, Q ensembles and V
+(``common``), the tanh-Gaussian actor and its sampling helpers (``actor``), and the SAC entropy
+``Temperature`` (NOT BOTO's ``alpha``)."""
 
 from __future__ import annotations
 

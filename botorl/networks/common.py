@@ -91,16 +91,19 @@ class MLP(nn.Module):
 
 
 class QNetwork(nn.Module):
-    """One Q(s, a) -> (B,)."""
+    """One Q(s, a) -> (B,); given the observations alone, V(s) (``ValueNetwork``, IQL's)."""
 
     hidden_dims: Sequence[int]
     use_layer_norm: bool = False
 
     @nn.compact
-    def __call__(self, observations: jax.Array, actions: jax.Array) -> jax.Array:
-        x = jnp.concatenate([observations, actions], axis=-1)
+    def __call__(self, *inputs: jax.Array) -> jax.Array:
+        x = inputs[0] if len(inputs) == 1 else jnp.concatenate(inputs, axis=-1)
         x = MLP(self.hidden_dims, activate_final=True, use_layer_norm=self.use_layer_norm)(x)
         return nn.Dense(1, kernel_init=default_init())(x)[..., 0]
+
+
+ValueNetwork = QNetwork
 
 
 class CriticEnsemble(nn.Module):
@@ -125,18 +128,6 @@ class CriticEnsemble(nn.Module):
             axis_size=self.num,
         )
         return ensemble(self.hidden_dims, self.use_layer_norm, name="members")(observations, actions)
-
-
-class ValueNetwork(nn.Module):
-    """V(s) -> (B,)."""
-
-    hidden_dims: Sequence[int]
-    use_layer_norm: bool = False
-
-    @nn.compact
-    def __call__(self, observations: jax.Array) -> jax.Array:
-        x = MLP(self.hidden_dims, activate_final=True, use_layer_norm=self.use_layer_norm)(observations)
-        return nn.Dense(1, kernel_init=default_init())(x)[..., 0]
 
 
 class Temperature(nn.Module):
