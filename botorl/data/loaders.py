@@ -269,12 +269,8 @@ def _minari_episodes(mds, data_path: Path):
             for name in names:
                 g = f[name]
                 yield int(name.split("_")[1]), {
-                    "observations": _h5_tree(g["observations"]),
-                    "actions": g["actions"][()],
-                    "rewards": g["rewards"][()],
-                    "terminations": g["terminations"][()],
-                    "infos": _h5_tree(g["infos"]) if "infos" in g else {},
-                }
+                    "observations": _h5_tree(g["observations"]), "infos": _h5_tree(g["infos"]) if "infos" in g else {},
+                    **{k: g[k][()] for k in ("actions", "rewards", "terminations")}}
     except Exception as err:
         raise DataFormatError(
             f"{main} cannot be read ({type(err).__name__}: {err}); the file is truncated "

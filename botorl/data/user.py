@@ -3,20 +3,17 @@
 ``to_dataset(data, task)`` takes
 
 * a dict of arrays: ``observations``, ``actions``, ``rewards``, ``next_observations``,
-  ``terminals`` (N rows each), optional ``timeouts`` and ``episode_ends`` (an episode ends where
-  either is set, or where ``episode_ends`` says; default: at terminals and timeouts). Dict
-  observations may be dicts of arrays, flattened in the env's order (``flatten_obs``);
+  ``terminals`` (N rows each), optional ``timeouts`` and ``episode_ends`` (default: an episode
+  ends at terminals and timeouts). Dict observations may be dicts of arrays, flattened in the
+  env's order (``flatten_obs``);
 * a path: a ``.npz`` with those keys (dict observations as ``observations/<key>``), a D4RL
   ``.hdf5`` (D4RL's ``qlearning_dataset`` rows), a Minari dataset folder or id;
 * a botorl ``Dataset`` (already in botorl's units: actions in [-1, 1]).
 
-Logged actions are in the env's own units (what was passed to ``env.step``); they are mapped to
-[-1, 1] with ``action_from_env``. Rewards stay raw (the task's transform is the pipeline's).
-Mismatched widths, non-finite values and actions outside the env's box are ``DataFormatError``
-naming the source and the problem.
-
-Data given in memory are held here for the process (``hold``/``held``): a run started by
-``botorl.run`` reads them from there; a run whose data came from a file re-reads the file.
+Logged actions are in the env's own units (what was passed to ``env.step``), mapped to [-1, 1]
+with ``action_from_env``; rewards stay raw. Data given in memory are held here for the process
+(``hold``/``held``): a run started by ``botorl.run`` reads them from there; a run whose data
+came from a file re-reads the file.
 """
 
 from __future__ import annotations
