@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from botorl.data.dataset import Dataset
-from botorl.data.replay import ReplayBuffer, sample_mixed, split_counts
+from botorl.data.replay import ReplayBuffer, split_counts
+from conftest import sample_mixed
 
 
 def row(i):

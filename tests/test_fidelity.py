@@ -21,9 +21,10 @@ from botorl.cli import main as botorl_main
 from botorl.configs.presets import make_preset
 from botorl.configs.resolve import resolve
 from botorl.data.dataset import Dataset
-from botorl.data.replay import ReplayBuffer, sample_mixed
+from botorl.data.replay import ReplayBuffer
 from botorl.errors import ConfigError
 from botorl.pipeline.stages import make_pretrain_agent
+from conftest import FinishedRows, sample_mixed
 
 O, A, B = 4, 2, 32
 
@@ -97,7 +98,7 @@ def test_finished_rows_exclude_the_running_episode():
     _insert(buf, [1, 2, 3], done_last=True)
     buf.end_episode()
     _insert(buf, [4, 5], done_last=False)  # still running
-    fin = buf.finished()
+    fin = FinishedRows(buf)
     assert len(buf) == 5 and len(fin) == 3
     seen = set(fin.sample(np.random.default_rng(0), 200)["observations"][:, 0])
     assert seen == {1.0, 2.0, 3.0}
@@ -109,11 +110,11 @@ def test_finished_rows_exclude_the_running_episode():
     # the ring wraps: the oldest rows are overwritten, the running episode stays excluded
     buf.end_episode()
     _insert(buf, [6, 7, 8, 9, 10], done_last=False)
-    assert len(buf) == 8 and len(buf.finished()) == 3
-    assert set(buf.finished().sample(np.random.default_rng(2), 200)["observations"][:, 0]) == {3.0, 4.0, 5.0}
+    assert len(buf) == 8 and len(FinishedRows(buf)) == 3
+    assert set(FinishedRows(buf).sample(np.random.default_rng(2), 200)["observations"][:, 0]) == {3.0, 4.0, 5.0}
     # and the count survives a checkpoint
     again = ReplayBuffer.from_state_dict(buf.state_dict())
-    assert len(again.finished()) == 3
+    assert len(FinishedRows(again)) == 3
 
 
 def test_calql_online_waits_for_a_finished_episode(tmp_path):

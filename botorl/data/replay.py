@@ -1,22 +1,19 @@
-"""Online replay buffer (fixed-capacity ring), with a member axis for populations, and
-mixed sampling from several sources (CONTRACTS.md, "Data").
+"""Online replay buffer (fixed-capacity ring), with a member axis for populations (CONTRACTS.md,
+"Data").
 
 ``ReplayBuffer(..., members=N)`` holds N rings in one set of arrays (N, capacity, ...) for a
-population whose members step in lockstep: ``insert`` writes one row per member with one
-vectorised assignment per field, and ``sample_members`` draws each member's batch with the
-member's own generator exactly as that member's own buffer would (``sample`` /
-``sample_mixed``). ``sample_mixed`` counts are exact: ``ratios=(0.5, 0.5)`` with
-``batch_size=256`` gives 128 rows from each source (largest-remainder rounding otherwise).
+population whose members step in lockstep; ``sample_members`` draws each member's batch with the
+member's own generator exactly as that member's own buffer would. Offline/online mixes are exact:
+``offline_ratio=0.5`` with ``batch_size=256`` gives 128 rows from each (``split_counts``).
 
-Finished episodes: Cal-QL online needs each row's Monte-Carlo return-to-go, known only once its
-episode ends, so it samples finished rows only (``finished()``, ``sample_members(...,
-finished=True)``; the running episode's rows are the newest ``open_rows``) -- as WSRL does for
-Cal-QL, which samples finished trajectories and waits one episode before its first update.
+Cal-QL online needs each row's Monte-Carlo return-to-go, known only once its episode ends, so it
+samples finished rows only (``finished=True``; the running episode's rows are the newest
+``open_rows``) -- as WSRL does for Cal-QL, which waits one episode before its first update.
 """
 
 from __future__ import annotations
 
-from typing import Callable, Sequence, Union
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -81,10 +78,6 @@ class ReplayBuffer:
 
     def finished_len(self, member: int = 0) -> int:
         return int(self.size - self._open[member])
-
-    def finished(self) -> "FinishedRows":
-        """A view of the rows whose episode has ended (for ``sample_mixed``/``sample``)."""
-        return FinishedRows(self)
 
     def insert_batch(self, observations, actions, rewards, next_observations, dones, mc_returns=None) -> None:
         """Add n transitions of finished episodes at once, in order (if n > capacity only the last
@@ -164,8 +157,7 @@ class ReplayBuffer:
         return out
 
     def _row_index(self, i: int, rng: np.random.Generator, shape, finished: bool) -> np.ndarray:
-        """Member i's row indices as ``sample`` (all rows) or ``FinishedRows.sample`` (closed
-        episodes, oldest first) draws them."""
+        """Member i's row indices: all rows, or (``finished``) those of closed episodes, oldest first."""
         if not finished:
             return rng.integers(0, self.size, size=shape)
         oldest = self.insert_index if self.size == self.capacity else 0
@@ -174,10 +166,9 @@ class ReplayBuffer:
     def sample_members(self, rngs: Sequence[np.random.Generator], batch_size: int, num_batches: int | None = None,
                        *, active: Sequence[bool] | None = None, finished: bool = False, offline: Dataset | None = None,
                        offline_ratio: float = 0.0) -> dict:
-        """One batch per member, drawn as member i's own buffer draws it with ``rngs[i]``:
-        ``sample_mixed([offline, rows], [r, 1 - r], ...)`` or ``rows.sample``, with ``rows`` its
-        buffer or its finished rows. Members not ``active`` draw nothing (their generator is not
-        advanced) and get zeros. Stacked (N, [K,] B, ...)."""
+        """One batch per member, drawn with ``rngs[i]`` as member i's own buffer would: offline rows
+        first (``offline_ratio`` of the batch), then its buffer's (or its finished rows). Members not
+        ``active`` draw nothing (their generator is not advanced) and get zeros. Stacked (N, [K,] B, ...)."""
         active = [True] * self.n if active is None else active
         lead = () if num_batches is None else (num_batches,)
         out = {k: np.zeros((self.n,) + lead + (batch_size,) + v.shape[2:], np.float32) for k, v in self._arrays.items()}
@@ -199,7 +190,7 @@ class ReplayBuffer:
             if counts is not None and counts != (c_off, c_on):
                 raise AssertionError("members of one population drew batches of different compositions")
             counts = (c_off, c_on)
-            # the order of sample_mixed: the offline rows, then the buffer's
+            # the offline rows first, then the buffer's, in every member's batch
             off_idx.append(rng.integers(0, len(offline), size=lead + (c_off,)) if c_off else None)
             r_idx.append(self._row_index(i, rng, lead + (c_on,), finished) if c_on else None)
             members.append(i)
@@ -250,30 +241,6 @@ class ReplayBuffer:
         return buf
 
 
-class FinishedRows:
-    """The rows of a single ``ReplayBuffer`` whose episode has ended, oldest first (a live view)."""
-
-    def __init__(self, buffer: ReplayBuffer):
-        self.buffer = buffer
-
-    def __len__(self) -> int:
-        return self.buffer.finished_len()
-
-    def batch_at(self, idx: np.ndarray) -> dict:
-        b = self.buffer
-        oldest = b.insert_index if b.size == b.capacity else 0
-        return b.batch_at((oldest + np.asarray(idx)) % b.capacity)
-
-    def sample(self, rng: np.random.Generator, batch_size: int, num_batches: int | None = None) -> dict:
-        if len(self) == 0:
-            raise BotorlError("no finished episode in the replay buffer yet; wait for one to end before sampling.")
-        shape = (batch_size,) if num_batches is None else (num_batches, batch_size)
-        return self.batch_at(rng.integers(0, len(self), size=shape))
-
-
-Source = Union[ReplayBuffer, Dataset, FinishedRows]
-
-
 def split_counts(ratios: Sequence[float], batch_size: int) -> list[int]:
     """Integer counts summing to ``batch_size`` in the given proportions (largest remainder)."""
     r = np.asarray(ratios, dtype=np.float64)
@@ -286,36 +253,3 @@ def split_counts(ratios: Sequence[float], batch_size: int) -> list[int]:
     order = np.argsort(-(exact - counts), kind="stable")
     counts[order[:rest]] += 1
     return counts.tolist()
-
-
-def sample_mixed(
-    sources: Sequence[Source],
-    ratios: Sequence[float],
-    rng: np.random.Generator,
-    batch_size: int,
-    num_batches: int | None = None,
-) -> dict:
-    """One Batch whose rows come from ``sources`` in proportion ``ratios``.
-
-    Rows are grouped by source in the order given (source 0's rows first); each source is
-    sampled uniformly with replacement. An empty source's share goes to the non-empty ones
-    (in proportion to their ratios), so RLPD-style mixing works before the first online
-    step; if all are empty this raises. With ``num_batches=K`` the result is (K, B, ...).
-    """
-    if len(sources) != len(ratios):
-        raise ValueError(f"{len(sources)} sources but {len(ratios)} ratios")
-    ratios = [float(r) if len(s) > 0 else 0.0 for s, r in zip(sources, ratios)]
-    if sum(ratios) <= 0:
-        raise BotorlError(_ALL_EMPTY)
-    counts = split_counts(ratios, batch_size)
-    parts = []
-    for src, c in zip(sources, counts):
-        if c == 0:
-            continue
-        shape = (c,) if num_batches is None else (num_batches, c)
-        parts.append(src.batch_at(rng.integers(0, len(src), size=shape)))
-    axis = 0 if num_batches is None else 1
-    return {k: np.concatenate([p[k] for p in parts], axis=axis) for k in BATCH_KEYS}
-
-
-ReplayBuffer.sample_mixed = staticmethod(sample_mixed)
