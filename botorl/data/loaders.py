@@ -1,16 +1,10 @@
-"""Readers for the real dataset formats of the paper's tasks, each returning a ``Dataset``:
-D4RL hdf5 (``qlearning_dataset`` semantics), Minari (by id from ``$MINARI_DATASETS_PATH``, or
-by folder), Cal-QL's adroit-binary ``.npy`` pair, DAPG human demos (pickle or botorl's ``.npz``).
+"""Readers for the real dataset formats of the paper's tasks, each returning a validated
+``Dataset`` with raw rewards (docs/tasks.md, "Loaders"): D4RL hdf5, Minari (by id or folder),
+Cal-QL's adroit-binary ``.npy`` pair, DAPG human demos (pickle or botorl's ``.npz``).
 
-Every loader returns raw rewards (the pipeline applies the task's ``RewardTransform``) and
-runs ``validate``; bad files raise ``DataFormatError`` naming the file and the problem, and
-missing ones ``DatasetNotFoundError`` saying where botorl looked and how to get the data.
-
-Pickle-based formats (``.npy`` object arrays, ``.pickle``/``.pkl``) execute code when loaded,
-so botorl opens them only from a path the user names explicitly, never by searching. A ``.npy``
-is first read with ``allow_pickle=False``; only an object array needs pickle. Inside
-``refuse_pickle(origin)`` (``botorl resume``/``eval``, whose paths come from a run directory's
-``config.json``, not from the user) pickle is refused with a message, unless ``--allow-pickle``.
+Pickle-based files execute code when loaded, so botorl opens them only from a path the user
+named, never by searching, and never inside ``refuse_pickle(origin)`` (paths read back from a
+run directory) unless ``--allow-pickle``.
 """
 
 from __future__ import annotations
@@ -21,13 +15,15 @@ import os
 import pickle
 import sys
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from botorl.data.dataset import Dataset, validate
 from botorl.data.minari_io import SPLIT_KEY, FlatCacheInvalid, minari_root, read_flat, rebuild_flat
-from botorl.errors import DataFormatError, DatasetNotFoundError
+from botorl.envs.adroit import DOOR_SUCCESS_ANGLE
+from botorl.envs.user import flatten_obs, obs_keys_of
+from botorl.errors import ConfigError, DataFormatError, DatasetNotFoundError
 
 # ----------------------------------------------------------------------------- hints
 
@@ -64,11 +60,7 @@ def download_hint(name: str) -> str:
 
 
 def dataset_not_found(name: str, looked: Sequence[str | os.PathLike] | str, hint: str | None = None) -> DatasetNotFoundError:
-    """Build the ``DatasetNotFoundError`` for ``name`` (task name, Minari id or file).
-
-    ``looked``: the places botorl searched; ``hint``: how to get it (default
-    ``download_hint(name)``). The task registry uses this for its own datasets.
-    """
+    """The error for ``name`` (task name, Minari id or file) not found in ``looked``."""
     places = [looked] if isinstance(looked, (str, os.PathLike)) else list(looked)
     where = ", ".join(str(p) for p in places) or "(nowhere)"
     return DatasetNotFoundError(
@@ -98,15 +90,11 @@ def _join_episodes(episodes: list[dict], metadata: dict) -> Dataset:
 
 
 def _qlearning_rows(terminals: np.ndarray, timeouts: np.ndarray | None, max_episode_steps: int | None):
-    """Row selection of D4RL's ``qlearning_dataset`` (terminate_on_end=False).
-
-    Mirrors Farama-Foundation/D4RL d4rl/__init__.py ``qlearning_dataset``: rows i < N - 1
-    only (the last row has no next observation); next obs = row i + 1; a row marked
-    ``timeouts`` (or, in files without ``timeouts`` such as kitchen, the row where the
-    per-episode step counter reaches ``max_episode_steps - 1``) starts no transition and
-    resets the counter; a terminal row is kept (done=True) and resets the counter.
-    Returns (kept row indices, episode_end flags for the kept rows).
-    """
+    """(kept row indices, their episode_end flags) of D4RL's ``qlearning_dataset``
+    (terminate_on_end=False; Farama-Foundation/D4RL d4rl/__init__.py): rows i < N - 1 only, next
+    obs = row i + 1; a ``timeouts`` row (without ``timeouts``, as in kitchen: the row where the
+    per-episode step counter reaches ``max_episode_steps - 1``) starts no transition and resets the
+    counter; a terminal row is kept (done) and resets the counter."""
     n = terminals.shape[0]
     if timeouts is not None:
         keep = ~timeouts[: n - 1].astype(bool)
@@ -143,14 +131,11 @@ def load_d4rl_hdf5(
     action_tolerance: float = 1e-3,
     actions_to_unit: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Dataset:
-    """A D4RL hdf5 file (``observations, actions, rewards, terminals[, timeouts, infos/*]``).
+    """A D4RL hdf5 file, as ``qlearning_dataset`` reads it (``_qlearning_rows``).
 
-    Transitions follow D4RL's ``qlearning_dataset`` exactly (see ``_qlearning_rows``).
-    ``max_episode_steps`` only matters for files without ``timeouts`` (kitchen: D4RL uses the
-    env's limit, 280); None treats such a file as episodes split only by terminals.
-    ``infos/success`` or ``infos/goal_achieved``, if present, become ``infos["success"]``.
-    ``actions_to_unit`` maps the file's actions to [-1, 1] before the Dataset clips them (a user's
-    env with other action bounds, botorl/data/user.py).
+    ``max_episode_steps`` only matters for files without ``timeouts`` (kitchen: the env's limit,
+    280). ``infos/success`` or ``infos/goal_achieved`` become ``infos["success"]``.
+    ``actions_to_unit`` maps the file's actions to [-1, 1] (a user's env with other bounds).
     """
     import h5py
 
@@ -201,31 +186,6 @@ def load_d4rl_hdf5(
 # ----------------------------------------------------------------------------- Minari
 
 
-def flatten_observation(obs: Any, keys: Sequence[str] | None = None) -> np.ndarray:
-    """Flatten a (nested) dict observation batch to (T, D) float32.
-
-    Order: with ``keys`` None, the dict keys sorted alphabetically at every level
-    (recursively), leaves concatenated along the last axis, each leaf reshaped to (T, -1).
-    With ``keys``, exactly those leaves in that order, nested keys written as
-    ``"a/b"`` (e.g. ``["achieved_goal", "observation"]`` for D4RL's antmaze layout).
-    Arrays pass through unchanged (reshaped to 2-D).
-    """
-    if not isinstance(obs, dict):
-        a = np.asarray(obs, np.float32)
-        return a.reshape(a.shape[0], -1)
-    if keys is not None:
-        leaves = []
-        for k in keys:
-            node = obs
-            for part in k.split("/"):
-                if not isinstance(node, dict) or part not in node:
-                    raise KeyError(k)
-                node = node[part]
-            leaves.append(flatten_observation(node))
-        return np.concatenate(leaves, axis=-1)
-    return np.concatenate([flatten_observation(obs[k]) for k in sorted(obs)], axis=-1)
-
-
 def _minari_data_path(id_or_path: str | os.PathLike) -> tuple[Path, bool]:
     """(folder holding main_data / metadata.json, given-as-path?)."""
     p = Path(id_or_path).expanduser()
@@ -250,10 +210,8 @@ def _h5_tree(node):
 def _minari_episodes(mds, data_path: Path):
     """(id, {observations, actions, rewards, terminations, infos}) per episode, in order.
 
-    Minari's hdf5 storage is read directly with h5py (one group per episode): the same
-    arrays ``iterate_episodes`` gives, without its per-episode overhead (about 10x faster
-    on 10^4 short episodes). Other storage formats go through Minari's API. A truncated or
-    damaged file is a DataFormatError (h5py raises OSError).
+    Minari's hdf5 storage is read directly with h5py: the arrays ``iterate_episodes`` gives,
+    about 10x faster on 10^4 short episodes. Other storage formats go through Minari's API.
     """
     main = data_path / "main_data.hdf5"
     try:
@@ -288,20 +246,15 @@ def load_minari(
     success_info_key: str = "success",
     actions_to_unit: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Dataset:
-    """A Minari dataset, by id (``minari.load_dataset``, offline) or by path.
+    """A Minari dataset, by id (from ``$MINARI_DATASETS_PATH``, never downloaded) or by path (a
+    ``Path``, an existing path, or one starting with ``.``/``~``: the dataset folder, its ``data``
+    folder or its ``main_data.hdf5``).
 
-    ``id_or_path``: a dataset id such as ``"D4RL/antmaze/large-diverse-v1"`` (read from
-    ``$MINARI_DATASETS_PATH`` or ``~/.minari/datasets``; never downloaded), or a path (a
-    ``Path``, an absolute/relative path that exists, or one starting with ``.``/``~``) to the
-    dataset folder, its ``data`` folder, or its ``main_data.hdf5``.
-
-    Dict observations are flattened by ``flatten_observation`` (sorted keys, recursively,
-    unless ``obs_keys`` gives the order). Per episode of T steps (T + 1 observations):
-    ``next_observations = observations[1:]``, ``terminals = terminations``, the last step is
-    an episode end (terminated or truncated). ``infos[success_info_key]`` (the last T entries
-    when Minari stored T + 1, the first being the reset info) becomes ``infos["success"]``.
-    ``actions_to_unit`` maps the dataset's actions to [-1, 1] before the Dataset clips them (a
-    user's env with other action bounds; botorl's flat cache is then not used).
+    Dict observations are flattened by ``flatten_obs`` (sorted keys, unless ``obs_keys`` gives
+    the order). Per episode of T steps (T + 1 observations): ``next_observations =
+    observations[1:]``, the last step an episode end. The last T entries of
+    ``infos[success_info_key]`` become ``infos["success"]``. ``actions_to_unit``: as in
+    ``load_d4rl_hdf5`` (botorl's flat cache is then not used).
     """
     data_path, as_path = _minari_data_path(id_or_path)
     name = str(id_or_path)
@@ -343,13 +296,13 @@ def load_minari(
         ) from None
     episodes = []
     for ep_id, ep in _minari_episodes(mds, data_path):
+        obs = ep["observations"]
+        keys = obs_keys_of(obs) if obs_keys is None or not isinstance(obs, dict) else tuple(obs_keys)
         try:
-            o = flatten_observation(ep["observations"], obs_keys)
-        except KeyError as err:
-            raise DataFormatError(
-                f"{data_path}: observation key {err} not in the dataset's dict observations; "
-                "check obs_keys."
-            ) from None
+            o = flatten_obs(obs, keys, batched=True)
+        except ConfigError:
+            raise DataFormatError(f"{data_path}: observation keys {list(keys)} are not all in the dataset's dict "
+                                  f"observations ({obs_keys_of(obs)}); check obs_keys.") from None
         t = len(ep["rewards"])
         actions = np.asarray(ep["actions"], np.float32)
         if actions_to_unit is not None:
@@ -390,10 +343,9 @@ def load_minari(
 
 # ----------------------------------------------------------------------------- pickles
 
-# The recorded adroit human demos are not inside [-1, 1]: the DAPG door demos reach |a| = 1.37
-# (5.6% of the action entries, 82% of the rows exceed 1). The simulator clamps controls to
-# their range, so clipping them (as Cal-QL's ``clip_action`` does) keeps what was applied;
-# the adroit loaders therefore accept up to |a| <= 2 by default and clip.
+# The DAPG door demos reach |a| = 1.37 (5.6% of the action entries); the simulator clamps controls
+# to their range, so clipping them (as Cal-QL's ``clip_action`` does) keeps what was applied: the
+# adroit loaders accept |a| <= 2 and clip.
 ADROIT_ACTION_TOLERANCE = 1.0
 
 
@@ -479,23 +431,15 @@ def load_calql_adroit(
     action_dim: int | None = None,
     action_tolerance: float = ADROIT_ACTION_TOLERANCE,
 ) -> Dataset:
-    """Cal-QL's adroit-binary data: expert ``*2_sparse.npy`` and/or BC ``*_bc_sparse4.npy``.
+    """Cal-QL's adroit-binary data: expert ``*2_sparse.npy`` and/or BC ``*_bc_sparse4.npy``
+    (pickled object arrays of per-trajectory dicts), processed as Cal-QL does (nakamotoo/Cal-QL,
+    JaxCQL/replay_buffer.py ``get_hand_dataset_with_mc_calculation``).
 
-    Both are pickled object arrays of per-trajectory dicts; they are loaded only from the
-    paths given here (never searched for). Layout and processing follow Cal-QL
-    (nakamotoo/Cal-QL, JaxCQL/replay_buffer.py ``get_hand_dataset_with_mc_calculation``):
-
-    * expert file: ``observations`` / ``next_observations`` are lists of per-step dicts whose
-      ``"state_observation"`` is the state; ``rewards`` may have one entry more than
-      ``terminals`` and is cut to the number of observations.
-    * BC file: plain arrays; ``rewards`` and ``terminals`` are (T, 1) and are squeezed.
-    * Rewards are binary {-1, 0} (0 = success). A trajectory with no 0 reward is dropped;
-      the others are cut right after their last success step; every success step is
-      terminal (Cal-QL's ``dones = rewards == reward_pos``); the recorded terminals are
-      ignored. Each kept trajectory is one episode.
-
-    Cal-QL's MC returns for this data: ``with_mc_returns(0.99, sparse_negative_reward=-1)``
-    (before the reward transform; with_reward_transform keeps them consistent).
+    The expert file's observations are per-step dicts (``"state_observation"``) and its
+    ``rewards`` may have one entry too many; the BC file's are plain (T, 1) arrays. Rewards are
+    {-1, 0} (0 = success): a trajectory without a 0 is dropped, the others are cut after their
+    last success; every success step is terminal (``dones = rewards == reward_pos``). Cal-QL's
+    MC returns: ``with_mc_returns(0.99, sparse_negative_reward=-1)``.
     """
     parts = []
     for path, kind in ((expert_path, "expert"), (bc_path, "bc")):
@@ -535,8 +479,8 @@ def load_calql_adroit(
 
 
 def door_success(observations: np.ndarray) -> np.ndarray:
-    """Adroit door opened: hinge angle ``obs[..., 28] >= 1.35`` (DAPG / Gymnasium-Robotics)."""
-    return np.asarray(observations)[..., 28] >= 1.35
+    """Adroit door opened: hinge angle ``obs[..., 28]`` at the success angle (DAPG / Gymnasium-Robotics)."""
+    return np.asarray(observations)[..., 28] >= DOOR_SUCCESS_ANGLE
 
 
 def _dapg_trajectories(p: Path) -> list[dict]:
@@ -591,26 +535,14 @@ def load_dapg_demos(
     action_dim: int | None = None,
     action_tolerance: float = ADROIT_ACTION_TOLERANCE,
 ) -> Dataset:
-    """DAPG human demos: the original list-of-dicts pickle or botorl's ``.npz``.
+    """DAPG human demos: the original list-of-dicts pickle or botorl's ``.npz``
+    (botorl/data/assets/README.md describes its arrays).
 
-    ``.npz`` (no pickle): ``observations, actions, rewards, episode_lengths`` (the arrays of
-    the copy botorl ships, botorl/data/assets/door_human_demos.npz; its README.md describes
-    them). ``.pickle``/``.pkl``: the DAPG file, a list of dicts with
-    ``observations, actions, rewards`` (``init_state_dict`` etc. are ignored); opened only
-    because the user named it.
-
-    Each demo of T recorded steps gives T - 1 transitions (next obs = the next row; the last
-    step has no next observation, as in D4RL). Dense mode keeps the recorded rewards, no
-    terminals, one episode per demo.
-
-    ``binary_reward=True`` (the Cal-QL-style "binary" task): success is
-    ``success_fn(next_observation)`` (the state after the step, which is what the env's
-    reward sees; default: door hinge ``obs[28] >= 1.35``), reward = success - 1, and the
-    demo is cut at its first success, which is terminal. ``infos["success"]`` holds
-    ``success_fn(next_observation)`` in both modes (zeros if ``success_fn`` is None; pass
-    the pen criterion, or None, for pen demos). Demos that never succeed are
-    dropped when ``drop_unsuccessful`` (as Cal-QL does with its data), else kept with
-    reward -1 throughout and no terminal.
+    A demo of T recorded steps gives T - 1 transitions, one episode, no terminals, the recorded
+    rewards. ``infos["success"]`` is ``success_fn(next_observation)`` (zeros with None; the
+    default is the door's). ``binary_reward=True`` (Cal-QL's "binary" task): reward = success - 1,
+    the demo cut at its first success, which is terminal; demos that never succeed are dropped
+    when ``drop_unsuccessful``, else kept with reward -1 throughout.
     """
     if binary_reward and success_fn is None:
         raise ValueError("binary_reward=True needs a success_fn")
@@ -644,11 +576,7 @@ def load_dapg_demos(
 
 
 def load_path(path: str | os.PathLike, **kwargs) -> Dataset:
-    """Pick a loader by what ``path`` is (used by ``botorl data info PATH``).
-
-    Folder or ``main_data.hdf5`` -> Minari; ``.hdf5``/``.h5`` -> D4RL; ``.npz`` -> DAPG npz;
-    ``.pickle``/``.pkl`` -> DAPG pickle; ``.npy`` -> Cal-QL expert-or-BC file.
-    """
+    """Pick a loader by what ``path`` is (``botorl data info PATH``)."""
     p = _require_file(path, "dataset")
     if p.is_dir() or p.name == "main_data.hdf5":
         return load_minari(p, **kwargs)

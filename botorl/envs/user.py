@@ -2,13 +2,9 @@
 
 ``make_env(seed)`` (a callable of the user's, or ``MODULE:FUNCTION`` imported by name) returns a
 Gymnasium env with a ``Box`` action space and a ``Box`` or (nested) ``Dict`` of ``Box``
-observation space; ``UserTaskEnv`` makes it look like every botorl task (CONTRACTS.md,
-"Tasks"): a ``Dict`` observation flattened by ``flatten_obs`` in sorted key order (the order
-``botorl.data.loaders.flatten_observation`` gives dict observations in data), float32, no
-normalisation; actions in [-1, 1]^A mapped onto the env's box by ``action_to_env``;
-``info["success"]`` from the env's ``info[success_key]`` (always 0 with ``success_key`` None).
-These are pure NumPy functions so that code outside botorl (``botorl.load_policy``, an
-exporter) applies exactly the same transformations.
+observation space; ``UserTaskEnv`` makes it look like every botorl task (CONTRACTS.md, "Tasks").
+The transformations are pure NumPy functions so that code outside botorl (``botorl.load_policy``,
+an exporter) and the data loaders apply exactly the same ones.
 """
 
 from __future__ import annotations
@@ -30,16 +26,17 @@ from botorl.errors import ConfigError
 
 
 # ------------------------------------------------------------------ the pure transformations
-def obs_keys_of(space: spaces.Space) -> tuple[str, ...] | None:
-    """The leaves of a ``Dict`` observation space in flattening order (sorted keys at every
-    level, nested ones as ``"a/b"``); None for a ``Box``. Any other space is a ConfigError."""
-    if isinstance(space, spaces.Box):
+def obs_keys_of(space) -> tuple[str, ...] | None:
+    """The leaves of a ``Dict`` observation space (or of a dict observation batch) in flattening
+    order (sorted keys at every level, nested ones as ``"a/b"``); None for a ``Box`` (or an array).
+    Any other space is a ConfigError."""
+    if isinstance(space, spaces.Box) or not isinstance(space, (spaces.Space, dict)):
         return None
-    if isinstance(space, spaces.Dict):
+    if isinstance(space, (spaces.Dict, dict)):
         keys: list[str] = []
-        for k in sorted(space.spaces):
-            sub = space.spaces[k]
-            inner = obs_keys_of(sub)
+        children = space.spaces if isinstance(space, spaces.Dict) else space
+        for k in sorted(children):
+            inner = obs_keys_of(children[k])
             keys += [str(k)] if inner is None else [f"{k}/{i}" for i in inner]
         return tuple(keys)
     raise ConfigError(
@@ -150,11 +147,8 @@ def split_entry(entry: str) -> tuple[str, str]:
 
 
 def import_entry(entry: str, path: str | None = None) -> tuple[Callable[[int], gym.Env], str | None]:
-    """Import ``MODULE:FUNCTION`` -> (the function, the folder it was found in, to be recorded and
-    searched first in another process; None for an installed module).
-
-    As ``python -m`` does, the current folder is searched first; ``path`` (a recorded folder) is
-    searched too."""
+    """Import ``MODULE:FUNCTION`` (searching the current folder, as ``python -m`` does, and the
+    recorded ``path``) -> (the function, the folder it was found in; None for an installed module)."""
     module_name, func_name = split_entry(entry)
     cwd = os.getcwd()
     for p in (cwd, path):  # the recorded folder ends up first
@@ -208,11 +202,9 @@ def entry_of(make_env: Callable) -> tuple[str | None, str | None]:
 # ------------------------------------------------------------------ probing the env
 def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_key: str | None,
           *, name: str, key_given: bool = False) -> UserTask:
-    """Make one env and look at it: the spaces (a Box action space with finite bounds, a Box or Dict
-    observation space), and one episode of random actions for ``info[success_key]``.
-
-    A ``success_key`` that never appears turns success off (``UserTask.success_off`` says why),
-    unless ``key_given`` (the user named a key other than the default), which is a ConfigError."""
+    """Make one env and check its spaces; one episode of random actions looks for
+    ``info[success_key]``: if it never appears success is off (``UserTask.success_off`` says why),
+    or, with ``key_given`` (a key the user named), a ConfigError."""
     what = f"task {name!r}: make_env"
     try:
         env = make_env(0)

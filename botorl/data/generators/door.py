@@ -1,35 +1,9 @@
 """``door-binary-local``: Cal-QL-style door data made from the 25 DAPG human demos.
 
-Cal-QL's door-binary-v0 data are the human demos (``door2_sparse.npy``) plus rollouts of a
-behaviour-cloned policy (``door_bc_sparse4.npy``). Both halves are made here (docs/tasks.md,
-"Generated data"), with Cal-QL's binary reward and loading rule (``_binary_trajectory``):
-
-1. Demos: the recorded observations/actions of ``door_human_demos.npz`` as they are
-   (transition t is (obs[t], act[t], obs[t+1])). Why not replay them from the stored state
-   (checked in gymnasium-robotics 1.4.2 / mujoco 4): every stored ``init_qpos`` is all zeros
-   (the env's default pose), while the recordings start with the arm already moved (obs 0-4 =
-   qpos 1-5, e.g. ARRz 0.39), hence the palm (obs 29-31, 35-37) differs too. Setting qpos 1-27
-   from obs[0] (hinge, latch from obs 28, 27) and solving the unobserved slide qpos 0 from the
-   palm position reproduces the recorded first observation exactly (max error < 1e-4), and
-   open-loop replay of the demo actions from there, *as normalised actions* (the env maps
-   a in [-1, 1] to act_mean + a * act_rng and clips |a| > 1, 5.6% of the entries), follows the
-   recorded hinge angle to 0.007 rad on average and succeeds in 8 of 25 demos (7 of 25 in the
-   recording; replaying them as raw actuator targets: 0 of 25, 0.36 rad off). So the demos
-   do match this env; only 7 of them reach 1.35 at all, and only 6 before step 200 (the
-   horizon): the humans reach hinge 1.0 only after 157-277 steps.
-2. BC rollouts (``steps`` env steps; their success rate in ``metadata["bc_success_rate"]``): a
-   2 x 256 MLP (tanh output) fit to all 25 demos by mean squared error (optax Adam 1e-3,
-   ``bc_steps`` steps, batch 256), rolled out in ``AdroitHandDoor-v1`` from the env's own
-   random resets with action noise ``N(0, noise_std^2)``, through the door-binary task wrapper.
-
-Cal-QL also drops trajectories that never succeed (``drop_unsuccessful=True``); the default
-keeps them (as truncated, all -1 trajectories) because this BC policy rarely succeeds and the
-filter would leave a handful of demos. Measured BC success in AdroitHandDoor-v1 (20 episodes,
-horizon 200; deterministic / noise 0.1): 2x256, 3k steps: 0.00 / 0.00 (mean max hinge 0.01);
-with observation normalisation: 0.00 / 0.00; 20k steps + normalisation: 0.05 / 0.00; 3x512,
-20k steps + normalisation (loss 0.0033): 0.10 / 0.00 (mean max hinge 0.23). The policy mostly
-never unlatches the door: the env starts with the arm at its zero pose, which no demo state
-shows, and the demos are slow (see 1.).
+Cal-QL's door-binary-v0 data are the human demos plus rollouts of a behaviour-cloned policy;
+both halves are made here with Cal-QL's binary reward and loading rule (``_binary_trajectory``).
+The recipe, why the demos are used as recorded rather than replayed, and the measured BC success
+rates are in docs/tasks.md ("Generated data").
 """
 
 from __future__ import annotations
@@ -42,11 +16,10 @@ import numpy as np
 from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
-from botorl.envs.adroit import DOOR_SUCCESS_ANGLE
+from botorl.data.loaders import door_success
 from botorl.errors import DatasetNotFoundError, DataFormatError
 
 ENV_VAR = "BOTORL_DOOR_DEMOS"
-HINGE = 28
 HORIZON = 200
 HIDDEN = (256, 256)
 
@@ -98,7 +71,7 @@ def load_demos(path: Path) -> list[dict[str, np.ndarray]]:
 def _binary_trajectory(obs, act, next_obs, drop_unsuccessful: bool) -> dict | None:
     """Reward success-1, success steps terminal, cut after the last success (Cal-QL); a
     trajectory that never succeeds is None if ``drop_unsuccessful``, else kept whole."""
-    success = next_obs[:, HINGE] >= DOOR_SUCCESS_ANGLE
+    success = door_success(next_obs)
     if not success.any():
         if drop_unsuccessful:
             return None
