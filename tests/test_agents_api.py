@@ -65,8 +65,7 @@ def test_update_many_equals_k_updates(stepped):
 
 def test_update_many_on_device_draws_its_batches_inside_the_call(stepped):
     # the device-sampled path = update_many on the batches sample_batches draws with the same key
-    from botorl.agents.common import update_many_on_device
-    from botorl.data.dataset import sample_batches
+    from botorl.agents.common import sample_batches, update_many_on_device
 
     agent0, _, bs = stepped
     arrays = {k: jax.numpy.asarray(v.reshape((K * B,) + v.shape[2:])) for k, v in bs.items()}

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from botorl.data.dataset import ACTION_CLIP, BATCH_KEYS, Dataset, RewardTransform, sample_batch, sample_batches, validate
+from botorl.agents.common import sample_batches
+from botorl.data.dataset import ACTION_CLIP, BATCH_KEYS, Dataset, RewardTransform, validate
 from botorl.errors import DataFormatError
 
 
@@ -128,8 +129,8 @@ def test_device_sampling_inside_jit_and_scan():
     @jax.jit
     def run(arrays, key):
         def body(carry, k):
-            b = sample_batch(arrays, k, 4)
-            return carry + b["rewards"].sum(), b["observations"][:, 0] / 3 - b["rewards"]
+            b = sample_batches(arrays, k, 1, 4)
+            return carry + b["rewards"].sum(), b["observations"][0, :, 0] / 3 - b["rewards"][0]
 
         return jax.lax.scan(body, 0.0, jax.random.split(key, 5))
 

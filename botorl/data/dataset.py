@@ -2,13 +2,10 @@
 
 A ``Dataset`` holds flat transitions ``(s, a, r, s', terminal)`` in the row order of their
 episodes. ``episode_ends[i]`` marks the last row of an episode (terminal or truncated);
-``terminals[i]`` marks a true terminal (no bootstrapping). The two are independent: Cal-QL's
-adroit data have several terminal rows inside one trajectory, and a truncated episode ends
-without a terminal.
-
-Batches (``BATCH_KEYS``, CONTRACTS.md) come from ``Dataset.sample(rng, batch_size)`` on the
-host, or from ``Dataset.to_device()`` + the pure ``sample_batch(arrays, key, batch_size)``
-inside ``jax.jit`` / ``lax.scan`` (no host round trip per update).
+``terminals[i]`` a true terminal (no bootstrapping). The two are independent: Cal-QL's adroit
+data have several terminal rows inside one trajectory, and a truncated episode ends without one.
+Batches (``BATCH_KEYS``, CONTRACTS.md) come from ``Dataset.sample`` on the host, or from
+``to_device()`` + the pure ``botorl.agents.common.sample_batches`` inside ``jax.jit`` / ``lax.scan``.
 """
 
 from __future__ import annotations
@@ -32,12 +29,8 @@ ACTION_CLIP = 1.0 - 1e-5
 
 @dataclass(frozen=True)
 class RewardTransform:
-    """``r' = scale * r + bias``: the single place where rewards are rescaled.
-
-    The same object transforms the offline dataset (``Dataset.with_reward_transform``) and
-    the rewards of online transitions (the pipeline calls it on every env reward), so offline
-    and online rewards can never drift apart. Evaluation returns are never transformed.
-    """
+    """``r' = scale * r + bias``, applied to the offline data and to every online reward alike,
+    so the two can never drift apart. Evaluation returns are never transformed."""
 
     scale: float = 1.0
     bias: float = 0.0
@@ -64,18 +57,10 @@ def _source(metadata: dict | None) -> str:
 class Dataset:
     """Flat offline transitions (see the module docstring).
 
-    Args:
-        observations: (N, O). next_observations: (N, O). actions: (N, A), clipped here to
-            ``±(1 - 1e-5)`` (the largest raw magnitude is kept in ``raw_action_max`` so that
-            ``validate`` can still reject data that were far outside the box).
-        rewards: (N,). terminals: (N,) bool, true terminals.
-        episode_ends: (N,) bool, last row of each episode; default: terminal rows plus the last row.
-            The last row is always an episode end.
-        mc_returns: (N,) float32 Monte-Carlo returns-to-go, or None until ``with_mc_returns``.
-        infos: optional per-row arrays of length N (e.g. ``{"success": ...}``), carried through
-            ``concat``, written by ``write_minari``.
-        metadata: free-form dict; ``metadata["source"]`` names the file the data came from
-            (used in error messages).
+    Actions are clipped to ``±ACTION_CLIP``; their largest raw magnitude is kept in
+    ``raw_action_max`` so that ``validate`` can still reject data far outside the box.
+    ``episode_ends`` defaults to the terminal rows; the last row is always an episode end.
+    ``metadata["source"]`` names where the data came from (in error messages).
     """
 
     def __init__(
@@ -193,12 +178,9 @@ class Dataset:
 
     # ------------------------------------------------------------------ transforms
     def with_reward_transform(self, scale: float | RewardTransform = 1.0, bias: float = 0.0) -> "Dataset":
-        """A copy with ``r' = scale * r + bias`` (``RewardTransform``).
-
-        If Monte-Carlo returns were computed, they are recomputed from the new rewards with
-        the same settings (a sparse negative reward is transformed too), because the return
-        of transformed rewards is not an affine map of the old return.
-        """
+        """A copy with ``r' = scale * r + bias``; MC returns are recomputed from the new rewards
+        with the same settings, because the return of transformed rewards is not an affine map
+        of the old return."""
         tf = scale if isinstance(scale, RewardTransform) else RewardTransform(float(scale), float(bias))
         meta = copy.deepcopy(self.metadata)
         meta.setdefault("reward_transforms", []).append({"scale": tf.scale, "bias": tf.bias})
@@ -220,19 +202,13 @@ class Dataset:
         sparse_negative_reward: float | None = None,
         infinite_horizon: bool = False,
     ) -> "Dataset":
-        """A copy with Monte-Carlo returns-to-go, as Cal-QL computes them.
+        """A copy with Monte-Carlo returns-to-go, as Cal-QL computes them (nakamotoo/Cal-QL
+        JaxCQL/replay_buffer.py ``calc_return_to_go``).
 
-        Per episode (``episode_ends``), backwards: ``G_t = r_t + gamma * (1 - terminal_t) * G_{t+1}``,
-        with ``G = 0`` after the episode's last row (or ``r_last / (1 - gamma)`` with
-        ``infinite_horizon``, Cal-QL's choice for kitchen, where the last reward is assumed
-        to repeat forever). A terminal row inside an episode restarts the sum.
-
-        Never-succeeding sparse trajectories: if ``sparse_negative_reward`` (r_neg, in the
-        units of the current ``rewards``) is given, an episode whose rewards are *all* equal to
-        r_neg (``np.isclose``) gets ``r_neg / (1 - gamma)`` at every row instead of the finite
-        discounted sum, i.e. it is treated as failing forever (Cal-QL,
-        nakamotoo/Cal-QL JaxCQL/replay_buffer.py ``calc_return_to_go``). For adroit-binary
-        r_neg = -1 (raw) and for antmaze r_neg = 0 (raw); dense tasks pass None.
+        Per episode, backwards: ``G_t = r_t + gamma * (1 - terminal_t) * G_{t+1}``, ``G = 0``
+        after the last row (``r_last / (1 - gamma)`` with ``infinite_horizon``, Cal-QL's kitchen
+        choice). An episode whose rewards all equal ``sparse_negative_reward`` (in the units of
+        the current rewards) gets ``r_neg / (1 - gamma)`` at every row: it fails forever.
         """
         if not 0.0 <= gamma < 1.0:
             raise ValueError(f"gamma must be in [0, 1), got {gamma}")
@@ -263,10 +239,7 @@ class Dataset:
         return self._replace(mc_returns=out.astype(np.float32), metadata=meta)
 
     def concat(self, other: "Dataset") -> "Dataset":
-        """Rows of ``self`` then ``other`` (each keeps its episode boundaries).
-
-        MC returns are kept only if both have them; infos only the keys both have.
-        """
+        """Rows of ``self`` then ``other``; MC returns only if both have them, infos only the keys both have."""
         if other.obs_dim != self.obs_dim or other.action_dim != self.action_dim:
             raise DataFormatError(
                 f"cannot concatenate {_source(self.metadata)} (obs {self.obs_dim}, action "
@@ -303,25 +276,21 @@ class Dataset:
         return self.batch_at(rng.integers(0, len(self), size=shape))
 
     def sample_members(self, rngs, batch_size: int, num_batches: int | None = None) -> dict:
-        """One batch per member of a population, each drawn with the member's own generator
-        exactly as ``sample(rngs[i], ...)`` draws it, the rows of all gathered at once (the data
-        held once): stacked (N, [K,] B, ...)."""
+        """One batch per member, drawn with ``rngs[i]`` exactly as ``sample(rngs[i], ...)`` would,
+        gathered at once: (N, [K,] B, ...)."""
         shape = (batch_size,) if num_batches is None else (num_batches, batch_size)
         return self.batch_at(np.stack([r.integers(0, len(self), size=shape) for r in rngs]))
 
     def to_device(self) -> dict:
-        """The Batch fields of all rows as a pytree of ``jnp`` arrays (for ``sample_batch``)."""
+        """The Batch fields of all rows as a pytree of ``jnp`` arrays (for ``sample_batches``)."""
         import jax.numpy as jnp
 
         return {k: jnp.asarray(v) for k, v in self.batch_at(np.arange(len(self))).items()}
 
     # ------------------------------------------------------------------ stats
     def stats(self, success_key: str = "success") -> dict[str, Any]:
-        """Size, episodes, per-episode return statistics and success rate (if known).
-
-        Success of an episode is the max of ``infos[success_key]`` over its rows when present;
-        otherwise it is unknown (None).
-        """
+        """Size, episodes, per-episode returns and success rate (an episode's success: the max of
+        ``infos[success_key]`` over its rows; None without it)."""
         slices = self.episode_slices()
         csum = np.concatenate([[0.0], np.cumsum(self.rewards, dtype=np.float64)])
         rets = np.array([csum[s.stop] - csum[s.start] for s in slices])
@@ -347,39 +316,14 @@ class Dataset:
         return out
 
 
-def sample_batch(arrays: dict, key, batch_size: int) -> dict:
-    """Pure, jit-friendly uniform sampling from ``Dataset.to_device()`` arrays.
-
-    ``batch_size`` must be static under ``jax.jit`` (pass it via ``static_argnums`` or a
-    closure). Usable inside ``lax.scan``: split the key per step.
-    """
-    return _sample_rows(arrays, key, (batch_size,))
-
-
-def sample_batches(arrays: dict, key, num_batches: int, batch_size: int) -> dict:
-    """``num_batches`` independent batches stacked as (K, B, ...) for ``update_many``."""
-    return _sample_rows(arrays, key, (num_batches, batch_size))
-
-
-def _sample_rows(arrays: dict, key, shape: tuple[int, ...]) -> dict:
-    import jax
-
-    idx = jax.random.randint(key, shape, 0, arrays["rewards"].shape[0])
-    return jax.tree_util.tree_map(lambda x: x[idx], arrays)
-
-
 def validate(
     dataset: Dataset,
     obs_dim: int | None = None,
     action_dim: int | None = None,
     action_tolerance: float = 1e-3,
 ) -> Dataset:
-    """Check a dataset before training; raise ``DataFormatError`` naming the file and problem.
-
-    Checks: finite values in every field; observation/action widths match ``obs_dim`` /
-    ``action_dim`` when given; the raw actions (before the ±(1 - 1e-5) clip) lie within
-    ``[-1 - action_tolerance, 1 + action_tolerance]``. Returns the dataset unchanged.
-    """
+    """The dataset unchanged, after checking finite values, the widths (when given) and the raw
+    actions within ``1 + action_tolerance``; a ``DataFormatError`` naming the file and problem."""
     src = _source(dataset.metadata)
     for name in ("observations", "actions", "rewards", "next_observations"):
         arr = getattr(dataset, name)
