@@ -5,11 +5,11 @@ from __future__ import annotations
 import pytest
 
 from botorl.envs.cli import check_task, main
-from botorl.envs.registry import get_task, task_names
+from botorl.envs.registry import get_task, list_tasks
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", task_names())
+@pytest.mark.parametrize("name", [t.name for t in list_tasks()])
 def test_tasks_check_passes(name):
     r = check_task(get_task(name), steps=1000, seed=0)
     assert r["problems"] == []

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from botorl.envs import compat
-from botorl.envs.registry import get_task, list_tasks, task_names
+from botorl.envs.registry import get_task, list_tasks
 from botorl.errors import ConfigError
 
 PAPER = {
@@ -28,7 +28,7 @@ def _bandit_available() -> bool:
 
 
 def _env_tasks():
-    names = [n for n in task_names() if not n.startswith("bandit") or _bandit_available()]
+    names = [t.name for t in list_tasks() if not t.name.startswith("bandit") or _bandit_available()]
     return names
 
 
@@ -63,7 +63,7 @@ def test_seeded_env_is_reproducible():
 
 
 def test_registry_settings():
-    assert len(list_tasks()) == len(set(task_names()))
+    assert len(list_tasks()) == len({t.name for t in list_tasks()})
     for name, (alpha, steps, log_sigma) in PAPER.items():
         spec = get_task(name)
         assert (spec.paper.alpha, spec.paper.boto_steps, spec.paper.log_sigma) == (alpha, steps, log_sigma)

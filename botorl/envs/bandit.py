@@ -1,23 +1,10 @@
-"""One-step bandits (``bandit-pinwheel``, ``bandit-1d``): the task definitions behind the
-paper's Figures 2 and 3 and their env, so the registry is uniform.
-
-Both tasks have one step per episode (every transition terminal), a constant observation
-``zeros(1)``, and rewards that are a deterministic function R(a) of the action, so the BOTO
-fixed point can be computed exactly (algorithms.md section 4):
-``Q*(a_bar) = ∫ p_D(a) q(a_bar|a) (R(a) - alpha ||a - a_bar||^2) da / ∫ p_D(a) q(a_bar|a) da``.
-
-* ``bandit-pinwheel`` (Figure 2): 2-D actions from a pinwheel density (the standard toy density
-  with curved arms). In polar coordinates ``rho`` is a truncated normal and, on arm k,
-  ``theta = 2 pi k / K + twist * rho + Normal(0, std^2)``, so each arm bends as it goes out; all
-  mass lies inside the unit disk. ``pinwheel_density(a)`` is exact (polar density / rho,
-  wrapped normal in angle). Reward ``R(a) = (k(a) + rho) / K``, k(a) the arm with the largest
-  density at a: a distinct reward range per arm.
-* ``bandit-1d`` (Figure 3): 1-D actions drawn uniformly from a finite support of clusters of
-  evenly spaced points, each cluster with its own reward (``bandit_1d_support()``: points,
-  rewards, probabilities; integrals become weighted sums; the red dots of Figure 3).
-
-The env's reward is R(a), as in the data; ``info["success"]`` = (R(a) - min R) / (max R -
-min R), R's range estimated once on a grid over the action box.
+"""One-step bandits (``bandit-pinwheel``, ``bandit-1d``): the tasks behind the paper's Figures 2
+and 3 (docs/tasks.md). Rewards are a deterministic R(a), so the BOTO fixed point can be computed
+exactly (algorithms.md section 4). The pinwheel density (polar: ``rho`` a truncated normal,
+on arm k ``theta = 2 pi k / K + twist * rho + Normal(0, std^2)``) is exact in
+``pinwheel_density``; its reward ``(k(a) + rho) / K`` gives each arm its own range. The 1-D
+bandit's actions are uniform over clusters of points, each cluster with its own reward.
+``info["success"]`` = R(a) rescaled to [0, 1] by R's range on a grid over the action box.
 """
 
 from __future__ import annotations
@@ -131,11 +118,6 @@ def sample_1d(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- the env
-def bandit_dims(kind: str) -> tuple[int, int]:
-    """(obs_dim, action_dim) of a bandit."""
-    return OBS_DIM, ACTION_DIM[kind]
-
-
 def reward_function(kind: str):
     """R(a) for a batch of actions (N, A) -> (N,)."""
     fn = {"pinwheel": pinwheel_reward, "1d": bandit_1d_reward}[kind]
@@ -146,7 +128,7 @@ class BanditEnv(gym.Env):
     metadata = {"render_modes": []}
 
     def __init__(self, kind: str, reward_fn=None, seed: int | None = None):
-        obs_dim, action_dim = bandit_dims(kind)
+        obs_dim, action_dim = OBS_DIM, ACTION_DIM[kind]
         self.kind = kind
         self.reward_fn = reward_fn or reward_function(kind)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(obs_dim,), dtype=np.float32)
