@@ -1,14 +1,6 @@
-"""``botorl data``: generate datasets and show their statistics.
-
-    botorl data generate TASK [--steps N] [--seed S] [--out PATH] [--overwrite] [--no-progress]
-    botorl data info TASK|PATH [--steps N] [--seed S] [--json]
-    botorl data plot TASK|PATH [--steps N] [--seed S] [--out PNG]   (antmaze coverage picture)
-
-``generate`` is deterministic for a seed and cached (``$BOTORL_DATA_DIR``, default
-``~/.botorl/datasets``): a second call with the same task/steps/seed only reports the cached
-dataset. ``info`` reads a cached generated dataset (all cached sizes/seeds of TASK unless
---steps/--seed pick one), a task's downloaded data, or any dataset file/folder botorl reads.
-"""
+"""``botorl data``: generate datasets (deterministic for a seed, cached under ``$BOTORL_DATA_DIR``)
+and show their statistics (a cached generated dataset, a task's downloaded data, or any dataset
+file/folder botorl reads)."""
 
 from __future__ import annotations
 

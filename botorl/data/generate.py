@@ -1,8 +1,5 @@
-"""The cache of generated datasets: ``ensure_dataset(task, steps, seed)``.
-
-Generated datasets are Minari datasets under ``$BOTORL_DATA_DIR`` (default
-``~/.botorl/datasets``, laid out as a Minari root so Minari's own tools read it; docs/tasks.md),
-one per (task, steps, seed) with id ``botorl/<task>/steps<steps>-seed<seed>-v0``.
+"""The cache of generated datasets: ``ensure_dataset(task, steps, seed)``, Minari datasets under
+``$BOTORL_DATA_DIR`` (a Minari root; docs/tasks.md) with id ``botorl/<task>/steps<steps>-seed<seed>-v0``.
 """
 
 from __future__ import annotations
@@ -20,12 +17,6 @@ def data_dir() -> Path:
     """``$BOTORL_DATA_DIR`` or ``~/.botorl/datasets``."""
     env = os.environ.get("BOTORL_DATA_DIR")
     return Path(env).expanduser() if env else Path.home() / ".botorl" / "datasets"
-
-
-def default_steps(task: str) -> int:
-    if task not in DEFAULT_STEPS:
-        raise ConfigError(f"no default size for {task!r}; pass steps explicitly.")
-    return DEFAULT_STEPS[task]
 
 
 def cache_id(task: str, steps: int, seed: int) -> str:
@@ -62,16 +53,15 @@ def ensure_dataset(
     progress: bool = True,
     regenerate: bool = False,
 ) -> Dataset:
-    """The generated dataset of ``task`` for (steps, seed): from the cache, or made and cached.
-
-    ``steps`` None means the task's default size (``generators.DEFAULT_STEPS``). The data
-    are deterministic for a seed, so a cache hit equals a fresh generation.
-    """
+    """The generated dataset of ``task`` for (steps, seed; None: ``DEFAULT_STEPS``), from the cache
+    or made and cached (deterministic for a seed, so a cache hit equals a fresh generation)."""
     from botorl.data.loaders import load_minari
     from botorl.data.minari_io import write_minari
     from botorl.envs.registry import get_task
 
-    steps = default_steps(task) if steps is None else int(steps)
+    if steps is None and task not in DEFAULT_STEPS:
+        raise ConfigError(f"no default size for {task!r}; pass steps explicitly.")
+    steps = DEFAULT_STEPS[task] if steps is None else int(steps)
     if steps <= 0:
         raise ConfigError(f"steps must be positive, got {steps}")
     path = cache_path(task, steps, seed)

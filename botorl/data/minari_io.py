@@ -1,25 +1,20 @@
 """Writing botorl datasets as Minari datasets, so any Minari-aware tool can read them.
 
-Minari's own writer (``create_dataset_from_buffers``, one ``EpisodeBuffer`` per episode) costs
-about 2.5 ms per episode, 70 s for the 14.5k episodes of 1M pointmaze steps. So Minari only
-makes ``metadata.json`` (an empty dataset, then ``update_metadata`` with the totals), and the
-episodes go straight into ``main_data.hdf5`` with h5py's low-level API, in the layout of Minari
-0.5's ``HDF5Storage.update_episodes`` (about 0.7 ms per episode; tests compare the two
-writers). Unlike Minari's, the datasets are contiguous (chunked, resizable ones triple the file
-size and only matter for appending to an episode) and the file is written once from memory.
-Everything goes into a private temporary root next to the destination, then moves into place
-with one ``rename``: a crash leaves no dataset or a complete one, never a half-written one.
+Minari's own writer costs about 2.5 ms per episode (70 s for 1M pointmaze steps), so Minari only
+makes ``metadata.json`` and the episodes go straight into ``main_data.hdf5`` with h5py's
+low-level API, in the layout of Minari 0.5's ``HDF5Storage.update_episodes`` (about 0.7 ms per
+episode; tests compare the two writers), contiguous and written once from memory. Everything is
+written into a private temporary root next to the destination, then moved into place with one
+``rename``: a crash leaves no dataset or a complete one.
 
-Per episode of T steps: T + 1 observations, T actions/rewards/terminations/truncations (the
-last step truncated unless terminal); ``infos`` holds every ``Dataset.infos`` field with T + 1
-entries, the first (Minari's reset info) 0. botorl's metadata (generator, steps, seed, ...) is
-a JSON string under the metadata key ``botorl_metadata`` (``Dataset.metadata["botorl"]`` when
-read back). A flat copy of the rows sits beside ``data/`` for fast loading (``FLAT_FILE``).
+Per episode of T steps: T + 1 observations, T actions/rewards/terminations/truncations (the last
+step truncated unless terminal); ``infos`` holds every ``Dataset.infos`` field with T + 1
+entries, the first (the reset info) 0. botorl's metadata is a JSON string under the metadata key
+``botorl_metadata``. A flat copy of the rows sits beside ``data/`` (``FLAT_FILE``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
 import json
@@ -29,6 +24,7 @@ import uuid
 import warnings
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import numpy as np
 from tqdm import tqdm
@@ -42,10 +38,8 @@ from botorl.io import pid_alive
 # episode); load_minari joins such pieces back into one episode.
 SPLIT_KEY = "botorl_split"
 
-# Minari's hdf5 layout costs about 1-5 ms per episode to read (one group per episode), a
-# minute for 1M pointmaze steps in 15k episodes. botorl therefore also stores the same rows
-# flat, beside the Minari ``data`` folder (Minari ignores it), written in the same atomic
-# step; ``load_minari`` reads it when present and no ``obs_keys`` are asked for.
+# Minari's hdf5 layout costs about 1-5 ms per episode to read, a minute for 1M pointmaze steps;
+# the same rows stored flat beside the ``data`` folder (Minari ignores it) load at once.
 FLAT_FILE = "botorl_flat.npz"
 # Temporary roots of write_minari: ``.botorl-tmp-<host>-<pid>-<random>``; one whose process is
 # gone (a `botorl data generate` killed with -9) is removed by the next write into the root.
@@ -112,19 +106,6 @@ def minari_root() -> Path:
     return Path(env) if env else Path.home() / ".minari" / "datasets"
 
 
-@contextlib.contextmanager
-def _minari_root(path: Path):
-    old = os.environ.get("MINARI_DATASETS_PATH")
-    os.environ["MINARI_DATASETS_PATH"] = str(path)
-    try:
-        yield
-    finally:
-        if old is None:
-            os.environ.pop("MINARI_DATASETS_PATH", None)
-        else:
-            os.environ["MINARI_DATASETS_PATH"] = old
-
-
 def _cuts(ds: Dataset):
     """Episode (starts, ends) row ranges, and where a discontinuity forced a split."""
     n = len(ds)
@@ -160,11 +141,9 @@ def _episodes(ds: Dataset):
 
 
 def _dict_obs(flat: np.ndarray, layout: dict, infos: dict, s: int, e: int) -> dict:
-    """Dict observations of one episode (T + 1 rows) from the flat rows, as
-    ``Dataset.metadata["minari_dict_obs"]`` describes them: ``{key: [start, stop]}`` (a
-    slice of the flat observation) or ``{key: "infos:NAME"}`` (a per-row info, e.g. the
-    goal of generated antmaze data; the last observation repeats the last row's value).
-    Minari's D4RL/antmaze datasets store observation/achieved_goal/desired_goal so."""
+    """Dict observations of one episode (T + 1 rows), as ``metadata["minari_dict_obs"]`` describes
+    them: ``{key: [start, stop]}`` (a slice of the flat rows) or ``{key: "infos:NAME"}`` (a
+    per-row info, the last repeated), as Minari's D4RL/antmaze datasets store them."""
     out = {}
     for key, spec in layout.items():
         if isinstance(spec, str) and spec.startswith("infos:"):
@@ -196,12 +175,10 @@ def _observation_space(ds: Dataset):
 
 
 def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) -> tuple[int, int]:
-    """Write every episode of ``ds`` into ``file_path`` in Minari's HDF5 layout.
+    """Write every episode of ``ds`` into ``file_path`` in Minari's HDF5 layout; (episodes, steps).
 
-    Returns (episodes, steps). h5py's high-level ``create_dataset`` spends most of its
-    time in Python (chunk guessing, property lists); the low-level calls with shared
-    property lists and datatypes are about 2x faster, and the in-memory ("core") driver
-    writes the file once at close instead of many small writes.
+    h5py's low-level calls with shared datatypes are about 2x faster than ``create_dataset``,
+    and the in-memory ("core") driver writes the file once at close.
     """
     import h5py
     from h5py import h5a, h5d, h5g, h5s, h5t
@@ -288,13 +265,9 @@ def write_minari(
 ) -> Path:
     """Write ``dataset`` as a Minari dataset; returns its folder.
 
-    Where: ``dataset_id`` (e.g. ``"botorl/pointmaze-large/steps1000000-seed0-v0"``) under
-    ``root`` (default: Minari's root, ``$MINARI_DATASETS_PATH`` or ``~/.minari/datasets``), so
-    ``minari.load_dataset(dataset_id)`` reads it; or ``path``, a folder whose name is the id
-    (``.../name-v0``). ``metadata`` (JSON-serialisable: generator name, steps, seed, ...) is
-    stored with botorl's dataset metadata. ``env_spec`` (a Gymnasium ``EnvSpec``, e.g. a task's
-    ``TaskSpec.gym_spec()``) is recorded as the dataset's, so ``recover_environment()`` works.
-    An existing dataset is replaced only with ``overwrite=True``.
+    Where: ``dataset_id`` under ``root`` (default: ``minari_root()``), or ``path``, a folder
+    whose name is the id. ``metadata`` is stored with botorl's dataset metadata; ``env_spec``
+    (``TaskSpec.gym_spec()``) is recorded so that ``recover_environment()`` works.
     """
     import minari
 
@@ -316,7 +289,7 @@ def write_minari(
     meta.update(metadata or {})
     meta["transitions"] = len(dataset)
     try:
-        with _minari_root(tmp_root), warnings.catch_warnings():
+        with mock.patch.dict(os.environ, MINARI_DATASETS_PATH=str(tmp_root)), warnings.catch_warnings():
             warnings.simplefilter("ignore")  # Minari warns about every optional field left empty
             kwargs = dict(algorithm_name=algorithm_name, author="botorl", author_email="none",
                           code_permalink="https://github.com/botorl/botorl", action_space=act_space,
@@ -355,11 +328,8 @@ def write_minari(
 
 
 def _write_flat(ds: Dataset, path: Path, meta: dict) -> None:
-    """The flat copy, with the size and sha256 of its Minari source and a checksum of its own rows.
-
-    ``path`` sits in the dataset folder beside ``data/main_data.hdf5`` (the source). Written
-    through a temporary file, so a rebuild of an existing cache is atomic too.
-    """
+    """The flat copy, with the size and sha256 of its source ``data/main_data.hdf5`` and a checksum
+    of its own rows, written atomically."""
     from botorl.io import atomic_write_bytes
 
     arrays = {
@@ -385,12 +355,9 @@ _CHECK_KEYS = ("content_sha256", "source_size", "source_sha256")
 
 
 def read_flat(folder: Path) -> Dataset | None:
-    """The flat copy written beside a botorl Minari dataset, or None if there is none.
-
-    Trusted only after checks (``FlatCacheInvalid`` names the failed one): the size and sha256
-    of ``data/main_data.hdf5`` equal those recorded when the copy was made, the rows match
-    their recorded checksum, and the recorded action range is that of the stored actions.
-    """
+    """The flat copy beside a botorl Minari dataset (None if there is none), trusted only if its
+    source's size and sha256, its rows' checksum and its action range match the recorded ones
+    (else ``FlatCacheInvalid`` naming the failed check)."""
     from botorl.data.dataset import ACTION_CLIP
 
     folder = Path(folder)

@@ -27,12 +27,8 @@ _ALL_EMPTY = "sample_mixed: every source with a positive ratio is empty; nothing
 
 class ReplayBuffer:
     """Ring buffer(s) of float32 transitions; the oldest rows are overwritten once full.
-
-    ``members=None``: one buffer, fields (capacity, ...). ``members=N``: N buffers filled in
-    lockstep, fields (N, capacity, ...); ``size``, ``insert_index`` and ``total_inserted`` are
-    shared, ``open_rows`` is per member. ``state_dict()`` / ``from_state_dict()`` give plain
-    numpy arrays for checkpoints (each form its own layout, both read back).
-    """
+    ``members=N``: fields (N, capacity, ...), ``size``, ``insert_index`` and ``total_inserted``
+    shared, ``open_rows`` per member."""
 
     def __init__(self, capacity: int, obs_dim: int, action_dim: int, members: int | None = None):
         if capacity <= 0:

@@ -1,8 +1,4 @@
-"""A task's offline data: read (or made) where its ``TaskSpec.dataset_source`` says.
-
-``load_task_data(spec, path)`` is what the pipeline loads (raw rewards: the pipeline applies
-the task's transform); ``data_status(spec)`` is what ``botorl tasks`` shows.
-"""
+"""A task's offline data: read (or made) where its ``TaskSpec.dataset_source`` says."""
 
 from __future__ import annotations
 
@@ -17,13 +13,9 @@ def load_task_data(spec, path: str | os.PathLike | None = None, *, action_tolera
                    **kwargs) -> Dataset:
     """The task's offline data with raw rewards (the pipeline applies the transform).
 
-    ``path``: a Minari dataset folder (minari tasks; default: by id from
-    ``$MINARI_DATASETS_PATH``), the Cal-QL folder or ``expert.npy,bc.npy`` (adroit; must be
-    given: those files are pickles), or a generated Minari folder (generated tasks;
-    default: the cache, generating the data if missing; ``kwargs`` go to ``ensure_dataset``), or a
-    user's file (user tasks; default: theirs, held in memory or the file registered; ``kwargs``:
-    ``action_tolerance``). ``action_tolerance``: the largest |action| - 1 a Minari dataset may
-    hold (--data.action-tolerance).
+    ``path`` (default: where the task's source says; the Cal-QL pickles must be named: a folder
+    or ``expert.npy,bc.npy``) overrides the source. ``kwargs`` go to ``ensure_dataset``
+    (generated tasks) or the user-task loader.
     """
     src = spec.dataset_source
     if src.kind == "user":  # a user's own task (botorl/data/user.py)

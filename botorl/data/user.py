@@ -1,18 +1,11 @@
-"""The offline data of a user's own task (botorl/envs/user.py), whatever form they come in.
+"""The offline data of a user's own task (botorl/envs/user.py), whatever form they come in
+(docs/own-task.md): a dict of arrays (``REQUIRED``, optional ``OPTIONAL``; an episode ends at
+terminals and timeouts by default; dict observations flattened as the env's), a path (``.npz``
+with those keys, dict observations as ``observations/<key>``; a D4RL ``.hdf5``; a Minari
+dataset), or a botorl ``Dataset`` (already in botorl's units).
 
-``to_dataset(data, task)`` takes
-
-* a dict of arrays: ``observations``, ``actions``, ``rewards``, ``next_observations``,
-  ``terminals`` (N rows each), optional ``timeouts`` and ``episode_ends`` (default: an episode
-  ends at terminals and timeouts). Dict observations may be dicts of arrays, flattened in the
-  env's order (``flatten_obs``);
-* a path: a ``.npz`` with those keys (dict observations as ``observations/<key>``), a D4RL
-  ``.hdf5`` (D4RL's ``qlearning_dataset`` rows), a Minari dataset folder or id;
-* a botorl ``Dataset`` (already in botorl's units: actions in [-1, 1]).
-
-Logged actions are in the env's own units (what was passed to ``env.step``), mapped to [-1, 1]
-with ``action_from_env``; rewards stay raw. Data given in memory are held here for the process
-(``hold``/``held``): a run started by ``botorl.run`` reads them from there; a run whose data
+Logged actions are in the env's own units, mapped to [-1, 1] with ``action_from_env``; rewards
+stay raw. Data given in memory are held for the process (``hold``/``held``); a run whose data
 came from a file re-reads the file.
 """
 

@@ -1,14 +1,7 @@
-"""Adroit "binary" tasks as Cal-QL defines them (pen-binary-v0, door-binary-v0).
-
-Wraps the plain ``AdroitHandPen-v1`` / ``AdroitHandDoor-v1`` (not the ``Sparse`` variants,
-whose reward is +10 / -0.1 and whose pen horizon is 200):
-
-- reward = success - 1, i.e. -1 before and 0 at the goal;
-- the episode terminates at the first success;
-- success: door, hinge angle ``obs[28] >= 1.35`` (the env's own ``goal_achieved``); pen, the
-  env's ``goal_achieved`` (pen within 0.075 of the target and orientation similarity > 0.95);
-- observations as the env gives them: door 39, pen 45 dims (Cal-QL's dims);
-- horizons 100 (pen) and 200 (door), set by the registry.
+"""Adroit "binary" tasks as Cal-QL defines them (pen-binary-v0, door-binary-v0), on the plain
+``AdroitHandPen/Door-v1`` (not the ``Sparse`` variants: +10 / -0.1 rewards, pen horizon 200):
+reward = success - 1, termination at the first success (the env's ``goal_achieved``; door: hinge
+``obs[28] >= 1.35``), observations as the env gives them.
 """
 
 from __future__ import annotations

@@ -1,31 +1,14 @@
-"""A goal-reaching ant: the low-level policy behind AntMaze data (issue 16).
+"""A goal-reaching ant: the low-level policy behind AntMaze data (docs/antmaze.md).
 
-The robot is the one of Gymnasium-Robotics' AntMaze (``ant_maze_v4`` builds its maze around
-Gymnasium's ``assets/ant.xml`` and steps ``gymnasium.envs.mujoco.ant_v4.AntEnv``): 8 hinge
-actuators with control range [-1, 1], ``frame_skip`` 5 of a 0.01 s timestep (dt = 0.05 s).
-
-Task (facts from Farama-Foundation/minari-dataset-generation-scripts,
-``scripts/antmaze/reach_goal_ant.py``, the env whose SAC policy made Minari's antmaze data):
-
-- a goal is drawn around the ant: angle ~ U(0, 2 pi), radius = 10 * U(0, 1) (not sqrt: near
-  goals are more frequent); the task is continuing: when the ant's (x, y) is within the
-  threshold of the goal a new goal is drawn (Minari: 0.3);
-- observation (29): the ant's ``qpos[2:]`` (13: z, orientation quaternion, 8 joint angles),
-  ``qvel`` (14), then ``goal - xy`` (2). The first 27 are exactly AntMaze's ``observation``
-  key, so inside a maze the same policy reads ``observation ++ (waypoint - achieved_goal)``;
-- reward: ``10 * (velocity . unit(goal - xy)) + healthy_reward - ctrl_cost``, Ant-v4's reward
-  with the forward velocity replaced by the velocity towards the goal, scaled by 10
-  (``forward_reward_scale``) "as the average velocity is slower ... due to the need to turn".
-
-Our choices: the ant terminates when unhealthy (torso z outside Ant-v4's ``healthy_z_range``
-(0.2, 1.0)) as Ant-v4 itself does (Minari's wrapper ignored Ant-v4's termination); episodes
-are truncated at 1,000 steps; reset noise is Ant-v4's default (0.1; Minari 0.15).
-
-``AntGoalSim`` steps N ants directly with ``mujoco.mj_step`` (``nstep=5``) and ``AntEnv.step``'s
-semantics (velocity from the torso body position before and after), about 3x faster than
-Gymnasium's ``AntEnv``; tests check it against a Gymnasium wrapper around ``AntEnv``.
-
-It needs no Gymnasium-Robotics, so the trainer runs on a machine that lacks it.
+The robot is Gymnasium-Robotics' AntMaze's (Gymnasium's ``ant.xml``, ``ant_v4.AntEnv``'s
+stepping: frame skip 5 of 0.01 s). Task facts from Farama-Foundation/minari-dataset-generation-
+scripts, ``scripts/antmaze/reach_goal_ant.py``: goals drawn at angle U(0, 2 pi), radius 10 U(0, 1)
+(not sqrt: near goals are more frequent), a new one within 0.3; the first 27 observation entries
+are exactly AntMaze's ``observation`` key; the velocity reward is scaled by 10 "as the average
+velocity is slower ... due to the need to turn". Our choices: the ant terminates when unhealthy
+as Ant-v4 does (Minari's wrapper ignored it), 1,000-step episodes, Ant-v4's reset noise 0.1
+(Minari 0.15). ``AntGoalSim`` steps N ants with ``mj_step`` about 3x faster than Gymnasium's
+``AntEnv`` (tests compare the two). It needs no Gymnasium-Robotics.
 """
 
 from __future__ import annotations
@@ -79,13 +62,9 @@ def healthy(qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
 
 
 class AntGoalSim:
-    """``num_envs`` goal-reaching ants on one MuJoCo model, stepped with ``mj_step``.
-
-    ``step(actions)`` returns ``(next_obs, reward, terminated, truncated, goals_reached)``:
-    ``next_obs`` is the observation after the step (with the new goal where one was reached,
-    as the continuing task does); ants that terminated or were truncated are reset after
-    the step and their fresh observation is in ``self.obs``.
-    """
+    """``num_envs`` goal-reaching ants on one MuJoCo model. ``step(actions)`` returns ``(next_obs,
+    reward, terminated, truncated, goals_reached)``, ``next_obs`` with the new goal where one was
+    reached; ended ants are reset after the step, their fresh observation in ``self.obs``."""
 
     def __init__(self, num_envs: int, seed: int = 0, *, goal_threshold: float = GOAL_THRESHOLD,
                  horizon: int = HORIZON, reset_noise: float = RESET_NOISE, goal_radius: float = GOAL_REGION_RADIUS):
@@ -152,12 +131,8 @@ class AntGoalSim:
 
 
 class NumpyActor:
-    """The deterministic / sampled actions of a botorl ``TanhGaussianActor`` in numpy.
-
-    ``params``: the flat dict of an ``.npz`` written by ``export_actor`` (``Dense_i/kernel``,
-    ``Dense_i/bias``, ``LayerNorm_i/scale|bias``, ``mean/...``, ``log_std/...``). About 20 us
-    per row on a CPU, against ~100 us for a jitted JAX call of one row.
-    """
+    """The actions of a botorl ``TanhGaussianActor`` in numpy, from ``actor_arrays``' flat dict:
+    about 20 us per row on a CPU, against ~100 us for a jitted JAX call of one row."""
 
     def __init__(self, params: dict[str, np.ndarray]):
         self.layers = []
@@ -203,16 +178,9 @@ class NumpyActor:
 
 def actor_arrays(actor_params, log_std_min: float = -20.0, log_std_max: float = 2.0) -> dict[str, np.ndarray]:
     """Flatten a botorl actor's parameter tree into ``NumpyActor``'s dict."""
-    out = {}
+    from flax.traverse_util import flatten_dict
 
-    def walk(prefix, tree):
-        for k, v in tree.items():
-            if isinstance(v, dict) or hasattr(v, "items"):
-                walk(f"{prefix}{k}/", v)
-            else:
-                out[f"{prefix}{k}"] = np.asarray(v, np.float32)
-
-    walk("", actor_params)
+    out = {k: np.asarray(v, np.float32) for k, v in flatten_dict(actor_params, sep="/").items()}
     out["log_std_min"] = np.asarray(log_std_min, np.float32)
     out["log_std_max"] = np.asarray(log_std_max, np.float32)
     return out

@@ -1,15 +1,10 @@
 """AntMaze, D4RL-style evaluation on the Gymnasium-Robotics ant (antmaze-large-*-v2).
 
-- Maze: D4RL's large map, start cell (1, 1), goal cell (7, 9) (row, column), D4RL's
-  antmaze-large evaluation pair; the medium and umaze maps (``layout``) are the
-  antmaze-*-local tasks', with D4RL's evaluation pair of that map.
-- ``continuing_task=False``: reward 1 and termination when the ant's (x, y) is within 0.45 of
-  the goal. D4RL used a radius of 0.5; we keep Gymnasium-Robotics' 0.45 because the Minari
-  ``D4RL/antmaze/*-v1`` datasets (the offline data of these tasks) were regenerated in this env
-  and label their rewards with 0.45. Goal and start get Gymnasium-Robotics' +-0.25-cell noise,
-  as the evaluation env of the Minari datasets does.
-- Observation (29, float32): ``achieved_goal`` (x, y) then the 27-dim ``observation`` (ant qpos
-  without x, y, then qvel): D4RL's layout, ``ANTMAZE_OBS_KEYS`` of the Minari datasets.
+- D4RL's evaluation start and goal cells per map (``layout``); reward 1 and termination within
+  0.45 of the goal: D4RL used 0.5, but the Minari ``D4RL/antmaze/*-v1`` datasets were
+  regenerated in this env and label their rewards with 0.45. Goal and start get
+  Gymnasium-Robotics' +-0.25-cell noise, as the Minari datasets' evaluation env does.
+- Observation (29): ``achieved_goal`` (x, y) then the 27-dim ``observation``: D4RL's layout.
 """
 
 from __future__ import annotations
@@ -21,7 +16,6 @@ import numpy as np
 from botorl.envs.pointmaze import MAZES
 from botorl.envs.wrappers import TaskEnv, import_robotics
 
-ANTMAZE_OBS_KEYS = ("achieved_goal", "observation")
 OBS_DIM = 29
 ACTION_DIM = 8
 SUCCESS_RADIUS = 0.45

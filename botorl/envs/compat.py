@@ -1,15 +1,9 @@
 """Compatibility patch: FrankaKitchen-v1 (gymnasium-robotics 1.4.2) under mujoco >= 3.12.
 
-The joint helpers in ``gymnasium_robotics.utils.mujoco_utils`` (``get_joint_qpos``,
-``get_joint_qvel``, ``set_joint_qpos``, ``set_joint_qvel``) check the joint type with
-``model.jnt_type[i] in (mjtJoint.mjJNT_HINGE, mjtJoint.mjJNT_SLIDE)``. Since mujoco 3.12 the
-enum members are no longer plain ints for tuple membership: ``np.int32(3) == mjJNT_HINGE`` is
-True but ``np.int32(3) in (mjJNT_HINGE, ...)`` is False, so the assert fails and
-``FrankaKitchen-v1`` crashes at construction (in ``robot_get_obs``).
-
-``apply()`` replaces those four helpers with versions that compare integer codes. They are
-otherwise the same (address lookup by joint name, width by joint type); the patch is applied
-once, at make time of a kitchen env, and is a no-op where the originals already work.
+gymnasium_robotics.utils.mujoco_utils' joint helpers check ``model.jnt_type[i] in
+(mjJNT_HINGE, mjJNT_SLIDE)``; since mujoco 3.12 ``np.int32(3) in (mjJNT_HINGE, ...)`` is False,
+so ``FrankaKitchen-v1`` crashes at construction. ``apply()`` (once, when a kitchen env is made; a
+no-op where the originals work) replaces the four helpers with ones comparing integer codes.
 """
 
 from __future__ import annotations

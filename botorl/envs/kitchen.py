@@ -1,17 +1,11 @@
 """Franka kitchen as D4RL's kitchen-partial-v0 / kitchen-mixed-v0, on ``FrankaKitchen-v1``.
 
-- Target sub-tasks (D4RL's registrations, checked against d4rl/kitchen/__init__.py):
-  kitchen-partial-v0 = ``KitchenMicrowaveKettleLightSliderV0``, kitchen-mixed-v0 =
-  ``KitchenMicrowaveKettleBottomBurnerLightV0`` (``PARTIAL_TASKS``, ``MIXED_TASKS``).
-- ``remove_task_when_completed=False``: the env's reward is the number of target sub-tasks
-  whose objects are within 0.3 of their goal at this step (0-4), the reward the D4RL datasets
-  (and WSRL's fork) carry. Termination when all 4 are done at the same step;
-  ``info["success"]`` = reward / 4, read at an episode's last step (success_mode "last").
-- Observation (59, float32): the env's ``observation`` entry only (robot qpos and qvel, object
-  qpos and qvel): the desired goal is a constant of the task and the achieved goal a
-  (noise-free) copy of object qpos. Gymnasium-Robotics' default observation noise, with which
-  the Minari kitchen datasets were recorded.
-- mujoco >= 3.12 needs ``botorl.envs.compat.apply()`` (applied here at make time).
+- Target sub-tasks as D4RL's registrations (d4rl/kitchen/__init__.py).
+- ``remove_task_when_completed=False``: the reward is the number of target sub-tasks done at
+  this step (0-4), the reward the D4RL datasets carry; termination when all 4 are done at once;
+  ``info["success"]`` = reward / 4, read at an episode's last step.
+- Observation (59): the env's ``observation`` entry only (the goals are constants or copies of
+  object qpos), with the default observation noise the Minari datasets were recorded with.
 """
 
 from __future__ import annotations
@@ -21,7 +15,6 @@ from botorl.envs.wrappers import TaskEnv, import_robotics
 
 PARTIAL_TASKS = ("microwave", "kettle", "light switch", "slide cabinet")
 MIXED_TASKS = ("microwave", "kettle", "bottom burner", "light switch")
-KITCHEN_OBS_KEYS = ("observation",)
 OBS_DIM, ACTION_DIM = 59, 9
 
 

@@ -1,15 +1,10 @@
-"""PointMaze with the D4RL maze2d maps: a fixed start, a fixed goal, sparse reward.
+"""PointMaze with the D4RL maze2d maps: a fixed start, a fixed goal, sparse reward; a small
+stand-in for antmaze (data: ``botorl.data.generators.pointmaze``).
 
-The generated ``pointmaze-*`` tasks (data: ``botorl.data.generators.pointmaze``) are a small
-stand-in for antmaze. Decisions, shared by the env and the generator:
-
-- Maps: Gymnasium-Robotics' ``U_MAZE``, ``MEDIUM_MAZE``, ``LARGE_MAZE`` (D4RL maze2d's), cell
-  size 1; start and goal cells below (D4RL's maze2d goals; start = a far cell).
 - The goal is the goal cell's centre exactly (Gymnasium-Robotics' +-0.25 goal noise is removed
   so the offline data, labelled against this same point, reward exactly what evaluation
-  rewards); the start keeps its +-0.25 position noise.
-- Reward 1 and termination within 0.45 of the goal (Gymnasium-Robotics' radius; D4RL: 0.5).
-- Observation (4, float32): (x, y, vx, vy); the goal is fixed, so it is not observed.
+  rewards); the start keeps its noise. Reward 1 and termination within 0.45 of the goal.
+- Observation (4): (x, y, vx, vy); the goal is fixed, so it is not observed.
 """
 
 from __future__ import annotations
@@ -30,7 +25,6 @@ class MazeSpec:
     name: str
     start_cell: tuple[int, int]
     goal_cell: tuple[int, int]
-    horizon: int
 
     @property
     def maze_map(self) -> list[list[int]]:
@@ -42,9 +36,9 @@ class MazeSpec:
 
 
 MAZES = {
-    "umaze": MazeSpec("umaze", start_cell=(3, 1), goal_cell=(1, 1), horizon=300),
-    "medium": MazeSpec("medium", start_cell=(1, 1), goal_cell=(6, 6), horizon=600),
-    "large": MazeSpec("large", start_cell=(1, 1), goal_cell=(7, 9), horizon=800),
+    "umaze": MazeSpec("umaze", start_cell=(3, 1), goal_cell=(1, 1)),
+    "medium": MazeSpec("medium", start_cell=(1, 1), goal_cell=(6, 6)),
+    "large": MazeSpec("large", start_cell=(1, 1), goal_cell=(7, 9)),
 }
 
 

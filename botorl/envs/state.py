@@ -1,15 +1,9 @@
-"""The full state of a botorl env mid-episode, as plain JSON, for an exact resume.
-
-``get_env_state(env) -> dict`` and ``set_env_state(env, state)`` work on every env
-``TaskSpec.make_env`` builds: the wrapper chain (``TimeLimit`` -> the task's ``TaskEnv`` -> the
-Gymnasium(-Robotics) env and the MuJoCo envs it holds, e.g. ``point_env``, ``ant_env``). What
-is captured (CONTRACTS.md, "Tasks"): per MuJoCo model ``mj_getState(mjSTATE_INTEGRATION)``,
-which MuJoCo documents as everything ``mj_step`` reads, plus the model fields the envs move at
-reset (the door's position, the pen's target orientation, the maze's target marker); every
-layer's plain attributes (numbers, strings, arrays and containers of them: counters, goals,
-the kitchen's completed sub-tasks; objects such as models and spaces are not state); every
-layer's ``np_random`` and its action space's generator. Floats round-trip exactly through
-JSON, so stepping a restored env gives bit-identical results (tests/test_envs_state.py).
+"""The full state of a botorl env mid-episode, as plain JSON, for an exact resume (CONTRACTS.md,
+"Tasks"): per MuJoCo model ``mj_getState(mjSTATE_INTEGRATION)`` (everything ``mj_step`` reads)
+plus the model fields the envs move at reset; every wrapper layer's plain attributes (numbers,
+strings, arrays and containers of them; objects such as models are not state); every layer's
+``np_random`` and its action space's generator. Floats round-trip exactly through JSON, so a
+restored env steps bit-identically (tests/test_envs_state.py).
 """
 
 from __future__ import annotations

@@ -1,9 +1,7 @@
-"""The one wrapper shape every botorl task has (docs/CONTRACTS.md, "Tasks").
-
-``TaskEnv`` turns a Gymnasium(-Robotics) env into the env the pipeline sees: a flat float32
-observation, actions in [-1, 1]^A, a task-specific reward / termination, and
-``info["success"]`` (a float in [0, 1]) after ``reset`` and every ``step``. Each domain module
-subclasses it and implements ``_observe`` and ``_task_step``; ``finish`` adds the time limit.
+"""The one wrapper shape every botorl task has (docs/CONTRACTS.md, "Tasks"): ``TaskEnv`` gives a
+flat float32 observation, actions in [-1, 1]^A, the task's reward / termination and
+``info["success"]`` in [0, 1]; domains implement ``_observe`` and ``_task_step``; ``finish`` adds
+the time limit.
 """
 
 from __future__ import annotations
@@ -20,12 +18,8 @@ from gymnasium.wrappers import TimeLimit
 
 
 def import_robotics() -> None:
-    """Import gymnasium_robotics without its Farama notice on stderr.
-
-    On import it prints a notice that the Adroit *Dense* rewards changed in 1.2.1; botorl's
-    Adroit tasks use the binary success reward, so the notice would only puzzle users on every
-    run. Anything else printed during the import still reaches stderr.
-    """
+    """Import gymnasium_robotics without its notice that the Adroit *Dense* rewards changed (botorl
+    uses the binary reward); anything else printed still reaches stderr."""
     if "gymnasium_robotics" in sys.modules:
         return
     buf = io.StringIO()
@@ -37,11 +31,8 @@ def import_robotics() -> None:
 
 
 class TaskEnv(gym.Wrapper):
-    """Flat float32 observations, [-1, 1] actions and ``info["success"]`` for one task.
-
-    ``seed`` (from ``TaskSpec.make_env(seed)``) seeds the first ``reset`` that names no seed,
-    so an env made with a seed is reproducible without the caller seeding it again.
-    """
+    """Flat float32 observations, [-1, 1] actions and ``info["success"]`` for one task; ``seed``
+    seeds the first ``reset`` that names none, so an env made with a seed is reproducible."""
 
     def __init__(self, env: gym.Env, obs_dim: int, seed: int | None = None):
         super().__init__(env)

@@ -1,8 +1,5 @@
-"""Dataset generators botorl can run itself, by task name.
-
-Each entry is ``"module:function"``, imported only when used, with the signature
-``generate(steps: int, seed: int, progress: bool = True) -> Dataset`` (deterministic for a
-seed). ``botorl.data.generate.ensure_dataset`` caches their output as Minari datasets.
+"""Dataset generators botorl can run itself, by task name: ``"module:function"`` entries, imported
+only when used, ``generate(steps, seed, progress=True) -> Dataset``, deterministic for a seed.
 """
 
 from __future__ import annotations

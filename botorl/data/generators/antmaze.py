@@ -3,18 +3,10 @@
 docs/antmaze.md describes the recipe and where botorl's version differs from Minari's files.
 Facts cited below are from Farama-Foundation/minari-dataset-generation-scripts,
 ``scripts/antmaze/`` (``create_antmaze_dataset.py``, ``controller.py``), which made Minari's
-``D4RL/antmaze/*``, and Gymnasium-Robotics' AntMaze. In short: the goal-reaching ant of
-``botorl.envs.ant_goal`` (shipped as ``assets/ant_goal_actor.npz``) reads AntMaze's 27-dim
-``observation`` followed by ``waypoint - achieved_goal``; a ``WaypointController`` steers it
-along the BFS planner's path of cells; episodes of 1,000 steps with a goal and a start drawn
-from the free cells ("diverse") or the hand-picked ones ("play"); rewards and terminals are
-those of the evaluation task (``botorl.envs.antmaze``), so an episode is cut where the ant
-reaches the evaluation goal and the trajectory goes on in a new episode with the same goal.
-
-Speed: the MuJoCo model is the one ``AntMazeEnv`` builds (ant + walls), stepped with
-``mujoco.mj_step(nstep=5)`` as ``AntEnv.step`` does (``ctrl = action``, 5 substeps; AntMaze
-ignores the ant's own termination), so the data follow the env's dynamics without
-Gymnasium's per-step cost (tests replay the actions in the env). Deterministic for a seed.
+``D4RL/antmaze/*``, and Gymnasium-Robotics' AntMaze. The MuJoCo model is the one ``AntMazeEnv``
+builds, stepped with ``mujoco.mj_step(nstep=5)`` as ``AntEnv.step`` does (``ctrl = action``;
+AntMaze ignores the ant's own termination), without Gymnasium's per-step cost (tests replay the
+actions in the env). Deterministic for a seed.
 """
 
 from __future__ import annotations

@@ -1,14 +1,9 @@
 """PointMaze data in the style of D4RL maze2d (tasks ``pointmaze-umaze|medium|large``).
 
-The recipe is docs/tasks.md's ("Generated data"): one long trajectory of a noisy PD controller
-steered along BFS paths to random planner goals; rewards, terminals and episode ends are the
-*evaluation* task's (``botorl.envs.pointmaze``), as in D4RL maze2d.
-
-Speed: the MuJoCo model is the one the env builds (``PointMazeEnv``'s generated XML), stepped
-directly with ``mujoco.mj_step`` and the env's own step semantics (velocity clipped to +-5
-before the step, ``ctrl = action``, one step of 0.01 s), so the data match the env's
-dynamics without Gymnasium's per-step overhead (tests replay the actions in the env).
-Deterministic for a given seed.
+The recipe is docs/tasks.md's ("Generated data"). The MuJoCo model is the one the env builds,
+stepped directly with the env's own step semantics (velocity clipped to +-5 before the step,
+``ctrl = action``, one step of 0.01 s), without Gymnasium's per-step overhead (tests replay the
+actions in the env). Deterministic for a seed.
 """
 
 from __future__ import annotations
