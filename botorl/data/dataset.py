@@ -1,11 +1,8 @@
 """The one offline dataset type every algorithm uses, and the one reward transform.
 
-A ``Dataset`` holds flat transitions ``(s, a, r, s', terminal)`` in the row order of their
-episodes. ``episode_ends[i]`` marks the last row of an episode (terminal or truncated);
-``terminals[i]`` a true terminal (no bootstrapping). The two are independent: Cal-QL's adroit
-data have several terminal rows inside one trajectory, and a truncated episode ends without one.
-Batches (``BATCH_KEYS``, CONTRACTS.md) come from ``Dataset.sample`` on the host, or from
-``to_device()`` + the pure ``botorl.agents.common.sample_batches`` inside ``jax.jit`` / ``lax.scan``.
+``episode_ends[i]`` marks the last row of an episode (terminal or truncated), ``terminals[i]`` a
+true terminal (no bootstrapping): Cal-QL's adroit data have several terminal rows inside one
+trajectory, and a truncated episode ends without one. Batches: ``BATCH_KEYS`` (CONTRACTS.md).
 """
 
 from __future__ import annotations

@@ -1,16 +1,11 @@
 """Writing botorl datasets as Minari datasets, so any Minari-aware tool can read them.
 
 Minari's own writer costs about 2.5 ms per episode (70 s for 1M pointmaze steps), so Minari only
-makes ``metadata.json`` and the episodes go straight into ``main_data.hdf5`` with h5py's
-low-level API, in the layout of Minari 0.5's ``HDF5Storage.update_episodes`` (about 0.7 ms per
-episode; tests compare the two writers), contiguous and written once from memory. Everything is
-written into a private temporary root next to the destination, then moved into place with one
-``rename``: a crash leaves no dataset or a complete one.
-
-Per episode of T steps: T + 1 observations, T actions/rewards/terminations/truncations (the last
-step truncated unless terminal); ``infos`` holds every ``Dataset.infos`` field with T + 1
-entries, the first (the reset info) 0. botorl's metadata is a JSON string under the metadata key
-``botorl_metadata``. A flat copy of the rows sits beside ``data/`` (``FLAT_FILE``).
+makes ``metadata.json`` and the episodes go straight into ``main_data.hdf5`` in the layout of
+Minari 0.5's ``HDF5Storage.update_episodes`` (about 0.7 ms per episode; tests compare the two
+writers). Everything is written into a private temporary root next to the destination, then
+moved into place with one ``rename``: a crash leaves no dataset or a complete one. botorl's
+metadata is a JSON string under the metadata key ``botorl_metadata``.
 """
 
 from __future__ import annotations
@@ -117,7 +112,8 @@ def _cuts(ds: Dataset):
 
 
 def _episodes(ds: Dataset):
-    """Per episode: (observations (T+1), actions, rewards, terminations, truncations, infos)."""
+    """Per episode of T steps: T + 1 observations, T actions, rewards, terminations, truncations (the
+    last truncated unless terminal), infos of T + 1 entries (the first, Minari's reset info, 0)."""
     starts, ends, jump = _cuts(ds)
     info_keys = sorted(ds.infos)
     infos_all = {k: np.asarray(ds.infos[k]) for k in info_keys}

@@ -1,10 +1,6 @@
 """Online replay buffer (fixed-capacity ring), with a member axis for populations (CONTRACTS.md,
-"Data").
-
-``ReplayBuffer(..., members=N)`` holds N rings in one set of arrays (N, capacity, ...) for a
-population whose members step in lockstep; ``sample_members`` draws each member's batch with the
-member's own generator exactly as that member's own buffer would. Offline/online mixes are exact:
-``offline_ratio=0.5`` with ``batch_size=256`` gives 128 rows from each (``split_counts``).
+"Data"). ``sample_members`` draws each member's batch with the member's own generator exactly as
+that member's own buffer would, offline/online counts exact (``split_counts``).
 
 Cal-QL online needs each row's Monte-Carlo return-to-go, known only once its episode ends, so it
 samples finished rows only (``finished=True``; the running episode's rows are the newest

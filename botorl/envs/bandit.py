@@ -100,10 +100,8 @@ def bandit_1d_support() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def bandit_1d_reward(actions: np.ndarray) -> np.ndarray:
-    """R(a) of the nearest support point (exact on the support, where Q* needs it).
-
-    ``actions``: (..., 1) -> (...); a plain (n,) array is read as n scalar actions.
-    """
+    """R(a) of the nearest support point (exact on the support, where Q* needs it): (..., 1) or
+    (n,) -> (...)."""
     sup, rew, _ = bandit_1d_support()
     a = np.asarray(actions, np.float64)
     if a.ndim > 1 and a.shape[-1] == 1:

@@ -1,11 +1,8 @@
-"""Franka kitchen as D4RL's kitchen-partial-v0 / kitchen-mixed-v0, on ``FrankaKitchen-v1``.
-
-- Target sub-tasks as D4RL's registrations (d4rl/kitchen/__init__.py).
-- ``remove_task_when_completed=False``: the reward is the number of target sub-tasks done at
-  this step (0-4), the reward the D4RL datasets carry; termination when all 4 are done at once;
-  ``info["success"]`` = reward / 4, read at an episode's last step.
-- Observation (59): the env's ``observation`` entry only (the goals are constants or copies of
-  object qpos), with the default observation noise the Minari datasets were recorded with.
+"""Franka kitchen as D4RL's kitchen-partial-v0 / kitchen-mixed-v0 (d4rl/kitchen/__init__.py's
+sub-tasks), on ``FrankaKitchen-v1``: the reward is the number of target sub-tasks done at this
+step (0-4, as in the D4RL datasets), termination when all 4 are done at once, ``info["success"]`` =
+reward / 4; the observation (59) is the env's ``observation`` entry only (the goals are constants
+or copies of object qpos), with the observation noise the Minari datasets were recorded with.
 """
 
 from __future__ import annotations

@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
 from botorl.envs.antmaze import SUCCESS_RADIUS, layout  # the mazes: botorl/envs/antmaze.py
+from botorl.envs.pointmaze import cell_to_xy
 
 ACTION_NOISE = 0.2  # create_antmaze_dataset.py --action-noise
 WAYPOINT_THRESHOLD = 0.45  # controller.py waypoint_threshold
@@ -34,9 +35,8 @@ ASSET = Path(__file__).parent / "assets" / "ant_goal_actor.npz"
 
 
 def cell_xy(maze_map, cell) -> np.ndarray:
-    """Centre of a cell in AntMaze coordinates (Maze.cell_rowcol_to_xy)."""
-    rows, cols = len(maze_map), len(maze_map[0])
-    return np.array([(cell[1] + 0.5) * SCALE - cols * SCALE / 2, rows * SCALE / 2 - (cell[0] + 0.5) * SCALE])
+    """Centre of a cell in AntMaze coordinates (Maze.cell_rowcol_to_xy; exact: multiples of 0.5)."""
+    return SCALE * cell_to_xy(maze_map, cell)
 
 
 def xy_cell(maze_map, xy) -> tuple[int, int]:
@@ -46,12 +46,8 @@ def xy_cell(maze_map, xy) -> tuple[int, int]:
 
 
 class WaypointController:
-    """Follows the planner's path of cells to ``goal_xy`` (controller.py's rule).
-
-    ``policy(obs29) -> action``: the goal-reaching ant. ``table``: ``next_cell_table`` of the
-    maze (botorl.envs.pointmaze's BFS planner). The path is re-planned from the ant's cell if
-    the ant leaves it (pushed off by a wall, say).
-    """
+    """Follows the BFS planner's path of cells (``table``) to ``goal_xy`` with the goal-reaching
+    ant ``policy`` (controller.py's rule), re-planning if the ant leaves the path."""
 
     def __init__(self, maze_map, table, policy, rng: np.random.Generator | None = None,
                  threshold: float = WAYPOINT_THRESHOLD, jitter: float = WAYPOINT_JITTER):
@@ -272,9 +268,8 @@ generate_umaze_diverse = partial(generate, "umaze", "diverse")
 
 def evaluate_controller(maze: str = "large", episodes: int = 20, seed: int = 0, *, actor=None,
                         action_noise: float = 0.0, max_steps: int = EPISODE_STEPS, progress: bool = False) -> dict:
-    """The waypoint controller from the evaluation start to the evaluation goal (D4RL's pair;
-    both with the evaluation env's +-0.25-cell noise), no action noise by default: success
-    (within 0.45 of the goal within ``max_steps``) and steps to success."""
+    """Success and steps to success of the waypoint controller from the evaluation start to the
+    evaluation goal (with the evaluation env's noise), no action noise by default."""
     spec, maze_map, sim, rng, ctl = _controller(maze, actor, seed)
     noise = POSITION_NOISE * SCALE
     results = []
