@@ -2,9 +2,8 @@
 
 The front door beside the command line (docs/own-task.md): ``run`` hands its arguments to the
 very function ``botorl run`` calls, so a run started here is the same run, with the same run
-directory, that the command line makes (and ``botorl resume``/``eval``/``report`` read). Like the
-command modules this sits above every layer; ``botorl/__init__.py`` hands its names out on first
-use, so ``import botorl`` imports none of JAX.
+directory. ``botorl/__init__.py`` hands these names out on first use (``import botorl`` imports
+no JAX).
 """
 
 from __future__ import annotations
@@ -65,8 +64,6 @@ def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_
     if task.success_off and success_key is not None:
         print(f"botorl: warning: task {name!r}: {task.success_off}.", file=sys.stderr)
     return spec
-
-
 
 
 def _call(main, argv: list[str]) -> int:

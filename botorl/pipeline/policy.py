@@ -1,17 +1,9 @@
 """A run's agent and policy, for use outside botorl: ``load_agent`` and ``load_policy``.
 
-Both read only the run directory (its ``config.json`` and a checkpoint): the task need not be
-registered and its env is never made, so a policy trained on a task of one's own loads in a
-process that knows nothing of that task.
-
-``Policy`` is the whole chain from the env's observation to the env's action, each step a pure
-function an exporter can reuse (issue 33):
-
-    flat = flatten_obs(obs, policy.obs_keys)                  # Dict -> (D,), float32 (botorl/envs/user.py)
-    unit = tanh(mean(actor(flat)))                            # the agent's deterministic action, in [-1, 1]
-    action = action_to_env(unit, policy.action_low, policy.action_high)   # affine onto the env's box
-
-There is no other transformation: botorl does not normalise observations.
+Both read only the run directory (``config.json`` and a checkpoint): the task need not be
+registered and its env is never made. ``Policy`` is the chain ``flatten_obs`` -> the agent's
+actions in [-1, 1] -> ``action_to_env``, nothing else (docs/own-task.md, "The policy outside
+botorl").
 """
 
 from __future__ import annotations
