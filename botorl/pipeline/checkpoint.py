@@ -160,12 +160,9 @@ class CheckpointManager:
         _fsync_dir(self.root)
         faults.checkpoint(name, "renamed")
         previous = self._latest_name()
-        self._point_latest(name, state)
+        atomic_write_json(self.root / LATEST, _info(name, state))
         self._prune(keep={name, previous} - {None})
         return final
-
-    def _point_latest(self, name: str, state: dict[str, Any]) -> None:
-        atomic_write_json(self.root / LATEST, _info(name, state))
 
     def _latest_name(self) -> str | None:
         try:
@@ -308,8 +305,7 @@ class CheckpointManager:
     def select(self, name: str) -> dict[str, Any]:
         """Make checkpoint ``name`` the one ``latest()`` returns (``botorl resume --from NAME``)."""
         self.verify_named(name)
-        st = self.state(name)
-        self._point_latest(name, st)
+        atomic_write_json(self.root / LATEST, _info(name, self.state(name)))
         return self.latest()
 
     def order(self, name: str) -> tuple[float, float]:
@@ -352,7 +348,7 @@ class CheckpointManager:
                 print(f"botorl: warning: {'; '.join(bad)}. Falling back to the previous checkpoint, {name}.",
                       file=sys.stderr)
                 with contextlib.suppress(OSError):  # a read-only run directory (eval): nothing to repair
-                    self._point_latest(name, self.state(name))
+                    atomic_write_json(self.root / LATEST, _info(name, self.state(name)))
             return _info(name, self.state(name))
         if bad:
             print(f"botorl: warning: {'; '.join(bad)}; no checkpoint passes the check.", file=sys.stderr)

@@ -1,8 +1,5 @@
 """``botorl run``, ``botorl resume DIR``, ``botorl eval DIR``, ``botorl export RUN_DIR``
 (docs/running.md; a population's directory: docs/populations.md).
-
-``run``'s arguments are parsed by ``botorl.configs.build``; a population's memory is checked
-against the machine's before any work (exit 2 if it does not fit).
 """
 
 from __future__ import annotations

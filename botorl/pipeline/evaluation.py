@@ -38,8 +38,6 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Sequ
     (reset seeds ``seeds[i] + episode index``), all members' envs stepped together with one
     ``policy`` call per step on (N, E, O) observations -> (N, E, A). Every env is reset each
     round (the batch keeps its shape); only the first ones count. One ``EpisodeStats`` each."""
-    if success_mode not in ("any", "last"):
-        raise ValueError(f"success_mode must be 'any' or 'last', not {success_mode!r}")
     n_mem, n_envs = len(envs), len(envs[0])
     rounds = []  # each round's (success, return, length) of its counted episodes, (N, n) each
     for first in range(0, episodes, n_envs):

@@ -103,8 +103,7 @@ class Policy:
         from botorl.envs.user import flatten_obs
 
         if isinstance(obs, Mapping):
-            sizes = sum(int(np.size(v)) for v in _leaves(obs))
-            flat = flatten_obs(obs, self.obs_keys or tuple(sorted(obs)), batched=sizes != self.obs_dim)
+            flat = flatten_obs(obs, self.obs_keys or tuple(sorted(obs)), batched=_size(obs) != self.obs_dim)
         else:
             flat = np.asarray(obs, dtype=np.float32)
         flat = np.atleast_2d(flat)
@@ -129,7 +128,7 @@ class Policy:
 
     def __call__(self, obs) -> np.ndarray:
         single = (not isinstance(obs, Mapping) and np.ndim(obs) == 1) or (
-            isinstance(obs, Mapping) and sum(int(np.size(v)) for v in _leaves(obs)) == self.obs_dim)
+            isinstance(obs, Mapping) and _size(obs) == self.obs_dim)
         out = self.transform_action(self.unit_actions(self.transform_obs(obs)))
         return out[0] if single else out
 
@@ -138,12 +137,10 @@ class Policy:
                 f"deterministic={self.deterministic}, checkpoint={self.checkpoint!r})")
 
 
-def _leaves(obs):
-    for v in obs.values():
-        if isinstance(v, Mapping):
-            yield from _leaves(v)
-        else:
-            yield v
+def _size(obs) -> int:
+    import jax
+
+    return sum(int(np.size(v)) for v in jax.tree_util.tree_leaves(obs))
 
 
 def load_policy(run_dir, checkpoint: str | None = None, deterministic: bool = True) -> Policy:

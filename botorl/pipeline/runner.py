@@ -139,8 +139,10 @@ class RunContext:
                     f"{diverged}{b}. The last good state is kept ({where} in {self.ckpt.root}). Lower the "
                     f"learning rates (e.g. --offline.cql.critic_lr, --online.sac.critic_lr), check the data's reward "
                     f"scale, or run another seed; `botorl resume` would start again from that checkpoint.")
-            self.fail_member(i, f"{diverged}{b}. The other members went on. Lower the learning rates or run another "
-                                f"seed.")
+            self.failed.add(i)
+            self.members[i].error = f"{diverged}{b}. The other members went on. Lower the learning rates or run another seed."
+            self.write_member_summary(i, "failed")
+            print(f"botorl: member {self.members[i].run.root.name} failed: {self.members[i].error}", file=sys.stderr)
         if len(self.failed) == self.n:
             raise TrainingDivergedError(
                 f"every member of the population diverged (stage {stage!r}, near step {step}); each member's "
@@ -152,12 +154,6 @@ class RunContext:
 
         return tqdm(total=total, initial=initial, desc=desc, unit=unit, dynamic_ncols=True,
                     disable=not self.cfg.progress, mininterval=1.0, smoothing=0.05)
-
-    def fail_member(self, i: int, error: str) -> None:
-        self.failed.add(i)
-        self.members[i].error = error
-        self.write_member_summary(i, "failed")
-        print(f"botorl: member {self.members[i].run.root.name} failed: {error}", file=sys.stderr)
 
     # -- time
     def begin_stage(self, stage: str) -> None:
@@ -224,9 +220,8 @@ class RunContext:
         self.write_summary("running")
 
     def save_mid(self, stage: str, step: int, agents, *, np_rng=None, arrays=None, extra=None, documents=None) -> None:
-        """A mid-stage checkpoint: the agents, ``np_rng`` (each member's generator state), ``arrays``
-        (npz groups: the replay buffer, ...), ``extra`` (counters, in state.json) and ``documents``
-        (JSON files: the envs' state mid-episode, ...)."""
+        """A mid-stage checkpoint: the agents, each member's generator state, ``arrays`` (npz
+        groups), ``extra`` (counters, in state.json) and ``documents`` (JSON files)."""
         self._save(checkpoint_name(stage, step), stage, int(step), False, agents, np_rng, arrays, extra, documents)
 
     def save_stage_end(self, stage: str, agents, arrays=None) -> None:
@@ -414,11 +409,9 @@ def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | No
 
 def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_runs: list[RunDir],
             d_offline_raw: Dataset, *, resume: bool = False) -> list[dict[str, Any]]:
-    """Train the members (configs that differ in seed and alpha only) as one population.
-
-    ``root`` holds the population's checkpoints; ``member_runs[i]`` is member i's ordinary run
-    directory (a single run: one member, whose run directory is ``root``). Returns every
-    member's summary."""
+    """Train the members (configs that differ in seed and alpha only) as one population whose
+    checkpoints are in ``root`` (a single run: one member, whose run directory is ``root``);
+    returns every member's summary."""
     spec, method, root = get_task(cfg.task), get_method(cfg.method), Path(root)
     root.mkdir(parents=True, exist_ok=True)
     d_offline = transform_dataset(cfg, spec, d_offline_raw)
