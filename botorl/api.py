@@ -2,9 +2,8 @@
 
 The front door beside the command line (docs/own-task.md): ``run`` hands its arguments to the
 very function ``botorl run`` calls, so a run started here is the same run, with the same run
-directory, that the command line makes (and ``botorl resume``/``eval``/``report`` read). Like the
-command modules this sits above every layer; ``botorl/__init__.py`` hands its names out on first
-use, so ``import botorl`` imports none of JAX.
+directory. ``botorl/__init__.py`` hands these names out on first use (``import botorl`` imports
+no JAX).
 """
 
 from __future__ import annotations
@@ -25,20 +24,14 @@ from botorl.pipeline.rundir import read_json
 def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_episode_steps: int,
                   success_key: str | None = "success", domain: str | None = None, reward_scale: float = 1.0,
                   reward_bias: float = 0.0):
-    """Register a task of your own for this process; returns its ``TaskSpec``.
+    """Register a task of your own for this process; returns its ``TaskSpec`` (docs/own-task.md).
 
-    ``make_env(seed)`` returns a Gymnasium env with a ``Box`` action space (any finite bounds:
-    the agent acts in [-1, 1], mapped onto them) and a ``Box`` or ``Dict`` observation space
-    (flattened in sorted key order); ``"MODULE:FUNCTION"`` names it instead. ``dataset``: a dict
-    of arrays (``observations, actions, rewards, next_observations, terminals``, optional
-    ``timeouts`` / ``episode_ends``; actions in the env's own units), a path (``.npz`` with those
-    keys, D4RL ``.hdf5``, Minari folder or id) or a botorl ``Dataset``. ``success_key``: the info
-    key read as success (absent from the env's info: success is off, and the summary says so;
-    None: off). ``domain``: a paper domain ("antmaze", "adroit", "kitchen", "pointmaze") whose
-    presets the task takes, else the defaults of docs/own-task.md. ``reward_scale``,
-    ``reward_bias``: the reward transform ``r' = scale * r + bias`` of training (offline and online).
-
-    Bad input raises ``BotorlError`` naming the problem. Registering a name again replaces it.
+    ``make_env(seed)`` (or ``"MODULE:FUNCTION"``) returns a Gymnasium env with a ``Box`` action
+    space and a ``Box`` or ``Dict`` observation space. ``dataset``: a dict of arrays, a path or a
+    botorl ``Dataset``, actions in the env's own units. ``success_key``: the info key read as
+    success (None or absent: success is off). ``domain``: a paper domain whose presets the task
+    takes. Training's rewards are ``reward_scale * r + reward_bias``. Bad input raises
+    ``BotorlError``; registering a name again replaces it.
     """
     from dataclasses import replace
 
@@ -65,8 +58,6 @@ def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_
     if task.success_off and success_key is not None:
         print(f"botorl: warning: task {name!r}: {task.success_off}.", file=sys.stderr)
     return spec
-
-
 
 
 def _call(main, argv: list[str]) -> int:

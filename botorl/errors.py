@@ -1,9 +1,5 @@
-"""The one exception type for problems a user can fix.
-
-Everything that is the user's doing (a file in the wrong format, a missing dataset, a bad
-config value) raises ``BotorlError`` with a one-paragraph message that names the thing and
-says how to fix it. The CLI prints that message and exits with code 2, never a traceback.
-Bugs in botorl itself stay ordinary exceptions so that they do show a traceback.
+"""The one exception type for problems a user can fix (docs/CONTRACTS.md, "Errors and the CLI"):
+the CLI prints the message and exits 2; bugs in botorl stay ordinary exceptions, with a traceback.
 """
 
 from __future__ import annotations
@@ -33,9 +29,8 @@ class TrainingDivergedError(BotorlError):
 
 class Interrupted(KeyboardInterrupt):
     """SIGTERM or SIGINT stopped the work (botorl/pipeline/preempt.py); the CLI exits
-    128 + ``signum``. A KeyboardInterrupt, so code that cleans up after Ctrl-C cleans up after
-    it too. ``how``: the command that continues the work, once there is work to continue
-    (``botorl resume DIR``); ``checkpoint``: the checkpoint that resume starts from."""
+    128 + ``signum``. A KeyboardInterrupt, so what cleans up after Ctrl-C cleans up after it.
+    ``how``: the command that continues the work (if any); ``checkpoint``: where it starts."""
 
     def __init__(self, signum: int):
         super().__init__(f"signal {signum}")

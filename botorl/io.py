@@ -1,10 +1,7 @@
-"""Atomic file writes: nothing a user produced is ever left half-written.
-
-Every whole-file write in botorl goes through here: the bytes go to a temporary file in the
-same folder (so the rename cannot cross file systems), are flushed to disk, and replace the
-target with ``os.replace``, which is atomic on POSIX. A process killed at any moment leaves
-either the old file or the new one. ``mkstemp`` creates files with mode 0600; we widen that
-to what the process umask allows, so run directories stay readable by a shared group.
+"""Atomic file writes (a temporary file in the same folder, fsync-ed, then ``os.replace``), so
+a process killed at any moment leaves the old file or the new one; and bounded, link-safe
+reads of the files in a run directory. Written files get the umask's mode, not mkstemp's 0600,
+so run directories stay readable by a shared group.
 """
 
 from __future__ import annotations
@@ -179,9 +176,8 @@ def read_bounded_bytes(path: str | os.PathLike, limit: int, *, tail: bool = Fals
 
 
 def read_bounded(path: str | os.PathLike, limit: int, *, tail: bool = False) -> str:
-    """The text of a regular file of at most ``limit`` bytes (``tail``: its last ``limit``
-    bytes, whatever its size, undecodable bytes replaced); ValueError (not a regular file, too
-    large, not UTF-8) or OSError otherwise."""
+    """``read_bounded_bytes`` as UTF-8 text (``tail``: undecodable bytes replaced); ValueError
+    (not a regular file, too large, not UTF-8) or OSError otherwise."""
     path = Path(path)
     data = read_bounded_bytes(path, limit, tail=tail)
     try:

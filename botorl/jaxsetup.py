@@ -1,15 +1,11 @@
-"""JAX process settings botorl applies before its first jit.
-
-XLA needs 2.5-5 s to compile each new function on a 2-core CPU (docs/performance.md), which
-is most of a short run or test. The persistent compilation cache keeps compiled executables on
-disk so a second process with the same shapes skips compilation.
-
-JAX sees one CPU device per core the process may use, so a population's updates can run
-on every core (``pipeline/population.py``); a single run uses device 0 as before.
+"""JAX process settings botorl applies before its first jit: the persistent compilation cache
+(XLA takes 2.5-5 s per new function on a 2-core CPU; docs/performance.md) and one CPU device
+per usable core, over which a population's updates are split (docs/CONTRACTS.md, "Populations").
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -36,23 +32,21 @@ def cpu_device_count() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _cpu_devices(jax) -> None:
-    # A population's updates are split over the CPU devices, one per core
-    # (pipeline/population.py: host_shards); one device runs everything else, as before.
-    # Only possible before the first array: afterwards the backend is fixed and this is skipped.
-    try:
+def setup_jax() -> None:
+    """Turn on the persistent compilation cache (``BOTORL_JAX_CACHE``: its folder, or ``off``)
+    and one CPU device per usable core; idempotent."""
+    global _done
+    if _done:
+        return
+    _done = True
+    import jax
+
+    # only possible before the first array: afterwards the backend is fixed and this is skipped
+    with contextlib.suppress(AttributeError, RuntimeError, ValueError):
         jax.config.update("jax_num_cpu_devices", cpu_device_count())
-    except (AttributeError, RuntimeError, ValueError):
-        pass
-
-
-def _check_backend(jax) -> None:
-    """Start JAX's backend now, so that a platform this machine does not have
-    (``JAX_PLATFORMS=cuda`` without a GPU) is exit 2 with a message, not a traceback at the first
-    array. JAX raises RuntimeError (or, in some versions, a bare AssertionError) there."""
-    try:
+    try:  # start the backend now: a platform this machine lacks is exit 2, not a traceback later
         jax.devices()
-    except (RuntimeError, AssertionError) as err:
+    except (RuntimeError, AssertionError) as err:  # some JAX versions raise a bare AssertionError
         from botorl.errors import BotorlError
 
         platforms = os.environ.get("JAX_PLATFORMS") or os.environ.get("JAX_PLATFORM_NAME") or "(not set)"
@@ -61,30 +55,11 @@ def _check_backend(jax) -> None:
             f"Unset JAX_PLATFORMS (or set JAX_PLATFORMS=cpu) to run on the CPU, or install the jax build for this "
             f"machine's accelerator."
         ) from None
-
-
-def setup_jax() -> None:
-    """Turn on the persistent compilation cache and one CPU device per usable core (idempotent).
-
-    ``BOTORL_JAX_CACHE`` names the cache folder (default ``~/.cache/botorl/jax``); set it
-    to ``off`` to disable the cache.
-    """
-    global _done
-    if _done:
-        return
-    _done = True
-    import jax
-
-    _cpu_devices(jax)
-    _check_backend(jax)
     where = os.environ.get("BOTORL_JAX_CACHE", str(Path.home() / ".cache" / "botorl" / "jax"))
     if where.lower() == "off":
         return
-
-    try:
+    with contextlib.suppress(Exception):  # a read-only home must not stop a run; it only costs compile time
         Path(where).mkdir(parents=True, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", where)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    except Exception:  # a read-only home must not stop a run; it only costs compile time
-        pass

@@ -1,26 +1,12 @@
-"""Run checkpoints: one folder per checkpoint, written whole or not at all.
+"""Run checkpoints: one folder per checkpoint (``<stage>-final``, ``<stage>-step<N>``; files:
+docs/CONTRACTS.md "Runs"), written whole or not at all.
 
-    checkpoints/latest.json               {"name": ..., "stage": ..., "step": ..., "stage_done": ...}
-    checkpoints/<stage>-final/            written at the end of each stage (kept)
-    checkpoints/<stage>-step000012000/    every N steps inside a long stage
-        agent.ckpt                        botorl.agents.checkpoint.save (bit-identical restore)
-        <name>.npz                        arrays: replay buffer state_dict, D_warmup, ...
-        <name>.json                       JSON documents: the envs' state mid-episode, ...
-        state.json                        stage, step, numpy rng state, counters, stage_seconds
-        MANIFEST.json                     size and sha256 of every file above, and a sequence number
-
-A checkpoint folder is first written as ``.tmp-*`` and then renamed (atomic on one file
-system); ``latest.json`` is replaced atomically after the rename. A kill -9 at any moment
-leaves ``latest.json`` pointing at a complete folder, so ``botorl resume`` loses at most the
-steps since that checkpoint.
-
-Verified: every file is checked against ``MANIFEST.json`` before it is read (``state``,
-``arrays``; the agent file carries its own checksum). ``latest()`` returns the checkpoint
-``latest.json`` names if it passes the check, else -- saying which one failed and why -- the
-newest one that passes (by sequence number), and points ``latest.json`` at it. The two newest
-checkpoints of the run's line (the one just written and the one before it) are kept, and
-every ``<stage>-final``; ``select(name)`` (``botorl resume --from NAME``) makes a chosen one
-the start of the resume. Checkpoints written before manifests existed are accepted unverified.
+A folder is written as ``.tmp-*`` and renamed into place, then ``latest.json`` is replaced, so
+a kill -9 at any moment leaves ``latest.json`` pointing at a complete folder. Every file is
+checked against the folder's ``MANIFEST.json`` (sizes, sha256, a sequence number) before it is
+read; ``latest()`` falls back to the newest checkpoint that passes. The two newest step
+checkpoints and every ``-final`` are kept. Checkpoints without a manifest (older botorl) are
+accepted unverified.
 """
 
 from __future__ import annotations
@@ -47,11 +33,9 @@ MANIFEST = "MANIFEST.json"
 
 
 def check_identity(state: dict[str, Any], expected: list[dict[str, Any]], where: Path, name: str) -> None:
-    """ConfigError (exit 2) unless checkpoint ``name`` (its ``state``) was written by the run(s)
-    whose identities (``configs.schema.run_identity``, one per member) are ``expected``: a
-    checkpoint copied from another run, or a config.json edited after the run began, is refused
-    naming both sides. A checkpoint written before botorl recorded identities is accepted with
-    a warning."""
+    """ConfigError (exit 2) naming both sides unless checkpoint ``name`` was written by the
+    run(s) whose ``run_identity``s are ``expected`` (a checkpoint copied from another run, a
+    config.json edited since); one that records no identity (older botorl) only warns."""
     got = state.get("identity")
     if got is None:
         print(f"botorl: warning: checkpoint {name} in {where} records no run identity (written before checkpoints "
@@ -89,8 +73,7 @@ def checkpoint_name(stage: str, step: int | None) -> str:
 
 
 def checkpoint_step(cfg, state: dict) -> int | None:
-    """The step of a checkpoint within its stage: ``state.json``'s, or the stage's whole budget
-    for a stage's final checkpoint (as ``botorl eval`` and ``botorl export`` report it)."""
+    """The step of a checkpoint within its stage (a stage-final one's: the stage's budget)."""
     step = state.get("step")
     if step is None and state.get("stage_done"):
         step = {"pretrain": cfg.offline.steps, "warmup": cfg.warmup.steps, "boto": cfg.boto.boto_steps,
@@ -177,12 +160,9 @@ class CheckpointManager:
         _fsync_dir(self.root)
         faults.checkpoint(name, "renamed")
         previous = self._latest_name()
-        self._point_latest(name, state)
+        atomic_write_json(self.root / LATEST, _info(name, state))
         self._prune(keep={name, previous} - {None})
         return final
-
-    def _point_latest(self, name: str, state: dict[str, Any]) -> None:
-        atomic_write_json(self.root / LATEST, _info(name, state))
 
     def _latest_name(self) -> str | None:
         try:
@@ -256,8 +236,7 @@ class CheckpointManager:
                                     f"after it was written).")
 
     def file(self, name: str, fname: str) -> Path:
-        """The path of ``fname`` in checkpoint ``name``, checked against the manifest (and a
-        regular file); CheckpointCorrupt otherwise."""
+        """The path of ``fname`` in checkpoint ``name``, checked (``_check_file``)."""
         self._check_file(name, fname)
         return self.root / name / fname
 
@@ -280,9 +259,8 @@ class CheckpointManager:
         return None
 
     def usable(self, name: str) -> bool:
-        """Whether a resume from ``name`` can read everything it needs: ``name`` passes the check
-        (a checkpoint without a manifest: its arrays load), and so does every stage-final
-        checkpoint it builds on (its done stages: the agent of the last, the warm-up's data)."""
+        """Whether a resume from ``name`` can read everything it needs: it and every stage-final
+        checkpoint it builds on pass the check (one without a manifest: its arrays load)."""
         def whole(n: str) -> bool:
             if self.verify(n) is not None:
                 return False
@@ -306,7 +284,7 @@ class CheckpointManager:
 
     def verify_named(self, name: str) -> None:
         """ConfigError unless ``name`` is a checkpoint of this run that passes the check."""
-        if name not in self.names() or not (self.root / name / "state.json").exists():
+        if name not in self.names() or not self.exists(name):
             raise ConfigError(f"checkpoint {name!r} is not in {self.root}; there are: {', '.join(self.names()) or 'none'}.")
         reason = self.verify(name)
         if reason is not None:
@@ -314,8 +292,7 @@ class CheckpointManager:
             raise ConfigError(f"{reason} Pick another: {', '.join(good) or 'none passes the check'}.")
 
     def chosen(self, name: str | None) -> str:
-        """``name`` if it is a checkpoint of this run that passes the check (ConfigError naming the
-        others if not), else the latest one (``botorl eval``, ``load_policy``)."""
+        """``name`` (checked: ``verify_named``), else the latest checkpoint."""
         if name is not None:
             self.verify_named(name)
             return name
@@ -328,8 +305,7 @@ class CheckpointManager:
     def select(self, name: str) -> dict[str, Any]:
         """Make checkpoint ``name`` the one ``latest()`` returns (``botorl resume --from NAME``)."""
         self.verify_named(name)
-        st = self.state(name)
-        self._point_latest(name, st)
+        atomic_write_json(self.root / LATEST, _info(name, self.state(name)))
         return self.latest()
 
     def order(self, name: str) -> tuple[float, float]:
@@ -347,11 +323,8 @@ class CheckpointManager:
 
     # ------------------------------------------------------------------ reading
     def latest(self) -> dict[str, Any] | None:
-        """The checkpoint a resume starts from: latest.json's if verified, else the newest verified one.
-
-        A checkpoint that fails the check is named on stderr together with the one used instead,
-        and latest.json is pointed at the one used. None if no checkpoint passes.
-        """
+        """The checkpoint a resume starts from: latest.json's if verified, else the newest verified
+        one (the failures named on stderr, latest.json pointed at it); None if none passes."""
         p = self.root / LATEST
         named = self._latest_name()
         bad: list[str] = []
@@ -375,7 +348,7 @@ class CheckpointManager:
                 print(f"botorl: warning: {'; '.join(bad)}. Falling back to the previous checkpoint, {name}.",
                       file=sys.stderr)
                 with contextlib.suppress(OSError):  # a read-only run directory (eval): nothing to repair
-                    self._point_latest(name, self.state(name))
+                    atomic_write_json(self.root / LATEST, _info(name, self.state(name)))
             return _info(name, self.state(name))
         if bad:
             print(f"botorl: warning: {'; '.join(bad)}; no checkpoint passes the check.", file=sys.stderr)

@@ -1,19 +1,5 @@
-"""``botorl run``, ``botorl resume DIR``, ``botorl eval DIR``, ``botorl export RUN_DIR`` (docs/running.md).
-
-    botorl run [--task T] [--method M] [--seed S] [--alpha A] [--profile quick|full|smoke]
-               [--pretrain calql|cql|iql] [--out DIR] [--demos PATH] [--<dotted.path> VALUE ...]
-    botorl run --method boto --seeds 0-3 --alphas -1:1:0.5  # a population: 4 seeds x 5 alphas, one program
-
-``run`` first reads --task, --method, --profile and --pretrain to pick the preset
-(botorl.configs.presets), then tyro parses every argument over it, so any field of the
-config can be set as ``--<dotted.path> VALUE``. ``--demos PATH`` is short for ``--data.demos
-PATH`` (door-binary-local). A population's directory holds ``population.json`` (members, status,
-the shared config), ``checkpoints/`` (one checkpoint of the whole population) and one ordinary
-run directory per member, named ``seed<k>`` or ``alpha<+0.50>-seed<k>``, which `botorl report`
-and `botorl eval` read like any run; before any work its memory is estimated and compared
-with what the machine has (exit 2 if it does not fit). ``export`` exits 0 when the model is
-written and verified, 1 when it does not act as ``botorl.load_policy``, 2 on bad input or
-without the export extra.
+"""``botorl run``, ``botorl resume DIR``, ``botorl eval DIR``, ``botorl export RUN_DIR``
+(docs/running.md; a population's directory: docs/populations.md).
 """
 
 from __future__ import annotations
@@ -37,6 +23,7 @@ from botorl.pipeline import preempt
 from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step
 from botorl.pipeline.policy import read_run
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_fault, io_guard, read_json
+from botorl.pipeline.tracking import require_wandb
 
 
 def _mark_failed(path: Path, reason: str, fresh=None) -> None:
@@ -119,13 +106,6 @@ def _resume_hint(root: Path, resume_from: str | None) -> str:
     return f"Resume from an earlier checkpoint: `botorl resume {root} --from {good[0]}`{others}."
 
 
-def _require_wandb(cfg) -> None:
-    if cfg.wandb:  # before any work: a missing wandb must not leave a run directory behind
-        from botorl.pipeline.tracking import require_wandb
-
-        require_wandb()
-
-
 def _print_summaries(summaries: list[dict], single: bool) -> None:
     from botorl.pipeline.runner import format_population, format_summary
 
@@ -140,7 +120,8 @@ def run_main(argv: list[str]) -> int:
 
     setup_jax()
     cfg = build_config(argv)
-    _require_wandb(cfg)
+    if cfg.wandb:  # before any work: a missing wandb must not leave a run directory behind
+        require_wandb()
     single = not is_population(cfg)  # --seeds / --alphas: a population
     members, member_cfgs = (None, [cfg]) if single else population(cfg)
     stamp = time.strftime("%Y%m%d-%H%M%S")
@@ -234,18 +215,6 @@ def load_population(directory: str | Path):
     return replace(cfg, out=str(root)), member_cfgs, runs, data
 
 
-def _load_data(cfg, origin: Path, allow_pickle: bool):
-    """The offline data of a run or population read back from its directory's ``origin``
-    (config.json, population.json): no pickle unless allowed, as a pickle there could run code."""
-    from botorl.data.loaders import refuse_pickle
-    from botorl.envs.registry import get_task
-    from botorl.pipeline.runner import load_offline
-
-    where = "population" if origin.name == POPULATION_FILE else "run"
-    with contextlib.nullcontext() if allow_pickle else refuse_pickle(f"the {where} directory's {origin}"):
-        return load_offline(cfg, get_task(cfg.task))
-
-
 ALLOW_PICKLE_HELP = ("open a pickle-based dataset (Cal-QL .npy, DAPG .pickle) named in the run's config.json; "
                      "without it botorl refuses, as a pickle from a run directory could run code")
 
@@ -305,7 +274,7 @@ class ExportArgs:
 
 def resume_main(argv: list[str]) -> int:
     args = tyro.cli(ResumeArgs, args=argv, prog="botorl resume")
-    from botorl.pipeline.runner import read_summary
+    from botorl.pipeline.runner import load_run_data, read_summary
 
     setup_jax()
     root = Path(args.dir)
@@ -316,7 +285,8 @@ def resume_main(argv: list[str]) -> int:
     else:
         cfg, member_cfgs, runs, _ = load_population(root)
         status_file = origin = root / POPULATION_FILE
-    _require_wandb(cfg)
+    if cfg.wandb:
+        require_wandb()
     with RunLock(root):
         if args.no_progress:
             cfg = replace(cfg, progress=False)
@@ -337,7 +307,7 @@ def resume_main(argv: list[str]) -> int:
                 except (KeyError, TypeError, ValueError, AttributeError):  # a summary edited by hand
                     print("\n".join(f"{r.root.name}: status {s.get('status')!r}" for r, s in zip(runs, summaries)))
                 return 0
-        d_raw = _load_data(cfg, origin, args.allow_pickle)
+        d_raw = load_run_data(cfg, origin, args.allow_pickle)
         with preempt.resumable(f"botorl resume {root}"):
             summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True, resume_from=args.from_)
     _print_summaries(summaries, single)
@@ -374,7 +344,7 @@ def _eval(args, run, cfg) -> dict:
     from botorl.envs.registry import get_task
     from botorl.pipeline import stages as S
     from botorl.pipeline.evaluation import QProbe, evaluate_policy
-    from botorl.pipeline.runner import transform_dataset
+    from botorl.pipeline.runner import load_run_data, transform_dataset
 
     if args.episodes is not None:
         cfg = replace(cfg, eval=replace(cfg.eval, episodes=args.episodes))
@@ -383,7 +353,7 @@ def _eval(args, run, cfg) -> dict:
     state = ckpt.state(name)
     check_identity(state, [run_identity(cfg)], run.checkpoints, name)
     spec = get_task(cfg.task)
-    d = transform_dataset(cfg, spec, _load_data(cfg, run.config, args.allow_pickle))
+    d = transform_dataset(cfg, spec, load_run_data(cfg, run.config, args.allow_pickle))
     like = S.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)
     agent = agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like)
     t0 = time.perf_counter()

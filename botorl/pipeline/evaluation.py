@@ -1,21 +1,14 @@
-"""Evaluation: deterministic episodes and the Q statistics that show the estimation bias.
+"""Evaluation: deterministic episodes (docs/methods.md, "Evaluation") and the Q statistics
+that show the estimation bias.
 
-Episodes (as WSRL and Cal-QL evaluate; docs/methods.md, "Evaluation"): ``episodes`` (20)
-deterministic episodes, tanh of the mean action (``agent.eval_actions``). The envs are
-stepped in lockstep and the policy is called once per step on the whole batch of
-observations, so an evaluation costs one jitted call per env step, not one per env step per
-episode (a single-row call costs ~140 us here). Finished envs keep their last observation in
-the batch (the batch shape, and so the compiled function, never changes) and their actions
-are discarded.
+The envs are stepped in lockstep with one policy call per step on the whole batch (a
+single-row call costs ~140 us); finished envs keep their last observation in the batch, so its
+shape, and the compiled function, never change. Success per episode follows the task's
+``success_mode``: "any" = the maximum of ``info["success"]``, "last" = its final value.
 
-Success per episode follows the task's ``success_mode``: "any" = the maximum of
-``info["success"]`` over the episode, "last" = its value at the final step.
-
-Q statistics: the mean over the critic ensemble of Q(s, a) on a fixed set of dataset pairs
-(``q_data``) and on the same states with uniform random actions (``q_uniform``). They are in
-the critic's own (reward-transformed) units. ``q_uniform`` far below ``q_data`` is the
-conservatism CQL-style pre-training leaves on out-of-distribution actions; BOTO's alpha moves
-it (alpha < 0 raises it, alpha > 0 lowers it).
+Q statistics, in the critic's (reward-transformed) units: the ensemble's mean Q on fixed
+dataset pairs (``q_data``) and on the same states with uniform actions (``q_uniform``); the
+gap is the conservatism CQL-style pre-training leaves, which BOTO's alpha moves.
 """
 
 from __future__ import annotations
@@ -34,21 +27,17 @@ class EpisodeStats:
 
 
 def make_eval_envs(spec, eval_cfg) -> list[Any]:
-    """One member's evaluation envs (``eval_cfg.envs_per_member`` of them, the same env seeds
-    for every member and run; episodes are seeded by their reset seeds, not by the envs)."""
+    """One member's ``eval_cfg.envs_per_member`` evaluation envs (the same for every member and
+    run; episodes are seeded by their reset seeds)."""
     return [spec.make_env(seed=10_000 + i, evaluation=True) for i in range(eval_cfg.envs_per_member)]
 
 
 def run_episodes(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Sequence[Any]], *, episodes: int,
                  success_mode: str, seeds: Sequence[int], max_steps: int | None = None) -> list[EpisodeStats]:
-    """``episodes`` episodes for every member of a population: member i runs them on its own
-    ``envs[i]`` in lockstep rounds of ``len(envs[i])`` (reset seeds ``seeds[i] + episode
-    index``), all members' envs stepped together with ONE policy call per step on (N, E, O)
-    observations (``policy`` -> (N, E, A)). A member's episodes do not depend on the others
-    (a single agent is a population of one). Every env is reset each round (the batch keeps
-    its shape); only the first ones count. Returns one ``EpisodeStats`` per member."""
-    if success_mode not in ("any", "last"):
-        raise ValueError(f"success_mode must be 'any' or 'last', not {success_mode!r}")
+    """``episodes`` episodes for every member: member i on its own ``envs[i]`` in lockstep rounds
+    (reset seeds ``seeds[i] + episode index``), all members' envs stepped together with one
+    ``policy`` call per step on (N, E, O) observations -> (N, E, A). Every env is reset each
+    round (the batch keeps its shape); only the first ones count. One ``EpisodeStats`` each."""
     n_mem, n_envs = len(envs), len(envs[0])
     rounds = []  # each round's (success, return, length) of its counted episodes, (N, n) each
     for first in range(0, episodes, n_envs):

@@ -1,22 +1,9 @@
 """A run's policy as an ONNX model with its contract (``botorl export``, ``botorl.export_policy``).
 
-The model is ``load_policy``'s deterministic chain as one graph, so that a runtime with neither
-botorl nor JAX acts exactly as ``botorl.load_policy(run_dir)`` does (botorl/pipeline/policy.py):
-
-    observations (B, obs_dim) float32 -> tanh(mean(actor(observations))) -> action_to_env -> actions (B, action_dim)
-
-The one step of ``Policy`` outside the graph is ``flatten_obs``: a graph has one input, so a
-Dict observation is flattened by the caller in the order the contract's ``observation.layout``
-lists (sorted keys at every level, each leaf row-major). botorl normalises no observation, so
-there is nothing else to carry over.
-
-The converter is jax2onnx (docs/deploy.md says why): it traces the very JAX function the agent
-evaluates with (``agents.common.eval_fn``), so no ONNX node is written by hand here. Before the
-files are put in place the model is run through onnxruntime on the run's dataset observations
-and compared with ``load_policy``; a gap above the tolerance is ``ExportMismatch`` (exit 1) and
-nothing is written.
-
-``OnnxPolicy`` runs an exported model through onnxruntime (``botorl eval RUN --policy FILE``).
+The graph is ``load_policy``'s deterministic chain after ``flatten_obs`` (the caller flattens a
+Dict observation in the contract's ``observation.layout`` order), traced by jax2onnx from the
+agent's own ``eval_fn``; it is written only once onnxruntime's actions match ``load_policy``'s
+(docs/deploy.md). ``OnnxPolicy`` runs an exported model (``botorl eval RUN --policy FILE``).
 """
 
 from __future__ import annotations
@@ -92,8 +79,7 @@ def contract_path(model: str | Path) -> Path:
 
 # ------------------------------------------------------------------ the run
 def pick_checkpoint(run, checkpoint: str | None) -> str:
-    """The checkpoint to export: the named one (verified), else the latest; a run with no
-    finished stage has nothing worth exporting unless a checkpoint is named."""
+    """The named checkpoint (verified), else the latest; none before a stage has finished."""
     ckpt = CheckpointManager(run.checkpoints)
     if checkpoint is None and not any(_stage_done(ckpt, n) for n in ckpt.names()):
         there = [n for n in ckpt.names() if ckpt.exists(n)]
@@ -111,24 +97,9 @@ def _stage_done(ckpt, name: str) -> bool:
         return False  # a damaged checkpoint is not a finished stage
 
 
-def task_here(cfg) -> str | None:
-    """None when the run's task can be built in this process (botorl's own; one of one's own
-    imported again from its ``--env`` entry point, or registered here), else why not. The model
-    needs only the checkpoint; the task gives the verification its dataset and the contract the
-    env's observation shapes."""
-    from botorl.configs.custom import ensure_task
-
-    try:
-        ensure_task(cfg)
-    except BotorlError as err:
-        return str(err)
-    return None
-
-
 def observation_spaces(cfg):
-    """(the policy's flat observation space, the env's own observation space) of the run's task,
-    when the task can be built in this process (botorl's own, an ``--env MODULE:FUNCTION`` one, a
-    registered one); (None, None) otherwise: the contract then lists the layout without shapes."""
+    """(the policy's flat observation space, the env's own one) of the run's task; (None, None)
+    when its env cannot be made here (the contract then lists the layout without shapes)."""
     try:
         from botorl.envs.registry import get_task
 
@@ -154,8 +125,8 @@ def _bounds(x) -> list[float | None]:
 
 
 def observation_layout(obs_keys, own_space) -> list[dict[str, Any]] | None:
-    """Each leaf of a Dict observation in flattening order: key ("a/b" for nested), shape, offset
-    and size in the flat vector (shape/offset null when the env could not be built here)."""
+    """Each leaf of a Dict observation in flattening order: key ("a/b" nested), shape, offset and
+    size in the flat vector, bounds (null where the env could not be built here)."""
     if obs_keys is None:
         return None
     out, offset = [], 0
@@ -173,19 +144,14 @@ def observation_layout(obs_keys, own_space) -> list[dict[str, Any]] | None:
 
 
 def verification_observations(cfg, run, n: int, seed: int = 0, why: str | None = None) -> tuple[np.ndarray, str]:
-    """``n`` observations of the run's dataset (the states the policy was trained on), and where
-    they came from; standard normal ones when the data cannot be read here (``why``: the task
-    cannot be built here, e.g. registered from a script; a pickle-based dataset)."""
-    from botorl.data.loaders import refuse_pickle
-    from botorl.envs.registry import get_task
-    from botorl.pipeline.runner import load_offline
+    """``n`` observations of the run's dataset and where they came from; standard normal ones
+    when the data cannot be read here (``why``: the task cannot be built here; a pickle)."""
+    from botorl.pipeline.runner import load_run_data
 
     try:
         if why is not None:
             raise BotorlError(why)
-        spec = get_task(cfg.task)
-        with refuse_pickle(f"the run directory's {run.config}"):
-            obs = np.asarray(load_offline(cfg, spec).observations, np.float32)
+        obs = np.asarray(load_run_data(cfg, run.config).observations, np.float32)
     except BotorlError as err:
         print(f"botorl export: the run's dataset cannot be read here ({err}); verifying on {n} standard normal "
               f"observations instead (the contract's verification.source says so).", file=sys.stderr)
@@ -273,9 +239,9 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
                   opset: int = OPSET) -> dict[str, Any]:
     """Write ``path`` (the ONNX model) and ``path.json`` (its contract) for a run's policy and
     return the contract. ``observations``: the (N, obs_dim) batch to verify on (default:
-    ``verify_rows`` of the run's dataset). ``ExportMismatch`` (exit 1) when onnxruntime's actions
-    differ from ``load_policy``'s by more than ``tolerance``; nothing is written then. Needs
-    ``pip install "botorl[export]"`` (else ``MissingExportDependency``, exit 2)."""
+    ``verify_rows`` of the run's dataset). ``ExportMismatch`` (exit 1, nothing written) when
+    onnxruntime's actions differ from ``load_policy``'s by more than ``tolerance``; needs
+    ``pip install "botorl[export]"``."""
     if format not in FORMATS:
         raise ConfigError(f"--format {format}: botorl exports {', '.join(FORMATS)}.")
     out = Path(path)
@@ -290,7 +256,13 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     name = pick_checkpoint(run, checkpoint)
     mods = require("onnx", "onnxruntime", "jax2onnx")  # before any JAX work: a missing extra costs nothing
     setup_jax()
-    here = task_here(cfg)
+    from botorl.configs.custom import ensure_task
+
+    try:  # the task gives the verification its dataset and the contract the env's shapes
+        ensure_task(cfg)
+        here = None
+    except BotorlError as err:
+        here = str(err)
     policy = load_policy(run.root, checkpoint=name, deterministic=True)
     state = CheckpointManager(run.checkpoints).state(name)
 
@@ -392,9 +364,8 @@ def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path)
 
 
 def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, Any]:
-    """``botorl eval RUN --policy FILE``: the run's evaluation protocol (``botorl eval``: the same
-    envs, reset seeds and success rule) with the exported model acting through onnxruntime;
-    written to ``RUN/eval-<FILE stem>-onnx.json``."""
+    """``botorl eval RUN --policy FILE``: ``botorl eval``'s episodes with the exported model
+    acting through onnxruntime; written to ``RUN/eval-<FILE stem>-onnx.json``."""
     from botorl.envs.registry import get_task
     from botorl.envs.user import action_from_env, is_unit_box
     from botorl.pipeline.evaluation import evaluate_policy

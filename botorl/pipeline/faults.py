@@ -1,23 +1,14 @@
-"""Fault injection for the reliability tests; no effect unless asked.
+"""Fault injection for the reliability tests (tests/test_reliability_*.py); no effect unless asked.
 
-The tests kill a run at chosen points and check that ``botorl resume`` ends where an
-uninterrupted run ends (tests/test_reliability_resume.py). Two ways to ask:
-
-* environment variables, for a real ``botorl run`` subprocess, which then SIGKILLs itself:
-  ``BOTORL_KILL_AT=STAGE:STEP`` -- when STAGE (pretrain, warmup, boto, finetune) first reaches
-  STEP, after everything that step does (its checkpoint included);
-  ``BOTORL_KILL_IN_CHECKPOINT=NAME:PHASE`` -- inside the writer of checkpoint NAME (e.g.
-  ``finetune-step000000040``): PHASE ``files`` after the agent file is written into the
-  temporary folder (the rest not yet), ``renamed`` after the folder is renamed into place but
-  before ``latest.json`` points at it.
-* ``BOTORL_PAUSE_AT=STAGE:STEP`` with ``BOTORL_PAUSE_FILE=PATH``: when STAGE first reaches
-  STEP the run creates PATH and waits while it exists (at most 10 minutes), so a test can
-  send a real signal while a chosen stage runs (tests/test_reliability_preempt.py).
-* ``set_hook(fn)`` in-process: ``fn(kind, stage_or_name, step_or_phase)`` is called at the same
-  points (``kind`` "step" or "checkpoint"); a test copies the run directory there, which is
-  what a kill -9 at that point leaves on disk (every write before it is complete).
-
-The checks cost one ``is None`` test per step when nothing is asked.
+* ``BOTORL_KILL_AT=STAGE:STEP``: SIGKILL when STAGE first reaches STEP, after all that step
+  does (its checkpoint included);
+* ``BOTORL_KILL_IN_CHECKPOINT=NAME:PHASE``: SIGKILL inside the writer of checkpoint NAME, PHASE
+  ``files`` (the agent file written into the temporary folder, the rest not yet) or
+  ``renamed`` (the folder in place, ``latest.json`` not yet pointing at it);
+* ``BOTORL_PAUSE_AT=STAGE:STEP`` with ``BOTORL_PAUSE_FILE=PATH``: there, create PATH and wait
+  while it exists (at most 10 minutes), so a test can send a real signal;
+* ``set_hook(fn)`` in-process: ``fn(kind, stage_or_name, step_or_phase)`` at the same points
+  (a test copies the run directory there: what a kill -9 would leave).
 """
 
 from __future__ import annotations

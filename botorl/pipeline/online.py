@@ -1,17 +1,11 @@
 """Fine-tuning's resumable state: everything besides the agents that decides what comes next.
 
-``OnlineState`` holds the members' envs stepped in lockstep (each mid-episode), their current
-observations and episode counters, the replay buffer with a member axis, each member's
-batch generator, the step, and the evaluation schedule's memory. It is saved whole into a
-mid-stage checkpoint (``save``) and restored whole (``OnlineState(ctx, d_warmups, resume)``),
-so a resumed fine-tuning repeats an uninterrupted one exactly (CONTRACTS.md "Runs":
-``buffer.npz``, ``online.npz``, ``envs.json`` and the counters in ``state.json``).
-
-What a method needs from it is declared in its ``Method`` (botorl/configs/methods.py):
-``finished_episodes_only`` -- batches hold rows of finished episodes only, whose Monte-Carlo
-returns are filled (the offline data's rule) when the episode ends, and a member waits for its
-first one (Cal-QL); ``batch_layout`` -- one update on utd x B rows, or utd updates of B rows
-each (IQL); the offline data mixed in at ``online.offline_ratio``.
+``OnlineState`` (the members' envs mid-episode, observations, counters, the replay buffer with
+a member axis, each member's batch generator, the step) is saved whole into a mid-stage
+checkpoint and restored whole, so a resumed fine-tuning repeats an uninterrupted one exactly
+(docs/CONTRACTS.md "Runs"). What a method needs of it is in its ``Method``
+(``finished_episodes_only``: Cal-QL's batches of finished episodes, MC returns filled when one
+ends; ``batch_layout``; botorl/configs/methods.py).
 """
 
 from __future__ import annotations
@@ -36,13 +30,11 @@ def rng_from(state: dict | None, seed_seq) -> np.random.Generator:
 
 
 class OnlineState:
-    """The state of fine-tuning beside the agents (see the module docstring)."""
+    """The state of fine-tuning beside the agents (see the module docstring): at its start (a
+    buffer holding D_warmup for WSRL's warm start), or as the mid-stage checkpoint ``resume``
+    (its name, step, np_rng, extra) saved it, each env set to its saved state mid-episode."""
 
     def __init__(self, ctx, d_warmups, resume: dict | None = None):
-        """Fine-tuning from its start: the step after the warm-up, a buffer holding D_warmup for
-        WSRL's warm start (the offline data are dropped), every member's episode starting. Or,
-        given ``resume`` (a mid-stage checkpoint's name, step, np_rng, extra), the state it saved,
-        each env set to its saved state mid-episode."""
         oc, d, n = ctx.cfg.online, ctx.d_offline, ctx.n
         n_warm = len(d_warmups[0]) if d_warmups is not None else 0
         extra = {} if resume is None else resume.get("extra", {})
@@ -84,8 +76,8 @@ class OnlineState:
         self.obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(self.envs, seeds)])
 
     def save(self, agents, window=None) -> None:
-        """A mid-stage checkpoint of the agents and this whole state (and, from an interrupt
-        between two log points, the metrics ``window`` since the last one: stages.Window)."""
+        """A mid-stage checkpoint of the agents and this whole state (and the metrics ``window``
+        since the last log point, from an interrupt)."""
         arrays = {"buffer": self.buffer.state_dict(), "online": {"obs": self.obs, "ep_succ": self.ep_succ}}
         w = None if window is None else window.state_dict()
         if w:
@@ -130,9 +122,8 @@ class OnlineState:
 
     # ------------------------------------------------------------------ one env step, one update
     def advance(self, agents, window):
-        """One online step of every member: act (one policy call for all), step the envs, store
-        the transitions; then one UTD update (from ``online.random_steps`` on). The body of
-        fine-tuning's loop (stages.finetune) and what the online-loop benchmark times."""
+        """One online step of every member (one policy call for all), then one UTD update (from
+        ``online.random_steps`` on): the body of fine-tuning's loop."""
         actions, agents = AP.sample(agents, self.obs)
         self.act(np.asarray(actions, dtype=np.float32))
         if self.step >= self.ctx.cfg.online.random_steps:

@@ -1,17 +1,9 @@
 """A run's agent and policy, for use outside botorl: ``load_agent`` and ``load_policy``.
 
-Both read only the run directory (its ``config.json`` and a checkpoint): the task need not be
-registered and its env is never made, so a policy trained on a task of one's own loads in a
-process that knows nothing of that task.
-
-``Policy`` is the whole chain from the env's observation to the env's action, each step a pure
-function an exporter can reuse (issue 33):
-
-    flat = flatten_obs(obs, policy.obs_keys)                  # Dict -> (D,), float32 (botorl/envs/user.py)
-    unit = tanh(mean(actor(flat)))                            # the agent's deterministic action, in [-1, 1]
-    action = action_to_env(unit, policy.action_low, policy.action_high)   # affine onto the env's box
-
-There is no other transformation: botorl does not normalise observations.
+Both read only the run directory (``config.json`` and a checkpoint): the task need not be
+registered and its env is never made. ``Policy`` is the chain ``flatten_obs`` -> the agent's
+actions in [-1, 1] -> ``action_to_env``, nothing else (docs/own-task.md, "The policy outside
+botorl").
 """
 
 from __future__ import annotations
@@ -111,8 +103,7 @@ class Policy:
         from botorl.envs.user import flatten_obs
 
         if isinstance(obs, Mapping):
-            sizes = sum(int(np.size(v)) for v in _leaves(obs))
-            flat = flatten_obs(obs, self.obs_keys or tuple(sorted(obs)), batched=sizes != self.obs_dim)
+            flat = flatten_obs(obs, self.obs_keys or tuple(sorted(obs)), batched=_size(obs) != self.obs_dim)
         else:
             flat = np.asarray(obs, dtype=np.float32)
         flat = np.atleast_2d(flat)
@@ -137,7 +128,7 @@ class Policy:
 
     def __call__(self, obs) -> np.ndarray:
         single = (not isinstance(obs, Mapping) and np.ndim(obs) == 1) or (
-            isinstance(obs, Mapping) and sum(int(np.size(v)) for v in _leaves(obs)) == self.obs_dim)
+            isinstance(obs, Mapping) and _size(obs) == self.obs_dim)
         out = self.transform_action(self.unit_actions(self.transform_obs(obs)))
         return out[0] if single else out
 
@@ -146,12 +137,10 @@ class Policy:
                 f"deterministic={self.deterministic}, checkpoint={self.checkpoint!r})")
 
 
-def _leaves(obs):
-    for v in obs.values():
-        if isinstance(v, Mapping):
-            yield from _leaves(v)
-        else:
-            yield v
+def _size(obs) -> int:
+    import jax
+
+    return sum(int(np.size(v)) for v in jax.tree_util.tree_leaves(obs))
 
 
 def load_policy(run_dir, checkpoint: str | None = None, deterministic: bool = True) -> Policy:

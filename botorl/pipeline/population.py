@@ -1,17 +1,6 @@
-"""Populations: N independent runs (seeds, and for BOTO alphas) trained as one program.
-
-A population stacks its members' agents along a leading axis and trains them with one
-jitted call per update, every call the agent's own traced function mapped over that axis
-(botorl/agents/population.py); a single run is a population of one on the same code. Its
-members are made from ``--seeds`` / ``--alphas`` by botorl/configs/members.py. This module
-holds the population's memory: ``estimate_memory`` / ``check_memory`` estimate it before any
-work and compare it with what the machine has.
-
-Members are independent: every member carries its own JAX key inside its agent (from its
-seed), and every host-side random stream (batch indices, exploration, env seeds) is a
-``numpy.random.Generator`` per member seeded from the member's seed alone. So a member's
-numbers do not depend on which or how many others share its population
-(tests/test_population_*.py checks this to float tolerance).
+"""A population's memory (docs/populations.md): estimated before any work and compared with
+what the machine has (``check_fits``). The mapped calls are botorl/agents/population.py; the
+members, botorl/configs/members.py.
 """
 
 from __future__ import annotations
@@ -25,10 +14,6 @@ import numpy as np
 from botorl.configs.methods import get_method
 from botorl.errors import ConfigError
 from botorl.pipeline.stages import agent_template, make_pretrain_agent
-
-__all__ = ["estimate", "check_fits", "estimate_memory", "check_memory", "available_memory", "host_memory", "env_bytes",
-           "tree_bytes"]
-
 
 # ============================================================================ memory
 def tree_bytes(tree) -> int:
@@ -65,10 +50,8 @@ def _rss_bytes() -> int | None:
 
 def env_bytes(make_env, probes: int = 6) -> int:
     """Host memory one more environment takes: the median resident-size growth over ``probes``
-    envs made and reset one after another, after two that pay for imports, shared model caches
-    and the allocator's first arenas (the second pointmaze env grows the process by 23 MB, each
-    later one by 11.7); 0 where the resident size cannot be read. So a 44-member population
-    with 20 evaluation envs a member holds ~11 GB of pointmaze environments."""
+    envs, after two that pay for imports, caches and the allocator's first arenas (the second
+    pointmaze env grows the process by 23 MB, each later one by 11.7); 0 where unreadable."""
     envs = []
 
     def one():
@@ -93,16 +76,8 @@ def env_bytes(make_env, probes: int = 6) -> int:
 def estimate_memory(*, num_members: int, agent_bytes: int, buffer_rows: int, warmup_rows: int, obs_dim: int,
                     action_dim: int, batch_rows: int, activation_floats: int, offline_bytes: int,
                     env_bytes_per_member: int = 0) -> dict[str, int]:
-    """Bytes the population needs, by part (an estimate made before any work).
-
-    agent_bytes: one member's agent pytree (parameters, target parameters, Adam moments);
-    buffer_rows: replay capacity per member; warmup_rows: D_warmup per member; batch_rows:
-    rows of one call's batches per member (K x B); activation_floats: floats the largest update
-    keeps for its backward pass per member; offline_bytes: D_offline (held once);
-    env_bytes_per_member: host memory of one member's environments (its training env and its
-    evaluation envs). The agent counts three times (the state, the update's output and the
-    checkpoint copy on the host).
-    """
+    """Bytes the population needs, by part; per member but ``offline_bytes`` (D_offline, held
+    once). The agent counts three times: the state, the update's output, the checkpoint copy."""
     row = 4 * (2 * obs_dim + action_dim + 3)
     parts = {
         "agents": 3 * num_members * agent_bytes,
@@ -136,9 +111,8 @@ def check_memory(parts: dict[str, int], num_members: int, *, available: tuple[in
 
 
 def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
-    """The memory of a population of ``n`` members of ``cfg`` by part (``estimate_memory``), from
-    one template member; with the task's ``spec``, its environments measured (one training env
-    and eval.envs_per_member evaluation envs per member)."""
+    """``estimate_memory`` of a population of ``n`` members of ``cfg``, from one template member;
+    with the task's ``spec``, its environments measured."""
     # envs first: made after JAX has built its first arrays, the first ~16 pointmaze envs grow the
     # process by twice what each later one does (allocator arenas), which would double the estimate.
     # Measured only for populations: one member's envs are a few hundred MB at most.

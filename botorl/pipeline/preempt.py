@@ -1,15 +1,11 @@
 """SIGTERM and SIGINT: stop at the next step boundary with a checkpoint there, exit 143 / 130
-(docs/reliability.md, "Preemption"; schedulers send SIGTERM some seconds before they kill a job).
+(docs/reliability.md, "Preemption").
 
-The commands that train install ``handling()``. A first signal outside training (data
-loading, setup) raises ``Interrupted`` at once, like Ctrl-C; inside ``deferred()`` (the
-runner's stage loop) it only sets the flag the stages read at their step boundaries
-(``stages.step_end``), where they write the checkpoint of that step -- the one a periodic
-checkpoint would be, so the resume is exact -- and raise ``Interrupted``. A second signal
-exits at once (``os._exit``), leaving the last complete checkpoint. Copies of one preemption
-within ``DUPLICATE_S`` of the first count as the first: SLURM signals every process of a job,
-so a sweep's trial gets the signal from the scheduler and again from the sweep forwarding it.
-Without ``handling()`` (the Python API, tests calling the runner) the flag is never set.
+The commands that train install ``handling()``. A first signal outside training raises
+``Interrupted`` at once; inside ``deferred()`` (the stage loop) it only sets the flag the
+stages read at their step boundaries (``stages.step_end``). A second signal exits at once;
+copies within ``DUPLICATE_S`` of the first count as the first (SLURM signals every process of
+a job, and a sweep forwards it to its trial). Without ``handling()`` the flag is never set.
 """
 
 from __future__ import annotations

@@ -1,21 +1,8 @@
-"""The run directory: every file a run writes, in the layout of CONTRACTS.md "Runs".
+"""The run directory: every file a run writes (the layout: docs/running.md, "The run
+directory"; docs/CONTRACTS.md "Runs"), and ``DIR/.lock`` (``RunLock``).
 
-    DIR/config.json           resolved config (top-level task, method, seed, alpha, pretrain, profile)
-    DIR/eval.csv              stage, env_step, success, return, q_data, q_uniform
-    DIR/metrics/<stage>.csv   one row per logged training step (+ .jsonl with the same rows)
-    DIR/metrics/q_probe.csv   q_data / q_uniform at the end of pretrain and boto
-    DIR/tb/                   TensorBoard events (only when tensorboardX is importable)
-    DIR/checkpoints/          see checkpoint.py
-    DIR/curve.png             success against online env steps
-    DIR/summary.json          task, method, seed, alpha, pretrain, success_initial,
-                              success_10k, success_final, stage_seconds, status
-    DIR/eval-<checkpoint>.json   written by `botorl eval`
-    DIR/.lock                 the owner's PID; flock-ed for the life of a run/resume/eval (RunLock)
-
-Every whole-file write is atomic (temp file in the same folder + os.replace), so a run killed
-at any moment leaves either the old or the new file, never half of one. The CSV/JSONL logs are
-appended line by line; on resume they are cut back to the checkpoint's step (``truncate``), so
-rows written after the last checkpoint do not appear twice.
+Whole files are written atomically (botorl/io.py); the CSV/JSONL logs are appended line by
+line and on resume cut back to the checkpoint's step (``truncate``), so no row appears twice.
 """
 
 from __future__ import annotations
@@ -115,14 +102,10 @@ class RunLockedError(BotorlError):
 
 
 class RunLock:
-    """One owner per run directory: an exclusive ``flock`` on ``DIR/.lock``, which holds the PID.
-
-    The kernel drops a flock when its process dies (kill -9 included), so a lock left by a
-    killed run is simply taken over by the next one; the file itself is never deleted (deleting
-    it would let two processes lock two different files). A second live process gets
-    ``RunLockedError`` (exit 2) naming the holder's PID. ``with RunLock(DIR)`` holds it for
-    the life of a command, I/O faults while taking it turned into exit 2.
-    """
+    """One owner per run directory: an exclusive ``flock`` on ``DIR/.lock``, which holds the PID;
+    a second live process gets ``RunLockedError`` (exit 2). The kernel drops a flock when its
+    process dies (kill -9 too), so a killed run's lock is taken over; the file is never deleted
+    (that would let two processes lock two different files)."""
 
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
@@ -174,9 +157,8 @@ class RunLock:
 
 # ----------------------------------------------------------------------------- line logs
 def log_lines(path: Path, *, warn: bool = False) -> list[str]:
-    """The complete lines of an append-only log: a last line cut by a kill (no newline yet) and
-    any line that is not UTF-8 text (a torn write, a damaged disk) are left out -- with
-    ``warn``, saying so on stderr -- so a damaged tail never makes a run unresumable."""
+    """The complete UTF-8 lines of an append-only log (a last line cut by a kill and undecodable
+    lines left out, with ``warn`` saying so), so a damaged tail never makes a run unresumable."""
     if not path.exists() and not path.is_symlink():
         return []
     try:
@@ -270,15 +252,11 @@ def _warn(msg: str) -> None:
 
 
 class TBWriter:
-    """TensorBoard scalars written synchronously in the caller's thread.
+    """TensorBoard scalars written in the caller's thread (tensorboardX's ``EventsWriter``).
 
-    tensorboardX's ``SummaryWriter`` writes from a background thread through a bounded queue;
-    when that thread dies (ENOSPC, EROFS) the queue fills and the next ``add_scalar`` or
-    ``close`` blocks forever, so a full disk hung the whole run. Here every write happens in
-    the caller's thread (tensorboardX's ``EventsWriter``, same file format), the file is
-    flushed every ``flush_secs``, non-finite values are skipped (TensorBoard rejects them
-    with "NaN or Inf found in input tensor"), and the first I/O error turns TensorBoard off
-    with one warning: the run goes on, its CSV logs are the record.
+    ``SummaryWriter``'s background thread dies on ENOSPC / EROFS and its full queue then blocks
+    the run forever; here the first I/O error turns TensorBoard off with one warning instead.
+    Non-finite values are skipped (TensorBoard rejects them).
     """
 
     def __init__(self, logdir: Path, flush_secs: float = 30.0):

@@ -1,14 +1,12 @@
 """Drive a run: the method's stages in order, checkpoints, resume, evaluation, summary.
 
-``execute(cfg, member_cfgs, root, runs, d_offline_raw, resume=...)`` is what ``botorl run`` and
-``botorl resume`` call after the config is resolved and validated and the offline data are
-loaded (so a bad configuration or a missing dataset fails before any work and before a run
-directory exists).
+``execute`` is called by ``botorl run`` / ``resume`` once the config is validated and the data
+loaded, so a bad config or a missing dataset fails before a run directory exists.
 """
 
 from __future__ import annotations
 
-import io
+import contextlib
 import math
 import os
 import sys
@@ -25,10 +23,11 @@ from botorl.configs.methods import get_method
 from botorl.configs.schema import RunConfig, run_identity, to_dict
 from botorl.data.dataset import Dataset, RewardTransform
 from botorl.data.dataset import validate as validate_dataset
+from botorl.data.loaders import refuse_pickle
 from botorl.data.tasks import load_task_data
 from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDivergedError
-from botorl.io import atomic_write_bytes, atomic_write_json
+from botorl.io import atomic_save_figure, atomic_write_json
 from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name
@@ -59,6 +58,14 @@ def load_offline(cfg: RunConfig, spec) -> Dataset:
                             action_tolerance=cfg.data.action_tolerance)
 
 
+def load_run_data(cfg: RunConfig, origin: Path, allow_pickle: bool = False) -> Dataset:
+    """The offline data of a run or population read back from its directory's ``origin``
+    (config.json, population.json): no pickle unless allowed, as a pickle there could run code."""
+    where = "population" if origin.name == POPULATION_FILE else "run"
+    with contextlib.nullcontext() if allow_pickle else refuse_pickle(f"the {where} directory's {origin}"):
+        return load_offline(cfg, get_task(cfg.task))
+
+
 def transform_dataset(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
     """The task's reward transform, then Cal-QL's Monte-Carlo returns (in transformed units)."""
     return with_mc_returns(cfg, spec, ds.with_reward_transform(RewardTransform.of(spec)))
@@ -73,14 +80,6 @@ def with_mc_returns(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
         sparse_negative_reward=None if r_neg is None else float(RewardTransform.of(spec)(r_neg)),
         infinite_horizon=cfg.offline.mc_infinite_horizon,
     )
-
-
-def _dataset_arrays(ds: Dataset) -> dict[str, np.ndarray]:
-    return {k: getattr(ds, k) for k in _DS_FIELDS if getattr(ds, k) is not None}
-
-
-def _dataset_from_arrays(arrays: dict[str, np.ndarray], source: str) -> Dataset:
-    return Dataset(**{k: arrays.get(k) for k in _DS_FIELDS}, metadata={"source": source})
 
 
 # ---------------------------------------------------------------------------- context
@@ -98,17 +97,10 @@ class MemberRun:
 
 
 class RunContext:
-    """What the stages share: the population's members (a single run: one; each its config,
-    run directory and logs), the method and task, the offline data (held once) and its probe,
-    evaluation, the divergence check, and the checkpoints of the whole population.
-
-    ``cfg`` is the population's config (its members' configs differ in seed and alpha only);
-    ``members[i].cfg`` is member i's. A single run (a population of one in its own run
-    directory) keeps the single-run checkpoint format of CONTRACTS.md "Runs": the member's own
-    agent, its generator state and counters as plain values, D_warmup as ``warmup.npz``. A
-    larger population keeps one checkpoint of the stacked members in its own directory, with
-    per-member lists and ``warmup-m<i>.npz``, and at every stage end also each member's own
-    agent in the member's run directory (so `botorl eval MEMBER_DIR` reads it)."""
+    """What the stages share: the members (each its config, run directory and logs), the
+    method and task, the offline data (held once) and its probe, evaluation, the divergence
+    check, and the population's checkpoints (formats: docs/CONTRACTS.md "Runs", "Populations";
+    a single run keeps the single-run format, its values stored plain, not as lists)."""
 
     def __init__(self, cfg: RunConfig, spec, root: Path, members: list[MemberRun], d_offline: Dataset, state: dict):
         self.cfg, self.method, self.spec = cfg, get_method(cfg.method), spec
@@ -147,8 +139,10 @@ class RunContext:
                     f"{diverged}{b}. The last good state is kept ({where} in {self.ckpt.root}). Lower the "
                     f"learning rates (e.g. --offline.cql.critic_lr, --online.sac.critic_lr), check the data's reward "
                     f"scale, or run another seed; `botorl resume` would start again from that checkpoint.")
-            self.fail_member(i, f"{diverged}{b}. The other members went on. Lower the learning rates or run another "
-                                f"seed.")
+            self.failed.add(i)
+            self.members[i].error = f"{diverged}{b}. The other members went on. Lower the learning rates or run another seed."
+            self.write_member_summary(i, "failed")
+            print(f"botorl: member {self.members[i].run.root.name} failed: {self.members[i].error}", file=sys.stderr)
         if len(self.failed) == self.n:
             raise TrainingDivergedError(
                 f"every member of the population diverged (stage {stage!r}, near step {step}); each member's "
@@ -160,12 +154,6 @@ class RunContext:
 
         return tqdm(total=total, initial=initial, desc=desc, unit=unit, dynamic_ncols=True,
                     disable=not self.cfg.progress, mininterval=1.0, smoothing=0.05)
-
-    def fail_member(self, i: int, error: str) -> None:
-        self.failed.add(i)
-        self.members[i].error = error
-        self.write_member_summary(i, "failed")
-        print(f"botorl: member {self.members[i].run.root.name} failed: {error}", file=sys.stderr)
 
     # -- time
     def begin_stage(self, stage: str) -> None:
@@ -232,9 +220,8 @@ class RunContext:
         self.write_summary("running")
 
     def save_mid(self, stage: str, step: int, agents, *, np_rng=None, arrays=None, extra=None, documents=None) -> None:
-        """A mid-stage checkpoint: the agents, ``np_rng`` (each member's generator state), ``arrays``
-        (npz groups: the replay buffer, ...), ``extra`` (counters, in state.json) and ``documents``
-        (JSON files: the envs' state mid-episode, ...)."""
+        """A mid-stage checkpoint: the agents, each member's generator state, ``arrays`` (npz
+        groups), ``extra`` (counters, in state.json) and ``documents`` (JSON files)."""
         self._save(checkpoint_name(stage, step), stage, int(step), False, agents, np_rng, arrays, extra, documents)
 
     def save_stage_end(self, stage: str, agents, arrays=None) -> None:
@@ -406,7 +393,8 @@ def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | No
     elif stage == "warmup":
         d_warmups, agents = S.warmup(ctx, agents)
         if d_warmups is not None:
-            arrays = {k: _dataset_arrays(d) for k, d in zip(ctx.warmup_keys(), d_warmups)}
+            arrays = {k: {f: getattr(d, f) for f in _DS_FIELDS if getattr(d, f) is not None}
+                      for k, d in zip(ctx.warmup_keys(), d_warmups)}
     elif stage == "boto":
         if resume is not None and agents is None:
             agents = _templates(member_cfgs, "boto", ctx.d_offline)
@@ -421,11 +409,9 @@ def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | No
 
 def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_runs: list[RunDir],
             d_offline_raw: Dataset, *, resume: bool = False) -> list[dict[str, Any]]:
-    """Train the members (configs that differ in seed and alpha only) as one population.
-
-    ``root`` holds the population's checkpoints; ``member_runs[i]`` is member i's ordinary run
-    directory (a single run: one member, whose run directory is ``root``). Returns every
-    member's summary."""
+    """Train the members (configs that differ in seed and alpha only) as one population whose
+    checkpoints are in ``root`` (a single run: one member, whose run directory is ``root``);
+    returns every member's summary."""
     spec, method, root = get_task(cfg.task), get_method(cfg.method), Path(root)
     root.mkdir(parents=True, exist_ok=True)
     d_offline = transform_dataset(cfg, spec, d_offline_raw)
@@ -501,13 +487,10 @@ def read_summary(run: RunDir) -> dict[str, Any]:
 
 
 def _load_warmups(ckpt: CheckpointManager, keys: list[str]) -> list[Dataset] | None:
-    out = []
-    for key in keys:
-        arrays = ckpt.arrays(checkpoint_name("warmup", None), key)
-        if not arrays:
-            return None
-        out.append(_dataset_from_arrays(arrays, "D_warmup (checkpoint)"))
-    return out
+    saved = [ckpt.arrays(checkpoint_name("warmup", None), key) for key in keys]
+    if not all(saved):
+        return None
+    return [Dataset(**{k: a.get(k) for k in _DS_FIELDS}, metadata={"source": "D_warmup (checkpoint)"}) for a in saved]
 
 
 def _truncate_logs(mc: "MemberRun", stages: tuple[str, ...], mid: dict | None, done: list[str]) -> None:
@@ -557,10 +540,8 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
     ax.set_title(f"{cfg.task} / {cfg.method} / seed {cfg.seed}")
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
+    atomic_save_figure(fig, run.curve, dpi=110)
     plt.close(fig)
-    atomic_write_bytes(run.curve, buf.getvalue())
     return run.curve
 
 

@@ -1,15 +1,8 @@
-"""Start from pre-training that another run already did (``--pretrained DIR``).
+"""Start from pre-training that another run already did (``--pretrained DIR``; docs/populations.md).
 
-BOTO and WSRL pre-train with the same Cal-QL on the same data from the same seed, so their
-pre-trained agents are the same numbers; the paper compares them from one checkpoint
-(section 5). A study of both at 8 seeds would otherwise do that work twice (796 s of the
-46-minute 8-seed BOTO population on pointmaze-umaze, this 2-core CPU). ``DIR`` may be a run, a population or a sweep
-directory: every run directory under it whose pre-training finished (its
-``checkpoints/pretrain-final``) is a candidate, and each member takes the candidate whose
-*pre-training fingerprint* equals its own: the settings that decide the pre-trained
-numbers (task, seed, algorithm, data, networks, offline settings, checkpoint spacing, which
-cuts the update chunks). A member with no such candidate is an error that names the closest
-one and the first setting in which it differs.
+Each member takes the finished pre-training under ``DIR`` whose *fingerprint* (the settings
+that decide the pre-trained numbers; checkpoint spacing among them, as it cuts the update
+chunks) equals its own; without one, an error names the closest and how it differs.
 """
 
 from __future__ import annotations

@@ -5,24 +5,12 @@
     boto(ctx, agents, d_warmups)        -> agents     BOTO critic training on D_offline u D_warmup
     finetune(ctx, agents, d_warmups)    -> agents     online learning (WSRL / continued / scratch)
 
-Every stage runs a population (botorl/agents/population.py; a single run is a population of
-one on this same path): ``agents`` is the members' agent pytrees stacked on a leading axis,
-``d_warmups`` one D_warmup per member, and every update, policy call and evaluation is ONE
-jitted call for all members. Members run in lockstep on the same step counts; each draws its
-batches, actions, env seeds and noise from streams seeded by its own seed only
-(``ctx.members[i].cfg``), so a member's numbers do not depend on the others.
-
-``ctx`` (RunContext, runner.py) holds the members and their logs, the method, the task, the
-transformed offline data, evaluation and the checkpoints. Log, checkpoint and evaluation
-points are functions of the step alone (``Schedule``). Pre-training, BOTO and fine-tuning
-write a mid-stage checkpoint every ``checkpoint_every`` steps, and at the step where a
-SIGTERM / SIGINT arrived (pipeline/preempt.py; with the metrics window since the last log
-point), then raise ``Interrupted``. A checkpoint holds everything that decides the stage's
-future (agents with their JAX keys, every NumPy generator, fine-tuning's whole
-``OnlineState``), so a stage given ``resume`` continues from it exactly
-(tests/test_reliability_resume.py). The warm-up has none: it is short, and run again from its
-start it gives the same D_warmup. Before each checkpoint and at each log point every member's
-losses are checked for NaN/inf (``ctx.check``).
+Every stage runs a population (a single run is one of one): ``agents`` are the members'
+agents stacked on a leading axis, and every update, policy call and evaluation is one jitted
+call for all; each member's streams are seeded by its own seed only (docs/populations.md).
+Log, checkpoint and evaluation points follow from the step alone (``Schedule``), and a
+checkpoint holds everything that decides a stage's future, so a stage given ``resume``
+continues exactly (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -42,7 +30,6 @@ from botorl.agents.sac import SACAgent
 from botorl.boto.phase import train_boto
 from botorl.configs.methods import get_method
 from botorl.data.dataset import Dataset
-from botorl.errors import ConfigError
 from botorl.pipeline import faults, preempt
 from botorl.pipeline.online import OnlineState, rng_from
 
@@ -97,9 +84,7 @@ class Points:
 @dataclass(frozen=True)
 class Schedule:
     """A stage's log, checkpoint and evaluation points, from the step alone (so a resumed stage
-    keeps them): a log point where the step crosses a multiple of ``log_every`` or reaches
-    ``total``, a checkpoint where it crosses a multiple of ``checkpoint_every`` before ``total``
-    (the end's checkpoint is the runner's), an evaluation where ``evaluate(step)`` says so."""
+    keeps them); the stage end's checkpoint is the runner's."""
 
     total: int
     log_every: int
@@ -124,8 +109,7 @@ class Window:
 
     def state_dict(self) -> dict[str, np.ndarray] | None:
         """The rows since the last flush (None: none), for the checkpoint an interrupt writes
-        between two log points: restored (``load``), the next log row is the uninterrupted
-        run's. Periodic checkpoints need none: the window is flushed there."""
+        between two log points (periodic ones come after a flush)."""
         if not self.rows:
             return None
         host = jax.device_get([w for w, _ in self.rows])
@@ -167,10 +151,9 @@ class Rate:
 
 
 def step_end(stage: str, step: int, total: int, due: Points, save: Callable[[bool], None]) -> None:
-    """What ends every step of a stage: the checkpoint the schedule asks for (``save(False)``),
-    the fault-injection point, and, once a SIGTERM / SIGINT has arrived, the checkpoint of this
-    very step (``save(True)``: with the metrics window since the last log point; none twice) and
-    ``Interrupted``. A resume from it is exact: what comes next follows from the step."""
+    """What ends every step of a stage: the scheduled checkpoint (``save(False)``), the
+    fault-injection point, and after a SIGTERM / SIGINT the checkpoint of this very step
+    (``save(True)``: with the metrics window; never twice) and ``Interrupted``."""
     if due.checkpoint:
         save(False)
     faults.step(stage, step)
@@ -203,12 +186,6 @@ def pretrain(ctx, resume: dict | None = None):
         agents = ctx.load_agents(resume["name"], agents)
         step, states = int(resume["step"]), resume.get("np_rng")
         states = states if isinstance(states, list) else [states] * len(reps)
-        if len(states) != len(reps):
-            raise ConfigError(
-                f"checkpoint {resume['name']!r} holds {len(states)} pre-training generators for {len(reps)} seeds: it was "
-                f"written by a botorl that pre-trained every member separately. Resume from a checkpoint of another "
-                f"stage (botorl resume DIR --from NAME) or start the population again."
-            )
     rngs = [rng_from(st, [s, 1]) for s, st in zip(seeds, states)]
     on_device = jax.default_backend() != "cpu" if oc.sample_on_device is None else oc.sample_on_device
     if on_device:
@@ -268,16 +245,9 @@ def _reseed_online(ctx, agents):
 
 def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
     """D_warmup: ``warmup.steps`` env steps of the frozen pre-trained policy (stochastic), one
-    env per member, stepped together with one policy call per step for all members.
-
-    These are the first online env steps (WSRL's accounting): the online axis starts here,
-    with an evaluation of the pre-trained policy at step 0 and at every evaluation point the
-    warm-up passes (the policy is frozen and its evaluation deterministic, so the step-0
-    evaluation is logged again there instead of being run again).
-
-    No mid-stage checkpoint: a run killed here starts the warm-up again from its beginning on
-    resume, which is exact (the same env seeds, and the policy's key from the pre-training
-    checkpoint), and costs at most ``warmup.steps`` env steps of a frozen policy."""
+    env per member. These are the first online env steps (WSRL's accounting); the frozen
+    policy's step-0 evaluation is logged again at each evaluation point the warm-up passes.
+    No mid-stage checkpoint: a resume runs it again, which gives the same D_warmup."""
     n, N = ctx.cfg.warmup.steps, ctx.n
     if n == 0:
         return None, agents
@@ -328,9 +298,8 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
 
 # ---------------------------------------------------------------------------- stage 2b
 def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = None):
-    """BOTO critic training on D_offline u D_warmup, each member with its own alpha, its own
-    D_warmup and its batches from its online seed (botorl.boto.phase.train_boto, the loop
-    run_boto runs, with this run's logs and checkpoints)."""
+    """BOTO critic training on D_offline u D_warmup, each member with its own alpha and
+    D_warmup (botorl.boto.phase.train_boto with this run's logs and checkpoints)."""
     cfg, bc = ctx.cfg, ctx.cfg.boto
     start = 0
     if resume is not None:
@@ -354,12 +323,9 @@ def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = Non
 
 # ---------------------------------------------------------------------------- stage 3
 def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = None):
-    """Online learning, from the online step after the warm-up (0 for methods without one) to
-    ``online.steps``: one online axis for every method, the warm-up's env steps counted (WSRL).
-    Evaluates when it starts, every ``eval.interval`` steps (and the dense dip window's points)
-    and at the end. Everything but the agents that decides what comes next is the
-    ``OnlineState`` (pipeline/online.py: the members' envs stepped in lockstep, one replay
-    buffer with a member axis, one batched UTD update), saved and restored whole."""
+    """Online learning from the step after the warm-up to ``online.steps`` (the warm-up's env
+    steps counted, as WSRL), evaluating at its start, at ``eval.due`` points and at the end;
+    what decides the future besides the agents is the ``OnlineState`` (online.py)."""
     cfg, oc = ctx.cfg, ctx.cfg.online
     agents = start_finetuning(ctx, agents)
     state = OnlineState(ctx, d_warmups, resume)

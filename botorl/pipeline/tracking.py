@@ -1,12 +1,6 @@
-"""Weights & Biases (``--wandb``): one W&B run per run directory (docs/running.md lists the fields).
-
-The id is ``botorl-<sha256 of the directory's resolved path>``, so ``/a/boto/seed0`` and
-``/b/wsrl/seed0`` stay two runs and ``botorl resume`` continues the same one; the group
-``TASK/METHOD[/alpha+A.AA]`` holds a population's members and a sweep cell's seeds. W&B is
-optional: ``--wandb`` without it (or older than ``MIN_VERSION``, which the members' runs in one
-process need: ``reinit="create_new"``) fails before any work with exit 2; a W&B that fails or
-does not answer within $BOTORL_WANDB_TIMEOUT seconds (default 120) is turned off with a
-warning, not the run.
+"""Weights & Biases (``--wandb``): one W&B run per run directory (docs/running.md, "Logging",
+lists the fields). A W&B that fails or does not answer within $BOTORL_WANDB_TIMEOUT seconds
+is turned off with a warning, not the run.
 """
 
 from __future__ import annotations
