@@ -6,10 +6,8 @@ program, ``flops.jaxpr_flops``; XLA's cost analysis beside it) and its share of 
 matmul peak measured in the same run. Then env steps/s of the online loop (UTD 4, 10
 critics) and its ratio to the online update alone (``online_loop_efficiency``).
 
-Noise: the machine is shared, so every number that is compared is measured in the same
-run, repeats are interleaved (round r times every botorl workload and then its d3rlpy twin
-before round r + 1 starts), and each figure is the median over rounds. The load average
-at start and end is in the JSON.
+Noise: every number compared is measured in the same run, rounds interleaved (round r times
+every workload and its d3rlpy twin before round r + 1), each figure the median over rounds.
 """
 
 from __future__ import annotations
@@ -121,7 +119,11 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
     bound: dict[str, wl.Bound] = {}
     calls: dict[str, int] = {}
     for w in chosen:
-        row = rows[w.name] = {"label": w.label, "note": w.note, "shapes": _shapes(w),
+        shapes = {"num_critics": w.num_critics, "critic_hidden": list(w.critic_hidden),
+                  "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim,
+                  "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples,
+                  "updates_per_call": w.scan_k}
+        row = rows[w.name] = {"label": w.label, "note": w.note, "shapes": shapes,
                               "botorl_updates_per_s": None, "d3rlpy_updates_per_s": None,
                               "ratio": None, "gflops": None, "peak_fraction": None,
                               "flops_per_update": None, "flops_per_update_xla": None,
@@ -209,13 +211,6 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
     }
 
 
-def _shapes(w: wl.Workload) -> dict[str, Any]:
-    return {"num_critics": w.num_critics, "critic_hidden": list(w.critic_hidden),
-            "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim,
-            "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples,
-            "updates_per_call": w.scan_k}
-
-
 def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, Any]:
     """The online loop and the same update alone, interleaved round by round."""
     import dataclasses
@@ -252,9 +247,6 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
             "online_loop_efficiency": _median(ratios)}
 
 
-# ------------------------------------------------------------------------ output
-
-
 def _fmt(x: Any, spec: str) -> str:
     return "-" if x is None else format(x, spec)
 
@@ -289,11 +281,6 @@ def format_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def write_json(result: dict[str, Any], path: str) -> None:
-    """Atomically (temp file + rename): an interrupted run leaves no half file."""
-    atomic_write_json(Path(path).expanduser(), result, exact=True)
-
-
 def main(argv: list[str] | None = None, twin: Callable[[BenchConfig], Any] | None = None,
          prog: str = "botorl bench") -> int:
     import tyro
@@ -309,6 +296,6 @@ def main(argv: list[str] | None = None, twin: Callable[[BenchConfig], Any] | Non
     result = run(cfg, twin)
     print(format_table(result))
     if cfg.json:
-        write_json(result, cfg.json)
+        atomic_write_json(Path(cfg.json).expanduser(), result, exact=True)
         print(f"wrote {cfg.json}")
     return 0
