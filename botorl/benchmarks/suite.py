@@ -177,10 +177,9 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
             rows[w.name]["d3rlpy_cpu_samples"] = list(same["d3rlpy_cpu_samples"])
             rows[w.name]["d3rlpy_same_as"] = w.d3rlpy_same_as
     for name, row in rows.items():
-        row["botorl_updates_per_s"] = _median(row["botorl_samples"])
-        row["d3rlpy_updates_per_s"] = _median(row["d3rlpy_samples"])
-        row["botorl_updates_per_cpu_s"] = _median(row["botorl_cpu_samples"])
-        row["d3rlpy_updates_per_cpu_s"] = _median(row["d3rlpy_cpu_samples"])
+        for side in ("botorl", "d3rlpy"):
+            row[f"{side}_updates_per_s"] = _median(row[f"{side}_samples"])
+            row[f"{side}_updates_per_cpu_s"] = _median(row[f"{side}_cpu_samples"])
         if row["botorl_updates_per_s"] and row["d3rlpy_updates_per_s"]:
             row["ratio"] = row["botorl_updates_per_s"] / row["d3rlpy_updates_per_s"]
             # Per round, then the median: both sides of a round met the same load.
@@ -281,6 +280,11 @@ def format_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def write_json(result: dict[str, Any], path: str) -> None:
+    """Atomically (temp file + rename): an interrupted run leaves no half file."""
+    atomic_write_json(Path(path).expanduser(), result, exact=True)
+
+
 def main(argv: list[str] | None = None, twin: Callable[[BenchConfig], Any] | None = None,
          prog: str = "botorl bench") -> int:
     import tyro
@@ -296,6 +300,6 @@ def main(argv: list[str] | None = None, twin: Callable[[BenchConfig], Any] | Non
     result = run(cfg, twin)
     print(format_table(result))
     if cfg.json:
-        atomic_write_json(Path(cfg.json).expanduser(), result, exact=True)
+        write_json(result, cfg.json)
         print(f"wrote {cfg.json}")
     return 0

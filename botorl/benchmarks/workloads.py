@@ -76,7 +76,6 @@ BOTO_STEPS_PER_CALL = 10
 
 @dataclass
 class Bound:
-    workload: Workload
     step: Callable[[int], None]
     flop_fn: Callable[..., Any]
     flop_args: tuple
@@ -107,7 +106,7 @@ def _bound(w: Workload, agent: Any, call: Callable, batch: Any, updates_per_call
         jax.block_until_ready(a)
         state["agent"] = a
 
-    return Bound(w, step, call, (agent, batch), updates_per_call)
+    return Bound(step, call, (agent, batch), updates_per_call)
 
 
 def build(w: Workload, seed: int = 0) -> Bound:

@@ -144,19 +144,10 @@ def _is_flag(key: str) -> bool:
     return cls is bool
 
 
-def flatten(d: Mapping, prefix: str = "") -> dict[str, Any]:
-    """``{"network": {"layer_norm": False}}`` -> ``{"network.layer_norm": False}``."""
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        if isinstance(v, Mapping):
-            out.update(flatten(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
 def flat_overrides(overrides: Mapping) -> dict[str, Any]:
     """``flatten``, where ``network__layer_norm`` also means ``network.layer_norm``."""
+    from botorl.configs.schema import flatten
+
     return {k.replace("__", "."): v for k, v in flatten(overrides).items()}
 
 

@@ -16,6 +16,7 @@ import dataclasses
 import math
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
 
@@ -26,7 +27,6 @@ from botorl.agents.cql import CQLConfig
 from botorl.agents.iql import IQLConfig
 from botorl.agents.sac import SACConfig
 from botorl.boto.config import BOTOConfig
-from botorl.configs.build import flatten
 
 
 @dataclass
@@ -217,13 +217,23 @@ class RunConfig:
         return int(np.random.SeedSequence([self.seed, self.online_reseed]).generate_state(1)[0] % 2**31)
 
 
-# ------------------------------------------------------------------ a run's identity
 # Fields that do not change what a run's checkpoints hold: where and how it logs, how updates
 # are chunked into jitted calls (the same numbers either way), where its data and pre-training
 # are read from (a run directory moves between machines), the preset's name and evaluation.
 _NOT_STATE = ("out", "progress", "tensorboard", "wandb", "checkpoint_every", "seeds", "alphas", "pretrained", "profile",
               "seed", "alpha", "data.path", "data.demos", "offline.updates_per_call", "offline.sample_on_device",
               "boto.steps_per_call")
+
+
+def flatten(d: Mapping, prefix: str = "") -> dict[str, Any]:
+    """``{"network": {"layer_norm": False}}`` -> ``{"network.layer_norm": False}``."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping):
+            out.update(flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
 
 
 def _digest(fields: dict[str, Any]) -> str:
@@ -244,7 +254,6 @@ def run_identity(cfg: "RunConfig") -> dict[str, Any]:
             "seed": cfg.seed, "alpha": cfg.alpha, "config": _digest(flat)}
 
 
-# ------------------------------------------------------------------ dict round trip
 def to_dict(cfg: Any) -> Any:
     if dataclasses.is_dataclass(cfg):
         return {f.name: to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}

@@ -309,14 +309,13 @@ def build_grid(
 
     f = file_fields or {}
     grid = Grid(
-        tasks=[str(t) for t in _as_list(tasks if tasks is not None else f.get("tasks"), "tasks")],
+        tasks=list(dict.fromkeys(str(t) for t in _as_list(tasks if tasks is not None else f.get("tasks"), "tasks"))),
         methods=parse_methods(methods if methods is not None else f.get("methods")),
         seeds=parse_seeds(seeds if seeds is not None else f.get("seeds")),
         alphas=parse_alphas(alphas if alphas is not None else f.get("alphas"), "alphas"),
         overrides={**parse_overrides(f.get("overrides")), **parse_overrides(overrides)},
         profile=profile if profile is not None else f.get("profile"),
     )
-    grid.tasks = list(dict.fromkeys(grid.tasks))
     grid.validate()
     return grid
 

@@ -504,6 +504,7 @@ def make_report(
     if not (isinstance(dip_window, (int, float)) and math.isfinite(dip_window) and dip_window > 0):
         raise ConfigError(f"--dip-window must be a positive number of online env steps, got {dip_window!r}.")
     runs, skipped = find_runs(dirs)
+    boot = dict(n_boot=n_boot, confidence=confidence, seed=seed)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -513,7 +514,7 @@ def make_report(
     files: list[Path] = []
     notes: list[str] = []
     dips, no_dip = dips_of(runs, dip_window)
-    dip_cells = dip_table(dips, n_boot=n_boot, confidence=confidence, seed=seed)
+    dip_cells = dip_table(dips, **boot)
     short = sorted({d.run.path for d in dips if d.run.steps[-1] < dip_window})
     if short:
         notes.append(
@@ -524,17 +525,16 @@ def make_report(
     if off:  # a task of one's own whose env reports no success (docs/own-task.md)
         notes.append(f"success is off on {', '.join(off)}: the env's info has no success key, so every success rate "
                      f"there is 0 and says nothing")
-    cells = table1(runs, n_boot=n_boot, confidence=confidence, seed=seed, dips=dip_cells)
+    cells = table1(runs, **boot, dips=dip_cells)
     pairs, pair_notes = find_pairs(runs, window=dip_window, relative_to=out)
     pairs = merge_pairs(pairs, extra_pairs)
     notes += pair_notes
     paired_md: list[str] = []
     paired_cells: list[PairedCell] = []
     if pairs:
-        paired_files, paired_md, paired_cells = write_paired(pairs, out, n_boot=n_boot, confidence=confidence,
-                                                             seed=seed)
+        paired_files, paired_md, paired_cells = write_paired(pairs, out, **boot)
         files += paired_files
-    aggs, agg_notes = aggregate_iqm(runs, n_boot=n_boot, confidence=confidence, seed=seed)
+    aggs, agg_notes = aggregate_iqm(runs, **boot)
     notes += agg_notes
     for (task, label, alpha), group in sorted(group_by(runs, lambda r: r.key).items(), key=lambda kv: str(kv[0])):
         seeds = [r.seed for r in group]
@@ -567,8 +567,7 @@ def make_report(
         notes.append("no finished runs: no figures")
     selection: AlphaSelection | None
     try:
-        selection = select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds,
-                                 n_boot=n_boot, confidence=confidence, seed=seed)
+        selection = select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **boot)
     except BotorlError as err:
         selection = None
         notes.append(f"no held-out alpha selection: {err}")

@@ -17,7 +17,6 @@ from typing import Any, Iterable
 import numpy as np
 
 from botorl.errors import BotorlError
-from botorl.configs.build import flatten
 from botorl.configs.methods import METHODS
 from botorl.io import CSV_LIMIT, JSON_LIMIT, read_bounded
 
@@ -99,6 +98,8 @@ _SAME_METHOD = {"seed", "alpha", "out", "pretrained", "progress", "tensorboard",
 
 
 def _settings(config: dict) -> dict[str, Any]:
+    from botorl.configs.schema import flatten
+
     return {k: json.dumps(v, sort_keys=True) for k, v in flatten(config).items()
             if k not in _SAME_METHOD and not k.endswith("log_every")}
 
