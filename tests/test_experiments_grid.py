@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from botorl.configs.members import parse_alphas
 from botorl.errors import BotorlError, ConfigError
 from botorl.experiments import grid as G
 from botorl.experiments.cli import _gather_set, sweep_main
@@ -13,17 +14,17 @@ def test_parse_pieces():
     assert G.parse_seeds("0-4") == [0, 1, 2, 3, 4]
     assert G.parse_seeds("0-2,7") == [0, 1, 2, 7]
     assert G.parse_seeds([3, 1]) == [1, 3]
-    alphas = G.parse_alphas("-1:1:0.1")
+    alphas = parse_alphas("-1:1:0.1", "alphas")
     assert len(alphas) == 21 and alphas[0] == -1.0 and alphas[-1] == 1.0 and alphas[10] == 0.0
     assert alphas[7] == -0.3  # rounded, not -0.30000000000000004
-    assert G.parse_alphas("0.5,-0.3") == [0.5, -0.3]
+    assert parse_alphas("0.5,-0.3", "alphas") == [0.5, -0.3]
     assert G.parse_methods("boto,wsrl,boto-cql,boto+iql") == [
         ("boto", None), ("wsrl", None), ("boto", "cql"), ("boto", "iql")]
     assert G.parse_overrides(["online.steps=2000", "eval.episodes=-1"]) == {
         "online.steps": "2000", "eval.episodes": "-1"}
     assert G.parse_overrides({"online": {"steps": 2000, "sac": {"utd": 4}}, "x": True}) == {
         "online.steps": "2000", "online.sac.utd": "4", "x": "True"}
-    for bad in (lambda: G.parse_seeds("a-b"), lambda: G.parse_alphas("-2:1:0.5"),
+    for bad in (lambda: G.parse_seeds("a-b"), lambda: parse_alphas("-2:1:0.5", "alphas"),
                 lambda: G.parse_methods("sac"), lambda: G.parse_methods("wsrl-cql"),
                 lambda: G.parse_overrides(["online.steps"])):
         with pytest.raises(ConfigError):

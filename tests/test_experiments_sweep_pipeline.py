@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from botorl.experiments.cli import report_main, sweep_main
-from botorl.experiments.backend_local import mentions as _mentions
+from botorl.experiments.backend_local import cmdline
 
 TASKS = "pointmaze-umaze,pointmaze-medium"
 COMMON = ["--profile", "smoke", "--no-progress"]
@@ -44,6 +44,24 @@ def finished_runs(out: Path) -> dict[Path, int]:
 
 def attempts(run_dir: Path) -> int:
     return (run_dir / "sweep-trial.log").read_text().count("===== botorl sweep: attempt")
+
+
+def _mentions(pid: int, needle: str) -> bool:
+    """The command line or an open file of `pid` contains `needle` (Ray's daemons rename
+    their process title, but keep their log files under the instance's temp dir open)."""
+    if needle in cmdline(pid):
+        return True
+    try:
+        fds = list(Path(f"/proc/{pid}/fd").iterdir())
+    except OSError:
+        return False
+    for fd in fds:
+        try:
+            if needle in os.readlink(fd):
+                return True
+        except OSError:
+            continue
+    return False
 
 
 def processes_in(out: Path) -> list[int]:

@@ -1,20 +1,10 @@
-"""FLOP counts of jitted functions, and the fp32 matmul peak they are compared with.
+"""FLOP counts of one call of a jitted function, and the fp32 matmul peak they are compared with.
 
-Two counts, both of one call of the function:
-
-- ``xla``: ``jax.jit(f).lower(...).compile().cost_analysis()["flops"]``, what XLA's
-  HloCostAnalysis says of the optimised program. It counts the body of a ``while`` loop
-  once, whatever the trip count, so it undercounts ``lax.scan`` (K updates per call).
-- ``jaxpr``: our own count from the traced program (``jax.make_jaxpr``). ``dot_general``
-  costs ``2 * prod(batch) * M * N * K``; each elementwise or reduction op costs one FLOP
-  per element it reads or writes (as XLA counts them; transcendentals such as exp/log/tanh
-  are not FLOPs, as XLA counts them apart); the body of a ``scan`` counts ``length`` times, the
-  dearer branch of a ``cond`` once. Gradients are explicit in the traced program, so the
-  backward pass is counted.
-
-The benchmark reports ``jaxpr`` (it is right for scans); ``xla`` is kept beside it as a
-cross-check on loop-free functions, where the two agree on the matmul part (which is >90%
-of an update of 256-wide networks).
+``jaxpr_flops`` counts the traced program: ``dot_general`` costs ``2 * prod(batch) * M * N * K``,
+an elementwise or reduction op one FLOP per element (transcendentals none, as XLA counts them
+apart), a ``scan`` body ``length`` times, the dearer branch of a ``cond``; the backward pass is in
+the trace. ``xla_flops`` (XLA's cost analysis) counts a ``while`` body once, so it undercounts
+scans; the benchmark keeps it as a cross-check (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -120,12 +110,8 @@ def xla_flops(fn: Callable, *args: Any, **kwargs: Any) -> float:
 
 
 def matmul_peak_gflops(n: int = 1024, repeats: int = 7, calls: int = 4) -> float:
-    """Best-of-repeats fp32 GFLOP/s of a jitted ``(n, n) @ (n, n)`` on the default device.
-
-    Uses all the threads XLA uses for the updates (the 2 cores here), so an update's
-    ``gflops / peak`` is its share of what this machine does at best, measured in the same
-    run under the same load.
-    """
+    """Best-of-repeats fp32 GFLOP/s of a jitted ``(n, n) @ (n, n)`` on the default device, with
+    the threads the updates use: an update's ``gflops / peak`` is its share of the machine's best."""
     key = jax.random.PRNGKey(0)
     a = jax.random.normal(key, (n, n), jnp.float32)
     b = jax.random.normal(jax.random.fold_in(key, 1), (n, n), jnp.float32)

@@ -1,13 +1,7 @@
-"""Env steps per second of the whole online loop: act, step, insert, update (UTD 4).
-
-The loop timed is fine-tuning's own: ``OnlineLoop.run(n)`` calls
-``botorl.pipeline.online.OnlineState.advance`` n times, the body of the fine-tuning stage's
-loop (one policy call, the real task env steps, the transition goes into the real replay
-buffer, a batch of ``utd * batch`` rows is drawn and the agent's update does utd critic steps
-+ 1 actor + 1 temperature step), for a single run (a population of one) of WSRL's learner.
-``online_loop_efficiency`` = (env steps/s of this loop) / (updates/s of the same update
-alone, measured in the same run): 1.0 means acting, stepping, inserting and sampling cost
-nothing beside the update.
+"""Env steps per second of the whole online loop: fine-tuning's own body
+(``pipeline.online.OnlineState.advance``: act, env step, insert, sample, UTD-4 update) for one
+run of WSRL's learner. ``online_loop_efficiency`` = its env steps/s over the update alone's
+updates/s in the same run: 1.0 means everything beside the update costs nothing.
 """
 
 from __future__ import annotations

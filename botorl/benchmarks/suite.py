@@ -6,10 +6,8 @@ program, ``flops.jaxpr_flops``; XLA's cost analysis beside it) and its share of 
 matmul peak measured in the same run. Then env steps/s of the online loop (UTD 4, 10
 critics) and its ratio to the online update alone (``online_loop_efficiency``).
 
-Noise: the machine is shared, so every number that is compared is measured in the same
-run, repeats are interleaved (round r times every botorl workload and then its d3rlpy twin
-before round r + 1 starts), and each figure is the median over rounds. The load average
-at start and end is in the JSON.
+Noise: every number compared is measured in the same run, rounds interleaved (round r times
+every workload and its d3rlpy twin before round r + 1), each figure the median over rounds.
 """
 
 from __future__ import annotations
@@ -121,7 +119,11 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
     bound: dict[str, wl.Bound] = {}
     calls: dict[str, int] = {}
     for w in chosen:
-        row = rows[w.name] = {"label": w.label, "note": w.note, "shapes": _shapes(w),
+        shapes = {"num_critics": w.num_critics, "critic_hidden": list(w.critic_hidden),
+                  "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim,
+                  "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples,
+                  "updates_per_call": w.scan_k}
+        row = rows[w.name] = {"label": w.label, "note": w.note, "shapes": shapes,
                               "botorl_updates_per_s": None, "d3rlpy_updates_per_s": None,
                               "ratio": None, "gflops": None, "peak_fraction": None,
                               "flops_per_update": None, "flops_per_update_xla": None,
@@ -175,10 +177,9 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
             rows[w.name]["d3rlpy_cpu_samples"] = list(same["d3rlpy_cpu_samples"])
             rows[w.name]["d3rlpy_same_as"] = w.d3rlpy_same_as
     for name, row in rows.items():
-        row["botorl_updates_per_s"] = _median(row["botorl_samples"])
-        row["d3rlpy_updates_per_s"] = _median(row["d3rlpy_samples"])
-        row["botorl_updates_per_cpu_s"] = _median(row["botorl_cpu_samples"])
-        row["d3rlpy_updates_per_cpu_s"] = _median(row["d3rlpy_cpu_samples"])
+        for side in ("botorl", "d3rlpy"):
+            row[f"{side}_updates_per_s"] = _median(row[f"{side}_samples"])
+            row[f"{side}_updates_per_cpu_s"] = _median(row[f"{side}_cpu_samples"])
         if row["botorl_updates_per_s"] and row["d3rlpy_updates_per_s"]:
             row["ratio"] = row["botorl_updates_per_s"] / row["d3rlpy_updates_per_s"]
             # Per round, then the median: both sides of a round met the same load.
@@ -207,13 +208,6 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
         "online_loop": loop,
         "online_loop_efficiency": None if loop is None else loop["online_loop_efficiency"],
     }
-
-
-def _shapes(w: wl.Workload) -> dict[str, Any]:
-    return {"num_critics": w.num_critics, "critic_hidden": list(w.critic_hidden),
-            "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim,
-            "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples,
-            "updates_per_call": w.scan_k}
 
 
 def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, Any]:
@@ -250,9 +244,6 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
             "env_steps_per_s": _median(loop_rates), "samples": loop_rates,
             "update_alone_per_s": _median(alone_rates), "update_alone_samples": alone_rates,
             "online_loop_efficiency": _median(ratios)}
-
-
-# ------------------------------------------------------------------------ output
 
 
 def _fmt(x: Any, spec: str) -> str:

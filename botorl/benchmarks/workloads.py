@@ -1,15 +1,7 @@
-"""The named updates the benchmark times, built on botorl's real agents.
-
-Each ``Workload`` is one kind of update at fixed shapes, with the matching d3rlpy update
-(``d3rlpy_algo``; benchmarks/against_d3rlpy.py times it) where d3rlpy has one. Sizes are the reference
-ones of docs/methods.md: 2 critics of (256, 256) for offline pre-training as in the
-d3rlpy reference figures; WSRL's 10 critics of 4 x 256 (antmaze, obs 29 / action 8) for the
-online SAC step and BOTO; adroit's 3 x 512 critic / 2 x 512 actor (door: obs 39 /
-action 28) for one Cal-QL row. Batch 256 per critic step everywhere.
-
-A builder returns a ``Bound`` workload: ``step(n)`` runs n updates (chained: each on the
-agent the previous one returned, as training does) and blocks until done; ``flop_fn`` and
-``flop_args`` give one update to the FLOP counter.
+"""The named updates the benchmark times, built on botorl's real agents, each with the matching
+d3rlpy update (``d3rlpy_algo``, timed by benchmarks/against_d3rlpy.py) where d3rlpy has one.
+Sizes are the reference ones of docs/methods.md (table: docs/performance.md). A ``Bound``
+workload's ``step(n)`` runs n chained updates and blocks; ``flop_fn(*flop_args)`` is one call.
 """
 
 from __future__ import annotations
@@ -79,11 +71,11 @@ WORKLOADS: dict[str, Workload] = {w.name: w for w in [
              obs_dim=39, action_dim=28, d3rlpy_algo="calql", note="door sizes"),
 ]}
 QUICK = ("sac2", "calql", "online_utd4")
+BOTO_STEPS_PER_CALL = 10
 
 
 @dataclass
 class Bound:
-    workload: Workload
     step: Callable[[int], None]
     flop_fn: Callable[..., Any]
     flop_args: tuple
@@ -103,23 +95,18 @@ def make_batch(rows: int, obs_dim: int, action_dim: int, seed: int = 0, lead: tu
     return jax.device_put(batch)
 
 
-def _agent_step(agent: Any, batch: dict, scan_k: int = 1) -> tuple:
-    """(step, flop_fn, flop_args, updates_per_call) for plain updates or K per call."""
+def _bound(w: Workload, agent: Any, call: Callable, batch: Any, updates_per_call: int) -> Bound:
+    """``step(n)``: n calls of ``call(agent, batch)``, each on the agent the previous returned."""
     state = {"agent": agent}
-    if scan_k > 1:
-        batch = jax.tree_util.tree_map(lambda x: jax.numpy.stack([x] * scan_k), batch)
-        call = lambda a, b: a.update_many(b)  # noqa: E731
-    else:
-        call = lambda a, b: a.update(b)  # noqa: E731
 
     def step(n: int) -> None:
         a = state["agent"]
         for _ in range(n):
-            a, info = call(a, batch)
+            a, _ = call(a, batch)
         jax.block_until_ready(a)
         state["agent"] = a
 
-    return step, call, (agent, batch), scan_k
+    return Bound(step, call, (agent, batch), updates_per_call)
 
 
 def build(w: Workload, seed: int = 0) -> Bound:
@@ -131,7 +118,15 @@ def build(w: Workload, seed: int = 0) -> Bound:
     nets = dict(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden, num_critics=w.num_critics)
     rows = w.batch
     if w.algo == "boto":
-        return _build_boto(w, SACAgent.create(SACConfig(**nets, utd_ratio=1), w.obs_dim, w.action_dim, seed), seed)
+        # K critic steps per jitted call (lax.scan) as the BOTO phase runs them; the q_data /
+        # q_uniform forward passes once per call cost a few % of a step at K = 10
+        from botorl.boto.config import BOTOConfig
+        from botorl.boto.objective import ObjectiveSettings, boto_update_many
+
+        agent = SACAgent.create(SACConfig(**nets, utd_ratio=1), w.obs_dim, w.action_dim, seed)
+        settings = ObjectiveSettings.resolve(BOTOConfig(), agent)
+        batches = make_batch(w.batch, w.obs_dim, w.action_dim, seed, lead=(BOTO_STEPS_PER_CALL,))
+        return _bound(w, agent, lambda a, b: boto_update_many(a, b, 0.5, settings), batches, BOTO_STEPS_PER_CALL)
     if w.algo in ("sac", "online"):
         agent = SACAgent.create(SACConfig(**nets, utd_ratio=w.utd), w.obs_dim, w.action_dim, seed)
         rows = w.batch * w.utd
@@ -144,31 +139,9 @@ def build(w: Workload, seed: int = 0) -> Bound:
         agent = IQLAgent.create(IQLConfig(**nets, value_hidden_dims=w.critic_hidden), w.obs_dim, w.action_dim, seed)
     else:
         raise ValueError(f"unknown workload algo {w.algo!r}")
-    return Bound(w, *_agent_step(agent, make_batch(rows, w.obs_dim, w.action_dim, seed), w.scan_k))
+    batch = make_batch(rows, w.obs_dim, w.action_dim, seed)
+    if w.scan_k == 1:
+        return _bound(w, agent, lambda a, b: a.update(b), batch, 1)
+    batch = jax.tree_util.tree_map(lambda x: jax.numpy.stack([x] * w.scan_k), batch)
+    return _bound(w, agent, lambda a, b: a.update_many(b), batch, w.scan_k)
 
-
-BOTO_STEPS_PER_CALL = 10
-
-
-def _build_boto(w: Workload, agent: Any, seed: int) -> Bound:
-    """BOTO critic steps as the BOTO phase runs them: K steps per jitted call (lax.scan).
-
-    ``boto_update_many`` also computes q_data/q_uniform once per call (two forward passes);
-    with K = 10 that is a few % of a step. The phase itself uses steps_per_call = 1,000.
-    """
-    from botorl.boto.config import BOTOConfig
-    from botorl.boto.objective import ObjectiveSettings, boto_update_many
-
-    settings = ObjectiveSettings.resolve(BOTOConfig(), agent)
-    k = BOTO_STEPS_PER_CALL
-    batches = make_batch(w.batch, w.obs_dim, w.action_dim, seed, lead=(k,))
-    state = {"agent": agent}
-
-    def step(n: int) -> None:
-        a = state["agent"]
-        for _ in range(n):
-            a, _ = boto_update_many(a, batches, 0.5, settings)
-        jax.block_until_ready(a)
-        state["agent"] = a
-
-    return Bound(w, step, lambda a, b: boto_update_many(a, b, 0.5, settings), (agent, batches), updates_per_call=k)

@@ -1,10 +1,7 @@
-"""Preset + command line -> a resolved, validated ``RunConfig`` (``botorl run``'s arguments).
-
-``build_config`` first reads --task, --method, --profile and --pretrain to pick the preset
-(botorl/configs/presets.py), then tyro parses every argument over it, so any field of the
-config can be set as ``--<dotted.path> VALUE``; ``resolve`` and ``validate`` follow, so a bad
-configuration is a ConfigError before any work. ``make_config`` makes the same config from
-field values (a sweep's trials); ``--config FILE`` reads back one it wrote.
+"""Preset + command line -> a resolved, validated ``RunConfig`` (``botorl run``'s arguments):
+--task, --method, --profile and --pretrain pick the preset, tyro parses every argument over it,
+then ``resolve`` and ``validate``. ``make_config`` makes the same config from field values (a
+sweep's trials); ``--config FILE`` reads back one it wrote.
 """
 
 from __future__ import annotations
@@ -73,10 +70,9 @@ def _pre_parse(argv: list[str]) -> argparse.Namespace:
 
 
 def make_config(overrides: Mapping | None = None, **fields: Any):
-    """The config of `botorl run` with ``fields`` (task, method, profile, pretrain, seed, alpha,
-    seeds, alphas; None: the preset's) and then ``overrides`` ({dotted.path: value}): each value
-    becomes the flag that sets it (``override_args``), so every config is made the one way, with
-    `botorl run`'s checks and tyro's reading of each field."""
+    """The config of `botorl run` with ``fields`` (None: the preset's) and then ``overrides``
+    ({dotted.path: value}), each value made the flag that sets it, so every config is made the
+    one way, with `botorl run`'s checks."""
     given = {k: v for k, v in fields.items() if v is not None}
     return build_config(override_args(given) + override_args(overrides or {}))
 
@@ -116,25 +112,19 @@ def build_config(argv: list[str]):
         "--env-max-steps N [--success-key K] (the docs' Your own task page). --config FILE [--out DIR] runs "
         "the config `botorl sweep` wrote for a trial.",
     )
-    _check_population_flags(argv, cfg)
+    if cfg.seeds is not None and _given(argv, "--seed"):
+        raise ConfigError("--seed and --seeds are both given; a population takes --seeds (e.g. --seeds 0-7) only.")
+    if cfg.alphas is not None and _given(argv, "--alpha"):
+        raise ConfigError("--alpha and --alphas are both given; a population takes --alphas (e.g. --alphas -1:1:0.25) only.")
     cfg = resolve(cfg)
     validate(cfg)
     return cfg
 
 
-# ------------------------------------------------------------------ a population's command line
 def _given(argv: list[str], flag: str) -> bool:
     return any(a.split("=", 1)[0] == flag for a in argv)
 
 
-def _check_population_flags(argv: list[str], cfg) -> None:
-    if cfg.seeds is not None and _given(argv, "--seed"):
-        raise ConfigError("--seed and --seeds are both given; a population takes --seeds (e.g. --seeds 0-7) only.")
-    if cfg.alphas is not None and _given(argv, "--alpha"):
-        raise ConfigError("--alpha and --alphas are both given; a population takes --alphas (e.g. --alphas -1:1:0.25) only.")
-
-
-# ------------------------------------------------------------------ field values as flags
 def _is_flag(key: str) -> bool:
     """Whether ``key`` (a dotted path) is a plain bool field, which tyro makes a flag pair
     (``bool | None`` fields take a value)."""
@@ -154,22 +144,16 @@ def _is_flag(key: str) -> bool:
     return cls is bool
 
 
-def flat_overrides(overrides: Mapping, prefix: str = "") -> dict[str, Any]:
-    """``{"network": {"layer_norm": False}}`` (or ``network__layer_norm=False``) -> ``{"network.layer_norm": False}``."""
-    out: dict[str, Any] = {}
-    for k, v in overrides.items():
-        key = prefix + str(k).replace("__", ".")
-        if isinstance(v, Mapping):
-            out.update(flat_overrides(v, key + "."))
-        else:
-            out[key] = v
-    return out
+def flat_overrides(overrides: Mapping) -> dict[str, Any]:
+    """``flatten``, where ``network__layer_norm`` also means ``network.layer_norm``."""
+    from botorl.configs.schema import flatten
+
+    return {k.replace("__", "."): v for k, v in flatten(overrides).items()}
 
 
 def override_args(overrides: Mapping) -> list[str]:
-    """``{"online.steps": 5000, "network": {"layer_norm": False}}`` (or ``online__steps=5000``) ->
-    the command line's ``--online.steps 5000 --network.no-layer-norm``; a value may be the command
-    line's text too ("False", "-0.5")."""
+    """``{"online.steps": 5000, "network": {"layer_norm": False}}`` -> ``--online.steps 5000
+    --network.no-layer-norm``; a value may be the command line's text too ("False", "-0.5")."""
     argv: list[str] = []
     for key, v in flat_overrides(overrides).items():
         text = "None" if v is None else str(v)
@@ -183,10 +167,9 @@ def override_args(overrides: Mapping) -> list[str]:
     return argv
 
 
-# ------------------------------------------------------------------ botorl run --config FILE
 def _load_config(argv: list[str]):
-    """The config in FILE as botorl wrote it (`botorl sweep`, for each trial), with the run's own
-    --out, --pretrained and --no-progress; validated again."""
+    """The config in FILE as `botorl sweep` wrote it, with the run's own --out, --pretrained and
+    --no-progress; validated again."""
     from dataclasses import replace
 
     from botorl.configs.resolve import validate

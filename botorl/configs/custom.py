@@ -1,11 +1,7 @@
-"""A task of the user's own in a run's config: ``botorl run --env MODULE:FUNCTION ...`` on the
-command line, and the same task found again when a run directory is read back.
-
-``expand_argv`` takes the task's flags out of ``botorl run``'s arguments, registers the task
-(imports the entry point, looks at its env) and names it with ``--task``; the preset then records
-it in the config's ``env`` section (``presets.env_record``). ``ensure_task(cfg)`` (called by
-``validate``, so by resume, eval and populations alike) registers a recorded task again from its
-entry point, by name, and checks that its env still is what the run was trained on.
+"""A task of the user's own in a run's config (docs/own-task.md): ``expand_argv`` registers the
+task of ``botorl run --env MODULE:FUNCTION ...`` and names it with ``--task``; ``ensure_task``
+(called by ``validate``) registers a recorded one again by name when a run directory is read
+back, and checks that its env is still the one the run was trained on.
 """
 
 from __future__ import annotations

@@ -1,10 +1,6 @@
-"""The members of a population: every (seed, alpha) pair of ``--seeds`` / ``--alphas``.
-
-One parser of seeds and of alphas for the population's config fields (``RunConfig.seeds``,
-``RunConfig.alphas``) and the sweep's grid (``parse_seeds``, ``parse_alphas``: a value given
-twice is an error), the ``Member`` and its run directory's name, and each member's
-``RunConfig`` (``population``, ``member_config``: the shared config with the member's seed and
-alpha, the only fields in which members differ).
+"""The members of a population: every (seed, alpha) pair of ``--seeds`` / ``--alphas``; the one
+parser of seeds and alphas (the population's fields and the sweep's grid alike), and each
+member's config: the shared one with its own seed and alpha, the only fields members differ in.
 """
 
 from __future__ import annotations
@@ -20,10 +16,8 @@ from botorl.configs.methods import get_method
 from botorl.errors import ConfigError
 
 
-# The most seeds, alphas or members one population (or one sweep's grid axis) may have: far more
-# than any study needs, and few enough that the lists are built before any size is known
-# (`--seeds 0-2147483648` is refused, not a MemoryError). The memory a population needs is
-# checked against the machine later (pipeline/population.py).
+# The most seeds, alphas or members of a population (or a sweep's grid axis): far more than a
+# study needs, few enough to build the lists (`--seeds 0-2147483648` is refused, not a MemoryError).
 MAX_MEMBERS = 10_000
 SEED_LIMIT = 2**31  # NumPy's and JAX's seeds: [0, 2**31)
 
@@ -72,8 +66,8 @@ def _no_repeats(values: list, value, flag: str) -> None:
 
 
 def parse_seeds(value, flag: str = "--seeds") -> list[int]:
-    """``"0-7"`` (inclusive), ``"0,2,5"``, ``"0-2,7"``, a number or a list, in the order given (the
-    population's and the sweep's parser alike); a seed given twice is an error."""
+    """``"0-7"`` (inclusive), ``"0,2,5"``, ``"0-2,7"``, a number or a list, in the order given; a
+    seed given twice is an error."""
     seeds: list[int] = []
     for item in _items(value, flag):
         try:
@@ -137,14 +131,8 @@ def make_members(seeds: Sequence[int], alphas: Sequence[float | None], method_us
                           f"most {MAX_MEMBERS:,} are allowed. Give fewer --seeds or --alphas.")
     if not method_uses_alpha and any(a is not None for a in alphas):
         raise ConfigError("--alphas sets BOTO's bias controller; this method has no BOTO phase. Drop --alphas or use --method boto.")
-    members = [Member(int(s), None if a is None else float(a)) for a in alphas for s in seeds]
-    if not members:
-        raise ConfigError("the population is empty; give at least one seed (--seeds).")
-    names = [m.name for m in members]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise ConfigError(f"members {dup} appear twice in the population; give each seed and alpha once.")
-    return members
+    # never empty nor repeated: parse_seeds and parse_alphas refuse both
+    return [Member(int(s), None if a is None else float(a)) for a in alphas for s in seeds]
 
 
 def member_config(cfg, seed: int, alpha: float | None, out: str | os.PathLike | None = None):

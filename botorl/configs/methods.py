@@ -1,17 +1,7 @@
-"""Methods by name: which stages each runs, and how its fine-tuning starts and learns.
-
-One table (``METHODS``) maps a method to its stages (the stage functions are in
-botorl/pipeline/stages.py) and declares what fine-tuning needs from it: how it starts
-(``finetune_start``: WSRL's warm start of a SAC learner from the pre-trained networks, the
-pre-trained agent continued with its own loss, or SAC from scratch), whether its batches may
-hold only rows of finished episodes (Cal-QL: a row's Monte-Carlo return is known once its
-episode ends) and their layout (``batch_layout``: one update on utd x batch rows split into
-utd critic minibatches, or IQL's utd separate updates of a batch each).
-
-The methods themselves, stage by stage: the docs' Methods page, "The methods".
-
-``pretrain`` picks the offline algorithm for boto and wsrl (calql by default); calql, cql and
-iql pre-train with themselves; rlpd has no pre-training.
+"""Methods by name (``METHODS``): the stages each runs (pipeline/stages.py) and what fine-tuning
+needs from it (how it starts, which rows its batches hold and their layout). The methods stage
+by stage: docs/methods.md. ``pretrain`` picks boto's and wsrl's offline algorithm (default
+calql); calql, cql and iql pre-train with themselves; rlpd has no pre-training.
 """
 
 from __future__ import annotations

@@ -81,10 +81,6 @@ _DEFAULT_PAPER = {"pointmaze": (-1.0, 100_000, -20.0), "adroit": (0.0, 100_000, 
                   "custom": (0.0, 100_000, -20.0)}
 
 
-def paper_domain(domain: str) -> str:
-    return _STANDS_IN.get(domain, domain)
-
-
 def paper_settings(spec) -> tuple[float, int, float]:
     """(alpha, boto_steps, log_sigma) of a task: the paper's (Table 2, B.1), ours for the others."""
     if spec.paper is not None:
@@ -100,7 +96,7 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     if profile not in PROFILES:
         raise ConfigError(f"unknown profile {profile!r} (--profile). Choose one of: {', '.join(PROFILES)}.")
     spec = get_task(task)
-    dom = paper_domain(spec.domain)
+    dom = _STANDS_IN.get(spec.domain, spec.domain)
     _, boto_steps, log_sigma = paper_settings(spec)
 
     net = NetworkConfig(
@@ -217,7 +213,7 @@ def _method_defaults(cfg: RunConfig, spec) -> RunConfig:
     m = cfg.method
     online = cfg.online
     network = cfg.network
-    dom = paper_domain(spec.domain)
+    dom = _STANDS_IN.get(spec.domain, spec.domain)
     if m in ("calql", "cql", "iql"):
         # Their own loss continued online, UTD 1, batch 256, with the networks of their own
         # papers as WSRL ran its Cal-QL/CQL baselines: 2 critics, no LayerNorm. Offline data

@@ -1,8 +1,5 @@
-"""Make a RunConfig consistent (``resolve``) and reject bad values (``validate``).
-
-Both run before any work: a bad configuration is a ``ConfigError`` (exit code 2) whose
-message names the field and says what to change.
-"""
+"""Make a RunConfig consistent (``resolve``) and reject bad values (``validate``) before any work:
+a ``ConfigError`` (exit code 2) that names the field and says what to change."""
 
 from __future__ import annotations
 

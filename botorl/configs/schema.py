@@ -1,19 +1,13 @@
 """The run configuration: typed nested dataclasses; tyro makes the CLI from them.
 
-Every field can be set on the command line as ``--<dotted.path> VALUE``, e.g.
-``--online.steps 2000``, ``--offline.cql.cql_weight 1.0``, ``--boto.log_sigma -30``,
-``--network.critic_hidden_dims 64 64``. The preset of the task and profile gives the
-defaults (presets.py); ``resolve`` then makes the config consistent (below) and
-``validate`` rejects bad values before any work.
+Every field can be set as ``--<dotted.path> VALUE`` (``--online.steps 2000``,
+``--network.critic_hidden_dims 64 64``) over the preset of the task and profile (presets.py);
+``resolve`` makes the config consistent and ``validate`` rejects bad values before any work.
 
-One fact, one field. The network sizes and ensemble size (``network.*``), the UTD ratio
-(``online.utd``) and the CQL/Cal-QL switch (``pretrain``) are set here only: ``resolve``
-derives the agent configs' copies from them (``configs.resolve.DERIVED``) and the command line
-refuses ``--offline.cql.num-critics`` and the like, naming the flag to use. A run's seed
-(``seed``, with ``online_reseed`` for its online phase) and BOTO's ``alpha`` are top-level
-fields, stored there only; a population's are ``seeds`` and ``alphas`` (each member's config
-has its own ``seed`` and ``alpha``, configs/members.py). Everything else in the agent configs
-is theirs to set.
+One fact, one field: the network sizes (``network.*``), the UTD ratio (``online.utd``) and the
+CQL/Cal-QL switch (``pretrain``) are set here only; ``resolve`` derives the agent configs' copies
+(``configs.resolve.DERIVED``) and the command line refuses their flags. A run's ``seed`` and
+``alpha`` are top-level fields (a population's: ``seeds`` and ``alphas``, configs/members.py).
 """
 
 from __future__ import annotations
@@ -22,6 +16,7 @@ import dataclasses
 import math
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
 
@@ -39,9 +34,8 @@ class DataConfig:
     """Where the offline data come from."""
 
     path: str | None = None
-    """Dataset location for the task's loader: a Minari dataset folder or id (antmaze, kitchen),
-    the Cal-QL folder or ``expert.npy,bc.npy`` (adroit binary). None: the task's own (the
-    Minari id under $MINARI_DATASETS_PATH; generated tasks: botorl's cache, made when missing)."""
+    """Dataset for the task's loader: a Minari folder or id, the Cal-QL folder or
+    ``expert.npy,bc.npy`` (adroit binary); None: the task's own (generated tasks: botorl's cache)."""
     steps: int | None = None
     """Generated tasks only: dataset size in env steps (None: the generator's own size)."""
     seed: int = 0
@@ -55,17 +49,13 @@ class DataConfig:
 
 @dataclass
 class EnvConfig:
-    """A task of your own (``botorl run --env MODULE:FUNCTION``, ``botorl.register_task``;
-    the docs' "Your own task" page): what botorl needs to build it again on resume and eval, and what its env
-    is, recorded from the task when the run starts. Not set on the command line (``--env``,
-    ``--env-max-steps``, ``--success-key`` fill it); all None for botorl's own tasks."""
+    """A task of your own (docs/own-task.md), recorded when the run starts: what rebuilds it on
+    resume and eval, and what its env is. Filled by ``--env`` and friends; None for botorl's tasks."""
 
     entry: str | None = None
-    """MODULE:FUNCTION, imported again by name (never unpickled) on resume, eval and report; None for a
-    task whose make_env cannot be imported by name (defined in a script: the script registers it again)."""
+    """MODULE:FUNCTION, imported again by name (never unpickled); None: make_env was defined in a script."""
     path: str | None = None
-    """The folder ``entry``'s module was found in (the current folder of `botorl run`), put on sys.path
-    again to import it."""
+    """The folder ``entry``'s module was found in, put on sys.path again to import it."""
     max_steps: int | None = None
     """The episode length limit (--env-max-steps); None: botorl's own task."""
     success_key: str | None = None
@@ -92,8 +82,7 @@ class NetworkConfig:
     actor_hidden_dims: tuple[int, ...] = (256, 256)
     critic_hidden_dims: tuple[int, ...] = (256, 256, 256, 256)
     num_critics: int = 10
-    """Critic ensemble size, pre-training and fine-tuning alike (WSRL pre-trains with the
-    fine-tuning ensemble of 10, so every member carried over is a trained critic)."""
+    """Critic ensemble size, pre-training and fine-tuning alike (WSRL pre-trains with its 10)."""
     layer_norm: bool = True
     """LayerNorm after each hidden layer of actor and critic (WSRL/RLPD), whatever pre-trains them."""
 
@@ -132,16 +121,13 @@ class OnlineConfig:
     steps: int = 300_000
     """Online env steps (the paper's budget: 300k)."""
     batch_size: int = 256
-    """Rows per critic update; one env step's update uses utd x batch_size rows (WSRL: 4 x 256,
-    the actor on all 1,024)."""
+    """Rows per critic update; an env step's update uses utd x batch_size rows (the actor all)."""
     utd: int = 4
     """Critic updates per env step (WSRL/BOTO 4; Cal-QL/CQL/IQL baselines 1; RLPD 4 here)."""
     offline_ratio: float = 0.0
-    """Share of each batch drawn from D_offline (WSRL/BOTO: 0, the offline data are dropped;
-    baselines and RLPD: 0.5)."""
+    """Share of each batch drawn from D_offline (WSRL/BOTO: 0; baselines and RLPD: 0.5)."""
     random_steps: int = 0
-    """Env steps at the start with no updates, acting with the untrained policy (RLPD as WSRL
-    ran it: 5,000)."""
+    """Env steps of the untrained policy before the first update (RLPD as WSRL ran it: 5,000)."""
     log_every: int = 1_000
     sac: SACConfig = field(default_factory=SACConfig)
     """The SAC learner of the WSRL protocol (boto, wsrl, rlpd)."""
@@ -162,9 +148,8 @@ class EvalConfig:
     q_pairs: int = 1_000
     """Dataset (s, a) pairs for the q_data / q_uniform statistics."""
     dense_interval: int = 0
-    """Env steps between the extra evaluations of the dip window: every dense_interval steps
-    from the warm-up's end (warmup.steps, for every method, so all share the same points) to
-    dense_until; 0 = none (the quick profile: 500)."""
+    """Env steps between the extra evaluations of the dip window, from the warm-up's end (for
+    every method) to dense_until; 0 = none (the quick profile: 500)."""
     dense_until: int = 10_000
     """Last env step of the dense window (the paper's 'unlearning' step)."""
 
@@ -189,23 +174,20 @@ class RunConfig:
     method: Literal["boto", "wsrl", "calql", "cql", "iql", "rlpd"] = "boto"
     seed: int = 0
     online_reseed: int = 0
-    """0: the online phase (warm-up, BOTO's batches and noise, fine-tuning) draws from `seed`.
-    k > 0: from another seed made of (seed, k), the pre-training unchanged, so two runs from one
-    pre-training differ only online: the noise floor a paired comparison is read against."""
+    """k > 0: the online phase (warm-up, BOTO, fine-tuning) draws from a seed made of (seed, k),
+    the pre-training unchanged: the noise floor of a paired comparison. 0: from `seed`."""
     alpha: float | None = None
     """BOTO's bias controller in [-1, 1]; None = the preset's (the paper's per-task value)."""
     seeds: str | None = None
-    """A population: one member per seed, trained as one program: 0-7 (both ends included), 0,2,5
-    or 0-3,9 (configs/members.py); None: the one run of `seed`."""
+    """A population, one member per seed, trained as one program: 0-7 (inclusive), 0,2,5 or 0-3,9."""
     alphas: str | None = None
     """boto: one member per alpha (and seed): -1:1:0.5 (start:stop:step, stop included) or -1,0,1;
     None: `alpha`."""
     pretrain: Literal["calql", "cql", "iql"] | None = None
     """Offline algorithm of boto/wsrl (None: calql); calql/cql/iql use themselves; rlpd none."""
     pretrained: str | None = None
-    """Skip pre-training: start each member from the finished pre-training of the run under this
-    directory (a run, population or sweep) with the same seed and pre-training settings (e.g. WSRL
-    from the BOTO runs' pre-training; botorl/pipeline/shared_pretrain.py)."""
+    """Skip pre-training: start each member from a finished one under this directory (run,
+    population or sweep) with the same seed and pre-training settings."""
     profile: Literal["quick", "full", "smoke"] = "quick"
     out: str | None = None
     """Run directory; None: runs/<task>-<method>-s<seed>-<timestamp>."""
@@ -216,8 +198,7 @@ class RunConfig:
     progress: bool = True
     """tqdm progress bars."""
     checkpoint_every: int = 50_000
-    """Steps between checkpoints inside a stage (gradient steps offline/BOTO, env steps online);
-    every stage also checkpoints at its end."""
+    """Steps between checkpoints inside a stage (gradient or env steps); every stage ends with one."""
     data: DataConfig = field(default_factory=DataConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     offline: OfflineConfig = field(default_factory=OfflineConfig)
@@ -236,7 +217,6 @@ class RunConfig:
         return int(np.random.SeedSequence([self.seed, self.online_reseed]).generate_state(1)[0] % 2**31)
 
 
-# ------------------------------------------------------------------ a run's identity
 # Fields that do not change what a run's checkpoints hold: where and how it logs, how updates
 # are chunked into jitted calls (the same numbers either way), where its data and pre-training
 # are read from (a run directory moves between machines), the preset's name and evaluation.
@@ -245,11 +225,12 @@ _NOT_STATE = ("out", "progress", "tensorboard", "wandb", "checkpoint_every", "se
               "boto.steps_per_call")
 
 
-def _flat(d: dict, prefix: str = "") -> dict[str, Any]:
+def flatten(d: Mapping, prefix: str = "") -> dict[str, Any]:
+    """``{"network": {"layer_norm": False}}`` -> ``{"network.layer_norm": False}``."""
     out: dict[str, Any] = {}
     for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
+        if isinstance(v, Mapping):
+            out.update(flatten(v, f"{prefix}{k}."))
         else:
             out[f"{prefix}{k}"] = v
     return out
@@ -266,14 +247,13 @@ def run_identity(cfg: "RunConfig") -> dict[str, Any]:
     """What every checkpoint of the run ``cfg`` records, so that it is never read as another
     run's: task, method, pre-training (algorithm and a digest of the fields that shape it),
     seed, alpha, and a digest of every config field that shapes the saved state."""
-    flat = {k: v for k, v in _flat(to_dict(cfg)).items()
+    flat = {k: v for k, v in flatten(to_dict(cfg)).items()
             if k not in _NOT_STATE and not k.startswith(("eval.",)) and not k.endswith("log_every")}
     pre = {k: v for k, v in flat.items() if k.startswith(("data.", "network.", "offline."))}
     return {"task": cfg.task, "method": cfg.method, "pretrain": cfg.pretrain, "pretraining": _digest(pre),
             "seed": cfg.seed, "alpha": cfg.alpha, "config": _digest(flat)}
 
 
-# ------------------------------------------------------------------ dict round trip
 def to_dict(cfg: Any) -> Any:
     if dataclasses.is_dataclass(cfg):
         return {f.name: to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}

@@ -1,8 +1,8 @@
-"""The sweep's local backends: ``local`` runs ``--workers`` trial processes at once (default:
-one per usable core), each pinned to its own block of the cores (C // W of them; a worker
-with one core has XLA/BLAS limited to one thread, as a 1-core trial with many threads only
-adds context switches); ``sequential`` runs one trial at a time with the machine's full thread
-pools."""
+"""The sweep's local backends, ``local`` (``--workers`` trial processes, each pinned to its own
+block of the cores) and ``sequential`` (one trial at a time, the machine's full thread pools),
+and the process bookkeeping every backend shares (pid files, stopping what a sweep recorded).
+A worker with one core has BLAS/OpenMP limited to one thread: a 1-core trial with many threads
+only adds context switches."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from botorl.experiments.child import launcher
-from botorl.io import atomic_write_json, open_regular, read_json_bounded
+from botorl.io import JSON_LIMIT, atomic_write_json, open_regular, read_json_bounded
 
 ABORT_WAIT_S = 60.0  # a stopped trial's last update chunk and checkpoint; SLURM's default KillWait is 30 s
 TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan detection)
@@ -45,10 +45,6 @@ def single_thread_env(base: dict[str, str] | None = None) -> dict[str, str]:
     if extra:
         env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {extra}".strip()
     return env
-
-
-# ---------------------------------------------------------------------------------------------
-# Child processes
 
 
 def cmdline(pid: int) -> str:
@@ -136,15 +132,21 @@ def stop_recorded(records: Any, timeout: float = 10.0) -> int:
     return len(victims)
 
 
+def read_json(path: Path, limit: int = JSON_LIMIT) -> dict[str, Any] | None:
+    """The JSON object in ``path`` (a regular file of at most ``limit`` bytes), else None."""
+    try:
+        data = read_json_bounded(path, limit)
+        return data if isinstance(data, dict) else None
+    except (OSError, ValueError):
+        return None
+
+
 def stop_orphan(run_dir: Path, timeout: float = 15.0) -> bool:
     """Stop a trial process left from an earlier sweep of this directory (same host only): the
     process the trial's pid file records (pid and start time), if it still runs and still works
     on this directory."""
-    try:
-        info = read_json_bounded(Path(run_dir) / TRIAL_PID)
-    except (OSError, ValueError):
-        info = None
-    if not isinstance(info, dict) or info.get("host") != socket.gethostname():
+    info = read_json(Path(run_dir) / TRIAL_PID)
+    if info is None or info.get("host") != socket.gethostname():
         return False
     pid = recorded_alive(info)
     if pid is None or str(Path(run_dir).resolve()) not in cmdline(pid):
@@ -153,29 +155,22 @@ def stop_orphan(run_dir: Path, timeout: float = 15.0) -> bool:
     return True
 
 
-def mentions(pid: int, needle: str) -> bool:
-    """The command line or an open file of `pid` contains `needle` (Ray's daemons rename
-    their process title, but keep their log files under the instance's temp dir open)."""
-    if needle in cmdline(pid):
-        return True
-    try:
-        fds = list(Path(f"/proc/{pid}/fd").iterdir())
-    except OSError:
-        return False
-    for fd in fds:
-        try:
-            if needle in os.readlink(fd):
-                return True
-        except OSError:
-            continue
-    return False
-
-
 def usable_cores() -> list[int]:
     try:
         return sorted(os.sched_getaffinity(0))
     except AttributeError:
         return list(range(os.cpu_count() or 1))
+
+
+def spawn(cmd: list[str], log, run_dir, env: dict, cwd: str, block=None, **record) -> subprocess.Popen:
+    """``cmd`` started under the launcher (child.py) on the cores ``block``, its output appended to
+    ``log``, and its pid file (``TRIAL_PID``: pid, start time, host and ``record``) written."""
+    with os.fdopen(open_regular(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT), "ab") as logf:
+        proc = subprocess.Popen(launcher(cmd, os.getpid(), block), stdout=logf, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, env=env, cwd=cwd)
+    atomic_write_json(Path(run_dir) / TRIAL_PID, {"pid": proc.pid, "start": start_time(proc.pid),
+                                                  "host": socket.gethostname(), **record})
+    return proc
 
 
 class LocalBackend:
@@ -196,9 +191,7 @@ class LocalBackend:
 
     def core_block(self, slot: int) -> list[int]:
         """The cores of worker slot ``slot``: the sweep's cores split into one contiguous block
-        per worker, so W workers on C cores get C // W cores each (one when W >= C). Pinning
-        every worker to a single core instead left cores idle when W < C (one worker on a
-        2-core machine used one core)."""
+        per worker, so W workers on C cores get C // W cores each (one when W >= C)."""
         cores = usable_cores()
         w = min(self.workers(), len(cores))
         k = slot % w
@@ -210,12 +203,8 @@ class LocalBackend:
         block = self.core_block(slot) if (slot is not None and self.pinned) else None
         # "cpu": the one core of a single-core block (the manifest's field before blocks), else None
         cpu = block[0] if block and len(block) == 1 else None
-        with os.fdopen(open_regular(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT), "ab") as logf:
-            proc = subprocess.Popen(launcher(cmd, os.getpid(), block), stdout=logf, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL, env=sweep.trial_env(len(block) if block else 1),
-                                    cwd=str(sweep.out))
-        atomic_write_json(run_dir / TRIAL_PID, {"pid": proc.pid, "start": start_time(proc.pid),
-                                                "host": socket.gethostname(), "cpu": cpu, "cpus": block})
+        proc = spawn(cmd, log, run_dir, sweep.trial_env(len(block) if block else 1), str(sweep.out), block,
+                     cpu=cpu, cpus=block)
         sweep.entry(trial).update(pid=proc.pid, cpu=cpu, cpus=block)
         sweep.save()
         return proc
@@ -225,10 +214,8 @@ class LocalBackend:
         return [(key, code) for key, r in running.items() if (code := r.handle.poll()) is not None]
 
     def abort(self, running: dict, signum: int = signal.SIGTERM) -> None:
-        """Stop the running trials with ``signum`` (the signal that stopped the sweep): each
-        writes a checkpoint at its current step and exits (pipeline/preempt.py); they resume
-        next time. One that has not exited after ``ABORT_WAIT_S`` is killed (its last periodic
-        checkpoint stays)."""
+        """Forward ``signum`` (the signal that stopped the sweep): each trial checkpoints and exits
+        (pipeline/preempt.py); one still running after ``ABORT_WAIT_S`` is killed."""
         for r in running.values():
             with contextlib.suppress(ProcessLookupError):
                 r.handle.send_signal(signum)

@@ -1,11 +1,8 @@
 """The sweep's Ray backend: one Ray task (num_cpus=1) per trial, on an existing cluster
-(``--ray-address``) or on a local instance the sweep starts and stops. A local instance
-lives in a private temp dir, ``/tmp/botorl-ray-XXXXXXXX``; sweep.json records that dir and
-the instance's processes (pid and start time), so a sweep killed with SIGKILL has its
-leftover daemons stopped and the dir removed by the next invocation (``cleanup_previous``).
-sweep.json is data (it may come from anywhere): only a process it records that still runs
-with the recorded start time, and its descendants, is stopped, and only a dir that is what
-this module makes is removed."""
+(``--ray-address``) or a local instance in ``/tmp/botorl-ray-XXXXXXXX``, whose dir and daemons
+(pid and start time) sweep.json records so that the next invocation cleans up after a SIGKILL
+(``cleanup_previous``). sweep.json is data: only a process it records that still runs with the
+recorded start time (and its descendants) is stopped, only a dir this module makes removed."""
 
 from __future__ import annotations
 
@@ -14,18 +11,14 @@ import os
 import re
 import shutil
 import stat
-import socket
 import subprocess
 import sys
 import tempfile
-from pathlib import Path
 from typing import Any
 
 from botorl.errors import BotorlError
-from botorl.experiments.backend_local import (SINGLE_THREAD_ENV, TRIAL_PID, descendants, process_record,
-                                              start_time, stop_recorded, usable_cores)
-from botorl.experiments.child import launcher
-from botorl.io import atomic_write_json, open_regular
+from botorl.experiments.backend_local import SINGLE_THREAD_ENV, descendants, process_record, spawn, stop_recorded, \
+    usable_cores
 
 RAY_ENV_PREFIXES = ("BOTORL_", "XLA_", "JAX_", "MINARI_", "MUJOCO_", "PYTHONUNBUFFERED")
 
@@ -162,15 +155,7 @@ class RayBackend:
 
 def _ray_trial(cmd: list[str], env: dict[str, str], log: str, run_dir: str, cwd: str) -> int:
     """Body of the Ray task: one trial as a subprocess of the Ray worker."""
-    full_env = dict(os.environ)
-    full_env.update(env)
-    with os.fdopen(open_regular(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT), "ab") as logf:
-        proc = subprocess.Popen(
-            launcher(cmd, os.getpid()), stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            env=full_env, cwd=cwd,
-        )
-    atomic_write_json(Path(run_dir) / TRIAL_PID, {"pid": proc.pid, "start": start_time(proc.pid),
-                                                  "host": socket.gethostname(), "cpu": None})
+    proc = spawn(cmd, log, run_dir, {**os.environ, **env}, cwd, cpu=None)
     try:
         return proc.wait()
     except BaseException:  # ray.cancel raises in the worker: do not leave the trial running

@@ -1,10 +1,8 @@
 """The sweep's trial launcher: ``python -m botorl.experiments.child --parent PID [--cpus 0,1] -- CMD...``.
 
-Sets up the trial process, then replaces itself with CMD (same pid): it dies with the sweep
-(PR_SET_PDEATHSIG; if the sweep is already gone, it does not start) and stays on its block of
-cores. Done here, in a fresh interpreter, rather than in a ``preexec_fn``: that would run
-Python between fork and exec in a child of the sweep process, which may have JAX's threads
-(a fork of a multithreaded process can deadlock on a lock another thread held).
+Sets up the trial process, then execs CMD (same pid): it dies with the sweep (PR_SET_PDEATHSIG;
+it does not start if the sweep is gone) and stays on its cores. Not a ``preexec_fn``: Python
+between fork and exec in the sweep, which may hold JAX's threads, can deadlock on their locks.
 """
 
 from __future__ import annotations

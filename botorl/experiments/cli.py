@@ -1,28 +1,5 @@
-"""`botorl sweep` and `botorl report`.
-
-    botorl sweep --tasks pointmaze-umaze,pointmaze-medium --methods boto,wsrl --seeds 0-4 \
-        --alphas -1:1:0.1 --profile quick --set online.steps=2000 --out sweeps/alpha
-    botorl sweep --grid grid.yaml --out sweeps/table1 --backend ray --ray-address auto
-    botorl report sweeps/alpha [more dirs] [--out DIR] [--select-alpha [--select-seeds 0-3]]
-        [--dip-window 10000]
-
-Starting the same `botorl sweep` command again after it was killed finishes the grid:
-finished trials are never rerun, the others resume from their checkpoints. A sweep directory
-keeps one profile and one set of overrides; tasks, methods, seeds and alphas may be added.
-
-On a Ray cluster (--ray-address) every node needs botorl installed and the sweep directory
-on a shared file system: each trial is `python -m botorl.cli run --config <dir>/sweep-trial-config.json
---out <dir>` on some node.
-
-`botorl report --select-alpha` criterion: the highest mean over seeds of
-(success_10k + success_final) / 2; ties go to the smaller |alpha| (the less biased critic).
-It ranks the alphas on selection seeds and reports the chosen alpha's score on other,
-held-out seeds (default: each alpha's seeds sorted, the first half selects, the rest reports).
-
-The dip (report.md, table1.csv's dip_* columns, dip_runs.csv, dip.png): per run, the lowest
-success over the evaluations with 0 <= env_step <= --dip-window (warm-up ones included)
-minus the success at env_step 0.
-"""
+"""`botorl sweep` and `botorl report`: their flags and what each command prints (usage, resume,
+the dip, held-out alpha selection: docs/running.md)."""
 
 from __future__ import annotations
 
@@ -87,20 +64,15 @@ def _gather_set(argv: list[str]) -> list[str]:
     """Accept both `--set a=1 b=2` and `--set a=1 --set b=2` (tyro sees one --set)."""
     values: list[str] = []
     rest: list[str] = []
-    i = 0
-    while i < len(argv):
-        tok = argv[i]
-        if tok == "--set":
-            i += 1
-            while i < len(argv) and not argv[i].startswith("--"):
-                values.append(argv[i])
-                i += 1
-            continue
+    in_set = False  # from a bare --set to the next flag
+    for tok in argv:
+        in_set = tok == "--set" or (in_set and not tok.startswith("--"))
         if tok.startswith("--set="):
             values.append(tok[len("--set="):])
+        elif in_set:
+            values += [tok] if tok != "--set" else []
         else:
             rest.append(tok)
-        i += 1
     return rest + (["--set", *values] if values else [])
 
 
@@ -110,28 +82,11 @@ def sweep_main(argv: list[str]) -> int:
 
     args = tyro.cli(SweepArgs, args=_gather_set(list(argv)), prog="botorl sweep")
     file_fields = load_grid_file(args.grid) if args.grid else None
-    grid = build_grid(
-        file_fields,
-        tasks=args.tasks,
-        methods=args.methods,
-        seeds=args.seeds,
-        alphas=args.alphas,
-        overrides=list(args.set) if args.set else None,
-        profile=args.profile,
-    )
+    grid = build_grid(file_fields, tasks=args.tasks, methods=args.methods, seeds=args.seeds, alphas=args.alphas,
+                      overrides=list(args.set) if args.set else None, profile=args.profile)
+    same = {f.name: getattr(args, f.name) for f in dataclasses.fields(SweepOptions) if hasattr(args, f.name)}
     command = shlex.split(args.trial_command) if args.trial_command else None
-    options = SweepOptions(
-        out=Path(args.out),
-        backend=args.backend,
-        workers=args.workers,
-        max_retries=args.max_retries,
-        ray_address=args.ray_address,
-        command=command,
-        progress=args.progress,
-        population_size=args.population_size,
-        share_pretraining=args.share_pretraining,
-    )
-    sweep = Sweep(grid, options)
+    sweep = Sweep(grid, SweepOptions(**{**same, "out": Path(args.out), "command": command}))
     if not args.trial_command:  # a stand-in command may know other tasks and options
         _check_trial_configs(sweep)
     if args.dry_run:

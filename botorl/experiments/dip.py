@@ -1,25 +1,19 @@
-"""The dip: how far success falls early in fine-tuning.
+"""The dip: how far success falls early in fine-tuning (its definition: docs/running.md).
 
-Per run, the lowest success over every evaluation with 0 <= env_step <= window (default
-10,000; warm-up evaluations and step 0 included; for a run that evaluated densely
-(eval.dense_interval > 0), step 0 and the dense points from the warm-up's end only, the same
-points for every method) minus the success at env_step 0, so 0 is no drop and -1 a fall from
-always to never solving the task. Per group: mean +- SE, a percentile bootstrap CI of the mean
-(runs resampled with replacement) and the IQM with its CI. Runs without an evaluation at step
-0, or with none after it inside the window, get no dip and are listed with the reason.
+Per run, the lowest success over the evaluations with 0 <= env_step <= window minus the
+success at step 0; per group, mean +- SE, the bootstrap CI of the mean and the IQM.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections import defaultdict
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from botorl.experiments.runs import Run, Skipped, from_scratch, key_order, relative
+from botorl.experiments.runs import Run, Skipped, from_scratch, group_by, key_order, relative
 from botorl.experiments.stats import (
     alpha_text,
     bootstrap_mean_ci,
@@ -28,8 +22,10 @@ from botorl.experiments.stats import (
     fmt_float,
     fmt_iqm,
     fmt_mean_se,
+    label_colors,
     line_label,
     mean_se,
+    panels,
     pyplot,
     save_figure,
     stratified_bootstrap_iqm,
@@ -54,10 +50,8 @@ class Dip:
 
 
 def run_dip(run: Run, window: float = DIP_WINDOW) -> Dip | str:
-    """The run's dip, or the reason it has none.
-
-    Uses the run's evaluations as Figure 5 does (one per env_step, the last row written for a
-    step), so the step-0 value is summary.json's success_initial."""
+    """The run's dip, or the reason it has none (Figure 5's evaluations: the step-0 value is
+    summary.json's success_initial)."""
     steps, success = run.steps, run.success
     if steps.size == 0:
         return "eval.csv has no evaluations"
@@ -114,9 +108,7 @@ class DipCell:
 
 
 def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int) -> list[DipCell]:
-    groups: dict[tuple[str, str, float | None], list[Dip]] = defaultdict(list)
-    for d in dips:
-        groups[d.run.key].append(d)
+    groups = group_by(dips, lambda d: d.run.key)
     cells = []
     for key in sorted(groups, key=key_order):
         group = groups[key]
@@ -166,17 +158,12 @@ def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> 
 
 
 def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidence: float) -> None:
-    """Per task, one point per method (and alpha): the mean dip with its bootstrap CI, and
-    each run's dip as a small dot beside it."""
+    """Per task and group: the mean dip with its bootstrap CI, each run's dip a dot beside it."""
     plt = pyplot()
     tasks = list(dict.fromkeys(c.task for c in cells))  # in the cells' order (dip_table sorts them)
-    ncols = 2 if len(tasks) == 4 else min(3, max(1, len(tasks)))
-    nrows = math.ceil(len(tasks) / ncols)
     most = max(sum(1 for c in cells if c.task == t) for t in tasks)
-    width = max(3.6, 1.0 + 0.55 * most)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(width * ncols, 3.8 * nrows), squeeze=False)
-    labels = sorted({c.label for c in cells})
-    colors = {lab: plt.cm.tab10(i % 10) for i, lab in enumerate(labels)}
+    fig, axes = panels(len(tasks), max(3.6, 1.0 + 0.55 * most), 3.8, 2 if len(tasks) == 4 else None)
+    colors = label_colors(c.label for c in cells)
     for ax, task in zip(axes.flat, tasks):
         row = [c for c in cells if c.task == task]
         multi = {lab: sum(1 for c in row if c.label == lab) > 1 for lab in {c.label for c in row}}
@@ -202,7 +189,5 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
         ax.set_title(task)
         ax.set_ylabel(f"dip (lowest success in 0..{window / 1000:g}k − success at 0)", fontsize=8)
         ax.grid(alpha=0.3, axis="y")
-    for ax in list(axes.flat)[len(tasks):]:
-        ax.set_visible(False)
     save_figure(fig, path, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs",
                 dpi=120)

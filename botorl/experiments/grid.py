@@ -1,9 +1,6 @@
-"""The grid of a sweep: which trials exist, what each is called, and the config each runs.
-
-A grid is tasks x methods x seeds (x alphas for BOTO only: alpha is BOTO's bias controller,
-the other methods have no alpha, so they get one trial per seed with alpha recorded as
-null). Each trial has a deterministic run-directory name under the sweep directory, so a
-second invocation of the same command finds the trials the first one made.
+"""The grid of a sweep: tasks x methods x seeds (x alphas, BOTO only: the other methods get one
+trial per seed with alpha null), each trial's deterministic run-directory name (so the same
+command again finds the trials the first one made) and the config each runs.
 """
 
 from __future__ import annotations
@@ -30,16 +27,16 @@ class Trial:
 
     @property
     def method_label(self) -> str:
-        return self.method if self.pretrain is None else f"{self.method}-{self.pretrain}"
+        return method_label(self.method, self.pretrain)
 
     @property
     def relpath(self) -> str:
         """`<task>/<method>[-<pretrain>]/[alpha<+0.50>/]seed<k>`."""
-        parts = [self.task, self.method_label]
-        if self.method == "boto":
-            parts.append(format_alpha_dir(self.alpha))
-        parts.append(f"seed{self.seed}")
-        return "/".join(parts)
+        if self.method != "boto":
+            return f"{self.task}/{self.method_label}/seed{self.seed}"
+        a = self.alpha
+        alpha = "alpha_preset" if a is None else f"alpha{a:+.2f}" if round(a, 2) == round(a, 6) else f"alpha{a:+.6f}"
+        return f"{self.task}/{self.method_label}/{alpha}/seed{self.seed}"
 
     @property
     def fields(self) -> dict[str, Any]:
@@ -53,12 +50,9 @@ class Trial:
 
 @dataclasses.dataclass(frozen=True)
 class PopulationJob:
-    """Trials of one (task, method, pre-training) trained as one population (one `botorl run`
-    of a config with ``seeds`` [and ``alphas``]): the unit of work of `botorl sweep --population-size K`.
-
-    Its members are the product of ``seeds`` and ``alphas`` (a population is always a
-    product, so one config's ``seeds`` and ``alphas`` describe it). Each member's run directory is
-    ``<relpath>/<member name>`` (botorl.configs.members.Member.name)."""
+    """Trials of one (task, method, pre-training) trained as one population, the product of
+    ``seeds`` and ``alphas`` (one `botorl run` of a config with those): the unit of work of
+    `botorl sweep --population-size K`. A member's run directory is ``<relpath>/<Member.name>``."""
 
     task: str
     method: str
@@ -68,7 +62,7 @@ class PopulationJob:
 
     @property
     def method_label(self) -> str:
-        return self.method if self.pretrain is None else f"{self.method}-{self.pretrain}"
+        return method_label(self.method, self.pretrain)
 
     @property
     def trials(self) -> list[Trial]:
@@ -126,20 +120,14 @@ def group_populations(trials: list[Trial], size: int) -> list[PopulationJob]:
     return jobs
 
 
+def method_label(method: str, pretrain: str | None) -> str:
+    return method if pretrain is None else f"{method}-{pretrain}"
+
+
 def format_alpha(alpha: float) -> str:
     """Shortest exact decimal for a grid alpha (grid values are rounded to 1e-6)."""
     text = f"{alpha:.6f}".rstrip("0").rstrip(".")
     return "0" if text in ("-0", "") else text
-
-
-def format_alpha_dir(alpha: float | None) -> str:
-    if alpha is None:
-        return "alpha_preset"
-    return f"alpha{alpha:+.2f}" if round(alpha, 2) == round(alpha, 6) else f"alpha{alpha:+.6f}"
-
-
-# ---------------------------------------------------------------------------------------------
-# Parsing the grid's pieces from the command line or a YAML file
 
 
 def _as_list(value: Any, field: str) -> list[Any]:
@@ -155,18 +143,10 @@ def _as_list(value: Any, field: str) -> list[Any]:
 
 
 def parse_seeds(value: Any) -> list[int]:
-    """The seeds of the grid (botorl.configs.members.parse_seeds: a seed given twice is an
-    error), in increasing order: the trials' order."""
+    """The grid's seeds (configs.members.parse_seeds) in increasing order: the trials' order."""
     from botorl.configs.members import parse_seeds as parse
 
     return sorted(parse(value, "seeds"))
-
-
-def parse_alphas(value: Any) -> list[float]:
-    """The alphas of the grid (botorl.configs.members.parse_alphas), in the order given."""
-    from botorl.configs.members import parse_alphas as parse
-
-    return parse(value, "alphas")
 
 
 def parse_methods(value: Any) -> list[tuple[str, str | None]]:
@@ -201,7 +181,7 @@ def parse_overrides(value: Any) -> dict[str, str]:
         items = list(flat_overrides(value).items())
     else:
         items = []
-        for item in _as_list(value, "overrides") if not isinstance(value, (list, tuple)) else value:
+        for item in _as_list(value, "overrides"):
             text = str(item)
             if "=" not in text:
                 raise ConfigError(
@@ -228,27 +208,17 @@ class Grid:
     profile: str | None = None
 
     def trials(self) -> list[Trial]:
-        out: list[Trial] = []
-        for task in self.tasks:
-            for method, pretrain in self.methods:
-                alphas: list[float | None] = list(self.alphas) if method == "boto" and self.alphas else [None]
-                for alpha in alphas:
-                    for seed in self.seeds:
-                        out.append(Trial(task, method, seed, alpha, pretrain))
-        return out
+        return [Trial(task, method, seed, alpha, pretrain) for task in self.tasks for method, pretrain in self.methods
+                for alpha in (self.alphas if method == "boto" and self.alphas else [None]) for seed in self.seeds]
 
     def config(self, unit: Trial | PopulationJob):
         """The resolved, validated RunConfig a trial or population runs (configs.build.make_config)."""
         return make_config(self.overrides, **unit.fields, profile=self.profile)
 
-    def populations(self, size: int) -> list[PopulationJob]:
-        """The trials as populations of at most ``size`` members (``group_populations``)."""
-        return group_populations(self.trials(), size)
-
     def to_json(self) -> dict[str, Any]:
         return {
             "tasks": list(self.tasks),
-            "methods": [m if p is None else f"{m}-{p}" for m, p in self.methods],
+            "methods": [method_label(m, p) for m, p in self.methods],
             "seeds": list(self.seeds),
             "alphas": list(self.alphas),
             "overrides": dict(self.overrides),
@@ -335,16 +305,17 @@ def build_grid(
     profile: str | None = None,
 ) -> Grid:
     """Command-line values win over the file's; overrides from both are merged."""
+    from botorl.configs.members import parse_alphas
+
     f = file_fields or {}
     grid = Grid(
-        tasks=[str(t) for t in _as_list(tasks if tasks is not None else f.get("tasks"), "tasks")],
+        tasks=list(dict.fromkeys(str(t) for t in _as_list(tasks if tasks is not None else f.get("tasks"), "tasks"))),
         methods=parse_methods(methods if methods is not None else f.get("methods")),
         seeds=parse_seeds(seeds if seeds is not None else f.get("seeds")),
-        alphas=parse_alphas(alphas if alphas is not None else f.get("alphas")),
+        alphas=parse_alphas(alphas if alphas is not None else f.get("alphas"), "alphas"),
         overrides={**parse_overrides(f.get("overrides")), **parse_overrides(overrides)},
         profile=profile if profile is not None else f.get("profile"),
     )
-    grid.tasks = list(dict.fromkeys(grid.tasks))
     grid.validate()
     return grid
 

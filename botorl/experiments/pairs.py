@@ -1,25 +1,10 @@
 """Paired comparisons: runs that start from the same pre-training, compared pair by pair.
 
-Two runs whose pre-training fingerprints are equal (task, seed, pre-training algorithm, data,
-networks, offline settings: ``botorl.pipeline.shared_pretrain.fingerprint``) start from the
-same pre-trained numbers (``--pretrained`` and the sweep's sharing make it so), so their
-difference is the online phase alone. Pairing removes the spread between pre-trainings, which
-at 8-32 seeds of a nearly binary success is most of the spread between runs.
-
-A *pair* is a run of the reference method (WSRL, with ``online_reseed`` 0) and any other
-finished run with the same fingerprint: BOTO at each alpha, and WSRL again with only its
-online seed changed (``online_reseed`` > 0). The last gives the *noise floor*: the
-difference chance alone makes between two fine-tunings of one pre-training.
-
-Per group (task, the other run's label, alpha) and per quantity (success at 0, the lowest
-success in the dip window, the dip, success at 10k and final), over the pairs' differences
-d = other - reference:
-- mean of d with a percentile bootstrap CI (pairs resampled with replacement) and a
-  t-interval, mean +- t_{(1+c)/2, n-1} * s.e.;
-- counts better / equal / worse (d > 0, d = 0 within 1e-9, d < 0: higher is better for
-  every quantity, a dip closer to 0 included);
-- the two-sided Wilcoxon signed-rank p-value (scipy.stats.wilcoxon; zero differences are
-  dropped, Wilcoxon's rule; nan when every difference is zero).
+A pair is a run of the reference method (WSRL, ``online_reseed`` 0) and any other finished run
+with the same pre-training fingerprint (``pipeline.shared_pretrain.fingerprint_of``), so their
+difference is the online phase alone; WSRL with another online seed gives the noise floor.
+Pairing removes the spread between pre-trainings, most of the spread at 8-32 seeds of a nearly
+binary success. The statistics per group and quantity: docs/running.md, "botorl report".
 """
 
 from __future__ import annotations
@@ -29,14 +14,13 @@ import dataclasses
 import io
 import json
 import math
-from collections import defaultdict
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from botorl.experiments.dip import DIP_WINDOW, run_dip
-from botorl.experiments.runs import Run, relative
+from botorl.experiments.runs import Run, group_by, relative
 from botorl.experiments.stats import (
     EQUAL,
     alpha_text,
@@ -76,8 +60,7 @@ class Pair:
 
     @property
     def group(self) -> tuple:
-        """The group a pair's statistics pool over, in the report's order (the noise floor
-        last on each task)."""
+        """The group its statistics pool over, in the report's order (the noise floor last)."""
         return (self.task, self.noise_floor, self.label, -99 if self.alpha is None else self.alpha, self.reference)
 
     @property
@@ -91,25 +74,21 @@ def same_method(label: str, reference: str) -> bool:
 
 
 def canonical_label(label: str) -> str:
-    """A run's label without ``online_reseed=0``, the default: a report shows a setting in a
-    label only where its runs differ in it, so one block's WSRL is "wsrl [online_reseed=0]"
-    (its noise floor beside it) and the next block's plain "wsrl"; pooled, they are one
-    method."""
+    """A run's label without ``online_reseed=0``: one block's "wsrl [online_reseed=0]" (its noise
+    floor beside it) and another's plain "wsrl" are one method when pooled."""
     base, _, variant = label.partition(" [")
     parts = [v for v in variant.rstrip("]").split(", ") if v and v != "online_reseed=0"]
     return f"{base} [{', '.join(parts)}]" if parts else base
 
 
 def _groups(pairs: Sequence[Pair]) -> list[list[Pair]]:
-    groups: dict[tuple, list[Pair]] = defaultdict(list)
-    for p in pairs:
-        groups[p.group].append(p)
+    groups = group_by(pairs, lambda p: p.group)
     return [groups[k] for k in sorted(groups)]
 
 
 def _pretraining_key(run: Run) -> str | None:
-    """The run's pre-training fingerprint as a string, or None when its config.json does not
-    record the pre-training settings (then it is never paired)."""
+    """The run's pre-training fingerprint as a string; None (never paired) when its config.json
+    does not record the pre-training settings."""
     from botorl.pipeline.shared_pretrain import fingerprint_of
 
     cfg = run.config
@@ -138,13 +117,10 @@ def find_pairs(runs: Sequence[Run], *, reference: str = REFERENCE, window: float
                relative_to: Path | None = None) -> tuple[list[Pair], list[str]]:
     """Every (reference run, other run) with the same pre-training fingerprint, and notes."""
     notes: list[str] = []
-    by_key: dict[str, list[Run]] = defaultdict(list)
-    for r in runs:
-        k = _pretraining_key(r)
-        if k is not None:
-            by_key[k].append(r)
     pairs: list[Pair] = []
-    for group in by_key.values():
+    for key, group in group_by(runs, _pretraining_key).items():
+        if key is None:
+            continue
         refs = [r for r in group if r.method == reference and _reseed(r) == 0]
         if not refs:
             continue
@@ -214,7 +190,6 @@ def paired_table(pairs: Sequence[Pair], *, quantities: Sequence[str] = QUANTITIE
     return cells
 
 
-# ------------------------------------------------------------------------------------ files
 def pairs_csv(pairs: Sequence[Pair]) -> str:
     header = (["task", "seed", "method", "alpha", "reference"]
               + [f"{q}_{side}" for q in QUANTITIES for side in ("reference", "method", "diff")]
@@ -277,8 +252,8 @@ def paired_markdown(cells: Sequence[PairedCell], confidence: float, *,
 
 
 def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") -> None:
-    """One panel per (task, method, alpha): each pair a line from the reference run's value to
-    the other run's (jittered a little so that equal pairs stay visible)."""
+    """One panel per group: each pair a line from the reference's value to the other's (jittered
+    so that equal pairs stay visible)."""
     groups = _groups(pairs)
     cols = min(4, len(groups))
     rows = math.ceil(len(groups) / cols)

@@ -1,18 +1,13 @@
-"""The report of finished run directories: Table 1, the IQM table, Figure 5, the dip, paired
-comparisons, alpha sensitivity and held-out alpha selection (``botorl report``).
-
-What each number means lives beside the code that computes it: ``stats`` (mean +- s.e., IQM
-and bootstrap CIs, paired statistics), ``runs`` (which run directories count), ``dip`` (the
-dip), ``pairs`` (runs that share a pre-training, compared pair by pair). Only runs with
-summary.json status "finished" count; every other run directory found is listed as skipped,
-with the reason, in the report and on stdout.
-"""
+"""``botorl report``: Table 1, the IQM table, Figure 5, the dip, paired comparisons, alpha
+sensitivity and held-out alpha selection, from the finished runs ``runs.find_runs`` reads
+(the others are listed as skipped, with the reason)."""
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -32,7 +27,7 @@ from botorl.experiments.dip import (
     run_dip,
 )
 from botorl.experiments.pairs import Pair, PairedCell, find_pairs, merge_pairs, write_paired
-from botorl.experiments.runs import Run, Skipped, find_runs, key_order, relative
+from botorl.experiments.runs import Run, Skipped, find_runs, group_by, key_order, relative
 from botorl.experiments.stats import (
     alpha_text,
     bootstrap_mean_ci,
@@ -41,8 +36,10 @@ from botorl.experiments.stats import (
     fmt_float,
     fmt_iqm,
     fmt_mean_se,
+    label_colors,
     line_label,
     mean_se,
+    panels,
     pyplot,
     save_figure,
     stratified_bootstrap_iqm,
@@ -56,10 +53,6 @@ SELECT_ALPHA_CRITERION = (
 )
 
 
-# ---------------------------------------------------------------------------------------------
-# Tables
-
-
 @dataclasses.dataclass
 class Cell:
     task: str
@@ -70,24 +63,17 @@ class Cell:
     dip: dict[str, float] | None = None  # dip_stats of the runs that have a dip
 
 
-def _group(runs: Sequence[Run]) -> dict[tuple[str, str, float | None], list[Run]]:
-    groups: dict[tuple[str, str, float | None], list[Run]] = defaultdict(list)
-    for r in runs:
-        groups[r.key].append(r)
-    return dict(groups)
-
-
 def table1(
     runs: Sequence[Run], *, n_boot: int, confidence: float, seed: int, dips: Sequence[DipCell] = ()
 ) -> list[Cell]:
     dip_by_key = {(d.task, d.label, d.alpha): d.stats for d in dips}
-    groups = _group(runs)
+    groups = group_by(runs, lambda r: r.key)
     cells = []
     for task, label, alpha in sorted(groups, key=key_order):
         group = groups[(task, label, alpha)]
         stats: dict[str, dict[str, float]] = {}
         for point, fieldname in POINTS:
-            values = [r.value(fieldname) for r in group]
+            values = [getattr(r, fieldname) for r in group]
             mean, se, n = mean_se(values)
             point_iqm, lo, hi = stratified_bootstrap_iqm([values], n_boot=n_boot, confidence=confidence, seed=seed)
             stats[point] = {"mean": mean, "se": se, "n": n, "iqm": point_iqm, "iqm_lo": lo, "iqm_hi": hi}
@@ -119,7 +105,7 @@ def aggregate_iqm(runs: Sequence[Run], *, n_boot: int, confidence: float, seed: 
         tasks = sorted(by_label[label])
         stats = {}
         for point, fieldname in POINTS:
-            per_task = [[r.value(fieldname) for r in runs if r.label == label and r.task == t] for t in tasks]
+            per_task = [[getattr(r, fieldname) for r in runs if r.label == label and r.task == t] for t in tasks]
             value, lo, hi = stratified_bootstrap_iqm(per_task, n_boot=n_boot, confidence=confidence, seed=seed)
             stats[point] = {
                 "iqm": value, "iqm_lo": lo, "iqm_hi": hi,
@@ -181,10 +167,6 @@ def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: f
     return "\n".join(lines)
 
 
-# ---------------------------------------------------------------------------------------------
-# Figures
-
-
 def curve_on_grid(run: Run, grid: np.ndarray) -> np.ndarray:
     """Linear interpolation of one run's eval curve; nan outside the steps it evaluated."""
     out = np.full(grid.shape, np.nan)
@@ -210,16 +192,12 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
     from matplotlib.ticker import FuncFormatter
 
     plt = pyplot()
-
     tasks = sorted({r.task for r in runs})
-    ncols = min(3, max(1, len(tasks)))
-    nrows = math.ceil(len(tasks) / ncols)
-    groups = _group(runs)
+    groups = group_by(runs, lambda r: r.key)
     crowded = max(sum(1 for k in groups if k[0] == t) for t in tasks) > 6 if tasks else False
     width = 4.6 + (2.2 if crowded else 0.0)  # room for a legend beside each panel
-    fig, axes = plt.subplots(nrows, ncols, figsize=(width * ncols, 3.5 * nrows), squeeze=False)
-    labels = sorted({k[1] for k in groups})
-    colors = {lab: plt.cm.tab10(i % 10) for i, lab in enumerate(labels)}
+    fig, axes = panels(len(tasks), width, 3.5)
+    colors = label_colors(k[1] for k in groups)
     for ax, task in zip(axes.flat, tasks):
         keys = sorted((k for k in groups if k[0] == task), key=key_order)
         per_label = {lab: [k for k in keys if k[1] == lab] for lab in {k[1] for k in keys}}
@@ -251,8 +229,6 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
             ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.0, 1.0))
         else:
             ax.legend(fontsize=7, loc="best")
-    for ax in list(axes.flat)[len(tasks):]:
-        ax.set_visible(False)
     save_figure(fig, path, "Success during online fine-tuning (mean ± standard error over seeds)", dpi=120)
 
 
@@ -269,9 +245,8 @@ ALPHA_FIELDS = ("success_initial", "success_10k", "success_final", "dip")
 
 
 def alpha_table(runs: Sequence[Run], window: float = DIP_WINDOW) -> list[AlphaRow]:
-    """Per (task, boto label, alpha) of a sweep: mean ± s.e. over seeds of the success at 0,
-    10k and final and of the dip (run_dip with ``window``; a run without one counts as nan);
-    only (task, boto label) with at least two alphas."""
+    """Per (task, boto label, alpha) of a sweep of at least two alphas: mean ± s.e. over seeds of
+    the success at 0, 10k and final and of the dip (nan for a run without one)."""
     sweeps: dict[tuple[str, str], dict[float, list[Run]]] = defaultdict(lambda: defaultdict(list))
     for r in runs:
         if r.method == "boto" and r.alpha is not None:
@@ -282,7 +257,7 @@ def alpha_table(runs: Sequence[Run], window: float = DIP_WINDOW) -> list[AlphaRo
             continue
         for a in sorted(by_alpha):
             rs = by_alpha[a]
-            vals = {f: [r.value(f) for r in rs] for f in ALPHA_FIELDS[:3]}
+            vals = {f: [getattr(r, f) for r in rs] for f in ALPHA_FIELDS[:3]}
             vals["dip"] = [d.value if isinstance(d := run_dip(r, window), Dip) else float("nan") for r in rs]
             rows.append(AlphaRow(task, label, a, len(rs), {f: mean_se(v)[:2] for f, v in vals.items()}))
     return rows
@@ -298,8 +273,8 @@ def alpha_csv(rows: Sequence[AlphaRow]) -> str:
 
 
 def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WINDOW) -> bool:
-    """Per task of a sweep: success at 10k and final against alpha (top) and the dip (bottom);
-    False if there is no sweep. A sweep whose runs end at 10k plots one success curve."""
+    """Per task: success at 10k and final against alpha (top), the dip (bottom); False without a
+    sweep."""
     if not rows:
         return False
     tasks = sorted({r.task for r in rows})
@@ -337,26 +312,11 @@ def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WI
     return True
 
 
-# ---------------------------------------------------------------------------------------------
-# Alpha selection
-#
-# Choosing the best of many alphas and reporting its score on the same runs overstates it (the
-# winner is partly the luckiest). So each alpha's seeds are split: the selection seeds rank
-# the alphas, and the chosen alpha's score is reported on its other, held-out seeds.
-
-
 def seeds_text(seeds: Iterable[int]) -> str:
     """[0, 1, 2, 3, 6] -> '0-3,6'."""
-    out: list[str] = []
     ordered = sorted(set(seeds))
-    i = 0
-    while i < len(ordered):
-        j = i
-        while j + 1 < len(ordered) and ordered[j + 1] == ordered[j] + 1:
-            j += 1
-        out.append(str(ordered[i]) if i == j else f"{ordered[i]}-{ordered[j]}")
-        i = j + 1
-    return ",".join(out) or "none"
+    spans = [[s for _, s in g] for _, g in itertools.groupby(enumerate(ordered), lambda x: x[1] - x[0])]
+    return ",".join(str(g[0]) if len(g) == 1 else f"{g[0]}-{g[-1]}" for g in spans) or "none"
 
 
 @dataclasses.dataclass
@@ -397,15 +357,13 @@ class AlphaSelection:
             f"# held-out score: mean ± s.e. with a {pct} percentile-bootstrap CI of the mean "
             f"({self.n_boot} resamples); in-sample: the same alpha on the seeds that chose it",
         ]
-        labels_per_task = defaultdict(set)
-        for c in self.choices:
-            labels_per_task[c.task].add(c.label)
+        labels_per_task = Counter(c.task for c in self.choices)  # one choice per (task, label)
         for c in self.choices:
             runner_up = ""
             if len(c.ranking) > 1:
                 a2, s2, _ = c.ranking[1]
                 runner_up = f"; next alpha = {a2:g} ({s2:.3f} in selection)"
-            which = f"{c.label}: " if len(labels_per_task[c.task]) > 1 else ""
+            which = f"{c.label}: " if labels_per_task[c.task] > 1 else ""
             se = f" ± {c.se:.3f}" if math.isfinite(c.se) else ""
             ci = f", {pct} CI [{c.lo:.3f}, {c.hi:.3f}]" if math.isfinite(c.lo) else f", no CI from {c.n} seed"
             lines.append(
@@ -429,13 +387,10 @@ def select_alpha(
     confidence: float = 0.95,
     seed: int = 0,
 ) -> AlphaSelection:
-    """Choose alpha per (task, boto label) on selection seeds, report it on held-out seeds.
-
-    `select_seeds` None: each alpha's distinct seeds, sorted, split into a first half
-    (len // 2, for selection) and the rest (for reporting). Given: those seeds select and
-    `report_seeds` (default: every other seed) report. Raises BotorlError when an alpha has
-    fewer than 2 seeds, when the two sets overlap, or when one of them is empty for an alpha.
-    """
+    """Choose alpha per (task, boto label) on selection seeds, report it on held-out seeds (the
+    winner's score on the runs that chose it overstates it: the winner is partly the luckiest);
+    by default each alpha's sorted seeds, the first len // 2 select. BotorlError when an alpha
+    has fewer than 2 seeds, the sets overlap, or one of them is empty for an alpha."""
     if select_seeds is None and report_seeds is not None:
         raise ConfigError("--report-seeds needs --select-seeds (the seeds that choose alpha).")
     sel_set = None if select_seeds is None else set(int(x) for x in select_seeds)
@@ -512,25 +467,18 @@ def select_alpha(
     return AlphaSelection(choices, split, confidence, n_boot)
 
 
-# ---------------------------------------------------------------------------------------------
-# The whole report
-
-
 @dataclasses.dataclass
 class ReportResult:
     out: Path
     runs: list[Run]
     skipped: list[Skipped]
-    cells: list[Cell]
-    aggregates: list[Aggregate]
     files: list[Path]
     notes: list[str]
-    dip_cells: list[DipCell] = dataclasses.field(default_factory=list)
-    dips: list[Dip] = dataclasses.field(default_factory=list)
-    pairs: list[Pair] = dataclasses.field(default_factory=list)
-    paired: list[PairedCell] = dataclasses.field(default_factory=list)
-    no_dip: list[Skipped] = dataclasses.field(default_factory=list)  # finished runs without a dip
-    selection: AlphaSelection | None = None  # None when held-out selection was impossible (see notes)
+    dip_cells: list[DipCell]
+    pairs: list[Pair]
+    paired: list[PairedCell]
+    no_dip: list[Skipped]  # finished runs without a dip
+    selection: AlphaSelection | None  # None when held-out selection was impossible (see notes)
 
     def summary_text(self) -> str:
         return "\n".join([f"botorl report: {len(self.runs)} finished runs, {len(self.skipped)} skipped -> {self.out}"]
@@ -556,6 +504,7 @@ def make_report(
     if not (isinstance(dip_window, (int, float)) and math.isfinite(dip_window) and dip_window > 0):
         raise ConfigError(f"--dip-window must be a positive number of online env steps, got {dip_window!r}.")
     runs, skipped = find_runs(dirs)
+    boot = dict(n_boot=n_boot, confidence=confidence, seed=seed)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -565,7 +514,7 @@ def make_report(
     files: list[Path] = []
     notes: list[str] = []
     dips, no_dip = dips_of(runs, dip_window)
-    dip_cells = dip_table(dips, n_boot=n_boot, confidence=confidence, seed=seed)
+    dip_cells = dip_table(dips, **boot)
     short = sorted({d.run.path for d in dips if d.run.steps[-1] < dip_window})
     if short:
         notes.append(
@@ -576,19 +525,18 @@ def make_report(
     if off:  # a task of one's own whose env reports no success (docs/own-task.md)
         notes.append(f"success is off on {', '.join(off)}: the env's info has no success key, so every success rate "
                      f"there is 0 and says nothing")
-    cells = table1(runs, n_boot=n_boot, confidence=confidence, seed=seed, dips=dip_cells)
+    cells = table1(runs, **boot, dips=dip_cells)
     pairs, pair_notes = find_pairs(runs, window=dip_window, relative_to=out)
     pairs = merge_pairs(pairs, extra_pairs)
     notes += pair_notes
     paired_md: list[str] = []
     paired_cells: list[PairedCell] = []
     if pairs:
-        paired_files, paired_md, paired_cells = write_paired(pairs, out, n_boot=n_boot, confidence=confidence,
-                                                             seed=seed)
+        paired_files, paired_md, paired_cells = write_paired(pairs, out, **boot)
         files += paired_files
-    aggs, agg_notes = aggregate_iqm(runs, n_boot=n_boot, confidence=confidence, seed=seed)
+    aggs, agg_notes = aggregate_iqm(runs, **boot)
     notes += agg_notes
-    for (task, label, alpha), group in sorted(_group(runs).items(), key=lambda kv: str(kv[0])):
+    for (task, label, alpha), group in sorted(group_by(runs, lambda r: r.key).items(), key=lambda kv: str(kv[0])):
         seeds = [r.seed for r in group]
         dupes = sorted({s for s in seeds if seeds.count(s) > 1}, key=str)
         if dupes:
@@ -619,8 +567,7 @@ def make_report(
         notes.append("no finished runs: no figures")
     selection: AlphaSelection | None
     try:
-        selection = select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds,
-                                 n_boot=n_boot, confidence=confidence, seed=seed)
+        selection = select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **boot)
     except BotorlError as err:
         selection = None
         notes.append(f"no held-out alpha selection: {err}")
@@ -683,5 +630,4 @@ def make_report(
     for stale in ("alpha_selection.txt", "dip.png", "alpha_sensitivity.png", "alpha_sensitivity.csv", "figure5.png"):
         if (out / stale) not in files:
             (out / stale).unlink(missing_ok=True)
-    return ReportResult(out, runs, skipped, cells, aggs, files, notes, dip_cells, dips, pairs, paired_cells, no_dip,
-                        selection)
+    return ReportResult(out, runs, skipped, files, notes, dip_cells, pairs, paired_cells, no_dip, selection)

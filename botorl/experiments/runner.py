@@ -1,29 +1,12 @@
 """Run every trial of a grid as its own `botorl run` process, and survive being killed.
 
-Each trial is a normal run directory under the sweep directory. The sweep builds the trial's
-config once (grid.Grid.config) and writes it there, `sweep-trial-config.json`, for
-`botorl run --config FILE --out DIR` to run as it is. What a trial needs next is
-read from disk every time, never trusted from memory: `summary.json` with status finished
-means done (never rerun); a `checkpoints/` folder with a file means `botorl resume`; anything
-else means `botorl run`. So a sweep that was killed (or a machine that rebooted) is finished
-by starting the same command again. `sweep.json` (written atomically) records the grid and,
-per trial, its state, how many times it was launched and how it last ended.
-
-Backends, one module each (``start``, ``launch``, ``poll``, ``abort``, ``close``):
-- backend_local.py: ``sequential``, one trial at a time with the machine's full thread
-  pools, and ``local``, ``--workers`` processes (default: one per core), each pinned to its
-  own block of the cores;
-- backend_ray.py: ``ray``, one Ray task (num_cpus=1) per trial on an existing cluster or a
-  local instance.
-
-With ``population_size`` K > 1 the unit of work of every backend is a population: the
-trials of one (task, method, pre-training) grouped K at a time (grid.group_populations) and
-trained by one `botorl run` process (its config's seeds x alphas), each member in its own run
-directory inside the population's.
-
-Trial processes get PR_SET_PDEATHSIG, so killing only the sweep process also stops them; a
-trial that still outlives its sweep (e.g. its pid was reparented before the signal was set)
-is found through the pid file in its run directory and stopped when the sweep restarts.
+What a trial needs next is read from its run directory every time (``next_action``), never
+trusted from memory, so starting the same command again after a kill finishes the sweep;
+``sweep.json`` (written atomically) records the grid and each trial's state, launches and last
+end. Backends (``start``, ``launch``, ``poll``, ``abort``, ``close``): backend_local.py
+(``sequential``, ``local``) and backend_ray.py (``ray``). With ``population_size`` K > 1 the unit
+of work is a population (grid.group_populations). Trials die with the sweep (child.py); one that
+outlives it is found through its pid file and stopped on restart (backend_local.stop_orphan).
 """
 
 from __future__ import annotations
@@ -41,12 +24,11 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from botorl.errors import BotorlError, ConfigError, Interrupted
-from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, single_thread_env, stop_orphan
+from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, read_json, single_thread_env, stop_orphan
 from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
-from botorl.experiments.grid import Grid, Trial
-from botorl.io import JSON_LIMIT, SWEEP_JSON_LIMIT, append_text, atomic_write_json, open_regular, read_bounded, \
-    read_json_bounded
+from botorl.experiments.grid import Grid, Trial, group_populations
+from botorl.io import SWEEP_JSON_LIMIT, append_text, atomic_write_json, open_regular, read_bounded
 from botorl.pipeline import preempt
 
 MANIFEST = "sweep.json"
@@ -65,19 +47,6 @@ def _now() -> str:
     return _dt.datetime.now().isoformat(timespec="seconds")
 
 
-def read_json(path: Path, limit: int = JSON_LIMIT) -> dict[str, Any] | None:
-    """The JSON object in ``path`` (a regular file of at most ``limit`` bytes), else None."""
-    try:
-        data = read_json_bounded(path, limit)
-        return data if isinstance(data, dict) else None
-    except (OSError, ValueError):
-        return None
-
-
-# ---------------------------------------------------------------------------------------------
-# What a trial needs next, read from its run directory
-
-
 POPULATION_FILE = "population.json"  # a population directory's (botorl.pipeline.population_run)
 
 
@@ -88,10 +57,8 @@ def run_status(run_dir: Path) -> str | None:
 
 
 def next_action(run_dir: Path) -> str:
-    """'done', 'resume' or 'run'.
-
-    `botorl run` refuses a directory that holds config.json, and `botorl resume` of a run
-    killed before its first checkpoint starts it over, so config.json decides."""
+    """'done', 'resume' or 'run': config.json decides (`botorl run` refuses a directory that has
+    one, and `botorl resume` of a run killed before its first checkpoint starts it over)."""
     if run_status(run_dir) == "finished":
         return "done"
     if (Path(run_dir) / "config.json").exists() or (Path(run_dir) / POPULATION_FILE).exists():
@@ -101,9 +68,8 @@ def next_action(run_dir: Path) -> str:
 
 def trial_command(cfg, run_dir: Path, command: Sequence[str] | None = None,
                   share_in: Path | None = None) -> tuple[str, list[str]]:
-    """The command that runs (or resumes) the trial in ``run_dir`` whose config is ``cfg`` (None: a
-    stand-in command's own task); with ``share_in`` (the sweep's directory) a new trial whose every
-    member's pre-training already finished there starts from it."""
+    """(action, command) of the trial in ``run_dir`` (``cfg`` None: a stand-in command's own task);
+    with ``share_in`` a new trial starts from pre-training finished there."""
     prefix = list(command) if command else default_command()
     action = next_action(run_dir)
     # no progress bars: a trial's output goes to its log file, where tqdm's redraws pile up
@@ -116,11 +82,9 @@ def trial_command(cfg, run_dir: Path, command: Sequence[str] | None = None,
 
 
 def same_data(cfg, run_dir: Path) -> bool:
-    """Whether the trial's run directory reads its offline data from where this sweep's config
-    ``cfg`` says (data.path, data.demos). Then the sweep passes --allow-pickle to its
-    `botorl resume`: the user named that data when starting the sweep, as for `botorl run`, so a
-    pickle-format task (door-binary-v0, pen-binary-v0 with a Cal-QL .npy) resumes. A path the
-    directory's files name and the sweep does not stays refused."""
+    """Whether the trial's run directory reads its offline data (data.path, data.demos) from where
+    ``cfg`` says: then its `botorl resume` gets --allow-pickle, as the user named that data when
+    starting the sweep (a pickle-format task resumes); a path only the directory names stays refused."""
     pop = read_json(Path(run_dir) / POPULATION_FILE)
     saved = pop.get("config") if pop is not None else read_json(Path(run_dir) / "config.json")
     data = saved.get("data") if isinstance(saved, dict) else None
@@ -128,9 +92,8 @@ def same_data(cfg, run_dir: Path) -> bool:
 
 
 def shared_pretraining_args(cfg, directory: Path) -> list[str]:
-    """``["--pretrained", directory]`` when every member of the run ``cfg`` describes has a
-    finished pre-training with its own settings under ``directory`` (BOTO's, for WSRL at the
-    same seeds), else ``[]``: the trial then pre-trains itself."""
+    """``["--pretrained", directory]`` when every member of ``cfg`` has a finished pre-training with
+    its settings under ``directory`` (BOTO's, for WSRL at the same seeds), else ``[]``."""
     from botorl.pipeline import shared_pretrain
     from botorl.configs.methods import get_method
     from botorl.configs.members import population
@@ -140,17 +103,6 @@ def shared_pretraining_args(cfg, directory: Path) -> list[str]:
     if shared_pretrain.match(population(cfg)[1], directory, strict=False) is None:
         return []
     return ["--pretrained", str(directory)]
-
-
-def _log_tail(path: Path, n: int = 20) -> str:
-    try:
-        return "\n".join(read_bounded(path, 8192, tail=True).splitlines()[-n:])
-    except (OSError, ValueError):
-        return ""
-
-
-# ---------------------------------------------------------------------------------------------
-# The sweep
 
 
 @dataclasses.dataclass
@@ -172,7 +124,6 @@ class _Running:
     trial: Trial
     handle: Any  # subprocess.Popen or a Ray ObjectRef
     slot: int | None
-    started: float
 
 
 class Sweep:
@@ -188,21 +139,19 @@ class Sweep:
         self.out = Path(options.out).resolve()
         # the units of work: trials, or populations of trials (grid.PopulationJob) that
         # quack like trials (relpath, fields, to_json)
-        self.trials = grid.trials() if options.population_size <= 1 else grid.populations(options.population_size)
+        size = options.population_size
+        self.trials = grid.trials() if size <= 1 else group_populations(grid.trials(), size)
         self.configs: dict[str, Any] = {}  # relpath -> RunConfig, each built once (config)
         self.manifest: dict[str, Any] = {}
         self._lock_file = None
         self._pbar = None
         self.backend = (RayBackend if options.backend == "ray" else LocalBackend)(self)
 
-    # -- manifest ------------------------------------------------------------------------------
-
     def run_dir(self, trial: Trial) -> Path:
         return self.out / trial.relpath
 
     def config(self, trial: Trial):
-        """The trial's RunConfig, built once (grid.Grid.config); None for a stand-in command's
-        own task, which botorl does not know."""
+        """The trial's RunConfig, built once; None for a stand-in command's own task."""
         if trial.relpath not in self.configs:
             try:
                 self.configs[trial.relpath] = self.grid.config(trial)
@@ -260,9 +209,8 @@ class Sweep:
     def entry(self, trial: Trial) -> dict[str, Any]:
         return self.manifest["trials"][trial.relpath]
 
-    # -- locking: two sweeps in one directory would launch every trial twice ---------------------
-
     def _acquire_lock(self) -> None:
+        """Two sweeps in one directory would launch every trial twice."""
         import fcntl
 
         self.out.mkdir(parents=True, exist_ok=True)
@@ -287,8 +235,6 @@ class Sweep:
         if self._lock_file is not None:
             self._lock_file.close()
             self._lock_file = None
-
-    # -- launching -------------------------------------------------------------------------------
 
     def trial_env(self, threads: int = 1) -> dict[str, str]:
         env = dict(os.environ)
@@ -316,8 +262,6 @@ class Sweep:
                          + "===== " + " ".join(cmd) + "\n")
         return run_dir, cmd, log
 
-    # -- finishing a trial -----------------------------------------------------------------------
-
     def _finish(self, trial: Trial, returncode: int, queue: deque[Trial]) -> None:
         run_dir = self.run_dir(trial)
         entry = self.entry(trial)
@@ -331,11 +275,13 @@ class Sweep:
             self._tick(1)
             return
         entry["failures_this_invocation"] += 1
-        if returncode == 0:
-            reason = f"exited 0 but summary.json status is {status!r}"
-        else:
-            reason = f"exited with code {returncode}"
-        entry["error"] = reason + "; log tail:\n" + _log_tail(run_dir / TRIAL_LOG)
+        reason = f"exited 0 but summary.json status is {status!r}" if returncode == 0 else \
+            f"exited with code {returncode}"
+        try:
+            tail = "\n".join(read_bounded(run_dir / TRIAL_LOG, 8192, tail=True).splitlines()[-20:])
+        except (OSError, ValueError):
+            tail = ""
+        entry["error"] = reason + "; log tail:\n" + tail
         if returncode == USER_ERROR_EXIT:
             entry["state"] = "failed"  # a BotorlError (bad config, missing data) fails again
         elif entry["failures_this_invocation"] <= self.opt.max_retries:
@@ -360,14 +306,8 @@ class Sweep:
             self._set_postfix()
 
     def _set_postfix(self) -> None:
-        if self._pbar is None:
-            return
         states = [self.entry(t)["state"] for t in self.trials]
-        self._pbar.set_postfix(
-            running=states.count("running"), failed=states.count("failed"), refresh=False
-        )
-
-    # -- main loop -------------------------------------------------------------------------------
+        self._pbar.set_postfix(running=states.count("running"), failed=states.count("failed"), refresh=False)
 
     def run(self) -> dict[str, Any]:
         # SIGTERM (a scheduler's preemption) and SIGINT stop the sweep at once and are forwarded
@@ -399,7 +339,7 @@ class Sweep:
                     trial = queue.popleft()
                     slot = free_slots.pop(0)
                     handle = self.backend.launch(trial, slot)
-                    running[next_key] = _Running(trial, handle, slot, time.monotonic())
+                    running[next_key] = _Running(trial, handle, slot)
                     next_key += 1
                     self._set_postfix()
                 finished_keys = self.backend.poll(running)

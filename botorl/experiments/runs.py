@@ -1,8 +1,6 @@
-"""Finished run directories as the report reads them: their config, summary and evaluations.
-
-Only runs with summary.json status "finished" count; every other run directory found is
-listed as skipped, with the reason.
-"""
+"""Run directories as the report reads them: only status "finished" counts, every other one
+found is skipped with the reason. A run directory is data from anywhere: its files are read
+only when they are regular files of a bounded size (botorl.io.read_bounded)."""
 
 from __future__ import annotations
 
@@ -31,7 +29,6 @@ class Run:
     pretrain: str | None
     alpha: float | None
     seed: int | None
-    profile: str | None
     success_initial: float
     success_10k: float
     success_final: float
@@ -53,9 +50,6 @@ class Run:
     def key(self) -> tuple[str, str, float | None]:
         return (self.task, self.label, self.alpha if self.method == "boto" else None)
 
-    def value(self, field: str) -> float:
-        return getattr(self, field)
-
 
 @dataclasses.dataclass
 class Skipped:
@@ -71,24 +65,15 @@ def _num(v: Any) -> float:
     return f
 
 
-# A run directory is data from anywhere (a colleague's archive, a shared disk): its files are
-# read only when they are regular files (no symlink, FIFO or device) of a bounded size
-# (botorl.io.read_bounded, JSON_LIMIT, CSV_LIMIT).
-
-
 def relative(path: Path | str, base: Path | str | None) -> str:
-    """``path`` as the report names it: relative to ``base`` (the report's folder), through
-    the paths as given (symbolic links not resolved), so committed reports hold no path of
-    the machine that made them; ``path`` itself when ``base`` is None."""
+    """``path`` relative to ``base`` (the report's folder; links not resolved), so committed
+    reports hold no path of the machine that made them; ``path`` itself when ``base`` is None."""
     return str(path) if base is None else os.path.relpath(os.path.abspath(path), os.path.abspath(base))
 
 
 def read_eval_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(env_step, success) with one value per step: the last row written for that step.
-
-    Several stages may evaluate at env_step 0 (end of pre-training, end of BOTO); the last
-    one is what fine-tuning starts from.
-    """
+    """(env_step, success), one value per step: the last row written for it (several stages
+    evaluate at env_step 0; the last is what fine-tuning starts from)."""
     with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:
         reader = csv.DictReader(f)
         if reader.fieldnames is None or not {"env_step", "success"} <= set(reader.fieldnames):
@@ -112,15 +97,11 @@ _SAME_METHOD = {"seed", "alpha", "out", "pretrained", "progress", "tensorboard",
                 "offline.sample_on_device", "env.path"}
 
 
-def _settings(config: dict, prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in config.items():
-        key = prefix + str(k)
-        if isinstance(v, dict):
-            out.update(_settings(v, key + "."))
-        elif key not in _SAME_METHOD and not key.endswith("log_every"):
-            out[key] = json.dumps(v, sort_keys=True)
-    return out
+def _settings(config: dict) -> dict[str, Any]:
+    from botorl.configs.schema import flatten
+
+    return {k: json.dumps(v, sort_keys=True) for k, v in flatten(config).items()
+            if k not in _SAME_METHOD and not k.endswith("log_every")}
 
 
 def label_variants(runs: list[Run]) -> None:
@@ -128,15 +109,9 @@ def label_variants(runs: list[Run]) -> None:
     ``online.steps``) are different variants, not more seeds of one: each gets the settings in
     which its method's runs differ (on any task) appended to its label, e.g.
     ``boto+calql [boto.train_actor=true]``, so tables, curves and dips keep them apart."""
-    by_method: dict[tuple[str, str], list[Run]] = defaultdict(list)
-    for r in runs:
-        by_method[(r.method, r.pretrain or "")].append(r)
-    for group in by_method.values():
+    for group in group_by(runs, lambda r: (r.method, r.pretrain or "")).values():
         varying: set[str] = set()
-        by_task: dict[str, list[Run]] = defaultdict(list)
-        for r in group:
-            by_task[r.task].append(r)
-        for same_task in by_task.values():
+        for same_task in group_by(group, lambda r: r.task).values():
             keys = set().union(*(r.settings for r in same_task))
             varying |= {k for k in keys if len({r.settings.get(k) for r in same_task}) > 1}
         for r in group:
@@ -186,7 +161,6 @@ def _load_run(run_dir: Path) -> Run | Skipped:
         pretrain=None if field("pretrain") in (None, "") else str(field("pretrain")),
         alpha=None if alpha is None or not math.isfinite(_num(alpha)) else round(float(alpha), 6),
         seed=None if seed is None else int(seed),
-        profile=field("profile"),
         success_initial=_num(summary.get("success_initial")),
         success_10k=_num(summary.get("success_10k")),
         success_final=_num(summary.get("success_final")),
@@ -249,6 +223,14 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
     label_variants(runs)
     runs.sort(key=lambda r: (r.task, r.label, -99 if r.alpha is None else r.alpha, r.seed or 0))
     return runs, skipped
+
+
+def group_by(items: Iterable, key) -> dict[Any, list]:
+    """``items`` in lists by ``key(item)``, in the order the keys first appear."""
+    groups: dict[Any, list] = defaultdict(list)
+    for x in items:
+        groups[key(x)].append(x)
+    return dict(groups)
 
 
 def from_scratch(method: str) -> bool:

@@ -1,15 +1,9 @@
-"""Statistics of the report: mean and standard error, the interquartile mean with a stratified
-bootstrap CI, the bootstrap CI of a mean, and paired comparisons; and the number formats the
-report's files share.
+"""Statistics of the report and the number formats its files share.
 
-- mean +- standard error over seeds, SE = sample standard deviation (ddof=1) / sqrt(n), as
-  the paper's Table 1 and Figure 5 report them ("standard error across five random seeds");
-- the interquartile mean (IQM) with a percentile stratified-bootstrap confidence interval,
-  following Agarwal et al. 2021, "Deep RL at the Edge of the Statistical Precipice" (rliable):
-  IQM = mean of the scores left after cutting floor(n/4) from each end of the sorted scores
-  (scipy.stats.trim_mean(x, 0.25), which rliable uses); the bootstrap resamples runs with
-  replacement within each task (strata) and recomputes the IQM of all resampled scores.
-  Written here from that description; no rliable code is used.
+Mean +- SE over seeds with SE = sample std (ddof=1) / sqrt(n), as the paper's Table 1 reports
+them; the interquartile mean (IQM) with a percentile stratified-bootstrap CI after Agarwal et
+al. 2021 (rliable; written from its description, no rliable code): cut floor(n/4) scores from
+each end, resample runs with replacement within each task; paired statistics for pairs.py.
 """
 
 from __future__ import annotations
@@ -69,9 +63,8 @@ def stratified_bootstrap_iqm(
 def bootstrap_mean_ci(
     values: Sequence[float], *, n_boot: int = 2000, confidence: float = 0.95, seed: int = 0
 ) -> tuple[float, float]:
-    """Percentile bootstrap CI of the mean: resample the runs with replacement n_boot times.
-
-    (nan, nan) for fewer than 2 finite values: one run says nothing about its spread."""
+    """Percentile bootstrap CI of the mean over ``n_boot`` resamples of the runs; (nan, nan) for
+    fewer than 2 finite values (one run says nothing about its spread)."""
     x = np.asarray([v for v in values if v is not None and math.isfinite(v)], dtype=np.float64)
     if x.size < 2 or n_boot <= 0:
         return math.nan, math.nan
@@ -80,9 +73,6 @@ def bootstrap_mean_ci(
     lo, hi = np.quantile(boot, [(1 - confidence) / 2, 1 - (1 - confidence) / 2])
     return float(lo), float(hi)
 
-
-
-# Paired differences (botorl/experiments/pairs.py)
 
 EQUAL = 1e-9  # differences within this are ties
 
@@ -106,9 +96,6 @@ def wilcoxon_p(values: Sequence[float]) -> float:
     if d.size == 0:
         return math.nan
     return float(stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
-
-
-# Formats and figures shared by the report's files
 
 
 def csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
@@ -155,9 +142,23 @@ def pyplot():
     return plt
 
 
+def panels(n: int, width: float, height: float, ncols: int | None = None):
+    """(fig, axes): ``n`` panels of ``width`` x ``height`` inches, ``ncols`` (default up to 3) a
+    row, the spare ones hidden."""
+    ncols = ncols or min(3, max(1, n))
+    nrows = math.ceil(n / ncols)
+    fig, axes = pyplot().subplots(nrows, ncols, figsize=(width * ncols, height * nrows), squeeze=False)
+    for ax in list(axes.flat)[n:]:
+        ax.set_visible(False)
+    return fig, axes
+
+
+def label_colors(labels: Iterable[str]) -> dict:
+    return {lab: pyplot().cm.tab10(i % 10) for i, lab in enumerate(sorted(set(labels)))}
+
+
 def save_figure(fig, path, title: str, **savefig: Any) -> None:
-    """The figure with its title wrapped to its width (a one-task figure is narrower than the
-    line), written atomically and closed."""
+    """The figure with its title wrapped to its width, written atomically and closed."""
     import textwrap
 
     from botorl.io import atomic_save_figure
@@ -179,8 +180,7 @@ MAX_RESAMPLES = 1_000_000  # 2,000 is the default; more than a million says noth
 
 
 def check_bootstrap(n_boot, confidence) -> None:
-    """ConfigError unless the bootstrap's settings can run: 1 <= resamples <= 1e6 and a
-    confidence level strictly between 0 and 1."""
+    """ConfigError unless 1 <= resamples <= MAX_RESAMPLES and 0 < confidence < 1."""
     from botorl.errors import ConfigError
 
     if isinstance(n_boot, bool) or not isinstance(n_boot, int) or not 1 <= n_boot <= MAX_RESAMPLES:
