@@ -23,7 +23,6 @@ from botorl.networks import (
     TanhGaussianActor,
     sample_tanh_gaussian,
     subsample_ensemble,
-    tanh_gaussian_mode,
 )
 
 __all__ = [
@@ -69,11 +68,8 @@ def auto_chunk_rows(floats_per_row: int) -> int:
 
 
 def chunk_size(num: int, rows_per_item: int, chunk_rows: int | None, floats_per_row: int = 1) -> int:
-    """Items per chunk: the largest divisor of ``num`` whose rows fit in ``chunk_rows``.
-
-    ``chunk_rows`` None -> ``auto_chunk_rows(floats_per_row)``; 0 -> no chunking. Returns
-    ``num`` for no chunking.
-    """
+    """Items per chunk: the largest divisor of ``num`` whose rows fit in ``chunk_rows`` (None:
+    ``auto_chunk_rows``; 0: no chunking, ``num``)."""
     if chunk_rows is None:
         chunk_rows = auto_chunk_rows(floats_per_row)
     if chunk_rows <= 0 or num * rows_per_item <= chunk_rows:
@@ -117,10 +113,8 @@ def update_many_fn(agent, batches):
 
 def acting_view(agent):
     """The agent with only what acting reads, the actor's parameters and the rng; every other
-    field None. A jitted call flattens every leaf of its arguments and builds one array per
-    leaf of its results, so acting on the whole agent (critics, targets, every optimiser
-    state) cost more per env step than the policy itself (docs/performance.md, "What a paper
-    run costs": 2.6 ms of the warm-up's 7 ms per antmaze step)."""
+    field None: a jitted call costs per leaf of its arguments and results (docs/performance.md,
+    "What a paper run costs")."""
     cleared = {f.name: None for f in dataclasses.fields(agent)
                if f.metadata.get("pytree_node", True) and f.name not in ("actor", "rng")}
     return agent.replace(actor=agent.actor.replace(opt_state=None), **cleared)
@@ -137,7 +131,7 @@ def sample_fn(view, observations):
 
 def eval_fn(view, observations):
     mean, _ = view.policy(observations)
-    return tanh_gaussian_mode(mean)
+    return jnp.tanh(mean)  # the deterministic evaluation action of WSRL/Cal-QL
 
 
 def q_mean_fn(agent, observations, actions):
@@ -166,18 +160,13 @@ _jit_update_many_on_device = jax.jit(update_many_on_device_fn, static_argnames=(
 
 def update_many_on_device(agent, arrays: dict, key: jax.Array, num_updates: int, batch_size: int):
     """``agent.update_many`` on ``num_updates`` uniform batches drawn inside the jitted call
-    from ``arrays`` (``Dataset.to_device()``: the whole dataset, already on the device).
-
-    No host sampling and no host-to-device copy per call: what an accelerator wants. On
-    the CPU host sampling costs ~0.5 ms of a 5-80 ms update, so the pipeline uses this only
-    off the CPU unless asked (``offline.sample_on_device``). Same key, same batches.
-    """
+    from ``arrays`` (``Dataset.to_device()``): no host sampling or copy per call, what an
+    accelerator wants (``offline.sample_on_device``). Same key, same batches."""
     return _jit_update_many_on_device(agent, checked_batch(arrays), key, num_updates, batch_size)
 
 
 def checked_batch(batch) -> dict:
-    """``batch`` with ``mc_returns`` (zeros when missing); ConfigError for a batch missing a key
-    (cheap; runs before jit)."""
+    """``batch`` with ``mc_returns`` (zeros when missing); ConfigError for a missing key."""
     if not isinstance(batch, dict):
         raise ConfigError(
             f"an agent update got a {type(batch).__name__}, not a batch dict; pass a dict with "
@@ -260,7 +249,7 @@ class ActorCriticAgent:
 
     @classmethod
     def _init(cls, config, obs_dim: int, action_dim: int, seed: int):
-        """``(rng, actor, critic, the key of the agent's own third network, a dummy observation)``."""
+        """``(rng, actor, critic, the key of the agent's third network, a dummy observation)``."""
         config.validate()
         if obs_dim < 1 or action_dim < 1:
             raise ConfigError(f"{cls.__name__}.create needs obs_dim >= 1 and action_dim >= 1, got {obs_dim}, {action_dim}.")

@@ -1,15 +1,8 @@
 """Populations of agents: N agents of one class and config stacked along a leading member
-axis and trained by one jitted call, every call the agent's own traced function
-(``agents/common.py``: ``update_fn``, ``update_many_fn``, ``sample_fn``, ...) mapped over that
-axis by ``over_members``. A single run is a population of one on this same code: the member
-is taken out of the axis inside the jitted function, so it computes exactly what the agent's
-own jitted function computes (and runs as fast).
-
-How the members are mapped: the updates (``across_cores=True``) split the members over one
-JAX CPU device per core on a CPU (``jaxsetup.setup_jax`` makes them) and each device runs
-its members in turn; elsewhere, and for the per-step policy calls, the function is
-``jax.vmap``ped. Members are independent: nothing here mixes them, and every member carries
-its own JAX key inside its agent.
+axis, every call the agent's own traced function (``agents/common.py``) mapped over that axis
+by ``over_members``. A single run is a population of one on this same code and computes
+exactly what the agent's own jitted function computes. Members are independent: nothing
+here mixes them, and each carries its own JAX key.
 """
 
 from __future__ import annotations
@@ -34,10 +27,8 @@ __all__ = [
 def stack(agents: Sequence[Any]):
     """Agent pytrees of one class and config -> one pytree with a leading member axis.
 
-    Every leaf strongly typed: a fresh agent's step counters are Python ints (weakly typed
-    int32 arrays in JAX) while the same agent loaded from a checkpoint has plain int32 ones,
-    and the jitted updates compiled a second program for the loaded one, which XLA is free
-    to fuse otherwise. One type for both: a resumed run runs the uninterrupted run's programs."""
+    Every leaf strongly typed: a fresh agent's step counters are Python ints (weakly typed) and
+    a loaded one's int32, so a resumed run gets the uninterrupted run's compiled programs."""
     if not agents:
         raise ValueError("stack needs at least one agent")
 
@@ -106,11 +97,10 @@ def _member_loop(fn, axes, *args):
 
 def _across_cores(fn, axes, *args):
     """``fn`` on every member, the members split over one JAX CPU device per core
-    (``shard_map``), each device running its members one after another: measured on 2 cores
-    (README "What it buys"), a vmapped batch of members is slower per member than one member
-    alone (its activations, N times larger, fall out of the caches), while members in turn keep
-    the single run's speed on each core. The member axis is padded with copies of member 0 to a
-    multiple of the devices; their results are dropped."""
+    (``shard_map``), each device running its members one after another: a vmapped batch of
+    members falls out of the caches, members in turn keep the single run's speed (README "What
+    it buys"). Padded with copies of member 0 to a multiple of the devices; their results are
+    dropped."""
     n = _member_count(axes, args)
     d = host_shards(n)
     if d == 1:

@@ -1,25 +1,13 @@
 """The SAC temperature at which a pre-trained actor's spread is already optimal.
 
-A warm start from IQL carries no temperature. Starting SAC's at 1.0 while IQL's actor is narrow
-(entropy about -3 on antmaze) makes the entropy bonus widen the policy for thousands of steps
-before the temperature loss brings it down. ``stationary_temperature`` instead picks the one at
-which SAC's actor objective, under the pre-trained critic, does not want to change the spread.
-
-Derivation (the docs' Methods page, "The temperature after IQL"). For a Gaussian policy with
-std ``sigma_d`` and Q locally quadratic with curvature ``-k_d`` along action dimension d,
-``J = E[Q] + tau H`` has ``dJ / dlog sigma_d = -k_d sigma_d^2 + tau``: stationary (a maximum
-when k_d > 0) at ``tau = k_d sigma_d^2``. The mean of ``k_d sigma_d^2`` over (state, dimension)
-pairs zeroes the derivative along a common rescaling of all stds -- for a state-independent std
-(IQL's on antmaze) exactly that parameter's gradient direction. For botorl's tanh-squashed
-actor, ``a = tanh(u)`` is to first order Gaussian around ``tanh(mean)`` with std
-``sigma_eff = (1 - tanh(mean)^2) exp(log_std)``, so the rule holds in action space with
-``sigma_eff`` (up to terms O(sigma^2) relative).
-
-Measured: ``k_d(s)`` is minus the diagonal of the action Hessian of the ensemble-mean online
-critic at ``tanh(mean)``. Pairs with ``k_d(s) <= 0`` (no stationary spread) are left out;
-``tau0`` is the mean over the rest, clipped to ``[min_temp, init_temp]``; with none left (e.g.
-a ReLU critic without LayerNorm: piecewise linear in the action) it falls back to ``init_temp``
-and says so in ``info``.
+A warm start from IQL carries no temperature, and starting SAC's at 1.0 widens IQL's narrow
+actor for thousands of steps. ``stationary_temperature`` picks ``tau = mean k_d sigma_d^2``
+instead, where SAC's actor objective under the pre-trained critic leaves the spread where it
+is; the derivation is on the docs' Methods page ("The temperature after IQL"). The mean over
+(state, dimension) pairs zeroes the derivative along a common rescaling of all stds: for a
+state-independent std (IQL's on antmaze) exactly that parameter's gradient direction. With the
+tanh squashing, ``sigma_eff = (1 - tanh(mean)^2) exp(log_std)`` is the std in action space (to
+first order).
 """
 
 from __future__ import annotations
@@ -65,7 +53,8 @@ def curvature_and_spread(actor, critic, observations):
 
 def stationary_temperature(agent, observations, init_temp: float = 1.0, min_temp: float = MIN_TEMP):
     """The temperature at which SAC's actor objective is stationary in the pre-trained actor's
-    std (module docstring): ``(tau0, info)``.
+    std (module docstring): ``(tau0, info)``. Pairs with ``k <= 0`` (no stationary spread) are
+    left out; with none left (a critic piecewise linear in the action) ``tau0 = init_temp``.
 
     ``observations``: (B, O) probe states, e.g. ~1,000 rows of the offline data. ``info``:
     ``rule`` ("stationary" or "fallback"), ``tau_raw`` (before clipping; None on fallback),

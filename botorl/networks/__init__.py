@@ -10,7 +10,6 @@ from botorl.networks.common import (
     QNetwork,
     Temperature,
     ValueNetwork,
-    default_init,
     subsample_ensemble,
 )
 from botorl.networks.actor import (
@@ -18,7 +17,6 @@ from botorl.networks.actor import (
     sample_tanh_gaussian,
     tanh_gaussian_from_noise,
     tanh_gaussian_log_prob,
-    tanh_gaussian_mode,
 )
 
 __all__ = [
@@ -31,7 +29,5 @@ __all__ = [
     "sample_tanh_gaussian",
     "tanh_gaussian_from_noise",
     "tanh_gaussian_log_prob",
-    "tanh_gaussian_mode",
-    "default_init",
     "subsample_ensemble",
 ]

@@ -62,11 +62,6 @@ def _log_det_tanh(u: jax.Array) -> jax.Array:
     return 2.0 * (math.log(2.0) - u - jax.nn.softplus(-2.0 * u))
 
 
-def _gaussian_log_prob(u: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
-    z = (u - mean) * jnp.exp(-log_std)
-    return jnp.sum(-0.5 * z * z - log_std - 0.5 * _LOG_2PI, axis=-1)
-
-
 def sample_tanh_gaussian(key: jax.Array, mean: jax.Array, log_std: jax.Array, num_samples: int | None = None):
     """Reparameterised sample ``a = tanh(mean + std * eps)`` and its log-prob.
 
@@ -93,9 +88,5 @@ def tanh_gaussian_from_noise(eps: jax.Array, mean: jax.Array, log_std: jax.Array
 def tanh_gaussian_log_prob(mean: jax.Array, log_std: jax.Array, actions: jax.Array) -> jax.Array:
     """log pi(a|s) of given squashed actions (e.g. dataset actions for IQL's AWR)."""
     u = jnp.arctanh(jnp.clip(actions, -_ATANH_CLIP, _ATANH_CLIP))
-    return _gaussian_log_prob(u, mean, log_std) - jnp.sum(_log_det_tanh(u), axis=-1)
-
-
-def tanh_gaussian_mode(mean: jax.Array) -> jax.Array:
-    """Deterministic action: tanh of the mean (the evaluation action of WSRL/Cal-QL)."""
-    return jnp.tanh(mean)
+    z = (u - mean) * jnp.exp(-log_std)
+    return jnp.sum(-0.5 * z * z - log_std - 0.5 * _LOG_2PI, axis=-1) - jnp.sum(_log_det_tanh(u), axis=-1)
