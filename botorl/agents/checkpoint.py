@@ -1,15 +1,11 @@
 """Save and restore any agent to one msgpack file (no pickle of code objects).
 
-The file holds a small header (format tag, agent class, config as JSON) and the agent's
-state dict from ``flax.serialization.to_state_dict``: every array of the pytree (network
-parameters, optimiser states, step counters, the rng key). Static parts (the config, module
-definitions, optimisers) come from ``like``, a template agent built with the same config,
-so ``load(path, like=agent)`` returns exactly the saved pytree and an update after loading
-is bit-identical to one without the round trip. Writes are atomic (temp file + os.replace).
-
-Verified: the state is stored as msgpack bytes together with their sha256 (format v2); ``load``
-refuses a file whose bytes no longer match (``DataFormatError`` naming the file). v1 files (no
-checksum) are still read.
+The file holds a header (format tag, agent class, config as JSON) and every array of the
+agent's pytree (``flax.serialization.to_state_dict``); the static parts come from ``like``, a
+template agent built with the same config, so an update after ``load(path, like=agent)`` is
+bit-identical to one without the round trip. Writes are atomic. Format v2 stores the state's
+msgpack bytes with their sha256 and ``load`` refuses a file that no longer matches; v1 files
+(no checksum) are still read.
 """
 
 from __future__ import annotations

@@ -1,9 +1,8 @@
 """Pieces every agent shares: jitted entry points, the actor-critic base, Polyak averaging, checks.
 
 Agents are ``flax.struct.PyTreeNode``s whose config is a static field, so one module-level
-``jax.jit`` serves every agent class: the class and config are part of the pytree
-structure (the jit cache key), the arrays are traced. An update on the same shapes and
-config therefore compiles once, whatever agent instance it is called with.
+``jax.jit`` serves every agent class (class and config are in the jit cache key): an update
+on the same shapes and config compiles once, whatever agent instance it is called with.
 """
 
 from __future__ import annotations
@@ -18,12 +17,7 @@ import optax
 from flax.training.train_state import TrainState
 
 from botorl.errors import ConfigError
-from botorl.networks import (
-    CriticEnsemble,
-    TanhGaussianActor,
-    sample_tanh_gaussian,
-    subsample_ensemble,
-)
+from botorl.networks import CriticEnsemble, TanhGaussianActor, sample_tanh_gaussian, subsample_ensemble
 
 __all__ = [
     "TrainState", "polyak", "acting_view", "update_fn", "update_many_fn", "sample_fn", "eval_fn", "q_mean_fn",
@@ -47,14 +41,10 @@ def adam(lr: float) -> optax.GradientTransformation:
 
 
 # ------------------------------------------------------------------ chunked gradients
-# A loss that is a sum of per-row terms has as gradient the sum of its chunks' gradients.
-# On a CPU, computing it chunk by chunk is ~1.4-2x faster once a layer's activations
-# outgrow the caches (e.g. the CQL penalty's 2 x 7,936 x 256 floats, or the actor's pass
-# through 10 critics on 1,024 rows): each chunk's forward and backward run on data still in
-# cache. Measured (docs/performance.md): the best chunk held ~256k floats per layer
-# (rows x members x width: 2 x 256 critics ~500 rows, 10 x 256 ~250, 2 x 512 ~250-500,
-# 2 x 64 ~2,000); below ~128 rows the per-chunk overhead wins. On an accelerator one big
-# batch is faster: no chunking there.
+# A loss that is a sum of per-row terms has as gradient the sum of its chunks' gradients; on
+# a CPU, chunk by chunk is ~1.4-2x faster once a layer's activations outgrow the caches. The
+# best chunk held ~256k floats per layer (rows x members x width), below ~128 rows the
+# per-chunk overhead wins, and an accelerator wants one big batch (docs/performance.md).
 CPU_CHUNK_FLOATS = 262_144
 MIN_CHUNK_ROWS = 256
 

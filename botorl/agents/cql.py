@@ -13,19 +13,14 @@ kept here; the code is ours:
   ``max(Q, mc_return(s, a_data))``; the uniform samples are not bounded.
 - Fixed weight: penalty = cql_weight * diff. Lagrange: penalty =
   alpha' * cql_weight * (diff - target_action_gap), alpha' = clip(exp(log alpha'), 0, 1e6),
-  log alpha' starts at 1.0 with the critic learning rate; the multiplier loss is
-  -mean_members(alpha' * cql_weight * (diff - gap)) (diff held fixed), so alpha' grows while
-  the gap exceeds the target. Antmaze: weight 5.0, Lagrange, gap 0.8 (scripts/run_antmaze.sh).
-- Max-target backup on (min over the critic subset, then max over n next actions).
+  with the multiplier loss -mean_members(alpha' * cql_weight * (diff - gap)) (diff held
+  fixed), so alpha' grows while the gap exceeds the target.
 
-Our choice: all 3n + 1 actions per state (data, uniform, pi(s), pi(s')) of every ensemble
-member are evaluated in ONE critic call -- the observations are repeated 3n + 1 times into
-the batch and the vmapped ensemble evaluates all members at once -- since this step
-dominates pre-training time. Members' losses are averaged (Cal-QL sums its two critics'
-losses; with Adam the scale does not matter). With a penalised subset of K members
-(``cql_penalty_critics``, WSRL's 10-critic Cal-QL) the loss is the mean Bellman error over all
-N members plus weight x the mean penalty over the K: the penalty's weight against the Bellman
-error is WSRL's whatever K / N is.
+Our choices: all 3n + 1 actions per state of every member are evaluated in ONE critic call,
+since this step dominates pre-training time. Members' losses are averaged (Cal-QL sums its two
+critics'; with Adam the scale does not matter). With a penalised subset of K members
+(``cql_penalty_critics``) the loss is the mean Bellman error over all N members plus weight x
+the mean penalty over the K: the weight means WSRL's whatever K / N is.
 """
 
 from __future__ import annotations
@@ -63,9 +58,8 @@ class CQLConfig(SACConfig):
     cql_clip_diff_min: float = -math.inf
     cql_clip_diff_max: float = math.inf
     calql: bool = False
-    # Members the conservative penalty applies to: a random subset of this many, drawn with
-    # replacement each critic step (WSRL's Cal-QL with its 10-critic "redq" ensemble penalises
-    # 2; every member still gets its Bellman error). None: all members (Cal-QL's own 2 critics).
+    # Members the penalty applies to: a random subset of this many, drawn with replacement each
+    # critic step (WSRL's 10-critic Cal-QL penalises 2). None: all members (Cal-QL's own 2).
     cql_penalty_critics: int | None = None
 
     def validate(self) -> None:

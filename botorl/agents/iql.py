@@ -9,14 +9,10 @@ One update, in the order of the IQL reference code (ikostrikov/implicit_q_learni
 3. Q: ``L = mean_members mean_B (Q_i(s,a) - r - discount (1 - done) V(s'))^2``, new V;
 4. Polyak update of the target Q (tau).
 
-Policy: the same tanh-squashed Gaussian as SAC (``TanhGaussianActor``), so its actions lie
-in [-1, 1], ``sample_tanh_gaussian``/``tanh_gaussian_log_prob`` give actions and log-probs
-(with the tanh correction; dataset actions are mapped back with atanh) and
-``SACAgent.from_pretrained`` can take it over unchanged. The IQL paper's policy is an
-unsquashed Gaussian with tanh on the mean and a state-independent log-std; we keep the
-state-independent log-std (``state_dependent_std=False``) but squash -- our choice. The
-log-std range is [-5, 2] (IQL's actor uses log_std_min -5). The IQL reference decays the
-actor learning rate with a cosine schedule; we use a constant rate.
+Policy: the same tanh-squashed Gaussian as SAC, so ``SACAgent.from_pretrained`` takes it over
+unchanged (dataset actions are mapped back with atanh for the log-prob). The IQL paper's policy
+is an unsquashed Gaussian with tanh on the mean; we keep its state-independent log-std and
+range [-5, 2] but squash, and use a constant actor learning rate (IQL's decays with a cosine).
 """
 
 from __future__ import annotations
@@ -50,10 +46,8 @@ class IQLConfig:
     log_std_min: float = -5.0
     log_std_max: float = 2.0
     num_critics: int = 2
-    # Q'(s, a) in the value and actor losses = min over a random subset of this many distinct
-    # target members (IQL's min of its twin Qs when num_critics = 2). With the 10-critic
-    # ensemble that fine-tuning carries over, each member is trained, and the pessimism of
-    # the target stays IQL's rather than a min over all 10.
+    # Q'(s, a) = min over a random subset of this many distinct target members: IQL's twin-Q
+    # pessimism whatever the ensemble size fine-tuning carries over (docs/methods.md).
     num_min_critics: int = 2
     actor_lr: float = 3e-4
     critic_lr: float = 3e-4

@@ -84,8 +84,7 @@ def host_shards(n: int) -> int:
 
 def _member_loop(fn, axes, *args):
     """``fn`` on each member in turn (``lax.map``): every member runs the single run's own
-    unbatched program (XLA may still fuse it another way inside the loop: parameters equal a
-    1-member population's to ~1e-8 after 3 Cal-QL updates, against ~1e-7 vmapped)."""
+    unbatched program (up to how XLA fuses it inside the loop)."""
     mapped = tuple(a for a, ax in zip(args, axes) if ax == 0)
 
     def one(ms):
@@ -125,9 +124,8 @@ def _mesh(d: int) -> Mesh:
 
 
 def member_sharding(n: int):
-    """Where a population of ``n`` members keeps its stacked arrays between updates: split
-    over the devices along the member axis (replicated when ``n`` does not divide, as JAX
-    shards only evenly). None for one device."""
+    """Where a population of ``n`` members keeps its arrays between updates: split over the
+    devices along the member axis (replicated when ``n`` does not divide); None for one."""
     d = host_shards(n)
     if d == 1:
         return None

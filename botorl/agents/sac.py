@@ -5,17 +5,11 @@ does it: the batch of u*B rows is split into u minibatches; each gets a critic s
 by its Polyak update (tau); then one actor step and one temperature step use the whole
 batch. (WSRL: zhouzypaul/wsrl, "utd" handling in the SAC agent's update; RLPD does the same.)
 
-Choices (each a ``SACConfig`` field):
-- TD target: min over a random subset of ``num_min_critics`` target critics, drawn with
-  replacement (WSRL) or without (RLPD) -- ``subsample_replace``.
-- Actor objective: min (WSRL) or mean (RLPD) over all critics -- ``actor_objective``.
-- Backup entropy (``- temp * log pi(a'|s')`` inside the target): off in WSRL fine-tuning.
-- Max-target backup (``max_target_backup``, antmaze): draw ``num_backup_actions`` next
-  actions a'_1..a'_n ~ pi(.|s'); for each, take the min over the critic subset; the target
-  uses the max over the n of those values, and, when backup entropy is on, the log-prob of
-  that same argmax action (as Cal-QL/JaxCQL's ``cql_max_target_backup`` does).
-- The SAC entropy coefficient is called ``temperature``/``temp`` here; BOTO's ``alpha`` is
-  something else.
+WSRL's and RLPD's choices are ``SACConfig`` fields (``subsample_replace``,
+``actor_objective``). The max-target backup (antmaze) takes, over ``num_backup_actions`` next
+actions, the max of their min over the critic subset and, with backup entropy, the log-prob of
+that argmax action (as Cal-QL/JaxCQL's ``cql_max_target_backup``). The SAC entropy coefficient
+is ``temperature``/``temp`` here; BOTO's ``alpha`` is something else.
 """
 
 from __future__ import annotations
@@ -32,14 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from botorl.agents.common import (
-    ACTOR_CRITIC_CHECKS,
-    RATE_WHY,
-    ActorCriticAgent,
-    TrainState,
-    adam,
-    check_fields,
-    chunk_size,
-    is_rate,
+    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, adam, check_fields, chunk_size, is_rate,
     summed_value_and_grad,
 )
 from botorl.agents.temperature import INIT_TEMP_RULES, log_temp_params, stationary_temperature
@@ -77,10 +64,8 @@ class SACConfig:
     max_target_backup: bool = False
     num_backup_actions: int = 10
     utd_ratio: int = 4
-    # Rows per chunk of a gradient that is a sum over rows (the actor's pass through the
-    # critics; CQL's penalty): None -> sized to the CPU's caches (at least 256 rows) and one
-    # chunk elsewhere, 0 -> one chunk. Speed only: the result is the same up to float
-    # rounding (agents/common.py).
+    # Rows per chunk of a gradient that is a sum over rows (agents/common.py): None -> sized to
+    # the CPU's caches, 0 -> one chunk. Speed only: the same result up to float rounding.
     chunk_rows: int | None = None
 
     def validate(self) -> None:
@@ -140,14 +125,11 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
     def from_pretrained(cls, agent, config: SACConfig, seed: int | None = None, observations=None) -> "SACAgent":
         """WSRL warm start: the online SAC learner from a pre-trained agent (SAC, CQL, Cal-QL, IQL).
 
-        Takes the actor, the critic ensemble, its target critics and, where the agent has one,
-        the temperature, each with its optimiser state, as WSRL restores the whole pre-trained
-        agent. From IQL, which has no temperature, it starts at ``stationary_temperature``
-        (agents/temperature.py) when ``config.init_temp_rule == "stationary"`` and probe
-        ``observations`` are given, else (or with a warning, when the critic has no curvature)
-        at ``config.init_temp``, with a fresh Adam state. The networks in ``config`` must be the
-        pre-trained ones: an ensemble of N critics is N pre-trained critics, never copies of
-        fewer (copies given the same batches and targets stay identical forever).
+        Takes the actor, the critics, their targets and any temperature, each with its optimiser
+        state, as WSRL restores the whole agent. From IQL, which has no temperature, it starts at
+        ``stationary_temperature`` (``init_temp_rule`` "stationary" with probe ``observations``),
+        else at ``config.init_temp``, with a fresh Adam state. The networks in ``config`` must be
+        the pre-trained ones: N critics are never copies of fewer (copies stay identical forever).
         """
         obs_dim, action_dim = _dims_of(agent)
         fresh = cls.create(config, obs_dim, action_dim, seed=0)
@@ -299,10 +281,8 @@ def _dims_of(agent) -> tuple[int, int]:
 
 
 def _carry(fresh: TrainState, pre: TrainState) -> TrainState:
-    """``fresh``'s apply function and optimiser with ``pre``'s parameters, step and optimiser state.
-
-    The learning rate lives in the optimiser, not its state, so Adam's moments carry over to
-    another rate; a state of another structure (another optimiser) is a ConfigError."""
+    """``fresh``'s apply function and optimiser (so its learning rate) with ``pre``'s parameters,
+    step and optimiser state."""
     if jax.tree_util.tree_structure(fresh.opt_state) != jax.tree_util.tree_structure(pre.opt_state):
         raise ConfigError(
             "from_pretrained: the pre-trained optimiser state does not match the fine-tuning optimiser "

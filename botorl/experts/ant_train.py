@@ -2,27 +2,15 @@
 
     botorl train-ant --out runs/ant_goal [--total-env-steps N] [--time-limit-s S] ...
 
-Layout: worker processes own the ants (``AntGoalSim``) and a numpy copy of the actor; each
-iteration they step ``rollout_len`` steps of their ants with the actor of the previous
-iteration while the accelerator runs ``updates_per_iter`` SAC updates (``SACAgent.train_step``
-under ``lax.scan``) on batches drawn from a replay buffer that lives on the device. So the
-CPU simulation and the gradient steps overlap; on a GPU machine with 16 cores the workers use
-the cores and the GPU the updates. On a CPU-only machine the same code runs (``num_workers``
-0 steps the ants in the main process).
-
-Resumable: every ``checkpoint_every_s`` seconds (and at the end, or when ``time_limit_s``
-is reached) the agent (``botorl.agents.checkpoint``: networks, optimisers, temperature, rng),
-the counters and the learning curve are written atomically under ``out``; a new call with
-the same ``out`` continues from them. The replay buffer is not saved (2M rows are ~0.5 GB);
-a resumed run refills it from the restored policy (``start_steps`` of fresh data before the
-first update), which costs a few seconds of simulation.
+Worker processes step the ants (``AntGoalSim``, a numpy copy of the previous iteration's
+actor) while the accelerator runs ``updates_per_iter`` SAC updates on a replay buffer kept on
+the device, so simulation and gradient steps overlap (``num_workers`` 0: the ants in this
+process). Layout, checkpoints, resume and SAC settings: docs/antmaze.md; the initial
+temperature 0.1 is Minari's ``ent_coef "auto_0.1"``. The replay buffer is not saved: a resumed
+run refills it with ``start_steps`` of the restored policy.
 
 Files under ``out``: ``agent.ckpt``, ``state.json``, ``curve.csv`` (one row per evaluation,
 ``CURVE_FIELDS``), ``actor.npz`` (the numpy actor, ``NumpyActor``), ``curve.png``.
-
-SAC settings (ours unless noted): actor and critic 3 x 256 with LayerNorm, 2 critics,
-discount 0.99, learning rates 3e-4, initial temperature 0.1 (Minari's ``ent_coef
-"auto_0.1"``), target entropy -8, batch 1,024.
 """
 
 from __future__ import annotations

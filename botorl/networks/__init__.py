@@ -4,30 +4,12 @@
 
 from __future__ import annotations
 
-from botorl.networks.common import (
-    MLP,
-    CriticEnsemble,
-    QNetwork,
-    Temperature,
-    ValueNetwork,
-    subsample_ensemble,
-)
+from botorl.networks.common import CriticEnsemble, Temperature, ValueNetwork, subsample_ensemble
 from botorl.networks.actor import (
-    TanhGaussianActor,
-    sample_tanh_gaussian,
-    tanh_gaussian_from_noise,
-    tanh_gaussian_log_prob,
+    TanhGaussianActor, sample_tanh_gaussian, tanh_gaussian_from_noise, tanh_gaussian_log_prob,
 )
 
 __all__ = [
-    "MLP",
-    "QNetwork",
-    "CriticEnsemble",
-    "ValueNetwork",
-    "Temperature",
-    "TanhGaussianActor",
-    "sample_tanh_gaussian",
-    "tanh_gaussian_from_noise",
-    "tanh_gaussian_log_prob",
-    "subsample_ensemble",
+    "CriticEnsemble", "ValueNetwork", "Temperature", "TanhGaussianActor", "sample_tanh_gaussian",
+    "tanh_gaussian_from_noise", "tanh_gaussian_log_prob", "subsample_ensemble",
 ]

@@ -15,13 +15,11 @@ def default_init(scale: float = 1.0):
 
 
 # ------------------------------------------------------------------------------ LayerNorm
-# XLA on the CPU runs LayerNorm's row reductions (mean, variance, and in the backward pass
-# mean(dy), mean(dy * y)) far slower than PyTorch's fused kernel: a third of a Cal-QL step
-# (docs/performance.md). As matmuls with a 1/n column they run ~3x faster (forward +
-# backward on (2, 7936, 256): 12.4 ms against flax's 38.7 ms, one run on 2 cores), and a
-# hand-written backward spares XLA from differentiating the reductions. Two-pass variance
-# (centre, then mean of squares) is also more accurate than flax's E[x^2] - E[x]^2 when the
-# mean is large. HIGHEST precision keeps GPUs from doing these dots in TF32.
+# XLA on the CPU runs LayerNorm's row reductions far slower than PyTorch's fused kernel; as
+# matmuls with a 1/n column and a hand-written backward they run ~3x faster
+# (docs/performance.md). Two-pass variance (centre, then mean of squares) is also more
+# accurate than flax's E[x^2] - E[x]^2 when the mean is large. HIGHEST precision keeps GPUs
+# from doing these dots in TF32.
 
 
 def _row_mean(z: jax.Array) -> jax.Array:
@@ -107,11 +105,8 @@ ValueNetwork = QNetwork
 
 
 class CriticEnsemble(nn.Module):
-    """N independent Q networks evaluated on the same inputs: output (N, B).
-
-    ``nn.vmap`` stacks the parameters of the members (leading axis N on every leaf) and runs
-    them as one batched computation, which is what makes 10 critics affordable.
-    """
+    """N independent Q networks evaluated on the same inputs: output (N, B). ``nn.vmap`` stacks
+    their parameters (leading axis N) and runs them as one batched computation."""
 
     hidden_dims: Sequence[int]
     num: int = 2
@@ -142,11 +137,8 @@ class Temperature(nn.Module):
 
 
 def subsample_ensemble(key: jax.Array, params, num_sample: int, num_total: int, replace: bool):
-    """Pick ``num_sample`` of ``num_total`` members of an ensemble's parameters.
-
-    With ``replace=True`` indices are drawn independently (WSRL); without, a random subset of
-    distinct members (RLPD). Returns the parameter pytree with leading axis ``num_sample``.
-    """
+    """The parameters of ``num_sample`` of ``num_total`` ensemble members, drawn independently
+    (``replace``, WSRL) or a random subset of distinct members (RLPD)."""
     if num_sample == num_total and not replace:
         return params
     if replace:
