@@ -117,9 +117,8 @@ class CQLAgent(SACAgent):
 
     def _penalty_rows(self, params, rows, members=None) -> tuple[jax.Array, jax.Array, dict]:
         """Per penalised member and state: clip(ood - Q(s, a_data)) (K, b), and Q(s, a_data) of
-        every member (N, b), plus sums for logging. ``rows`` holds per-state arrays
-        (observations, cql_actions, cur_logp, next_logp, mc_returns) of any number b of
-        states; ``members`` (K,) picks the penalised members (None: all, K = N)."""
+        every member (N, b), plus sums for logging, for the b states of ``rows`` (``_rows``);
+        ``members`` (K,) picks the penalised members (None: all, K = N)."""
         cfg = self.config
         n = cfg.cql_n_actions
         obs, acts = rows["observations"], rows["cql_actions"]

@@ -149,10 +149,9 @@ def placed(*trees):
 
 
 def over_members(fn, axes: tuple, *, across_cores: bool):
-    """``fn(member, *args)`` of one agent as a function of the population: the arguments with
-    axis 0 are mapped over the members, those with axis None are shared. ``across_cores``:
-    the heavy calls (updates), split over the CPU devices (``_across_cores``); otherwise
-    vmapped. Keyword arguments are static (part of the compiled program)."""
+    """``fn(member, *args)`` of one agent as a function of the population: arguments with axis 0
+    are mapped over the members, axis None shared; ``across_cores`` (the updates) splits the
+    members over the CPU devices, else vmapped. Keyword arguments are static."""
     mapper = _across_cores if across_cores else _per_member
 
     def mapped(*args, **static):

@@ -33,10 +33,8 @@ _CHUNK = 128
 @jax.jit
 def curvature_and_spread(actor, critic, observations):
     """``(k, sigma_eff)``, each (B, A): ``k = -diag d^2 Q / da^2`` of the ensemble-mean Q at
-    ``a = tanh(mean)``, and the tanh-squashed policy's std in action space there.
-
-    ``actor``/``critic`` are the agent's TrainStates (their ``apply_fn`` give ``(mean,
-    log_std)`` and the (N, B) critic values), so any botorl agent (IQL, SAC, CQL) works."""
+    ``a = tanh(mean)``, and the tanh-squashed policy's std in action space there, from the
+    actor and critic TrainStates of any botorl agent (IQL, SAC, CQL)."""
     mean, log_std = actor.apply_fn({"params": actor.params}, observations)
     a0 = jnp.tanh(mean)
     sigma_eff = (1.0 - a0 * a0) * jnp.exp(log_std)

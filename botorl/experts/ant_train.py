@@ -101,10 +101,6 @@ class _Ants:
         self.ep_return = np.zeros(n)
         self.finished: list[float] = []
 
-    def run(self, kind: str, *args):
-        """A message of the main process: ("collect" | "eval", arguments)."""
-        return (self.collect if kind == "collect" else self.evaluate)(*args)
-
     def collect(self, params, steps: int, random: bool):
         sim, n = self.sim, self.sim.n
         actor = None if random else NumpyActor(params)
@@ -145,8 +141,8 @@ class _Ants:
 def _worker(conn, n: int, seed: int, index: int):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     ants = _Ants(n, seed, index)
-    while (msg := conn.recv())[0] != "stop":
-        conn.send(ants.run(*msg))
+    while (msg := conn.recv())[0] != "stop":  # (method name, arguments)
+        conn.send(getattr(ants, msg[0])(*msg[1:]))
 
 
 class Collector:
@@ -172,7 +168,7 @@ class Collector:
 
     def recv(self):
         if self.local is not None:
-            return [self.local.run(*self._pending)]
+            return [getattr(self.local, self._pending[0])(*self._pending[1:])]
         return [c.recv() for c in self.conns]
 
     def close(self):
@@ -280,7 +276,7 @@ def train(cfg: AntTrainConfig) -> dict:
                                                  "hidden": list(cfg.hidden)})
 
     def evaluate():
-        collector.send("eval", params, HORIZON, 12345)
+        collector.send("evaluate", params, HORIZON, 12345)
         res = collector.recv()
         goals = [g for r in res for g in r[0]]
         ret = float(np.mean([r[1] for r in res]))

@@ -1,10 +1,8 @@
 """Tanh-squashed Gaussian policy and its sampling / log-prob helpers.
 
 The module returns the mean and log-std of the Gaussian over the pre-tanh action u; the
-action is a = tanh(u). Log-probs include the change of variables:
-``log pi(a|s) = sum_i [log N(u_i; mean_i, std_i) - log(1 - tanh(u_i)^2)]``, with the second
-term written as ``2 (log 2 - u - softplus(-2u))`` for numerical stability (as in
-TensorFlow Probability's Tanh bijector).
+action is a = tanh(u), and ``log pi(a|s) = sum_i [log N(u_i; mean_i, std_i) - log(1 -
+tanh(u_i)^2)]``, the second term in TensorFlow Probability's stable form.
 """
 
 from __future__ import annotations
@@ -25,11 +23,8 @@ _ATANH_CLIP = 1.0 - 1e-6
 
 
 class TanhGaussianActor(nn.Module):
-    """Gaussian over pre-tanh actions; ``__call__`` returns ``(mean, log_std)``.
-
-    ``state_dependent_std=False`` learns one log-std vector (as in IQL's policy); log-std is
-    clipped to ``[log_std_min, log_std_max]``.
-    """
+    """Gaussian over pre-tanh actions; ``__call__`` returns ``(mean, log_std)``, log-std clipped
+    to ``[log_std_min, log_std_max]`` (one learnt vector without ``state_dependent_std``, IQL's)."""
 
     hidden_dims: Sequence[int]
     action_dim: int
@@ -63,11 +58,8 @@ def _log_det_tanh(u: jax.Array) -> jax.Array:
 
 
 def sample_tanh_gaussian(key: jax.Array, mean: jax.Array, log_std: jax.Array, num_samples: int | None = None):
-    """Reparameterised sample ``a = tanh(mean + std * eps)`` and its log-prob.
-
-    With ``num_samples=n`` the samples get a new axis before the action axis: actions
-    ``(..., n, A)``, log-probs ``(..., n)``; otherwise ``(..., A)`` and ``(...)``.
-    """
+    """Reparameterised sample ``a = tanh(mean + std * eps)`` and its log-prob; ``num_samples=n``
+    adds an axis before the action axis: actions ``(..., n, A)``, log-probs ``(..., n)``."""
     if num_samples is not None:
         mean = jnp.expand_dims(mean, -2)
         log_std = jnp.expand_dims(log_std, -2)
