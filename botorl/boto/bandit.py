@@ -1,26 +1,11 @@
-"""``botorl bandit``: the paper's bandit evidence (Figures 2 and 3) and ``bandit.json``.
-
-Figure 3 (``bandit-1d``, q = N(a, 0.25^2)): for alpha in {-1, -0.5, 0, 0.5, 1}, a small critic
-is trained with the BOTO objective (gamma = 0, every transition terminal), all five in one
-vmapped, jitted program; its curve is drawn with the exact alpha-NAMDP Q* (numerical
-integration with p_D the empirical distribution of the dataset rows, ``theory.namdp_exact``),
-the Theorem 2 bounds and the dataset points.
-
-Figure 2 (``bandit-pinwheel``): maps of Q over [-1, 1]^2 and KDEs of Q values
-(``scipy.stats.gaussian_kde``) at uniformly sampled actions and at the dataset actions, for
-BOTO (alpha in {-1, 0, 1}, hybrid noise with the paper's log sigma = -20) and for the critics
-of CQL, Cal-QL and IQL trained on the same data with the same small networks.
-
-Choices made here (not fixed by the paper):
-- Figure 3's noise is NOT clipped to [-1, 1] (``clip=False``): the closed-form Q* is that of
-  the unclipped Gaussian; clipping would put point masses on the box edges.
-- All critics are trained from a fresh initialisation (the BOTO minimiser does not depend on
-  it); the five (three) BOTO critics of a figure share their initialisation and noise draws
-  (common random numbers), so differences between alphas are not seed noise.
-- The Figure 3 critics use Adam with a cosine-decayed learning rate (3e-3 -> 0) so that the
-  regression settles on its minimiser instead of jittering around it.
-- "Away from the data" (``mean_ood_q``): grid points farther than sigma / 2 = 0.125 from every
-  dataset action.
+"""``botorl bandit``: the paper's bandit Figures 2 and 3 and ``bandit.json`` (see
+docs/results/bandit.md). Every critic is small, with gamma = 0, from a fresh initialisation (the
+BOTO minimiser does not depend on it); the BOTO critics of a figure, one per alpha, are vmapped
+in one program and share their initialisation and noise draws, so differences between alphas
+are not seed noise. Figure 3's noise is NOT clipped: ``theory.namdp_exact`` is the unclipped
+Gaussian's Q* (clipping would put point masses on the box edges), and its cosine-decayed
+learning rate lets the regression settle on its minimiser instead of jittering around it.
+"Away from the data" (``mean_ood_q``): farther than sigma / 2 from every dataset action.
 """
 
 from __future__ import annotations
@@ -70,8 +55,7 @@ SMALL_SAC = dict(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), actor_lay
 
 
 def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):
-    """``state, loss = step(state, k)`` on chunks of at most ``chunk`` of ``steps`` steps, with a
-    progress bar (its postfix the loss, when there is one)."""
+    """``state, loss = step(state, k)`` on chunks of at most ``chunk`` of ``steps`` steps, with a progress bar."""
     from tqdm.auto import tqdm
 
     bar = tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True, disable=not progress)
@@ -101,11 +85,8 @@ def train_boto_bandit(
     progress: bool = True,
     desc: str = "BOTO bandit",
 ):
-    """Train one fresh small critic per alpha with the BOTO objective, vmapped over alpha.
-
-    Returns ``(agents, q_fn)``: the stacked agents (leading axis len(alphas)) and
-    ``q_fn(actions (M, A)) -> (len(alphas), M)``, the ensemble-mean Q at a constant observation.
-    """
+    """One fresh small critic per alpha, vmapped; returns the stacked agents and ``q_fn(actions (M, A))
+    -> (len(alphas), M)``, the ensemble-mean Q at a constant observation."""
     import jax
     import jax.numpy as jnp
     import optax
@@ -151,12 +132,6 @@ def train_boto_bandit(
 # ----------------------------------------------------------------------------- Figure 3
 
 
-def ood_mask(grid: np.ndarray, actions: np.ndarray, distance: float = OOD_DISTANCE) -> np.ndarray:
-    """Grid points (M, A) farther than ``distance`` from every dataset action (N, A)."""
-    d = np.sqrt(((grid[:, None, :] - actions[None, :, :]) ** 2).sum(-1)).min(axis=1)
-    return d > distance
-
-
 def run_fig3(cfg: BanditConfig, dataset=None) -> dict:
     """Train the Figure 3 critics and compare them with Q* and the bounds: the bandit.json part."""
     from botorl.boto.config import BOTOConfig
@@ -174,7 +149,7 @@ def run_fig3(cfg: BanditConfig, dataset=None) -> dict:
     grid = np.linspace(-1.0, 1.0, cfg.grid_points)[:, None]
     q_learned = q_fn(grid)
     acts, rews = ds.actions.astype(np.float64), ds.rewards.astype(np.float64)
-    ood = ood_mask(grid, acts)
+    ood = np.sqrt(((grid[:, None, :] - acts[None, :, :]) ** 2).sum(-1)).min(axis=1) > OOD_DISTANCE
     per_alpha = []
     for i, alpha in enumerate(FIG3_ALPHAS):
         ex = namdp_exact(grid, acts, rews, alpha, gaussian_log_density(FIG3_SIGMA))
