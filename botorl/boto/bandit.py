@@ -71,22 +71,10 @@ def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):
     return state
 
 
-def train_boto_bandit(
-    dataset,
-    alphas,
-    boto_config,
-    *,
-    steps: int,
-    batch_size: int,
-    seed: int,
-    lr: float | None = None,
-    chunk: int = 500,
-    critic_hidden: tuple[int, ...] = (64, 64),
-    progress: bool = True,
-    desc: str = "BOTO bandit",
-):
-    """One fresh small critic per alpha, vmapped; returns the stacked agents and ``q_fn(actions (M, A))
-    -> (len(alphas), M)``, the ensemble-mean Q at a constant observation."""
+def train_boto_bandit(dataset, alphas, boto_config, *, steps: int, batch_size: int, seed: int, lr: float,
+                      progress: bool, desc: str):
+    """One fresh small critic per alpha, vmapped, Adam on a cosine-decayed ``lr``; returns
+    ``q_fn(actions (M, A)) -> (len(alphas), M)``, the ensemble-mean Q at a constant observation."""
     import jax
     import jax.numpy as jnp
     import optax
@@ -94,16 +82,13 @@ def train_boto_bandit(
     from botorl.agents.common import TrainState
     from botorl.agents.population import q_mean
     from botorl.agents.sac import SACAgent, SACConfig
-    from botorl.boto.objective import ObjectiveSettings, boto_update_many_fn, check_alpha
+    from botorl.boto.objective import ObjectiveSettings, boto_update_many_fn
 
-    check_alpha(list(alphas))
-    cfg = SACConfig(**{**SMALL_SAC, "critic_hidden_dims": critic_hidden})
-    agent = SACAgent.create(cfg, dataset.obs_dim, dataset.action_dim, seed=seed)
-    if lr is not None:
-        sched = optax.cosine_decay_schedule(lr, steps)
-        agent = agent.replace(
-            critic=TrainState.create(apply_fn=agent.critic.apply_fn, params=agent.critic.params, tx=optax.adam(sched))
-        )
+    agent = SACAgent.create(SACConfig(**SMALL_SAC), dataset.obs_dim, dataset.action_dim, seed=seed)
+    sched = optax.cosine_decay_schedule(lr, steps)
+    agent = agent.replace(
+        critic=TrainState.create(apply_fn=agent.critic.apply_fn, params=agent.critic.params, tx=optax.adam(sched))
+    )
     settings = ObjectiveSettings.resolve(boto_config, agent)
     n = len(alphas)
     agents = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)), agent)
@@ -121,27 +106,27 @@ def train_boto_bandit(
                                       ("observations", "actions", "rewards", "next_observations", "dones")})
         return ags, info["critic_loss"].mean()
 
-    agents = _in_chunks(agents, step, steps, chunk, desc, progress)
+    agents = _in_chunks(agents, step, steps, 500, desc, progress)
 
     def q_fn(actions):
         return np.asarray(q_mean(agents, np.zeros((len(actions), dataset.obs_dim), np.float32), actions))
 
-    return agents, q_fn
+    return q_fn
 
 
 # ----------------------------------------------------------------------------- Figure 3
 
 
-def run_fig3(cfg: BanditConfig, dataset=None) -> dict:
+def run_fig3(cfg: BanditConfig) -> dict:
     """Train the Figure 3 critics and compare them with Q* and the bounds: the bandit.json part."""
     from botorl.boto.config import BOTOConfig
     from botorl.boto.theory import gaussian_log_density, namdp_exact
     from botorl.data.generators.bandit import generate_1d
 
-    ds = generate_1d(cfg.fig3_transitions, cfg.seed, progress=False) if dataset is None else dataset
+    ds = generate_1d(cfg.fig3_transitions, cfg.seed, progress=False)
     boto_cfg = BOTOConfig(noise="gaussian", sigma=FIG3_SIGMA, clip=False, discount=0.0, backup_entropy=False)
     t0 = time.perf_counter()
-    _, q_fn = train_boto_bandit(
+    q_fn = train_boto_bandit(
         ds, FIG3_ALPHAS, boto_cfg, steps=cfg.fig3_steps, batch_size=cfg.fig3_batch_size, seed=cfg.seed,
         lr=cfg.fig3_lr, progress=cfg.progress, desc="Figure 3 (bandit-1d, 5 alphas)",
     )
@@ -280,7 +265,7 @@ def run_fig2(cfg: BanditConfig) -> dict:
     ds = generate_pinwheel(cfg.fig2_transitions, cfg.seed, progress=False).with_mc_returns(0.0)
     boto_cfg = BOTOConfig(noise="hybrid", log_sigma=cfg.fig2_log_sigma, clip=True, discount=0.0, backup_entropy=False)
     t0 = time.perf_counter()
-    _, q_boto = train_boto_bandit(
+    q_boto = train_boto_bandit(
         ds, FIG2_ALPHAS, boto_cfg, steps=cfg.fig2_boto_steps, batch_size=256, seed=cfg.seed, lr=1e-3,
         progress=cfg.progress, desc="Figure 2: BOTO (3 alphas)",
     )
