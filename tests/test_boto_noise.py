@@ -7,6 +7,8 @@ sampler fails the same check (so the thresholds have power).
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,7 +16,6 @@ import pytest
 from scipy import stats
 
 from botorl.boto.noise import (
-    expected_uniform_share,
     gaussian_noise,
     hybrid_noise,
     make_noise_fn,
@@ -23,6 +24,20 @@ from botorl.boto.noise import (
 from botorl.errors import ConfigError
 
 N = 200_000
+
+
+def expected_uniform_share(log_sigma: float, weight_fn="linear", n: int = 200_001) -> float:
+    """E[w(t)] = (1 / |log sigma|) * integral_{log sigma}^0 w(e^lambda) d lambda: closed form for
+    "linear" ((1 - sigma) / |log sigma|) and a constant p, Simpson's rule on ``n`` points for a callable."""
+    if weight_fn == "linear":
+        return float(-math.expm1(log_sigma) / -log_sigma)
+    if isinstance(weight_fn, (int, float)):
+        return float(weight_fn)
+    from scipy.integrate import simpson
+
+    lam = np.linspace(log_sigma, 0.0, n)
+    vals = np.asarray(weight_fn(jnp.exp(jnp.asarray(lam))), dtype=np.float64)
+    return float(simpson(vals, x=lam) / -log_sigma)
 
 
 def _draw(log_sigma, weight_fn="linear", act_dim=2, clip=True, seed=0):

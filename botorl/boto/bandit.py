@@ -1,26 +1,11 @@
-"""``botorl bandit``: the paper's bandit evidence (Figures 2 and 3) and ``bandit.json``.
-
-Figure 3 (``bandit-1d``, q = N(a, 0.25^2)): for alpha in {-1, -0.5, 0, 0.5, 1}, a small critic
-is trained with the BOTO objective (gamma = 0, every transition terminal), all five in one
-vmapped, jitted program; its curve is drawn with the exact alpha-NAMDP Q* (numerical
-integration with p_D the empirical distribution of the dataset rows, ``theory.namdp_exact``),
-the Theorem 2 bounds and the dataset points.
-
-Figure 2 (``bandit-pinwheel``): maps of Q over [-1, 1]^2 and KDEs of Q values
-(``scipy.stats.gaussian_kde``) at uniformly sampled actions and at the dataset actions, for
-BOTO (alpha in {-1, 0, 1}, hybrid noise with the paper's log sigma = -20) and for the critics
-of CQL, Cal-QL and IQL trained on the same data with the same small networks.
-
-Choices made here (not fixed by the paper):
-- Figure 3's noise is NOT clipped to [-1, 1] (``clip=False``): the closed-form Q* is that of
-  the unclipped Gaussian; clipping would put point masses on the box edges.
-- All critics are trained from a fresh initialisation (the BOTO minimiser does not depend on
-  it); the five (three) BOTO critics of a figure share their initialisation and noise draws
-  (common random numbers), so differences between alphas are not seed noise.
-- The Figure 3 critics use Adam with a cosine-decayed learning rate (3e-3 -> 0) so that the
-  regression settles on its minimiser instead of jittering around it.
-- "Away from the data" (``mean_ood_q``): grid points farther than sigma / 2 = 0.125 from every
-  dataset action.
+"""``botorl bandit``: the paper's bandit Figures 2 and 3 and ``bandit.json`` (see
+docs/results/bandit.md). Every critic is small, with gamma = 0, from a fresh initialisation (the
+BOTO minimiser does not depend on it); the BOTO critics of a figure, one per alpha, are vmapped
+in one program and share their initialisation and noise draws, so differences between alphas
+are not seed noise. Figure 3's noise is NOT clipped: ``theory.namdp_exact`` is the unclipped
+Gaussian's Q* (clipping would put point masses on the box edges), and its cosine-decayed
+learning rate lets the regression settle on its minimiser instead of jittering around it.
+"Away from the data" (``mean_ood_q``): farther than sigma / 2 from every dataset action.
 """
 
 from __future__ import annotations
@@ -70,8 +55,7 @@ SMALL_SAC = dict(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), actor_lay
 
 
 def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):
-    """``state, loss = step(state, k)`` on chunks of at most ``chunk`` of ``steps`` steps, with a
-    progress bar (its postfix the loss, when there is one)."""
+    """``state, loss = step(state, k)`` on chunks of at most ``chunk`` of ``steps`` steps, with a progress bar."""
     from tqdm.auto import tqdm
 
     bar = tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True, disable=not progress)
@@ -87,25 +71,10 @@ def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):
     return state
 
 
-def train_boto_bandit(
-    dataset,
-    alphas,
-    boto_config,
-    *,
-    steps: int,
-    batch_size: int,
-    seed: int,
-    lr: float | None = None,
-    chunk: int = 500,
-    critic_hidden: tuple[int, ...] = (64, 64),
-    progress: bool = True,
-    desc: str = "BOTO bandit",
-):
-    """Train one fresh small critic per alpha with the BOTO objective, vmapped over alpha.
-
-    Returns ``(agents, q_fn)``: the stacked agents (leading axis len(alphas)) and
-    ``q_fn(actions (M, A)) -> (len(alphas), M)``, the ensemble-mean Q at a constant observation.
-    """
+def train_boto_bandit(dataset, alphas, boto_config, *, steps: int, batch_size: int, seed: int, lr: float,
+                      progress: bool, desc: str):
+    """One fresh small critic per alpha, vmapped, Adam on a cosine-decayed ``lr``; returns
+    ``q_fn(actions (M, A)) -> (len(alphas), M)``, the ensemble-mean Q at a constant observation."""
     import jax
     import jax.numpy as jnp
     import optax
@@ -113,16 +82,13 @@ def train_boto_bandit(
     from botorl.agents.common import TrainState
     from botorl.agents.population import q_mean
     from botorl.agents.sac import SACAgent, SACConfig
-    from botorl.boto.objective import ObjectiveSettings, boto_update_many_fn, check_alpha
+    from botorl.boto.objective import ObjectiveSettings, boto_update_many_fn
 
-    check_alpha(list(alphas))
-    cfg = SACConfig(**{**SMALL_SAC, "critic_hidden_dims": critic_hidden})
-    agent = SACAgent.create(cfg, dataset.obs_dim, dataset.action_dim, seed=seed)
-    if lr is not None:
-        sched = optax.cosine_decay_schedule(lr, steps)
-        agent = agent.replace(
-            critic=TrainState.create(apply_fn=agent.critic.apply_fn, params=agent.critic.params, tx=optax.adam(sched))
-        )
+    agent = SACAgent.create(SACConfig(**SMALL_SAC), dataset.obs_dim, dataset.action_dim, seed=seed)
+    sched = optax.cosine_decay_schedule(lr, steps)
+    agent = agent.replace(
+        critic=TrainState.create(apply_fn=agent.critic.apply_fn, params=agent.critic.params, tx=optax.adam(sched))
+    )
     settings = ObjectiveSettings.resolve(boto_config, agent)
     n = len(alphas)
     agents = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)), agent)
@@ -140,33 +106,27 @@ def train_boto_bandit(
                                       ("observations", "actions", "rewards", "next_observations", "dones")})
         return ags, info["critic_loss"].mean()
 
-    agents = _in_chunks(agents, step, steps, chunk, desc, progress)
+    agents = _in_chunks(agents, step, steps, 500, desc, progress)
 
     def q_fn(actions):
         return np.asarray(q_mean(agents, np.zeros((len(actions), dataset.obs_dim), np.float32), actions))
 
-    return agents, q_fn
+    return q_fn
 
 
 # ----------------------------------------------------------------------------- Figure 3
 
 
-def ood_mask(grid: np.ndarray, actions: np.ndarray, distance: float = OOD_DISTANCE) -> np.ndarray:
-    """Grid points (M, A) farther than ``distance`` from every dataset action (N, A)."""
-    d = np.sqrt(((grid[:, None, :] - actions[None, :, :]) ** 2).sum(-1)).min(axis=1)
-    return d > distance
-
-
-def run_fig3(cfg: BanditConfig, dataset=None) -> dict:
+def run_fig3(cfg: BanditConfig) -> dict:
     """Train the Figure 3 critics and compare them with Q* and the bounds: the bandit.json part."""
     from botorl.boto.config import BOTOConfig
     from botorl.boto.theory import gaussian_log_density, namdp_exact
     from botorl.data.generators.bandit import generate_1d
 
-    ds = generate_1d(cfg.fig3_transitions, cfg.seed, progress=False) if dataset is None else dataset
+    ds = generate_1d(cfg.fig3_transitions, cfg.seed, progress=False)
     boto_cfg = BOTOConfig(noise="gaussian", sigma=FIG3_SIGMA, clip=False, discount=0.0, backup_entropy=False)
     t0 = time.perf_counter()
-    _, q_fn = train_boto_bandit(
+    q_fn = train_boto_bandit(
         ds, FIG3_ALPHAS, boto_cfg, steps=cfg.fig3_steps, batch_size=cfg.fig3_batch_size, seed=cfg.seed,
         lr=cfg.fig3_lr, progress=cfg.progress, desc="Figure 3 (bandit-1d, 5 alphas)",
     )
@@ -174,7 +134,7 @@ def run_fig3(cfg: BanditConfig, dataset=None) -> dict:
     grid = np.linspace(-1.0, 1.0, cfg.grid_points)[:, None]
     q_learned = q_fn(grid)
     acts, rews = ds.actions.astype(np.float64), ds.rewards.astype(np.float64)
-    ood = ood_mask(grid, acts)
+    ood = np.sqrt(((grid[:, None, :] - acts[None, :, :]) ** 2).sum(-1)).min(axis=1) > OOD_DISTANCE
     per_alpha = []
     for i, alpha in enumerate(FIG3_ALPHAS):
         ex = namdp_exact(grid, acts, rews, alpha, gaussian_log_density(FIG3_SIGMA))
@@ -305,7 +265,7 @@ def run_fig2(cfg: BanditConfig) -> dict:
     ds = generate_pinwheel(cfg.fig2_transitions, cfg.seed, progress=False).with_mc_returns(0.0)
     boto_cfg = BOTOConfig(noise="hybrid", log_sigma=cfg.fig2_log_sigma, clip=True, discount=0.0, backup_entropy=False)
     t0 = time.perf_counter()
-    _, q_boto = train_boto_bandit(
+    q_boto = train_boto_bandit(
         ds, FIG2_ALPHAS, boto_cfg, steps=cfg.fig2_boto_steps, batch_size=256, seed=cfg.seed, lr=1e-3,
         progress=cfg.progress, desc="Figure 2: BOTO (3 alphas)",
     )

@@ -1,10 +1,7 @@
-"""``BOTOConfig``: the settings of the BOTO phase (stage 2b of the pipeline).
-
-Names follow the paper: ``boto_steps``, ``log_sigma``; the bias controller ``alpha`` (in [-1, 1])
-is not a setting of the phase but of each run (``RunConfig.alpha``; ``run_boto(..., alpha=)``):
-one BOTO phase trains a population whose members have their own alphas.
-Fields left at ``None`` are taken from the pre-trained agent's own config (discount, Polyak
-rate, critic subset size), so BOTO bootstraps exactly like the agent it continues.
+"""``BOTOConfig``: the settings of the BOTO phase (stage 2b of the pipeline). The bias
+controller ``alpha`` is not one of them but each run's (``RunConfig.alpha``), so one phase trains
+a population whose members have their own alphas. Fields left at ``None`` are taken from the
+pre-trained agent's config, so BOTO bootstraps exactly like the agent it continues.
 """
 
 from __future__ import annotations
@@ -39,25 +36,16 @@ def check_alpha(alpha: Any, what: str = "alpha") -> None:
 class BOTOConfig:
     """Settings of BOTO training; defaults are the paper's (Table 2, B.1) where it gives them.
 
-    boto_steps: critic gradient steps (paper: 100k, 250k on kitchen).
-    noise: "hybrid" (paper B.1) or "gaussian" (N(a, sigma^2 I), the bandit figure 3).
-    log_sigma: the hybrid noise's lower end of log t (paper: -20; -30 on antmaze-large-diverse).
-    sigma: the Gaussian noise's standard deviation.
-    weight_fn: the hybrid mixing weight w(t): "linear" (w = t, OUR choice, see noise.py), a
-        constant probability (e.g. 0.05) or "zero".
-    clip: clip perturbed actions to the action box [-1, 1]^A.
-    batch_size: rows per critic step, drawn uniformly from D_BOTO = D_offline u D_warmup.
-    steps_per_call: critic steps fused into one jitted ``lax.scan`` call (also the logging and
-        callback period of ``run_boto``).
-    num_min_critics / subsample_replace: the target takes the min over a random subset of the
-        target critics. None -> the agent's own setting (SAC/CQL: ``num_min_critics``,
-        ``subsample_replace``); an agent without one (IQL) uses all its members.
-    backup_entropy: subtract ``tau * log pi(a~|s')`` in the target (SAC's soft value; the paper
-        prints ``+`` in section 4.1's target -- we use the SAC sign; the docs' Methods page). Agents
-        without a SAC temperature (IQL) use tau = 0.
-    discount, tau: None -> the agent's ``config.discount`` / ``config.tau`` (Polyak rate).
-    train_actor: also train the actor and temperature with the SAC losses after every critic
-        step (SAC-family agents only). Default False: Theorem 1 is stated for a fixed policy.
+    boto_steps: critic gradient steps (paper: 100k, 250k on kitchen). noise: "hybrid" (paper
+    B.1) or "gaussian" (``sigma``, the bandit figure 3). log_sigma: the hybrid noise's lower end
+    of log t (paper: -20; -30 on antmaze-large-diverse). weight_fn: the hybrid mixing weight
+    (noise.py). batch_size: rows per step from D_BOTO = D_offline u D_warmup. steps_per_call:
+    steps fused into one jitted ``lax.scan`` (also ``run_boto``'s logging and callback period).
+    num_min_critics, subsample_replace, discount, tau (Polyak rate): None -> the agent's own (an
+    agent without a subset setting, IQL, uses all its critics). backup_entropy: subtract
+    ``temperature * log pi(a~|s')`` in the target (the SAC sign; docs/methods.md); IQL has none.
+    train_actor: also step the actor and temperature after every critic step (SAC family only;
+    default False: Theorem 1 is stated for a fixed policy).
     """
 
     boto_steps: int = 100_000

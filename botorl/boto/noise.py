@@ -1,18 +1,13 @@
 """Action-noise distributions q_sigma(a_bar | a) for the BOTO objective, vectorised in JAX.
 
-* **hybrid** (paper B.1, after Oh & Lee 2025): ``lambda ~ U(log_sigma, 0)``, ``t = exp(lambda)``,
-  then ``a_bar ~ w(t) * Uniform([-1, 1]^A) + (1 - w(t)) * Normal(a, t^2 I)``, one ``t`` per row.
-* **gaussian**: ``a_bar ~ Normal(a, sigma^2 I)`` (the paper's bandit figure 3: sigma = 0.25).
+* **hybrid** (paper B.1, after Oh & Lee 2025): ``t = exp(U(log_sigma, 0))`` per row, then
+  ``a_bar ~ w(t) * Uniform([-1, 1]^A) + (1 - w(t)) * Normal(a, t^2 I)``; **w(t) = t is OUR
+  choice** (no source gives it; docs/methods.md, "BOTO: the choices the paper leaves open").
+* **gaussian**: ``a_bar ~ Normal(a, sigma^2 I)`` (the bandit figure 3, unclipped there to
+  compare with the closed-form Q*).
 
-No source gives the mixing weight: **w(t) = t is OUR choice** ("linear"): the uniform component
-takes over as the noise scale approaches the size of the box; with log_sigma = -20 about 5% of
-draws are uniform (E[w] = (1 - sigma) / |log sigma|). A constant weight p or any callable
-``t -> w`` in [0, 1] can be given instead.
-
-Perturbed actions are clipped to the box by default (the critic is only asked about actions the
-actor can produce); the bandit figure 3 keeps them unclipped to compare with the closed-form Q*.
-Both samplers return ``(a_bar, info)``, ``info`` per row: ``uniform`` (drawn from the uniform
-component) and ``t`` (the noise scale; sigma for the Gaussian kind).
+Both return ``(a_bar, info)``, ``info`` per row: ``uniform`` (drawn from the uniform component)
+and ``t`` (the noise scale; sigma for the Gaussian kind).
 """
 
 from __future__ import annotations
@@ -22,7 +17,6 @@ from typing import Callable, Union
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from botorl.errors import ConfigError
 
@@ -32,11 +26,8 @@ ACTION_LOW, ACTION_HIGH = -1.0, 1.0
 
 
 def resolve_weight_fn(weight_fn: WeightSpec) -> Callable[[jax.Array], jax.Array]:
-    """Turn a weight spec into ``t -> w(t)``.
-
-    ``"linear"`` (default, our choice): w(t) = t. ``"zero"``: pure Gaussian part. A number
-    p in [0, 1]: constant weight p. A callable is used as is (it must map [0, 1] to [0, 1]).
-    """
+    """``t -> w(t)``: ``"linear"`` (w = t), ``"zero"``, a constant p in [0, 1], or a callable
+    from [0, 1] to [0, 1], used as is."""
     if callable(weight_fn):
         return weight_fn
     if isinstance(weight_fn, str):
@@ -131,23 +122,3 @@ def make_noise_fn(
             raise ConfigError(f"boto gaussian noise sigma={sigma!r} must be positive (e.g. 0.25).")
         return lambda key, a: gaussian_noise(key, a, sigma, clip=clip)
     raise ConfigError(f"boto noise kind={kind!r} is not known; use 'hybrid' or 'gaussian'.")
-
-
-def expected_uniform_share(log_sigma: float, weight_fn: WeightSpec = "linear", n: int = 200_001) -> float:
-    """E[w(t)] = (1 / |log sigma|) * integral_{log sigma}^0 w(e^lambda) d lambda.
-
-    Closed form for the built-in weights ("linear": (1 - sigma) / |log sigma|; constant p: p),
-    composite Simpson's rule on ``n`` points for a callable.
-    """
-    _check_log_sigma(float(log_sigma))
-    if isinstance(weight_fn, str) and weight_fn.strip().lower() == "linear":
-        return float(-math.expm1(log_sigma) / -log_sigma)
-    if isinstance(weight_fn, str) and weight_fn.strip().lower() == "zero":
-        return 0.0
-    if isinstance(weight_fn, (int, float)) or isinstance(weight_fn, str):
-        return float(weight_fn)
-    from scipy.integrate import simpson
-
-    lam = np.linspace(log_sigma, 0.0, n)
-    vals = np.asarray(weight_fn(jnp.exp(jnp.asarray(lam))), dtype=np.float64)
-    return float(simpson(vals, x=lam) / -log_sigma)

@@ -6,12 +6,10 @@ For a batch (s, a, r, s', done) of D_BOTO and a perturbed action a_bar ~ q_sigma
               + gamma (1 - done) (min_{j in subset} Q'_j(s', a~) - tau log pi(a~|s')),  a~ ~ pi(.|s')
     loss  = mean_i mean_B (Q_i(s, a_bar) - y_bar)^2
 
-followed by a Polyak update of the target critics after every step. The choices the paper leaves
-open (the entropy sign, the frozen actor, IQL's tau = 0, one a~ per row) are the docs' Methods
-page, "BOTO: the choices the paper leaves open". Any botorl agent works (SAC, CQL, Cal-QL, IQL);
-its critic keeps its optimiser and Adam state from pre-training. ``alpha`` is a traced argument,
-not a static setting: changing it does not recompile, and ``jax.vmap`` over alpha trains several
-critics in one program (bandit.py).
+then a Polyak update of the target critics; the choices the paper leaves open are on
+docs/methods.md. Any botorl agent works, its critic keeping its optimiser state from
+pre-training. ``alpha`` is traced, not static: changing it does not recompile, and ``jax.vmap``
+over alpha trains several critics in one program.
 """
 
 from __future__ import annotations
@@ -96,10 +94,7 @@ class ObjectiveSettings:
 
 
 def compute_target(agent, batch, alpha, settings: ObjectiveSettings, k_noise, k_next):
-    """The BOTO target of every row: ``(y_bar (B,), a_bar (B, A), ||a - a_bar||^2 (B,), noise info)``.
-
-    y_bar = r - alpha ||a - a_bar||^2 + discount (1 - done) (min_{j in subset} Q'_j(s', a~) -
-    tau log pi(a~|s')) with a~ ~ pi(.|s')."""
+    """The BOTO target of every row: ``(y_bar (B,), a_bar (B, A), ||a - a_bar||^2 (B,), noise info)``."""
     a_bar, ninfo = settings.noise_fn()(k_noise, batch["actions"])
     next_obs = batch["next_observations"]
     k_act, k_sub = jax.random.split(k_next)
@@ -114,10 +109,7 @@ def compute_target(agent, batch, alpha, settings: ObjectiveSettings, k_noise, k_
 
 
 def boto_critic_step(agent, batch, alpha, settings: ObjectiveSettings):
-    """One BOTO critic step (+ Polyak update, + actor/temperature step if ``train_actor``).
-
-    The keys come from ``agent.rng``: ``rng, k_noise, k_next, k_actor = split(agent.rng, 4)``.
-    """
+    """One BOTO critic step (+ Polyak update, + actor/temperature step if ``train_actor``)."""
     rng, k_noise, k_next, k_actor = jax.random.split(agent.rng, 4)
     agent = agent.replace(rng=rng)
     target, a_bar, sq_dist, ninfo = compute_target(agent, batch, alpha, settings, k_noise, k_next)
@@ -178,12 +170,11 @@ def _check_batches(batches, many: bool) -> None:
 
 
 def boto_update_many(agent, batches, alpha: float, config: BOTOConfig | ObjectiveSettings):
-    """K BOTO critic steps under one ``lax.scan`` (batches stacked as (K, B, ...)); jitted.
+    """K BOTO critic steps under one jitted ``lax.scan`` (batches stacked as (K, B, ...)).
 
-    Returns ``(agent, metrics)``: the mean over the K steps of critic_loss, q_perturbed,
-    target, penalty (alpha ||a - a_bar||^2), sq_dist (||a - a_bar||^2), uniform_share, and,
-    after the last step, q_data / q_uniform (mean Q at the last batch's dataset actions and at
-    uniform actions).
+    Returns ``(agent, metrics)``: the means over the K steps of ``boto_critic_step``'s info, and
+    q_data / q_uniform, the mean Q after the last step at the last batch's dataset actions and at
+    uniform actions.
     """
     check_alpha(alpha)
     settings = config if isinstance(config, ObjectiveSettings) else ObjectiveSettings.resolve(config, agent)

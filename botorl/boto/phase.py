@@ -1,16 +1,15 @@
 """The BOTO phase (stage 2b): train the critic with the BOTO objective on D_BOTO.
 
-``train_boto`` is the phase of a population (agents/population.py): member i trains its critic
-with its own alpha on D_offline u D_warmup_i, ``config.steps_per_call`` steps per jitted call for
-all members; the pipeline's BOTO stage runs it, and ``run_boto`` is a population of one on the
-same loop. The actor (and SAC temperature) stay frozen unless ``config.train_actor``. An IQL
-agent comes back unchanged but for its critic, target critics and rng, so
-``SACAgent.from_pretrained`` then takes the BOTO-trained critic into fine-tuning. (Converting it
-first would put a fresh SAC temperature into the target; set ``backup_entropy=False`` then.)
+``train_boto`` trains a population (agents/population.py), member i with its own alpha on
+D_offline u D_warmup_i, all members in one jitted call; the pipeline runs it, and ``run_boto``
+is a population of one. The actor (and SAC temperature) stay frozen unless
+``config.train_actor``; an IQL agent comes back changed only in its critics and rng, for
+``SACAgent.from_pretrained`` to carry into fine-tuning (converting it first would put a fresh
+SAC temperature into the target; set ``backup_entropy=False`` then).
 
-Resumable: the batches of call c are drawn from ``np.random.default_rng([seed, c])`` and the
-noise from the agent's own rng, so a phase resumed at ``start_step`` (a multiple of
-``steps_per_call``) sees the same data stream as an uninterrupted one.
+Resumable: the batches of call c come from ``np.random.default_rng([seed, c])`` and the noise
+from the agent's rng, so a phase resumed at ``start_step`` (a multiple of ``steps_per_call``)
+sees the same data stream as an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -28,16 +27,13 @@ from botorl.errors import ConfigError, TrainingDivergedError
 
 __all__ = ["BOTOConfig", "run_boto", "train_boto", "boto_batches"]
 
-Callback = Callable[[int, Any, dict], None]
 _KEYS = ("observations", "actions", "rewards", "next_observations", "dones")
 
 
 def boto_batches(d_offline, d_warmups: Sequence, rngs: Sequence[np.random.Generator], batch_size: int,
                  num_batches: int) -> dict:
-    """Batches from D_BOTO = D_offline u D_warmup_i per member i, as
-    ``d_offline.concat(d_warmups[i]).sample`` draws them (row r < len(D_offline) from the offline
-    data, else from the member's warm-up data), without copying the offline data once per member.
-    Stacked (N, K, B, ...)."""
+    """Batches (N, K, B, ...) from D_BOTO = D_offline u D_warmup_i per member i, as
+    ``d_offline.concat(d_warmups[i]).sample`` draws them, without copying the offline data."""
     out = []
     n_off = 0 if d_offline is None else len(d_offline)
     for rng, d_w in zip(rngs, d_warmups):
@@ -58,12 +54,9 @@ def boto_batches(d_offline, d_warmups: Sequence, rngs: Sequence[np.random.Genera
     return {k: np.stack([o[k] for o in out]) for k in _KEYS}
 
 
-OnCall = Callable[[int, int, Any, list], None]
-
-
 def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alphas: Sequence[float],
                seeds: Sequence[int], *, start_step: int = 0, end_step: int | None = None,
-               on_call: OnCall | None = None, progress: bool = True):
+               on_call: Callable[[int, int, Any, list], None] | None = None, progress: bool = True):
     """BOTO for every member of ``agents`` (stacked), member i with ``alphas[i]`` on
     D_offline u ``d_warmups[i]`` (None: none), its batches from ``seeds[i]``; returns the agents.
 
@@ -108,17 +101,15 @@ def run_boto(
     seed: int = 0,
     start_step: int = 0,
     num_steps: int | None = None,
-    callback: Callback | None = None,
+    callback: Callable[[int, Any, dict], None] | None = None,
     progress: bool = True,
 ) -> tuple[Any, list[dict]]:
     """Train one agent's critic with BOTO at bias controller ``alpha`` in [-1, 1] (> 0 lowers Q
-    far from the data, < 0 raises it; 1 is Oh & Lee's NAMDP), its batches drawn from ``seed``
-    (``train_boto`` on a population of one); returns ``(agent, history)``.
+    far from the data, < 0 raises it; 1 is Oh & Lee's NAMDP); returns ``(agent, history)``.
 
-    ``history`` has one dict per call: ``step``, ``seconds`` (since this call of run_boto) and
-    the metrics of ``boto_update_many``. ``callback(step, agent, metrics)`` runs after every
-    call. A NaN/inf loss raises TrainingDivergedError (the agent passed to the last callback is
-    the last good one).
+    ``history`` has one dict per call: ``step``, ``seconds`` and the metrics of
+    ``boto_update_many``; ``callback(step, agent, metrics)`` runs after every call. A NaN/inf
+    loss raises TrainingDivergedError (the last callback's agent is the last good one).
     """
     config.validate()
     check_alpha(alpha)

@@ -1,22 +1,17 @@
 """The exact alpha-NAMDP solution of a one-step problem and its Theorem 2 bounds (NumPy).
 
-In a bandit (gamma = 0) with dataset actions a_i, rewards r_i (the empirical dataset
-distribution p_D puts weight 1/N on each row) and a noise density q(a_bar | a), the minimiser
-of the BOTO loss is (paper Theorem 1, eq. 8)
+In a bandit (gamma = 0) with dataset rows (a_i, r_i), each of weight 1/N in p_D, and a noise
+density q(a_bar | a), the minimiser of the BOTO loss is (paper Theorem 1, eq. 8)
 
     Q*(a_bar) = sum_i q(a_bar|a_i) (r_i - alpha ||a_i - a_bar||^2) / sum_i q(a_bar|a_i)
 
-i.e. the integral over p_D reduces to a weighted sum over the rows. Theorem 2 bounds it by
+and Theorem 2 bounds it by
 
     min(0, -alpha) Rbar(a_bar) + min_i r_i  <=  Q*(a_bar)  <=  max(0, -alpha) Rbar(a_bar) + max_i r_i,
     Rbar(a_bar) = sum_i q(a_bar|a_i) ||a_i - a_bar||^2 / sum_i q(a_bar|a_i).
 
-(The inf/sup over the support of p_D become min/max over the dataset rows.)
-
-Noise densities: the Gaussian N(a, sigma^2 I) in closed form, and the (unclipped) hybrid
-density, whose mixture over lambda ~ U(log sigma, 0) is integrated numerically (Gauss-Legendre
-on lambda). Posterior weights are computed in log space so that points far from the data do
-not underflow.
+(the inf/sup over the support of p_D become min/max over the rows). Posterior weights are
+computed in log space so that points far from the data do not underflow.
 """
 
 from __future__ import annotations

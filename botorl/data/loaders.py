@@ -131,12 +131,9 @@ def load_d4rl_hdf5(
     action_tolerance: float = 1e-3,
     actions_to_unit: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> Dataset:
-    """A D4RL hdf5 file, as ``qlearning_dataset`` reads it (``_qlearning_rows``).
-
-    ``max_episode_steps`` only matters for files without ``timeouts`` (kitchen: the env's limit,
-    280). ``infos/success`` or ``infos/goal_achieved`` become ``infos["success"]``.
-    ``actions_to_unit`` maps the file's actions to [-1, 1] (a user's env with other bounds).
-    """
+    """A D4RL hdf5 file, as ``qlearning_dataset`` reads it (``_qlearning_rows``); ``infos/success``
+    or ``infos/goal_achieved`` become ``infos["success"]``. ``actions_to_unit`` maps the file's
+    actions to [-1, 1] (a user's env with other bounds)."""
     import h5py
 
     p = _require_file(path, "D4RL hdf5")
@@ -210,9 +207,8 @@ def _h5_tree(node):
 def _minari_episodes(mds, data_path: Path):
     """(id, {observations, actions, rewards, terminations, infos}) per episode, in order.
 
-    Minari's hdf5 storage is read directly with h5py: the arrays ``iterate_episodes`` gives,
-    about 10x faster on 10^4 short episodes. Other storage formats go through Minari's API.
-    """
+    Minari's hdf5 storage is read directly with h5py, about 10x faster than ``iterate_episodes``
+    on 10^4 short episodes; other storage formats go through Minari's API."""
     main = data_path / "main_data.hdf5"
     try:
         if not main.exists():
@@ -250,11 +246,9 @@ def load_minari(
     ``Path``, an existing path, or one starting with ``.``/``~``: the dataset folder, its ``data``
     folder or its ``main_data.hdf5``).
 
-    Dict observations are flattened by ``flatten_obs`` (sorted keys, unless ``obs_keys`` gives
-    the order). Per episode of T steps (T + 1 observations): ``next_observations =
-    observations[1:]``, the last step an episode end. The last T entries of
-    ``infos[success_info_key]`` become ``infos["success"]``. ``actions_to_unit``: as in
-    ``load_d4rl_hdf5`` (botorl's flat cache is then not used).
+    Dict observations go through ``flatten_obs`` (sorted keys unless ``obs_keys``). An episode of
+    T steps gives T transitions, the last an episode end, and the last T entries of
+    ``infos[success_info_key]`` as ``infos["success"]``.
     """
     data_path, as_path = _minari_data_path(id_or_path)
     name = str(id_or_path)
@@ -538,11 +532,10 @@ def load_dapg_demos(
     """DAPG human demos: the original list-of-dicts pickle or botorl's ``.npz``
     (botorl/data/assets/README.md describes its arrays).
 
-    A demo of T recorded steps gives T - 1 transitions, one episode, no terminals, the recorded
-    rewards. ``infos["success"]`` is ``success_fn(next_observation)`` (zeros with None; the
-    default is the door's). ``binary_reward=True`` (Cal-QL's "binary" task): reward = success - 1,
-    the demo cut at its first success, which is terminal; demos that never succeed are dropped
-    when ``drop_unsuccessful``, else kept with reward -1 throughout.
+    A demo of T recorded steps gives T - 1 transitions, one episode, no terminals.
+    ``binary_reward=True`` (Cal-QL's "binary" task): reward = success - 1, the demo cut at its
+    first success, which is terminal; demos that never succeed are dropped when
+    ``drop_unsuccessful``, else kept with reward -1 throughout.
     """
     if binary_reward and success_fn is None:
         raise ValueError("binary_reward=True needs a success_fn")

@@ -1,12 +1,7 @@
-"""The offline data of a user's own task (botorl/envs/user.py), whatever form they come in
-(docs/own-task.md): a dict of arrays (``REQUIRED``, optional ``OPTIONAL``; an episode ends at
-terminals and timeouts by default; dict observations flattened as the env's), a path (``.npz``
-with those keys, dict observations as ``observations/<key>``; a D4RL ``.hdf5``; a Minari
-dataset), or a botorl ``Dataset`` (already in botorl's units).
-
-Logged actions are in the env's own units, mapped to [-1, 1] with ``action_from_env``; rewards
-stay raw. Data given in memory are held for the process (``hold``/``held``); a run whose data
-came from a file re-reads the file.
+"""The offline data of a user's own task (botorl/envs/user.py), in any of the forms of
+docs/own-task.md, "Your data". Logged actions are in the env's own units, mapped to [-1, 1] with
+``action_from_env``; rewards stay raw. Data given in memory are held for the process
+(``hold``/``held``); a run whose data came from a file re-reads the file.
 """
 
 from __future__ import annotations

@@ -1,14 +1,11 @@
-"""A goal-reaching ant: the low-level policy behind AntMaze data (docs/antmaze.md).
+"""A goal-reaching ant: the low-level policy behind AntMaze data (docs/antmaze.md, "the ant").
 
-The robot is Gymnasium-Robotics' AntMaze's (Gymnasium's ``ant.xml``, ``ant_v4.AntEnv``'s
-stepping: frame skip 5 of 0.01 s). Task facts from Farama-Foundation/minari-dataset-generation-
-scripts, ``scripts/antmaze/reach_goal_ant.py``: goals drawn at angle U(0, 2 pi), radius 10 U(0, 1)
-(not sqrt: near goals are more frequent), a new one within 0.3; the first 27 observation entries
-are exactly AntMaze's ``observation`` key; the velocity reward is scaled by 10 "as the average
-velocity is slower ... due to the need to turn". Our choices: the ant terminates when unhealthy
-as Ant-v4 does (Minari's wrapper ignored it), 1,000-step episodes, Ant-v4's reset noise 0.1
-(Minari 0.15). ``AntGoalSim`` steps N ants with ``mj_step`` about 3x faster than Gymnasium's
-``AntEnv`` (tests compare the two). It needs no Gymnasium-Robotics.
+Facts from Farama-Foundation/minari-dataset-generation-scripts, ``scripts/antmaze/
+reach_goal_ant.py``: goal radius 10 U(0, 1) (not sqrt: near goals are more frequent); the
+velocity reward is scaled by 10 "as the average velocity is slower ... due to the need to turn".
+Our choices: the ant terminates when unhealthy as Ant-v4 does (Minari's wrapper ignored it),
+1,000-step episodes, Ant-v4's reset noise 0.1 (Minari 0.15). ``AntGoalSim`` steps N ants with
+``mj_step`` about 3x faster than Gymnasium's ``AntEnv`` (tests compare the two).
 """
 
 from __future__ import annotations

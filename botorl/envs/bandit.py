@@ -116,19 +116,14 @@ def sample_1d(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- the env
-def reward_function(kind: str):
-    """R(a) for a batch of actions (N, A) -> (N,)."""
-    fn = {"pinwheel": pinwheel_reward, "1d": bandit_1d_reward}[kind]
-    return lambda a: np.asarray(fn(np.asarray(a, np.float64)), dtype=np.float64).reshape(-1)
-
-
 class BanditEnv(gym.Env):
     metadata = {"render_modes": []}
 
-    def __init__(self, kind: str, reward_fn=None, seed: int | None = None):
+    def __init__(self, kind: str, seed: int | None = None):
         obs_dim, action_dim = OBS_DIM, ACTION_DIM[kind]
-        self.kind = kind
-        self.reward_fn = reward_fn or reward_function(kind)
+        fn = {"pinwheel": pinwheel_reward, "1d": bandit_1d_reward}[kind]
+        # R(a) for a batch of actions (N, A) -> (N,)
+        self.reward_fn = lambda a: np.asarray(fn(np.asarray(a, np.float64)), dtype=np.float64).reshape(-1)
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(obs_dim,), dtype=np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, shape=(action_dim,), dtype=np.float32)
         grid = np.linspace(-1.0, 1.0, 201 if action_dim == 1 else 101)
@@ -152,7 +147,3 @@ class BanditEnv(gym.Env):
         span = self._rmax - self._rmin
         success = float(np.clip((r - self._rmin) / span, 0.0, 1.0)) if span > 0 else 1.0
         return self._obs.copy(), r, True, False, {"success": success}
-
-
-def make_bandit(kind: str, seed: int | None = None) -> BanditEnv:
-    return BanditEnv(kind, seed=seed)

@@ -177,7 +177,7 @@ def _build() -> dict[str, TaskSpec]:
             networks=POINTMAZE_NET, description=f"point mass, D4RL maze2d {maze} map, fixed start and goal; maze2d-style data"))
     for kind, desc in (("pinwheel", "2-D pinwheel action data (paper Fig. 2)"), ("1d", "1-D bandit (paper Fig. 3)")):
         specs.append(TaskSpec(
-            name=f"bandit-{kind}", domain="bandit", env_factory=partial(_make, "bandit:make_bandit", kind),
+            name=f"bandit-{kind}", domain="bandit", env_factory=partial(_make, "bandit:BanditEnv", kind),
             max_episode_steps=1, success_mode="last", reward_scale=1.0, reward_bias=0.0,
             dataset_source=DatasetSource("generated", f"bandit-{kind}"), obs_dim=1, action_dim=BANDIT_ACTION_DIM[kind],
             networks=BANDIT_NET, description=f"one-step bandit: {desc}"))
