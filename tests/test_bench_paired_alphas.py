@@ -15,8 +15,8 @@ _spec.loader.exec_module(PA)
 
 
 def _pair(seed, alpha, dip, label="boto+calql"):
-    ref = {q: 1.0 for q in QUANTITIES} | {"dip": -1.0}
-    other = {q: 1.0 for q in QUANTITIES} | {"dip": dip}
+    ref = {q: 1.0 for q in QUANTITIES} | {"dip": -1.0, "lowest": 0.0}
+    other = {q: 1.0 for q in QUANTITIES} | {"dip": dip, "lowest": 1.0 + dip}
     return Pair("pointmaze-medium", seed, label, alpha, "wsrl", ref, other)
 
 
@@ -34,3 +34,14 @@ def test_alphas_pair_within_a_file_never_across(tmp_path):
     # by hand: seed 0: -0.2 - (-0.9) = 0.7; seed 2: -0.4 - (-1.0) = 0.6
     assert dip.n == 2 and abs(dip.mean - 0.65) < 1e-9 and (dip.better, dip.equal, dip.worse) == (2, 0, 0)
     assert not dip.noise_floor
+
+
+def test_hold_counts_by_hand(tmp_path):
+    a = tmp_path / "a.csv"
+    # seed 0: both alphas hold (lowest 0.8, 0.6); seed 1: one holds (0.9), one falls (0.0);
+    # seed 2: only one alpha ran, not counted. Hold rate 3/4 -> independent 2 * (1/16, 6/16, 9/16).
+    a.write_text(pairs_csv([_pair(0, -1.0, -0.2), _pair(0, 1.0, -0.4), _pair(1, -1.0, -0.1), _pair(1, 1.0, -1.0),
+                            _pair(2, 1.0, -1.0)]))
+    observed, independent = PA.hold_counts([a])
+    assert observed == {0: 0, 1: 1, 2: 1}
+    assert [round(independent[k], 6) for k in range(3)] == [0.125, 0.75, 1.125]
