@@ -18,7 +18,8 @@ a corrupted newest checkpoint. Two ways to kill:
   ``BOTORL_KILL_IN_CHECKPOINT=NAME:PHASE`` make the run kill itself with SIGKILL there; one
   run is killed twice (inside the writer of a BOTO checkpoint, then at the random fine-tuning
   step) and resumed after each kill; slow: killed in every stage in turn (four kills), per
-  family. (tests/test_pipeline_resume.py kills from a watching thread, at no chosen step.)
+  family. (The own-task CLI test in tests/test_own_task.py kills from outside, at no chosen
+  step, as soon as a fine-tuning checkpoint appears.)
 
 Default: every stage on pointmaze, the checkpoint-writer and corruption cases, a control (the
 same resume without the env state differs), the twice-killed subprocess run (~1.5 min on 2
@@ -158,6 +159,10 @@ def assert_same_run(ref: Path, got: Path, what: str) -> None:
     if (ref / warm).exists():  # a population keeps D_warmup in its own checkpoints
         with np.load(ref / warm) as a, np.load(got / warm) as b:
             assert all(np.array_equal(a[k], b[k]) for k in a.files), f"{what}: D_warmup"
+    for path in sorted((ref / "metrics").glob("*.csv")):  # each step logged once, in order
+        steps = [row.split(",")[0] for row in path.read_text().splitlines()]
+        assert [row.split(",")[0] for row in (got / "metrics" / path.name).read_text().splitlines()] == steps, \
+            f"{what}: metrics/{path.name}"
     final = Path("checkpoints") / "finetune-final" / "agent.ckpt"
     assert (got / final).read_bytes() == (ref / final).read_bytes(), f"{what}: the final agent differs"
 
