@@ -161,18 +161,12 @@ def read_bounded_bytes(path: str | os.PathLike, limit: int, *, tail: bool = Fals
             raise ValueError(f"{path.name} is not a regular file")
         if st.st_size > limit and not tail:
             raise ValueError(f"{path.name} is {st.st_size:,} bytes, more than the {limit:,} a run's file may hold")
-        if tail and st.st_size > limit:
-            os.lseek(fd, st.st_size - limit, os.SEEK_SET)
-        chunks, left = [], limit
-        while left > 0:
-            b = os.read(fd, min(left, 1 << 20))
-            if not b:
-                break
-            chunks.append(b)
-            left -= len(b)
-    finally:
+    except BaseException:
         os.close(fd)
-    return b"".join(chunks)
+        raise
+    with os.fdopen(fd, "rb") as f:
+        f.seek(max(st.st_size - limit, 0))
+        return f.read(limit)
 
 
 def read_bounded(path: str | os.PathLike, limit: int, *, tail: bool = False) -> str:

@@ -7,7 +7,9 @@ sweep's trials); ``--config FILE`` reads back one it wrote.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import typing
 from collections.abc import Mapping
 from typing import Any
 
@@ -49,8 +51,7 @@ def _refuse_derived(argv: list[str]) -> None:
         prefix = next((p for p in _AGENT_PREFIXES if key.startswith(p)), None)
         if prefix is None:
             continue
-        name = key[len(prefix):].replace("-", "_")
-        name = name[3:] if name.startswith("no_") else name
+        name = key[len(prefix):].replace("-", "_").removeprefix("no_")
         if name in DERIVED:
             src = "--" + DERIVED[name].replace("_", "-")
             raise ConfigError(f"{key}: every agent takes this from {src}, the one field that holds it (pre-training "
@@ -128,9 +129,6 @@ def _given(argv: list[str], flag: str) -> bool:
 def _is_flag(key: str) -> bool:
     """Whether ``key`` (a dotted path) is a plain bool field, which tyro makes a flag pair
     (``bool | None`` fields take a value)."""
-    import dataclasses
-    import typing
-
     from botorl.configs.schema import RunConfig
 
     cls = RunConfig
@@ -170,8 +168,6 @@ def override_args(overrides: Mapping) -> list[str]:
 def _load_config(argv: list[str]):
     """The config in FILE as `botorl sweep` wrote it, with the run's own --out, --pretrained and
     --no-progress; validated again."""
-    from dataclasses import replace
-
     from botorl.configs.resolve import validate
     from botorl.configs.schema import RunConfig, from_dict, to_dict
     from botorl.io import read_json_bounded
@@ -193,7 +189,7 @@ def _load_config(argv: list[str]):
     except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
         raise ConfigError(f"--config {ns.config} cannot be read as a run config ({err}); give a file botorl wrote "
                           f"(`botorl sweep` writes one per trial).") from None
-    cfg = replace(cfg, out=ns.out or cfg.out, pretrained=ns.pretrained or cfg.pretrained,
-                  progress=cfg.progress and not ns.no_progress)
+    cfg = dataclasses.replace(cfg, out=ns.out or cfg.out, pretrained=ns.pretrained or cfg.pretrained,
+                              progress=cfg.progress and not ns.no_progress)
     validate(cfg)
     return cfg

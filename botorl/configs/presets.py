@@ -1,33 +1,23 @@
-"""Presets: the default RunConfig of a (task, profile, method).
+"""Presets: the default RunConfig of a (task, profile, method). The profiles: docs/running.md's
+table; the ``full`` profile's sources: docs/methods.md ("Reference settings"). Generated tasks
+get the settings of the paper domain they stand in for (pointmaze -> antmaze, door-binary-local
+-> door-binary).
 
-Profiles
-- ``full``: the paper's settings on its six tasks (Table 2 / B.1: alpha, BOTO steps,
-  log sigma) with WSRL's and Cal-QL's public code (docs/methods.md, "Reference settings"):
-  networks per domain, pre-training steps (antmaze 1M, adroit 20k, kitchen 250k), CQL
-  weights, reward transforms, 10-critic SAC fine-tuning at UTD 4, 300k online steps, 20
-  evaluation episodes every 5k.
-  Generated tasks get the settings of the paper domain they stand in for (pointmaze ->
-  antmaze, door-binary-local -> door-binary).
-- ``quick``: a whole run in minutes on 2 CPU cores (generated tasks; any task accepts it).
-  OUR reductions, each for speed (measured: an update of the 10-critic, 2 x 128 SAC at UTD 4
-  costs ~100 ms of CPU here, so 20k online steps alone would take over 30 minutes): 2 x 64
-  actor and critics; FOUR critics (pre-training and fine-tuning) instead of WSRL's 10; 5 CQL
-  action samples per kind; fixed CQL weight 5 (no Lagrange) on the maze tasks; 10k
-  pre-training steps; 5k BOTO steps; 20k online steps (the 5k warm-up included) with
-  evaluations every 2.5k, and every 500 from the warm-up's end to 10k (the dip window);
-  checkpoints every 5k. On pointmaze: 200k-step datasets, no max-target backup, and 20k
-  pre-training steps (Cal-QL, BOTO's and WSRL's default, with 2 action samples per kind and
-  128-row batches: ~3x cheaper a step than 5 and 256; success on the umaze 0.99 over 8 seeds
-  at 15k, 1.00 at 20k); every pre-training algorithm gets that budget. door-binary-local:
-  20k BC-rollout steps besides the 25 demos. `--profile full` restores the paper's sizes.
-- ``smoke``: tiny networks and a few steps of every stage (tests; says nothing about
-  learning).
+The ``quick`` profile's reductions, each for speed (measured: an update of the 10-critic,
+2 x 128 SAC at UTD 4 costs ~100 ms of CPU here, so 20k online steps alone would take over 30
+minutes): 2 x 64 actor and critics; FOUR critics (pre-training and fine-tuning) instead of
+WSRL's 10; 5 CQL action samples per kind; fixed CQL weight 5 (no Lagrange) on the maze tasks;
+10k pre-training steps; 5k BOTO steps; 20k online steps (the 5k warm-up included) with
+evaluations every 2.5k, and every 500 from the warm-up's end to 10k (the dip window);
+checkpoints every 5k. On pointmaze: 200k-step datasets, no max-target backup, and 20k
+pre-training steps (Cal-QL, BOTO's and WSRL's default, with 2 action samples per kind and
+128-row batches: ~3x cheaper a step than 5 and 256; success on the umaze 0.99 over 8 seeds
+at 15k, 1.00 at 20k); every pre-training algorithm gets that budget. door-binary-local:
+20k BC-rollout steps besides the 25 demos.
 
 Our choices for tasks outside the paper: pointmaze uses antmaze's alpha (-1.0, the
 "diverse" value: the maze2d-style data are diverse, goals re-drawn) and log sigma -20;
-door-binary-local uses door-binary's alpha 0.0. A user's task (domain "custom" unless it names a
-paper domain; docs/own-task.md): 2 x 256 networks, 100k Cal-QL steps with CQL weight 1 (no
-Lagrange), IQL expectile 0.7 / temperature 3, alpha 0, 100k BOTO steps, log sigma -20.
+door-binary-local uses door-binary's alpha 0.0; a user's task: docs/own-task.md's table.
 """
 
 from __future__ import annotations
@@ -41,7 +31,6 @@ from botorl.boto.config import BOTOConfig
 from botorl.configs.schema import (
     DataConfig,
     EnvConfig,
-    EvalConfig,
     NetworkConfig,
     OfflineConfig,
     OnlineConfig,
@@ -99,12 +88,7 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     dom = _STANDS_IN.get(spec.domain, spec.domain)
     _, boto_steps, log_sigma = paper_settings(spec)
 
-    net = NetworkConfig(
-        actor_hidden_dims=tuple(spec.networks.actor),
-        critic_hidden_dims=tuple(spec.networks.critic),
-        num_critics=10,
-        layer_norm=True,
-    )
+    net = NetworkConfig(actor_hidden_dims=tuple(spec.networks.actor), critic_hidden_dims=tuple(spec.networks.critic))
     # WSRL's actor: a state-independent log-std on antmaze ("uniform"), state-dependent on
     # adroit and kitchen; the same in pre-training and fine-tuning.
     std = dict(state_dependent_std=(dom != "antmaze"))
@@ -113,18 +97,14 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     cql = replace(CQLConfig(), max_target_backup=True, backup_entropy=False, cql_penalty_critics=2, **std,
                   **_CQL[dom])
     iql = replace(IQLConfig(), **_IQL[dom])
-    offline = OfflineConfig(steps=_PRETRAIN_STEPS[dom], cql=cql, iql=iql, mc_infinite_horizon=False,
+    offline = OfflineConfig(steps=_PRETRAIN_STEPS[dom], cql=cql, iql=iql,
                             mc_sparse_negative_reward=_MC_SPARSE_NEGATIVE_REWARD.get(dom))
     sac = replace(SACConfig(), max_target_backup=(dom == "antmaze"), backup_entropy=False, **std)
-    online = OnlineConfig(steps=300_000, sac=sac)
     boto = replace(BOTOConfig(), boto_steps=boto_steps, log_sigma=log_sigma)
     # A user's task reads the file it was registered with (None: data held in memory).
     data_path = (spec.dataset_source.ref or None) if spec.user is not None else None
-    cfg = RunConfig(
-        task=task, method=method, pretrain=pretrain, profile=profile,
-        data=DataConfig(path=data_path), env=env_record(spec), network=net, offline=offline, warmup=WarmupConfig(5_000),
-        boto=boto, online=online, eval=EvalConfig(), checkpoint_every=50_000,
-    )
+    cfg = RunConfig(task=task, method=method, pretrain=pretrain, profile=profile, data=DataConfig(path=data_path),
+                    env=env_record(spec), network=net, offline=offline, boto=boto, online=OnlineConfig(sac=sac))
     if spec.domain == "adroit":
         # The 25 DAPG human demos (door2_sparse.npy / door_human_demos.npz) hold actions up to
         # |a| = 1.37; the env clips actions to the box, so the Dataset's clip to +-1 keeps what

@@ -1,7 +1,6 @@
 """The one wrapper shape every botorl task has (docs/CONTRACTS.md, "Tasks"): ``TaskEnv`` gives a
 flat float32 observation, actions in [-1, 1]^A, the task's reward / termination and
-``info["success"]`` in [0, 1]; domains implement ``_observe`` and ``_task_step``; ``finish`` adds
-the time limit.
+``info["success"]`` in [0, 1]; domains implement ``_observe`` and ``_task_step``.
 """
 
 from __future__ import annotations
@@ -14,7 +13,6 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from gymnasium.wrappers import TimeLimit
 
 
 def import_robotics() -> None:
@@ -82,8 +80,3 @@ class TaskEnv(gym.Wrapper):
 
     def _flat(self, obs: Any) -> np.ndarray:
         return np.asarray(self._observe(obs), dtype=np.float32).reshape(self.observation_space.shape)
-
-
-def finish(env: TaskEnv, max_episode_steps: int) -> gym.Env:
-    """Add the task's horizon (truncation, not termination)."""
-    return TimeLimit(env, max_episode_steps=max_episode_steps)
