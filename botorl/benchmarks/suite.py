@@ -98,10 +98,7 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
     setup_jax()
     import jax
 
-    if cfg.quick:
-        repeats, min_time = min(cfg.repeats, 2), min(cfg.min_time, 0.5)
-    else:
-        repeats, min_time = cfg.repeats, cfg.min_time
+    repeats, min_time = (min(cfg.repeats, 2), min(cfg.min_time, 0.5)) if cfg.quick else (cfg.repeats, cfg.min_time)
     if repeats < 1 or min_time <= 0:
         raise BotorlError(f"bench: --repeats ({cfg.repeats}) and --min-time ({cfg.min_time}) must be positive.")
     names = cfg.only.split(",") if cfg.only else list(wl.QUICK if cfg.quick else wl.WORKLOADS)

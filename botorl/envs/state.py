@@ -39,10 +39,8 @@ def _encode(v: Any, depth: int = 0) -> Any:
         if v.dtype == object or v.dtype.kind not in "biuf":
             raise _Skip
         return {"__ndarray__": v.ravel().tolist(), "dtype": v.dtype.str, "shape": list(v.shape)}
-    if type(v) is list:
-        return {"__list__": [_encode(x, depth + 1) for x in v]}
-    if type(v) is tuple:
-        return {"__tuple__": [_encode(x, depth + 1) for x in v]}
+    if type(v) in (list, tuple):
+        return {f"__{type(v).__name__}__": [_encode(x, depth + 1) for x in v]}
     if isinstance(v, (set, frozenset)):
         items = [_encode(x, depth + 1) for x in v]
         return {"__set__": sorted(items, key=repr), "frozen": isinstance(v, frozenset)}
