@@ -118,9 +118,8 @@ def _not_regular(path: Path, what: str) -> UnsafeFileError:
 
 
 def open_regular(path: str | os.PathLike, flags: int, mode: int = 0o644) -> int:
-    """``os.open`` of a regular file that follows no symbolic link and never blocks on a FIFO
-    (``O_NONBLOCK``: a FIFO or device is opened, seen and closed); ``UnsafeFileError`` (exit 2)
-    otherwise."""
+    """``os.open`` of a regular file, following no symbolic link and never blocking on a FIFO
+    (``O_NONBLOCK``: a FIFO or device is opened, seen and closed); else ``UnsafeFileError``."""
     path = Path(path)
     try:
         fd = os.open(path, flags | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, mode)

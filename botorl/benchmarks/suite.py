@@ -216,10 +216,7 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
     from botorl.envs.registry import get_task
 
     spec = get_task("antmaze-large-diverse-v2")
-    env = spec.make_env(0)
-    obs_dim = int(env.observation_space.shape[0])
-    action_dim = int(env.action_space.shape[0])
-    env.close()
+    obs_dim, action_dim = spec.obs_dim, spec.action_dim  # `botorl tasks check` holds the env to them
     cfg = SACConfig(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden,
                     num_critics=w.num_critics, utd_ratio=w.utd)
     agent = SACAgent.create(cfg, obs_dim, action_dim, 0)

@@ -71,9 +71,8 @@ def _pre_parse(argv: list[str]) -> argparse.Namespace:
 
 
 def make_config(overrides: Mapping | None = None, **fields: Any):
-    """The config of `botorl run` with ``fields`` (None: the preset's) and then ``overrides``
-    ({dotted.path: value}), each value made the flag that sets it, so every config is made the
-    one way, with `botorl run`'s checks."""
+    """The config of `botorl run` with ``fields`` (None: the preset's), then ``overrides``
+    ({dotted.path: value}), each made the flag that sets it: one way to make a config, one set of checks."""
     given = {k: v for k, v in fields.items() if v is not None}
     return build_config(override_args(given) + override_args(overrides or {}))
 

@@ -176,8 +176,6 @@ def validate(cfg: RunConfig) -> None:
     need(isinstance(cfg.eval.dense_interval, int) and cfg.eval.dense_interval >= 0, "eval.dense_interval",
          cfg.eval.dense_interval, "give the env steps between dense evaluations, or 0 for none")
     need(0.0 <= cfg.online.offline_ratio <= 1.0, "online.offline_ratio", cfg.online.offline_ratio, "must lie in [0, 1]")
-    if cfg.online.buffer_capacity is not None:
-        need(cfg.online.buffer_capacity >= 1, "online.buffer_capacity", cfg.online.buffer_capacity, "must be positive or None")
     _check_sizes(cfg, method, need)
     for name, dims in (("network.actor_hidden_dims", cfg.network.actor_hidden_dims),
                        ("network.critic_hidden_dims", cfg.network.critic_hidden_dims)):

@@ -28,8 +28,7 @@ class PaperSettings:
 
 @dataclass(frozen=True)
 class NetworkSizes:
-    """Hidden layer widths (docs/methods.md, "Reference settings"; the same for pre-training and
-    fine-tuning)."""
+    """Hidden layer widths, pre-training's and fine-tuning's (docs/methods.md, "Reference settings")."""
 
     critic: tuple[int, ...]
     actor: tuple[int, ...]
@@ -46,13 +45,8 @@ class DatasetSource:
     obs_keys: tuple[str, ...] | None = None
 
     def describe(self) -> str:
-        if self.kind == "minari":
-            return f"Minari {self.ref}"
-        if self.kind == "calql_npy":
-            return f"Cal-QL {' + '.join(self.ref.split(','))}"
-        if self.kind == "user":
-            return f"yours ({self.ref or 'in memory'})"
-        return f"generated ({self.ref})"
+        return {"minari": f"Minari {self.ref}", "calql_npy": f"Cal-QL {self.ref.replace(',', ' + ')}",
+                "user": f"yours ({self.ref or 'in memory'})"}.get(self.kind, f"generated ({self.ref})")
 
 
 @dataclass(frozen=True)
@@ -94,8 +88,7 @@ class TaskSpec:
 
 
 def make_gym_env(task: str, seed: int = 0, **_render) -> gym.Env:
-    """``gym.make`` entry point of ``TaskSpec.gym_spec`` (Gymnasium passes ``render_mode``, which
-    the tasks do not take)."""
+    """``gym.make``'s entry point of ``gym_spec`` (``_render``: Gymnasium's ``render_mode``)."""
     return get_task(task).make_env(seed)
 
 
@@ -113,8 +106,7 @@ DOMAIN_NETS = {"antmaze": ANTMAZE_NET, "adroit": ADROIT_NET, "kitchen": KITCHEN_
 
 
 def _make(entry: str, *args) -> gym.Env:
-    """``entry`` ("module:function" of this package) called with ``args`` (the seed last),
-    imported only when a task's env is made."""
+    """``entry`` ("module:function" of this package) called with ``args``; imported on first use."""
     module, func = entry.split(":")
     return getattr(importlib.import_module(f"botorl.envs.{module}"), func)(*args)
 

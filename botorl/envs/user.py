@@ -57,10 +57,8 @@ def _leaf(obs: Any, key: str):
 
 
 def flatten_obs(obs: Any, keys: tuple[str, ...] | None = None, *, batched: bool = False) -> np.ndarray:
-    """One observation -> (D,) float32, or a batch (``batched``: every leaf (B, ...)) -> (B, D).
-
-    ``keys`` (``obs_keys_of`` of the env's space): the leaves of a dict observation in order; None
-    for an array observation, which is only reshaped."""
+    """One observation -> (D,) float32, or a batch (``batched``: every leaf (B, ...)) -> (B, D);
+    ``keys``: ``obs_keys_of`` of the env's space (None: an array observation, only reshaped)."""
     if keys is None:
         a = np.asarray(obs, dtype=np.float32)
         return a.reshape(a.shape[0], -1) if batched else a.reshape(-1)
