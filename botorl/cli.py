@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import os
+import re
 import sys
 
 from botorl.io import IO_FAULTS
@@ -112,8 +113,6 @@ def main(argv: list[str] | None = None) -> int:
 def _hdf5_errno(err: OSError) -> int | None:
     """The errno inside an h5py OSError, which has none of its own ("... errno = 28, error
     message = 'No space left on device' ...")."""
-    import re
-
     m = re.search(r"errno = (\d+)", str(err))
     return int(m.group(1)) if m else None
 

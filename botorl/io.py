@@ -165,7 +165,7 @@ def read_bounded_bytes(path: str | os.PathLike, limit: int, *, tail: bool = Fals
         raise
     with os.fdopen(fd, "rb") as f:
         f.seek(max(st.st_size - limit, 0))
-        return f.read(limit)
+        return f.read(min(st.st_size, limit))  # not read(limit): that allocates ``limit`` bytes
 
 
 def read_bounded(path: str | os.PathLike, limit: int, *, tail: bool = False) -> str:

@@ -84,19 +84,16 @@ def build_config(argv: list[str]):
     import tyro
 
     from botorl.configs.custom import expand_argv
-    from botorl.configs.methods import get_method, resolve_pretrain
+    from botorl.configs.methods import resolve_pretrain
     from botorl.configs.presets import make_preset
     from botorl.configs.resolve import resolve, validate
     from botorl.configs.schema import RunConfig
-    from botorl.envs.registry import get_task
 
     argv = _expand_shortcuts(list(argv))
     argv = expand_argv(argv)  # --env MODULE:FUNCTION: a task of one's own, registered here (configs/custom.py)
     _refuse_derived(argv)
     pre = _pre_parse(argv)
-    get_method(pre.method)  # clear errors before tyro's generic ones
-    resolve_pretrain(pre.method, pre.pretrain)
-    get_task(pre.task)
+    resolve_pretrain(pre.method, pre.pretrain)  # clear errors before tyro's generic ones (task, profile: make_preset)
     default = make_preset(pre.task, pre.profile, pre.method, pre.pretrain)
     cfg = tyro.cli(
         RunConfig,

@@ -108,9 +108,8 @@ def machine_memory() -> int:
 def _check_sizes(cfg: RunConfig, method, need) -> None:
     """Batch sizes and the replay buffer against a cap and against this machine's memory, before
     anything is allocated (a huge value is exit 2, not a MemoryError)."""
-    batches = {"offline.batch_size": cfg.offline.batch_size, "online.batch_size": cfg.online.batch_size,
-               "boto.batch_size": cfg.boto.batch_size}
-    for name, v in batches.items():
+    for name in ("offline.batch_size", "online.batch_size", "boto.batch_size"):
+        v = _at(cfg, name)
         need(isinstance(v, int) and 1 <= v <= MAX_BATCH, name, v, f"a batch size must be an integer in [1, {MAX_BATCH:,}]")
     from botorl.envs.registry import get_task
 

@@ -92,8 +92,6 @@ def make_gym_env(task: str, seed: int = 0, **_render) -> gym.Env:
     return get_task(task).make_env(seed)
 
 
-# ------------------------------------------------------------------------------ the tasks
-
 ANTMAZE_NET = NetworkSizes(critic=(256,) * 4, actor=(256,) * 2)
 ADROIT_NET = NetworkSizes(critic=(512,) * 3, actor=(512,) * 2)
 KITCHEN_NET = NetworkSizes(critic=(512,) * 3, actor=(512,) * 3)

@@ -43,7 +43,6 @@ class TaskEnv(gym.Wrapper):
         if seed is not None:
             self.action_space.seed(seed)
 
-    # -- to implement per domain -------------------------------------------------------------
     def _observe(self, obs: Any) -> np.ndarray:
         raise NotImplementedError
 
@@ -57,7 +56,6 @@ class TaskEnv(gym.Wrapper):
     def _after_reset(self, obs: Any, info: dict) -> Any:
         return obs
 
-    # -- gymnasium API -----------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         if seed is None and self._pending_seed is not None:
             seed = self._pending_seed
@@ -65,10 +63,7 @@ class TaskEnv(gym.Wrapper):
         if options is None:
             options = self._reset_options()
         obs, info = self.env.reset(seed=seed, options=options)
-        obs = self._after_reset(obs, info)
-        info = dict(info)
-        info["success"] = 0.0
-        return self._flat(obs), info
+        return self._flat(self._after_reset(obs, info)), {**info, "success": 0.0}
 
     def step(self, action):
         action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
