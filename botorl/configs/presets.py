@@ -20,6 +20,11 @@ Profiles
   128-row batches: ~3x cheaper a step than 5 and 256; success on the umaze 0.99 over 8 seeds
   at 15k, 1.00 at 20k); every pre-training algorithm gets that budget. door-binary-local:
   20k BC-rollout steps besides the 25 demos. `--profile full` restores the paper's sizes.
+- ``mid``: one size up from quick, to check a quick result at a larger scale on 2 CPU cores
+  (docs/results/one-size-up.md): quick's settings with WSRL's 10-critic ensemble
+  (pre-training and fine-tuning) and 10k BOTO steps. Not wider networks: 2 x 128 critics
+  reach only 0.50 on the medium maze after 30k pre-training steps, where 2 x 64 reach 0.85
+  after 20k (docs/results/pretraining.md).
 - ``smoke``: tiny networks and a few steps of every stage (tests; says nothing about
   learning).
 
@@ -50,7 +55,7 @@ from botorl.configs.schema import (
     WarmupConfig,
 )
 
-PROFILES = ("quick", "full", "smoke")
+PROFILES = ("quick", "mid", "full", "smoke")
 
 # Paper domain each task's settings come from.
 _STANDS_IN = {"pointmaze": "antmaze"}
@@ -139,6 +144,8 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
         cfg = replace(cfg, data=replace(cfg.data, action_tolerance=0.5))
     if profile == "quick":
         cfg = _quick(cfg, spec)
+    elif profile == "mid":
+        cfg = _mid(cfg, spec)
     elif profile == "smoke":
         cfg = _smoke(cfg, spec)
     return _method_defaults(cfg, spec)
@@ -200,6 +207,11 @@ def _quick(cfg: RunConfig, spec) -> RunConfig:
         eval=replace(cfg.eval, interval=2_500, dense_interval=500),
         checkpoint_every=5_000,
     )
+
+
+def _mid(cfg: RunConfig, spec) -> RunConfig:
+    cfg = _quick(cfg, spec)
+    return replace(cfg, network=replace(cfg.network, num_critics=10), boto=replace(cfg.boto, boto_steps=10_000))
 
 
 def _smoke(cfg: RunConfig, spec) -> RunConfig:

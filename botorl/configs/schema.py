@@ -206,7 +206,7 @@ class RunConfig:
     """Skip pre-training: start each member from the finished pre-training of the run under this
     directory (a run, population or sweep) with the same seed and pre-training settings (e.g. WSRL
     from the BOTO runs' pre-training; botorl/pipeline/shared_pretrain.py)."""
-    profile: Literal["quick", "full", "smoke"] = "quick"
+    profile: Literal["quick", "mid", "full", "smoke"] = "quick"
     out: str | None = None
     """Run directory; None: runs/<task>-<method>-s<seed>-<timestamp>."""
     wandb: bool = False

@@ -1,6 +1,6 @@
 """``botorl run``, ``botorl resume DIR``, ``botorl eval DIR``, ``botorl export RUN_DIR`` (docs/running.md).
 
-    botorl run [--task T] [--method M] [--seed S] [--alpha A] [--profile quick|full|smoke]
+    botorl run [--task T] [--method M] [--seed S] [--alpha A] [--profile quick|mid|full|smoke]
                [--pretrain calql|cql|iql] [--out DIR] [--demos PATH] [--<dotted.path> VALUE ...]
     botorl run --method boto --seeds 0-3 --alphas -1:1:0.5  # a population: 4 seeds x 5 alphas, one program
 
