@@ -190,7 +190,7 @@ class RunConfig:
     pretrained: str | None = None
     """Skip pre-training: start each member from a finished one under this directory (run,
     population or sweep) with the same seed and pre-training settings."""
-    profile: Literal["quick", "full", "smoke"] = "quick"
+    profile: Literal["quick", "mid", "full", "smoke"] = "quick"
     out: str | None = None
     """Run directory; None: runs/<task>-<method>-s<seed>-<timestamp>."""
     wandb: bool = False
