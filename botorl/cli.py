@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import os
+import re
 import sys
 
 from botorl.io import IO_FAULTS
@@ -36,8 +37,7 @@ PREEMPTIBLE = ("run", "resume", "sweep")
 def _usage() -> str:
     width = max(len(n) for n in COMMANDS)
     lines = ["usage: botorl <command> [options]", "", "commands:"]
-    for name, (_, help_) in COMMANDS.items():
-        lines.append(f"  {name.ljust(width)}  {help_}")
+    lines += [f"  {name.ljust(width)}  {help_}" for name, (_, help_) in COMMANDS.items()]
     lines += ["", "`botorl <command> --help` shows the options of a command.", "",
               "Start here (README):",
               "  pip install -e . && botorl run                      # a whole BOTO run on pointmaze-umaze",
@@ -113,8 +113,6 @@ def main(argv: list[str] | None = None) -> int:
 def _hdf5_errno(err: OSError) -> int | None:
     """The errno inside an h5py OSError, which has none of its own ("... errno = 28, error
     message = 'No space left on device' ...")."""
-    import re
-
     m = re.search(r"errno = (\d+)", str(err))
     return int(m.group(1)) if m else None
 
@@ -135,10 +133,9 @@ def _silence_stdout() -> None:
 
 
 def console_main() -> None:
-    """The `botorl` command: ``main``, then a quiet exit. Once the command's work is done, a
-    Ctrl-C while Python shuts down (atexit handlers; JAX's, Ray's and W&B's threads) ends the
-    process with 130 and nothing more, instead of a KeyboardInterrupt traceback from inside
-    one of them. Only here, not in ``main``, which tests and `botorl.run` call in-process."""
+    """The `botorl` command: ``main``, then a Ctrl-C during Python's shutdown (atexit handlers;
+    JAX's, Ray's and W&B's threads) exits 130 without a traceback. Not in ``main``, which tests
+    and `botorl.run` call in-process."""
     import signal
 
     code = main()

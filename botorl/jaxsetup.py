@@ -9,14 +9,14 @@ import contextlib
 import os
 from pathlib import Path
 
+from botorl.errors import BotorlError, ConfigError
+
 _done = False
 
 
 def cpu_device_count() -> int:
     """JAX CPU devices for this process: one per core it may run on (its affinity, so a sweep
     worker pinned to 2 of 8 cores gets 2), or ``BOTORL_CPU_DEVICES``."""
-    from botorl.errors import ConfigError
-
     env = os.environ.get("BOTORL_CPU_DEVICES", "").strip()
     if env:
         try:
@@ -47,8 +47,6 @@ def setup_jax() -> None:
     try:  # start the backend now: a platform this machine lacks is exit 2, not a traceback later
         jax.devices()
     except (RuntimeError, AssertionError) as err:  # some JAX versions raise a bare AssertionError
-        from botorl.errors import BotorlError
-
         platforms = os.environ.get("JAX_PLATFORMS") or os.environ.get("JAX_PLATFORM_NAME") or "(not set)"
         raise BotorlError(
             f"JAX cannot start its backend (JAX_PLATFORMS={platforms}): {type(err).__name__}: {str(err) or 'no such device'}. "

@@ -5,6 +5,8 @@ No training here: every bad configuration must fail before any work (no run dire
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import re
 
 import pytest
@@ -160,6 +162,21 @@ def test_quick_pointmaze_pretrain_default_and_budget():
     assert door.pretrain == "calql" and door.offline.steps == 10_000
     assert (door.offline.cql.cql_n_actions, door.offline.batch_size) == (5, 256)
     assert build_config(["--profile", "full"]).pretrain == "calql"
+
+
+def test_mid_profile_is_quick_with_the_10_critic_ensemble_and_longer_boto():
+    # one size up from quick: only the ensemble (pre-training and fine-tuning) and the BOTO
+    # stage grow, so a quick result and its mid re-run differ in those alone
+    for method in ("boto", "wsrl", "calql"):
+        quick, mid = (resolve(make_preset("pointmaze-medium", p, method)) for p in ("quick", "mid"))
+        critics = 2 if method == "calql" else 10
+        assert mid.offline.cql.num_critics == mid.online.sac.num_critics == critics
+        assert mid.boto.boto_steps == 10_000 and quick.boto.boto_steps == 5_000
+        # with the ensemble and BOTO stage set back, mid is quick field for field
+        back = replace(mid, profile="quick", network=quick.network, boto=quick.boto,
+                       offline=replace(mid.offline, cql=quick.offline.cql, iql=quick.offline.iql),
+                       online=replace(mid.online, sac=quick.online.sac))
+        assert back == quick
 
 
 # ----------------------------------------------------------------------------- errors

@@ -46,9 +46,9 @@ class IQLConfig:
     log_std_min: float = -5.0
     log_std_max: float = 2.0
     num_critics: int = 2
-    # Q'(s, a) = min over a random subset of this many distinct target members: IQL's twin-Q
-    # pessimism whatever the ensemble size fine-tuning carries over (docs/methods.md).
     num_min_critics: int = 2
+    """Q'(s, a) = min over a random subset of this many distinct target members: IQL's twin-Q
+    pessimism whatever the ensemble size fine-tuning carries over."""
     actor_lr: float = 3e-4
     critic_lr: float = 3e-4
     value_lr: float = 3e-4

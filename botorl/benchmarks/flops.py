@@ -104,8 +104,6 @@ def xla_flops(fn: Callable, *args: Any, **kwargs: Any) -> float:
     """FLOPs of one call as XLA's cost analysis of the compiled program gives them."""
     jitted = fn if hasattr(fn, "lower") else jax.jit(fn)
     cost = jitted.lower(*args, **kwargs).compile().cost_analysis()
-    if isinstance(cost, (list, tuple)):  # older JAX returned one dict per device
-        cost = cost[0] if cost else {}
     return float((cost or {}).get("flops", float("nan")))
 
 

@@ -23,20 +23,17 @@ class OnlineLoop:
         from botorl.pipeline.online import OnlineState
         from botorl.pipeline.stages import Window
 
-        env = spec.make_env(seed)
-        obs_dim, action_dim = int(np.prod(env.observation_space.shape)), int(np.prod(env.action_space.shape))
-        env.close()
         # WSRL's learner: the buffer alone (no offline data), utd x batch rows per update
         online = OnlineConfig(steps=10**12, batch_size=batch, utd=utd, buffer_capacity=max(100_000, prefill * 2))
         ctx = SimpleNamespace(cfg=SimpleNamespace(online=online), n=1, members=[SimpleNamespace(cfg=RunConfig(seed=seed))],
-                              spec=spec, method=get_method("wsrl"), d_offline=SimpleNamespace(obs_dim=obs_dim,
-                                                                                             action_dim=action_dim))
+                              spec=spec, method=get_method("wsrl"),
+                              d_offline=SimpleNamespace(obs_dim=spec.obs_dim, action_dim=spec.action_dim))
         self.state = OnlineState(ctx, None)
         self.agents, self.window = stack([agent]), Window(1)
         # WSRL starts fine-tuning with the warm-up data in the buffer; random actions here.
         rng = np.random.default_rng(seed)
         for _ in range(prefill):
-            self.state.act(rng.uniform(-1, 1, (1, action_dim)).astype(np.float32))
+            self.state.act(rng.uniform(-1, 1, (1, spec.action_dim)).astype(np.float32))
 
     def run(self, n: int) -> None:
         for _ in range(n):

@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from botorl.io import atomic_write_bytes
+
 # the paper's tasks as they can be run here: task -> where its data comes from
 PAPER_TASKS = {
     "antmaze-large-diverse-local": "generated",
@@ -58,23 +60,17 @@ def paper_name(task: str) -> str:
     return task.removesuffix("-local").removesuffix("-v0").removesuffix("-v2")
 
 
-def _synthetic_rows(spec, rows: int, seed: int = 0) -> dict[str, np.ndarray]:
-    """Random rows of the task's shapes (episodes of its horizon); a success every ~20 rows so
-    that Cal-QL's adroit loader, which drops trajectories that never succeed, keeps them."""
-    rng = np.random.default_rng(seed)
-    return {"observations": rng.normal(size=(rows, spec.obs_dim)).astype(np.float32),
-            "next_observations": rng.normal(size=(rows, spec.obs_dim)).astype(np.float32),
-            "actions": rng.uniform(-1, 1, (rows, spec.action_dim)).astype(np.float32),
-            "rewards": (rng.uniform(size=rows) < 0.05).astype(np.float32),
-            "ends": (np.arange(rows) + 1) % spec.max_episode_steps == 0}
-
-
 def _synthetic_data(spec, work: Path, rows: int) -> tuple[list[str], list[str]]:
-    """Synthetic data in the format the task reads, and the flags of ``botorl run`` and of
-    ``botorl eval`` that read it: a Minari dataset (kitchen), or a Cal-QL expert ``.npy`` of
-    per-trajectory dicts (adroit binary: a pickle botorl wrote itself, which `eval` reads back
-    from the run's config only with ``--allow-pickle``)."""
-    r = _synthetic_rows(spec, rows)
+    """Random rows of the task's shapes (episodes of its horizon) in the format the task reads, and
+    the flags of ``botorl run`` and of ``botorl eval`` that read them: a Minari dataset (kitchen),
+    or a Cal-QL expert ``.npy`` of per-trajectory dicts (adroit binary: a pickle botorl wrote
+    itself, which `eval` reads back from the run's config only with ``--allow-pickle``)."""
+    rng = np.random.default_rng(0)
+    r = {"observations": rng.normal(size=(rows, spec.obs_dim)).astype(np.float32),
+         "next_observations": rng.normal(size=(rows, spec.obs_dim)).astype(np.float32),
+         "actions": rng.uniform(-1, 1, (rows, spec.action_dim)).astype(np.float32),
+         "rewards": (rng.uniform(size=rows) < 0.05).astype(np.float32),
+         "ends": (np.arange(rows) + 1) % spec.max_episode_steps == 0}
     kind = spec.dataset_source.kind
     if kind == "minari":
         from botorl.data.dataset import Dataset
@@ -160,13 +156,11 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
     member = out if members == 1 else next(d for d in sorted(out.iterdir()) if (d / "summary.json").exists())
     summary = json.loads((member / "summary.json").read_text())
     stages: dict[str, dict] = {}
-    rate, comp = _steady(_rows(member / "metrics" / "pretrain.csv"), "step", "steps_per_s")
-    stages["pretrain"] = {"rate": rate, "unit": "updates/s", "compile_s": comp}
-    rate, comp = _steady(_rows(member / "metrics" / "boto.csv"), "step", None, "seconds")
-    stages["boto"] = {"rate": rate, "unit": "updates/s", "compile_s": comp}
-    ft = _rows(member / "metrics" / "finetune.csv")
-    rate, comp = _steady(ft, "step", "env_steps_per_s")
-    stages["finetune"] = {"rate": rate, "unit": "env steps/s (UTD 4)", "compile_s": comp}
+    for stage, rate_key, seconds_key, unit in (("pretrain", "steps_per_s", None, "updates/s"),
+                                               ("boto", None, "seconds", "updates/s"),
+                                               ("finetune", "env_steps_per_s", None, "env steps/s (UTD 4)")):
+        rate, comp = _steady(_rows(member / "metrics" / f"{stage}.csv"), "step", rate_key, seconds_key)
+        stages[stage] = {"rate": rate, "unit": unit, "compile_s": comp}
     # evaluation: `botorl eval` of the run's last checkpoint (a single run's or member 0's)
     eval_dir = out if members == 1 else member
     ecode, _, ers = _run(["eval", str(eval_dir), "--episodes", str(windows["eval_episodes"]), *eval_args],
@@ -280,8 +274,6 @@ def main(argv: list[str]) -> int:
     except Exception:  # noqa: BLE001 - the machine description is best effort
         pass
     if args.json is not None:
-        from botorl.io import atomic_write_bytes
-
         atomic_write_bytes(args.json, json.dumps(doc, indent=2).encode())
     if args.work is None:
         shutil.rmtree(work, ignore_errors=True)

@@ -95,7 +95,7 @@ def make_batch(rows: int, obs_dim: int, action_dim: int, seed: int = 0, lead: tu
     return jax.device_put(batch)
 
 
-def _bound(w: Workload, agent: Any, call: Callable, batch: Any, updates_per_call: int) -> Bound:
+def _bound(agent: Any, call: Callable, batch: Any, updates_per_call: int) -> Bound:
     """``step(n)``: n calls of ``call(agent, batch)``, each on the agent the previous returned."""
     state = {"agent": agent}
 
@@ -126,7 +126,7 @@ def build(w: Workload, seed: int = 0) -> Bound:
         agent = SACAgent.create(SACConfig(**nets, utd_ratio=1), w.obs_dim, w.action_dim, seed)
         settings = ObjectiveSettings.resolve(BOTOConfig(), agent)
         batches = make_batch(w.batch, w.obs_dim, w.action_dim, seed, lead=(BOTO_STEPS_PER_CALL,))
-        return _bound(w, agent, lambda a, b: boto_update_many(a, b, 0.5, settings), batches, BOTO_STEPS_PER_CALL)
+        return _bound(agent, lambda a, b: boto_update_many(a, b, 0.5, settings), batches, BOTO_STEPS_PER_CALL)
     if w.algo in ("sac", "online"):
         agent = SACAgent.create(SACConfig(**nets, utd_ratio=w.utd), w.obs_dim, w.action_dim, seed)
         rows = w.batch * w.utd
@@ -141,7 +141,7 @@ def build(w: Workload, seed: int = 0) -> Bound:
         raise ValueError(f"unknown workload algo {w.algo!r}")
     batch = make_batch(rows, w.obs_dim, w.action_dim, seed)
     if w.scan_k == 1:
-        return _bound(w, agent, lambda a, b: a.update(b), batch, 1)
+        return _bound(agent, lambda a, b: a.update(b), batch, 1)
     batch = jax.tree_util.tree_map(lambda x: jax.numpy.stack([x] * w.scan_k), batch)
-    return _bound(w, agent, lambda a, b: a.update_many(b), batch, w.scan_k)
+    return _bound(agent, lambda a, b: a.update_many(b), batch, w.scan_k)
 

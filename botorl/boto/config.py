@@ -39,11 +39,11 @@ class BOTOConfig:
     boto_steps: critic gradient steps (paper: 100k, 250k on kitchen). noise: "hybrid" (paper
     B.1) or "gaussian" (``sigma``, the bandit figure 3). log_sigma: the hybrid noise's lower end
     of log t (paper: -20; -30 on antmaze-large-diverse). weight_fn: the hybrid mixing weight
-    (noise.py). batch_size: rows per step from D_BOTO = D_offline u D_warmup. steps_per_call:
+    (botorl.boto.noise). batch_size: rows per step from D_BOTO = D_offline u D_warmup. steps_per_call:
     steps fused into one jitted ``lax.scan`` (also ``run_boto``'s logging and callback period).
     num_min_critics, subsample_replace, discount, tau (Polyak rate): None -> the agent's own (an
     agent without a subset setting, IQL, uses all its critics). backup_entropy: subtract
-    ``temperature * log pi(a~|s')`` in the target (the SAC sign; docs/methods.md); IQL has none.
+    ``temperature * log pi(a~|s')`` in the target (the SAC sign); IQL has none.
     train_actor: also step the actor and temperature after every critic step (SAC family only;
     default False: Theorem 1 is stated for a fixed policy).
     """

@@ -11,15 +11,8 @@ from pathlib import Path
 
 from botorl.errors import ConfigError
 
-# the command line's flags of a task of one's own -> what they set
-FLAGS = {
-    "--env": "entry",
-    "--env-max-steps": "max_steps",
-    "--success-key": "success_key",
-    "--env-domain": "domain",
-    "--env-reward-scale": "reward_scale",
-    "--env-reward-bias": "reward_bias",
-}
+# the command line's flags of a task of one's own
+FLAGS = ("--env", "--env-max-steps", "--success-key", "--env-domain", "--env-reward-scale", "--env-reward-bias")
 
 
 def _pull(argv: list[str], flags) -> tuple[dict[str, str], list[str]]:

@@ -136,8 +136,7 @@ def make_members(seeds: Sequence[int], alphas: Sequence[float | None], method_us
 
 
 def member_config(cfg, seed: int, alpha: float | None, out: str | os.PathLike | None = None):
-    """The config of the member (seed, alpha) of a population made from ``cfg``: one run, so no
-    ``seeds``/``alphas``."""
+    """The config of member (seed, alpha) of the population ``cfg``: one run, no ``seeds``/``alphas``."""
     if alpha is None or not get_method(cfg.method).uses_alpha:
         alpha = cfg.alpha
     return replace(cfg, seed=int(seed), alpha=None if alpha is None else float(alpha), seeds=None, alphas=None,
@@ -150,8 +149,7 @@ def is_population(cfg) -> bool:
 
 
 def population(cfg) -> tuple[list[Member], list]:
-    """The members of the population ``cfg`` describes (every pair of its ``seeds``, else its
-    ``seed``, and its ``alphas``) and each member's config."""
+    """The members of the population ``cfg`` describes (see ``make_members``) and their configs."""
     seeds = [cfg.seed] if cfg.seeds is None else parse_seeds(cfg.seeds)
     alphas = [None] if cfg.alphas is None else parse_alphas(cfg.alphas)
     members = make_members(seeds, alphas, get_method(cfg.method).uses_alpha)

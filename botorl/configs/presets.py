@@ -1,33 +1,28 @@
-"""Presets: the default RunConfig of a (task, profile, method).
+"""Presets: the default RunConfig of a (task, profile, method). The profiles: docs/running.md's
+table; the ``full`` profile's sources: docs/methods.md ("Reference settings"). Generated tasks
+get the settings of the paper domain they stand in for (pointmaze -> antmaze, door-binary-local
+-> door-binary).
 
-Profiles
-- ``full``: the paper's settings on its six tasks (Table 2 / B.1: alpha, BOTO steps,
-  log sigma) with WSRL's and Cal-QL's public code (docs/methods.md, "Reference settings"):
-  networks per domain, pre-training steps (antmaze 1M, adroit 20k, kitchen 250k), CQL
-  weights, reward transforms, 10-critic SAC fine-tuning at UTD 4, 300k online steps, 20
-  evaluation episodes every 5k.
-  Generated tasks get the settings of the paper domain they stand in for (pointmaze ->
-  antmaze, door-binary-local -> door-binary).
-- ``quick``: a whole run in minutes on 2 CPU cores (generated tasks; any task accepts it).
-  OUR reductions, each for speed (measured: an update of the 10-critic, 2 x 128 SAC at UTD 4
-  costs ~100 ms of CPU here, so 20k online steps alone would take over 30 minutes): 2 x 64
-  actor and critics; FOUR critics (pre-training and fine-tuning) instead of WSRL's 10; 5 CQL
-  action samples per kind; fixed CQL weight 5 (no Lagrange) on the maze tasks; 10k
-  pre-training steps; 5k BOTO steps; 20k online steps (the 5k warm-up included) with
-  evaluations every 2.5k, and every 500 from the warm-up's end to 10k (the dip window);
-  checkpoints every 5k. On pointmaze: 200k-step datasets, no max-target backup, and 20k
-  pre-training steps (Cal-QL, BOTO's and WSRL's default, with 2 action samples per kind and
-  128-row batches: ~3x cheaper a step than 5 and 256; success on the umaze 0.99 over 8 seeds
-  at 15k, 1.00 at 20k); every pre-training algorithm gets that budget. door-binary-local:
-  20k BC-rollout steps besides the 25 demos. `--profile full` restores the paper's sizes.
-- ``smoke``: tiny networks and a few steps of every stage (tests; says nothing about
-  learning).
+The ``quick`` profile's reductions, each for speed (measured: an update of the 10-critic,
+2 x 128 SAC at UTD 4 costs ~100 ms of CPU here, so 20k online steps alone would take over 30
+minutes): 2 x 64 actor and critics; FOUR critics (pre-training and fine-tuning) instead of
+WSRL's 10; 5 CQL action samples per kind; fixed CQL weight 5 (no Lagrange) on the maze tasks;
+10k pre-training steps; 5k BOTO steps; 20k online steps (the 5k warm-up included) with
+evaluations every 2.5k, and every 500 from the warm-up's end to 10k (the dip window);
+checkpoints every 5k. On pointmaze: 200k-step datasets, no max-target backup, and 20k
+pre-training steps (Cal-QL, BOTO's and WSRL's default, with 2 action samples per kind and
+128-row batches: ~3x cheaper a step than 5 and 256; success on the umaze 0.99 over 8 seeds
+at 15k, 1.00 at 20k); every pre-training algorithm gets that budget. door-binary-local:
+20k BC-rollout steps besides the 25 demos.
+
+The ``mid`` profile, one size up (docs/results/one-size-up.md), is quick with WSRL's 10-critic
+ensemble (pre-training and fine-tuning) and 10k BOTO steps. Not wider networks: 2 x 128
+critics reach only 0.50 on the medium maze after 30k pre-training steps, where 2 x 64 reach
+0.85 after 20k (docs/results/pretraining.md).
 
 Our choices for tasks outside the paper: pointmaze uses antmaze's alpha (-1.0, the
 "diverse" value: the maze2d-style data are diverse, goals re-drawn) and log sigma -20;
-door-binary-local uses door-binary's alpha 0.0. A user's task (domain "custom" unless it names a
-paper domain; docs/own-task.md): 2 x 256 networks, 100k Cal-QL steps with CQL weight 1 (no
-Lagrange), IQL expectile 0.7 / temperature 3, alpha 0, 100k BOTO steps, log sigma -20.
+door-binary-local uses door-binary's alpha 0.0; a user's task: docs/own-task.md's table.
 """
 
 from __future__ import annotations
@@ -41,7 +36,6 @@ from botorl.boto.config import BOTOConfig
 from botorl.configs.schema import (
     DataConfig,
     EnvConfig,
-    EvalConfig,
     NetworkConfig,
     OfflineConfig,
     OnlineConfig,
@@ -49,7 +43,7 @@ from botorl.configs.schema import (
     WarmupConfig,
 )
 
-PROFILES = ("quick", "full", "smoke")
+PROFILES = ("quick", "mid", "full", "smoke")
 
 # Paper domain each task's settings come from.
 _STANDS_IN = {"pointmaze": "antmaze"}
@@ -99,12 +93,7 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     dom = _STANDS_IN.get(spec.domain, spec.domain)
     _, boto_steps, log_sigma = paper_settings(spec)
 
-    net = NetworkConfig(
-        actor_hidden_dims=tuple(spec.networks.actor),
-        critic_hidden_dims=tuple(spec.networks.critic),
-        num_critics=10,
-        layer_norm=True,
-    )
+    net = NetworkConfig(actor_hidden_dims=tuple(spec.networks.actor), critic_hidden_dims=tuple(spec.networks.critic))
     # WSRL's actor: a state-independent log-std on antmaze ("uniform"), state-dependent on
     # adroit and kitchen; the same in pre-training and fine-tuning.
     std = dict(state_dependent_std=(dom != "antmaze"))
@@ -113,18 +102,14 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     cql = replace(CQLConfig(), max_target_backup=True, backup_entropy=False, cql_penalty_critics=2, **std,
                   **_CQL[dom])
     iql = replace(IQLConfig(), **_IQL[dom])
-    offline = OfflineConfig(steps=_PRETRAIN_STEPS[dom], cql=cql, iql=iql, mc_infinite_horizon=False,
+    offline = OfflineConfig(steps=_PRETRAIN_STEPS[dom], cql=cql, iql=iql,
                             mc_sparse_negative_reward=_MC_SPARSE_NEGATIVE_REWARD.get(dom))
     sac = replace(SACConfig(), max_target_backup=(dom == "antmaze"), backup_entropy=False, **std)
-    online = OnlineConfig(steps=300_000, sac=sac)
     boto = replace(BOTOConfig(), boto_steps=boto_steps, log_sigma=log_sigma)
     # A user's task reads the file it was registered with (None: data held in memory).
     data_path = (spec.dataset_source.ref or None) if spec.user is not None else None
-    cfg = RunConfig(
-        task=task, method=method, pretrain=pretrain, profile=profile,
-        data=DataConfig(path=data_path), env=env_record(spec), network=net, offline=offline, warmup=WarmupConfig(5_000),
-        boto=boto, online=online, eval=EvalConfig(), checkpoint_every=50_000,
-    )
+    cfg = RunConfig(task=task, method=method, pretrain=pretrain, profile=profile, data=DataConfig(path=data_path),
+                    env=env_record(spec), network=net, offline=offline, boto=boto, online=OnlineConfig(sac=sac))
     if spec.domain == "adroit":
         # The 25 DAPG human demos (door2_sparse.npy / door_human_demos.npz) hold actions up to
         # |a| = 1.37; the env clips actions to the box, so the Dataset's clip to +-1 keeps what
@@ -132,6 +117,8 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
         cfg = replace(cfg, data=replace(cfg.data, action_tolerance=0.5))
     if profile == "quick":
         cfg = _quick(cfg, spec)
+    elif profile == "mid":
+        cfg = _mid(cfg, spec)
     elif profile == "smoke":
         cfg = _smoke(cfg, spec)
     return _method_defaults(cfg, spec)
@@ -153,22 +140,19 @@ QUICK_POINTMAZE_PRETRAIN = 20_000
 
 
 def _quick(cfg: RunConfig, spec) -> RunConfig:
-    maze = spec.domain in ("pointmaze", "antmaze")
     cql = replace(cfg.offline.cql, cql_n_actions=5)
-    if maze:
+    if spec.domain in ("pointmaze", "antmaze"):
         cql = replace(cql, cql_lagrange=False, cql_weight=5.0)
     sac = cfg.online.sac
-    if spec.domain == "pointmaze":
-        cql = replace(cql, max_target_backup=False)
-        sac = replace(sac, max_target_backup=False)
     data = cfg.data
     offline_steps = 10_000
     batch = cfg.offline.batch_size
     if spec.domain == "pointmaze":
+        # Why no max-target backup, 2 samples, 128 rows and 20k steps: the module docstring; more
+        # steps stop helping the medium maze (0.6 over 8 seeds from 20k to 40k; docs/results/pretraining.md).
+        cql = replace(cql, max_target_backup=False, cql_n_actions=2)
+        sac = replace(sac, max_target_backup=False)
         data = replace(data, steps=200_000)
-        # Why 2 samples, 128 rows and 20k steps: the module docstring; more steps stop helping
-        # the medium maze (0.6 over 8 seeds from 20k to 40k; docs/results/pretraining.md).
-        cql = replace(cql, cql_n_actions=2)
         batch = 128
         offline_steps = QUICK_POINTMAZE_PRETRAIN
     elif spec.name == "door-binary-local":
@@ -184,6 +168,11 @@ def _quick(cfg: RunConfig, spec) -> RunConfig:
         eval=replace(cfg.eval, interval=2_500, dense_interval=500),
         checkpoint_every=5_000,
     )
+
+
+def _mid(cfg: RunConfig, spec) -> RunConfig:
+    cfg = _quick(cfg, spec)
+    return replace(cfg, network=replace(cfg.network, num_critics=10), boto=replace(cfg.boto, boto_steps=10_000))
 
 
 def _smoke(cfg: RunConfig, spec) -> RunConfig:

@@ -13,6 +13,8 @@ CQL/Cal-QL switch (``pretrain``) are set here only; ``resolve`` derives the agen
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import math
 import types
 import typing
@@ -188,7 +190,7 @@ class RunConfig:
     pretrained: str | None = None
     """Skip pre-training: start each member from a finished one under this directory (run,
     population or sweep) with the same seed and pre-training settings."""
-    profile: Literal["quick", "full", "smoke"] = "quick"
+    profile: Literal["quick", "mid", "full", "smoke"] = "quick"
     out: str | None = None
     """Run directory; None: runs/<task>-<method>-s<seed>-<timestamp>."""
     wandb: bool = False
@@ -237,9 +239,6 @@ def flatten(d: Mapping, prefix: str = "") -> dict[str, Any]:
 
 
 def _digest(fields: dict[str, Any]) -> str:
-    import hashlib
-    import json
-
     return hashlib.sha256(json.dumps(fields, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -267,12 +266,7 @@ def to_dict(cfg: Any) -> Any:
 def from_dict(cls: type, data: dict[str, Any]) -> Any:
     """Rebuild a (nested) config dataclass from ``to_dict`` output; unknown keys are ignored."""
     hints = typing.get_type_hints(cls)
-    kwargs = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in data:
-            continue
-        kwargs[f.name] = _convert(hints[f.name], data[f.name])
-    return cls(**kwargs)
+    return cls(**{f.name: _convert(hints[f.name], data[f.name]) for f in dataclasses.fields(cls) if f.name in data})
 
 
 def _convert(tp: Any, value: Any) -> Any:
@@ -280,8 +274,7 @@ def _convert(tp: Any, value: Any) -> Any:
         return None
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        for a in args:  # the first that fits
+        for a in [a for a in typing.get_args(tp) if a is not type(None)]:  # the first that fits
             try:
                 return _convert(a, value)
             except (TypeError, ValueError):
@@ -289,10 +282,8 @@ def _convert(tp: Any, value: Any) -> Any:
         return value
     if dataclasses.is_dataclass(tp):
         return from_dict(tp, value)
-    if origin is tuple:
-        args = typing.get_args(tp)
-        inner = args[0] if args else Any
-        return tuple(_convert(inner, v) for v in value)
+    if origin is tuple:  # tuple[X, ...]
+        return tuple(_convert(typing.get_args(tp)[0], v) for v in value)
     if (tp in (str, bool) and not isinstance(value, tp)) or (tp in (int, float) and isinstance(value, bool)):
         raise TypeError
     if tp is float:

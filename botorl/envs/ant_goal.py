@@ -63,8 +63,7 @@ class AntGoalSim:
     reward, terminated, truncated, goals_reached)``, ``next_obs`` with the new goal where one was
     reached; ended ants are reset after the step, their fresh observation in ``self.obs``."""
 
-    def __init__(self, num_envs: int, seed: int = 0, *, goal_threshold: float = GOAL_THRESHOLD,
-                 horizon: int = HORIZON, reset_noise: float = RESET_NOISE, goal_radius: float = GOAL_REGION_RADIUS):
+    def __init__(self, num_envs: int, seed: int = 0, *, horizon: int = HORIZON):
         import mujoco
 
         self._mujoco = mujoco
@@ -73,8 +72,7 @@ class AntGoalSim:
         self.torso = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "torso")
         self.n = num_envs
         self.rng = np.random.default_rng(seed)
-        self.goal_threshold, self.horizon = goal_threshold, horizon
-        self.reset_noise, self.goal_radius = reset_noise, goal_radius
+        self.horizon = horizon
         self.goals = np.zeros((num_envs, 2))
         self.t = np.zeros(num_envs, np.int64)
         self.obs = np.zeros((num_envs, OBS_DIM))
@@ -85,10 +83,10 @@ class AntGoalSim:
         m, d = self.model, self.datas[i]
         self._mujoco.mj_resetData(m, d)
         # Ant-v4 reset_model: qpos0 + U(-s, s), qvel N(0, s^2)
-        d.qpos[:] = m.qpos0 + self.rng.uniform(-self.reset_noise, self.reset_noise, m.nq)
-        d.qvel[:] = self.reset_noise * self.rng.standard_normal(m.nv)
+        d.qpos[:] = m.qpos0 + self.rng.uniform(-RESET_NOISE, RESET_NOISE, m.nq)
+        d.qvel[:] = RESET_NOISE * self.rng.standard_normal(m.nv)
         self._mujoco.mj_forward(m, d)
-        self.goals[i] = draw_goal(self.rng, d.qpos[:2].copy(), self.goal_radius)
+        self.goals[i] = draw_goal(self.rng, d.qpos[:2].copy())
         self.t[i] = 0
         self.obs[i] = goal_observation(d.qpos, d.qvel, self.goals[i])
 
@@ -105,26 +103,22 @@ class AntGoalSim:
             before = d.xpos[torso, :2].copy()
             d.ctrl[:] = actions[i]
             mj_step(self.model, d, FRAME_SKIP)
-            after = d.xpos[torso, :2]
-            v = (after - before) / DT
+            v = (d.xpos[torso, :2] - before) / DT
             qpos, qvel = d.qpos, d.qvel
             # direction from the achieved goal (qpos x, y), as reach_goal_ant.py
             reward[i] = goal_reward(v, self.goals[i] - qpos[:2], actions[i])
             self.t[i] += 1
             terminated[i] = not healthy(qpos, qvel)
             truncated[i] = self.t[i] >= self.horizon and not terminated[i]
-            if np.sum((qpos[:2] - self.goals[i]) ** 2) <= self.goal_threshold**2:
+            if np.sum((qpos[:2] - self.goals[i]) ** 2) <= GOAL_THRESHOLD**2:
                 reached[i] = True
-                self.goals[i] = draw_goal(self.rng, qpos[:2].copy(), self.goal_radius)
+                self.goals[i] = draw_goal(self.rng, qpos[:2].copy())
             next_obs[i] = goal_observation(qpos, qvel, self.goals[i])
             if terminated[i] or truncated[i]:
                 self.reset(i)
             else:
                 self.obs[i] = next_obs[i]
         return next_obs, reward, terminated, truncated, reached
-
-
-# ------------------------------------------------------------------ the policy, in numpy
 
 
 class NumpyActor:
@@ -135,9 +129,8 @@ class NumpyActor:
         self.layers = []
         i = 0
         while f"MLP_0/Dense_{i}/kernel" in params:
-            ln = None
-            if f"MLP_0/LayerNorm_{i}/scale" in params:
-                ln = (params[f"MLP_0/LayerNorm_{i}/scale"], params[f"MLP_0/LayerNorm_{i}/bias"])
+            ln = (params[f"MLP_0/LayerNorm_{i}/scale"], params[f"MLP_0/LayerNorm_{i}/bias"]) \
+                if f"MLP_0/LayerNorm_{i}/scale" in params else None
             self.layers.append((params[f"MLP_0/Dense_{i}/kernel"], params[f"MLP_0/Dense_{i}/bias"], ln))
             i += 1
         if not self.layers:
@@ -157,8 +150,7 @@ class NumpyActor:
         for w, b, ln in self.layers:
             x = x @ w + b
             if ln is not None:
-                mu = x.mean(-1, keepdims=True)
-                xc = x - mu
+                xc = x - x.mean(-1, keepdims=True)
                 x = xc / np.sqrt((xc * xc).mean(-1, keepdims=True) + 1e-6) * ln[0] + ln[1]
             x = np.maximum(x, 0.0)
         return x

@@ -71,7 +71,3 @@ def make_antmaze_task(maze: str, seed: int | None = None) -> AntMazeTask:
     inner = AntMazeEnv(maze_map=[list(r) for r in spec.maze_map], reward_type="sparse", continuing_task=False,
                        reset_target=False)
     return cls(inner, OBS_DIM, seed)
-
-
-def make_antmaze(seed: int | None = None) -> AntMazeTask:
-    return make_antmaze_task("large", seed)

@@ -29,9 +29,6 @@ BANDIT_1D_POINTS_PER_CLUSTER = 7
 BANDIT_1D_SPACING = 0.03
 
 
-# ----------------------------------------------------------------------------- pinwheel
-
-
 def _radius_distribution():
     """rho ~ Normal(mean, std^2) truncated to ``PINWHEEL_RADIUS_RANGE`` (scipy's frozen truncnorm)."""
     from scipy.stats import truncnorm
@@ -86,9 +83,6 @@ def pinwheel_reward(actions: np.ndarray) -> np.ndarray:
     return ((pinwheel_arm(a) + rho) / PINWHEEL_ARMS).astype(np.float32)
 
 
-# ----------------------------------------------------------------------------- 1-D
-
-
 def bandit_1d_support() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(actions (M, 1), rewards (M,), probabilities (M,)) of the 1-D bandit's data distribution."""
     k = BANDIT_1D_POINTS_PER_CLUSTER
@@ -115,7 +109,6 @@ def sample_1d(rng: np.random.Generator, n: int) -> np.ndarray:
     return sup[rng.choice(len(sup), size=n, p=probs)]
 
 
-# ----------------------------------------------------------------------------- the env
 class BanditEnv(gym.Env):
     metadata = {"render_modes": []}
 

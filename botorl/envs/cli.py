@@ -35,16 +35,13 @@ class CheckConfig:
 
 
 def list_main(cfg: ListConfig) -> int:
-    rows = []
-    for spec in list_tasks():
-        status, detail = data_status(spec)
-        rows.append((spec.name, spec.domain, str(spec.max_episode_steps), spec.dataset_source.describe(), status, detail))
-    widths = [max(len(r[i]) for r in rows + [("task", "domain", "horizon", "data", "status", "")]) for i in range(5)]
-    header = ("task", "domain", "horizon", "data", "status")
-    print("  ".join(h.ljust(w) for h, w in zip(header, widths)))
-    for r in rows:
+    header = ("task", "domain", "horizon", "data", "status", "")
+    rows = [(spec.name, spec.domain, str(spec.max_episode_steps), spec.dataset_source.describe(), *data_status(spec))
+            for spec in list_tasks()]
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(5)]
+    for r in [header, *rows]:
         print("  ".join(c.ljust(w) for c, w in zip(r[:5], widths)))
-        if cfg.verbose or r[4] == "missing":
+        if r is not header and (cfg.verbose or r[4] == "missing"):
             print(f"    {r[5]}")
     return 0
 
@@ -70,7 +67,7 @@ def check_task(spec: TaskSpec, steps: int = 1000, seed: int = 0) -> dict:
     check_obs(obs, "reset")
     if not 0.0 <= float(info.get("success", -1)) <= 1.0:
         problems.append("reset: info['success'] missing or outside [0, 1]")
-    successes, ep_success, ep_len, lengths, ret, returns = [], 0.0, 0, [], 0.0, []
+    episodes, ep_success, ep_len, ret = [], 0.0, 0, 0.0  # (success, length, return) of each finished one
     start = time.perf_counter()
     for t in range(steps):
         obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
@@ -88,15 +85,12 @@ def check_task(spec: TaskSpec, steps: int = 1000, seed: int = 0) -> dict:
         if t < 5 or terminated or truncated:
             check_obs(obs, f"step {t}")
         if terminated or truncated:
-            successes.append(ep_success)
-            lengths.append(ep_len)
-            returns.append(ret)
+            episodes.append((ep_success, ep_len, ret))
             ep_success, ep_len, ret = 0.0, 0, 0.0
             obs, info = env.reset()
     elapsed = time.perf_counter() - start
     env.close()
-    if not successes:  # no episode finished: report the running one
-        successes, lengths, returns = [ep_success], [ep_len], [ret]
+    successes, lengths, returns = zip(*(episodes or [(ep_success, ep_len, ret)]))  # none finished: the running one
     return {
         "task": spec.name,
         "steps": steps,

@@ -84,9 +84,7 @@ class PointMazeTask(TaskEnv):
         inner = self.env.unwrapped
         inner.goal = self.goal_xy.copy()  # drop the goal noise (see module docstring)
         inner.update_target_site_pos()
-        obs = dict(obs)
-        obs["desired_goal"] = self.goal_xy.copy()
-        return obs
+        return {**obs, "desired_goal": self.goal_xy.copy()}
 
     def _observe(self, obs):
         return obs["observation"]

@@ -28,8 +28,7 @@ class PaperSettings:
 
 @dataclass(frozen=True)
 class NetworkSizes:
-    """Hidden layer widths (docs/methods.md, "Reference settings"; the same for pre-training and
-    fine-tuning)."""
+    """Hidden layer widths, pre-training's and fine-tuning's (docs/methods.md, "Reference settings")."""
 
     critic: tuple[int, ...]
     actor: tuple[int, ...]
@@ -46,13 +45,8 @@ class DatasetSource:
     obs_keys: tuple[str, ...] | None = None
 
     def describe(self) -> str:
-        if self.kind == "minari":
-            return f"Minari {self.ref}"
-        if self.kind == "calql_npy":
-            return f"Cal-QL {' + '.join(self.ref.split(','))}"
-        if self.kind == "user":
-            return f"yours ({self.ref or 'in memory'})"
-        return f"generated ({self.ref})"
+        return {"minari": f"Minari {self.ref}", "calql_npy": f"Cal-QL {self.ref.replace(',', ' + ')}",
+                "user": f"yours ({self.ref or 'in memory'})"}.get(self.kind, f"generated ({self.ref})")
 
 
 @dataclass(frozen=True)
@@ -80,9 +74,9 @@ class TaskSpec:
     def make_env(self, seed: int = 0, *, evaluation: bool = False) -> gym.Env:
         """The wrapped env with the task's horizon. ``evaluation`` makes no difference: online
         training and evaluation use the same env, as in WSRL/Cal-QL."""
-        from botorl.envs.wrappers import finish
+        from gymnasium.wrappers import TimeLimit
 
-        return finish(self.env_factory(seed), self.max_episode_steps)
+        return TimeLimit(self.env_factory(seed), self.max_episode_steps)  # truncation, not termination
 
     def gym_spec(self):
         """A Gymnasium ``EnvSpec`` that makes this task's env (with its horizon: no TimeLimit
@@ -94,29 +88,23 @@ class TaskSpec:
 
 
 def make_gym_env(task: str, seed: int = 0, **_render) -> gym.Env:
-    """``gym.make`` entry point of ``TaskSpec.gym_spec`` (Gymnasium passes ``render_mode``, which
-    the tasks do not take)."""
+    """``gym.make``'s entry point of ``gym_spec`` (``_render``: Gymnasium's ``render_mode``)."""
     return get_task(task).make_env(seed)
 
-
-# ------------------------------------------------------------------------------ the tasks
 
 ANTMAZE_NET = NetworkSizes(critic=(256,) * 4, actor=(256,) * 2)
 ADROIT_NET = NetworkSizes(critic=(512,) * 3, actor=(512,) * 2)
 KITCHEN_NET = NetworkSizes(critic=(512,) * 3, actor=(512,) * 3)
 # Our choices for the non-paper tasks: pointmaze is the antmaze stand-in, so it gets antmaze's
-# networks; the one-step bandits need little.
-POINTMAZE_NET = ANTMAZE_NET
-BANDIT_NET = NetworkSizes(critic=(256, 256), actor=(256, 256))
-# A user's task without a paper domain: SAC's usual 2 x 256 (docs/own-task.md).
-CUSTOM_NET = NetworkSizes(critic=(256, 256), actor=(256, 256))
-DOMAIN_NETS = {"antmaze": ANTMAZE_NET, "adroit": ADROIT_NET, "kitchen": KITCHEN_NET, "pointmaze": POINTMAZE_NET,
-               "custom": CUSTOM_NET}
+# networks; the one-step bandits and a user's task without a paper domain SAC's usual 2 x 256
+# (docs/own-task.md).
+SMALL_NET = NetworkSizes(critic=(256, 256), actor=(256, 256))
+DOMAIN_NETS = {"antmaze": ANTMAZE_NET, "adroit": ADROIT_NET, "kitchen": KITCHEN_NET, "pointmaze": ANTMAZE_NET,
+               "custom": SMALL_NET}
 
 
 def _make(entry: str, *args) -> gym.Env:
-    """``entry`` ("module:function" of this package) called with ``args`` (the seed last),
-    imported only when a task's env is made."""
+    """``entry`` ("module:function" of this package) called with ``args``; imported on first use."""
     module, func = entry.split(":")
     return getattr(importlib.import_module(f"botorl.envs.{module}"), func)(*args)
 
@@ -133,11 +121,11 @@ def _build() -> dict[str, TaskSpec]:
                 success_mode="any", reward_scale=10.0, reward_bias=5.0, obs_dim=39, action_dim=28, networks=ADROIT_NET)
     ant_keys = ("achieved_goal", "observation")
     specs = [
-        TaskSpec(name="antmaze-large-diverse-v2", env_factory=partial(_make, "antmaze:make_antmaze"),
+        TaskSpec(name="antmaze-large-diverse-v2", env_factory=partial(_make, "antmaze:make_antmaze_task", "large"),
                  dataset_source=DatasetSource("minari", "D4RL/antmaze/large-diverse-v1", ant_keys),
                  paper=PaperSettings(alpha=-1.0, boto_steps=100_000, log_sigma=-30.0),
                  description="ant, large maze, start (1,1) -> goal (7,9); D4RL diverse data", **ant),
-        TaskSpec(name="antmaze-large-play-v2", env_factory=partial(_make, "antmaze:make_antmaze"),
+        TaskSpec(name="antmaze-large-play-v2", env_factory=partial(_make, "antmaze:make_antmaze_task", "large"),
                  dataset_source=DatasetSource("minari", "D4RL/antmaze/large-play-v1", ant_keys),
                  paper=PaperSettings(alpha=-0.7, boto_steps=100_000, log_sigma=-20.0),
                  description="ant, large maze, start (1,1) -> goal (7,9); D4RL play data", **ant),
@@ -174,13 +162,13 @@ def _build() -> dict[str, TaskSpec]:
             name=f"pointmaze-{maze}", domain="pointmaze", env_factory=partial(_make, "pointmaze:make_pointmaze", maze),
             max_episode_steps=horizon, success_mode="any", reward_scale=10.0, reward_bias=-5.0,
             dataset_source=DatasetSource("generated", f"pointmaze-{maze}"), obs_dim=4, action_dim=2,
-            networks=POINTMAZE_NET, description=f"point mass, D4RL maze2d {maze} map, fixed start and goal; maze2d-style data"))
+            networks=ANTMAZE_NET, description=f"point mass, D4RL maze2d {maze} map, fixed start and goal; maze2d-style data"))
     for kind, desc in (("pinwheel", "2-D pinwheel action data (paper Fig. 2)"), ("1d", "1-D bandit (paper Fig. 3)")):
         specs.append(TaskSpec(
             name=f"bandit-{kind}", domain="bandit", env_factory=partial(_make, "bandit:BanditEnv", kind),
             max_episode_steps=1, success_mode="last", reward_scale=1.0, reward_bias=0.0,
             dataset_source=DatasetSource("generated", f"bandit-{kind}"), obs_dim=1, action_dim=BANDIT_ACTION_DIM[kind],
-            networks=BANDIT_NET, description=f"one-step bandit: {desc}"))
+            networks=SMALL_NET, description=f"one-step bandit: {desc}"))
     return {s.name: s for s in specs}
 
 

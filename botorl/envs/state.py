@@ -39,13 +39,10 @@ def _encode(v: Any, depth: int = 0) -> Any:
         if v.dtype == object or v.dtype.kind not in "biuf":
             raise _Skip
         return {"__ndarray__": v.ravel().tolist(), "dtype": v.dtype.str, "shape": list(v.shape)}
-    if type(v) is list:
-        return {"__list__": [_encode(x, depth + 1) for x in v]}
-    if type(v) is tuple:
-        return {"__tuple__": [_encode(x, depth + 1) for x in v]}
+    if type(v) in (list, tuple):
+        return {f"__{type(v).__name__}__": [_encode(x, depth + 1) for x in v]}
     if isinstance(v, (set, frozenset)):
-        items = [_encode(x, depth + 1) for x in v]
-        return {"__set__": sorted(items, key=repr), "frozen": isinstance(v, frozenset)}
+        return {"__set__": sorted((_encode(x, depth + 1) for x in v), key=repr), "frozen": isinstance(v, frozenset)}
     if isinstance(v, dict):
         if not all(isinstance(k, str) for k in v):
             raise _Skip
@@ -63,8 +60,7 @@ def _decode(v: Any) -> Any:
     if "__tuple__" in v:
         return tuple(_decode(x) for x in v["__tuple__"])
     if "__set__" in v:
-        items = [_decode(x) for x in v["__set__"]]
-        return frozenset(items) if v.get("frozen") else set(items)
+        return (frozenset if v.get("frozen") else set)(_decode(x) for x in v["__set__"])
     if "__dict__" in v:
         return {k: _decode(x) for k, x in v["__dict__"].items()}
     raise ValueError(f"not an encoded env-state value: {sorted(v)}")
@@ -78,9 +74,7 @@ def _layers(env: gym.Env) -> list[tuple[str, Any]]:
         out.append((f"wrapper{i}", e))
         e, i = e.env, i + 1
     out.append(("env", e))
-    for name, val in sorted(vars(e).items()):
-        if isinstance(val, gym.Env) and val is not e:
-            out.append((f"env.{name}", val))
+    out += [(f"env.{name}", val) for name, val in sorted(vars(e).items()) if isinstance(val, gym.Env) and val is not e]
     return out
 
 

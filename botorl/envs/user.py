@@ -57,10 +57,8 @@ def _leaf(obs: Any, key: str):
 
 
 def flatten_obs(obs: Any, keys: tuple[str, ...] | None = None, *, batched: bool = False) -> np.ndarray:
-    """One observation -> (D,) float32, or a batch (``batched``: every leaf (B, ...)) -> (B, D).
-
-    ``keys`` (``obs_keys_of`` of the env's space): the leaves of a dict observation in order; None
-    for an array observation, which is only reshaped."""
+    """One observation -> (D,) float32, or a batch (``batched``: every leaf (B, ...)) -> (B, D);
+    ``keys``: ``obs_keys_of`` of the env's space (None: an array observation, only reshaped)."""
     if keys is None:
         a = np.asarray(obs, dtype=np.float32)
         return a.reshape(a.shape[0], -1) if batched else a.reshape(-1)
@@ -286,12 +284,9 @@ def make_spec(name: str, make_env: Callable[[int], gym.Env], task: UserTask, *, 
         if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not np.isfinite(v):
             raise ConfigError(f"task {name!r}: {what} = {v!r}; give a finite number.")
     dom = domain or "custom"
-
-    def factory(seed, _make=make_env, _task=task):
-        return UserTaskEnv(_make(seed), _task, seed)
-
     return TaskSpec(
-        name=name, domain=dom, env_factory=factory, max_episode_steps=int(max_episode_steps),
+        name=name, domain=dom, env_factory=lambda seed: UserTaskEnv(make_env(seed), task, seed),
+        max_episode_steps=int(max_episode_steps),
         success_mode="any", reward_scale=float(reward_scale), reward_bias=float(reward_bias),
         dataset_source=DatasetSource("user", data_ref or ""),
         obs_dim=task.obs_dim, action_dim=task.action_dim, networks=DOMAIN_NETS[dom],

@@ -1,7 +1,6 @@
 """The one wrapper shape every botorl task has (docs/CONTRACTS.md, "Tasks"): ``TaskEnv`` gives a
 flat float32 observation, actions in [-1, 1]^A, the task's reward / termination and
-``info["success"]`` in [0, 1]; domains implement ``_observe`` and ``_task_step``; ``finish`` adds
-the time limit.
+``info["success"]`` in [0, 1]; domains implement ``_observe`` and ``_task_step``.
 """
 
 from __future__ import annotations
@@ -14,7 +13,6 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from gymnasium.wrappers import TimeLimit
 
 
 def import_robotics() -> None:
@@ -45,7 +43,6 @@ class TaskEnv(gym.Wrapper):
         if seed is not None:
             self.action_space.seed(seed)
 
-    # -- to implement per domain -------------------------------------------------------------
     def _observe(self, obs: Any) -> np.ndarray:
         raise NotImplementedError
 
@@ -59,7 +56,6 @@ class TaskEnv(gym.Wrapper):
     def _after_reset(self, obs: Any, info: dict) -> Any:
         return obs
 
-    # -- gymnasium API -----------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         if seed is None and self._pending_seed is not None:
             seed = self._pending_seed
@@ -67,10 +63,7 @@ class TaskEnv(gym.Wrapper):
         if options is None:
             options = self._reset_options()
         obs, info = self.env.reset(seed=seed, options=options)
-        obs = self._after_reset(obs, info)
-        info = dict(info)
-        info["success"] = 0.0
-        return self._flat(obs), info
+        return self._flat(self._after_reset(obs, info)), {**info, "success": 0.0}
 
     def step(self, action):
         action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
@@ -82,8 +75,3 @@ class TaskEnv(gym.Wrapper):
 
     def _flat(self, obs: Any) -> np.ndarray:
         return np.asarray(self._observe(obs), dtype=np.float32).reshape(self.observation_space.shape)
-
-
-def finish(env: TaskEnv, max_episode_steps: int) -> gym.Env:
-    """Add the task's horizon (truncation, not termination)."""
-    return TimeLimit(env, max_episode_steps=max_episode_steps)

@@ -159,9 +159,9 @@ def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = Tr
     """Roll ``policy`` out in the door-binary env until ``steps`` env steps are collected
     (whole episodes). Returns (trajectories, number of episodes, number of successes)."""
     from botorl.envs.adroit import make_door
-    from botorl.envs.wrappers import finish
+    from gymnasium.wrappers import TimeLimit
 
-    env = finish(make_door(seed), HORIZON)
+    env = TimeLimit(make_door(seed), HORIZON)
     rng = np.random.default_rng(seed)
     trajs, n_eps, n_succ, collected = [], 0, 0, 0
     bar = tqdm(total=steps, desc="door BC rollouts", unit="step", disable=not progress)
