@@ -118,8 +118,9 @@ def _not_regular(path: Path, what: str) -> UnsafeFileError:
 
 
 def open_regular(path: str | os.PathLike, flags: int, mode: int = 0o644) -> int:
-    """``os.open`` of a regular file, following no symbolic link and never blocking on a FIFO
-    (``O_NONBLOCK``: a FIFO or device is opened, seen and closed); else ``UnsafeFileError``."""
+    """``os.open`` of a regular file that follows no symbolic link and never blocks on a FIFO
+    (``O_NONBLOCK``: a FIFO or device is opened, seen and closed); ``UnsafeFileError`` (exit 2)
+    otherwise."""
     path = Path(path)
     try:
         fd = os.open(path, flags | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, mode)
@@ -160,12 +161,18 @@ def read_bounded_bytes(path: str | os.PathLike, limit: int, *, tail: bool = Fals
             raise ValueError(f"{path.name} is not a regular file")
         if st.st_size > limit and not tail:
             raise ValueError(f"{path.name} is {st.st_size:,} bytes, more than the {limit:,} a run's file may hold")
-    except BaseException:
+        if tail and st.st_size > limit:
+            os.lseek(fd, st.st_size - limit, os.SEEK_SET)
+        chunks, left = [], limit
+        while left > 0:
+            b = os.read(fd, min(left, 1 << 20))
+            if not b:
+                break
+            chunks.append(b)
+            left -= len(b)
+    finally:
         os.close(fd)
-        raise
-    with os.fdopen(fd, "rb") as f:
-        f.seek(max(st.st_size - limit, 0))
-        return f.read(min(st.st_size, limit))  # not read(limit): that allocates ``limit`` bytes
+    return b"".join(chunks)
 
 
 def read_bounded(path: str | os.PathLike, limit: int, *, tail: bool = False) -> str:

@@ -98,7 +98,10 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
     setup_jax()
     import jax
 
-    repeats, min_time = (min(cfg.repeats, 2), min(cfg.min_time, 0.5)) if cfg.quick else (cfg.repeats, cfg.min_time)
+    if cfg.quick:
+        repeats, min_time = min(cfg.repeats, 2), min(cfg.min_time, 0.5)
+    else:
+        repeats, min_time = cfg.repeats, cfg.min_time
     if repeats < 1 or min_time <= 0:
         raise BotorlError(f"bench: --repeats ({cfg.repeats}) and --min-time ({cfg.min_time}) must be positive.")
     names = cfg.only.split(",") if cfg.only else list(wl.QUICK if cfg.quick else wl.WORKLOADS)
@@ -129,8 +132,9 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
         b = bound[w.name] = wl.build(w)
         k = b.updates_per_call
         count = flopmod.jaxpr_flops(b.flop_fn, *b.flop_args)
-        row.update(flops_per_update=count.flops / k, matmul_flops_per_update=count.matmul_flops / k,
-                   updates_per_call=k)
+        row["flops_per_update"] = count.flops / k
+        row["matmul_flops_per_update"] = count.matmul_flops / k
+        row["updates_per_call"] = k
         try:
             row["flops_per_update_xla"] = flopmod.xla_flops(jax.jit(b.flop_fn), *b.flop_args) / k
         except Exception as err:  # the cross-check must not sink the run
@@ -169,8 +173,9 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
     for w in chosen:  # rows that share another row's d3rlpy update (same round, same figures)
         same = rows.get(w.d3rlpy_same_as or "")
         if same is not None:
-            rows[w.name].update(d3rlpy_samples=list(same["d3rlpy_samples"]),
-                                d3rlpy_cpu_samples=list(same["d3rlpy_cpu_samples"]), d3rlpy_same_as=w.d3rlpy_same_as)
+            rows[w.name]["d3rlpy_samples"] = list(same["d3rlpy_samples"])
+            rows[w.name]["d3rlpy_cpu_samples"] = list(same["d3rlpy_cpu_samples"])
+            rows[w.name]["d3rlpy_same_as"] = w.d3rlpy_same_as
     for name, row in rows.items():
         for side in ("botorl", "d3rlpy"):
             row[f"{side}_updates_per_s"] = _median(row[f"{side}_samples"])
@@ -214,7 +219,10 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
     from botorl.envs.registry import get_task
 
     spec = get_task("antmaze-large-diverse-v2")
-    obs_dim, action_dim = spec.obs_dim, spec.action_dim  # `botorl tasks check` holds the env to them
+    env = spec.make_env(0)
+    obs_dim = int(env.observation_space.shape[0])
+    action_dim = int(env.action_space.shape[0])
+    env.close()
     cfg = SACConfig(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden,
                     num_critics=w.num_critics, utd_ratio=w.utd)
     agent = SACAgent.create(cfg, obs_dim, action_dim, 0)
@@ -243,11 +251,12 @@ def _fmt(x: Any, spec: str) -> str:
 
 
 def format_table(result: dict[str, Any]) -> str:
+    lines = []
     m = result["machine"]
-    lines = [f"botorl bench  (jax {m['jax']} {m['jax_backend']}, {m['cpu_count']} cores, "
-             f"load {m['load_start']} -> {m['load_end']}"
-             + (f"; d3rlpy {m['d3rlpy_worker'].get('d3rlpy')} torch {m['d3rlpy_worker'].get('torch')}"
-                f" x{m['d3rlpy_worker'].get('torch_threads')} threads" if "d3rlpy_worker" in m else "") + ")"]
+    lines.append(f"botorl bench  (jax {m['jax']} {m['jax_backend']}, {m['cpu_count']} cores, "
+                 f"load {m['load_start']} -> {m['load_end']}"
+                 + (f"; d3rlpy {m['d3rlpy_worker'].get('d3rlpy')} torch {m['d3rlpy_worker'].get('torch')}"
+                    f" x{m['d3rlpy_worker'].get('torch_threads')} threads" if "d3rlpy_worker" in m else "") + ")")
     lines.append(f"fp32 matmul peak (1024^2, jitted, best of {len(result['matmul_peak_samples'])}): "
                  f"{result['matmul_peak_gflops']:.0f} GFLOP/s")
     head = (f"{'update':34s} {'botorl/s':>9s} {'d3rlpy/s':>9s} {'ratio':>6s} {'ratio_cpu':>9s} "

@@ -7,9 +7,7 @@ sweep's trials); ``--config FILE`` reads back one it wrote.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
-import typing
 from collections.abc import Mapping
 from typing import Any
 
@@ -51,7 +49,8 @@ def _refuse_derived(argv: list[str]) -> None:
         prefix = next((p for p in _AGENT_PREFIXES if key.startswith(p)), None)
         if prefix is None:
             continue
-        name = key[len(prefix):].replace("-", "_").removeprefix("no_")
+        name = key[len(prefix):].replace("-", "_")
+        name = name[3:] if name.startswith("no_") else name
         if name in DERIVED:
             src = "--" + DERIVED[name].replace("_", "-")
             raise ConfigError(f"{key}: every agent takes this from {src}, the one field that holds it (pre-training "
@@ -71,8 +70,9 @@ def _pre_parse(argv: list[str]) -> argparse.Namespace:
 
 
 def make_config(overrides: Mapping | None = None, **fields: Any):
-    """The config of `botorl run` with ``fields`` (None: the preset's), then ``overrides``
-    ({dotted.path: value}), each made the flag that sets it: one way to make a config, one set of checks."""
+    """The config of `botorl run` with ``fields`` (None: the preset's) and then ``overrides``
+    ({dotted.path: value}), each value made the flag that sets it, so every config is made the
+    one way, with `botorl run`'s checks."""
     given = {k: v for k, v in fields.items() if v is not None}
     return build_config(override_args(given) + override_args(overrides or {}))
 
@@ -84,16 +84,19 @@ def build_config(argv: list[str]):
     import tyro
 
     from botorl.configs.custom import expand_argv
-    from botorl.configs.methods import resolve_pretrain
+    from botorl.configs.methods import get_method, resolve_pretrain
     from botorl.configs.presets import make_preset
     from botorl.configs.resolve import resolve, validate
     from botorl.configs.schema import RunConfig
+    from botorl.envs.registry import get_task
 
     argv = _expand_shortcuts(list(argv))
     argv = expand_argv(argv)  # --env MODULE:FUNCTION: a task of one's own, registered here (configs/custom.py)
     _refuse_derived(argv)
     pre = _pre_parse(argv)
-    resolve_pretrain(pre.method, pre.pretrain)  # clear errors before tyro's generic ones (task, profile: make_preset)
+    get_method(pre.method)  # clear errors before tyro's generic ones
+    resolve_pretrain(pre.method, pre.pretrain)
+    get_task(pre.task)
     default = make_preset(pre.task, pre.profile, pre.method, pre.pretrain)
     cfg = tyro.cli(
         RunConfig,
@@ -125,6 +128,9 @@ def _given(argv: list[str], flag: str) -> bool:
 def _is_flag(key: str) -> bool:
     """Whether ``key`` (a dotted path) is a plain bool field, which tyro makes a flag pair
     (``bool | None`` fields take a value)."""
+    import dataclasses
+    import typing
+
     from botorl.configs.schema import RunConfig
 
     cls = RunConfig
@@ -164,6 +170,8 @@ def override_args(overrides: Mapping) -> list[str]:
 def _load_config(argv: list[str]):
     """The config in FILE as `botorl sweep` wrote it, with the run's own --out, --pretrained and
     --no-progress; validated again."""
+    from dataclasses import replace
+
     from botorl.configs.resolve import validate
     from botorl.configs.schema import RunConfig, from_dict, to_dict
     from botorl.io import read_json_bounded
@@ -185,7 +193,7 @@ def _load_config(argv: list[str]):
     except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
         raise ConfigError(f"--config {ns.config} cannot be read as a run config ({err}); give a file botorl wrote "
                           f"(`botorl sweep` writes one per trial).") from None
-    cfg = dataclasses.replace(cfg, out=ns.out or cfg.out, pretrained=ns.pretrained or cfg.pretrained,
-                              progress=cfg.progress and not ns.no_progress)
+    cfg = replace(cfg, out=ns.out or cfg.out, pretrained=ns.pretrained or cfg.pretrained,
+                  progress=cfg.progress and not ns.no_progress)
     validate(cfg)
     return cfg

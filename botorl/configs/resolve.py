@@ -108,12 +108,16 @@ def machine_memory() -> int:
 def _check_sizes(cfg: RunConfig, method, need) -> None:
     """Batch sizes and the replay buffer against a cap and against this machine's memory, before
     anything is allocated (a huge value is exit 2, not a MemoryError)."""
-    for name in ("offline.batch_size", "online.batch_size", "boto.batch_size"):
-        v = _at(cfg, name)
+    batches = {"offline.batch_size": cfg.offline.batch_size, "online.batch_size": cfg.online.batch_size,
+               "boto.batch_size": cfg.boto.batch_size}
+    for name, v in batches.items():
         need(isinstance(v, int) and 1 <= v <= MAX_BATCH, name, v, f"a batch size must be an integer in [1, {MAX_BATCH:,}]")
-    from botorl.envs.registry import get_task
+    try:
+        from botorl.envs.registry import get_task
 
-    spec = get_task(cfg.task)
+        spec = get_task(cfg.task)
+    except ConfigError:
+        return  # an unknown task is refused where the task is looked up, naming the valid ones
     warm = cfg.warmup.steps if "warmup" in method.stages else 0
     rows = cfg.online.buffer_capacity or (cfg.online.steps + warm + 1)
     if cfg.online.buffer_capacity is not None and "finetune" in method.stages:
@@ -123,9 +127,8 @@ def _check_sizes(cfg: RunConfig, method, need) -> None:
              f"the replay buffer must hold the warm-up's {warm} transitions and one whole episode "
              f"({spec.max_episode_steps} steps on {cfg.task}); give at least {least}, or leave it unset (None: the "
              f"whole online budget)")
-    # parsing them is validating them; each is capped at MAX_MEMBERS
     members = (1 if cfg.seeds is None else len(parse_seeds(cfg.seeds))) * \
-        (1 if cfg.alphas is None else len(parse_alphas(cfg.alphas)))
+        (1 if cfg.alphas is None else len(parse_alphas(cfg.alphas)))  # each capped at MAX_MEMBERS
     row_bytes = 4 * (2 * spec.obs_dim + spec.action_dim + 4)
     have = machine_memory()
     if have and rows * row_bytes * members > have:
@@ -175,6 +178,8 @@ def validate(cfg: RunConfig) -> None:
     need(isinstance(cfg.eval.dense_interval, int) and cfg.eval.dense_interval >= 0, "eval.dense_interval",
          cfg.eval.dense_interval, "give the env steps between dense evaluations, or 0 for none")
     need(0.0 <= cfg.online.offline_ratio <= 1.0, "online.offline_ratio", cfg.online.offline_ratio, "must lie in [0, 1]")
+    if cfg.online.buffer_capacity is not None:
+        need(cfg.online.buffer_capacity >= 1, "online.buffer_capacity", cfg.online.buffer_capacity, "must be positive or None")
     _check_sizes(cfg, method, need)
     for name, dims in (("network.actor_hidden_dims", cfg.network.actor_hidden_dims),
                        ("network.critic_hidden_dims", cfg.network.critic_hidden_dims)):
@@ -183,6 +188,10 @@ def validate(cfg: RunConfig) -> None:
         need(len(dims) >= 1 and all(int(d) >= 1 for d in dims), name, dims, "give positive layer widths, e.g. 256 256")
     if method.uses_alpha:
         check_alpha(cfg.alpha)
+    if cfg.seeds is not None:
+        parse_seeds(cfg.seeds)
+    if cfg.alphas is not None:
+        parse_alphas(cfg.alphas)
     if "warmup" in method.stages and cfg.online.steps <= cfg.warmup.steps:
         raise ConfigError(
             f"--online.steps = {cfg.online.steps} leaves no fine-tuning after the {cfg.warmup.steps}-step warm-up: "

@@ -274,7 +274,8 @@ def _convert(tp: Any, value: Any) -> Any:
         return None
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
-        for a in [a for a in typing.get_args(tp) if a is not type(None)]:  # the first that fits
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        for a in args:  # the first that fits
             try:
                 return _convert(a, value)
             except (TypeError, ValueError):
@@ -283,7 +284,8 @@ def _convert(tp: Any, value: Any) -> Any:
     if dataclasses.is_dataclass(tp):
         return from_dict(tp, value)
     if origin is tuple:  # tuple[X, ...]
-        return tuple(_convert(typing.get_args(tp)[0], v) for v in value)
+        args = typing.get_args(tp)
+        return tuple(_convert(args[0] if args else Any, v) for v in value)
     if (tp in (str, bool) and not isinstance(value, tp)) or (tp in (int, float) and isinstance(value, bool)):
         raise TypeError
     if tp is float:
