@@ -39,7 +39,7 @@ def main() -> None:
     parser.add_argument("--confidence", type=float, default=0.95)
     args = parser.parse_args()
     pairs = sized_pairs(args.studies)
-    order = {p.task: i for i, p in reversed(list(enumerate(pairs)))}  # the studies in the order given
+    order = {task: i for i, task in enumerate(dict.fromkeys(p.task for p in pairs))}  # the studies as given
     cells = sorted(paired_table(pairs, n_boot=args.bootstrap, confidence=args.confidence), key=lambda c: order[c.task])
     print(paired_markdown(cells, args.confidence, quantities=("dip", "success_10k")))
     difference_figure(cells, args.out, confidence=args.confidence, quantities=("dip",))

@@ -101,6 +101,10 @@ class _Ants:
         self.ep_return = np.zeros(n)
         self.finished: list[float] = []
 
+    def run(self, method: str, *args):
+        """A message of the main process: (method name, arguments), in a worker or in-process."""
+        return getattr(self, method)(*args)
+
     def collect(self, params, steps: int, random: bool):
         sim, n = self.sim, self.sim.n
         actor = None if random else NumpyActor(params)
@@ -141,8 +145,8 @@ class _Ants:
 def _worker(conn, n: int, seed: int, index: int):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     ants = _Ants(n, seed, index)
-    while (msg := conn.recv())[0] != "stop":  # (method name, arguments)
-        conn.send(getattr(ants, msg[0])(*msg[1:]))
+    while (msg := conn.recv())[0] != "stop":
+        conn.send(ants.run(*msg))
 
 
 class Collector:
@@ -168,7 +172,7 @@ class Collector:
 
     def recv(self):
         if self.local is not None:
-            return [getattr(self.local, self._pending[0])(*self._pending[1:])]
+            return [self.local.run(*self._pending)]
         return [c.recv() for c in self.conns]
 
     def close(self):

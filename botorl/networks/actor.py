@@ -81,4 +81,5 @@ def tanh_gaussian_log_prob(mean: jax.Array, log_std: jax.Array, actions: jax.Arr
     """log pi(a|s) of given squashed actions (e.g. dataset actions for IQL's AWR)."""
     u = jnp.arctanh(jnp.clip(actions, -_ATANH_CLIP, _ATANH_CLIP))
     z = (u - mean) * jnp.exp(-log_std)
-    return jnp.sum(-0.5 * z * z - log_std - 0.5 * _LOG_2PI, axis=-1) - jnp.sum(_log_det_tanh(u), axis=-1)
+    gaussian = jnp.sum(-0.5 * z * z - log_std - 0.5 * _LOG_2PI, axis=-1)
+    return gaussian - jnp.sum(_log_det_tanh(u), axis=-1)
