@@ -223,15 +223,16 @@ def test_cql_penalty_with_importance_sampling(calql):
     np.testing.assert_allclose(q_data, q_d, **TOL)
     np.testing.assert_allclose(diff, want_diff, **TOL)
 
-    # Whole critic loss with the Lagrange weight alpha' = e (log alpha' starts at 1).
+    # Whole critic loss with the Lagrange weight alpha' = e (log alpha' starts at 1), WSRL's
+    # form: alpha' (diff - gap) with no cql_weight factor (the config's 2.0 must not enter).
     target = jnp.asarray(make_batch(9)["rewards"])
     loss, _ = agent.critic_loss(p, _jnp_batch(batch), target, key)
     bellman = ((q_d - np.asarray(target)[None]) ** 2).mean(-1)
-    want_loss = np.mean(bellman + math.e * 2.0 * (want_diff - 0.5))
+    want_loss = np.mean(bellman + math.e * (want_diff - 0.5))
     np.testing.assert_allclose(loss, want_loss, **TOL)
-    # Multiplier loss: -mean(alpha' w (diff - gap)); alpha' rises while diff > gap.
+    # Multiplier loss: -mean(alpha' (diff - gap)); alpha' rises while diff > gap.
     l_loss = agent.lagrange_loss(agent.lagrange.params, jnp.asarray(want_diff))
-    np.testing.assert_allclose(l_loss, -np.mean(math.e * 2.0 * (want_diff - 0.5)), **TOL)
+    np.testing.assert_allclose(l_loss, -np.mean(math.e * (want_diff - 0.5)), **TOL)
 
 
 @pytest.mark.parametrize("calql,lagrange", [(False, False), (True, True)])

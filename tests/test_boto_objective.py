@@ -123,3 +123,35 @@ def test_alpha_outside_range_is_config_error(data):
         run_boto(agent, *data, BOTOConfig(boto_steps=2), alpha=1.5, progress=False)
     with pytest.raises(ConfigError):
         boto_update(agent, data[0].sample(np.random.default_rng(0), 8), -1.01, BOTOConfig())
+
+
+def test_refit_control_perturbs_nothing_so_alpha_has_no_effect():
+    # noise "none" (the ablation's re-fit control): a_bar = a, the penalty is 0 and the target is
+    # the plain soft backup, so BOTO steps at alpha -1 and +1 give the same critic bit for bit,
+    # while with the paper's hybrid noise they do not (the control has power)
+    agent = SACAgent.create(SACConfig(**TINY, num_critics=2, num_min_critics=2, subsample_replace=False), O, A, seed=2)
+    rng = np.random.default_rng(3)
+    batch = {"observations": rng.normal(size=(8, O)).astype(np.float32),
+             "actions": rng.uniform(-0.9, 0.9, (8, A)).astype(np.float32),
+             "rewards": rng.normal(size=8).astype(np.float32),
+             "next_observations": rng.normal(size=(8, O)).astype(np.float32),
+             "dones": np.zeros(8, np.float32)}
+    jb = {k: jnp.asarray(v) for k, v in batch.items()}
+    none = ObjectiveSettings.resolve(BOTOConfig(noise="none"), agent)
+    y, a_bar, sq, info = compute_target(agent, jb, 1.0, none, jax.random.PRNGKey(0), jax.random.PRNGKey(1))
+    np.testing.assert_array_equal(np.asarray(a_bar), batch["actions"])
+    assert float(jnp.max(sq)) == 0.0 and not bool(info["uniform"].any())
+    y_minus, *_ = compute_target(agent, jb, -1.0, none, jax.random.PRNGKey(0), jax.random.PRNGKey(1))
+    np.testing.assert_array_equal(np.asarray(y), np.asarray(y_minus))
+    for noise, same in (("none", True), ("hybrid", False)):
+        cfg = BOTOConfig(noise=noise)
+        lo, info_lo = boto_update(agent, batch, -1.0, cfg)
+        hi, _ = boto_update(agent, batch, 1.0, cfg)
+        assert _same(lo.critic.params, hi.critic.params) == same, noise
+        if noise == "none":
+            assert float(info_lo["penalty"]) == 0.0
+
+
+def test_unknown_noise_kind_names_the_control():
+    with pytest.raises(ConfigError, match="none"):
+        BOTOConfig(noise="uniform").validate()

@@ -83,10 +83,10 @@ def test_method_table_settings():
     for m in ("boto", "wsrl"):
         cfg = resolve(make_preset(base, "full", m))
         # WSRL: 10 critics pre-trained and fine-tuned, penalty on a random pair, target entropy
-        # -|A|/2 in fine-tuning (its sac_config's 0.0, which its SAC agent turns into -|A|/2) and
-        # -|A| in pre-training (its CQL agent's rule)
+        # -|A| in fine-tuning (its sac_config's 0.0, which its SAC agent turns into -|A| since
+        # f73d11e) and -|A| in pre-training (its CQL agent's rule)
         assert cfg.offline.cql.num_critics == cfg.online.sac.num_critics == 10
-        assert cfg.offline.cql.cql_penalty_critics == 2 and cfg.online.sac.target_entropy == -adim / 2
+        assert cfg.offline.cql.cql_penalty_critics == 2 and cfg.online.sac.target_entropy == -adim
         assert cfg.offline.cql.target_entropy is None  # -> -|A| when the agent is created
         assert cfg.online.offline_ratio == 0.0 and cfg.online.utd == 4
         # antmaze's actor has a state-independent std (WSRL), pre-training and fine-tuning alike
@@ -318,7 +318,9 @@ def test_each_agent_takes_network_and_utd_from_the_one_field():
     for agent in (cfg.offline.cql, cfg.offline.iql, cfg.online.sac):
         assert agent.num_critics == 5 and agent.critic_hidden_dims == (8, 8) and not agent.critic_layer_norm
     assert cfg.offline.iql.value_hidden_dims == (8, 8)
-    assert cfg.online.sac.utd_ratio == cfg.offline.cql.utd_ratio == 3  # calql continues online at the run's UTD
+    # one batch per pre-training critic step whatever the online UTD; calql takes online.utd
+    # when fine-tuning starts (test_calql_pretrains_on_one_batch_per_critic_step)
+    assert cfg.online.sac.utd_ratio == 3 and cfg.offline.cql.utd_ratio == 1
     assert build_config(["--profile", "smoke", "--online.utd", "3"]).offline.cql.utd_ratio == 1  # BOTO pre-trains
     assert set(DERIVED) <= {f for a in (cfg.offline.cql, cfg.offline.iql) for f in vars(a)}
 
@@ -390,3 +392,67 @@ def test_help_is_one_style_without_tyro_artefacts(command, capsys, monkeypatch):
     # terminal, a ruled section header otherwise
     assert re.search(r"╭─ options|^ options *\n -{10,}", out, re.M), out[:2000]
     assert help_artefacts(out) == []
+
+
+ALL_TASKS = PAPER_TASKS + GENERATED
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_wsrl_settings_in_every_method_and_profile(profile):
+    # issue 40: the three settings checked against WSRL's code (docs/methods.md, "WSRL's settings,
+    # checked"), read from the resolved config of every method, task and profile
+    for task in ALL_TASKS:
+        adim = get_task(task).action_dim
+        for method in METHODS:
+            cfg = resolve(make_preset(task, profile, method))
+            sac, cql = cfg.online.sac, cfg.offline.cql
+            # fine-tuning's target entropy: -|A| for WSRL's SAC (boto, wsrl), RLPD's own -|A|/2;
+            # the continued baselines and pre-training keep their agent's rule (None -> -|A|)
+            want = {"boto": -adim, "wsrl": -adim, "rlpd": -adim / 2}.get(method)
+            assert sac.target_entropy == want, (task, method)
+            assert cql.target_entropy is None
+            # pre-training takes one batch per critic step, whatever the online UTD
+            assert cql.utd_ratio == 1, (task, method)
+            assert sac.utd_ratio == cfg.online.utd
+
+
+def test_lagrange_penalty_is_the_multiplier_alone():
+    # WSRL's CQL: lambda * mean(diff - gap), no cql_weight factor (the hand computation of the
+    # whole loss is test_agents_losses.py::test_cql_penalty_with_importance_sampling)
+    import jax.numpy as jnp
+
+    from botorl.agents.cql import CQLAgent
+
+    cfg = resolve(make_preset("antmaze-large-diverse-v2", "full", "boto")).offline.cql
+    assert cfg.cql_lagrange and cfg.cql_weight == 5.0
+    small = replace(cfg, actor_hidden_dims=(8,), critic_hidden_dims=(8,), num_critics=2, cql_penalty_critics=None,
+                    num_min_critics=2)
+    agent = CQLAgent.create(small, 3, 2, seed=0)
+    assert float(agent._penalty_weight()) == pytest.approx(float(agent.lagrange_value()))
+    diff = jnp.asarray([1.8, 1.8])
+    want = -float(agent.lagrange_value()) * (1.8 - cfg.cql_target_action_gap)
+    assert float(agent.lagrange_loss(agent.lagrange.params, diff)) == pytest.approx(want, rel=1e-6)
+
+
+def test_calql_pretrains_on_one_batch_per_critic_step(tmp_path, monkeypatch):
+    # `--method calql --online.utd 4`: every pre-training critic step sees the whole offline
+    # batch (24 rows here), and fine-tuning's update splits its 4 x 12 rows into 4 critic
+    # minibatches of 12. Shapes are recorded while the critic step is traced (rows no other
+    # test uses, so no cached compilation skips the trace).
+    from botorl.agents.cql import CQLAgent
+
+    seen = []
+    step = CQLAgent.critic_step
+
+    def recording(self, batch, key):
+        seen.append(int(batch["rewards"].shape[-1]))
+        return step(self, batch, key)
+
+    monkeypatch.setattr(CQLAgent, "critic_step", recording)
+    out = tmp_path / "run"
+    # 340 online steps: Cal-QL waits for the first finished episode (300 steps) before updating
+    rc = botorl_main(["run", "--method", "calql", "--profile", "smoke", "--online.utd", "4", "--online.steps", "340",
+                      "--offline.batch-size", "24", "--online.batch-size", "12", "--out", str(out)])
+    assert rc == 0
+    assert seen and set(seen) == {24, 12}, seen
+    assert seen[0] == 24  # pre-training's trace comes first

@@ -11,10 +11,13 @@ kept here; the code is ours:
   ``diff = mean_B clip(ood - Q(s, a_data), clip_min, clip_max)``, per ensemble member.
 - Cal-QL: before the IS correction, Q of the pi(s) and pi(s') samples is replaced by
   ``max(Q, mc_return(s, a_data))``; the uniform samples are not bounded.
-- Fixed weight: penalty = cql_weight * diff. Lagrange: penalty =
-  alpha' * cql_weight * (diff - target_action_gap), alpha' = clip(exp(log alpha'), 0, 1e6),
-  with the multiplier loss -mean_members(alpha' * cql_weight * (diff - gap)) (diff held
-  fixed), so alpha' grows while the gap exceeds the target.
+- Fixed weight: penalty = cql_weight * diff. Lagrange: penalty = alpha' * (diff -
+  target_action_gap), alpha' = clip(exp(log alpha'), 0, 1e6), with the multiplier loss
+  -mean_members(alpha' * (diff - gap)) (diff held fixed), so alpha' grows while the gap
+  exceeds the target. That is WSRL's CQL (wsrl/agents/cql.py, critic_loss_fn: the auto-tuned
+  multiplier times mean(diff - gap), no cql_weight factor); Cal-QL's JaxCQL multiplies by
+  cql_min_q_weight as well, 5x on antmaze. botorl follows WSRL, whose protocol it runs; with
+  Lagrange on, cql_weight is unused (docs/methods.md).
 
 Our choices: all 3n + 1 actions per state of every member are evaluated in ONE critic call,
 since this step dominates pre-training time. Members' losses are averaged (Cal-QL sums its two
@@ -183,10 +186,10 @@ class CQLAgent(SACAgent):
         return diff, q_data, info
 
     def _penalty_weight(self):
-        """Per unit of ``diff``: alpha' * cql_weight (Lagrange, alpha' held fixed) or cql_weight."""
+        """Per unit of ``diff``: alpha' (Lagrange, held fixed here; WSRL's scale) or cql_weight."""
         cfg = self.config
         if cfg.cql_lagrange:
-            return jax.lax.stop_gradient(self.lagrange_value()) * cfg.cql_weight
+            return jax.lax.stop_gradient(self.lagrange_value())
         return cfg.cql_weight
 
     def _loss_sum(self, params, rows, bsz: int, members=None):
@@ -242,7 +245,7 @@ class CQLAgent(SACAgent):
     def lagrange_loss(self, lagrange_params, diff):
         cfg = self.config
         value = self.lagrange_value(lagrange_params)
-        return -jnp.mean(value * cfg.cql_weight * (jax.lax.stop_gradient(diff) - cfg.cql_target_action_gap))
+        return -jnp.mean(value * (jax.lax.stop_gradient(diff) - cfg.cql_target_action_gap))
 
     def critic_step(self, batch, key):
         k_target, k_loss = jax.random.split(key)

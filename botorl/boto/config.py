@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from botorl.agents.common import check_fields
-from botorl.boto.noise import resolve_weight_fn
+from botorl.boto.noise import NOISE_KINDS, resolve_weight_fn
 from botorl.errors import ConfigError
 
 
@@ -37,7 +37,8 @@ class BOTOConfig:
     """Settings of BOTO training; defaults are the paper's (Table 2, B.1) where it gives them.
 
     boto_steps: critic gradient steps (paper: 100k, 250k on kitchen). noise: "hybrid" (paper
-    B.1) or "gaussian" (``sigma``, the bandit figure 3). log_sigma: the hybrid noise's lower end
+    B.1), "gaussian" (``sigma``, the bandit figure 3) or "none" (a_bar = a: the re-fit control of
+    the ablation study, BOTO's compute without its bound). log_sigma: the hybrid noise's lower end
     of log t (paper: -20; -30 on antmaze-large-diverse). weight_fn: the hybrid mixing weight
     (botorl.boto.noise). batch_size: rows per step from D_BOTO = D_offline u D_warmup. steps_per_call:
     steps fused into one jitted ``lax.scan`` (also ``run_boto``'s logging and callback period).
@@ -70,7 +71,8 @@ class BOTOConfig:
 
 BOTO_CHECKS = (
     ("boto_steps", lambda c: c.boto_steps >= 0, "must be >= 0"),
-    ("noise", lambda c: c.noise in ("hybrid", "gaussian"), 'use "hybrid" (paper B.1) or "gaussian"'),
+    ("noise", lambda c: c.noise in NOISE_KINDS,
+     'use "hybrid" (paper B.1), "gaussian", or "none" (the re-fit control: a_bar = a, no bound)'),
     ("log_sigma", lambda c: c.log_sigma < 0 and not math.isinf(c.log_sigma),
      "must be a finite negative number (paper: -20, or -30 on antmaze-large-diverse)"),
     ("sigma", lambda c: c.sigma > 0, "the Gaussian noise scale must be positive, e.g. 0.25"),

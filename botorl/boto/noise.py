@@ -5,8 +5,11 @@
   choice** (no source gives it; docs/methods.md, "BOTO: the choices the paper leaves open").
 * **gaussian**: ``a_bar ~ Normal(a, sigma^2 I)`` (the bandit figure 3, unclipped there to
   compare with the closed-form Q*).
+* **none**: ``a_bar = a``, so the penalty is 0 and the BOTO stage is a plain soft-backup re-fit
+  of the critic on D_offline u D_warmup: the ablation's *re-fit control*, the same data, steps
+  and optimiser as BOTO with no bound (docs/results/why-boto.md).
 
-Both return ``(a_bar, info)``, ``info`` per row: ``uniform`` (drawn from the uniform component)
+All return ``(a_bar, info)``, ``info`` per row: ``uniform`` (drawn from the uniform component)
 and ``t`` (the noise scale; sigma for the Gaussian kind).
 """
 
@@ -107,11 +110,21 @@ def gaussian_noise(
     }
 
 
+def no_noise(key: jax.Array, actions: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """a_bar = a (the re-fit control: no action is perturbed, so nothing is bounded)."""
+    del key
+    batch_shape = actions.shape[:-1]
+    return actions, {"uniform": jnp.zeros(batch_shape, bool), "t": jnp.zeros(batch_shape, actions.dtype)}
+
+
+NOISE_KINDS = ("hybrid", "gaussian", "none")
+
+
 def make_noise_fn(
     kind: str, *, log_sigma: float = -20.0, sigma: float = 0.25, weight_fn: WeightSpec = "linear",
     clip: bool = True,
 ) -> Callable[[jax.Array, jax.Array], tuple[jax.Array, dict[str, jax.Array]]]:
-    """``(key, actions) -> (a_bar, info)`` for ``kind`` in {"hybrid", "gaussian"}; checks the
+    """``(key, actions) -> (a_bar, info)`` for ``kind`` in ``NOISE_KINDS``; checks the
     settings now so that a bad value fails before anything is compiled."""
     if kind == "hybrid":
         _check_log_sigma(float(log_sigma))
@@ -121,4 +134,6 @@ def make_noise_fn(
         if not sigma > 0.0:
             raise ConfigError(f"boto gaussian noise sigma={sigma!r} must be positive (e.g. 0.25).")
         return lambda key, a: gaussian_noise(key, a, sigma, clip=clip)
-    raise ConfigError(f"boto noise kind={kind!r} is not known; use 'hybrid' or 'gaussian'.")
+    if kind == "none":
+        return no_noise
+    raise ConfigError(f"boto noise kind={kind!r} is not known; use one of {', '.join(NOISE_KINDS)}.")

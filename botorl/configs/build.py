@@ -110,7 +110,8 @@ def build_config(argv: list[str]):
         "directory under --out; --pretrained DIR starts every member from the finished pre-training "
         "of the same seed and settings under DIR. A task of your own: --env MODULE:FUNCTION --data.path FILE "
         "--env-max-steps N [--success-key K] (the docs' Your own task page). --config FILE [--out DIR] runs "
-        "the config `botorl sweep` wrote for a trial.",
+        "the config `botorl sweep` wrote for a trial. --print-config prints the resolved config as JSON and "
+        "exits, writing nothing.",
     )
     if cfg.seeds is not None and _given(argv, "--seed"):
         raise ConfigError("--seed and --seeds are both given; a population takes --seeds (e.g. --seeds 0-7) only.")

@@ -228,11 +228,10 @@ def _method_defaults(cfg: RunConfig, spec) -> RunConfig:
         random_steps = 5_000 if cfg.profile == "full" else min(5_000, max(1, online.steps // 10))
         online = replace(online, offline_ratio=0.5, random_steps=random_steps, sac=sac)
     else:  # boto, wsrl: WSRL's SAC, offline data dropped
-        # Target entropy -|A|/2: WSRL's sac_config passes target_entropy = 0.0 and its SAC agent
-        # replaces any value >= 0 by -|A|/2 (zhouzypaul/wsrl, wsrl/agents/sac.py, _create_common:
-        # "if target_entropy is None or target_entropy >= 0.0: target_entropy =
-        # -actions.shape[-1] / 2"); -|A| is the CQL agent's rule (wsrl/agents/cql.py, create),
-        # which pre-training keeps (SACConfig.target_entropy None -> -|A|).
-        sac = replace(online.sac, target_entropy=-spec.action_dim / 2.0)
+        # Target entropy -|A|: WSRL's sac_config passes target_entropy = 0.0 and, since its commit
+        # f73d11e ("fix target entropy in SAC, align with CQL"), its SAC agent turns any value
+        # >= 0 into -|A| (zhouzypaul/wsrl, wsrl/agents/sac.py, create; docs/methods.md). Before
+        # that commit the rule gave -|A|/2, which botorl followed until issue 40.
+        sac = replace(online.sac, target_entropy=-float(spec.action_dim))
         online = replace(online, utd=4, offline_ratio=0.0, random_steps=0, sac=sac)
     return replace(cfg, network=network, online=online)

@@ -65,9 +65,11 @@ def resolve(cfg: RunConfig) -> RunConfig:
     if method.uses_alpha:  # None: the task's (the paper's per-task value)
         alpha = float(paper_settings(spec)[0] if given is None else given)
 
-    # calql/cql continued online take utd x batch rows per env step; pre-training alone one batch
-    cql = derive(cfg.offline.cql, cfg, calql=(pretrain == "calql"),
-                 utd_ratio=cfg.online.utd if method.finetune_start == "continue" else 1)
+    # Pre-training takes one batch per critic step whatever the online UTD (WSRL's and Cal-QL's
+    # offline loops call the plain update); calql/cql continued online get online.utd when
+    # fine-tuning starts (pipeline/stages.py, continued_learner), not here, since the same agent
+    # pre-trains.
+    cql = derive(cfg.offline.cql, cfg, calql=(pretrain == "calql"), utd_ratio=1)
     sac = derive(cfg.online.sac, cfg)
     # IQL pre-trains the networks fine-tuning takes over (the paper's: sizes, LayerNorm,
     # ensemble, state-dependent std); its value network has the critic's hidden sizes. It keeps

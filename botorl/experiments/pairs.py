@@ -1,8 +1,11 @@
 """Paired comparisons: runs that start from the same pre-training, compared pair by pair.
 
 A pair is a run of the reference method (WSRL, ``online_reseed`` 0) and any other finished run
-with the same pre-training fingerprint (``pipeline.shared_pretrain.fingerprint_of``), so their
-difference is the online phase alone; WSRL with another online seed gives the noise floor.
+that starts from the same pre-trained agent: the same SHA-256 of its pre-training checkpoint
+(``summary.json``'s ``pretrain_sha256``; runs older than that field are matched by the
+pre-training fingerprint, ``pipeline.shared_pretrain.fingerprint_of``), so their difference is
+the online phase alone. The same settings on another machine give another pre-training, which a
+fingerprint cannot tell and the digest can; WSRL with another online seed gives the noise floor.
 Pairing removes the spread between pre-trainings, most of the spread at 8-32 seeds of a nearly
 binary success. The statistics per group and quantity: docs/running.md, "botorl report".
 """
@@ -113,12 +116,34 @@ def _quantities(run: Run, window: float) -> dict[str, float] | None:
             "success_10k": run.success_10k, "success_final": run.success_final}
 
 
+def _digest_notes(runs: Sequence[Run], relative_to: Path | None) -> list[str]:
+    """Runs with one pre-training fingerprint that start from different agents: never paired."""
+    notes = []
+    for key, group in group_by(runs, _pretraining_key).items():
+        digests = group_by([r for r in group if r.pretrain_sha256], lambda r: r.pretrain_sha256)
+        if key is not None and len(digests) > 1:
+            where = "; ".join(f"{d[:12]}: {', '.join(relative(r.path, relative_to) for r in rs[:3])}"
+                              for d, rs in sorted(digests.items()))
+            notes.append(f"{sum(map(len, digests.values()))} runs have the pre-training settings of seed "
+                         f"{group[0].seed} on {group[0].task} but start from {len(digests)} different pre-trained "
+                         f"agents (checkpoint SHA-256; another machine or code makes another pre-training), so they "
+                         f"are paired only within one agent ({where})")
+    return notes
+
+
+def _pairing_key(run: Run) -> str | None:
+    """Runs are paired when they start from the same pre-trained agent: its checkpoint digest,
+    or the fingerprint for runs that predate the digest (never paired with runs that have one)."""
+    key = _pretraining_key(run)
+    return None if key is None else f"{key}|{run.pretrain_sha256 or ''}"
+
+
 def find_pairs(runs: Sequence[Run], *, reference: str = REFERENCE, window: float = DIP_WINDOW,
                relative_to: Path | None = None) -> tuple[list[Pair], list[str]]:
-    """Every (reference run, other run) with the same pre-training fingerprint, and notes."""
-    notes: list[str] = []
+    """Every (reference run, other run) that start from the same pre-trained agent, and notes."""
+    notes: list[str] = _digest_notes(runs, relative_to)
     pairs: list[Pair] = []
-    for key, group in group_by(runs, _pretraining_key).items():
+    for key, group in group_by(runs, _pairing_key).items():
         if key is None:
             continue
         refs = [r for r in group if r.method == reference and _reseed(r) == 0]

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import json
 import math
 from collections import Counter, defaultdict
 from pathlib import Path
@@ -487,6 +488,26 @@ class ReportResult:
                          + [f"  note: {note}" for note in self.notes] + [f"  wrote {f}" for f in self.files])
 
 
+def environment_notes(runs: Sequence[Run], rel) -> list[str]:
+    """A note when the runs were made in more than one environment (config.json's ``environment``:
+    botorl commit, package versions, CPU, XLA settings, backend), naming what differs."""
+    from botorl.configs.schema import flatten
+    from botorl.pipeline.provenance import comparable
+
+    records = {r.path: r.config.get("environment") for r in runs if isinstance(r.config.get("environment"), dict)}
+    kinds = group_by(list(records), lambda p: comparable(records[p]))
+    notes = []
+    if len(kinds) > 1:
+        flat = [flatten(json.loads(k)) for k in kinds]
+        differ = sorted(k for k in set().union(*flat) if len({json.dumps(f.get(k)) for f in flat}) > 1)
+        notes.append(f"the runs were made in {len(kinds)} environments (they differ in {', '.join(differ[:6])}"
+                     f"{' ...' if len(differ) > 6 else ''}); e.g. {', '.join(rel(ps[0]) for ps in kinds.values())}")
+    missing = len(runs) - len(records)
+    if records and missing:
+        notes.append(f"{missing} run(s) record no environment (made before botorl recorded it)")
+    return notes
+
+
 def make_report(
     dirs: Sequence[Path],
     out: Path,
@@ -525,6 +546,7 @@ def make_report(
     if off:  # a task of one's own whose env reports no success (docs/own-task.md)
         notes.append(f"success is off on {', '.join(off)}: the env's info has no success key, so every success rate "
                      f"there is 0 and says nothing")
+    notes += environment_notes(runs, rel)
     cells = table1(runs, **boot, dips=dip_cells)
     pairs, pair_notes = find_pairs(runs, window=dip_window, relative_to=out)
     pairs = merge_pairs(pairs, extra_pairs)

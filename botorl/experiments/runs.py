@@ -40,6 +40,7 @@ class Run:
     dense_from: float | None = None
     config: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)  # config.json as read
     variant: str = ""  # the settings in which this run differs from others of its method (label_variants)
+    pretrain_sha256: str | None = None  # the pre-trained agent it starts from (summary.json); pairs match on it
 
     @property
     def label(self) -> str:
@@ -100,8 +101,9 @@ _SAME_METHOD = {"seed", "alpha", "out", "pretrained", "progress", "tensorboard",
 def _settings(config: dict) -> dict[str, Any]:
     from botorl.configs.schema import flatten
 
+    # "environment" is what the run was made with (pipeline/provenance.py), not a setting
     return {k: json.dumps(v, sort_keys=True) for k, v in flatten(config).items()
-            if k not in _SAME_METHOD and not k.endswith("log_every")}
+            if k not in _SAME_METHOD and not k.endswith("log_every") and not k.startswith("environment.")}
 
 
 def label_variants(runs: list[Run]) -> None:
@@ -169,6 +171,7 @@ def _load_run(run_dir: Path) -> Run | Skipped:
         settings=_settings(config),
         dense_from=_dense_from(config),
         config=config,
+        pretrain_sha256=sha if isinstance(sha := summary.get("pretrain_sha256"), str) and len(sha) == 64 else None,
     )
 
 

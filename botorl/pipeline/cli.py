@@ -116,10 +116,15 @@ def run_main(argv: list[str]) -> int:
     from botorl.configs.members import is_population, population
     from botorl.configs.schema import to_dict
     from botorl.envs.registry import get_task
+    from botorl.pipeline.provenance import environment_record
     from botorl.pipeline.runner import load_offline, write_population_file
 
     setup_jax()
-    cfg = build_config(argv)
+    print_config = "--print-config" in argv
+    cfg = build_config([a for a in argv if a != "--print-config"])
+    if print_config:  # the resolved config, as config.json would hold it; nothing is written
+        print(json.dumps(to_dict(cfg), indent=2, sort_keys=True))
+        return 0
     if cfg.wandb:  # before any work: a missing wandb must not leave a run directory behind
         require_wandb()
     single = not is_population(cfg)  # --seeds / --alphas: a population
@@ -152,9 +157,10 @@ def run_main(argv: list[str]) -> int:
     with RunLock(out):
         already()  # again, under the lock: another `run` may have started meanwhile
         with io_guard(out):
+            environment = environment_record()  # what the run was made with (pipeline/provenance.py)
             for c, r in zip(member_cfgs, runs):
                 r.create()
-                atomic_write_json(r.config, to_dict(c))
+                atomic_write_json(r.config, {**to_dict(c), "environment": environment})
             if not single:
                 write_population_file(out, cfg, member_cfgs, "running", ["running"] * len(members), {})
         what = (f"(profile {cfg.profile}, seed {cfg.seed})" if single else

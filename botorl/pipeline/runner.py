@@ -33,6 +33,7 @@ from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
 from botorl.pipeline.rundir import EVAL_COLUMNS, POPULATION_FILE, CsvLog, MetricsLogger, RunDir, number, read_json
+from botorl.pipeline.provenance import pretrain_sha256
 
 _DS_FIELDS = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends", "mc_returns")
 
@@ -353,6 +354,8 @@ def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict,
         "stage_seconds": {k: round(v, 3) for k, v in stage_seconds.items()},
         "total_seconds": round(sum(stage_seconds.values()), 3),
         "online_steps": cfg.online.steps,
+        # the pre-trained agent this run starts from: `botorl report` pairs runs by it
+        "pretrain_sha256": pretrain_sha256(run.checkpoints),
         "status": status,
         "run_dir": str(run.root),
     }

@@ -16,7 +16,7 @@ continues exactly (docs/reliability.md).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import jax
@@ -43,11 +43,22 @@ def make_pretrain_agent(cfg, obs_dim: int, action_dim: int, seed: int):
     return CQLAgent.create(cfg.offline.cql, obs_dim, action_dim, seed)
 
 
+def continued_learner(cfg, agents):
+    """The pre-trained agent(s) as a "continue" method fine-tunes them: its own loss at the run's
+    UTD. Pre-training took one batch per critic step (configs/resolve.py); online, an update
+    splits its utd x B rows into utd critic minibatches (IQL's layout is per update instead)."""
+    if not hasattr(agents.config, "utd_ratio"):
+        return agents
+    return agents.replace(config=replace(agents.config, utd_ratio=cfg.online.utd))
+
+
 def agent_template(cfg, stage: str, obs_dim: int, action_dim: int, seed: int):
     """An agent with the structure a checkpoint of ``stage`` holds (for loading it): the
     fine-tuning learner in fine-tuning, the pre-training agent before."""
-    if stage != "finetune" or get_method(cfg.method).finetune_start == "continue":
+    if stage != "finetune":
         return make_pretrain_agent(cfg, obs_dim, action_dim, seed)
+    if get_method(cfg.method).finetune_start == "continue":
+        return continued_learner(cfg, make_pretrain_agent(cfg, obs_dim, action_dim, seed))
     return SACAgent.create(cfg.online.sac, obs_dim, action_dim, seed)
 
 
@@ -63,7 +74,7 @@ def start_finetuning(ctx, agents):
     if start == "scratch":
         O, A = ctx.d_offline.obs_dim, ctx.d_offline.action_dim
         return AP.stack([SACAgent.create(oc.sac, O, A, mc.cfg.online_seed) for mc in ctx.members])
-    return agents  # "continue": the pre-trained agent keeps its own loss
+    return continued_learner(ctx.cfg, agents)  # "continue": the pre-trained agent keeps its own loss
 
 
 def q_fn(agent):

@@ -1,0 +1,125 @@
+"""What a run was made with, so a result can be traced and two runs compared honestly:
+
+- ``environment_record()``: botorl's commit (when it runs from a git checkout), the versions of
+  the packages that decide its numbers, the CPU model and flags, the XLA/JAX settings of the
+  environment and the backend; written into ``config.json`` as ``environment`` when a run starts.
+- ``pretrain_sha256(run)``: the SHA-256 of the pre-trained agent a run starts from (its
+  ``checkpoints/pretrain-final/agent.ckpt``), in ``summary.json``; ``botorl report`` pairs runs by
+  it, so two runs are paired only when they start from the very same bytes. The same settings on
+  another machine give another pre-training (floating-point order differs by CPU), which a
+  config fingerprint cannot tell.
+
+These are integrity records, not authenticity: anyone can write any value into a file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import subprocess
+from importlib import metadata
+from pathlib import Path
+
+PACKAGES = ("botorl", "jax", "jaxlib", "flax", "optax", "numpy", "mujoco", "gymnasium")
+ENV_PREFIXES = ("XLA_", "JAX_", "BOTORL_CPU")  # settings of the environment that change numbers
+PRETRAIN_AGENT = Path("pretrain-final") / "agent.ckpt"
+
+
+def _version(name: str) -> str | None:
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _commit() -> str | None:
+    """botorl's git commit (``+dirty`` when tracked files differ), or None outside a checkout."""
+    root = Path(__file__).resolve().parents[2]
+    if not (root / ".git").exists():
+        return None
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=10, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return f"{head}+dirty" if dirty else head
+
+
+def _cpu() -> dict[str, str | None]:
+    model = flags = None
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                key = key.strip()
+                if key == "model name" and model is None:
+                    model = value.strip()
+                elif key in ("flags", "Features") and flags is None:
+                    flags = value.strip()
+                if model is not None and flags is not None:
+                    break
+    except OSError:
+        pass
+    return {"model": model or platform.processor() or None, "flags": flags, "machine": platform.machine(),
+            "cores": os.cpu_count()}
+
+
+def environment_record() -> dict:
+    """The record ``config.json`` keeps under ``environment`` (see the module docstring)."""
+    import jax
+
+    devices = jax.devices()
+    return {
+        "commit": _commit(),
+        "python": platform.python_version(),
+        "versions": {name: _version(name) for name in PACKAGES},
+        "cpu": _cpu(),
+        "backend": jax.default_backend(),
+        "device": devices[0].device_kind if devices else None,
+        "device_count": len(devices),
+        "env": {k: v for k, v in sorted(os.environ.items()) if k.startswith(ENV_PREFIXES)},
+    }
+
+
+def comparable(record: dict) -> str:
+    """The part of an environment record that can change a run's numbers (not the commit's
+    dirtiness alone, not the core count), as one string for grouping."""
+    import json
+
+    if not isinstance(record, dict):
+        return "unknown"
+    cpu = record.get("cpu") if isinstance(record.get("cpu"), dict) else {}
+    keep = {"commit": str(record.get("commit") or "").removesuffix("+dirty"), "versions": record.get("versions"),
+            "cpu": {k: cpu.get(k) for k in ("model", "flags")}, "backend": record.get("backend"),
+            "device": record.get("device"), "env": record.get("env")}
+    return json.dumps(keep, sort_keys=True, default=str)
+
+
+_CACHE: dict[tuple, str] = {}
+
+
+def file_sha256(path: Path) -> str | None:
+    """SHA-256 of a regular file (cached by size and mtime: summaries are written often), or None."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    if not os.path.isfile(path):
+        return None
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _CACHE:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+        _CACHE[key] = h.hexdigest()
+    return _CACHE[key]
+
+
+def pretrain_sha256(checkpoints: Path) -> str | None:
+    """The digest of the pre-trained agent under a run's ``checkpoints`` folder (None: none yet,
+    or a method without pre-training)."""
+    return file_sha256(Path(checkpoints) / PRETRAIN_AGENT)
