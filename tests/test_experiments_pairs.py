@@ -151,3 +151,28 @@ def test_blocks_pool_whether_or_not_their_report_held_a_noise_floor(tmp_path):
         blocks += read_pairs_csv(path)
     cells = paired_table(blocks, quantities=("dip",), n_boot=50)
     assert [(c.label, c.reference, c.n, c.mean) for c in cells] == [("boto+calql", "wsrl", 2, 1.0)]
+
+
+def test_pairs_match_on_the_pretraining_digest_and_a_mixed_environment_is_named(tmp_path):
+    # Same pre-training settings (fingerprint), but seed 1's BOTO run starts from another
+    # pre-trained agent (another machine's): it is not paired, and a note says why. Seed 0's
+    # runs share the digest and pair. The runs were made in two environments: the report says so.
+    sha = {"x": "a" * 64, "y": "b" * 64}
+    env = {"commit": "c0", "versions": {"jax": "0.4"}, "cpu": {"model": "M1", "flags": "avx"}, "backend": "cpu"}
+    for name, cfg, digest, e in (("wsrl/seed0", _config("wsrl", 0), sha["x"], env),
+                                 ("boto/seed0", _config("boto", 0, alpha=0.0), sha["x"], env),
+                                 ("wsrl/seed1", _config("wsrl", 1), sha["x"], env),
+                                 ("boto/seed1", _config("boto", 1, alpha=0.0), sha["y"],
+                                  {**env, "cpu": {"model": "M2", "flags": "avx512"}})):
+        d = _write(tmp_path / "runs", name, {**cfg, "environment": e}, 0.4, 0.5, early=0.8)
+        summary = json.loads((d / "summary.json").read_text())
+        (d / "summary.json").write_text(json.dumps({**summary, "pretrain_sha256": digest}))
+    runs, skipped = RN.find_runs([tmp_path / "runs"])
+    assert not skipped and len(runs) == 4
+    assert all(r.label in ("wsrl", "boto+calql") for r in runs)  # the environment is no setting
+    pairs, notes = PR.find_pairs(runs)
+    assert [(p.seed, p.label) for p in pairs] == [(0, "boto+calql")]
+    assert len(notes) == 1 and "2 different pre-trained agents" in notes[0] and "seed 1" in notes[0]
+    env_notes = R.environment_notes(runs, str)
+    assert len(env_notes) == 1 and "2 environments" in env_notes[0] and "cpu.flags" in env_notes[0]
+    assert R.environment_notes(runs[:1], str) == []

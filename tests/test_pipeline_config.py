@@ -456,3 +456,15 @@ def test_calql_pretrains_on_one_batch_per_critic_step(tmp_path, monkeypatch):
     assert rc == 0
     assert seen and set(seen) == {24, 12}, seen
     assert seen[0] == 24  # pre-training's trace comes first
+
+
+def test_print_config_prints_the_resolved_config_and_writes_nothing(capsys, tmp_path, monkeypatch):
+    import json
+
+    from botorl.envs.registry import get_task as task
+
+    monkeypatch.chdir(tmp_path)
+    assert botorl_main(["run", "--method", "wsrl", "--print-config"]) == 0
+    cfg = json.loads(capsys.readouterr().out)
+    assert cfg["method"] == "wsrl" and cfg["online"]["sac"]["target_entropy"] == -task(cfg["task"]).action_dim
+    assert list(tmp_path.iterdir()) == []
