@@ -288,7 +288,7 @@ def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") ->
 
 
 def difference_figure(cells: Sequence[PairedCell], path: Path, *, confidence: float = 0.95,
-                      quantities: Sequence[str] = TABLE_QUANTITIES) -> None:
+                      quantities: Sequence[str] = TABLE_QUANTITIES, metric: Metric | None = None) -> None:
     """Per quantity, each group's mean paired difference with its bootstrap CI (thick) and
     t-interval (thin); the noise floor's rows in grey."""
     rows = [c for c in cells if c.quantity == quantities[0]]
@@ -306,7 +306,7 @@ def difference_figure(cells: Sequence[PairedCell], path: Path, *, confidence: fl
                 ax.plot([c.boot_lo, c.boot_hi], [y, y], color=color, lw=4, alpha=0.6)
             ax.plot([c.mean], [y], "o", color=color)
         ax.axvline(0, color="black", lw=0.6)
-        ax.set_title(f"{_NAMES[q]}, difference", fontsize=9)
+        ax.set_title(f"{_name(q, metric)}, difference", fontsize=9)
         ax.tick_params(labelsize=7)
     axes[0][0].set_yticks(range(len(rows)), labels, fontsize=7)
     axes[0][0].invert_yaxis()
@@ -324,7 +324,9 @@ def write_paired(pairs: Sequence[Pair], out: Path, *, n_boot: int, confidence: f
     atomic_write_text(out / "paired.csv", pairs_csv(pairs))
     atomic_write_text(out / "paired_table.csv", paired_cells_csv(cells))
     pairs_figure(pairs, out / "paired_dips.png")
-    difference_figure(cells, out / "paired_differences.png", confidence=confidence)
+    common = set((metrics or {}).values())  # the titles name the metric when every task has the same
+    difference_figure(cells, out / "paired_differences.png", confidence=confidence,
+                      metric=common.pop() if len(common) == 1 else None)
     files = [out / "paired.csv", out / "paired_table.csv", out / "paired_dips.png", out / "paired_differences.png"]
     pct = f"{100 * confidence:g}%"
     md = [
