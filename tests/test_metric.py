@@ -213,3 +213,82 @@ def test_pendulum_eval_prints_the_return(pendulum, capsys):
     policy = botorl.load_policy(runs / "boto")
     a = policy(np.array([1.0, 0.0, 0.0], np.float32))
     assert a.shape == (1,) and -2.0 <= float(a[0]) <= 2.0
+
+
+# ------------------------------------------------------------------ --ref-min-score / --ref-max-score
+DRIFT = '''
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+class Drift(gym.Env):
+    """No success; reward -|x| per step, x moved by the action (in [-0.5, 0.5])."""
+    observation_space = spaces.Box(-5, 5, (1,), np.float32)
+    action_space = spaces.Box(-0.5, 0.5, (1,), np.float32)
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x = 1.0
+        return np.array([self.x], np.float32), {}
+    def step(self, a):
+        self.x = float(np.clip(self.x + float(a[0]), -5, 5))
+        return np.array([self.x], np.float32), -abs(self.x), False, False, {}
+
+def make_env(seed):
+    return Drift()
+'''
+
+
+@pytest.fixture(scope="module")
+def drift(tmp_path_factory):
+    d = tmp_path_factory.mktemp("drift")
+    (d / "drift.py").write_text(DRIFT)
+    rng = np.random.default_rng(0)
+    n, horizon = 400, 20
+    obs = rng.uniform(-2, 2, (n, 1)).astype(np.float32)
+    act = rng.uniform(-0.5, 0.5, (n, 1)).astype(np.float32)
+    nxt = np.clip(obs + act, -5, 5)
+    np.savez(d / "logged.npz", observations=obs, actions=act, next_observations=nxt, rewards=-np.abs(nxt[:, 0]),
+             terminals=np.zeros(n, bool), timeouts=(np.arange(n) % horizon) == horizon - 1)
+    return d
+
+
+def _drift_cli(drift, monkeypatch, capsys, *args, out=None):
+    monkeypatch.chdir(drift)
+    monkeypatch.delitem(sys.modules, "drift", raising=False)
+    argv = ["run", "--env", "drift:make_env", "--data.path", "logged.npz", "--env-max-steps", "20", *args,
+            "--profile", "smoke", "--no-progress", "--no-tensorboard", "--out", str(out or drift / "runs" / "bad")]
+    code = cli_main(argv)
+    return code, " ".join(capsys.readouterr().err.split())
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--ref-min-score", "-10"], "give both ref_min_score and ref_max_score"),
+    (["--ref-min-score", "0", "--ref-max-score", "-10"], "ref_min_score 0 must be below ref_max_score -10"),
+    (["--ref-min-score", "low", "--ref-max-score", "0"], "--ref-min-score 'low': give a number"),
+])
+def test_cli_bad_reference_scores_exit_2(drift, monkeypatch, capsys, args, message):
+    code, err = _drift_cli(drift, monkeypatch, capsys, *args)
+    assert code == 2 and message in err, err
+    assert not (drift / "runs" / "bad").exists()
+
+
+@pytest.mark.timeout(600)
+def test_cli_normalised_score_end_to_end(drift, monkeypatch, capsys):
+    """--ref-min-score/--ref-max-score: config.json records the metric, summary.json has score_*
+    = 100 (R - min) / (max - min) of its return_*, and `botorl eval` (the task imported again by
+    name, its references from config.json) prints the score."""
+    out = drift / "runs" / "score"
+    code, err = _drift_cli(drift, monkeypatch, capsys, "--method", "wsrl", "--ref-min-score", "-40",
+                           "--ref-max-score", "0", out=out)
+    assert code == 0, err
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["metric"] == {"name": "score", "ref_min_score": -40.0, "ref_max_score": 0.0}
+    s = json.loads((out / "summary.json").read_text())
+    assert "success_initial" not in s and s["return_final"] < 0
+    for p in ("initial", "final"):
+        assert s[f"score_{p}"] == pytest.approx(100 * (s[f"return_{p}"] + 40) / 40)
+    # another process, another folder: the task is imported again by name, its references read back
+    proc = subprocess.run([sys.executable, "-m", "botorl.cli", "eval", str(out), "--episodes", "2"], cwd="/",
+                          env=_env(), capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert re.search(r"^score +", proc.stdout, re.M) and "success" not in proc.stdout, proc.stdout
