@@ -133,7 +133,8 @@ def test_report_table1_and_dip_in_the_return(report):
     result, out = report
     md = (out / "report.md").read_text()
     assert "## Table 1: the headline metric of each task, mean ± standard error over seeds" in md
-    assert "- pend: episode return" in md and "- pend-score: normalised score, 100 * (return - -1000)" in md
+    assert "- pend: episode return" in md and "- pend-score: normalised score, 100 * (return - ref_min) / (ref_max - ref_min) with the task's reference " \
+        "scores ref_min -1000, ref_max -200" in md
     rows = {(r["task"], r["method"]): r for r in csv.DictReader((out / "table1.csv").open())}
     assert float(rows[("pend", "wsrl")]["initial_mean"]) == pytest.approx(-250.0)
     assert float(rows[("pend", "wsrl")]["final_mean"]) == pytest.approx(-200.0)

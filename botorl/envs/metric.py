@@ -53,8 +53,8 @@ class Metric:
         if self.name == "success":
             return "success rate (the task defines success)"
         if self.name == "score":
-            return (f"normalised score, 100 * (return - {self.ref_min_score:g}) / ({self.ref_max_score:g} - "
-                    f"{self.ref_min_score:g}) (the task has no success; its reference scores)")
+            return (f"normalised score, 100 * (return - ref_min) / (ref_max - ref_min) with the task's reference "
+                    f"scores ref_min {self.ref_min_score:g}, ref_max {self.ref_max_score:g} (the task has no success)")
         return "episode return, undiscounted and in the env's own reward units (the task has no success)"
 
 
