@@ -23,15 +23,17 @@ from botorl.pipeline.rundir import read_json
 
 def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_episode_steps: int,
                   success_key: str | None = "success", domain: str | None = None, reward_scale: float = 1.0,
-                  reward_bias: float = 0.0):
+                  reward_bias: float = 0.0, ref_min_score: float | None = None, ref_max_score: float | None = None):
     """Register a task of your own for this process; returns its ``TaskSpec`` (docs/own-task.md).
 
     ``make_env(seed)`` (or ``"MODULE:FUNCTION"``) returns a Gymnasium env with a ``Box`` action
     space and a ``Box`` or ``Dict`` observation space. ``dataset``: a dict of arrays, a path or a
     botorl ``Dataset``, actions in the env's own units. ``success_key``: the info key read as
     success (None or absent: success is off). ``domain``: a paper domain whose presets the task
-    takes. Training's rewards are ``reward_scale * r + reward_bias``. Bad input raises
-    ``BotorlError``; registering a name again replaces it.
+    takes. Training's rewards are ``reward_scale * r + reward_bias``. A task without success is
+    reported in its episode return, or with ``ref_min_score`` and ``ref_max_score`` (the returns of
+    a poor and a good policy) in the normalised score ``100 * (R - min) / (max - min)``. Bad input
+    raises ``BotorlError``; registering a name again replaces it.
     """
     from dataclasses import replace
 
@@ -52,7 +54,8 @@ def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_
     task = replace(task, entry=entry, path=path)
     ref, ds = data_user.to_dataset(dataset, task, name=name, max_episode_steps=max_episode_steps)
     spec = make_spec(name, make_env, task, max_episode_steps=max_episode_steps, domain=domain,
-                     reward_scale=reward_scale, reward_bias=reward_bias, data_ref=ref)
+                     reward_scale=reward_scale, reward_bias=reward_bias, data_ref=ref, ref_min_score=ref_min_score,
+                     ref_max_score=ref_max_score)
     registry.register(spec)
     data_user.hold(name, ref, ds)
     if task.success_off and success_key is not None:

@@ -308,3 +308,21 @@ def test_orphan_of_an_earlier_sweep_is_stopped(tmp_path):
             if p.poll() is None:
                 p.kill()
                 p.wait()
+
+
+def test_relative_pretrained_is_made_absolute_when_the_sweep_starts(tmp_path, monkeypatch):
+    """`botorl sweep --set pretrained=study/x`: trials run in the sweep's folder, so the path is
+    resolved against the folder the sweep starts in, and a missing one is refused there (issue 42)."""
+    from botorl.errors import ConfigError
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "study" / "x").mkdir(parents=True)
+    grid = build_grid(tasks="pointmaze-umaze", methods="wsrl", seeds="0", profile="smoke",
+                      overrides=["pretrained=study/x", "data.path=not-a-file-but-a-minari-id"])
+    assert grid.overrides["pretrained"] == str(tmp_path / "study" / "x")
+    assert grid.overrides["data.path"] == "not-a-file-but-a-minari-id"  # a name, not a path: kept
+    monkeypatch.chdir("/")  # the trial's own folder does not matter any more
+    assert grid.config(grid.trials()[0]).pretrained == str(tmp_path / "study" / "x")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match="pretrained=study/y: no such directory"):
+        build_grid(tasks="pointmaze-umaze", methods="wsrl", seeds="0", overrides=["pretrained=study/y"])

@@ -149,3 +149,18 @@ def test_real_wandb_offline(tmp_path, monkeypatch):
     for m in ("seed0", "seed1"):
         (d,) = (out / m / "wandb").glob(f"offline-run-*-{tracking.run_id(out / m)}")
         assert any(p.suffix == ".wandb" for p in d.iterdir())
+
+
+def test_wandb_dir_is_honoured(fake_wandb, tmp_path, monkeypatch):
+    """W&B's files go where $WANDB_DIR says when it is set (W&B's convention), else into the run
+    directory (issue 42)."""
+    from botorl.configs.schema import RunConfig
+    from botorl.pipeline.rundir import RunDir
+
+    cfg = RunConfig(wandb=True)
+    monkeypatch.delenv("WANDB_DIR", raising=False)
+    tracking.start([cfg], [RunDir(tmp_path / "a")])
+    monkeypatch.setenv("WANDB_DIR", str(tmp_path / "scratch"))
+    tracking.start([cfg], [RunDir(tmp_path / "b")])
+    dirs = [c[1]["dir"] for c in fake_wandb if c[0] == "init"]
+    assert dirs == [str(tmp_path / "a"), str(tmp_path / "scratch")]

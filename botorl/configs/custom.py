@@ -12,7 +12,8 @@ from pathlib import Path
 from botorl.errors import ConfigError
 
 # the command line's flags of a task of one's own
-FLAGS = ("--env", "--env-max-steps", "--success-key", "--env-domain", "--env-reward-scale", "--env-reward-bias")
+FLAGS = ("--env", "--env-max-steps", "--success-key", "--env-domain", "--env-reward-scale", "--env-reward-bias",
+         "--ref-min-score", "--ref-max-score")
 
 
 def _pull(argv: list[str], flags) -> tuple[dict[str, str], list[str]]:
@@ -44,6 +45,10 @@ def _number(flag: str, text: str, kind):
         raise ConfigError(f"{flag} {text!r}: give a{'n integer' if kind is int else ' number'}.") from None
 
 
+def _optional(flag: str, found: dict[str, str]) -> float | None:
+    return _number(flag, found[flag], float) if flag in found else None
+
+
 def expand_argv(argv: list[str]) -> list[str]:
     """``botorl run``'s arguments with a task of one's own registered and named by ``--task``
     (unchanged when there is no ``--env``)."""
@@ -72,13 +77,15 @@ def expand_argv(argv: list[str]) -> list[str]:
                    success_key=found.get("--success-key", "success"), key_given="--success-key" in found,
                    domain=found.get("--env-domain"),
                    reward_scale=_number("--env-reward-scale", found.get("--env-reward-scale", "1"), float),
-                   reward_bias=_number("--env-reward-bias", found.get("--env-reward-bias", "0"), float))
+                   reward_bias=_number("--env-reward-bias", found.get("--env-reward-bias", "0"), float),
+                   ref_min_score=_optional("--ref-min-score", found), ref_max_score=_optional("--ref-max-score", found))
     return rest + ["--task", name, "--data.path", data]
 
 
 def register_entry(name: str, entry: str, data: str, max_steps: int, *, success_key: str | None = "success",
                    key_given: bool = False, domain: str | None = None, reward_scale: float = 1.0,
-                   reward_bias: float = 0.0, path: str | None = None):
+                   reward_bias: float = 0.0, path: str | None = None, ref_min_score: float | None = None,
+                   ref_max_score: float | None = None):
     """Import ``entry``, look at its env and register the task ``name`` reading ``data`` (the file
     is read when the run loads its data). Returns the TaskSpec."""
     from botorl.envs import registry
@@ -88,7 +95,8 @@ def register_entry(name: str, entry: str, data: str, max_steps: int, *, success_
     task = probe(make_env, max_steps, success_key, name=name, key_given=key_given)
     task = replace(task, entry=entry, path=found or path)
     return registry.register(make_spec(name, make_env, task, max_episode_steps=max_steps, domain=domain,
-                                       reward_scale=reward_scale, reward_bias=reward_bias, data_ref=data))
+                                       reward_scale=reward_scale, reward_bias=reward_bias, data_ref=data,
+                                       ref_min_score=ref_min_score, ref_max_score=ref_max_score))
 
 
 def ensure_task(cfg) -> None:
@@ -113,7 +121,8 @@ def ensure_task(cfg) -> None:
                 f"in this process (then botorl.resume(DIR)), or register a data file instead."
             )
         register_entry(cfg.task, e.entry, cfg.data.path, e.max_steps, success_key=e.success_key, domain=e.domain,
-                       reward_scale=e.reward_scale, reward_bias=e.reward_bias, path=e.path)
+                       reward_scale=e.reward_scale, reward_bias=e.reward_bias, path=e.path,
+                       ref_min_score=cfg.metric.ref_min_score, ref_max_score=cfg.metric.ref_max_score)
     u = registry.get_task(cfg.task).user
     if u is None:
         return

@@ -206,3 +206,7 @@ def validate(cfg: RunConfig) -> None:
         cfg.online.sac.validate()
     if "boto" in method.stages:
         cfg.boto.validate()
+    if cfg.metric.name == "score":
+        from botorl.envs.metric import check_refs
+
+        check_refs(cfg.metric.ref_min_score, cfg.metric.ref_max_score, f"task {cfg.task!r}")

@@ -78,6 +78,19 @@ class EnvConfig:
 
 
 @dataclass
+class MetricConfig:
+    """The task's headline metric (botorl/envs/metric.py), recorded when the run starts: what
+    summary.json, curve.png, the printed summary and `botorl report` are about. Filled from the
+    task, so not a command-line field."""
+
+    name: Literal["success", "return", "score"] = "success"
+    """success where the task defines it; else the episode return, or the normalised score
+    100 * (return - ref_min_score) / (ref_max_score - ref_min_score) when the task gives both."""
+    ref_min_score: float | None = None
+    ref_max_score: float | None = None
+
+
+@dataclass
 class NetworkConfig:
     """Network sizes used by pre-training and fine-tuning alike (the docs' Methods page)."""
 
@@ -210,6 +223,8 @@ class RunConfig:
     eval: EvalConfig = field(default_factory=EvalConfig)
     env: Annotated[EnvConfig, tyro.conf.Suppress] = field(default_factory=EnvConfig)
     """A task of your own (see EnvConfig); filled from the task, so not a command-line field."""
+    metric: Annotated[MetricConfig, tyro.conf.Suppress] = field(default_factory=MetricConfig)
+    """The headline metric (see MetricConfig); filled from the task."""
 
     @property
     def online_seed(self) -> int:
@@ -221,7 +236,8 @@ class RunConfig:
 
 # Fields that do not change what a run's checkpoints hold: where and how it logs, how updates
 # are chunked into jitted calls (the same numbers either way), where its data and pre-training
-# are read from (a run directory moves between machines), the preset's name and evaluation.
+# are read from (a run directory moves between machines), the preset's name, evaluation and
+# the metric it is reported in.
 _NOT_STATE = ("out", "progress", "tensorboard", "wandb", "checkpoint_every", "seeds", "alphas", "pretrained", "profile",
               "seed", "alpha", "data.path", "data.demos", "offline.updates_per_call", "offline.sample_on_device",
               "boto.steps_per_call")
@@ -247,7 +263,7 @@ def run_identity(cfg: "RunConfig") -> dict[str, Any]:
     run's: task, method, pre-training (algorithm and a digest of the fields that shape it),
     seed, alpha, and a digest of every config field that shapes the saved state."""
     flat = {k: v for k, v in flatten(to_dict(cfg)).items()
-            if k not in _NOT_STATE and not k.startswith(("eval.",)) and not k.endswith("log_every")}
+            if k not in _NOT_STATE and not k.startswith(("eval.", "metric.")) and not k.endswith("log_every")}
     pre = {k: v for k, v in flat.items() if k.startswith(("data.", "network.", "offline."))}
     return {"task": cfg.task, "method": cfg.method, "pretrain": cfg.pretrain, "pretraining": _digest(pre),
             "seed": cfg.seed, "alpha": cfg.alpha, "config": _digest(flat)}

@@ -65,6 +65,10 @@ class TaskSpec:
     paper: PaperSettings | None = None
     description: str = ""
     user: "UserTask | None" = field(default=None, repr=False)  # a user's own task's env (envs/user.py)
+    # returns of a poor and a good policy (D4RL's names): with both, a task without success is
+    # reported in the normalised score (botorl/envs/metric.py)
+    ref_min_score: float | None = None
+    ref_max_score: float | None = None
 
     @property
     def generated(self) -> bool:

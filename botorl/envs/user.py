@@ -246,7 +246,7 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
             env.close()
     off = None
     if success_key is None:
-        off = "success_key=None: success is off"
+        off = "success_key=None: success is off, botorl reports the episode return instead"
     elif not seen:
         found = ", ".join(sorted(map(str, info))) or "none"
         if key_given:
@@ -255,8 +255,9 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
                 f"Name the info key that says the episode succeeded, or leave --success-key out (success is then "
                 f"off if the env has no {'success'!r} key)."
             )
-        off = (f"the env's info has no {success_key!r} key (keys seen: {found}), so success is off: every "
-               f"success rate is 0; pass success_key (--success-key) naming the info key that marks success")
+        off = (f"the env's info has no {success_key!r} key (keys seen: {found}), so success is off: botorl "
+               f"reports the episode return instead (the normalised score with ref_min_score and ref_max_score); "
+               f"pass success_key (--success-key) naming the info key if the env does mark success")
     return UserTask(obs_keys=keys, obs_dim=int(flat.shape[0]), action_dim=int(low.shape[0]),
                     action_low=tuple(low.tolist()), action_high=tuple(high.tolist()),
                     success_key=None if off else success_key, success_off=off)
@@ -268,8 +269,9 @@ PAPER_DOMAINS = ("antmaze", "adroit", "kitchen", "pointmaze")
 
 def make_spec(name: str, make_env: Callable[[int], gym.Env], task: UserTask, *, max_episode_steps: int,
               domain: str | None = None, reward_scale: float = 1.0, reward_bias: float = 0.0,
-              data_ref: str | None = None):
+              data_ref: str | None = None, ref_min_score: float | None = None, ref_max_score: float | None = None):
     """The ``TaskSpec`` of a user's task (not registered yet: ``registry.register``)."""
+    from botorl.envs.metric import check_refs
     from botorl.envs.registry import DOMAIN_NETS, DatasetSource, TaskSpec
 
     if not isinstance(name, str) or not name or any(c.isspace() for c in name) or "/" in name:
@@ -283,6 +285,7 @@ def make_spec(name: str, make_env: Callable[[int], gym.Env], task: UserTask, *, 
     for what, v in (("reward_scale", reward_scale), ("reward_bias", reward_bias)):
         if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)) or not np.isfinite(v):
             raise ConfigError(f"task {name!r}: {what} = {v!r}; give a finite number.")
+    ref_min_score, ref_max_score = check_refs(ref_min_score, ref_max_score, f"task {name!r}")
     dom = domain or "custom"
     return TaskSpec(
         name=name, domain=dom, env_factory=lambda seed: UserTaskEnv(make_env(seed), task, seed),
@@ -291,4 +294,5 @@ def make_spec(name: str, make_env: Callable[[int], gym.Env], task: UserTask, *, 
         dataset_source=DatasetSource("user", data_ref or ""),
         obs_dim=task.obs_dim, action_dim=task.action_dim, networks=DOMAIN_NETS[dom],
         description=f"your task ({task.entry or 'registered from Python'})", user=task,
+        ref_min_score=ref_min_score, ref_max_score=ref_max_score,
     )

@@ -1,7 +1,9 @@
 """The dip: how far success falls early in fine-tuning (its definition: docs/running.md).
 
 Per run, the lowest success over the evaluations with 0 <= env_step <= window minus the
-success at step 0; per group, mean +- SE, the bootstrap CI of the mean and the IQM.
+success at step 0; per group, mean +- SE, the bootstrap CI of the mean and the IQM. On a task
+without success, the same of its headline metric (the return or its normalised score;
+``Run.metric``), in that metric's units.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from typing import Sequence
 
 import numpy as np
 
+from botorl.envs.metric import Metric
 from botorl.experiments.runs import Run, Skipped, from_scratch, group_by, key_order, relative
 from botorl.experiments.stats import (
     alpha_text,
@@ -122,9 +125,10 @@ def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int)
     return cells
 
 
-def dip_runs_csv(dips: Sequence[Dip], relative_to: Path | None = None) -> str:
-    """One row per run; paths relative to ``relative_to`` (the report's folder) when given."""
-    header = ["task", "method", "alpha", "seed", "success_0", "lowest", "lowest_step", "evals_in_window",
+def dip_runs_csv(dips: Sequence[Dip], relative_to: Path | None = None, metric: str = "success") -> str:
+    """One row per run; paths relative to ``relative_to`` (the report's folder) when given;
+    ``metric`` names the step-0 column (``<metric>_0``)."""
+    header = ["task", "method", "alpha", "seed", f"{metric.replace(' ', '_')}_0", "lowest", "lowest_step", "evals_in_window",
               "last_step_in_window", "dip", "path"]
 
     def row(d: Dip) -> list:
@@ -136,10 +140,10 @@ def dip_runs_csv(dips: Sequence[Dip], relative_to: Path | None = None) -> str:
     return csv_text(header, map(row, dips))
 
 
-def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> str:
+def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float, metric: str = "success") -> str:
     pct = f"{100 * confidence:g}%"
     lines = [
-        f"| task | method | alpha | runs | success at 0 | lowest (0..{window:g}) | dip mean ± s.e. | "
+        f"| task | method | alpha | runs | {metric} at 0 | lowest (0..{window:g}) | dip mean ± s.e. | "
         f"{pct} CI of the mean | IQM [{pct} CI] |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
@@ -152,13 +156,15 @@ def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float) -> 
     scratch = sorted({(c.task, c.label) for c in cells if c.from_scratch})
     if scratch:
         lines.append("")
-        lines += [f"{label} on {task} trains from scratch (no pre-training): its step-0 success is an untrained "
+        lines += [f"{label} on {task} trains from scratch (no pre-training): its step-0 {metric} is an untrained "
                   "policy's, so its dip is that policy's luck at step 0, not unlearning." for task, label in scratch]
     return "\n".join(lines)
 
 
-def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidence: float) -> None:
-    """Per task and group: the mean dip with its bootstrap CI, each run's dip a dot beside it."""
+def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidence: float,
+               metrics: dict[str, Metric] | None = None) -> None:
+    """Per task and group: the mean dip with its bootstrap CI, each run's dip a dot beside it
+    (``metrics``: each task's headline metric; success where not given)."""
     plt = pyplot()
     tasks = list(dict.fromkeys(c.task for c in cells))  # in the cells' order (dip_table sorts them)
     most = max(sum(1 for c in cells if c.task == t) for t in tasks)
@@ -185,9 +191,12 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
                             + f"\n(n={int(c.stats['n'])})" for c in row],
                            rotation=45 if len(row) > 4 else 0, ha="right" if len(row) > 4 else "center", fontsize=7)
         ax.set_xlim(-0.6, len(row) - 0.4)
-        ax.set_ylim(-1.05, 0.08)
+        metric = (metrics or {}).get(task, Metric())
+        if metric.bounded:  # a return's dip has no fixed scale
+            ax.set_ylim(-1.05, 0.08)
         ax.set_title(task)
-        ax.set_ylabel(f"dip (lowest success in 0..{window / 1000:g}k − success at 0)", fontsize=8)
+        what = "success" if metric.bounded else metric.label
+        ax.set_ylabel(f"dip (lowest {what} in 0..{window / 1000:g}k − {what} at 0)", fontsize=8)
         ax.grid(alpha=0.3, axis="y")
     save_figure(fig, path, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs",
                 dpi=120)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -198,6 +199,30 @@ def parse_overrides(value: Any) -> dict[str, str]:
     return out
 
 
+# Overrides that name a file or folder. Trials run in the sweep's folder (--out), not where the
+# sweep was started, so a relative path would name another place there: each is made absolute
+# against the folder the sweep starts in (data.path only where it exists: it may be a Minari id).
+PATH_OVERRIDES = ("pretrained", "data.path", "data.demos")
+
+
+def absolute_paths(overrides: dict[str, str]) -> dict[str, str]:
+    out = dict(overrides)
+    for key in PATH_OVERRIDES:
+        value = out.get(key)
+        if value is None or value in ("", "None"):
+            continue
+        path = Path(value).expanduser()
+        if key == "pretrained" and not path.is_dir():
+            raise ConfigError(
+                f"--set pretrained={value}: no such directory (from {os.getcwd()}). Point it at a run, population or "
+                f"sweep directory whose pre-training finished, relative to the folder you start the sweep in or "
+                f"absolute."
+            )
+        if key == "pretrained" or path.exists():
+            out[key] = os.path.abspath(path)
+    return out
+
+
 @dataclasses.dataclass
 class Grid:
     tasks: list[str]
@@ -313,7 +338,7 @@ def build_grid(
         methods=parse_methods(methods if methods is not None else f.get("methods")),
         seeds=parse_seeds(seeds if seeds is not None else f.get("seeds")),
         alphas=parse_alphas(alphas if alphas is not None else f.get("alphas"), "alphas"),
-        overrides={**parse_overrides(f.get("overrides")), **parse_overrides(overrides)},
+        overrides=absolute_paths({**parse_overrides(f.get("overrides")), **parse_overrides(overrides)}),
         profile=profile if profile is not None else f.get("profile"),
     )
     grid.validate()

@@ -22,6 +22,7 @@ from typing import Sequence
 
 import numpy as np
 
+from botorl.envs.metric import Metric
 from botorl.experiments.dip import DIP_WINDOW, run_dip
 from botorl.experiments.runs import Run, group_by, relative
 from botorl.experiments.stats import (
@@ -255,8 +256,16 @@ _NAMES = {"success_0": "success at 0", "lowest": "lowest in window", "dip": "dip
           "success_final": "final success"}
 
 
+def _name(quantity: str, metric: Metric | None = None) -> str:
+    """A quantity in words; on a task without success (``metric``) in its metric's words (the
+    quantities keep their names in the CSV files)."""
+    if metric is None or metric.bounded or quantity in ("lowest", "dip"):
+        return _NAMES[quantity]
+    return _NAMES[quantity].replace("success", metric.label)
+
+
 def paired_markdown(cells: Sequence[PairedCell], confidence: float, *,
-                    quantities: Sequence[str] = TABLE_QUANTITIES) -> str:
+                    quantities: Sequence[str] = TABLE_QUANTITIES, metrics: dict[str, Metric] | None = None) -> str:
     pct = f"{100 * confidence:g}%"
     lines = [
         f"| task | method − reference | alpha | quantity | pairs | reference | method | mean difference | "
@@ -269,7 +278,7 @@ def paired_markdown(cells: Sequence[PairedCell], confidence: float, *,
         label = f"{c.label} − {c.reference}" + (" (noise floor)" if c.noise_floor else "")
         p = "-" if not math.isfinite(c.wilcoxon_p) else f"{c.wilcoxon_p:.3f}"
         lines.append(
-            f"| {c.task} | {label} | {alpha_text(c.alpha)} | {_NAMES[c.quantity]} | {c.n} | {c.ref_mean:.2f} | "
+            f"| {c.task} | {label} | {alpha_text(c.alpha)} | {_name(c.quantity, (metrics or {}).get(c.task))} | {c.n} | {c.ref_mean:.2f} | "
             f"{c.other_mean:.2f} | {c.mean:+.3f} | {fmt_ci(c.boot_lo, c.boot_hi, 3)} | {fmt_ci(c.t_lo, c.t_hi, 3)} | "
             f"{c.better} / {c.equal} / {c.worse} | {p} |"
         )
@@ -304,7 +313,7 @@ def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") ->
 
 
 def difference_figure(cells: Sequence[PairedCell], path: Path, *, confidence: float = 0.95,
-                      quantities: Sequence[str] = TABLE_QUANTITIES) -> None:
+                      quantities: Sequence[str] = TABLE_QUANTITIES, metric: Metric | None = None) -> None:
     """Per quantity, each group's mean paired difference with its bootstrap CI (thick) and
     t-interval (thin); the noise floor's rows in grey."""
     rows = [c for c in cells if c.quantity == quantities[0]]
@@ -322,7 +331,7 @@ def difference_figure(cells: Sequence[PairedCell], path: Path, *, confidence: fl
                 ax.plot([c.boot_lo, c.boot_hi], [y, y], color=color, lw=4, alpha=0.6)
             ax.plot([c.mean], [y], "o", color=color)
         ax.axvline(0, color="black", lw=0.6)
-        ax.set_title(f"{_NAMES[q]}, difference", fontsize=9)
+        ax.set_title(f"{_name(q, metric)}, difference", fontsize=9)
         ax.tick_params(labelsize=7)
     axes[0][0].set_yticks(range(len(rows)), labels, fontsize=7)
     axes[0][0].invert_yaxis()
@@ -332,14 +341,17 @@ def difference_figure(cells: Sequence[PairedCell], path: Path, *, confidence: fl
                            "another online seed)")
 
 
-def write_paired(pairs: Sequence[Pair], out: Path, *, n_boot: int, confidence: float, seed: int
-                 ) -> tuple[list[Path], list[str], list[PairedCell]]:
-    """paired.csv, paired_table.csv, the two figures and the markdown section's lines."""
+def write_paired(pairs: Sequence[Pair], out: Path, *, n_boot: int, confidence: float, seed: int,
+                 metrics: dict[str, Metric] | None = None) -> tuple[list[Path], list[str], list[PairedCell]]:
+    """paired.csv, paired_table.csv, the two figures and the markdown section's lines
+    (``metrics``: each task's headline metric, which the table names; success where not given)."""
     cells = paired_table(pairs, n_boot=n_boot, confidence=confidence, seed=seed)
     atomic_write_text(out / "paired.csv", pairs_csv(pairs))
     atomic_write_text(out / "paired_table.csv", paired_cells_csv(cells))
     pairs_figure(pairs, out / "paired_dips.png")
-    difference_figure(cells, out / "paired_differences.png", confidence=confidence)
+    common = set((metrics or {}).values())  # the titles name the metric when every task has the same
+    difference_figure(cells, out / "paired_differences.png", confidence=confidence,
+                      metric=common.pop() if len(common) == 1 else None)
     files = [out / "paired.csv", out / "paired_table.csv", out / "paired_dips.png", out / "paired_differences.png"]
     pct = f"{100 * confidence:g}%"
     md = [
@@ -353,7 +365,7 @@ def write_paired(pairs: Sequence[Pair], out: Path, *, n_boot: int, confidence: f
         "itself with another online seed: a difference inside it is what chance alone makes. Per pair: "
         "`paired.csv`; every quantity: `paired_table.csv`.",
         "",
-        paired_markdown(cells, confidence),
+        paired_markdown(cells, confidence, metrics=metrics),
         "",
         "![paired differences](paired_differences.png)",
         "",

@@ -14,6 +14,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from botorl.envs.metric import Metric
 from botorl.errors import BotorlError, ConfigError, DataFormatError
 from botorl.experiments.dip import (
     DIP_KEYS,
@@ -52,6 +53,35 @@ SELECT_ALPHA_CRITERION = (
     "highest mean over seeds of (success_10k + success_final) / 2; ties (within 1e-9) go to "
     "the smaller |alpha|, then to the smaller alpha"
 )
+
+
+def task_metrics(runs: Sequence[Run]) -> dict[str, Metric]:
+    """Each task's headline metric (its first run's: the task records it in every run's config)."""
+    out: dict[str, Metric] = {}
+    for r in runs:
+        out.setdefault(r.task, r.metric)
+    return out
+
+
+def metric_words(runs: Sequence[Run]) -> tuple[str, str]:
+    """(what Table 1 and the figures are in, what the dip measures), in words: "success rate" and
+    "success" when every task has success, as the report always said."""
+    names = {m.name for m in task_metrics(runs).values()}
+    if names <= {"success"}:
+        return "success rate", "success"
+    if len(names) == 1:
+        label = next(iter(task_metrics(runs).values())).label
+        return label, label
+    return "the headline metric of each task", "headline metric"
+
+
+def metric_lines(runs: Sequence[Run]) -> list[str]:
+    """report.md's lines naming each task's metric; none when every task has success."""
+    metrics = task_metrics(runs)
+    if all(m.name == "success" for m in metrics.values()):
+        return []
+    return ["Metric per task (success where the task defines it, else the return or its normalised score):", ""] + \
+        [f"- {task}: {m.describe()}" for task, m in sorted(metrics.items())] + [""]
 
 
 @dataclasses.dataclass
@@ -104,6 +134,13 @@ def aggregate_iqm(runs: Sequence[Run], *, n_boot: int, confidence: float, seed: 
             )
             continue
         tasks = sorted(by_label[label])
+        scales = {task_metrics([r for r in runs if r.task == t])[t].name for t in tasks}
+        if len(tasks) > 1 and not scales <= {"success"} and scales != {"score"}:
+            notes.append(
+                f"{label}: no aggregate over {', '.join(tasks)}: returns of different tasks are on different "
+                "scales; give the tasks ref_min_score and ref_max_score to aggregate their normalised scores."
+            )
+            continue
         stats = {}
         for point, fieldname in POINTS:
             per_task = [[getattr(r, fieldname) for r in runs if r.label == label and r.task == t] for t in tasks]
@@ -193,6 +230,7 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
     from matplotlib.ticker import FuncFormatter
 
     plt = pyplot()
+    metrics = task_metrics(runs)
     tasks = sorted({r.task for r in runs})
     groups = group_by(runs, lambda r: r.key)
     crowded = max(sum(1 for k in groups if k[0] == t) for t in tasks) > 6 if tasks else False
@@ -223,14 +261,19 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
         ax.set_title(task)
         ax.set_xlabel("online env steps")
         ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
-        ax.set_ylabel("success rate")
-        ax.set_ylim(-0.03, 1.03)
+        if metrics[task].bounded:
+            ax.set_ylabel("success rate")
+            ax.set_ylim(-0.03, 1.03)
+        else:
+            ax.set_ylabel(metrics[task].label)
         ax.grid(alpha=0.3)
         if len(keys) > 6:
             ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.0, 1.0))
         else:
             ax.legend(fontsize=7, loc="best")
-    save_figure(fig, path, "Success during online fine-tuning (mean ± standard error over seeds)", dpi=120)
+    what = metric_words(runs)[1]
+    save_figure(fig, path, f"{what[0].upper() + what[1:]} during online fine-tuning (mean ± standard error over seeds)",
+                dpi=120)
 
 
 @dataclasses.dataclass
@@ -273,9 +316,10 @@ def alpha_csv(rows: Sequence[AlphaRow]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WINDOW) -> bool:
-    """Per task: success at 10k and final against alpha (top), the dip (bottom); False without a
-    sweep."""
+def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WINDOW,
+                 metrics: dict[str, Metric] | None = None) -> bool:
+    """Per task: success (``metrics``: the task's headline metric) at 10k and final against alpha
+    (top), the dip (bottom); False without a sweep."""
     if not rows:
         return False
     tasks = sorted({r.task for r in rows})
@@ -300,10 +344,14 @@ def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WI
             m, se = series("dip")
             bottom.errorbar(alphas, m, yerr=se, fmt="o-", ms=3, capsize=2, label=label)
         top.set_title(task)
-        top.set_ylabel("success rate")
-        top.set_ylim(-0.03, 1.03)
+        metric = (metrics or {}).get(task, Metric())
+        if metric.bounded:
+            top.set_ylabel("success rate")
+            top.set_ylim(-0.03, 1.03)
+            bottom.set_ylim(-1.03, 0.03)
+        else:
+            top.set_ylabel(metric.label)
         bottom.set_ylabel(f"dip (lowest in 0..{window:g} - at 0)")
-        bottom.set_ylim(-1.03, 0.03)
         bottom.set_xlabel("alpha")
         for ax in (top, bottom):
             ax.set_xlim(-1.05, 1.05)
@@ -544,9 +592,16 @@ def make_report(
         )
     off = sorted({r.task for r in runs if isinstance(r.config.get("env"), dict) and r.config["env"].get("success_off")})
     if off:  # a task of one's own whose env reports no success (docs/own-task.md)
+<<<<<<< HEAD
         notes.append(f"success is off on {', '.join(off)}: the env's info has no success key, so every success rate "
                      f"there is 0 and says nothing")
     notes += environment_notes(runs, rel)
+=======
+        notes.append(f"success is off on {', '.join(off)}: the env's info has no success key, so the report is in "
+                     f"the return there (or its normalised score; see the metric per task above)")
+    metrics = task_metrics(runs)
+    table_what, dip_what = metric_words(runs)
+>>>>>>> i42
     cells = table1(runs, **boot, dips=dip_cells)
     pairs, pair_notes = find_pairs(runs, window=dip_window, relative_to=out)
     pairs = merge_pairs(pairs, extra_pairs)
@@ -554,7 +609,7 @@ def make_report(
     paired_md: list[str] = []
     paired_cells: list[PairedCell] = []
     if pairs:
-        paired_files, paired_md, paired_cells = write_paired(pairs, out, **boot)
+        paired_files, paired_md, paired_cells = write_paired(pairs, out, **boot, metrics=metrics)
         files += paired_files
     aggs, agg_notes = aggregate_iqm(runs, **boot)
     notes += agg_notes
@@ -569,18 +624,18 @@ def make_report(
             )
     atomic_write_text(out / "table1.csv", cells_csv(cells))
     atomic_write_text(out / "aggregate_iqm.csv", aggregate_csv(aggs))
-    atomic_write_text(out / "dip_runs.csv", dip_runs_csv(dips, relative_to=out))
+    atomic_write_text(out / "dip_runs.csv", dip_runs_csv(dips, relative_to=out, metric=dip_what))
     files += [out / "table1.csv", out / "aggregate_iqm.csv", out / "dip_runs.csv"]
     if runs:
         figure5(runs, out / "figure5.png", grid_points=grid_points)
         files.append(out / "figure5.png")
         if dip_cells:
-            dip_figure(dip_cells, out / "dip.png", window=dip_window, confidence=confidence)
+            dip_figure(dip_cells, out / "dip.png", window=dip_window, confidence=confidence, metrics=metrics)
             files.append(out / "dip.png")
         else:
             notes.append("no run has a dip (see the reasons): no dip figure")
         alpha_rows = alpha_table(runs, dip_window)
-        if alpha_figure(alpha_rows, out / "alpha_sensitivity.png", window=dip_window):
+        if alpha_figure(alpha_rows, out / "alpha_sensitivity.png", window=dip_window, metrics=metrics):
             atomic_write_text(out / "alpha_sensitivity.csv", alpha_csv(alpha_rows))
             files += [out / "alpha_sensitivity.png", out / "alpha_sensitivity.csv"]
         else:
@@ -599,8 +654,9 @@ def make_report(
         "",
         f"{len(runs)} finished runs from {', '.join(rel(d) for d in dirs)}; {len(skipped)} skipped.",
         "",
-        "## Table 1: success rate, mean ± standard error over seeds",
+        f"## Table 1: {table_what}, mean ± standard error over seeds",
         "",
+        *metric_lines(runs),
         "SE = sample standard deviation (ddof=1) / sqrt(n). `initial` is online step 0, `10k` "
         "the unlearning step, `final` the last evaluation (300k in the paper's budget).",
         "",
@@ -615,13 +671,14 @@ def make_report(
         "",
         f"## The dip (first {dip_window:g} online env steps)",
         "",
-        f"Per run: the lowest success over every evaluation with 0 <= env_step <= {dip_window:g} (warm-up "
-        "evaluations and step 0 included) minus the success at env_step 0; 0 = no drop, -1 = from always to "
-        f"never solved. Per method: mean ± s.e., the {pct} percentile-bootstrap CI of the mean ({n_boot} "
+        f"Per run: the lowest {dip_what} over every evaluation with 0 <= env_step <= {dip_window:g} (warm-up "
+        f"evaluations and step 0 included) minus the {dip_what} at env_step 0; 0 = no drop, "
+        + ("-1 = from always to never solved" if dip_what == "success" else "negative = a drop, in its units")
+        + f". Per method: mean ± s.e., the {pct} percentile-bootstrap CI of the mean ({n_boot} "
         f"resamples of the runs, seed {seed}) and the IQM with its CI. Per-run values: `dip_runs.csv`; the "
         "group values are also the `dip_*` columns of `table1.csv`.",
         "",
-        dip_markdown(dip_cells, dip_window, confidence) if dip_cells else "No run has a dip.",
+        dip_markdown(dip_cells, dip_window, confidence, metric=dip_what) if dip_cells else "No run has a dip.",
         "",
     ]
     if no_dip:
@@ -632,7 +689,7 @@ def make_report(
     if (out / "figure5.png") in files:
         md += ["## Figure 5", "", "![figure 5](figure5.png)", ""]
     if (out / "alpha_sensitivity.png") in files:
-        md += ["## Alpha sensitivity", "", "Per alpha, mean ± s.e. over seeds (`alpha_sensitivity.csv`): success at "
+        md += ["## Alpha sensitivity", "", f"Per alpha, mean ± s.e. over seeds (`alpha_sensitivity.csv`): {dip_what} at "
                "0, 10k and final, and the dip.", "", "![alpha sensitivity](alpha_sensitivity.png)", ""]
         if selection is not None:
             md += ["Selected alpha, held out (`botorl report --select-alpha`):", "", "```", selection.text(), "```", ""]

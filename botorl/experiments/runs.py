@@ -18,6 +18,8 @@ import numpy as np
 
 from botorl.errors import BotorlError
 from botorl.configs.methods import METHODS
+from botorl.envs.metric import Metric
+from botorl.envs.metric import of_config as metric_of_config
 from botorl.io import CSV_LIMIT, JSON_LIMIT, read_bounded
 
 
@@ -29,6 +31,8 @@ class Run:
     pretrain: str | None
     alpha: float | None
     seed: int | None
+    # the task's headline metric (``metric``: success where the task defines it, else the return
+    # or the normalised score), under the names of the goal tasks the report was written for
     success_initial: float
     success_10k: float
     success_final: float
@@ -41,6 +45,7 @@ class Run:
     config: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)  # config.json as read
     variant: str = ""  # the settings in which this run differs from others of its method (label_variants)
     pretrain_sha256: str | None = None  # the pre-trained agent it starts from (summary.json); pairs match on it
+    metric: Metric = Metric()  # what success_* and success hold (botorl/envs/metric.py)
 
     @property
     def label(self) -> str:
@@ -72,16 +77,19 @@ def relative(path: Path | str, base: Path | str | None) -> str:
     return str(path) if base is None else os.path.relpath(os.path.abspath(path), os.path.abspath(base))
 
 
-def read_eval_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(env_step, success), one value per step: the last row written for it (several stages
-    evaluate at env_step 0; the last is what fine-tuning starts from)."""
+def read_eval_csv(path: Path, metric: Metric = Metric()) -> tuple[np.ndarray, np.ndarray]:
+    """(env_step, the metric: success by default), one value per step: the last row written for
+    it (several stages evaluate at env_step 0; the last is what fine-tuning starts from)."""
+    col = metric.column
     with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:
         reader = csv.DictReader(f)
-        if reader.fieldnames is None or not {"env_step", "success"} <= set(reader.fieldnames):
-            raise ValueError(f"{path.name} has no env_step/success columns (header {reader.fieldnames})")
+        if reader.fieldnames is None or not {"env_step", col} <= set(reader.fieldnames):
+            raise ValueError(f"{path.name} has no env_step/{col} columns (header {reader.fieldnames})")
         by_step: dict[float, float] = {}
         for row in reader:
-            step, succ = _num(row.get("env_step")), _num(row.get("success"))
+            step, succ = _num(row.get("env_step")), _num(row.get(col))
+            if col != "success":
+                succ = metric.of(math.nan, succ)
             if math.isfinite(step) and step >= 0 and math.isfinite(succ):
                 by_step.pop(step, None)
                 by_step[step] = succ
@@ -101,9 +109,11 @@ _SAME_METHOD = {"seed", "alpha", "out", "pretrained", "progress", "tensorboard",
 def _settings(config: dict) -> dict[str, Any]:
     from botorl.configs.schema import flatten
 
-    # "environment" is what the run was made with (pipeline/provenance.py), not a setting
+    # environment.*: what the run was made with (pipeline/provenance.py), not a setting;
+    # metric.*: recorded from the task, the same for every run of it (runs made before the
+    # record have none, and are the same method)
     return {k: json.dumps(v, sort_keys=True) for k, v in flatten(config).items()
-            if k not in _SAME_METHOD and not k.endswith("log_every") and not k.startswith("environment.")}
+            if k not in _SAME_METHOD and not k.endswith("log_every") and not k.startswith(("environment.", "metric."))}
 
 
 def label_variants(runs: list[Run]) -> None:
@@ -146,10 +156,14 @@ def _load_run(run_dir: Path) -> Run | Skipped:
     eval_path = run_dir / "eval.csv"
     if not eval_path.exists():
         return Skipped(run_dir, "finished but eval.csv is missing")
+    metric = metric_of_config(config)
     try:
-        steps, success = read_eval_csv(eval_path)
+        steps, success = read_eval_csv(eval_path, metric)
     except (OSError, ValueError) as err:
         return Skipped(run_dir, f"eval.csv unreadable ({err})")
+    points = {p: _num(summary.get(f"{metric.name}_{p}")) for p in ("initial", "10k", "final")}
+    if f"{metric.name}_initial" not in summary:  # a summary from before the metric's fields: its eval.csv
+        points = _points_of(steps, success)
     alpha = field("alpha")
     seed = field("seed")
     if seed is not None and not (isinstance(seed, int) and not isinstance(seed, bool)):
@@ -163,16 +177,25 @@ def _load_run(run_dir: Path) -> Run | Skipped:
         pretrain=None if field("pretrain") in (None, "") else str(field("pretrain")),
         alpha=None if alpha is None or not math.isfinite(_num(alpha)) else round(float(alpha), 6),
         seed=None if seed is None else int(seed),
-        success_initial=_num(summary.get("success_initial")),
-        success_10k=_num(summary.get("success_10k")),
-        success_final=_num(summary.get("success_final")),
+        success_initial=points["initial"],
+        success_10k=points["10k"],
+        success_final=points["final"],
         steps=steps,
         success=success,
         settings=_settings(config),
         dense_from=_dense_from(config),
         config=config,
         pretrain_sha256=sha if isinstance(sha := summary.get("pretrain_sha256"), str) and len(sha) == 64 else None,
+        metric=metric,
     )
+
+
+def _points_of(steps: np.ndarray, values: np.ndarray) -> dict[str, float]:
+    """The summary's three points (pipeline/runner.py) from the curve: step 0, the first
+    evaluation at or after 10k, the last."""
+    at0, after = values[steps == 0], values[steps >= 10_000]
+    return {"initial": float(at0[-1]) if at0.size else math.nan, "10k": float(after[0]) if after.size else math.nan,
+            "final": float(values[-1]) if values.size else math.nan}
 
 
 def _dense_from(config: dict) -> float | None:

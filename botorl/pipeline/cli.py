@@ -349,7 +349,8 @@ def _eval(args, run, cfg) -> dict:
     from botorl.configs.schema import run_identity
     from botorl.envs.registry import get_task
     from botorl.pipeline import stages as S
-    from botorl.pipeline.evaluation import QProbe, evaluate_policy
+    from botorl.envs.metric import of_config as metric_of_config
+    from botorl.pipeline.evaluation import QProbe, evaluate_policy, metric_fields
     from botorl.pipeline.runner import load_run_data, transform_dataset
 
     if args.episodes is not None:
@@ -366,7 +367,7 @@ def _eval(args, run, cfg) -> dict:
     stats = evaluate_policy(lambda o: agent.eval_actions(o[0])[None], spec, cfg, cfg.eval.episodes)
     q_data, q_uniform = QProbe(d.observations, d.actions, seed=12345, size=cfg.eval.q_pairs)(S.q_fn(agent))
     result = {"checkpoint": name, "stage": state["stage"], "step": checkpoint_step(cfg, state),
-              "episodes": cfg.eval.episodes, "success": stats.success, "return": stats.episode_return,
+              "episodes": cfg.eval.episodes, **metric_fields(metric_of_config(cfg), stats),
               "episode_length": stats.length, "q_data": q_data, "q_uniform": q_uniform,
               "seconds": round(time.perf_counter() - t0, 2)}
     atomic_write_json(run.root / f"eval-{name}.json", result)

@@ -77,6 +77,17 @@ def evaluate_policy(policy: Callable[[np.ndarray], np.ndarray], spec, cfg, episo
             e.close()
 
 
+def metric_fields(metric, stats: EpisodeStats) -> dict[str, float]:
+    """What ``botorl eval`` reports of ``stats`` for the task's headline ``metric``
+    (botorl/envs/metric.py): the success rate only where the task defines it, the return always,
+    the normalised score where the task has reference scores."""
+    out = {"success": stats.success} if metric.name == "success" else {}
+    out["return"] = stats.episode_return
+    if metric.name == "score":
+        out["score"] = metric.of(stats.success, stats.episode_return)
+    return out
+
+
 class QProbe:
     """A fixed set of dataset (s, a) pairs and uniform actions at the same states."""
 

@@ -368,7 +368,8 @@ def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, 
     acting through onnxruntime; written to ``RUN/eval-<FILE stem>-onnx.json``."""
     from botorl.envs.registry import get_task
     from botorl.envs.user import action_from_env, is_unit_box
-    from botorl.pipeline.evaluation import evaluate_policy
+    from botorl.envs.metric import of_config as metric_of_config
+    from botorl.pipeline.evaluation import evaluate_policy, metric_fields
 
     path = Path(path)
     model = OnnxPolicy(path)  # exit 2 when onnxruntime is missing or the file is not a model
@@ -385,8 +386,8 @@ def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, 
     t0 = time.perf_counter()
     stats = evaluate_policy(act, get_task(cfg.task), cfg, n)
     result = {"policy": str(path), "checkpoint": (contract or {}).get("checkpoint"), "stage": (contract or {}).get("stage"),
-              "step": (contract or {}).get("step"), "episodes": n, "success": stats.success,
-              "return": stats.episode_return, "episode_length": stats.length,
+              "step": (contract or {}).get("step"), "episodes": n, **metric_fields(metric_of_config(cfg), stats),
+              "episode_length": stats.length,
               "seconds": round(time.perf_counter() - t0, 2)}
     atomic_write_json(run.root / f"eval-{path.stem}-onnx.json", result)
     return result

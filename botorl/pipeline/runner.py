@@ -25,6 +25,8 @@ from botorl.data.dataset import Dataset, RewardTransform
 from botorl.data.dataset import validate as validate_dataset
 from botorl.data.loaders import refuse_pickle
 from botorl.data.tasks import load_task_data
+from botorl.envs.metric import headline_of_summary
+from botorl.envs.metric import of_config as metric_of_config
 from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDivergedError
 from botorl.io import atomic_save_figure, atomic_write_json
@@ -330,11 +332,29 @@ def _eval_rows(run: RunDir) -> list[dict[str, float]]:
     return sorted(rows, key=lambda r: r["env_step"])
 
 
+def _points(rows: list[dict], name: str, of) -> dict[str, float | None]:
+    """``{name}_initial / _10k / _final`` of the metric ``of(row)``: at step 0, at the first
+    evaluation at or after 10k online steps (exactly 10k with the presets), and at the last one
+    (at online.steps once the run has finished)."""
+    initial = {r["env_step"]: r for r in rows}.get(0)
+    after_10k = [r for r in rows if r["env_step"] >= 10_000]
+    final = rows[-1] if rows else None
+    return {f"{name}_initial": of(initial) if initial else None,
+            f"{name}_10k": of(after_10k[0]) if after_10k else None,
+            f"{name}_final": of(final) if final else None}
+
+
 def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict, error: str | None = None) -> dict:
     rows = _eval_rows(run)
     initial = {r["env_step"]: r for r in rows}.get(0)
     after_10k = [r for r in rows if r["env_step"] >= 10_000]
     final = rows[-1] if rows else None
+    metric = metric_of_config(cfg)
+    # success only where the task defines it (absent, not 0, where it does not); the return always
+    points = _points(rows, "success", lambda r: r["success"]) if metric.name == "success" else {}
+    points.update(_points(rows, "return", lambda r: r["return"]))
+    if metric.name == "score":
+        points.update(_points(rows, "score", lambda r: metric.of(r["success"], r["return"])))
     out = {
         "task": cfg.task,
         "method": cfg.method,
@@ -342,11 +362,7 @@ def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict,
         "alpha": cfg.alpha,
         "pretrain": cfg.pretrain,
         "profile": cfg.profile,
-        "success_initial": initial["success"] if initial else None,
-        # the first evaluation at or after 10k online steps (exactly 10k with the presets)
-        "success_10k": after_10k[0]["success"] if after_10k else None,
-        # the last evaluation (at online.steps once the run has finished)
-        "success_final": final["success"] if final else None,
+        **points,
         "env_step_10k": after_10k[0]["env_step"] if after_10k else None,
         "env_step_final": final["env_step"] if final else None,
         "q_data_initial": initial["q_data"] if initial else None,
@@ -527,8 +543,9 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    metric = metric_of_config(cfg)
     x = [r["env_step"] for r in rows]
-    y = [r["success"] for r in rows]
+    y = [metric.of(r["success"], r["return"]) for r in rows]
     fig, ax = plt.subplots(figsize=(6, 3.6))
     label = cfg.method if cfg.alpha is None else f"{cfg.method} (alpha={cfg.alpha:+.2f})"
     ax.plot(x, y, marker="o", ms=3, label=label)
@@ -538,8 +555,9 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
         ax.axvspan(0, start, color="0.9", label="warm-up (frozen policy, no updates)")
     ax.axvline(start, color="k", ls="--", lw=1, label="fine-tuning starts")
     ax.set_xlabel("online env steps (warm-up included)")
-    ax.set_ylabel("success")
-    ax.set_ylim(-0.03, 1.03)
+    ax.set_ylabel(metric.label)
+    if metric.bounded:
+        ax.set_ylim(-0.03, 1.03)
     ax.set_title(f"{cfg.task} / {cfg.method} / seed {cfg.seed}")
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
@@ -553,17 +571,21 @@ def _f(v) -> str:
 
 
 def format_population(summaries: list[dict]) -> str:
+    name = headline_of_summary(summaries[0]) if summaries else "success"
     lines = [f"{'member':<22} {'status':<9} {'initial':>8} {'10k':>8} {'final':>8}  run directory"]
+    if name != "success":
+        lines.insert(0, f"{name}:")
     for s in summaries:
-        name = Path(s["run_dir"]).name
-        lines.append(f"{name:<22} {s['status']:<9} {_f(s['success_initial']):>8} {_f(s['success_10k']):>8} "
-                     f"{_f(s['success_final']):>8}  {s['run_dir']}")
+        member = Path(s["run_dir"]).name
+        lines.append(f"{member:<22} {s['status']:<9} {_f(s.get(name + '_initial')):>8} {_f(s.get(name + '_10k')):>8} "
+                     f"{_f(s.get(name + '_final')):>8}  {s['run_dir']}")
     secs = summaries[0].get("stage_seconds", {}) if summaries else {}
     lines.append("stage seconds (whole population): " + ", ".join(f"{k} {v:.1f}" for k, v in secs.items()))
     return "\n".join(lines)
 
 
 def format_summary(summary: dict) -> str:
+    name = headline_of_summary(summary)  # the task's headline metric: success, else (normalised) return
     lines = [
         f"task {summary['task']}  method {summary['method']}  seed {summary['seed']}  alpha {_f(summary['alpha'])}  "
         f"pretrain {_f(summary['pretrain'])}  profile {summary.get('profile')}  status {summary['status']}",
@@ -575,8 +597,9 @@ def format_summary(summary: dict) -> str:
     lines.append(f"{'total':<10} {summary['total_seconds']:>9.1f}")
     lines += [
         "",
-        f"{'success':<10} {'initial':>8} {'10k':>8} {'final':>8}",
-        f"{'':<10} {_f(summary['success_initial']):>8} {_f(summary['success_10k']):>8} {_f(summary['success_final']):>8}",
+        f"{name:<10} {'initial':>8} {'10k':>8} {'final':>8}",
+        f"{'':<10} {_f(summary.get(name + '_initial')):>8} {_f(summary.get(name + '_10k')):>8} "
+        f"{_f(summary.get(name + '_final')):>8}",
         (f"(10k = eval at env step {summary['env_step_10k']}, final = {_f(summary.get('env_step_final'))})"
          if summary.get("env_step_10k") is not None else
          f"(no evaluation at 10k: the run ends at env step {_f(summary.get('env_step_final'))})"),
