@@ -592,16 +592,11 @@ def make_report(
         )
     off = sorted({r.task for r in runs if isinstance(r.config.get("env"), dict) and r.config["env"].get("success_off")})
     if off:  # a task of one's own whose env reports no success (docs/own-task.md)
-<<<<<<< HEAD
-        notes.append(f"success is off on {', '.join(off)}: the env's info has no success key, so every success rate "
-                     f"there is 0 and says nothing")
-    notes += environment_notes(runs, rel)
-=======
         notes.append(f"success is off on {', '.join(off)}: the env's info has no success key, so the report is in "
                      f"the return there (or its normalised score; see the metric per task above)")
+    notes += environment_notes(runs, rel)
     metrics = task_metrics(runs)
     table_what, dip_what = metric_words(runs)
->>>>>>> i42
     cells = table1(runs, **boot, dips=dip_cells)
     pairs, pair_notes = find_pairs(runs, window=dip_window, relative_to=out)
     pairs = merge_pairs(pairs, extra_pairs)
