@@ -269,7 +269,8 @@ def own(tmp_path_factory):
                   "--profile", "smoke", "--offline.steps", "1000", "--no-progress", "--no-tensorboard", "--out", run,
                   cwd=d)
     assert res.returncode == 0, res.stderr[-3000:]
-    res = _botorl("export", run, "--out", d / "policy.onnx", cwd=d)
+    # a task of one's own is given again with --env (issue 39: nothing is imported from config.json)
+    res = _botorl("export", run, "--out", d / "policy.onnx", "--env", "mytask:make_env", cwd=d)
     assert res.returncode == 0, res.stderr[-3000:]
     return d, run
 
@@ -281,8 +282,8 @@ def test_own_task_contract_and_eval_policy(own):
         ("goal", 0, 2), ("position", 2, 2)]
     assert contract["action"]["high"] == pytest.approx([0.1, 0.1])
     assert contract["verification"]["source"] == "dataset" and contract["verification"]["max_abs_gap"] <= 1e-5
-    a = _botorl("eval", run, "--episodes", "6", cwd=d)
-    b = _botorl("eval", run, "--episodes", "6", "--policy", d / "policy.onnx", cwd=d)
+    a = _botorl("eval", run, "--episodes", "6", "--env", "mytask:make_env", cwd=d)
+    b = _botorl("eval", run, "--episodes", "6", "--policy", d / "policy.onnx", "--env", "mytask:make_env", cwd=d)
     assert a.returncode == 0 and b.returncode == 0, a.stderr[-2000:] + b.stderr[-2000:]
     ckpt, onnx = _eval_json(run, "eval-finetune-final.json"), _eval_json(run, "eval-policy-onnx.json")
     assert ckpt["success"] > 0.5  # the policy reaches the goal, so equal success is a real check

@@ -183,10 +183,14 @@ def member_dir(root: Path, entry) -> Path:
     return path
 
 
-def load_population(directory: str | Path):
-    """(shared config, member configs, member run dirs, population.json) of a population directory."""
+def load_population(directory: str | Path, entry: str | None = None, checkpoint: str | None = None):
+    """(shared config, member configs, member run dirs, population.json) of a population directory;
+    ``entry``: the user's ``--env`` for a task of one's own (configs/custom.py); the checkpoint a
+    resume starts from (``checkpoint``, else the latest) is checked to be the population's before
+    any task is registered."""
+    from botorl.configs.custom import register_given
     from botorl.configs.members import member_config
-    from botorl.configs.resolve import validate
+    from botorl.configs.resolve import check_bounds, validate
     from botorl.configs.schema import RunConfig, from_dict
 
     root = Path(directory)
@@ -202,6 +206,10 @@ def load_population(directory: str | Path):
                           f"was it edited by hand?") from None
     if len({r.root.name for r in runs}) != len(runs):
         raise ConfigError(f"{root / POPULATION_FILE} names a member twice; was it edited by hand?")
+    for c in [cfg, *member_cfgs]:
+        check_bounds(c)
+    check_resume_point(root, member_cfgs, checkpoint)
+    register_given(cfg, entry)
     validate(cfg)
     for r, mc in zip(runs, member_cfgs):
         # a member differs from the population in its seed, alpha and folder only
@@ -215,6 +223,28 @@ def load_population(directory: str | Path):
     return replace(cfg, out=str(root)), member_cfgs, runs, data
 
 
+def check_resume_point(root: Path, cfgs, checkpoint: str | None = None) -> None:
+    """The checkpoint a resume of ``root`` starts from (``checkpoint``, else the latest that passes
+    its check; none yet: nothing to check) must be the run's own (``check_identity``): checked
+    before a task is registered or data read. A damaged one is left to the resume, which names it
+    and falls back."""
+    from botorl.configs.schema import run_identity
+
+    ckpt = CheckpointManager(RunDir(root).checkpoints)
+    try:
+        if checkpoint is not None:
+            ckpt.verify_named(checkpoint)
+            name = checkpoint
+        else:
+            name = (ckpt.latest() or {}).get("name")
+        if name is not None:
+            check_identity(ckpt.state(name), [run_identity(c) for c in cfgs], ckpt.root, name)
+    except CheckpointCorrupt:
+        pass
+
+
+ENV_HELP = ("a task of your own: its entry point MODULE:FUNCTION again (the one the run recorded); botorl never "
+            "imports what a run directory's files name")
 ALLOW_PICKLE_HELP = ("open a pickle-based dataset (Cal-QL .npy, DAPG .pickle) named in the run's config.json; "
                      "without it botorl refuses, as a pickle from a run directory could run code")
 
@@ -236,6 +266,7 @@ class ResumeArgs:
     no_progress: _Flag = False
     """no progress bars"""
     allow_pickle: Annotated[_Flag, tyro.conf.arg(help=ALLOW_PICKLE_HELP)] = False
+    env: Annotated[str | None, tyro.conf.arg(metavar="MODULE:FUNCTION", help=ENV_HELP)] = None
 
 
 @dataclass
@@ -252,6 +283,7 @@ class EvalArgs:
     """evaluate this exported model (`botorl export`) through onnxruntime instead of a checkpoint, on the same
     episodes (needs pip install "botorl[export]")"""
     allow_pickle: Annotated[_Flag, tyro.conf.arg(help=ALLOW_PICKLE_HELP)] = False
+    env: Annotated[str | None, tyro.conf.arg(metavar="MODULE:FUNCTION", help=ENV_HELP)] = None
 
 
 @dataclass
@@ -269,7 +301,8 @@ class ExportArgs:
     out: Annotated[str | None, tyro.conf.arg(metavar="FILE", help_behavior_hint="(default: RUN_DIR/policy.onnx)")] = None
     """the model file; its contract is FILE.json"""
     force: _Flag = False
-    """overwrite FILE and FILE.json if they exist"""
+    """overwrite FILE and FILE.json if they exist (regular files only)"""
+    env: Annotated[str | None, tyro.conf.arg(metavar="MODULE:FUNCTION", help=ENV_HELP)] = None
 
 
 def resume_main(argv: list[str]) -> int:
@@ -280,10 +313,11 @@ def resume_main(argv: list[str]) -> int:
     root = Path(args.dir)
     single = not (root / POPULATION_FILE).exists()
     if single:
-        run, cfg = read_run(root, "resume", validate=True)
+        run, cfg = read_run(root, "resume", validate=True, entry=args.env,
+                            before=lambda r, c: check_resume_point(r.root, [c], args.from_))
         member_cfgs, runs, status_file, origin = [cfg], [run], run.summary, run.config
     else:
-        cfg, member_cfgs, runs, _ = load_population(root)
+        cfg, member_cfgs, runs, _ = load_population(root, args.env, args.from_)
         status_file = origin = root / POPULATION_FILE
     if cfg.wandb:
         require_wandb()
@@ -322,7 +356,9 @@ def _print_result(result: dict) -> None:
 def eval_main(argv: list[str]) -> int:
     args = tyro.cli(EvalArgs, args=argv, prog="botorl eval")
     setup_jax()
-    run, cfg = read_run(args.dir, "evaluate", validate=True)
+    # the checkpoint's identity before the task is made or data read (--policy: the contract's)
+    run, cfg = read_run(args.dir, "evaluate", validate=True, entry=args.env,
+                        before=None if args.policy else lambda r, c: check_resume_point(r.root, [c], args.checkpoint))
     if args.episodes is not None and args.episodes < 1:
         raise ConfigError(f"--episodes {args.episodes}: give at least 1 episode.")
     if args.policy is not None:  # an exported model through onnxruntime (botorl/pipeline/export.py)
@@ -372,7 +408,7 @@ def export_main(argv: list[str]) -> int:
     from botorl.pipeline.export import contract_path, export_policy
 
     out = Path(args.out) if args.out else Path(args.dir) / "policy.onnx"
-    c = export_policy(args.dir, out, checkpoint=args.checkpoint, format=args.format, force=args.force)
+    c = export_policy(args.dir, out, checkpoint=args.checkpoint, format=args.format, force=args.force, env=args.env)
     v = c["verification"]
     print(f"botorl: {c['task']} {c['method']} seed {c['seed']}, checkpoint {c['checkpoint']} (step {c['step']}) "
           f"-> {out} and {contract_path(out).name}", file=sys.stderr)

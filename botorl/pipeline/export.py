@@ -78,6 +78,40 @@ def contract_path(model: str | Path) -> Path:
 
 
 # ------------------------------------------------------------------ the run
+def check_replaceable(p: Path, force: bool) -> None:
+    """ConfigError unless ``p`` may be written: absent, or (``force``) a regular file. A link, a
+    device, a FIFO or a folder is never replaced (``--out /dev/null --force`` as root would
+    otherwise put a regular file in its place)."""
+    import stat
+
+    try:
+        st = p.lstat()
+    except FileNotFoundError:
+        return
+    except OSError as err:
+        raise ConfigError(f"--out: {p} cannot be looked at ({err.strerror}); give another --out.") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise ConfigError(f"--out {p} is a folder; give a file name such as {p / 'policy.onnx'}.")
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a link" if stat.S_ISLNK(st.st_mode) else "not a regular file (a device, FIFO or socket)"
+        raise ConfigError(f"--out: {p} is {kind}; botorl export replaces only regular files. Give another --out.")
+    if not force:
+        raise ConfigError(f"{p} exists; pass --force (force=True) to overwrite it, or give another --out.")
+
+
+def check_writable_folder(out: Path) -> None:
+    """ConfigError, before any work, when ``out``'s folder cannot hold the model (``/proc/self``,
+    a read-only or missing parent that cannot be made)."""
+    import os
+
+    parent = out.parent if str(out.parent) else Path(".")
+    probe = parent
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK) or str(probe.resolve()).startswith(("/proc", "/sys")):
+        raise ConfigError(f"--out {out}: its folder {parent} cannot be written; give a file in a folder you can write.")
+
+
 def pick_checkpoint(run, checkpoint: str | None) -> str:
     """The named checkpoint (verified), else the latest; none before a stage has finished."""
     ckpt = CheckpointManager(run.checkpoints)
@@ -236,29 +270,33 @@ def max_gap(a, b) -> tuple[float, int]:
 # ------------------------------------------------------------------ the whole export
 def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "onnx", force: bool = False,
                   observations=None, verify_rows: int = VERIFY_ROWS, tolerance: float = TOLERANCE,
-                  opset: int = OPSET) -> dict[str, Any]:
+                  opset: int = OPSET, env: str | None = None) -> dict[str, Any]:
     """Write ``path`` (the ONNX model) and ``path.json`` (its contract) for a run's policy and
     return the contract. ``observations``: the (N, obs_dim) batch to verify on (default:
     ``verify_rows`` of the run's dataset). ``ExportMismatch`` (exit 1, nothing written) when
     onnxruntime's actions differ from ``load_policy``'s by more than ``tolerance``; needs
-    ``pip install "botorl[export]"``."""
+    ``pip install "botorl[export]"``. ``env``: a task of one's own's entry point, given again by
+    the user (``--env``; without it the verification uses standard normal observations)."""
     if format not in FORMATS:
         raise ConfigError(f"--format {format}: botorl exports {', '.join(FORMATS)}.")
     out = Path(path)
     meta = contract_path(out)
-    if not force:
-        for p in (out, meta):
-            if p.exists():
-                raise ConfigError(f"{p} exists; pass --force (force=True) to overwrite it, or give another --out.")
-    if out.is_dir():
-        raise ConfigError(f"--out {out} is a folder; give a file name such as {out / 'policy.onnx'}.")
+    for p in (out, meta):
+        check_replaceable(p, force)
+    check_writable_folder(out)
     run, cfg = read_run(run_dir, "export")
+    from botorl.configs.custom import ensure_task, register_given
+    from botorl.configs.resolve import check_bounds
+    from botorl.pipeline.policy import check_checkpoint
+
+    check_bounds(cfg)
     name = pick_checkpoint(run, checkpoint)
+    check_checkpoint(run, cfg, name)  # what `botorl eval` refuses: another run's checkpoint, an edited config
     mods = require("onnx", "onnxruntime", "jax2onnx")  # before any JAX work: a missing extra costs nothing
     setup_jax()
-    from botorl.configs.custom import ensure_task
 
     try:  # the task gives the verification its dataset and the contract the env's shapes
+        register_given(cfg, env)
         ensure_task(cfg)
         here = None
     except BotorlError as err:
@@ -322,6 +360,8 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
         "verification": {"runtime": f"onnxruntime {mods['onnxruntime'].__version__}", "observations": len(obs),
                          "source": source, "max_abs_gap": gap, "tolerance": tolerance},
     }
+    for p in (out, meta):  # again: the minutes of conversion are time for a swap
+        check_replaceable(p, force)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out, model)
     if file_sha256(out) != contract["sha256"]:  # what is on disk is what was verified

@@ -1,0 +1,177 @@
+"""A downloaded run directory runs no code (issue 39): the entry point and folder a config.json
+records for a task of one's own are never imported, called or put on sys.path by ``eval``,
+``resume``, ``export``, ``botorl.resume()``, a population or ``run --config``; only the user's
+own ``--env`` (checked equal to the recorded one) or ``botorl.register_task`` makes the env. A
+marker file proves that no planted module ran.
+
+The run directories here are made by hand (a config.json and a checkpoint whose identity is
+recomputed, as an attacker can): no training, so the file runs in seconds."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import subprocess_env as _env
+
+from botorl.cli import main as botorl_main
+
+PLANT = """
+import pathlib
+pathlib.Path({marker!r}).write_text("ran")
+def make_env(seed):
+    pathlib.Path({marker!r}).write_text("called")
+    raise SystemExit(0)
+"""
+
+
+def _custom_config(entry: str, path: str | None, **env):
+    """A smoke config whose task is 'a task of one's own' named by ``entry`` (no env is made)."""
+    from dataclasses import replace
+
+    from botorl.configs.build import build_config
+    from botorl.configs.schema import EnvConfig
+
+    cfg = build_config(["--task", "pointmaze-umaze", "--profile", "smoke"])
+    e = EnvConfig(entry=entry, path=path, max_steps=50, success_key="success", obs_dim=4, action_dim=2,
+                  action_low=(-1.0, -1.0), action_high=(1.0, 1.0), **env)
+    return replace(cfg, task="evil.task", env=e, data=replace(cfg.data, path="/nonexistent/logged.npz"))
+
+
+def _plant_run(d: Path, entry: str, marker: Path, *, relative: bool = False, **env) -> Path:
+    """A run directory holding evilmod.py, a config.json naming ``entry`` with env.path pointing at
+    the directory, and a checkpoint whose identity is recomputed to match (what an attacker can)."""
+    from botorl.configs.schema import run_identity, to_dict
+
+    d.mkdir(parents=True)
+    (d / "evilmod.py").write_text(PLANT.format(marker=str(marker)))
+    cfg = _custom_config(entry, "." if relative else str(d.resolve()), **env)
+    (d / "config.json").write_text(json.dumps(to_dict(cfg)))
+    ck = d / "checkpoints" / "pretrain-final"
+    ck.mkdir(parents=True)
+    state = {"stage": "pretrain", "stage_done": True, "step": None, "done_stages": ["pretrain"],
+             "stage_seconds": {}, "identity": [run_identity(cfg)]}
+    (ck / "state.json").write_text(json.dumps(state))
+    (d / "checkpoints" / "latest.json").write_text(json.dumps({"name": "pretrain-final", "stage": "pretrain",
+                                                               "step": None, "stage_done": True}))
+    return d
+
+
+ENTRIES = ["code:interact", "os:_exit", "this:x", "evilmod:make_env"]
+
+
+@pytest.fixture(scope="module")
+def planted(tmp_path_factory):
+    root = tmp_path_factory.mktemp("planted")
+    marker = root / "MARKER"
+    runs = {e: _plant_run(root / e.replace(":", "_"), e, marker) for e in ENTRIES}
+    runs["relative"] = _plant_run(root / "relative", "evilmod:make_env", marker, relative=True)
+    return root, marker, runs
+
+
+@pytest.mark.parametrize("entry", ENTRIES + ["relative"])
+@pytest.mark.parametrize("command", ["eval", "resume", "export"])
+def test_a_planted_entry_point_is_never_imported(planted, capsys, entry, command, monkeypatch):
+    root, marker, runs = planted
+    d = runs[entry]
+    monkeypatch.chdir(d)  # the directory itself as the current folder: still nothing imported from it
+    before = set(sys.modules)
+    code = botorl_main([command, str(d)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert not marker.exists(), f"{command} ran the planted {entry}"
+    assert "Traceback" not in err, err
+    # export needs no env (the contract's shapes are in config.json); it fails here on the missing agent file
+    assert ("--env" in err) if command != "export" else ("agent.ckpt" in err), err
+    assert not {"evilmod", "this", "code"} & (set(sys.modules) - before)
+    assert str(d.resolve()) not in sys.path
+
+
+def test_botorl_resume_from_python_imports_nothing(planted):
+    import botorl
+    from botorl.errors import BotorlError
+
+    root, marker, runs = planted
+    for entry in ("evilmod:make_env", "this:x"):
+        with pytest.raises(BotorlError, match="--env"):
+            botorl.resume(runs[entry], progress=False)
+    assert not marker.exists() and "evilmod" not in sys.modules
+
+
+def test_code_interact_reads_no_stdin_and_os_exit_is_exit_2(planted):
+    """In a subprocess: ``code:interact`` would open a prompt on stdin, ``os:_exit`` exit 0."""
+    root, marker, runs = planted
+    for entry in ("code:interact", "os:_exit"):
+        p = subprocess.run([sys.executable, "-m", "botorl.cli", "eval", str(runs[entry])], input="print('pwned')\n",
+                           capture_output=True, text=True, env=_env(), timeout=120, cwd=runs[entry])
+        assert p.returncode == 2 and "--env" in p.stderr and "pwned" not in p.stdout + p.stderr, p.stderr[-2000:]
+    assert not marker.exists()
+
+
+def test_run_config_and_population_import_nothing(planted, tmp_path, capsys):
+    from botorl.configs.schema import to_dict
+
+    root, marker, runs = planted
+    cfg = json.loads((runs["evilmod:make_env"] / "config.json").read_text())
+    f = tmp_path / "trial.json"
+    f.write_text(json.dumps(cfg))
+    assert botorl_main(["run", "--config", str(f), "--out", str(tmp_path / "out")]) == 2
+    assert "--env" in capsys.readouterr().err
+
+    # a population whose shared config names the planted module
+    pop = tmp_path / "pop"
+    pop.mkdir()
+    (pop / "evilmod.py").write_text(PLANT.format(marker=str(marker)))
+    c = _custom_config("evilmod:make_env", str(pop.resolve()))
+    from dataclasses import replace
+
+    member = pop / "seed0"
+    member.mkdir()
+    (member / "config.json").write_text(json.dumps(to_dict(replace(c, out=str(member)))))
+    (pop / "population.json").write_text(json.dumps({"config": to_dict(c), "members": [{"name": "seed0"}],
+                                                     "status": "running"}))
+    assert botorl_main(["resume", str(pop)]) == 2
+    err = capsys.readouterr().err
+    assert "--env" in err and "Traceback" not in err, err
+    assert not marker.exists() and not (tmp_path / "out").exists()
+
+
+def test_env_given_must_be_the_recorded_one(planted, capsys, monkeypatch, tmp_path):
+    root, marker, runs = planted
+    d = runs["evilmod:make_env"]
+    monkeypatch.chdir(tmp_path)
+    # another entry than the recorded one: refused before it is imported
+    assert botorl_main(["eval", str(d), "--env", "os:_exit"]) == 2
+    assert "trained on the entry point 'evilmod:make_env'" in capsys.readouterr().err
+    # the recorded one, given by the user, is the user's choice: imported from the current folder
+    # and PYTHONPATH only (the run directory's own folder is not searched)
+    assert botorl_main(["eval", str(d), "--env", "evilmod:make_env"]) == 2
+    assert "cannot import module 'evilmod'" in capsys.readouterr().err
+    assert not marker.exists()
+    # a task of botorl's own takes no --env
+    from botorl.configs.schema import to_dict
+
+    own = tmp_path / "own"
+    own.mkdir()
+    from botorl.configs.build import build_config
+
+    (own / "config.json").write_text(json.dumps(to_dict(build_config(["--task", "pointmaze-umaze", "--profile", "smoke"]))))
+    assert botorl_main(["resume", str(own), "--env", "mytask:make_env"]) == 2
+    assert "drop --env" in capsys.readouterr().err
+
+
+def test_sys_exit_in_make_env_is_exit_2(tmp_path, monkeypatch, capsys):
+    """``--env sys:exit`` used to exit 0 having done nothing (the probe caught Exception only)."""
+    monkeypatch.chdir(tmp_path)
+    import numpy as np
+
+    np.savez(tmp_path / "d.npz", observations=np.zeros((4, 2), np.float32), actions=np.zeros((4, 1), np.float32),
+             rewards=np.zeros(4, np.float32), next_observations=np.zeros((4, 2), np.float32),
+             terminals=np.zeros(4, np.float32))
+    code = botorl_main(["run", "--env", "sys:exit", "--data.path", "d.npz", "--env-max-steps", "5", "--profile",
+                        "smoke", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert code == 2 and "SystemExit" in err and "Traceback" not in err, err
