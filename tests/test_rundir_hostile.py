@@ -57,19 +57,27 @@ def test_ray_cleanup_deletes_and_signals_only_what_it_recorded(tmp_path):
     link.rmdir()
     link.symlink_to(victim)
     needle = f"{ray_dir}/../..{victim}"
+    from botorl.experiments.backend_local import TOKEN_ENV, start_time, sweep_token
+
     bystander = subprocess.Popen(SLEEPER + [needle, str(link)])  # mentions both strings
-    recorded = subprocess.Popen(SLEEPER)
+    # the process an earlier sweep started carries that sweep's secret token (issue 39)
+    token = sweep_token()
+    recorded = subprocess.Popen(SLEEPER, env={**os.environ, TOKEN_ENV: token})
     try:
+        # issue 39: the bystander's real pid and start time (world-readable in /proc), with or
+        # without a token, are no order to stop it
+        real = {"pid": bystander.pid, "start": start_time(bystander.pid)}
         for manifest in ({"ray_local_temp_dir": needle}, {"ray_local_temp_dir": str(link)},
                          {"ray_local_temp_dir": str(victim)}, {"ray_local_temp_dir": ["/tmp"]},
                          {"ray_local_processes": [{"pid": bystander.pid, "start": 1}, {"pid": bystander.pid},
-                                                  "x", {"pid": 1, "start": 0}, {"pid": os.getpid(), "start": 0}]}):
+                                                  "x", {"pid": 1, "start": 0}, {"pid": os.getpid(), "start": 0}]},
+                         {"ray_local_processes": [real, {**real, "token": token}, {**real, "token": "0" * 32}]}):
             cleanup_previous(manifest)
             assert (victim / "data").read_text() == "keep me", manifest
             assert bystander.poll() is None, manifest
         assert link.is_symlink()
         # control: the dir and the process the earlier sweep did record go
-        cleanup_previous({"ray_local_temp_dir": ray_dir, "ray_local_processes": [process_record(recorded.pid)]})
+        cleanup_previous({"ray_local_temp_dir": ray_dir, "ray_local_processes": [process_record(recorded.pid, token)]})
         assert not Path(ray_dir).exists()
         assert recorded.wait(timeout=20) != 0
         assert bystander.poll() is None
