@@ -256,6 +256,26 @@ def test_another_runs_checkpoints_are_refused(two_seeds, tmp_path, capsys):
     assert botorl_main(["eval", str(_copy_run(two_seeds / "s0", tmp_path / "own")), "--episodes", "1"]) == 0
 
 
+def test_export_and_load_policy_refuse_another_runs_checkpoints(two_seeds, tmp_path, capsys):
+    """Issue 39: seed 1's checkpoints in seed 0's run were exported with a contract saying seed 0
+    and loaded by load_policy; both check the identity as eval does."""
+    import botorl
+
+    d = _copy_run(two_seeds / "s0", tmp_path / "s0")
+    shutil.rmtree(d / "checkpoints")
+    shutil.copytree(two_seeds / "s1" / "checkpoints", d / "checkpoints")
+    out = tmp_path / "policy.onnx"
+    assert botorl_main(["export", str(d), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "belongs to another run" in err and "seed 1 in the checkpoint, 0 in the config" in err, err
+    assert not out.exists()
+    for load in (botorl.load_policy, botorl.load_agent):
+        with pytest.raises(BotorlError, match="belongs to another run"):
+            load(d)
+    # control: the run's own checkpoints load
+    assert botorl.load_policy(two_seeds / "s0").obs_dim > 0
+
+
 @pytest.mark.parametrize("field,value,words", [
     ("seed", 1, "seed 0 in the checkpoint, 1 in the config"),
     ("alpha", 0.5, "alpha -1.0 in the checkpoint, 0.5 in the config"),
