@@ -702,3 +702,20 @@ def test_ctrl_c_during_shutdown_exits_130_quietly():
     assert res.returncode == 130, (res.returncode, res.stderr[-2000:])
     assert "Traceback" not in res.stderr and "KeyboardInterrupt" not in res.stderr, res.stderr[-2000:]
     assert res.stdout.strip()  # the version was printed and flushed
+
+
+def test_export_replaces_only_a_regular_file(tmp_path, capsys):
+    """Issue 39: `export --out /dev/null --force` replaced the device with a regular file (as root);
+    a FIFO, a link or a folder at --out is refused too, and so is a folder that cannot be written
+    (/proc/self), all before any work."""
+    d = _crafted_run(tmp_path / "run")
+    fifo = tmp_path / "fifo.onnx"
+    os.mkfifo(fifo)
+    target = _link_to_precious(tmp_path, tmp_path / "link.onnx")
+    for out, words in (("/dev/null", "not a regular file"), (str(fifo), "not a regular file"),
+                       (str(tmp_path / "link.onnx"), "a link"), (str(tmp_path), "is a folder"),
+                       ("/proc/self/x.onnx", "cannot be written")):
+        assert botorl_main(["export", str(d), "--out", out, "--force"]) == 2, out
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err, (out, err)
+    assert Path("/dev/null").is_char_device() and fifo.is_fifo() and target.read_text() == "keep me"
