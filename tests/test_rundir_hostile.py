@@ -276,6 +276,43 @@ def test_export_and_load_policy_refuse_another_runs_checkpoints(two_seeds, tmp_p
     assert botorl.load_policy(two_seeds / "s0").obs_dim > 0
 
 
+def test_a_run_whose_data_changed_is_refused(tmp_path, capsys):
+    """Issue 39: data.path and the data's size and sha256 are part of the identity every checkpoint
+    records; eval and resume refuse a run whose data changed (or whose config.json names other
+    data), before the data are loaded."""
+    from dataclasses import replace
+
+    from botorl.configs.schema import to_dict
+    from botorl.pipeline.checkpoint import full_identity
+
+    data = tmp_path / "logged.npz"
+    data.write_bytes(b"the data the run was trained on")
+    cfg = _smoke_config()
+    cfg = replace(cfg, data=replace(cfg.data, path=str(data)))
+    d = tmp_path / "run"
+    d.mkdir()
+    (d / "config.json").write_text(json.dumps(to_dict(cfg)))
+    ck = d / "checkpoints" / "pretrain-final"
+    ck.mkdir(parents=True)
+    (ck / "state.json").write_text(json.dumps({"stage": "pretrain", "stage_done": True, "step": None,
+                                               "done_stages": ["pretrain"], "stage_seconds": {},
+                                               "identity": [full_identity(cfg)]}))
+    # control: the same data pass the identity (eval then goes on to load them, which this file is not)
+    assert botorl_main(["eval", str(d), "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "belongs to another run" not in err and "reads a Minari dataset" in err, err
+    data.write_bytes(b"other data, same path")
+    for cmd in (["eval", str(d), "--episodes", "1"], ["resume", str(d), "--no-progress"]):
+        assert botorl_main(cmd) == 2
+        err = capsys.readouterr().err
+        assert "the data changed since the run started" in err and "Traceback" not in err, err
+    # config.json pointed at other data (a FIFO here): refused, never opened
+    os.mkfifo(tmp_path / "fifo.hdf5")
+    _edit(d / "config.json", lambda c: c["data"].update(path=str(tmp_path / "fifo.hdf5")))
+    assert botorl_main(["resume", str(d), "--no-progress"]) == 2
+    assert "not a regular file" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("field,value,words", [
     ("seed", 1, "seed 0 in the checkpoint, 1 in the config"),
     ("alpha", 0.5, "alpha -1.0 in the checkpoint, 0.5 in the config"),

@@ -124,3 +124,51 @@ def check_hdf5(f, path) -> None:
             if total > cap:
                 raise DataFormatError(f"{path}: its datasets declare {total / 2**30:.1f} GiB, more than botorl reads "
                                       f"({cap / 2**30:.1f} GiB).")
+
+
+def data_files(path: str | os.PathLike, minari_root: Path | None = None) -> list[Path]:
+    """The files a run reads for its ``data.path``: the file itself; a Minari dataset's
+    ``main_data.hdf5`` (a folder, its ``data`` folder or an id under ``minari_root``); the regular
+    files directly inside any other folder (the Cal-QL folder); each of ``a,b``. Nothing for a
+    path that does not exist (the loader names it)."""
+    p = Path(path).expanduser()
+    if not p.exists() and "," in str(path):
+        return [f for part in str(path).split(",") if part for f in data_files(part, minari_root)]
+    if p.is_file() or (p.exists() and not p.is_dir()):
+        return [p]
+    if not p.exists():
+        if minari_root is None:
+            return []
+        p = Path(minari_root) / str(path)
+        if not p.is_dir():
+            return []
+    for main in (p / "data" / "main_data.hdf5", p / "main_data.hdf5"):
+        if os.path.lexists(main):
+            return [main]
+    found = []
+    for entry in sorted(p.iterdir())[:10_000]:
+        if entry.is_file() and stat.S_ISREG(entry.stat().st_mode):
+            found.append(entry)
+    return found
+
+
+def fingerprint(path: str | os.PathLike | None, minari_root: Path | None = None) -> dict:
+    """``{"path", "size", "sha256"}`` of what a run reads for ``data.path`` (``data_files``; None:
+    the task's own data, made or named by botorl, which the config's digest covers). An integrity
+    check: it says the data did not change, not who made them."""
+    import hashlib
+
+    if path is None:
+        return {"path": None}
+    h = hashlib.sha256()
+    size = 0
+    try:
+        for f in data_files(path, minari_root):
+            regular_file(f)
+            with open(f, "rb") as fh:
+                size += os.fstat(fh.fileno()).st_size
+                h.update(f.name.encode() + b"\0")
+                h.update(hashlib.file_digest(fh, "sha256").digest())
+    except OSError as err:
+        raise DataFormatError(f"data.path {path}: cannot be read to check it ({err}).") from None
+    return {"path": str(path), "size": size, "sha256": h.hexdigest()}

@@ -20,7 +20,8 @@ from botorl.errors import BotorlError, ConfigError
 from botorl.io import atomic_write_json, open_regular
 from botorl.jaxsetup import setup_jax
 from botorl.pipeline import preempt
-from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step
+from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step, \
+    full_identity
 from botorl.pipeline.policy import read_run
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_fault, io_guard, read_json
 from botorl.pipeline.tracking import require_wandb
@@ -228,7 +229,7 @@ def check_resume_point(root: Path, cfgs, checkpoint: str | None = None) -> None:
     its check; none yet: nothing to check) must be the run's own (``check_identity``): checked
     before a task is registered or data read. A damaged one is left to the resume, which names it
     and falls back."""
-    from botorl.configs.schema import run_identity
+    from botorl.pipeline.checkpoint import full_identity
 
     ckpt = CheckpointManager(RunDir(root).checkpoints)
     try:
@@ -238,7 +239,7 @@ def check_resume_point(root: Path, cfgs, checkpoint: str | None = None) -> None:
         else:
             name = (ckpt.latest() or {}).get("name")
         if name is not None:
-            check_identity(ckpt.state(name), [run_identity(c) for c in cfgs], ckpt.root, name)
+            check_identity(ckpt.state(name), [full_identity(c) for c in cfgs], ckpt.root, name)
     except CheckpointCorrupt:
         pass
 
@@ -376,7 +377,6 @@ def eval_main(argv: list[str]) -> int:
 
 def _eval(args, run, cfg) -> dict:
     from botorl.agents import checkpoint as agent_ckpt
-    from botorl.configs.schema import run_identity
     from botorl.envs.registry import get_task
     from botorl.pipeline import stages as S
     from botorl.pipeline.evaluation import QProbe, evaluate_policy
@@ -387,7 +387,7 @@ def _eval(args, run, cfg) -> dict:
     ckpt = CheckpointManager(run.checkpoints)
     name = ckpt.chosen(args.checkpoint)
     state = ckpt.state(name)
-    check_identity(state, [run_identity(cfg)], run.checkpoints, name)
+    check_identity(state, [full_identity(cfg)], run.checkpoints, name)
     spec = get_task(cfg.task)
     d = transform_dataset(cfg, spec, load_run_data(cfg, run.config, args.allow_pickle))
     like = S.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)
