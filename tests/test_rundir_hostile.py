@@ -358,6 +358,15 @@ def test_a_checkpoint_without_identity_is_accepted_with_a_warning(two_seeds, tmp
     (["--offline.batch-size", "1000000", "--offline.updates-per-call", "100000"], "more than this machine's"),
     (["--network.critic-hidden-dims", "100000000"], "at most 65,536 units"),
     (["--online.buffer-capacity", "5"], "must hold the warm-up's"),
+    # issue 39: the counts the size checks missed
+    (["--network.num-critics", "1000000"], "--network.num_critics = 1000000 is invalid: give at most 1,024"),
+    (["--offline.cql.cql-n-actions", "1000000000"], "--offline.cql.cql_n_actions = 1000000000 is invalid"),
+    (["--offline.cql.num-backup-actions", "1000000000"], "--offline.cql.num_backup_actions = 1000000000 is invalid"),
+    (["--online.sac.num-backup-actions", "1000000000"], "--online.sac.num_backup_actions = 1000000000 is invalid"),
+    (["--data.steps", "1000000000000000"], "--data.steps = 1000000000000000 is invalid: give at most"),
+    (["--network.critic-hidden-dims", "1000000000"], "at most 65,536 units"),
+    (["--network.actor-hidden-dims", *["8"] * 65], "1 to 64 layers"),
+    (["--data.action-tolerance", "nan"], "--data.action-tolerance = nan is invalid"),
 ])
 def test_sizes_are_refused_before_anything_is_built(tmp_path, capsys, args, words):
     import resource

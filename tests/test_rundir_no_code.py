@@ -175,3 +175,38 @@ def test_sys_exit_in_make_env_is_exit_2(tmp_path, monkeypatch, capsys):
                         "smoke", "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
     assert code == 2 and "SystemExit" in err and "Traceback" not in err, err
+
+
+def test_counts_a_config_json_gives_are_checked_before_the_env_is_made(planted, tmp_path, capsys, monkeypatch):
+    """env.max_steps = 10**12 with a success key no env sets spun forever in the env probe, before the
+    identity check; a checkpoint's sizes and the eval's episodes are bounded before any work."""
+    root, marker, runs = planted
+    d = tmp_path / "huge"
+    _plant_run(d, "evilmod:make_env", marker)
+    cfg = json.loads((d / "config.json").read_text())
+    for field, value, words in (("max_steps", 10**12, "--env.max_steps = 1000000000000 is invalid"),
+                                ("obs_dim", 10**9, "--env.obs_dim = 1000000000 is invalid")):
+        (d / "config.json").write_text(json.dumps({**cfg, "env": {**cfg["env"], field: value}}))
+        for cmd in (["eval", str(d), "--env", "evilmod:make_env"], ["resume", str(d)], ["export", str(d)]):
+            assert botorl_main(cmd) == 2, cmd
+            err = capsys.readouterr().err
+            assert words in err and "Traceback" not in err, (cmd, err)
+    assert botorl_main(["eval", str(runs["this:x"]), "--episodes", str(10**12)]) == 2
+    assert "give 1 to 1,000,000 episodes" in capsys.readouterr().err
+    assert not marker.exists()
+
+
+def test_a_config_with_a_null_section_is_exit_2(planted, tmp_path, capsys):
+    root, marker, runs = planted
+    cfg = json.loads((runs["this:x"] / "config.json").read_text())
+    f = tmp_path / "trial.json"
+    f.write_text(json.dumps({**cfg, "data": None}))
+    assert botorl_main(["run", "--config", str(f), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "'data' is null" in err and "Traceback" not in err, err
+    d = tmp_path / "run"
+    d.mkdir()
+    (d / "config.json").write_text(json.dumps({**cfg, "network": None}))
+    assert botorl_main(["eval", str(d)]) == 2
+    err = capsys.readouterr().err
+    assert "'network' is null" in err and "Traceback" not in err, err

@@ -356,12 +356,14 @@ def _print_result(result: dict) -> None:
 
 def eval_main(argv: list[str]) -> int:
     args = tyro.cli(EvalArgs, args=argv, prog="botorl eval")
+    from botorl.configs.resolve import BOUNDS
+
+    if args.episodes is not None and not 1 <= args.episodes <= BOUNDS["eval.episodes"]:
+        raise ConfigError(f"--episodes {args.episodes}: give 1 to {BOUNDS['eval.episodes']:,} episodes.")
     setup_jax()
     # the checkpoint's identity before the task is made or data read (--policy: the contract's)
     run, cfg = read_run(args.dir, "evaluate", validate=True, entry=args.env,
                         before=None if args.policy else lambda r, c: check_resume_point(r.root, [c], args.checkpoint))
-    if args.episodes is not None and args.episodes < 1:
-        raise ConfigError(f"--episodes {args.episodes}: give at least 1 episode.")
     if args.policy is not None:  # an exported model through onnxruntime (botorl/pipeline/export.py)
         if args.checkpoint is not None:
             raise ConfigError("--policy and --checkpoint: the model names its checkpoint (in FILE.onnx.json); give one.")
