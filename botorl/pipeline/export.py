@@ -235,12 +235,12 @@ class OnnxPolicy:
 
     def __init__(self, path: str | Path | bytes):
         self.path = None if isinstance(path, bytes) else Path(path)
-        if self.path is not None and not self.path.is_file():
-            raise ConfigError(f"{self.path}: no such model file; give the FILE.onnx that `botorl export` wrote.")
+        if self.path is not None:
+            path = _model_bytes(self.path)
         ort = require("onnxruntime")["onnxruntime"]
+        check_graph(path, self.path or "the model")
         try:
-            self.session = ort.InferenceSession(path if isinstance(path, bytes) else str(path),
-                                                providers=["CPUExecutionProvider"])
+            self.session = ort.InferenceSession(path, providers=["CPUExecutionProvider"])
         except Exception as err:  # noqa: BLE001 - onnxruntime raises its own types for a bad file
             raise ConfigError(f"{self.path or 'the model'} cannot be loaded by onnxruntime ({err}); give a model "
                               f"`botorl export` wrote.") from None
@@ -251,11 +251,61 @@ class OnnxPolicy:
                               f"'{OUTPUT_NAME}'.")
         shape = ins[0].shape
         self.obs_dim = shape[-1] if len(shape) == 2 and isinstance(shape[-1], int) else None
+        out_shape = next(o.shape for o in outs if o.name == OUTPUT_NAME)
+        self.action_dim = out_shape[-1] if len(out_shape) == 2 and isinstance(out_shape[-1], int) else None
 
     def __call__(self, observations) -> np.ndarray:
         obs = np.asarray(observations, np.float32)
-        return self.session.run([OUTPUT_NAME], {INPUT_NAME: obs.reshape(-1, obs.shape[-1])})[0].reshape(
-            *obs.shape[:-1], -1)
+        try:
+            out = self.session.run([OUTPUT_NAME], {INPUT_NAME: obs.reshape(-1, obs.shape[-1])})[0]
+            return np.asarray(out).reshape(*obs.shape[:-1], -1)
+        except Exception as err:  # noqa: BLE001 - onnxruntime's own errors, a reshape of a wrong output
+            raise ConfigError(f"{self.path or 'the model'} failed on observations of shape {obs.shape} "
+                              f"({type(err).__name__}: {err}); give a model `botorl export` wrote.") from None
+
+
+MAX_MODEL_BYTES = 1 << 30  # a policy of 256x256 layers is under 1 MB
+
+
+def _model_bytes(path: Path) -> bytes:
+    """The model file's bytes: a regular file (a FIFO would hang) of at most ``MAX_MODEL_BYTES``."""
+    import os
+    import stat
+
+    try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError(f"{path}: not a regular file; give the FILE.onnx that `botorl export` wrote.")
+        if st.st_size > MAX_MODEL_BYTES:
+            raise ConfigError(f"{path}: {st.st_size:,} bytes, more than a policy model's {MAX_MODEL_BYTES:,}.")
+        with open(path, "rb") as f:
+            return f.read(MAX_MODEL_BYTES + 1)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such model file; give the FILE.onnx that `botorl export` wrote.") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot be read ({err.strerror}).") from None
+
+
+# A botorl policy is a straight chain of layers; a loop (whose trip count can be 2**62) or a branch
+# is no policy of botorl's, and onnxruntime would run it without bound.
+CONTROL_FLOW = ("Loop", "Scan", "If", "SequenceMap")
+
+
+def check_graph(model: bytes, where) -> None:
+    """ConfigError when the model (bytes) holds a control-flow operator, anywhere in its graph or
+    functions; nothing is run."""
+    onnx = require("onnx")["onnx"]
+    try:
+        proto = onnx.load_from_string(model)
+    except Exception as err:  # noqa: BLE001 - protobuf's decode errors
+        raise ConfigError(f"{where} is not an ONNX model ({type(err).__name__}); give a model `botorl export` "
+                          f"wrote.") from None
+    nodes = list(proto.graph.node) + [n for f in proto.functions for n in f.node]
+    bad = sorted({n.op_type for n in nodes if n.op_type in CONTROL_FLOW})
+    if bad:
+        raise ConfigError(f"{where} holds the control-flow operator(s) {', '.join(bad)}; a policy botorl exports is "
+                          f"a plain chain of layers, and a loop could run without end. Give a model `botorl export` "
+                          f"wrote.")
 
 
 def max_gap(a, b) -> tuple[float, int]:
@@ -386,7 +436,8 @@ def read_contract(model: str | Path) -> dict[str, Any] | None:
 
 # ------------------------------------------------------------------ the round trip
 def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path) -> None:
-    """ConfigError unless the model is this run's policy as exported (task, dims, sha256)."""
+    """ConfigError unless the model is this run's policy as exported: the contract's task, shapes,
+    action bounds and sha256 agree with the run and with the model (checked before it runs)."""
     io = task_io(cfg)
     if contract is None:
         print(f"botorl eval: {contract_path(path)} is missing; checking the model's shapes only.", file=sys.stderr)
@@ -395,12 +446,32 @@ def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path)
             raise ConfigError(f"{path} is a policy of task {contract.get('task')!r} (its contract says), not of this "
                               f"run's {cfg.task!r}; give the run it was exported from.")
         want = contract.get("sha256")
-        if want is not None and file_sha256(path) != want:
+        if not isinstance(want, str) or file_sha256(path) != want:
             raise ConfigError(f"{path} is not the file its contract describes (sha256 differs): it changed since "
                               f"`botorl export`; export it again.")
+
+        def said(*keys):
+            node = contract
+            for k in keys:
+                node = node.get(k) if isinstance(node, dict) else None
+            return node
+
+        wrong = []
+        for what, got, want_ in (("input width", said("input", "shape"), ["batch", io["obs_dim"]]),
+                                 ("output width", said("output", "shape"), ["batch", io["action_dim"]]),
+                                 ("action low", said("action", "low"), _bounds(io["action_low"])),
+                                 ("action high", said("action", "high"), _bounds(io["action_high"]))):
+            if got != want_:
+                wrong.append(f"{what} {got!r} in the contract, {want_!r} for the run")
+        if wrong:
+            raise ConfigError(f"{contract_path(path)} does not describe this run's policy ({'; '.join(wrong)}); export "
+                              f"the policy again.")
     if model.obs_dim is not None and model.obs_dim != io["obs_dim"]:
         raise ConfigError(f"{path} takes {model.obs_dim} observation values; this run's task {cfg.task!r} has "
                           f"{io['obs_dim']}.")
+    if model.action_dim is not None and model.action_dim != io["action_dim"]:
+        raise ConfigError(f"{path} gives {model.action_dim} action values; this run's task {cfg.task!r} has "
+                          f"{io['action_dim']}.")
 
 
 def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, Any]:
@@ -420,6 +491,10 @@ def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, 
 
     def act(obs):  # (1, E, O) -> (1, E, A): the task env takes [-1, 1] and maps it onto the env's box itself
         a = model(obs[0])
+        if a.shape != (obs.shape[1], io["action_dim"]) or not np.all(np.isfinite(a)):
+            raise ConfigError(f"{path} gave actions of shape {a.shape}{'' if np.all(np.isfinite(a)) else ' with NaN/inf'} "
+                              f"for {obs.shape[1]} observations; this run's task takes ({obs.shape[1]}, "
+                              f"{io['action_dim']}) finite actions. Export the policy again.")
         return (a if unit_box else action_from_env(a, io["action_low"], io["action_high"]).astype(np.float32))[None]
 
     t0 = time.perf_counter()
