@@ -161,3 +161,23 @@ def test_npz_headers_are_checked_before_reading(tmp_path):
         z.writestr("observations.npy", _npy_bytes((10, 3), dtype="|O"))
     with pytest.raises(DataFormatError, match="Python objects"):
         _load(objects)
+
+
+def test_minari_bytes_actions_are_exit_2_not_a_traceback(tmp_path, capsys):
+    """A Minari dataset (botorl's writer) whose first episode's actions were replaced by bytes."""
+    import h5py
+
+    from botorl.data.dataset import Dataset
+    from botorl.data.minari_io import write_minari
+
+    n = 6
+    ds = Dataset(np.zeros((n, 3), np.float32), np.zeros((n, 2), np.float32), np.zeros(n, np.float32),
+                 np.zeros((n, 3), np.float32), np.zeros(n, bool), np.arange(n) == n - 1, metadata={"source": "mem"})
+    folder = write_minari(ds, path=tmp_path / "mine-v0")
+    for f in folder.glob("botorl_flat*"):
+        f.unlink()  # read the episodes themselves
+    with h5py.File(folder / "data" / "main_data.hdf5", "a") as f:
+        g = f["episode_0"]
+        del g["actions"]
+        g.create_dataset("actions", data=np.array([b"ab"] * n))
+    assert "cannot be read as numbers" in _info(capsys, folder)
