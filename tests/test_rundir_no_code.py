@@ -210,3 +210,77 @@ def test_a_config_with_a_null_section_is_exit_2(planted, tmp_path, capsys):
     assert botorl_main(["eval", str(d)]) == 2
     err = capsys.readouterr().err
     assert "'network' is null" in err and "Traceback" not in err, err
+
+
+@pytest.mark.slow
+def test_every_case_is_exit_2_within_30_s_under_a_4_gb_address_space(planted, tmp_path):
+    """The issue's bar, measured as a user meets it: each hostile case as its own `botorl`
+    process under `ulimit -v 4000000`, exit 2 within 30 s, no traceback, nothing written outside
+    the directories the case names (the current folder, a canary folder beside them)."""
+    import os
+    import time
+
+    import h5py
+    import numpy as np
+
+    root, marker, runs = planted
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    canary = tmp_path / "canary"
+    canary.mkdir()
+    (canary / "keep").write_text("keep me")
+    huge = tmp_path / "huge"
+    _plant_run(huge, "evilmod:make_env", marker)
+    cfg = json.loads((huge / "config.json").read_text())
+    (huge / "config.json").write_text(json.dumps({**cfg, "env": {**cfg["env"], "max_steps": 10**12}}))
+    null = tmp_path / "null.json"
+    null.write_text(json.dumps({**cfg, "data": None}))
+    fifo = tmp_path / "fifo.hdf5"
+    os.mkfifo(fifo)
+    ext = tmp_path / "ext.hdf5"
+    with h5py.File(ext, "w") as f:
+        for k, shape in (("observations", (5, 3)), ("actions", (5, 2)), ("terminals", (5,))):
+            f.create_dataset(k, data=np.zeros(shape, np.float32))
+        f.create_dataset("rewards", shape=(5,), dtype=np.float32, external=[(str(fifo), 0, 20)])
+    bomb = tmp_path / "bomb.npz"
+    import zipfile
+
+    header = io_header((2**40, 3))
+    with zipfile.ZipFile(bomb, "w") as z:
+        z.writestr("observations.npy", header)
+    d = str(runs["evilmod:make_env"])
+    cases = [
+        ["eval", d], ["resume", d], ["export", d, "--out", str(tmp_path / "p.onnx")],
+        ["eval", str(runs["code:interact"])], ["eval", str(runs["os:_exit"])], ["resume", str(runs["relative"])],
+        ["eval", str(huge), "--env", "evilmod:make_env"],
+        ["run", "--env", "sys:exit", "--data.path", str(bomb), "--env-max-steps", "5", "--out", str(tmp_path / "o1")],
+        ["run", "--config", str(null), "--out", str(tmp_path / "o2")],
+        ["data", "info", str(fifo)], ["data", "info", str(ext)], ["data", "info", str(bomb)],
+        ["export", d, "--out", "/dev/null", "--force"], ["export", d, "--out", "/proc/self/x.onnx"],
+        ["run", "--profile", "smoke", "--network.num-critics", "1000000", "--out", str(tmp_path / "o3")],
+        ["run", "--profile", "smoke", "--data.steps", "1000000000000000", "--out", str(tmp_path / "o4")],
+        ["eval", d, "--episodes", str(10**12)],
+    ]
+    slowest = 0.0
+    for argv in cases:
+        t0 = time.monotonic()
+        p = subprocess.run(["bash", "-c", 'ulimit -v 4000000 && exec "$@"', "bash", sys.executable, "-m", "botorl.cli",
+                            *argv], cwd=cwd, env=_env(), capture_output=True, text=True, timeout=60,
+                           input="print('pwned')\n")
+        took = time.monotonic() - t0
+        slowest = max(slowest, took)
+        assert p.returncode == 2 and took < 30, (argv, p.returncode, took, p.stderr[-2000:])
+        assert "Traceback" not in p.stderr and "pwned" not in p.stdout + p.stderr, (argv, p.stderr[-2000:])
+    assert not marker.exists() and list(cwd.iterdir()) == [] and (canary / "keep").read_text() == "keep me"
+    assert Path("/dev/null").is_char_device() and fifo.is_fifo()
+    print(f"{len(cases)} cases, slowest {slowest:.1f} s")
+
+
+def io_header(shape) -> bytes:
+    import io
+
+    import numpy as np
+
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": "<f4", "fortran_order": False, "shape": shape})
+    return buf.getvalue()
