@@ -103,9 +103,9 @@ def how_to_give(cfg, command: str = "resume") -> str:
     if e.entry is None:
         return (f"register it again in this process with botorl.register_task({cfg.task!r}, make_env, ...) (the "
                 f"script that trained it does), then call botorl from that process")
-    return (f"give its entry point again: `botorl {command} DIR --env {e.entry}` (run from the folder holding its "
-            f"module, or with that folder on PYTHONPATH), or register it in this process with "
-            f"botorl.register_task({cfg.task!r}, ...)")
+    return (f"give its entry point again with --env {e.entry} (`botorl {command} DIR --env {e.entry}`; eval, export "
+            f"and run --config take it too; run from the folder holding its module, or with that folder on "
+            f"PYTHONPATH), or register it in this process with botorl.register_task({cfg.task!r}, ...)")
 
 
 def register_given(cfg, entry: str | None) -> None:

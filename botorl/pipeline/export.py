@@ -345,11 +345,13 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     mods = require("onnx", "onnxruntime", "jax2onnx")  # before any JAX work: a missing extra costs nothing
     setup_jax()
 
+    register_given(cfg, env)
+    if cfg.env.entry is not None and env is None:
+        ensure_task(cfg)  # an entry point the run recorded: the user gives it again (--env) or registers it
     try:  # the task gives the verification its dataset and the contract the env's shapes
-        register_given(cfg, env)
         ensure_task(cfg)
         here = None
-    except BotorlError as err:
+    except BotorlError as err:  # a task registered from a script: standard normal observations
         here = str(err)
     policy = load_policy(run.root, checkpoint=name, deterministic=True)
     state = CheckpointManager(run.checkpoints).state(name)
