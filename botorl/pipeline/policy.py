@@ -92,12 +92,11 @@ def load_agent(run_dir, checkpoint: str | None = None):
 
 def _load(run_dir, checkpoint):
     from botorl.agents import checkpoint as agent_ckpt
+    from botorl.configs.resolve import check_bounds
     from botorl.pipeline import stages as S
 
     setup_jax()
     run, cfg = read_run(run_dir)
-    from botorl.configs.resolve import check_bounds
-
     check_bounds(cfg)  # before any template is built from the config's sizes
     name = check_checkpoint(run, cfg, checkpoint)
     ckpt = CheckpointManager(run.checkpoints)
