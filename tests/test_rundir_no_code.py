@@ -282,3 +282,29 @@ def io_header(shape) -> bytes:
     buf = io.BytesIO()
     np.lib.format.write_array_header_1_0(buf, {"descr": "<f4", "fortran_order": False, "shape": shape})
     return buf.getvalue()
+
+
+def test_the_env_probe_is_bounded_in_steps():
+    """The probe looks for the success key in one episode of random actions: at most PROBE_STEPS
+    steps (and PROBE_SECONDS) whatever the horizon, so an env that never says success cannot hold
+    botorl up."""
+    import gymnasium as gym
+    import numpy as np
+    from gymnasium import spaces
+
+    from botorl.envs import user
+
+    class Silent(gym.Env):
+        observation_space = spaces.Box(-1, 1, (2,), np.float32)
+        action_space = spaces.Box(-1, 1, (1,), np.float32)
+        steps = 0
+
+        def reset(self, *, seed=None, options=None):
+            return np.zeros(2, np.float32), {}
+
+        def step(self, a):
+            Silent.steps += 1
+            return np.zeros(2, np.float32), 0.0, False, False, {}
+
+    task = user.probe(lambda seed: Silent(), 10**7, "success", name="silent")
+    assert Silent.steps == user.PROBE_STEPS and task.success_key is None
