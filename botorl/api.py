@@ -106,16 +106,16 @@ def run(task: str | Any = "pointmaze-umaze", method: str = "boto", profile: str 
 
 
 def resume(run_dir: str | os.PathLike, *, checkpoint: str | None = None, progress: bool = True,
-           allow_pickle: bool = False) -> dict[str, Any]:
-    """``botorl resume RUN_DIR [--from CHECKPOINT] [--no-progress] [--allow-pickle]`` from Python;
-    returns the summary as ``run`` does. A task registered from a script must be registered again
-    first (the same ``register_task`` call); one run from ``--env MODULE:FUNCTION`` is imported again
-    by itself."""
+           allow_pickle: bool = False, env: str | None = None) -> dict[str, Any]:
+    """``botorl resume RUN_DIR [--from CHECKPOINT] [--no-progress] [--allow-pickle] [--env MODULE:FUNCTION]``
+    from Python; returns the summary as ``run`` does. A task of one's own must be registered again
+    in this process first (the same ``register_task`` call), or its entry point given again as
+    ``env`` (the one the run recorded): botorl never imports what a run directory's files name."""
     from botorl.pipeline.cli import resume_main
 
     root = Path(run_dir)
     argv = [str(root)] + (["--from", checkpoint] if checkpoint else []) + ([] if progress else ["--no-progress"]) + \
-        (["--allow-pickle"] if allow_pickle else [])
+        (["--allow-pickle"] if allow_pickle else []) + (["--env", str(env)] if env is not None else [])
     _call(resume_main, argv)
     return _summary(root, population=(root / "population.json").exists())
 

@@ -283,14 +283,24 @@ def test_orphan_of_an_earlier_sweep_is_stopped(tmp_path):
     run_dir = tmp_path / "t1" / "wsrl" / "seed0"
     run_dir.mkdir(parents=True)
     sleeper = [sys.executable, "-c", "import time; time.sleep(120)"]
-    orphan = subprocess.Popen(sleeper + [str(run_dir.resolve())])
+    from botorl.experiments.backend_local import TOKEN_ENV, sweep_token
+
+    token = sweep_token()  # the orphan was started by a sweep: it carries the sweep's token (issue 39)
+    orphan = subprocess.Popen(sleeper + [str(run_dir.resolve())], env={**os.environ, TOKEN_ENV: token})
     stranger = subprocess.Popen(sleeper + ["unrelated"])
+    bystander = subprocess.Popen(sleeper + [str(run_dir.resolve())])  # works on the directory, no sweep started it
     try:
         import socket
 
         from botorl.experiments.backend_local import start_time
 
         host = socket.gethostname()
+        # pid, start time and this directory in its command line: still no proof a sweep started it
+        for tok in (None, token, "0" * 32):
+            write_json_atomic(run_dir / TRIAL_PID, {"pid": bystander.pid, "start": start_time(bystander.pid),
+                                                    "host": host, "token": tok})
+            assert not stop_orphan(run_dir)
+        assert bystander.poll() is None
         write_json_atomic(run_dir / TRIAL_PID, {"pid": stranger.pid, "start": start_time(stranger.pid), "host": host})
         assert not stop_orphan(run_dir)  # a pid that is not this trial's is never touched
         assert stranger.poll() is None
@@ -301,10 +311,13 @@ def test_orphan_of_an_earlier_sweep_is_stopped(tmp_path):
         assert not stop_orphan(run_dir)
         assert orphan.poll() is None
         write_json_atomic(run_dir / TRIAL_PID, {"pid": orphan.pid, "start": start_time(orphan.pid), "host": host})
+        assert not stop_orphan(run_dir)  # no token recorded
+        write_json_atomic(run_dir / TRIAL_PID, {"pid": orphan.pid, "start": start_time(orphan.pid), "host": host,
+                                                "token": token})
         assert stop_orphan(run_dir)
         assert orphan.wait(timeout=20) == -signal.SIGTERM
     finally:
-        for p in (orphan, stranger):
+        for p in (orphan, stranger, bystander):
             if p.poll() is None:
                 p.kill()
                 p.wait()
@@ -326,3 +339,29 @@ def test_relative_pretrained_is_made_absolute_when_the_sweep_starts(tmp_path, mo
     monkeypatch.chdir(tmp_path)
     with pytest.raises(ConfigError, match="pretrained=study/y: no such directory"):
         build_grid(tasks="pointmaze-umaze", methods="wsrl", seeds="0", overrides=["pretrained=study/y"])
+
+
+def test_a_bystander_listed_in_sweep_json_survives_the_sweep(tmp_path, fake):
+    """Issue 39: sweep.json's ``ray_local_processes`` (and a trial's pid file) listing a live process
+    of this user's with its real start time, whatever the backend: the sweep stops nothing it did
+    not start (the process carries no token of a sweep)."""
+    import socket
+
+    from botorl.experiments.backend_local import TRIAL_PID, start_time
+
+    bystander = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    try:
+        out = tmp_path / "sw"
+        out.mkdir()
+        rec = {"pid": bystander.pid, "start": start_time(bystander.pid)}
+        (out / "sweep.json").write_text(json.dumps({"ray_local_processes": [rec, {**rec, "token": "f" * 32}]}))
+        run_dir = out / "t1" / "wsrl" / "seed0"
+        run_dir.mkdir(parents=True)
+        (run_dir / TRIAL_PID).write_text(json.dumps({**rec, "host": socket.gethostname(), "token": "f" * 32}))
+        grid = build_grid(tasks="t1", methods="wsrl", seeds="0")
+        Sweep(grid, SweepOptions(out=out, backend="sequential", command=fake, progress=False)).run()
+        assert json.loads((run_dir / "summary.json").read_text())["status"] == "finished"
+        assert bystander.poll() is None
+    finally:
+        bystander.kill()
+        bystander.wait()

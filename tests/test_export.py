@@ -269,7 +269,8 @@ def own(tmp_path_factory):
                   "--profile", "smoke", "--offline.steps", "1000", "--no-progress", "--no-tensorboard", "--out", run,
                   cwd=d)
     assert res.returncode == 0, res.stderr[-3000:]
-    res = _botorl("export", run, "--out", d / "policy.onnx", cwd=d)
+    # a task of one's own is given again with --env (issue 39: nothing is imported from config.json)
+    res = _botorl("export", run, "--out", d / "policy.onnx", "--env", "mytask:make_env", cwd=d)
     assert res.returncode == 0, res.stderr[-3000:]
     return d, run
 
@@ -281,8 +282,8 @@ def test_own_task_contract_and_eval_policy(own):
         ("goal", 0, 2), ("position", 2, 2)]
     assert contract["action"]["high"] == pytest.approx([0.1, 0.1])
     assert contract["verification"]["source"] == "dataset" and contract["verification"]["max_abs_gap"] <= 1e-5
-    a = _botorl("eval", run, "--episodes", "6", cwd=d)
-    b = _botorl("eval", run, "--episodes", "6", "--policy", d / "policy.onnx", cwd=d)
+    a = _botorl("eval", run, "--episodes", "6", "--env", "mytask:make_env", cwd=d)
+    b = _botorl("eval", run, "--episodes", "6", "--policy", d / "policy.onnx", "--env", "mytask:make_env", cwd=d)
     assert a.returncode == 0 and b.returncode == 0, a.stderr[-2000:] + b.stderr[-2000:]
     ckpt, onnx = _eval_json(run, "eval-finetune-final.json"), _eval_json(run, "eval-policy-onnx.json")
     assert ckpt["success"] > 0.5  # the policy reaches the goal, so equal success is a real check
@@ -312,3 +313,61 @@ def test_docs_loop_runs_without_botorl(own):
     res = subprocess.run([sys.executable, "-c", guard + loop], cwd=d, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert re.search(r"success 1\.0 steps \d+", res.stdout), res.stdout
+
+
+# ------------------------------------------------------------------ issue 39: a model is checked before it runs
+def _onnx_model(path: Path, nodes, initializers, out_dim: int, graphs_in=()) -> Path:
+    from onnx import TensorProto, helper, numpy_helper
+
+    graph = helper.make_graph(
+        nodes, "policy", [helper.make_tensor_value_info(E.INPUT_NAME, TensorProto.FLOAT, ["batch", 4])],
+        [helper.make_tensor_value_info(E.OUTPUT_NAME, TensorProto.FLOAT, ["batch", out_dim])],
+        [numpy_helper.from_array(np.asarray(v), k) for k, v in initializers.items()])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    path.write_bytes(model.SerializeToString())
+    return path
+
+
+def test_eval_policy_checks_the_model_before_and_while_it_runs(umaze, exported, tmp_path, capsys):
+    """A model whose output width differs, that fails at run time, that gives NaN, that loops 2**62
+    times, or whose contract's shapes or bounds disagree: exit 2 with a message, never a traceback
+    or a hang."""
+    from onnx import TensorProto, helper
+
+    mm = lambda w: [helper.make_node("MatMul", [E.INPUT_NAME, "w"], [E.OUTPUT_NAME])]  # noqa: E731
+    wide = _onnx_model(tmp_path / "wide.onnx", mm(None), {"w": np.zeros((4, 3), np.float32)}, 3)
+    fails = _onnx_model(tmp_path / "fails.onnx",
+                        [helper.make_node("Reshape", [E.INPUT_NAME, "s"], [E.OUTPUT_NAME])],
+                        {"s": np.array([-1, 7], np.int64)}, 2)
+    nan = _onnx_model(tmp_path / "nan.onnx", mm(None), {"w": np.full((4, 2), np.nan, np.float32)}, 2)
+    body = helper.make_graph([helper.make_node("Identity", ["c"], ["c_out"])], "body",
+                             [helper.make_tensor_value_info("i", TensorProto.INT64, []),
+                              helper.make_tensor_value_info("c", TensorProto.BOOL, [])],
+                             [helper.make_tensor_value_info("c_out", TensorProto.BOOL, [])])
+    loop = _onnx_model(tmp_path / "loop.onnx",
+                       [helper.make_node("Loop", ["n", "cond"], [], body=body),
+                        helper.make_node("MatMul", [E.INPUT_NAME, "w"], [E.OUTPUT_NAME])],
+                       {"n": np.array(2**62, np.int64), "cond": np.array(True), "w": np.zeros((4, 2), np.float32)}, 2)
+    for model, words in ((wide, "gives 3 action values"), (fails, "failed on observations"),
+                         (nan, "with NaN/inf"), (loop, "control-flow operator(s) Loop")):
+        assert cli_main(["eval", str(umaze), "--policy", str(model), "--episodes", "1"]) == 2, model
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err, (model, err)
+    # a contract that agrees in sha256 but not in shapes or bounds
+    contract = json.loads(E.contract_path(exported).read_text())
+    for key, value, words in ((("action", "high"), [2.0, 2.0], "action high [2.0, 2.0] in the contract"),
+                              (("output", "shape"), ["batch", 3], "output width ['batch', 3] in the contract")):
+        copy = tmp_path / f"{key[0]}.onnx"
+        shutil.copy(exported, copy)
+        c = json.loads(json.dumps(contract))
+        c[key[0]][key[1]] = value
+        E.contract_path(copy).write_text(json.dumps(c))
+        assert cli_main(["eval", str(umaze), "--policy", str(copy), "--episodes", "1"]) == 2
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err, err
+    fifo = tmp_path / "fifo.onnx"
+    import os
+
+    os.mkfifo(fifo)
+    assert cli_main(["eval", str(umaze), "--policy", str(fifo)]) == 2
+    assert "not a regular file" in capsys.readouterr().err

@@ -283,15 +283,20 @@ def test_cli_entry_point_kill_resume_eval_policy(work, tmp_path):
     assert cfg["env"]["path"] == str(cwd.resolve()) and cfg["data"]["path"] == str((cwd / "logged.npz").resolve())
     assert cfg["env"]["obs_keys"] == ["goal", "position"] and cfg["env"]["action_high"] == pytest.approx([0.1, 0.1])
 
-    # resumed from another folder: the entry point is imported again by name from the recorded folder
+    # resumed from another folder: the entry point is given again with --env (issue 39: botorl never
+    # imports what config.json names, nor puts its recorded folder on sys.path), found on PYTHONPATH
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
-    res = subprocess.run([sys.executable, "-m", "botorl.cli", "resume", str(out), "--no-progress"], cwd=elsewhere,
-                         env=_env(), capture_output=True, text=True, timeout=420)
+    bare = subprocess.run([sys.executable, "-m", "botorl.cli", "resume", str(out), "--no-progress"], cwd=elsewhere,
+                          env=_env(), capture_output=True, text=True, timeout=120)
+    assert bare.returncode == 2 and "--env mytask:make_env" in bare.stderr, bare.stderr[-2000:]
+    user_env = {**_env(), "PYTHONPATH": f"{cwd}:{_env().get('PYTHONPATH', '')}"}
+    res = subprocess.run([sys.executable, "-m", "botorl.cli", "resume", str(out), "--no-progress", "--env",
+                          "mytask:make_env"], cwd=elsewhere, env=user_env, capture_output=True, text=True, timeout=420)
     assert res.returncode == 0, res.stderr[-3000:]
     assert json.loads((out / "summary.json").read_text())["status"] == "finished"
-    ev = subprocess.run([sys.executable, "-m", "botorl.cli", "eval", str(out), "--episodes", "2"], cwd=elsewhere,
-                        env=_env(), capture_output=True, text=True, timeout=300)
+    ev = subprocess.run([sys.executable, "-m", "botorl.cli", "eval", str(out), "--episodes", "2", "--env",
+                         "mytask:make_env"], cwd=elsewhere, env=user_env, capture_output=True, text=True, timeout=300)
     assert ev.returncode == 0 and "success" in ev.stdout, ev.stderr[-3000:]
 
     # the policy in a process that registers nothing and cannot import mytask
@@ -315,6 +320,6 @@ def test_cli_entry_point_kill_resume_eval_policy(work, tmp_path):
     (cwd / "mytask.py").rename(cwd / "mytask_moved.py")
     sys.modules.pop("mytask", None)
     (out / "summary.json").write_text(json.dumps({**json.loads((out / "summary.json").read_text()), "status": "running"}))
-    gone = subprocess.run([sys.executable, "-m", "botorl.cli", "resume", str(out), "--no-progress"], cwd=elsewhere,
-                          env=_env(), capture_output=True, text=True, timeout=120)
+    gone = subprocess.run([sys.executable, "-m", "botorl.cli", "resume", str(out), "--no-progress", "--env",
+                           "mytask:make_env"], cwd=elsewhere, env=user_env, capture_output=True, text=True, timeout=120)
     assert gone.returncode == 2 and "cannot import module 'mytask'" in gone.stderr, gone.stderr[-2000:]

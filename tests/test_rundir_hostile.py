@@ -57,19 +57,27 @@ def test_ray_cleanup_deletes_and_signals_only_what_it_recorded(tmp_path):
     link.rmdir()
     link.symlink_to(victim)
     needle = f"{ray_dir}/../..{victim}"
+    from botorl.experiments.backend_local import TOKEN_ENV, start_time, sweep_token
+
     bystander = subprocess.Popen(SLEEPER + [needle, str(link)])  # mentions both strings
-    recorded = subprocess.Popen(SLEEPER)
+    # the process an earlier sweep started carries that sweep's secret token (issue 39)
+    token = sweep_token()
+    recorded = subprocess.Popen(SLEEPER, env={**os.environ, TOKEN_ENV: token})
     try:
+        # issue 39: the bystander's real pid and start time (world-readable in /proc), with or
+        # without a token, are no order to stop it
+        real = {"pid": bystander.pid, "start": start_time(bystander.pid)}
         for manifest in ({"ray_local_temp_dir": needle}, {"ray_local_temp_dir": str(link)},
                          {"ray_local_temp_dir": str(victim)}, {"ray_local_temp_dir": ["/tmp"]},
                          {"ray_local_processes": [{"pid": bystander.pid, "start": 1}, {"pid": bystander.pid},
-                                                  "x", {"pid": 1, "start": 0}, {"pid": os.getpid(), "start": 0}]}):
+                                                  "x", {"pid": 1, "start": 0}, {"pid": os.getpid(), "start": 0}]},
+                         {"ray_local_processes": [real, {**real, "token": token}, {**real, "token": "0" * 32}]}):
             cleanup_previous(manifest)
             assert (victim / "data").read_text() == "keep me", manifest
             assert bystander.poll() is None, manifest
         assert link.is_symlink()
         # control: the dir and the process the earlier sweep did record go
-        cleanup_previous({"ray_local_temp_dir": ray_dir, "ray_local_processes": [process_record(recorded.pid)]})
+        cleanup_previous({"ray_local_temp_dir": ray_dir, "ray_local_processes": [process_record(recorded.pid, token)]})
         assert not Path(ray_dir).exists()
         assert recorded.wait(timeout=20) != 0
         assert bystander.poll() is None
@@ -248,6 +256,63 @@ def test_another_runs_checkpoints_are_refused(two_seeds, tmp_path, capsys):
     assert botorl_main(["eval", str(_copy_run(two_seeds / "s0", tmp_path / "own")), "--episodes", "1"]) == 0
 
 
+def test_export_and_load_policy_refuse_another_runs_checkpoints(two_seeds, tmp_path, capsys):
+    """Issue 39: seed 1's checkpoints in seed 0's run were exported with a contract saying seed 0
+    and loaded by load_policy; both check the identity as eval does."""
+    import botorl
+
+    d = _copy_run(two_seeds / "s0", tmp_path / "s0")
+    shutil.rmtree(d / "checkpoints")
+    shutil.copytree(two_seeds / "s1" / "checkpoints", d / "checkpoints")
+    out = tmp_path / "policy.onnx"
+    assert botorl_main(["export", str(d), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "belongs to another run" in err and "seed 1 in the checkpoint, 0 in the config" in err, err
+    assert not out.exists()
+    for load in (botorl.load_policy, botorl.load_agent):
+        with pytest.raises(BotorlError, match="belongs to another run"):
+            load(d)
+    # control: the run's own checkpoints load
+    assert botorl.load_policy(two_seeds / "s0").obs_dim > 0
+
+
+def test_a_run_whose_data_changed_is_refused(tmp_path, capsys):
+    """Issue 39: data.path and the data's size and sha256 are part of the identity every checkpoint
+    records; eval and resume refuse a run whose data changed (or whose config.json names other
+    data), before the data are loaded."""
+    from dataclasses import replace
+
+    from botorl.configs.schema import to_dict
+    from botorl.pipeline.checkpoint import full_identity
+
+    data = tmp_path / "logged.npz"
+    data.write_bytes(b"the data the run was trained on")
+    cfg = _smoke_config()
+    cfg = replace(cfg, data=replace(cfg.data, path=str(data)))
+    d = tmp_path / "run"
+    d.mkdir()
+    (d / "config.json").write_text(json.dumps(to_dict(cfg)))
+    ck = d / "checkpoints" / "pretrain-final"
+    ck.mkdir(parents=True)
+    (ck / "state.json").write_text(json.dumps({"stage": "pretrain", "stage_done": True, "step": None,
+                                               "done_stages": ["pretrain"], "stage_seconds": {},
+                                               "identity": [full_identity(cfg)]}))
+    # control: the same data pass the identity (eval then goes on to load them, which this file is not)
+    assert botorl_main(["eval", str(d), "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "belongs to another run" not in err and "reads a Minari dataset" in err, err
+    data.write_bytes(b"other data, same path")
+    for cmd in (["eval", str(d), "--episodes", "1"], ["resume", str(d), "--no-progress"]):
+        assert botorl_main(cmd) == 2
+        err = capsys.readouterr().err
+        assert "the data changed since the run started" in err and "Traceback" not in err, err
+    # config.json pointed at other data (a FIFO here): refused, never opened
+    os.mkfifo(tmp_path / "fifo.hdf5")
+    _edit(d / "config.json", lambda c: c["data"].update(path=str(tmp_path / "fifo.hdf5")))
+    assert botorl_main(["resume", str(d), "--no-progress"]) == 2
+    assert "not a regular file" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("field,value,words", [
     ("seed", 1, "seed 0 in the checkpoint, 1 in the config"),
     ("alpha", 0.5, "alpha -1.0 in the checkpoint, 0.5 in the config"),
@@ -293,6 +358,15 @@ def test_a_checkpoint_without_identity_is_accepted_with_a_warning(two_seeds, tmp
     (["--offline.batch-size", "1000000", "--offline.updates-per-call", "100000"], "more than this machine's"),
     (["--network.critic-hidden-dims", "100000000"], "at most 65,536 units"),
     (["--online.buffer-capacity", "5"], "must hold the warm-up's"),
+    # issue 39: the counts the size checks missed
+    (["--network.num-critics", "1000000"], "--network.num_critics = 1000000 is invalid: give at most 1,024"),
+    (["--offline.cql.cql-n-actions", "1000000000"], "--offline.cql.cql_n_actions = 1000000000 is invalid"),
+    (["--offline.cql.num-backup-actions", "1000000000"], "--offline.cql.num_backup_actions = 1000000000 is invalid"),
+    (["--online.sac.num-backup-actions", "1000000000"], "--online.sac.num_backup_actions = 1000000000 is invalid"),
+    (["--data.steps", "1000000000000000"], "--data.steps = 1000000000000000 is invalid: give at most"),
+    (["--network.critic-hidden-dims", "1000000000"], "at most 65,536 units"),
+    (["--network.actor-hidden-dims", *["8"] * 65], "1 to 64 layers"),
+    (["--data.action-tolerance", "nan"], "--data.action-tolerance = nan is invalid"),
 ])
 def test_sizes_are_refused_before_anything_is_built(tmp_path, capsys, args, words):
     import resource
@@ -674,3 +748,20 @@ def test_ctrl_c_during_shutdown_exits_130_quietly():
     assert res.returncode == 130, (res.returncode, res.stderr[-2000:])
     assert "Traceback" not in res.stderr and "KeyboardInterrupt" not in res.stderr, res.stderr[-2000:]
     assert res.stdout.strip()  # the version was printed and flushed
+
+
+def test_export_replaces_only_a_regular_file(tmp_path, capsys):
+    """Issue 39: `export --out /dev/null --force` replaced the device with a regular file (as root);
+    a FIFO, a link or a folder at --out is refused too, and so is a folder that cannot be written
+    (/proc/self), all before any work."""
+    d = _crafted_run(tmp_path / "run")
+    fifo = tmp_path / "fifo.onnx"
+    os.mkfifo(fifo)
+    target = _link_to_precious(tmp_path, tmp_path / "link.onnx")
+    for out, words in (("/dev/null", "not a regular file"), (str(fifo), "not a regular file"),
+                       (str(tmp_path / "link.onnx"), "a link"), (str(tmp_path), "is a folder"),
+                       ("/proc/self/x.onnx", "cannot be written")):
+        assert botorl_main(["export", str(d), "--out", out, "--force"]) == 2, out
+        err = capsys.readouterr().err
+        assert words in err and "Traceback" not in err, (out, err)
+    assert Path("/dev/null").is_char_device() and fifo.is_fifo() and target.read_text() == "keep me"

@@ -173,19 +173,20 @@ def _load_config(argv: list[str]):
     --no-progress; validated again."""
     from dataclasses import replace
 
-    from botorl.configs.resolve import validate
+    from botorl.configs.custom import register_given
+    from botorl.configs.resolve import check_bounds, validate
     from botorl.configs.schema import RunConfig, from_dict, to_dict
     from botorl.io import read_json_bounded
 
     p = argparse.ArgumentParser(prog="botorl run", add_help=False, allow_abbrev=False)
-    for flag in ("--config", "--out", "--pretrained"):
+    for flag in ("--config", "--out", "--pretrained", "--env"):
         p.add_argument(flag)
     p.add_argument("--no-progress", action="store_true")
     ns, rest = p.parse_known_args(argv)
     if rest:
         others = [a.split("=", 1)[0] for a in rest if a.startswith("-")] or rest
         raise ConfigError(f"--config {ns.config} holds the whole config; {', '.join(others)} cannot go with it (only "
-                          f"--out, --pretrained and --no-progress can). Drop them, or give the flags without --config.")
+                          f"--out, --pretrained, --env and --no-progress can). Drop them, or give the flags without --config.")
     try:
         data = read_json_bounded(ns.config)
         cfg = from_dict(RunConfig, data)
@@ -196,5 +197,7 @@ def _load_config(argv: list[str]):
                           f"(`botorl sweep` writes one per trial).") from None
     cfg = replace(cfg, out=ns.out or cfg.out, pretrained=ns.pretrained or cfg.pretrained,
                   progress=cfg.progress and not ns.no_progress)
+    check_bounds(cfg)
+    register_given(cfg, ns.env)  # a task of one's own: only from the user's --env, never from the file
     validate(cfg)
     return cfg

@@ -1,7 +1,12 @@
 """A task of the user's own in a run's config (docs/own-task.md): ``expand_argv`` registers the
-task of ``botorl run --env MODULE:FUNCTION ...`` and names it with ``--task``; ``ensure_task``
-(called by ``validate``) registers a recorded one again by name when a run directory is read
-back, and checks that its env is still the one the run was trained on.
+task of ``botorl run --env MODULE:FUNCTION ...`` and names it with ``--task``; ``register_given``
+registers a recorded one again when a run directory is read back, from the entry point the user
+gives again (``--env``), and ``ensure_task`` (called by ``validate``) checks that its env is still
+the one the run was trained on.
+
+A run directory is data (docs/reliability.md): the entry point and folder its config.json
+records are never imported, called or put on ``sys.path``; only an entry the user typed (checked
+equal to the recorded one) or a ``botorl.register_task`` of the calling process makes the env.
 """
 
 from __future__ import annotations
@@ -84,45 +89,69 @@ def expand_argv(argv: list[str]) -> list[str]:
 
 def register_entry(name: str, entry: str, data: str, max_steps: int, *, success_key: str | None = "success",
                    key_given: bool = False, domain: str | None = None, reward_scale: float = 1.0,
-                   reward_bias: float = 0.0, path: str | None = None, ref_min_score: float | None = None,
-                   ref_max_score: float | None = None):
-    """Import ``entry``, look at its env and register the task ``name`` reading ``data`` (the file
-    is read when the run loads its data). Returns the TaskSpec."""
+                   reward_bias: float = 0.0, ref_min_score: float | None = None, ref_max_score: float | None = None):
+    """Import ``entry`` (one the user gave, never one a file names), look at its env and register
+    the task ``name`` reading ``data`` (the file is read when the run loads its data). Returns the
+    TaskSpec."""
     from botorl.envs import registry
     from botorl.envs.user import import_entry, make_spec, probe
 
-    make_env, found = import_entry(entry, path)
+    make_env, found = import_entry(entry)
     task = probe(make_env, max_steps, success_key, name=name, key_given=key_given)
-    task = replace(task, entry=entry, path=found or path)
+    task = replace(task, entry=entry, path=found)
     return registry.register(make_spec(name, make_env, task, max_episode_steps=max_steps, domain=domain,
                                        reward_scale=reward_scale, reward_bias=reward_bias, data_ref=data,
                                        ref_min_score=ref_min_score, ref_max_score=ref_max_score))
 
 
+def how_to_give(cfg, command: str = "resume") -> str:
+    """How the user gives a run's own task again (for messages)."""
+    e = cfg.env
+    if e.entry is None:
+        return (f"register it again in this process with botorl.register_task({cfg.task!r}, make_env, ...) (the "
+                f"script that trained it does), then call botorl from that process")
+    return (f"give its entry point again with --env {e.entry} (`botorl {command} DIR --env {e.entry}`; eval, export "
+            f"and run --config take it too; run from the folder holding its module, or with that folder on "
+            f"PYTHONPATH), or register it in this process with botorl.register_task({cfg.task!r}, ...)")
+
+
+def register_given(cfg, entry: str | None) -> None:
+    """Register a run's own task from ``entry``, the ``--env MODULE:FUNCTION`` the user gave again
+    (None: nothing to do). It must be the entry the run recorded: the user says which code runs,
+    the run directory only which code it expects."""
+    from botorl.envs import registry
+
+    if entry is None:
+        return
+    e = cfg.env
+    if e.max_steps is None:
+        raise ConfigError(f"--env {entry}: this run's task {cfg.task!r} is one of botorl's, not a task of your own; "
+                          f"drop --env.")
+    if e.entry is None or str(entry) != e.entry:
+        raise ConfigError(f"--env {entry}: this run was trained on the entry point {e.entry!r} (its config.json "
+                          f"says); give that one, or start a new run with `botorl run --env {entry} ...`.")
+    if registry.is_registered(cfg.task):
+        return  # botorl.register_task in this process already made it; ensure_task compares the envs
+    if not cfg.data.path:
+        raise ConfigError(f"task {cfg.task!r}: its data were given in memory to botorl.register_task; register the "
+                          f"task again in this process (then botorl.resume(DIR)), or register a data file instead.")
+    register_entry(cfg.task, entry, cfg.data.path, e.max_steps, success_key=e.success_key, domain=e.domain,
+                   reward_scale=e.reward_scale, reward_bias=e.reward_bias,
+                   ref_min_score=cfg.metric.ref_min_score, ref_max_score=cfg.metric.ref_max_score)
+
+
 def ensure_task(cfg) -> None:
-    """A run's task of one's own, registered again from its recorded entry point when this
-    process does not have it; a ConfigError when it cannot be, or when its env changed."""
+    """A ConfigError unless a run's task of one's own is registered in this process (by
+    ``register_given`` from the user's ``--env``, or by ``botorl.register_task``) with the env the
+    run was trained on. Nothing a file names is imported here."""
     from botorl.envs import registry
 
     e = cfg.env
     if e.max_steps is None:
         return  # one of botorl's tasks
     if not registry.is_registered(cfg.task):
-        if e.entry is None:
-            raise ConfigError(
-                f"task {cfg.task!r} was registered from Python (botorl.register_task) with a make_env that cannot be "
-                f"imported by name (defined in a script). Register it again in this process (run the script's "
-                f"register_task), then resume with botorl.resume(DIR); or define make_env in a module so that "
-                f"`botorl resume` imports it."
-            )
-        if not cfg.data.path:
-            raise ConfigError(
-                f"task {cfg.task!r}: its data were given in memory to botorl.register_task; register the task again "
-                f"in this process (then botorl.resume(DIR)), or register a data file instead."
-            )
-        register_entry(cfg.task, e.entry, cfg.data.path, e.max_steps, success_key=e.success_key, domain=e.domain,
-                       reward_scale=e.reward_scale, reward_bias=e.reward_bias, path=e.path,
-                       ref_min_score=cfg.metric.ref_min_score, ref_max_score=cfg.metric.ref_max_score)
+        raise ConfigError(f"task {cfg.task!r} is a task of your own, and botorl does not import or call code a run "
+                          f"directory names (its config.json is data); {how_to_give(cfg)}.")
     u = registry.get_task(cfg.task).user
     if u is None:
         return

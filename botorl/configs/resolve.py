@@ -98,6 +98,55 @@ POSITIVE = ("offline.batch_size", "offline.updates_per_call", "offline.log_every
 MAX_BATCH = 1 << 20  # rows of one batch: 4096x the paper's 256
 MAX_WIDTH = 1 << 16  # units of one hidden layer
 
+# Counts a config (a file in a run directory, or a typo) could make unbounded, each with its cap:
+# checked by ``check_bounds`` before the task is made, any data read or anything allocated. The
+# caps are far above any setting the papers use (256-unit layers, 10 critics, 10 sampled actions,
+# 1M steps); they stop a value that would only hang or exhaust memory.
+BOUNDS = {
+    "network.num_critics": 1024,  # SAC-N's largest ensemble is 500
+    "offline.cql.cql_n_actions": 1024,
+    "offline.cql.num_backup_actions": 1024,
+    "online.sac.num_backup_actions": 1024,
+    "offline.steps": 10**12,
+    "warmup.steps": 10**12,
+    "boto.boto_steps": 10**12,
+    "online.steps": 10**12,
+    "online.random_steps": 10**12,
+    "data.steps": 10**9,  # rows a generator makes
+    "eval.episodes": 10**6,
+    "eval.num_envs": 1024,
+    "env.max_steps": 10**7,  # an episode's horizon
+    "env.obs_dim": 1 << 20,  # a task of one's own: the policy's input and output widths
+    "env.action_dim": 1 << 16,
+    "checkpoint_every": 10**12,
+}
+MAX_DEPTH = 64  # hidden layers of one network
+
+
+def check_bounds(cfg: RunConfig) -> None:
+    """ConfigError for a count or size beyond its cap (``BOUNDS``, ``MAX_WIDTH``, ``MAX_DEPTH``),
+    or of the wrong type; needs no task, data or JAX, so it runs first on a config read back from
+    a run directory."""
+    for name, cap in BOUNDS.items():
+        v = _at(cfg, name)
+        if v is None and name.startswith(("data.steps", "env.")):
+            continue
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise ConfigError(f"--{name} = {v!r} is invalid: give an integer.")
+        if v > cap:  # too small a value is ``validate``'s, with its own message
+            raise ConfigError(f"--{name} = {v!r} is invalid: give at most {cap:,} (a larger value would only "
+                              f"exhaust time or memory).")
+    for name in ("network.actor_hidden_dims", "network.critic_hidden_dims"):
+        dims = _at(cfg, name)
+        if not isinstance(dims, (list, tuple)) or not 1 <= len(dims) <= MAX_DEPTH or not all(
+                isinstance(d, int) and not isinstance(d, bool) and 1 <= d <= MAX_WIDTH for d in dims):
+            raise ConfigError(f"--{name} = {dims!r} is invalid: give positive layer widths, e.g. 256 256, 1 to "
+                              f"{MAX_DEPTH} layers; a layer is at most {MAX_WIDTH:,} units wide.")
+    tol = cfg.data.action_tolerance
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol >= 0:  # NaN too
+        raise ConfigError(f"--data.action-tolerance = {tol!r} is invalid: give a number >= 0 (the largest "
+                          f"|action| - 1 accepted in the data; inf accepts any).")
+
 
 def machine_memory() -> int:
     """Bytes of physical memory (0 when the system does not say)."""
@@ -154,7 +203,8 @@ def validate(cfg: RunConfig) -> None:
     from botorl.configs.presets import PROFILES
     from botorl.configs.methods import get_method
 
-    ensure_task(cfg)  # a task of one's own read back from config.json: imported again by name
+    check_bounds(cfg)
+    ensure_task(cfg)  # a task of one's own: registered in this process (never imported from the file)
 
     method = get_method(cfg.method)
     if cfg.profile not in PROFILES:

@@ -57,7 +57,8 @@ class EnvConfig:
     entry: str | None = None
     """MODULE:FUNCTION, imported again by name (never unpickled); None: make_env was defined in a script."""
     path: str | None = None
-    """The folder ``entry``'s module was found in, put on sys.path again to import it."""
+    """The folder ``entry``'s module was found in: for the user's information only, never put on sys.path
+    (a run directory is data; ``--env`` gives the entry again)."""
     max_steps: int | None = None
     """The episode length limit (--env-max-steps); None: botorl's own task."""
     success_key: str | None = None
@@ -282,6 +283,11 @@ def to_dict(cfg: Any) -> Any:
 def from_dict(cls: type, data: dict[str, Any]) -> Any:
     """Rebuild a (nested) config dataclass from ``to_dict`` output; unknown keys are ignored."""
     hints = typing.get_type_hints(cls)
+    if not isinstance(data, Mapping):
+        raise TypeError(f"{cls.__name__} needs a JSON object, not {type(data).__name__}")
+    for f in dataclasses.fields(cls):  # a section set to null ("data": null) is no config
+        if f.name in data and data[f.name] is None and dataclasses.is_dataclass(hints[f.name]):
+            raise TypeError(f"{f.name!r} is null; it must be an object")
     return cls(**{f.name: _convert(hints[f.name], data[f.name]) for f in dataclasses.fields(cls) if f.name in data})
 
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from botorl.data.dataset import Dataset, validate
 from botorl.data.minari_io import SPLIT_KEY, FlatCacheInvalid, minari_root, read_flat, rebuild_flat
+from botorl.data.safe import check_hdf5, check_npz, regular_file
 from botorl.envs.adroit import DOOR_SUCCESS_ANGLE
 from botorl.envs.user import flatten_obs, obs_keys_of
 from botorl.errors import ConfigError, DataFormatError, DatasetNotFoundError
@@ -72,6 +73,8 @@ def _require_file(path: str | os.PathLike, what: str) -> Path:
     p = Path(path).expanduser()
     if not p.exists():
         raise dataset_not_found(str(p), [p], f"Check the path of the {what} file.")
+    if not p.is_dir():
+        regular_file(p, f"{what} file")  # a FIFO or device is never opened (it would hang or never end)
     return p
 
 
@@ -145,21 +148,26 @@ def load_d4rl_hdf5(
             "datasets observations, actions, rewards, terminals; re-download it."
         ) from None
     with f:
+        check_hdf5(f, p)  # external storage or links could read any file, or hang on a FIFO
         missing = [k for k in ("observations", "actions", "rewards", "terminals") if k not in f]
         if missing:
             raise DataFormatError(
                 f"{p}: missing D4RL field(s) {missing} (found {sorted(f.keys())}). A D4RL file "
                 "needs observations, actions, rewards, terminals (and usually timeouts)."
             )
-        obs = np.asarray(f["observations"], np.float32)
-        act = np.asarray(f["actions"], np.float32)
-        if actions_to_unit is not None:
-            act = np.asarray(actions_to_unit(act), np.float32)
-        rew = np.asarray(f["rewards"], np.float32).reshape(-1)
-        term = np.asarray(f["terminals"]).reshape(-1).astype(bool)
-        tout = np.asarray(f["timeouts"]).reshape(-1).astype(bool) if "timeouts" in f else None
-        key = next((k for k in ("infos/success", "infos/goal_achieved") if k in f), None)
-        success = None if key is None else np.asarray(f[key]).reshape(-1).astype(np.float32)
+        try:
+            obs = np.asarray(f["observations"], np.float32)
+            act = np.asarray(f["actions"], np.float32)
+            if actions_to_unit is not None:
+                act = np.asarray(actions_to_unit(act), np.float32)
+            rew = np.asarray(f["rewards"], np.float32).reshape(-1)
+            term = np.asarray(f["terminals"]).reshape(-1).astype(bool)
+            tout = np.asarray(f["timeouts"]).reshape(-1).astype(bool) if "timeouts" in f else None
+            key = next((k for k in ("infos/success", "infos/goal_achieved") if k in f), None)
+            success = None if key is None else np.asarray(f[key]).reshape(-1).astype(np.float32)
+        except (ValueError, TypeError, OSError, AttributeError) as err:  # bytes where numbers belong, a group
+            raise DataFormatError(f"{p}: a D4RL field cannot be read as numbers ({type(err).__name__}: {err}); "
+                                  f"observations, actions, rewards, terminals must be numeric datasets.") from None
     n = obs.shape[0]
     lens = {k: v.shape[0] for k, v in (("observations", obs), ("actions", act), ("rewards", rew), ("terminals", term),
                                        ("timeouts", tout)) if v is not None}
@@ -218,18 +226,56 @@ def _minari_episodes(mds, data_path: Path):
             return
         import h5py
 
+        regular_file(main, "Minari data file")
         with h5py.File(main, "r") as f:
+            check_hdf5(f, main)
             names = sorted((k for k in f.keys() if k.startswith("episode_")), key=lambda k: int(k.split("_")[1]))
             for name in names:
                 g = f[name]
                 yield int(name.split("_")[1]), {
                     "observations": _h5_tree(g["observations"]), "infos": _h5_tree(g["infos"]) if "infos" in g else {},
                     **{k: g[k][()] for k in ("actions", "rewards", "terminations")}}
+    except DataFormatError:
+        raise
     except Exception as err:
         raise DataFormatError(
             f"{main} cannot be read ({type(err).__name__}: {err}); the file is truncated "
             "or damaged. Regenerate it (`botorl data generate TASK --overwrite`) or download the dataset again."
         ) from None
+
+
+def _minari_rows(mds, data_path: Path, obs_keys, actions_to_unit, success_info_key: str) -> list[dict]:
+    """Each episode of a Minari dataset as rows (``_join_episodes``'s input)."""
+    episodes = []
+    for ep_id, ep in _minari_episodes(mds, data_path):
+        obs = ep["observations"]
+        keys = obs_keys_of(obs) if obs_keys is None or not isinstance(obs, dict) else tuple(obs_keys)
+        try:
+            o = flatten_obs(obs, keys, batched=True)
+        except ConfigError:
+            raise DataFormatError(f"{data_path}: observation keys {list(keys)} are not all in the dataset's dict "
+                                  f"observations ({obs_keys_of(obs)}); check obs_keys.") from None
+        t = len(ep["rewards"])
+        actions = np.asarray(ep["actions"], np.float32)
+        if actions_to_unit is not None:
+            actions = np.asarray(actions_to_unit(actions), np.float32)
+        if o.shape[0] != t + 1 or actions.shape[0] != t:
+            raise DataFormatError(
+                f"{data_path}: episode {ep_id} has {o.shape[0]} observations and "
+                f"{actions.shape[0]} actions for {t} rewards (expected T + 1, T, T)."
+            )
+        if t == 0:
+            continue
+        info = ep["infos"] if isinstance(ep["infos"], dict) else {}
+        end = np.zeros(t, bool)
+        # botorl's writer splits an episode where it is not continuous; join it back.
+        end[-1] = not (SPLIT_KEY in info and np.asarray(info[SPLIT_KEY]).reshape(-1)[-1] > 0)
+        episodes.append({"observations": o[:-1], "next_observations": o[1:], "actions": actions.reshape(t, -1),
+                         "rewards": np.asarray(ep["rewards"], np.float32).reshape(t),
+                         "terminals": np.asarray(ep["terminations"]).reshape(t).astype(bool), "episode_ends": end})
+        if success_info_key in info:
+            episodes[-1]["success"] = np.asarray(info[success_info_key], np.float32).reshape(-1)[-t:]
+    return episodes
 
 
 def load_minari(
@@ -279,6 +325,9 @@ def load_minari(
         looked = [data_path]
         raise dataset_not_found(name, looked, None if not as_path else
                                 "Pass the folder of a Minari dataset (it contains data/main_data.hdf5 and data/metadata.json).")
+    for fname in ("main_data.hdf5", "metadata.json"):  # Minari opens both: a FIFO would hang it
+        if os.path.lexists(data_path / fname):
+            regular_file(data_path / fname, "Minari data file")
     try:
         from minari import MinariDataset
 
@@ -288,35 +337,11 @@ def load_minari(
             f"{data_path}: not a readable Minari dataset ({type(err).__name__}: {err}). "
             "Re-download it with `minari download <id>` or rewrite it."
         ) from None
-    episodes = []
-    for ep_id, ep in _minari_episodes(mds, data_path):
-        obs = ep["observations"]
-        keys = obs_keys_of(obs) if obs_keys is None or not isinstance(obs, dict) else tuple(obs_keys)
-        try:
-            o = flatten_obs(obs, keys, batched=True)
-        except ConfigError:
-            raise DataFormatError(f"{data_path}: observation keys {list(keys)} are not all in the dataset's dict "
-                                  f"observations ({obs_keys_of(obs)}); check obs_keys.") from None
-        t = len(ep["rewards"])
-        actions = np.asarray(ep["actions"], np.float32)
-        if actions_to_unit is not None:
-            actions = np.asarray(actions_to_unit(actions), np.float32)
-        if o.shape[0] != t + 1 or actions.shape[0] != t:
-            raise DataFormatError(
-                f"{data_path}: episode {ep_id} has {o.shape[0]} observations and "
-                f"{actions.shape[0]} actions for {t} rewards (expected T + 1, T, T)."
-            )
-        if t == 0:
-            continue
-        info = ep["infos"] if isinstance(ep["infos"], dict) else {}
-        end = np.zeros(t, bool)
-        # botorl's writer splits an episode where it is not continuous; join it back.
-        end[-1] = not (SPLIT_KEY in info and np.asarray(info[SPLIT_KEY]).reshape(-1)[-1] > 0)
-        episodes.append({"observations": o[:-1], "next_observations": o[1:], "actions": actions.reshape(t, -1),
-                         "rewards": np.asarray(ep["rewards"], np.float32).reshape(t),
-                         "terminals": np.asarray(ep["terminations"]).reshape(t).astype(bool), "episode_ends": end})
-        if success_info_key in info:
-            episodes[-1]["success"] = np.asarray(info[success_info_key], np.float32).reshape(-1)[-t:]
+    try:
+        episodes = _minari_rows(mds, data_path, obs_keys, actions_to_unit, success_info_key)
+    except (ValueError, TypeError) as err:  # bytes or strings where numbers belong
+        raise DataFormatError(f"{data_path}: an episode's arrays cannot be read as numbers ({type(err).__name__}: "
+                              f"{err}); observations, actions, rewards and terminations must be numeric.") from None
     if not episodes:
         raise DataFormatError(f"{data_path}: the Minari dataset has no steps.")
     meta = {"source": str(data_path.parent if data_path.name == "data" else data_path), "format": "minari",
@@ -361,6 +386,7 @@ def refuse_pickle(origin: str):
 def _load_pickle_array(path: Path, what: str):
     """A pickle-based file: without pickle when the data allow it, else only from a path the user named."""
     origin = _PICKLE_REFUSED.get()
+    regular_file(path, what)
     if path.suffix == ".npy":
         try:
             return np.load(path, allow_pickle=False)  # plain arrays need no pickle
@@ -479,6 +505,7 @@ def door_success(observations: np.ndarray) -> np.ndarray:
 
 def _dapg_trajectories(p: Path) -> list[dict]:
     if p.suffix == ".npz":
+        check_npz(p)
         try:
             with np.load(p, allow_pickle=False) as z:
                 missing = [k for k in ("observations", "actions", "rewards", "episode_lengths") if k not in z.files]

@@ -361,7 +361,12 @@ def read_flat(folder: Path) -> Dataset | None:
     if not path.exists():
         return None
     source = folder / "data" / "main_data.hdf5"
+    from botorl.data.safe import check_npz, regular_file
+
+    if source.exists():
+        regular_file(source, "Minari data file")  # its sha256 is read below: a FIFO would hang
     try:
+        check_npz(path)
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except Exception as err:

@@ -7,6 +7,7 @@ docs/own-task.md, "Your data". Logged actions are in the env's own units, mapped
 from __future__ import annotations
 
 import os
+import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -14,6 +15,7 @@ import numpy as np
 
 from botorl.data import loaders
 from botorl.data.dataset import Dataset, validate
+from botorl.data.safe import check_npz
 from botorl.envs.user import UserTask, action_from_env, flatten_obs, is_unit_box
 from botorl.errors import DataFormatError, DatasetNotFoundError
 
@@ -125,14 +127,20 @@ def load_file(path: str | os.PathLike, task: UserTask, *, max_episode_steps: int
         if not p.is_file():
             raise DatasetNotFoundError(f"--data.path {text}: no such file. Give the .npz your data were saved to "
                                        f"(np.savez(path, observations=..., actions=..., ...)).")
+        check_npz(p)  # a regular file whose headers fit, before any array is inflated
         try:
             with np.load(p, allow_pickle=False) as npz:
                 arrays = _grouped(npz)
+        except (zipfile.BadZipFile, EOFError) as err:
+            raise DataFormatError(f"{p}: not a readable .npz file ({type(err).__name__}: {err}).") from None
         except ValueError as err:
             raise DataFormatError(f"{p}: cannot be read without pickle ({err}); save plain arrays with np.savez.") from None
         except OSError as err:
             raise DataFormatError(f"{p}: not a readable .npz file ({err}).") from None
-        return from_arrays(arrays, task, source=str(p))
+        try:
+            return from_arrays(arrays, task, source=str(p))
+        except (ValueError, TypeError) as err:  # bytes or strings where numbers belong
+            raise DataFormatError(f"{p}: its arrays cannot be read as numbers ({type(err).__name__}: {err}).") from None
     if suffix in (".hdf5", ".h5") and p.name != "main_data.hdf5":
         ds = loaders.load_d4rl_hdf5(p, max_episode_steps=max_episode_steps, actions_to_unit=_unit(task),
                                     action_tolerance=np.inf)

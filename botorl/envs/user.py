@@ -13,6 +13,7 @@ import contextlib
 import importlib
 import os
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -144,24 +145,24 @@ def split_entry(entry: str) -> tuple[str, str]:
     return module, func
 
 
-def import_entry(entry: str, path: str | None = None) -> tuple[Callable[[int], gym.Env], str | None]:
-    """Import ``MODULE:FUNCTION`` (searching the current folder, as ``python -m`` does, and the
-    recorded ``path``) -> (the function, the folder it was found in; None for an installed module)."""
+def import_entry(entry: str) -> tuple[Callable[[int], gym.Env], str | None]:
+    """Import ``MODULE:FUNCTION`` (searching the current folder, as ``python -m`` does, and
+    PYTHONPATH) -> (the function, the folder it was found in; None for an installed module).
+    ``entry`` is one the user gave (``--env``, ``register_task``): never one a file names, and no
+    folder a file names is put on ``sys.path`` (a run directory is data)."""
     module_name, func_name = split_entry(entry)
     cwd = os.getcwd()
-    for p in (cwd, path):  # the recorded folder ends up first
-        if p and p not in sys.path and os.path.isdir(p):
-            sys.path.insert(0, p)
+    if cwd not in sys.path:
+        sys.path.insert(0, cwd)
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as err:
-        where = f"the current folder ({cwd})" + (f", {path}" if path and path != cwd else "")
         raise ConfigError(
-            f"--env {entry}: cannot import module {module_name!r} ({err}). botorl looks in {where} and on "
-            f"PYTHONPATH; run from the folder holding {module_name.replace('.', '/')}.py or add its folder to "
-            f"PYTHONPATH."
+            f"--env {entry}: cannot import module {module_name!r} ({err}). botorl looks in the current folder "
+            f"({cwd}) and on PYTHONPATH; run from the folder holding {module_name.replace('.', '/')}.py or add its "
+            f"folder to PYTHONPATH."
         ) from None
-    except Exception as err:  # the user's module failed while importing
+    except (Exception, SystemExit) as err:  # the user's module failed (or called sys.exit) while importing
         raise ConfigError(f"--env {entry}: importing module {module_name!r} failed: {type(err).__name__}: {err}. "
                           f"Fix the module (`python -c \"import {module_name}\"` shows the traceback).") from None
     func = getattr(module, func_name, None)
@@ -198,6 +199,12 @@ def entry_of(make_env: Callable) -> tuple[str | None, str | None]:
 
 
 # ------------------------------------------------------------------ probing the env
+# The probe's look for the success key: at most this many random steps and seconds (an env that
+# never says success, with a huge horizon, must not hold botorl up).
+PROBE_STEPS = 10_000
+PROBE_SECONDS = 20.0
+
+
 def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_key: str | None,
           *, name: str, key_given: bool = False) -> UserTask:
     """Make one env and check its spaces; one episode of random actions looks for
@@ -206,7 +213,7 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
     what = f"task {name!r}: make_env"
     try:
         env = make_env(0)
-    except Exception as err:
+    except (Exception, SystemExit) as err:  # sys.exit in make_env is a failure too, never botorl's exit 0
         raise ConfigError(f"{what}(0) raised {type(err).__name__}: {err}. make_env(seed) must return a Gymnasium "
                           f"env.") from None
     if not isinstance(env, gym.Env):
@@ -229,8 +236,9 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
         flat = flatten_obs(obs, keys)
         seen = success_key is not None and success_key in info
         rng = np.random.default_rng(0)
-        for _ in range(int(max_episode_steps)):
-            if seen or success_key is None:
+        deadline = time.monotonic() + PROBE_SECONDS
+        for _ in range(min(int(max_episode_steps), PROBE_STEPS)):  # a look, bounded whatever the horizon
+            if seen or success_key is None or time.monotonic() > deadline:
                 break
             a = rng.uniform(low, high).astype(act.dtype).reshape(act.shape)
             obs, _, terminated, truncated, info = env.step(a)
@@ -239,7 +247,7 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
                 break
     except ConfigError:
         raise
-    except Exception as err:
+    except (Exception, SystemExit) as err:
         raise ConfigError(f"task {name!r}: the env failed on reset/step ({type(err).__name__}: {err}).") from None
     finally:
         with contextlib.suppress(Exception):

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
+import secrets
 import signal
 import socket
 import subprocess
@@ -20,6 +22,35 @@ from botorl.io import JSON_LIMIT, atomic_write_json, open_regular, read_json_bou
 
 ABORT_WAIT_S = 60.0  # a stopped trial's last update chunk and checkpoint; SLURM's default KillWait is 30 s
 TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan detection)
+
+# A sweep signals only processes it started: each carries this variable with the sweep's secret
+# token in its environment (inherited by Ray's daemons, the trials and their children), which
+# /proc/PID/environ shows to this user only. A pid and start time in a file name a process; they
+# do not prove that a sweep started it (anyone can read both from /proc).
+TOKEN_ENV = "BOTORL_SWEEP_TOKEN"
+_TOKEN_FORM = re.compile(r"[0-9a-f]{32}")
+_token: str | None = None
+
+
+def sweep_token() -> str:
+    """This process's secret token (made once, 128 random bits)."""
+    global _token
+    if _token is None:
+        _token = secrets.token_hex(16)
+    return _token
+
+
+def carries_token(pid: int, token: Any) -> bool:
+    """Whether process ``pid`` has ``TOKEN_ENV=token`` in its environment (False when it cannot be
+    read: another user's process, or gone)."""
+    if not isinstance(token, str) or not _TOKEN_FORM.fullmatch(token):
+        return False
+    try:
+        with open(f"/proc/{int(pid)}/environ", "rb") as f:
+            env = f.read(1 << 22)
+    except (OSError, ValueError):
+        return False
+    return f"{TOKEN_ENV}={token}".encode() in env.split(b"\0")
 
 # Thread settings for a trial pinned to one core: the usual BLAS/OpenMP knobs. XLA needs no
 # flag: its CPU thread pools are sized from the affinity mask (a JAX 0.10 process pinned to
@@ -73,15 +104,19 @@ def start_time(pid: int) -> int | None:
         return None
 
 
-def process_record(pid: int) -> dict[str, int] | None:
-    """What a sweep writes down to stop a process of its own later: its pid and start time."""
+def process_record(pid: int, token: str | None = None) -> dict[str, Any] | None:
+    """What a sweep writes down to stop a process of its own later: its pid, start time and the
+    token the sweep put in its environment."""
     start = start_time(pid)
-    return None if start is None else {"pid": int(pid), "start": start}
+    if start is None:
+        return None
+    return {"pid": int(pid), "start": start, **({"token": token} if token is not None else {})}
 
 
 def recorded_alive(record: Any) -> int | None:
     """The pid of ``record`` (``process_record``, as read back from a file) if that very process
-    still runs and is this user's, else None: a record names a process, never a pattern."""
+    still runs, is this user's and carries the record's token in its environment, else None: a
+    record names a process, never a pattern, and the token proves a sweep started it."""
     if not isinstance(record, dict):
         return None
     pid, start = record.get("pid"), record.get("start")
@@ -92,7 +127,9 @@ def recorded_alive(record: Any) -> int | None:
             return None
     except OSError:
         return None
-    return pid if start_time(pid) == start else None
+    if start_time(pid) != start or not carries_token(pid, record.get("token")):
+        return None
+    return pid
 
 
 def descendants(pids: list[int]) -> list[int]:
@@ -115,10 +152,16 @@ def descendants(pids: list[int]) -> list[int]:
 def stop_recorded(records: Any, timeout: float = 10.0) -> int:
     """SIGTERM (then SIGKILL) the processes ``records`` name that still run (same pid, same
     start time, this user's), with their descendants; nothing else. The number stopped."""
-    roots = [p for r in (records if isinstance(records, list) else []) if (p := recorded_alive(r)) is not None]
-    if not roots:
+    victims: list[dict[str, Any]] = []
+    for rec in records if isinstance(records, list) else []:
+        root = recorded_alive(rec)
+        if root is None:
+            continue
+        token = rec["token"]  # a descendant is stopped only if it carries the same token
+        victims += [r for p in [root] + descendants([root]) if carries_token(p, token)
+                    and (r := process_record(p, token)) is not None and r not in victims]
+    if not victims:
         return 0
-    victims = [r for p in roots + descendants(roots) if (r := process_record(p)) is not None]
     for r in victims:
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.kill(r["pid"], signal.SIGTERM)
@@ -169,7 +212,8 @@ def spawn(cmd: list[str], log, run_dir, env: dict, cwd: str, block=None, **recor
         proc = subprocess.Popen(launcher(cmd, os.getpid(), block), stdout=logf, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, env=env, cwd=cwd)
     atomic_write_json(Path(run_dir) / TRIAL_PID, {"pid": proc.pid, "start": start_time(proc.pid),
-                                                  "host": socket.gethostname(), **record})
+                                                  "host": socket.gethostname(), "token": env.get(TOKEN_ENV),
+                                                  **record})
     return proc
 
 

@@ -1,8 +1,9 @@
 """The sweep's Ray backend: one Ray task (num_cpus=1) per trial, on an existing cluster
 (``--ray-address``) or a local instance in ``/tmp/botorl-ray-XXXXXXXX``, whose dir and daemons
-(pid and start time) sweep.json records so that the next invocation cleans up after a SIGKILL
-(``cleanup_previous``). sweep.json is data: only a process it records that still runs with the
-recorded start time (and its descendants) is stopped, only a dir this module makes removed."""
+(pid, start time and the sweep's token) sweep.json records so that the next invocation cleans up
+after a SIGKILL (``cleanup_previous``). sweep.json is data: only a process it records that still
+runs with the recorded start time and carries the recorded secret token in its environment (and
+its descendants that carry it too) is stopped, only a dir this module makes removed."""
 
 from __future__ import annotations
 
@@ -17,8 +18,8 @@ import tempfile
 from typing import Any
 
 from botorl.errors import BotorlError
-from botorl.experiments.backend_local import SINGLE_THREAD_ENV, descendants, process_record, spawn, stop_recorded, \
-    usable_cores
+from botorl.experiments.backend_local import SINGLE_THREAD_ENV, TOKEN_ENV, carries_token, descendants, process_record, \
+    spawn, stop_recorded, sweep_token, usable_cores
 
 RAY_ENV_PREFIXES = ("BOTORL_", "XLA_", "JAX_", "MINARI_", "MUJOCO_", "PYTHONUNBUFFERED")
 
@@ -92,6 +93,8 @@ class RayBackend:
             self.sweep.manifest["ray_local_temp_dir"] = self.tmp
             self.sweep.save()
         if not ray.is_initialized():
+            if self.tmp:  # the local daemons inherit the token: what lets a later sweep stop them
+                os.environ[TOKEN_ENV] = sweep_token()
             try:
                 ray.init(**kwargs)
             except Exception as err:  # a bad --ray-address is the user's to fix
@@ -101,7 +104,9 @@ class RayBackend:
                     "to start a local instance."
                 ) from None
             if self.tmp:  # the local instance's daemons: the processes ray.init started
-                self.processes = [r for p in descendants([os.getpid()]) if (r := process_record(p)) is not None]
+                token = sweep_token()
+                self.processes = [r for p in descendants([os.getpid()])
+                                  if carries_token(p, token) and (r := process_record(p, token)) is not None]
                 self.sweep.manifest["ray_local_processes"] = self.processes
                 self.sweep.save()
         self.fn = ray.remote(num_cpus=1, max_retries=0)(_ray_trial)

@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from botorl.errors import BotorlError, ConfigError, Interrupted
-from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, read_json, single_thread_env, stop_orphan
+from botorl.experiments.backend_local import TOKEN_ENV, TRIAL_PID, LocalBackend, read_json, single_thread_env, \
+    stop_orphan, sweep_token
 from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial, group_populations
@@ -238,6 +239,7 @@ class Sweep:
 
     def trial_env(self, threads: int = 1) -> dict[str, str]:
         env = dict(os.environ)
+        env[TOKEN_ENV] = sweep_token()  # what lets a later sweep stop this trial if it is orphaned
         if self.opt.backend != "sequential" and threads == 1:
             env = single_thread_env(env)
         env.setdefault("PYTHONUNBUFFERED", "1")

@@ -32,15 +32,54 @@ LATEST = "latest.json"
 MANIFEST = "MANIFEST.json"
 
 
+_DATA_SEEN: dict[tuple, dict] = {}
+
+
+def data_identity(path: str | None) -> dict:
+    """The fingerprint of a run's data (``data.path``: size and sha256 of what it reads, see
+    ``botorl.data.safe.fingerprint``): every checkpoint of a run records what it started from, and
+    a resume compares what is there now. Hashed once per process while the files' size, time and
+    inode stay the same (a run saves many checkpoints)."""
+    from botorl.data.minari_io import minari_root
+    from botorl.data.safe import data_files, fingerprint
+
+    key: tuple = (path,)
+    if path is not None:
+        with contextlib.suppress(OSError):
+            key += tuple((str(f), *(lambda st: (st.st_size, st.st_mtime_ns, st.st_ino, st.st_mode))(os.stat(f)))
+                         for f in data_files(path, minari_root()))
+    if key not in _DATA_SEEN:
+        _DATA_SEEN[key] = fingerprint(path, minari_root())
+    return _DATA_SEEN[key]
+
+
+def full_identity(cfg) -> dict[str, Any]:
+    """``run_identity`` with the data's fingerprint: what a checkpoint records and what the
+    commands that read the data (resume, eval) check."""
+    from botorl.configs.schema import run_identity
+
+    return {**run_identity(cfg), "data": data_identity(cfg.data.path)}
+
+
 def check_identity(state: dict[str, Any], expected: list[dict[str, Any]], where: Path, name: str) -> None:
     """ConfigError (exit 2) naming both sides unless checkpoint ``name`` was written by the
     run(s) whose ``run_identity``s are ``expected`` (a checkpoint copied from another run, a
-    config.json edited since); one that records no identity (older botorl) only warns."""
+    config.json edited since, the data changed since: ``full_identity``); one that records no
+    identity (older botorl) only warns, and so does one that records no data fingerprint when
+    ``expected`` has one. Where ``expected`` has none (export, load_policy: the data are not
+    read), the checkpoint's is not compared."""
     got = state.get("identity")
     if got is None:
         print(f"botorl: warning: checkpoint {name} in {where} records no run identity (written before checkpoints "
               f"recorded their run); it is taken to belong to this run's config.json.", file=sys.stderr)
         return
+    if isinstance(got, list) and all(isinstance(g, dict) for g in got):
+        if not all("data" in e for e in expected):
+            got = [{k: v for k, v in g.items() if k != "data"} for g in got]
+        elif not all("data" in g for g in got):
+            print(f"botorl: warning: checkpoint {name} in {where} records no fingerprint of its data (written before "
+                  f"checkpoints recorded one); the data are taken to be the ones it was trained on.", file=sys.stderr)
+            expected = [{k: v for k, v in e.items() if k != "data"} for e in expected]
     if got == expected:
         return
     if not isinstance(got, list) or len(got) != len(expected) or not all(isinstance(g, dict) for g in got):
@@ -50,12 +89,15 @@ def check_identity(state: dict[str, Any], expected: list[dict[str, Any]], where:
         for i, (g, e) in enumerate(zip(got, expected)):
             keys = [k for k in sorted(set(g) | set(e)) if g.get(k) != e.get(k)]
             who = f"member {i}: " if len(expected) > 1 else ""
-            parts += [f"{who}{k} {g.get(k)!r} in the checkpoint, {e.get(k)!r} in the config" for k in keys]
+            parts += [f"{who}{k} {g.get(k)!r} in the checkpoint, {e.get(k)!r} in the config" if k != "data" else
+                      f"{who}data {g.get(k)!r} in the checkpoint, {e.get(k)!r} now (the data changed since the run "
+                      f"started, or config.json names other data)" for k in keys]
         diff = "; ".join(parts)
     raise ConfigError(
         f"checkpoint {name} in {where} belongs to another run ({diff}; 'pretraining' and 'config' are digests of the "
-        f"settings that shape the saved state). A checkpoint is read only by the run that wrote it: put back that "
-        f"run's config.json, or start this one afresh with `botorl run` and another --out."
+        f"settings that shape the saved state). A checkpoint is read only by the run that wrote it, with the data it "
+        f"was trained on: put back that run's config.json and data, or start this one afresh with `botorl run` and "
+        f"another --out."
     )
 
 

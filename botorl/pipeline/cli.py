@@ -20,7 +20,8 @@ from botorl.errors import BotorlError, ConfigError
 from botorl.io import atomic_write_json, open_regular
 from botorl.jaxsetup import setup_jax
 from botorl.pipeline import preempt
-from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step
+from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step, \
+    full_identity
 from botorl.pipeline.policy import read_run
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_fault, io_guard, read_json
 from botorl.pipeline.tracking import require_wandb
@@ -189,10 +190,14 @@ def member_dir(root: Path, entry) -> Path:
     return path
 
 
-def load_population(directory: str | Path):
-    """(shared config, member configs, member run dirs, population.json) of a population directory."""
+def load_population(directory: str | Path, entry: str | None = None, checkpoint: str | None = None):
+    """(shared config, member configs, member run dirs, population.json) of a population directory;
+    ``entry``: the user's ``--env`` for a task of one's own (configs/custom.py); the checkpoint a
+    resume starts from (``checkpoint``, else the latest) is checked to be the population's before
+    any task is registered."""
+    from botorl.configs.custom import register_given
     from botorl.configs.members import member_config
-    from botorl.configs.resolve import validate
+    from botorl.configs.resolve import check_bounds, validate
     from botorl.configs.schema import RunConfig, from_dict
 
     root = Path(directory)
@@ -208,6 +213,10 @@ def load_population(directory: str | Path):
                           f"was it edited by hand?") from None
     if len({r.root.name for r in runs}) != len(runs):
         raise ConfigError(f"{root / POPULATION_FILE} names a member twice; was it edited by hand?")
+    for c in [cfg, *member_cfgs]:
+        check_bounds(c)
+    check_resume_point(root, member_cfgs, checkpoint)
+    register_given(cfg, entry)
     validate(cfg)
     for r, mc in zip(runs, member_cfgs):
         # a member differs from the population in its seed, alpha and folder only
@@ -221,6 +230,28 @@ def load_population(directory: str | Path):
     return replace(cfg, out=str(root)), member_cfgs, runs, data
 
 
+def check_resume_point(root: Path, cfgs, checkpoint: str | None = None) -> None:
+    """The checkpoint a resume of ``root`` starts from (``checkpoint``, else the latest that passes
+    its check; none yet: nothing to check) must be the run's own (``check_identity``): checked
+    before a task is registered or data read. A damaged one is left to the resume, which names it
+    and falls back."""
+    from botorl.pipeline.checkpoint import full_identity
+
+    ckpt = CheckpointManager(RunDir(root).checkpoints)
+    try:
+        if checkpoint is not None:
+            ckpt.verify_named(checkpoint)
+            name = checkpoint
+        else:
+            name = (ckpt.latest() or {}).get("name")
+        if name is not None:
+            check_identity(ckpt.state(name), [full_identity(c) for c in cfgs], ckpt.root, name)
+    except CheckpointCorrupt:
+        pass
+
+
+ENV_HELP = ("a task of your own: its entry point MODULE:FUNCTION again (the one the run recorded); botorl never "
+            "imports what a run directory's files name")
 ALLOW_PICKLE_HELP = ("open a pickle-based dataset (Cal-QL .npy, DAPG .pickle) named in the run's config.json; "
                      "without it botorl refuses, as a pickle from a run directory could run code")
 
@@ -242,6 +273,7 @@ class ResumeArgs:
     no_progress: _Flag = False
     """no progress bars"""
     allow_pickle: Annotated[_Flag, tyro.conf.arg(help=ALLOW_PICKLE_HELP)] = False
+    env: Annotated[str | None, tyro.conf.arg(metavar="MODULE:FUNCTION", help=ENV_HELP)] = None
 
 
 @dataclass
@@ -258,6 +290,7 @@ class EvalArgs:
     """evaluate this exported model (`botorl export`) through onnxruntime instead of a checkpoint, on the same
     episodes (needs pip install "botorl[export]")"""
     allow_pickle: Annotated[_Flag, tyro.conf.arg(help=ALLOW_PICKLE_HELP)] = False
+    env: Annotated[str | None, tyro.conf.arg(metavar="MODULE:FUNCTION", help=ENV_HELP)] = None
 
 
 @dataclass
@@ -275,7 +308,8 @@ class ExportArgs:
     out: Annotated[str | None, tyro.conf.arg(metavar="FILE", help_behavior_hint="(default: RUN_DIR/policy.onnx)")] = None
     """the model file; its contract is FILE.json"""
     force: _Flag = False
-    """overwrite FILE and FILE.json if they exist"""
+    """overwrite FILE and FILE.json if they exist (regular files only)"""
+    env: Annotated[str | None, tyro.conf.arg(metavar="MODULE:FUNCTION", help=ENV_HELP)] = None
 
 
 def resume_main(argv: list[str]) -> int:
@@ -286,10 +320,11 @@ def resume_main(argv: list[str]) -> int:
     root = Path(args.dir)
     single = not (root / POPULATION_FILE).exists()
     if single:
-        run, cfg = read_run(root, "resume", validate=True)
+        run, cfg = read_run(root, "resume", validate=True, entry=args.env,
+                            before=lambda r, c: check_resume_point(r.root, [c], args.from_))
         member_cfgs, runs, status_file, origin = [cfg], [run], run.summary, run.config
     else:
-        cfg, member_cfgs, runs, _ = load_population(root)
+        cfg, member_cfgs, runs, _ = load_population(root, args.env, args.from_)
         status_file = origin = root / POPULATION_FILE
     if cfg.wandb:
         require_wandb()
@@ -327,10 +362,14 @@ def _print_result(result: dict) -> None:
 
 def eval_main(argv: list[str]) -> int:
     args = tyro.cli(EvalArgs, args=argv, prog="botorl eval")
+    from botorl.configs.resolve import BOUNDS
+
+    if args.episodes is not None and not 1 <= args.episodes <= BOUNDS["eval.episodes"]:
+        raise ConfigError(f"--episodes {args.episodes}: give 1 to {BOUNDS['eval.episodes']:,} episodes.")
     setup_jax()
-    run, cfg = read_run(args.dir, "evaluate", validate=True)
-    if args.episodes is not None and args.episodes < 1:
-        raise ConfigError(f"--episodes {args.episodes}: give at least 1 episode.")
+    # the checkpoint's identity before the task is made or data read (--policy: the contract's)
+    run, cfg = read_run(args.dir, "evaluate", validate=True, entry=args.env,
+                        before=None if args.policy else lambda r, c: check_resume_point(r.root, [c], args.checkpoint))
     if args.policy is not None:  # an exported model through onnxruntime (botorl/pipeline/export.py)
         if args.checkpoint is not None:
             raise ConfigError("--policy and --checkpoint: the model names its checkpoint (in FILE.onnx.json); give one.")
@@ -346,7 +385,6 @@ def eval_main(argv: list[str]) -> int:
 
 def _eval(args, run, cfg) -> dict:
     from botorl.agents import checkpoint as agent_ckpt
-    from botorl.configs.schema import run_identity
     from botorl.envs.registry import get_task
     from botorl.pipeline import stages as S
     from botorl.envs.metric import of_config as metric_of_config
@@ -358,7 +396,7 @@ def _eval(args, run, cfg) -> dict:
     ckpt = CheckpointManager(run.checkpoints)
     name = ckpt.chosen(args.checkpoint)
     state = ckpt.state(name)
-    check_identity(state, [run_identity(cfg)], run.checkpoints, name)
+    check_identity(state, [full_identity(cfg)], run.checkpoints, name)
     spec = get_task(cfg.task)
     d = transform_dataset(cfg, spec, load_run_data(cfg, run.config, args.allow_pickle))
     like = S.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)
@@ -379,7 +417,7 @@ def export_main(argv: list[str]) -> int:
     from botorl.pipeline.export import contract_path, export_policy
 
     out = Path(args.out) if args.out else Path(args.dir) / "policy.onnx"
-    c = export_policy(args.dir, out, checkpoint=args.checkpoint, format=args.format, force=args.force)
+    c = export_policy(args.dir, out, checkpoint=args.checkpoint, format=args.format, force=args.force, env=args.env)
     v = c["verification"]
     print(f"botorl: {c['task']} {c['method']} seed {c['seed']}, checkpoint {c['checkpoint']} (step {c['step']}) "
           f"-> {out} and {contract_path(out).name}", file=sys.stderr)

@@ -78,6 +78,40 @@ def contract_path(model: str | Path) -> Path:
 
 
 # ------------------------------------------------------------------ the run
+def check_replaceable(p: Path, force: bool) -> None:
+    """ConfigError unless ``p`` may be written: absent, or (``force``) a regular file. A link, a
+    device, a FIFO or a folder is never replaced (``--out /dev/null --force`` as root would
+    otherwise put a regular file in its place)."""
+    import stat
+
+    try:
+        st = p.lstat()
+    except FileNotFoundError:
+        return
+    except OSError as err:
+        raise ConfigError(f"--out: {p} cannot be looked at ({err.strerror}); give another --out.") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise ConfigError(f"--out {p} is a folder; give a file name such as {p / 'policy.onnx'}.")
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a link" if stat.S_ISLNK(st.st_mode) else "not a regular file (a device, FIFO or socket)"
+        raise ConfigError(f"--out: {p} is {kind}; botorl export replaces only regular files. Give another --out.")
+    if not force:
+        raise ConfigError(f"{p} exists; pass --force (force=True) to overwrite it, or give another --out.")
+
+
+def check_writable_folder(out: Path) -> None:
+    """ConfigError, before any work, when ``out``'s folder cannot hold the model (``/proc/self``,
+    a read-only or missing parent that cannot be made)."""
+    import os
+
+    parent = out.parent if str(out.parent) else Path(".")
+    probe = parent
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK) or str(probe.resolve()).startswith(("/proc", "/sys")):
+        raise ConfigError(f"--out {out}: its folder {parent} cannot be written; give a file in a folder you can write.")
+
+
 def pick_checkpoint(run, checkpoint: str | None) -> str:
     """The named checkpoint (verified), else the latest; none before a stage has finished."""
     ckpt = CheckpointManager(run.checkpoints)
@@ -201,12 +235,12 @@ class OnnxPolicy:
 
     def __init__(self, path: str | Path | bytes):
         self.path = None if isinstance(path, bytes) else Path(path)
-        if self.path is not None and not self.path.is_file():
-            raise ConfigError(f"{self.path}: no such model file; give the FILE.onnx that `botorl export` wrote.")
+        if self.path is not None:
+            path = _model_bytes(self.path)
         ort = require("onnxruntime")["onnxruntime"]
+        check_graph(path, self.path or "the model")
         try:
-            self.session = ort.InferenceSession(path if isinstance(path, bytes) else str(path),
-                                                providers=["CPUExecutionProvider"])
+            self.session = ort.InferenceSession(path, providers=["CPUExecutionProvider"])
         except Exception as err:  # noqa: BLE001 - onnxruntime raises its own types for a bad file
             raise ConfigError(f"{self.path or 'the model'} cannot be loaded by onnxruntime ({err}); give a model "
                               f"`botorl export` wrote.") from None
@@ -217,11 +251,61 @@ class OnnxPolicy:
                               f"'{OUTPUT_NAME}'.")
         shape = ins[0].shape
         self.obs_dim = shape[-1] if len(shape) == 2 and isinstance(shape[-1], int) else None
+        out_shape = next(o.shape for o in outs if o.name == OUTPUT_NAME)
+        self.action_dim = out_shape[-1] if len(out_shape) == 2 and isinstance(out_shape[-1], int) else None
 
     def __call__(self, observations) -> np.ndarray:
         obs = np.asarray(observations, np.float32)
-        return self.session.run([OUTPUT_NAME], {INPUT_NAME: obs.reshape(-1, obs.shape[-1])})[0].reshape(
-            *obs.shape[:-1], -1)
+        try:
+            out = self.session.run([OUTPUT_NAME], {INPUT_NAME: obs.reshape(-1, obs.shape[-1])})[0]
+            return np.asarray(out).reshape(*obs.shape[:-1], -1)
+        except Exception as err:  # noqa: BLE001 - onnxruntime's own errors, a reshape of a wrong output
+            raise ConfigError(f"{self.path or 'the model'} failed on observations of shape {obs.shape} "
+                              f"({type(err).__name__}: {err}); give a model `botorl export` wrote.") from None
+
+
+MAX_MODEL_BYTES = 1 << 30  # a policy of 256x256 layers is under 1 MB
+
+
+def _model_bytes(path: Path) -> bytes:
+    """The model file's bytes: a regular file (a FIFO would hang) of at most ``MAX_MODEL_BYTES``."""
+    import os
+    import stat
+
+    try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError(f"{path}: not a regular file; give the FILE.onnx that `botorl export` wrote.")
+        if st.st_size > MAX_MODEL_BYTES:
+            raise ConfigError(f"{path}: {st.st_size:,} bytes, more than a policy model's {MAX_MODEL_BYTES:,}.")
+        with open(path, "rb") as f:
+            return f.read(MAX_MODEL_BYTES + 1)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such model file; give the FILE.onnx that `botorl export` wrote.") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot be read ({err.strerror}).") from None
+
+
+# A botorl policy is a straight chain of layers; a loop (whose trip count can be 2**62) or a branch
+# is no policy of botorl's, and onnxruntime would run it without bound.
+CONTROL_FLOW = ("Loop", "Scan", "If", "SequenceMap")
+
+
+def check_graph(model: bytes, where) -> None:
+    """ConfigError when the model (bytes) holds a control-flow operator, anywhere in its graph or
+    functions; nothing is run."""
+    onnx = require("onnx")["onnx"]
+    try:
+        proto = onnx.load_from_string(model)
+    except Exception as err:  # noqa: BLE001 - protobuf's decode errors
+        raise ConfigError(f"{where} is not an ONNX model ({type(err).__name__}); give a model `botorl export` "
+                          f"wrote.") from None
+    nodes = list(proto.graph.node) + [n for f in proto.functions for n in f.node]
+    bad = sorted({n.op_type for n in nodes if n.op_type in CONTROL_FLOW})
+    if bad:
+        raise ConfigError(f"{where} holds the control-flow operator(s) {', '.join(bad)}; a policy botorl exports is "
+                          f"a plain chain of layers, and a loop could run without end. Give a model `botorl export` "
+                          f"wrote.")
 
 
 def max_gap(a, b) -> tuple[float, int]:
@@ -236,32 +320,38 @@ def max_gap(a, b) -> tuple[float, int]:
 # ------------------------------------------------------------------ the whole export
 def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "onnx", force: bool = False,
                   observations=None, verify_rows: int = VERIFY_ROWS, tolerance: float = TOLERANCE,
-                  opset: int = OPSET) -> dict[str, Any]:
+                  opset: int = OPSET, env: str | None = None) -> dict[str, Any]:
     """Write ``path`` (the ONNX model) and ``path.json`` (its contract) for a run's policy and
     return the contract. ``observations``: the (N, obs_dim) batch to verify on (default:
     ``verify_rows`` of the run's dataset). ``ExportMismatch`` (exit 1, nothing written) when
     onnxruntime's actions differ from ``load_policy``'s by more than ``tolerance``; needs
-    ``pip install "botorl[export]"``."""
+    ``pip install "botorl[export]"``. ``env``: a task of one's own's entry point, given again by
+    the user (``--env``; without it the verification uses standard normal observations)."""
     if format not in FORMATS:
         raise ConfigError(f"--format {format}: botorl exports {', '.join(FORMATS)}.")
     out = Path(path)
     meta = contract_path(out)
-    if not force:
-        for p in (out, meta):
-            if p.exists():
-                raise ConfigError(f"{p} exists; pass --force (force=True) to overwrite it, or give another --out.")
-    if out.is_dir():
-        raise ConfigError(f"--out {out} is a folder; give a file name such as {out / 'policy.onnx'}.")
+    for p in (out, meta):
+        check_replaceable(p, force)
+    check_writable_folder(out)
     run, cfg = read_run(run_dir, "export")
+    from botorl.configs.custom import ensure_task, register_given
+    from botorl.configs.resolve import check_bounds
+    from botorl.pipeline.policy import check_checkpoint
+
+    check_bounds(cfg)
     name = pick_checkpoint(run, checkpoint)
+    check_checkpoint(run, cfg, name)  # what `botorl eval` refuses: another run's checkpoint, an edited config
     mods = require("onnx", "onnxruntime", "jax2onnx")  # before any JAX work: a missing extra costs nothing
     setup_jax()
-    from botorl.configs.custom import ensure_task
 
+    register_given(cfg, env)
+    if cfg.env.entry is not None and env is None:
+        ensure_task(cfg)  # an entry point the run recorded: the user gives it again (--env) or registers it
     try:  # the task gives the verification its dataset and the contract the env's shapes
         ensure_task(cfg)
         here = None
-    except BotorlError as err:
+    except BotorlError as err:  # a task registered from a script: standard normal observations
         here = str(err)
     policy = load_policy(run.root, checkpoint=name, deterministic=True)
     state = CheckpointManager(run.checkpoints).state(name)
@@ -322,6 +412,8 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
         "verification": {"runtime": f"onnxruntime {mods['onnxruntime'].__version__}", "observations": len(obs),
                          "source": source, "max_abs_gap": gap, "tolerance": tolerance},
     }
+    for p in (out, meta):  # again: the minutes of conversion are time for a swap
+        check_replaceable(p, force)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out, model)
     if file_sha256(out) != contract["sha256"]:  # what is on disk is what was verified
@@ -346,7 +438,8 @@ def read_contract(model: str | Path) -> dict[str, Any] | None:
 
 # ------------------------------------------------------------------ the round trip
 def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path) -> None:
-    """ConfigError unless the model is this run's policy as exported (task, dims, sha256)."""
+    """ConfigError unless the model is this run's policy as exported: the contract's task, shapes,
+    action bounds and sha256 agree with the run and with the model (checked before it runs)."""
     io = task_io(cfg)
     if contract is None:
         print(f"botorl eval: {contract_path(path)} is missing; checking the model's shapes only.", file=sys.stderr)
@@ -355,12 +448,32 @@ def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path)
             raise ConfigError(f"{path} is a policy of task {contract.get('task')!r} (its contract says), not of this "
                               f"run's {cfg.task!r}; give the run it was exported from.")
         want = contract.get("sha256")
-        if want is not None and file_sha256(path) != want:
+        if not isinstance(want, str) or file_sha256(path) != want:
             raise ConfigError(f"{path} is not the file its contract describes (sha256 differs): it changed since "
                               f"`botorl export`; export it again.")
+
+        def said(*keys):
+            node = contract
+            for k in keys:
+                node = node.get(k) if isinstance(node, dict) else None
+            return node
+
+        wrong = []
+        for what, got, want_ in (("input width", said("input", "shape"), ["batch", io["obs_dim"]]),
+                                 ("output width", said("output", "shape"), ["batch", io["action_dim"]]),
+                                 ("action low", said("action", "low"), _bounds(io["action_low"])),
+                                 ("action high", said("action", "high"), _bounds(io["action_high"]))):
+            if got != want_:
+                wrong.append(f"{what} {got!r} in the contract, {want_!r} for the run")
+        if wrong:
+            raise ConfigError(f"{contract_path(path)} does not describe this run's policy ({'; '.join(wrong)}); export "
+                              f"the policy again.")
     if model.obs_dim is not None and model.obs_dim != io["obs_dim"]:
         raise ConfigError(f"{path} takes {model.obs_dim} observation values; this run's task {cfg.task!r} has "
                           f"{io['obs_dim']}.")
+    if model.action_dim is not None and model.action_dim != io["action_dim"]:
+        raise ConfigError(f"{path} gives {model.action_dim} action values; this run's task {cfg.task!r} has "
+                          f"{io['action_dim']}.")
 
 
 def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, Any]:
@@ -381,6 +494,10 @@ def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, 
 
     def act(obs):  # (1, E, O) -> (1, E, A): the task env takes [-1, 1] and maps it onto the env's box itself
         a = model(obs[0])
+        if a.shape != (obs.shape[1], io["action_dim"]) or not np.all(np.isfinite(a)):
+            raise ConfigError(f"{path} gave actions of shape {a.shape}{'' if np.all(np.isfinite(a)) else ' with NaN/inf'} "
+                              f"for {obs.shape[1]} observations; this run's task takes ({obs.shape[1]}, "
+                              f"{io['action_dim']}) finite actions. Export the policy again.")
         return (a if unit_box else action_from_env(a, io["action_low"], io["action_high"]).astype(np.float32))[None]
 
     t0 = time.perf_counter()

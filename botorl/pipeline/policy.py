@@ -20,11 +20,15 @@ from botorl.pipeline.checkpoint import CheckpointManager
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, read_json
 
 
-def read_run(run_dir, verb: str = "load", *, validate: bool = False):
+def read_run(run_dir, verb: str = "load", *, validate: bool = False, entry: str | None = None, before=None):
     """(RunDir, RunConfig) of a single run directory; ConfigError naming what to give instead
     for anything else (``verb``: what the caller does with it, for the message). ``validate``:
-    check the config as `botorl run` does (which needs the run's task here)."""
-    from botorl.configs.resolve import validate as check
+    check the config as `botorl run` does (which needs the run's task here): first its sizes and
+    counts, then ``before(run, cfg)`` (the caller's checkpoint identity check), and only then a task
+    of one's own is registered from ``entry`` (the user's ``--env``), so nothing is imported or
+    read for a directory that fails a check."""
+    from botorl.configs.custom import register_given
+    from botorl.configs.resolve import check_bounds, validate as check
     from botorl.configs.schema import RunConfig, from_dict
 
     root = Path(run_dir)
@@ -42,8 +46,25 @@ def read_run(run_dir, verb: str = "load", *, validate: bool = False):
     except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
         raise ConfigError(f"{run.config} cannot be read as a run config ({err}); was it edited by hand?") from None
     if validate:
+        check_bounds(cfg)
+        if before is not None:
+            before(run, cfg)
+        register_given(cfg, entry)
         check(cfg)
     return run, cfg
+
+
+def check_checkpoint(run, cfg, checkpoint: str | None = None) -> str:
+    """The checkpoint ``checkpoint`` (default: the latest verified one) of a single run, checked
+    to be this run's (``check_identity``: what `botorl eval` refuses, export and load_policy refuse
+    too); returns its name."""
+    from botorl.configs.schema import run_identity
+    from botorl.pipeline.checkpoint import check_identity
+
+    ckpt = CheckpointManager(run.checkpoints)
+    name = ckpt.chosen(checkpoint)
+    check_identity(ckpt.state(name), [run_identity(cfg)], run.checkpoints, name)
+    return name
 
 
 def task_io(cfg) -> dict[str, Any]:
@@ -71,12 +92,14 @@ def load_agent(run_dir, checkpoint: str | None = None):
 
 def _load(run_dir, checkpoint):
     from botorl.agents import checkpoint as agent_ckpt
+    from botorl.configs.resolve import check_bounds
     from botorl.pipeline import stages as S
 
     setup_jax()
     run, cfg = read_run(run_dir)
+    check_bounds(cfg)  # before any template is built from the config's sizes
+    name = check_checkpoint(run, cfg, checkpoint)
     ckpt = CheckpointManager(run.checkpoints)
-    name = ckpt.chosen(checkpoint)
     io = task_io(cfg)
     like = S.agent_template(cfg, ckpt.state(name)["stage"], io["obs_dim"], io["action_dim"], cfg.seed)
     return agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like), cfg, io, name

@@ -20,7 +20,7 @@ from botorl.agents import checkpoint as agent_ckpt
 from botorl.agents import population as AP
 from botorl.configs.members import Member
 from botorl.configs.methods import get_method
-from botorl.configs.schema import RunConfig, run_identity, to_dict
+from botorl.configs.schema import RunConfig, to_dict
 from botorl.data.dataset import Dataset, RewardTransform
 from botorl.data.dataset import validate as validate_dataset
 from botorl.data.loaders import refuse_pickle
@@ -32,7 +32,7 @@ from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDiverge
 from botorl.io import atomic_save_figure, atomic_write_json
 from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
 from botorl.pipeline import stages as S
-from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name
+from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name, full_identity
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
 from botorl.pipeline.rundir import EVAL_COLUMNS, POPULATION_FILE, CsvLog, MetricsLogger, RunDir, number, read_json
 from botorl.pipeline.provenance import pretrain_sha256
@@ -201,7 +201,7 @@ class RunContext:
     def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None,
               documents=None):
         state = {
-            "identity": [run_identity(mc.cfg) for mc in self.members],
+            "identity": [full_identity(mc.cfg) for mc in self.members],
             "stage": stage,
             "step": step,
             "stage_done": done,
@@ -393,7 +393,7 @@ def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig], resume:
     if latest is None:
         return None, {"done_stages": [], "stage_seconds": {}}, {}, None
     st = ckpt.state(latest["name"])
-    check_identity(st, [run_identity(c) for c in member_cfgs], ckpt.root, latest["name"])
+    check_identity(st, [full_identity(c) for c in member_cfgs], ckpt.root, latest["name"])
     mid = None if st["stage_done"] else {"name": latest["name"], "stage": st["stage"], "step": st["step"],
                                          "np_rng": st.get("np_rng"), "extra": st.get("extra", {})}
     return latest, {"done_stages": list(st["done_stages"]), "stage_seconds": dict(st["stage_seconds"])}, \

@@ -1,0 +1,174 @@
+"""Checks a data file passes before botorl reads it (issue 39): a data path can come from a run
+directory's config.json, which is data, never orders. Only a regular file is opened (a FIFO would
+hang the reader, a device would be read without end); a ``.npz`` is sized from its headers before
+any array is inflated; an HDF5 file that stores data outside itself (external storage, external
+links, virtual datasets) is refused, since it could make botorl read any file or a FIFO.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from botorl.errors import DataFormatError
+
+MAX_DATA_BYTES = 64 << 30  # one dataset's arrays: far above any offline RL dataset botorl reads
+
+
+def data_cap() -> int:
+    """Bytes a dataset may declare: ``MAX_DATA_BYTES``, at most half this machine's memory (and of
+    the process's address-space limit)."""
+    try:
+        have = int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        have = 0
+    cap = min(MAX_DATA_BYTES, have // 2) if have else MAX_DATA_BYTES
+    try:  # a process under `ulimit -v` has less than the machine
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft != resource.RLIM_INFINITY:
+            cap = min(cap, soft // 2)
+    except (ImportError, ValueError, OSError):
+        pass
+    return cap
+
+
+def regular_file(path: str | os.PathLike, what: str = "data file") -> Path:
+    """``path`` if it is a regular file (a link to one is fine), else DataFormatError naming it."""
+    p = Path(path)
+    try:
+        st = os.stat(p)
+    except OSError as err:
+        raise DataFormatError(f"{p}: the {what} cannot be opened ({err.strerror}).") from None
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file (a FIFO, device or socket)"
+        raise DataFormatError(f"{p}: the {what} is {kind}; botorl reads data only from regular files.")
+    return p
+
+
+def check_npz(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """The arrays of a ``.npz`` (name -> (shape, dtype)) from their headers, without inflating
+    them; DataFormatError for a file that is no plain zip of ``.npy`` arrays, holds object arrays
+    (a pickle), declares more bytes than ``data_cap()`` or more than it holds, or names an array
+    both as a leaf and as a group (``observations`` and ``observations/goal``)."""
+    p = regular_file(path, ".npz file")
+    cap = data_cap()
+    out: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
+    total = 0
+    try:
+        with zipfile.ZipFile(p) as z:
+            for info in z.infolist():
+                if not info.filename.endswith(".npy"):
+                    continue
+                with z.open(info) as f:
+                    version = np.lib.format.read_magic(f)
+                    if version == (1, 0):
+                        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+                    else:
+                        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+                    header = f.tell() if f.seekable() else None
+                if dtype.hasobject:
+                    raise DataFormatError(f"{p}: array {info.filename[:-4]!r} holds Python objects (a pickle); save "
+                                          f"plain numeric arrays with np.savez.")
+                size = int(np.prod(shape, dtype=object)) * dtype.itemsize
+                total += size
+                if total > cap:
+                    raise DataFormatError(f"{p}: its arrays declare {total / 2**30:.1f} GiB, more than botorl reads "
+                                          f"({cap / 2**30:.1f} GiB); give a smaller dataset.")
+                if header is not None and size > info.file_size - header:
+                    raise DataFormatError(f"{p}: array {info.filename[:-4]!r} declares {size:,} bytes and holds "
+                                          f"{info.file_size - header:,}; the file is truncated or damaged.")
+                out[info.filename[:-4]] = (tuple(shape), dtype)
+    except DataFormatError:
+        raise
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, NotImplementedError, KeyError) as err:
+        raise DataFormatError(f"{p}: not a readable .npz file ({type(err).__name__}: {err}).") from None
+    for name in out:
+        if any(other.startswith(name + "/") for other in out):
+            raise DataFormatError(f"{p}: {name!r} is both an array and a group of arrays ({name}/...); keep one.")
+    return out
+
+
+def check_hdf5(f, path) -> None:
+    """DataFormatError when the open h5py file ``f`` stores data outside itself (external links,
+    external storage, virtual datasets) or declares more than ``data_cap()`` bytes."""
+    import h5py
+
+    cap = data_cap()
+    total = 0
+    todo = [f]
+    while todo:
+        group = todo.pop()
+        for name in group:
+            link = group.get(name, getlink=True)
+            if isinstance(link, h5py.ExternalLink):
+                raise DataFormatError(f"{path}: {group.name.rstrip('/')}/{name} links to another file "
+                                      f"({link.filename}); botorl reads only data stored in the file itself.")
+            if isinstance(link, h5py.SoftLink):
+                continue  # a name for something in this file, visited where it lives
+            node = group[name]
+            if isinstance(node, h5py.Group):
+                todo.append(node)
+                continue
+            if not isinstance(node, h5py.Dataset):
+                continue
+            if node.external or node.is_virtual:
+                raise DataFormatError(f"{path}: dataset {node.name} is stored outside the file (external storage or "
+                                      f"a virtual dataset); botorl reads only data stored in the file itself.")
+            total += int(np.prod(node.shape or (1,), dtype=object)) * node.dtype.itemsize
+            if total > cap:
+                raise DataFormatError(f"{path}: its datasets declare {total / 2**30:.1f} GiB, more than botorl reads "
+                                      f"({cap / 2**30:.1f} GiB).")
+
+
+def data_files(path: str | os.PathLike, minari_root: Path | None = None) -> list[Path]:
+    """The files a run reads for its ``data.path``: the file itself; a Minari dataset's
+    ``main_data.hdf5`` (a folder, its ``data`` folder or an id under ``minari_root``); the regular
+    files directly inside any other folder (the Cal-QL folder); each of ``a,b``. Nothing for a
+    path that does not exist (the loader names it)."""
+    p = Path(path).expanduser()
+    if not p.exists() and "," in str(path):
+        return [f for part in str(path).split(",") if part for f in data_files(part, minari_root)]
+    if p.is_file() or (p.exists() and not p.is_dir()):
+        return [p]
+    if not p.exists():
+        if minari_root is None:
+            return []
+        p = Path(minari_root) / str(path)
+        if not p.is_dir():
+            return []
+    for main in (p / "data" / "main_data.hdf5", p / "main_data.hdf5"):
+        if os.path.lexists(main):
+            return [main]
+    found = []
+    for entry in sorted(p.iterdir())[:10_000]:
+        if entry.is_file() and stat.S_ISREG(entry.stat().st_mode):
+            found.append(entry)
+    return found
+
+
+def fingerprint(path: str | os.PathLike | None, minari_root: Path | None = None) -> dict:
+    """``{"path", "size", "sha256"}`` of what a run reads for ``data.path`` (``data_files``; None:
+    the task's own data, made or named by botorl, which the config's digest covers). An integrity
+    check: it says the data did not change, not who made them."""
+    import hashlib
+
+    if path is None:
+        return {"path": None}
+    h = hashlib.sha256()
+    size = 0
+    try:
+        for f in data_files(path, minari_root):
+            regular_file(f)
+            with open(f, "rb") as fh:
+                size += os.fstat(fh.fileno()).st_size
+                h.update(f.name.encode() + b"\0")
+                h.update(hashlib.file_digest(fh, "sha256").digest())
+    except OSError as err:
+        raise DataFormatError(f"data.path {path}: cannot be read to check it ({err}).") from None
+    return {"path": str(path), "size": size, "sha256": h.hexdigest()}
