@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
+import os
 import math
 import re
 import subprocess
@@ -276,8 +277,8 @@ def test_cli_bad_reference_scores_exit_2(drift, monkeypatch, capsys, args, messa
 @pytest.mark.timeout(600)
 def test_cli_normalised_score_end_to_end(drift, monkeypatch, capsys):
     """--ref-min-score/--ref-max-score: config.json records the metric, summary.json has score_*
-    = 100 (R - min) / (max - min) of its return_*, and `botorl eval` (the task imported again by
-    name, its references from config.json) prints the score."""
+    = 100 (R - min) / (max - min) of its return_*, and `botorl eval` (the task given again with
+    --env, its references from config.json) prints the score."""
     out = drift / "runs" / "score"
     code, err = _drift_cli(drift, monkeypatch, capsys, "--method", "wsrl", "--ref-min-score", "-40",
                            "--ref-max-score", "0", out=out)
@@ -288,8 +289,11 @@ def test_cli_normalised_score_end_to_end(drift, monkeypatch, capsys):
     assert "success_initial" not in s and s["return_final"] < 0
     for p in ("initial", "final"):
         assert s[f"score_{p}"] == pytest.approx(100 * (s[f"return_{p}"] + 40) / 40)
-    # another process, another folder: the task is imported again by name, its references read back
-    proc = subprocess.run([sys.executable, "-m", "botorl.cli", "eval", str(out), "--episodes", "2"], cwd="/",
-                          env=_env(), capture_output=True, text=True, timeout=300)
+    # another process, another folder: the task given again with --env (a run directory names no
+    # code botorl imports, issue 39), its references read back from config.json
+    env = _env()
+    env["PYTHONPATH"] = str(drift) + os.pathsep + env["PYTHONPATH"]
+    proc = subprocess.run([sys.executable, "-m", "botorl.cli", "eval", str(out), "--episodes", "2",
+                           "--env", "drift:make_env"], cwd="/", env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert re.search(r"^score +", proc.stdout, re.M) and "success" not in proc.stdout, proc.stdout
