@@ -21,13 +21,12 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from botorl.agents.population import member_metrics, member_of, stack
+from botorl.batch import TRANSITION_KEYS
 from botorl.boto.config import BOTOConfig
 from botorl.boto.objective import ObjectiveSettings, check_alpha, population_update_many
 from botorl.errors import ConfigError, TrainingDivergedError
 
 __all__ = ["BOTOConfig", "run_boto", "train_boto", "boto_batches"]
-
-_KEYS = ("observations", "actions", "rewards", "next_observations", "dones")
 
 
 def boto_batches(d_offline, d_warmups: Sequence, rngs: Sequence[np.random.Generator], batch_size: int,
@@ -49,9 +48,9 @@ def boto_batches(d_offline, d_warmups: Sequence, rngs: Sequence[np.random.Genera
             off = idx < n_off
             b_off = d_offline.batch_at(np.where(off, idx, 0))
             b_w = d_w.batch_at(np.where(off, 0, idx - n_off))
-            b = {k: np.where(off.reshape(off.shape + (1,) * (b_off[k].ndim - 2)), b_off[k], b_w[k]) for k in _KEYS}
-        out.append({k: b[k] for k in _KEYS})
-    return {k: np.stack([o[k] for o in out]) for k in _KEYS}
+            b = {k: np.where(off.reshape(off.shape + (1,) * (b_off[k].ndim - 2)), b_off[k], b_w[k]) for k in TRANSITION_KEYS}
+        out.append({k: b[k] for k in TRANSITION_KEYS})
+    return {k: np.stack([o[k] for o in out]) for k in TRANSITION_KEYS}
 
 
 def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alphas: Sequence[float],
