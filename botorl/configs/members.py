@@ -1,6 +1,7 @@
 """The members of a population: every (seed, alpha) pair of ``--seeds`` / ``--alphas``; the one
-parser of seeds and alphas (the population's fields and the sweep's grid alike), and each
-member's config: the shared one with its own seed and alpha, the only fields members differ in.
+parser of seeds and alphas (the population's fields and the sweep's grid alike), each member's
+config: the shared one with its own seed and alpha, the only fields members differ in, and
+the random streams a member's seeds give (``Streams``, the one seed plan).
 """
 
 from __future__ import annotations
@@ -42,6 +43,36 @@ class Member:
 
     def to_json(self) -> dict:
         return {"seed": self.seed, "alpha": self.alpha, "name": self.name}
+
+
+@dataclass(frozen=True)
+class Streams:
+    """Every random stream of one member's run, drawn from its ``seed`` (pre-training, evaluation)
+    and ``online_seed`` (the online phase; RunConfig.online_seed), each its own, so no two
+    streams share draws (docs/populations.md). The constants are the ones runs have always
+    used: they keep every run's numbers."""
+
+    pretrain: int  # the pre-training agent: its networks and key
+    pretrain_batches: list[int]  # SeedSequence of pre-training's host batches
+    pretrain_keys: int  # PRNGKey of its device batches, folded with the step
+    warmup_env: int  # the warm-up's env and its first reset
+    boto: int  # BOTO's batches and noise: call c draws from [boto, c] (boto/phase.py)
+    scratch: int  # fine-tuning's SAC from nothing (RLPD)
+    warm_start: int  # WSRL's SAC from the pre-trained networks
+    online_env: int  # fine-tuning's env and its resets
+    online_batches: list[int]  # SeedSequence of fine-tuning's batches
+    evaluation: int  # the run's evaluation episodes reset from evaluation + episode index
+    eval_command: int  # `botorl eval`'s episodes: others than the run's
+
+    PROBE = 12345  # the Q probe's (s, a) pairs: one set for every run, which compares them
+    EVAL_ENVS = 10_000  # evaluation env i is made with seed EVAL_ENVS + i in every member
+
+    @classmethod
+    def of(cls, cfg) -> "Streams":
+        s, o = cfg.seed, cfg.online_seed
+        return cls(pretrain=s, pretrain_batches=[s, 1], pretrain_keys=s * 1_000_003 + 1, warmup_env=o * 1000 + 7,
+                   boto=o, scratch=o, warm_start=o * 7919 + 3, online_env=o * 1000 + 11, online_batches=[o, 3],
+                   evaluation=100_000 + 1_000 * s, eval_command=200_000 + s)
 
 
 def _items(value, flag: str) -> list[str]:

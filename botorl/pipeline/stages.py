@@ -28,6 +28,7 @@ from botorl.agents.cql import CQLAgent
 from botorl.agents.iql import IQLAgent
 from botorl.agents.sac import SACAgent
 from botorl.boto.phase import train_boto
+from botorl.configs.members import Streams
 from botorl.configs.methods import get_method
 from botorl.data.dataset import Dataset
 from botorl.pipeline import faults, preempt
@@ -68,12 +69,12 @@ def start_finetuning(ctx, agents):
     if start == "warm_start":
         # WSRL's warm start: SAC (10 critics) from the pre-trained (or BOTO-trained) networks.
         # From IQL (no temperature) the initial one comes from the probe states (agents/temperature.py).
-        return AP.stack([SACAgent.from_pretrained(AP.member_of(agents, i), oc.sac, seed=mc.cfg.online_seed * 7919 + 3,
+        return AP.stack([SACAgent.from_pretrained(AP.member_of(agents, i), oc.sac, seed=Streams.of(mc.cfg).warm_start,
                                                   observations=ctx.probe.observations)
                          for i, mc in enumerate(ctx.members)])
     if start == "scratch":
         O, A = ctx.d_offline.obs_dim, ctx.d_offline.action_dim
-        return AP.stack([SACAgent.create(oc.sac, O, A, mc.cfg.online_seed) for mc in ctx.members])
+        return AP.stack([SACAgent.create(oc.sac, O, A, Streams.of(mc.cfg).scratch) for mc in ctx.members])
     return continued_learner(ctx.cfg, agents)  # "continue": the pre-trained agent keeps its own loss
 
 
@@ -190,19 +191,20 @@ def pretrain(ctx, resume: dict | None = None):
     # share one pre-training (computed once, by the first of them; mid-stage checkpoints hold
     # one agent per seed) and each gets its copy at the end.
     reps, group = pretrain_groups(ctx.members)
-    seeds = [ctx.members[r].cfg.seed for r in reps]
-    agents = AP.stack([make_pretrain_agent(ctx.members[r].cfg, d.obs_dim, d.action_dim, s) for r, s in zip(reps, seeds)])
+    streams = [Streams.of(ctx.members[r].cfg) for r in reps]
+    agents = AP.stack([make_pretrain_agent(ctx.members[r].cfg, d.obs_dim, d.action_dim, s.pretrain)
+                       for r, s in zip(reps, streams)])
     step, states = 0, [None] * len(reps)
     if resume is not None:
         agents = ctx.load_agents(resume["name"], agents)
         step, states = int(resume["step"]), resume.get("np_rng")
         states = states if isinstance(states, list) else [states] * len(reps)
-    rngs = [rng_from(st, [s, 1]) for s, st in zip(seeds, states)]
+    rngs = [rng_from(st, s.pretrain_batches) for s, st in zip(streams, states)]
     on_device = jax.default_backend() != "cpu" if oc.sample_on_device is None else oc.sample_on_device
     if on_device:
         arrays = d.to_device()
         # the key of each call follows from (seed, step), so a resumed run draws the same batches
-        base_keys = [jax.random.PRNGKey(s * 1_000_003 + 1) for s in seeds]
+        base_keys = [jax.random.PRNGKey(s.pretrain_keys) for s in streams]
     points = Schedule(oc.steps, oc.log_every, cfg.checkpoint_every)
     window, rate = Window(len(reps)), Rate(step)
     if resume is not None:
@@ -262,7 +264,7 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
     n, N = ctx.cfg.warmup.steps, ctx.n
     if n == 0:
         return None, agents
-    seeds = [mc.cfg.online_seed * 1000 + 7 for mc in ctx.members]
+    seeds = [Streams.of(mc.cfg).warmup_env for mc in ctx.members]
     envs = [ctx.spec.make_env(seed=s) for s in seeds]
     obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(envs, seeds)])
     agents = _reseed_online(ctx, agents)
@@ -328,7 +330,7 @@ def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = Non
         step_end("boto", step, bc.boto_steps, due, lambda interrupted: ctx.save_mid("boto", step, agents))
 
     return train_boto(agents, ctx.d_offline, d_warmups or [None] * ctx.n, bc,
-                      [mc.cfg.alpha for mc in ctx.members], [mc.cfg.online_seed for mc in ctx.members],
+                      [mc.cfg.alpha for mc in ctx.members], [Streams.of(mc.cfg).boto for mc in ctx.members],
                       start_step=start, on_call=on_call, progress=cfg.progress)
 
 
