@@ -19,7 +19,6 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from botorl.agents.common import ActorCriticAgent, checked_batch
 from botorl.agents.population import as_f32, over_members, placed
@@ -190,7 +189,6 @@ def boto_update(agent, batch, alpha: float, config: BOTOConfig | ObjectiveSettin
 
 def population_update_many(agents, batches, alphas, settings: ObjectiveSettings):
     """``boto_update_many`` of every member of a population (agents/population.py), each with its
-    own alpha; ``batches`` (N, K, B, ...), ``alphas`` (N,)."""
-    check_alpha(np.asarray(alphas))
+    own alpha; ``batches`` (N, K, B, ...), ``alphas`` (N,), checked by the caller (``train_boto``)."""
     b = {k: as_f32(batches[k]) for k in TRANSITION_KEYS}
     return _jit_population_update_many(*placed(agents, b, as_f32(alphas)), settings=settings)

@@ -63,6 +63,7 @@ def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alpha
     agents and one dict of floats per member (the means over the call's steps of
     ``boto_update_many``'s metrics); it may raise to stop (the agents before the call are then
     the last good ones)."""
+    check_alpha(alphas if len(alphas) > 1 else alphas[0])  # once, not at every call's update
     settings = ObjectiveSettings.resolve(config, member_of(agents, 0))
     alphas = np.asarray(alphas, np.float32)
     end = config.boto_steps if end_step is None else end_step
@@ -111,7 +112,6 @@ def run_boto(
     loss raises TrainingDivergedError (the last callback's agent is the last good one).
     """
     config.validate()
-    check_alpha(alpha)
     if start_step < 0 or start_step > config.boto_steps:
         raise ConfigError(f"run_boto start_step={start_step} must be in [0, boto_steps={config.boto_steps}].")
     end = config.boto_steps if num_steps is None else min(config.boto_steps, start_step + int(num_steps))

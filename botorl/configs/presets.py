@@ -222,16 +222,12 @@ def _method_defaults(cfg: RunConfig, spec) -> RunConfig:
         # with WSRL's batch layout (4 x 256 critic rows, actor on 1,024), target entropy -|A|/2,
         # no backup entropy, min over 2 distinct critics (1 on antmaze: WSRL's and RLPD's
         # num_min_qs=1), mean-over-critics actor, 5,000 steps of the untrained policy before the
-        # first update. The RLPD paper's UTD 20 is `--online.utd 20`.
+        # first update (the target entropy: Method.target_entropy_per_dim). The RLPD paper's UTD
+        # 20 is `--online.utd 20`.
         sac = replace(online.sac, subsample_replace=False, actor_objective="mean", backup_entropy=False,
-                      target_entropy=-spec.action_dim / 2.0, num_min_critics=1 if dom == "antmaze" else 2)
+                      num_min_critics=1 if dom == "antmaze" else 2)
         random_steps = 5_000 if cfg.profile == "full" else min(5_000, max(1, online.steps // 10))
         online = replace(online, offline_ratio=0.5, random_steps=random_steps, sac=sac)
-    else:  # boto, wsrl: WSRL's SAC, offline data dropped
-        # Target entropy -|A|: WSRL's sac_config passes target_entropy = 0.0 and, since its commit
-        # f73d11e ("fix target entropy in SAC, align with CQL"), its SAC agent turns any value
-        # >= 0 into -|A| (zhouzypaul/wsrl, wsrl/agents/sac.py, create; docs/methods.md). Before
-        # that commit the rule gave -|A|/2, which botorl followed until issue 40.
-        sac = replace(online.sac, target_entropy=-float(spec.action_dim))
-        online = replace(online, utd=4, offline_ratio=0.0, random_steps=0, sac=sac)
+    else:  # boto, wsrl: WSRL's SAC (its target entropy: Method.target_entropy_per_dim), offline data dropped
+        online = replace(online, utd=4, offline_ratio=0.0, random_steps=0)
     return replace(cfg, network=network, online=online)
