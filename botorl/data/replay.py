@@ -74,11 +74,9 @@ class ReplayBuffer:
     def insert_batch(self, observations, actions, rewards, next_observations, dones, mc_returns=None) -> None:
         """Add n transitions of finished episodes at once, in order (if n > capacity only the last
         ``capacity`` stay); a member buffer takes (N, n, ...) arrays."""
-        data = {"observations": (observations, (self.obs_dim,)), "actions": (actions, (self.action_dim,)),
-                "rewards": (rewards, ()), "next_observations": (next_observations, (self.obs_dim,)),
-                "dones": (dones, ()), "mc_returns": (mc_returns, ())}
-        data = {k: None if v is None else np.asarray(v, np.float32).reshape((self.n, -1) + t)
-                for k, (v, t) in data.items()}
+        values = (observations, actions, rewards, next_observations, dones, mc_returns)
+        data = {k: None if v is None else np.asarray(v, np.float32).reshape((self.n, -1) + self._arrays[k].shape[2:])
+                for k, v in zip(BATCH_KEYS, values)}
         n = data["rewards"].shape[1]
         if data["mc_returns"] is None:
             data["mc_returns"] = np.zeros((self.n, n), np.float32)
