@@ -19,6 +19,7 @@ import time
 from typing import Any, Callable, Sequence
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from botorl.agents.population import member_metrics, member_of, stack
 from botorl.batch import TRANSITION_KEYS
@@ -68,8 +69,6 @@ def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alpha
     alphas = np.asarray(alphas, np.float32)
     end = config.boto_steps if end_step is None else end_step
     step = start_step
-    from tqdm.auto import tqdm
-
     label = f"BOTO alpha={alphas[0]:+.2f}" if len(alphas) == 1 else f"BOTO x {len(alphas)} members"
     bar = tqdm(total=end, initial=start_step, desc=label, unit="step", dynamic_ncols=True, disable=not progress,
                mininterval=1.0, smoothing=0.05)
