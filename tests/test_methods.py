@@ -37,3 +37,24 @@ def test_the_target_entropy_is_set_in_one_place():
     sets = [(p.name, n.lineno) for p in sorted(CONFIGS.glob("*.py")) for n in ast.walk(ast.parse(p.read_text()))
             if isinstance(n, ast.keyword) and n.arg == "target_entropy"]
     assert [name for name, _ in sets] == ["resolve.py"], sets
+
+
+def test_the_boto_stage_checks_alpha_once(monkeypatch):
+    # train_boto checks its alphas on entry, not again at every call's population update
+    import numpy as np
+
+    from botorl.agents.population import stack
+    from botorl.agents.sac import SACAgent, SACConfig
+    from botorl.boto import objective, phase
+    from botorl.data.dataset import Dataset
+
+    calls, check = [], objective.check_alpha
+    monkeypatch.setattr(phase, "check_alpha", lambda a: calls.append(a) or check(a))
+    monkeypatch.setattr(objective, "check_alpha", lambda a: calls.append(a))
+    agent = SACAgent.create(SACConfig(actor_hidden_dims=(8,), critic_hidden_dims=(8,), num_critics=2), 3, 2, 0)
+    data = Dataset(np.zeros((10, 3)), np.zeros((10, 2)), np.zeros(10), np.zeros((10, 3)), np.zeros(10))
+    config = phase.BOTOConfig(boto_steps=2, steps_per_call=1, batch_size=4)
+    phase.train_boto(stack([agent, agent]), data, [None, None], config, [0.5, -0.5], [0, 1], progress=False)
+    assert len(calls) == 1
+    with pytest.raises(ConfigError, match=r"alpha = \[0.5, -3.0\] is outside \[-1, 1\]"):
+        phase.train_boto(stack([agent, agent]), data, [None, None], config, [0.5, -3.0], [0, 1], progress=False)

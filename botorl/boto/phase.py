@@ -64,7 +64,7 @@ def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alpha
     agents and one dict of floats per member (the means over the call's steps of
     ``boto_update_many``'s metrics); it may raise to stop (the agents before the call are then
     the last good ones)."""
-    check_alpha(alphas if len(alphas) > 1 else alphas[0])  # once, not at every call's update
+    check_alpha(alphas[0] if len(alphas) == 1 else alphas)  # once, not at every call's update
     settings = ObjectiveSettings.resolve(config, member_of(agents, 0))
     alphas = np.asarray(alphas, np.float32)
     end = config.boto_steps if end_step is None else end_step
