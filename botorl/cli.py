@@ -11,8 +11,10 @@ import contextlib
 import importlib
 import os
 import re
+import signal
 import sys
 
+from botorl.errors import BotorlError, Interrupted
 from botorl.io import IO_FAULTS
 
 # name -> (module:function, one-line help). Imported lazily.
@@ -62,8 +64,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     target, _ = COMMANDS[name]
     module_name, func_name = target.split(":")
-    from botorl.errors import BotorlError, Interrupted
-
     try:
         # the commands that train stop at a step with a checkpoint on SIGTERM / SIGINT
         # (botorl/pipeline/preempt.py); the others keep Python's defaults
@@ -136,8 +136,6 @@ def console_main() -> None:
     """The `botorl` command: ``main``, then a Ctrl-C during Python's shutdown (atexit handlers;
     JAX's, Ray's and W&B's threads) exits 130 without a traceback. Not in ``main``, which tests
     and `botorl.run` call in-process."""
-    import signal
-
     code = main()
 
     def exit_130(signum, frame):

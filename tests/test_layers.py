@@ -4,7 +4,7 @@ Every ``import`` / ``from ... import`` of a botorl module is read from the sourc
 those inside functions included. The packages are layers, each importing only from its own
 layer and the ones below:
 
-    errors, io, jaxsetup  <  networks  <  agents  <  envs  <  data  <  experts  <  boto
+    errors, io, jaxsetup, batch  <  networks  <  agents  <  envs  <  data  <  experts  <  boto
       <  configs  <  pipeline  <  experiments, benchmarks
 
 Command modules (``botorl/cli.py`` and every ``<package>/cli.py`` or ``*_cli.py``: what
@@ -18,7 +18,7 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1] / "botorl"
-LAYERS = [("errors", "io", "jaxsetup", "__init__"), ("networks",), ("agents",), ("envs",), ("data",), ("experts",),
+LAYERS = [("errors", "io", "jaxsetup", "batch", "__init__"), ("networks",), ("agents",), ("envs",), ("data",), ("experts",),
           ("boto",), ("configs",), ("pipeline",), ("experiments", "benchmarks")]
 LAYER = {pkg: i for i, pkgs in enumerate(LAYERS) for pkg in pkgs}
 

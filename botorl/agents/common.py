@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import optax
 from flax.training.train_state import TrainState
 
+from botorl.batch import BATCH_KEYS, Batch
 from botorl.errors import ConfigError
 from botorl.networks import CriticEnsemble, TanhGaussianActor, sample_tanh_gaussian, subsample_ensemble
 
@@ -25,8 +26,6 @@ __all__ = [
     "checked_batch", "chunk_size", "summed_value_and_grad", "update_many_on_device", "sample_batches",
     "actor_def", "critic_def", "ActorCriticAgent", "check_fields",
 ]
-
-BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones", "mc_returns")
 
 
 def polyak(params, target_params, tau: float):
@@ -129,7 +128,7 @@ def q_mean_fn(agent, observations, actions):
     return agent.critic_values(agent.critic.params, observations, actions).mean(axis=0)
 
 
-def sample_batches(arrays: dict, key, num_batches: int, batch_size: int) -> dict:
+def sample_batches(arrays: dict, key, num_batches: int, batch_size: int) -> Batch:
     """``num_batches`` uniform batches (with replacement) of ``arrays``' rows, stacked (K, B, ...)."""
     n = arrays["rewards"].shape[0]
     idx = jax.random.randint(key, (num_batches, batch_size), 0, n)
@@ -155,7 +154,7 @@ def update_many_on_device(agent, arrays: dict, key: jax.Array, num_updates: int,
     return _jit_update_many_on_device(agent, checked_batch(arrays), key, num_updates, batch_size)
 
 
-def checked_batch(batch) -> dict:
+def checked_batch(batch) -> Batch:
     """``batch`` with ``mc_returns`` (zeros when missing); ConfigError for a missing key."""
     if not isinstance(batch, dict):
         raise ConfigError(

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from botorl.agents import common as C
+from botorl.agents import common
 
 __all__ = [
     "stack", "unstack", "member_of", "population_size", "member_metrics", "host_shards", "member_sharding", "over_members",
@@ -171,16 +171,16 @@ def _masked(agents, batches, mask, many: bool):
     return jax.tree_util.tree_map(pick, new, agents), metrics
 
 
-_update = over_members(C.update_fn, (0, 0), across_cores=True)
-_update_many = over_members(C.update_many_fn, (0, 0), across_cores=True)
+_update = over_members(common.update_fn, (0, 0), across_cores=True)
+_update_many = over_members(common.update_many_fn, (0, 0), across_cores=True)
 jit_update = jax.jit(_update)
 jit_update_many = jax.jit(_update_many)
 jit_update_masked = jax.jit(_masked, static_argnames=("many",))
-jit_update_many_on_device = jax.jit(over_members(C.update_many_on_device_fn, (0, None, 0), across_cores=False),
+jit_update_many_on_device = jax.jit(over_members(common.update_many_on_device_fn, (0, None, 0), across_cores=False),
                                     static_argnames=("num_updates", "batch_size"))
-jit_sample = jax.jit(over_members(C.sample_fn, (0, 0), across_cores=False))
-jit_eval = jax.jit(over_members(C.eval_fn, (0, 0), across_cores=False))
-jit_q_mean = jax.jit(over_members(C.q_mean_fn, (0, None, None), across_cores=False))
+jit_sample = jax.jit(over_members(common.sample_fn, (0, 0), across_cores=False))
+jit_eval = jax.jit(over_members(common.eval_fn, (0, 0), across_cores=False))
+jit_q_mean = jax.jit(over_members(common.q_mean_fn, (0, None, None), across_cores=False))
 
 
 def as_f32(x):
@@ -190,8 +190,8 @@ def as_f32(x):
 
 
 def _f32(batch: dict) -> dict:
-    batch = C.checked_batch(batch)
-    return {k: as_f32(batch[k]) for k in C.BATCH_KEYS}
+    batch = common.checked_batch(batch)
+    return {k: as_f32(batch[k]) for k in common.BATCH_KEYS}
 
 
 def update(agents, batches):
@@ -212,19 +212,19 @@ def update_masked(agents, batches, mask, *, many: bool = False):
 
 def update_many_on_device(agents, arrays: dict, keys, num_updates: int, batch_size: int):
     """``update_many_on_device`` per member from one shared on-device dataset; ``keys`` (N, 2)."""
-    return jit_update_many_on_device(agents, C.checked_batch(arrays), keys, num_updates=num_updates,
+    return jit_update_many_on_device(agents, common.checked_batch(arrays), keys, num_updates=num_updates,
                                      batch_size=batch_size)
 
 
 def sample(agents, observations):
     """Stochastic actions of every member at its own observation(s): (N, O) -> (N, A)."""
-    actions, rng = jit_sample(C.acting_view(agents), jnp.asarray(observations, jnp.float32))
+    actions, rng = jit_sample(common.acting_view(agents), jnp.asarray(observations, jnp.float32))
     return actions, agents.replace(rng=rng)
 
 
 def eval_actions(agents, observations):
     """Deterministic actions: (N, O) -> (N, A) or (N, E, O) -> (N, E, A)."""
-    return jit_eval(C.acting_view(agents), jnp.asarray(observations, jnp.float32))
+    return jit_eval(common.acting_view(agents), jnp.asarray(observations, jnp.float32))
 
 
 def q_mean(agents, observations, actions):

@@ -18,7 +18,7 @@ import platform
 import statistics
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Optional
 
@@ -212,8 +212,6 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
 
 def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, Any]:
     """The online loop and the same update alone, interleaved round by round."""
-    import dataclasses
-
     from botorl.agents.sac import SACAgent, SACConfig
     from botorl.benchmarks.online_loop import OnlineLoop
     from botorl.envs.registry import get_task
@@ -229,7 +227,7 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
     loop = OnlineLoop(agent, spec, w.batch, w.utd, prefill=max(w.batch * w.utd, 2000))
     # The update alone on the env's shapes (the same jit cache entry as the table's row
     # when those are the same).
-    alone = wl.build(dataclasses.replace(w, obs_dim=obs_dim, action_dim=action_dim))
+    alone = wl.build(replace(w, obs_dim=obs_dim, action_dim=action_dim))
     n_loop = _calibrate(loop.run, min_time)
     n_alone = _calibrate(alone.step, min_time)
     loop_rates, alone_rates, ratios = [], [], []

@@ -13,6 +13,8 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
+from botorl.batch import BATCH_KEYS
+
 
 @dataclass(frozen=True)
 class Workload:
@@ -86,13 +88,9 @@ def make_batch(rows: int, obs_dim: int, action_dim: int, seed: int = 0, lead: tu
     """A random Batch (CONTRACTS.md) already on the device."""
     rng = np.random.default_rng(seed)
     u = lambda *s: rng.uniform(-1, 1, lead + s).astype(np.float32)  # noqa: E731
-    batch = {
-        "observations": u(rows, obs_dim), "actions": u(rows, action_dim) * 0.99,
-        "rewards": u(rows), "next_observations": u(rows, obs_dim),
-        "dones": (rng.uniform(size=lead + (rows,)) < 0.01).astype(np.float32),
-        "mc_returns": u(rows) * 10,
-    }
-    return jax.device_put(batch)
+    values = [u(rows, obs_dim), u(rows, action_dim) * 0.99, u(rows), u(rows, obs_dim),
+              (rng.uniform(size=lead + (rows,)) < 0.01).astype(np.float32), u(rows) * 10]  # drawn in this order
+    return jax.device_put(dict(zip(BATCH_KEYS, values)))
 
 
 def _bound(agent: Any, call: Callable, batch: Any, updates_per_call: int) -> Bound:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from botorl.batch import TRANSITION_KEYS
 from botorl.io import atomic_save_figure, atomic_write_json
 
 FIG3_ALPHAS = (-1.0, -0.5, 0.0, 0.5, 1.0)
@@ -102,8 +103,7 @@ def train_boto_bandit(dataset, alphas, boto_config, *, steps: int, batch_size: i
 
     def step(ags, k):
         batches = dataset.sample(rng, batch_size, num_batches=k)
-        ags, info = train_chunk(ags, {key: jnp.asarray(batches[key], jnp.float32) for key in
-                                      ("observations", "actions", "rewards", "next_observations", "dones")})
+        ags, info = train_chunk(ags, {key: jnp.asarray(batches[key], jnp.float32) for key in TRANSITION_KEYS})
         return ags, info["critic_loss"].mean()
 
     agents = _in_chunks(agents, step, steps, 500, desc, progress)

@@ -19,16 +19,14 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from botorl.agents.common import ActorCriticAgent, checked_batch
 from botorl.agents.population import as_f32, over_members, placed
+from botorl.batch import TRANSITION_KEYS
 from botorl.boto.config import BOTOConfig, check_alpha
 from botorl.boto.noise import make_noise_fn
 from botorl.errors import ConfigError
 from botorl.networks import sample_tanh_gaussian
-
-_BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones")
 
 
 @dataclass(frozen=True)
@@ -179,19 +177,18 @@ def boto_update_many(agent, batches, alpha: float, config: BOTOConfig | Objectiv
     check_alpha(alpha)
     settings = config if isinstance(config, ObjectiveSettings) else ObjectiveSettings.resolve(config, agent)
     _check_batches(batches, many=True)
-    batches = {k: jnp.asarray(batches[k], jnp.float32) for k in _BATCH_KEYS}
+    batches = {k: jnp.asarray(batches[k], jnp.float32) for k in TRANSITION_KEYS}
     return _jit_update_many(agent, batches, jnp.float32(alpha), settings)
 
 
 def boto_update(agent, batch, alpha: float, config: BOTOConfig | ObjectiveSettings):
     """One BOTO critic step (the K = 1 case of ``boto_update_many``)."""
     _check_batches(batch, many=False)
-    return boto_update_many(agent, {k: jnp.asarray(batch[k])[None] for k in _BATCH_KEYS}, alpha, config)
+    return boto_update_many(agent, {k: jnp.asarray(batch[k])[None] for k in TRANSITION_KEYS}, alpha, config)
 
 
 def population_update_many(agents, batches, alphas, settings: ObjectiveSettings):
     """``boto_update_many`` of every member of a population (agents/population.py), each with its
-    own alpha; ``batches`` (N, K, B, ...), ``alphas`` (N,)."""
-    check_alpha(np.asarray(alphas))
-    b = {k: as_f32(batches[k]) for k in _BATCH_KEYS}
+    own alpha; ``batches`` (N, K, B, ...), ``alphas`` (N,), checked by the caller (``train_boto``)."""
+    b = {k: as_f32(batches[k]) for k in TRANSITION_KEYS}
     return _jit_population_update_many(*placed(agents, b, as_f32(alphas)), settings=settings)

@@ -19,15 +19,15 @@ import time
 from typing import Any, Callable, Sequence
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from botorl.agents.population import member_metrics, member_of, stack
+from botorl.batch import TRANSITION_KEYS
 from botorl.boto.config import BOTOConfig
 from botorl.boto.objective import ObjectiveSettings, check_alpha, population_update_many
 from botorl.errors import ConfigError, TrainingDivergedError
 
 __all__ = ["BOTOConfig", "run_boto", "train_boto", "boto_batches"]
-
-_KEYS = ("observations", "actions", "rewards", "next_observations", "dones")
 
 
 def boto_batches(d_offline, d_warmups: Sequence, rngs: Sequence[np.random.Generator], batch_size: int,
@@ -49,9 +49,9 @@ def boto_batches(d_offline, d_warmups: Sequence, rngs: Sequence[np.random.Genera
             off = idx < n_off
             b_off = d_offline.batch_at(np.where(off, idx, 0))
             b_w = d_w.batch_at(np.where(off, 0, idx - n_off))
-            b = {k: np.where(off.reshape(off.shape + (1,) * (b_off[k].ndim - 2)), b_off[k], b_w[k]) for k in _KEYS}
-        out.append({k: b[k] for k in _KEYS})
-    return {k: np.stack([o[k] for o in out]) for k in _KEYS}
+            b = {k: np.where(off.reshape(off.shape + (1,) * (b_off[k].ndim - 2)), b_off[k], b_w[k]) for k in TRANSITION_KEYS}
+        out.append({k: b[k] for k in TRANSITION_KEYS})
+    return {k: np.stack([o[k] for o in out]) for k in TRANSITION_KEYS}
 
 
 def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alphas: Sequence[float],
@@ -64,12 +64,11 @@ def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alpha
     agents and one dict of floats per member (the means over the call's steps of
     ``boto_update_many``'s metrics); it may raise to stop (the agents before the call are then
     the last good ones)."""
+    check_alpha(alphas[0] if len(alphas) == 1 else alphas)  # once, not at every call's update
     settings = ObjectiveSettings.resolve(config, member_of(agents, 0))
     alphas = np.asarray(alphas, np.float32)
     end = config.boto_steps if end_step is None else end_step
     step = start_step
-    from tqdm.auto import tqdm
-
     label = f"BOTO alpha={alphas[0]:+.2f}" if len(alphas) == 1 else f"BOTO x {len(alphas)} members"
     bar = tqdm(total=end, initial=start_step, desc=label, unit="step", dynamic_ncols=True, disable=not progress,
                mininterval=1.0, smoothing=0.05)
@@ -112,7 +111,6 @@ def run_boto(
     loss raises TrainingDivergedError (the last callback's agent is the last good one).
     """
     config.validate()
-    check_alpha(alpha)
     if start_step < 0 or start_step > config.boto_steps:
         raise ConfigError(f"run_boto start_step={start_step} must be in [0, boto_steps={config.boto_steps}].")
     end = config.boto_steps if num_steps is None else min(config.boto_steps, start_step + int(num_steps))

@@ -1,6 +1,7 @@
 """The members of a population: every (seed, alpha) pair of ``--seeds`` / ``--alphas``; the one
-parser of seeds and alphas (the population's fields and the sweep's grid alike), and each
-member's config: the shared one with its own seed and alpha, the only fields members differ in.
+parser of seeds and alphas (the population's fields and the sweep's grid alike), each member's
+config: the shared one with its own seed and alpha, the only fields members differ in, and
+the random streams a member's seeds give (``Streams``, the one seed plan).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from dataclasses import dataclass, replace
 from typing import Sequence
 
 from botorl.boto.config import check_alpha
-from botorl.configs.methods import get_method
+from botorl.configs.methods import Method, get_method
 from botorl.errors import ConfigError
 
 
@@ -42,6 +43,36 @@ class Member:
 
     def to_json(self) -> dict:
         return {"seed": self.seed, "alpha": self.alpha, "name": self.name}
+
+
+@dataclass(frozen=True)
+class Streams:
+    """Every random stream of one member's run, drawn from its ``seed`` (pre-training, evaluation)
+    and ``online_seed`` (the online phase; RunConfig.online_seed), each its own, so no two
+    streams share draws (docs/populations.md). The constants are the ones runs have always
+    used: they keep every run's numbers."""
+
+    pretrain: int  # the pre-training agent: its networks and key
+    pretrain_batches: list[int]  # SeedSequence of pre-training's host batches
+    pretrain_keys: int  # PRNGKey of its device batches, folded with the step
+    warmup_env: int  # the warm-up's env and its first reset
+    boto: int  # BOTO's batches and noise: call c draws from [boto, c] (boto/phase.py)
+    scratch: int  # fine-tuning's SAC from nothing (RLPD)
+    warm_start: int  # WSRL's SAC from the pre-trained networks
+    online_env: int  # fine-tuning's env and its resets
+    online_batches: list[int]  # SeedSequence of fine-tuning's batches
+    evaluation: int  # the run's evaluation episodes reset from evaluation + episode index
+    eval_command: int  # `botorl eval`'s episodes: others than the run's
+
+    PROBE = 12345  # the Q probe's (s, a) pairs: one set for every run, which compares them
+    EVAL_ENVS = 10_000  # evaluation env i is made with seed EVAL_ENVS + i in every member
+
+    @classmethod
+    def of(cls, cfg) -> "Streams":
+        s, o = cfg.seed, cfg.online_seed
+        return cls(pretrain=s, pretrain_batches=[s, 1], pretrain_keys=s * 1_000_003 + 1, warmup_env=o * 1000 + 7,
+                   boto=o, scratch=o, warm_start=o * 7919 + 3, online_env=o * 1000 + 11, online_batches=[o, 3],
+                   evaluation=100_000 + 1_000 * s, eval_command=200_000 + s)
 
 
 def _items(value, flag: str) -> list[str]:
@@ -123,14 +154,14 @@ def parse_alphas(value, flag: str = "--alphas") -> list[float]:
     return alphas
 
 
-def make_members(seeds: Sequence[int], alphas: Sequence[float | None], method_uses_alpha: bool) -> list[Member]:
+def make_members(seeds: Sequence[int], alphas: Sequence[float | None], method: Method) -> list[Member]:
     """Every (seed, alpha) pair, alpha-major. ``alphas`` empty or [None]: one alpha (the preset's)."""
     alphas = list(alphas) or [None]
     if len(seeds) * len(alphas) > MAX_MEMBERS:
         raise ConfigError(f"{len(seeds):,} seeds x {len(alphas):,} alphas make {len(seeds) * len(alphas):,} members; at "
                           f"most {MAX_MEMBERS:,} are allowed. Give fewer --seeds or --alphas.")
-    if not method_uses_alpha and any(a is not None for a in alphas):
-        raise ConfigError("--alphas sets BOTO's bias controller; this method has no BOTO phase. Drop --alphas or use --method boto.")
+    if any(a is not None for a in alphas):
+        method.refuse_alpha("--alphas")
     # never empty nor repeated: parse_seeds and parse_alphas refuse both
     return [Member(int(s), None if a is None else float(a)) for a in alphas for s in seeds]
 
@@ -152,5 +183,5 @@ def population(cfg) -> tuple[list[Member], list]:
     """The members of the population ``cfg`` describes (see ``make_members``) and their configs."""
     seeds = [cfg.seed] if cfg.seeds is None else parse_seeds(cfg.seeds)
     alphas = [None] if cfg.alphas is None else parse_alphas(cfg.alphas)
-    members = make_members(seeds, alphas, get_method(cfg.method).uses_alpha)
+    members = make_members(seeds, alphas, get_method(cfg.method))
     return members, [member_config(cfg, m.seed, m.alpha) for m in members]

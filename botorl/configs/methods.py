@@ -7,21 +7,30 @@ calql); calql, cql and iql pre-train with themselves; rlpd has no pre-training.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 from botorl.errors import ConfigError
 
-PRETRAIN_ALGOS = ("calql", "cql", "iql")
+MethodName = Literal["boto", "wsrl", "calql", "cql", "iql", "rlpd"]  # RunConfig.method: METHODS' keys
+PretrainName = Literal["calql", "cql", "iql"]
+PRETRAIN_ALGOS = get_args(PretrainName)
 
 
 @dataclass(frozen=True)
 class Method:
-    name: str
+    name: MethodName
     stages: tuple[str, ...]
     finetune_start: str  # "warm_start" (WSRL) | "continue" (the pre-trained agent's own loss) | "scratch"
     fixed_pretrain: str | None = None  # the method *is* its pre-training algorithm
     uses_alpha: bool = False
     finished_episodes_only: bool = False  # fine-tuning batches hold rows of finished episodes only
     batch_layout: str = "utd_rows"  # "utd_rows": one update on utd x B rows | "per_update": utd updates of B
+    # Fine-tuning SAC's target entropy per action dimension (None: the agent's rule, -|A|), the
+    # one place it is set (configs/resolve.py fills it). RLPD's -|A|/2 as WSRL ran it. boto and
+    # wsrl -|A|: WSRL's sac_config passes 0.0 and, since its commit f73d11e ("fix target entropy
+    # in SAC, align with CQL"), its SAC agent turns any value >= 0 into -|A| (zhouzypaul/wsrl,
+    # wsrl/agents/sac.py, create; docs/methods.md); before it, -|A|/2, botorl's until issue 40.
+    target_entropy_per_dim: float | None = None
     description: str = ""
 
     @property
@@ -29,11 +38,17 @@ class Method:
         """Starts from an offline pre-training (every method but RLPD, which starts from nothing)."""
         return "pretrain" in self.stages
 
+    def refuse_alpha(self, flag: str) -> None:
+        """ConfigError: ``flag`` (--alpha, --alphas) sets an alpha, which a method without BOTO lacks."""
+        if not self.uses_alpha:
+            raise ConfigError(f"{flag} sets BOTO's bias controller; --method {self.name} has no BOTO phase. Drop "
+                              f"{flag}, or use --method boto.")
+
 
 METHODS: dict[str, Method] = {
     "boto": Method("boto", ("pretrain", "warmup", "boto", "finetune"), "warm_start", uses_alpha=True,
-                   description="pre-train, warm-up, BOTO critic training, WSRL fine-tuning"),
-    "wsrl": Method("wsrl", ("pretrain", "warmup", "finetune"), "warm_start",
+                   target_entropy_per_dim=-1.0, description="pre-train, warm-up, BOTO critic training, WSRL fine-tuning"),
+    "wsrl": Method("wsrl", ("pretrain", "warmup", "finetune"), "warm_start", target_entropy_per_dim=-1.0,
                    description="pre-train, warm-up, WSRL fine-tuning (no BOTO)"),
     # Cal-QL bounds Q by each row's MC return, known once its episode ends: it samples finished
     # episodes only and waits for the first one (WSRL)
@@ -44,7 +59,7 @@ METHODS: dict[str, Method] = {
                   description="CQL offline, then its own loss online with the offline data kept"),
     "iql": Method("iql", ("pretrain", "finetune"), "continue", fixed_pretrain="iql", batch_layout="per_update",
                   description="IQL offline, then its own loss online with the offline data kept"),
-    "rlpd": Method("rlpd", ("finetune",), "scratch",
+    "rlpd": Method("rlpd", ("finetune",), "scratch", target_entropy_per_dim=-0.5,
                    description="SAC from scratch online with 50/50 offline/online batches"),
 }
 

@@ -3,22 +3,19 @@ table; the ``full`` profile's sources: docs/methods.md ("Reference settings"). G
 get the settings of the paper domain they stand in for (pointmaze -> antmaze, door-binary-local
 -> door-binary).
 
-The ``quick`` profile's reductions, each for speed (measured: an update of the 10-critic,
-2 x 128 SAC at UTD 4 costs ~100 ms of CPU here, so 20k online steps alone would take over 30
-minutes): 2 x 64 actor and critics; FOUR critics (pre-training and fine-tuning) instead of
-WSRL's 10; 5 CQL action samples per kind; fixed CQL weight 5 (no Lagrange) on the maze tasks;
-10k pre-training steps; 5k BOTO steps; 20k online steps (the 5k warm-up included) with
-evaluations every 2.5k, and every 500 from the warm-up's end to 10k (the dip window);
-checkpoints every 5k. On pointmaze: 200k-step datasets, no max-target backup, and 20k
-pre-training steps (Cal-QL, BOTO's and WSRL's default, with 2 action samples per kind and
-128-row batches: ~3x cheaper a step than 5 and 256; success on the umaze 0.99 over 8 seeds
-at 15k, 1.00 at 20k); every pre-training algorithm gets that budget. door-binary-local:
-20k BC-rollout steps besides the 25 demos.
+The ``quick`` profile's reductions, each for speed (a 10-critic 2 x 128 SAC update at UTD 4
+cost ~100 ms of CPU: 20k online steps alone took over 30 minutes): 2 x 64 actor and critics;
+FOUR critics (pre-training and fine-tuning) instead of WSRL's 10; 5 CQL action samples per
+kind; fixed CQL weight 5 (no Lagrange) on the maze tasks; 10k pre-training steps; 5k BOTO
+steps; 20k online steps (the 5k warm-up included) with evaluations every 2.5k, and every 500
+from the warm-up's end to 10k (the dip window); checkpoints every 5k. On pointmaze: 200k-step
+datasets, no max-target backup, and 20k pre-training steps of any algorithm (Cal-QL with 2
+action samples per kind and 128-row batches, ~3x cheaper a step, solves the umaze by then:
+docs/results/pretraining.md). door-binary-local: 20k BC-rollout steps besides the 25 demos.
 
 The ``mid`` profile, one size up (docs/results/one-size-up.md), is quick with WSRL's 10-critic
-ensemble (pre-training and fine-tuning) and 10k BOTO steps. Not wider networks: 2 x 128
-critics reach only 0.50 on the medium maze after 30k pre-training steps, where 2 x 64 reach
-0.85 after 20k (docs/results/pretraining.md).
+ensemble and 10k BOTO steps; not wider networks, which pre-train worse on the medium maze
+(docs/results/pretraining.md).
 
 Our choices for tasks outside the paper: pointmaze uses antmaze's alpha (-1.0, the
 "diverse" value: the maze2d-style data are diverse, goals re-drawn) and log sigma -20;
@@ -227,19 +224,14 @@ def _method_defaults(cfg: RunConfig, spec) -> RunConfig:
         cfg = replace(cfg, offline=replace(cfg.offline, cql=cql))
     elif m == "rlpd":
         # RLPD from scratch as WSRL ran it: 10 critics (LayerNorm), 50/50 offline/online, UTD 4
-        # with WSRL's batch layout (4 x 256 critic rows, actor on 1,024), target entropy -|A|/2,
-        # no backup entropy, min over 2 distinct critics (1 on antmaze: WSRL's and RLPD's
-        # num_min_qs=1), mean-over-critics actor, 5,000 steps of the untrained policy before the
-        # first update. The RLPD paper's UTD 20 is `--online.utd 20`.
+        # with WSRL's batch layout (4 x 256 critic rows, actor on 1,024), target entropy -|A|/2
+        # (its Method's), no backup entropy, min over 2 distinct critics (1 on antmaze: WSRL's and
+        # RLPD's num_min_qs=1), mean-over-critics actor, 5,000 steps of the untrained policy
+        # before the first update. The RLPD paper's UTD 20 is `--online.utd 20`.
         sac = replace(online.sac, subsample_replace=False, actor_objective="mean", backup_entropy=False,
-                      target_entropy=-spec.action_dim / 2.0, num_min_critics=1 if dom == "antmaze" else 2)
+                      num_min_critics=1 if dom == "antmaze" else 2)
         random_steps = 5_000 if cfg.profile == "full" else min(5_000, max(1, online.steps // 10))
         online = replace(online, offline_ratio=0.5, random_steps=random_steps, sac=sac)
-    else:  # boto, wsrl: WSRL's SAC, offline data dropped
-        # Target entropy -|A|: WSRL's sac_config passes target_entropy = 0.0 and, since its commit
-        # f73d11e ("fix target entropy in SAC, align with CQL"), its SAC agent turns any value
-        # >= 0 into -|A| (zhouzypaul/wsrl, wsrl/agents/sac.py, create; docs/methods.md). Before
-        # that commit the rule gave -|A|/2, which botorl followed until issue 40.
-        sac = replace(online.sac, target_entropy=-float(spec.action_dim))
-        online = replace(online, utd=4, offline_ratio=0.0, random_steps=0, sac=sac)
+    else:  # boto, wsrl: WSRL's SAC (its target entropy: Method.target_entropy_per_dim), offline data dropped
+        online = replace(online, utd=4, offline_ratio=0.0, random_steps=0)
     return replace(cfg, network=network, online=online)

@@ -54,10 +54,8 @@ def resolve(cfg: RunConfig) -> RunConfig:
     spec = get_task(cfg.task)
     method = get_method(cfg.method)
     pretrain = resolve_pretrain(cfg.method, cfg.pretrain)
-    for flag, given in (("--alpha", cfg.alpha), ("--alphas", cfg.alphas)):
-        if given is not None and not method.uses_alpha:
-            raise ConfigError(f"{flag} sets BOTO's bias controller; --method {cfg.method} has no BOTO phase. Drop "
-                              f"{flag}, or use --method boto.")
+    for flag in [f for f, given in (("--alpha", cfg.alpha), ("--alphas", cfg.alphas)) if given is not None]:
+        method.refuse_alpha(flag)
     # a population's shared config holds its first member's seed and alpha
     seed = cfg.seed if cfg.seeds is None else parse_seeds(cfg.seeds)[0]
     given = cfg.alpha if cfg.alphas is None else parse_alphas(cfg.alphas)[0]
@@ -78,8 +76,8 @@ def resolve(cfg: RunConfig) -> RunConfig:
                  state_dependent_std=sac.state_dependent_std)
     if pretrain == "iql" and method.finetune_start == "warm_start":
         sac = replace(sac, log_std_min=iql.log_std_min, log_std_max=iql.log_std_max)
-    if cfg.method == "rlpd" and sac.target_entropy is None:
-        sac = replace(sac, target_entropy=-spec.action_dim / 2.0)
+    if sac.target_entropy is None and method.target_entropy_per_dim is not None:
+        sac = replace(sac, target_entropy=method.target_entropy_per_dim * spec.action_dim)
     return replace(
         cfg,
         seed=seed,

@@ -29,6 +29,7 @@ from botorl.agents.cql import CQLConfig
 from botorl.agents.iql import IQLConfig
 from botorl.agents.sac import SACConfig
 from botorl.boto.config import BOTOConfig
+from botorl.configs.methods import MethodName, PretrainName
 
 
 @dataclass
@@ -187,7 +188,7 @@ class RunConfig:
     """One run of one method on one task."""
 
     task: str = "pointmaze-umaze"
-    method: Literal["boto", "wsrl", "calql", "cql", "iql", "rlpd"] = "boto"
+    method: MethodName = "boto"
     seed: int = 0
     online_reseed: int = 0
     """k > 0: the online phase (warm-up, BOTO, fine-tuning) draws from a seed made of (seed, k),
@@ -199,7 +200,7 @@ class RunConfig:
     alphas: str | None = None
     """boto: one member per alpha (and seed): -1:1:0.5 (start:stop:step, stop included) or -1,0,1;
     None: `alpha`."""
-    pretrain: Literal["calql", "cql", "iql"] | None = None
+    pretrain: PretrainName | None = None
     """Offline algorithm of boto/wsrl (None: calql); calql/cql/iql use themselves; rlpd none."""
     pretrained: str | None = None
     """Skip pre-training: start each member from a finished one under this directory (run,

@@ -2,7 +2,7 @@
 
 ``episode_ends[i]`` marks the last row of an episode (terminal or truncated), ``terminals[i]`` a
 true terminal (no bootstrapping): Cal-QL's adroit data have several terminal rows inside one
-trajectory, and a truncated episode ends without one. Batches: ``BATCH_KEYS`` (CONTRACTS.md).
+trajectory, and a truncated episode ends without one. Batches: ``botorl.batch.Batch``.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from botorl.batch import BATCH_KEYS, Batch
 from botorl.errors import DataFormatError
 
-BATCH_KEYS = ("observations", "actions", "rewards", "next_observations", "dones", "mc_returns")
 # The per-row fields of a Dataset, in the order of its constructor's arguments.
 _ROWS = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends")
 
@@ -260,25 +260,25 @@ class Dataset:
         )
 
     # ------------------------------------------------------------------ sampling
-    def batch_at(self, idx: np.ndarray) -> dict[str, np.ndarray]:
+    def batch_at(self, idx: np.ndarray) -> Batch:
         """The Batch of the given row indices (any index shape: (B,) or (K, B))."""
-        batch = {k: getattr(self, k)[idx] for k in _ROWS[:4]}
+        batch = {k: getattr(self, k)[idx] for k in BATCH_KEYS[:4]}
         batch["dones"] = self.terminals[idx].astype(np.float32)
         batch["mc_returns"] = self.mc_returns[idx] if self.mc_returns is not None else np.zeros(idx.shape, np.float32)
         return batch
 
-    def sample(self, rng: np.random.Generator, batch_size: int, num_batches: int | None = None) -> dict:
+    def sample(self, rng: np.random.Generator, batch_size: int, num_batches: int | None = None) -> Batch:
         """Uniform rows with replacement: a Batch of (B, ...) or, with ``num_batches=K``, (K, B, ...)."""
         shape = (batch_size,) if num_batches is None else (num_batches, batch_size)
         return self.batch_at(rng.integers(0, len(self), size=shape))
 
-    def sample_members(self, rngs, batch_size: int, num_batches: int | None = None) -> dict:
+    def sample_members(self, rngs, batch_size: int, num_batches: int | None = None) -> Batch:
         """One batch per member, drawn with ``rngs[i]`` exactly as ``sample(rngs[i], ...)`` would,
         gathered at once: (N, [K,] B, ...)."""
         shape = (batch_size,) if num_batches is None else (num_batches, batch_size)
         return self.batch_at(np.stack([r.integers(0, len(self), size=shape) for r in rngs]))
 
-    def to_device(self) -> dict:
+    def to_device(self) -> Batch:
         """The Batch fields of all rows as a pytree of ``jnp`` arrays (for ``sample_batches``)."""
         import jax.numpy as jnp
 

@@ -13,10 +13,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from botorl.data.dataset import BATCH_KEYS, Dataset
+from botorl.batch import BATCH_KEYS, Batch
+from botorl.data.dataset import Dataset
 from botorl.errors import BotorlError, DataFormatError
 
-_FIELDS = ("observations", "actions", "rewards", "next_observations", "dones", "mc_returns")
 _EMPTY = "cannot sample from an empty replay buffer; insert transitions first."
 _ALL_EMPTY = "sample_mixed: every source with a positive ratio is empty; nothing to sample."
 
@@ -33,7 +33,7 @@ class ReplayBuffer:
         self.members = None if members is None else int(members)
         m = 1 if members is None else self.members
         tails = {"observations": (obs_dim,), "actions": (action_dim,), "next_observations": (obs_dim,)}
-        self._arrays = {k: np.zeros((m, capacity) + tails.get(k, ()), np.float32) for k in _FIELDS}
+        self._arrays = {k: np.zeros((m, capacity) + tails.get(k, ()), np.float32) for k in BATCH_KEYS}
         for k, arr in self._arrays.items():  # the public fields: views without the axis for one buffer
             setattr(self, k, arr[0] if members is None else arr)
         self.size = 0
@@ -57,7 +57,7 @@ class ReplayBuffer:
         """One transition (per member, stacked (N, ...), for a member buffer). ``done`` = true
         terminal only (a time-limit truncation is not done)."""
         i = self.insert_index
-        for k, v in zip(_FIELDS, (observation, action, reward, next_observation, done, mc_return)):
+        for k, v in zip(BATCH_KEYS, (observation, action, reward, next_observation, done, mc_return)):
             self._arrays[k][:, i] = v
         self.insert_index = (i + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
@@ -74,11 +74,9 @@ class ReplayBuffer:
     def insert_batch(self, observations, actions, rewards, next_observations, dones, mc_returns=None) -> None:
         """Add n transitions of finished episodes at once, in order (if n > capacity only the last
         ``capacity`` stay); a member buffer takes (N, n, ...) arrays."""
-        data = {"observations": (observations, (self.obs_dim,)), "actions": (actions, (self.action_dim,)),
-                "rewards": (rewards, ()), "next_observations": (next_observations, (self.obs_dim,)),
-                "dones": (dones, ()), "mc_returns": (mc_returns, ())}
-        data = {k: None if v is None else np.asarray(v, np.float32).reshape((self.n, -1) + t)
-                for k, (v, t) in data.items()}
+        values = (observations, actions, rewards, next_observations, dones, mc_returns)
+        data = {k: None if v is None else np.asarray(v, np.float32).reshape((self.n, -1) + self._arrays[k].shape[2:])
+                for k, v in zip(BATCH_KEYS, values)}
         n = data["rewards"].shape[1]
         if data["mc_returns"] is None:
             data["mc_returns"] = np.zeros((self.n, n), np.float32)
@@ -125,24 +123,24 @@ class ReplayBuffer:
         a["mc_returns"][idx] = mc_returns(ep)
 
     # ------------------------------------------------------------------ sampling
-    def batch_at(self, idx: np.ndarray) -> dict:
+    def batch_at(self, idx: np.ndarray) -> Batch:
         """Rows ``idx`` of a single buffer."""
         return {k: getattr(self, k)[idx] for k in BATCH_KEYS}
 
-    def sample(self, rng: np.random.Generator, batch_size: int, num_batches: int | None = None) -> dict:
+    def sample(self, rng: np.random.Generator, batch_size: int, num_batches: int | None = None) -> Batch:
         """Uniform rows with replacement: (B, ...) or, with ``num_batches=K``, (K, B, ...)."""
         if self.size == 0:
             raise BotorlError(_EMPTY)
         shape = (batch_size,) if num_batches is None else (num_batches, batch_size)
         return self.batch_at(rng.integers(0, self.size, size=shape))
 
-    def _take(self, members: np.ndarray, idx: np.ndarray) -> dict:
+    def _take(self, members: np.ndarray, idx: np.ndarray) -> Batch:
         """Rows ``idx`` (M, ...) of ``members`` (M,), one flat ``np.take`` per field: numpy's
         two-array fancy index (``arr[m, idx]``) is 4-10x slower, and with 8 members it was a
         fifth of a fine-tuning step's host time."""
         flat = (members.reshape(members.shape + (1,) * (idx.ndim - 1)) * self.capacity + idx).ravel()
         out = {}
-        for k in _FIELDS:
+        for k in BATCH_KEYS:
             arr = self._arrays[k]
             tail = arr.shape[2:]
             out[k] = np.take(arr.reshape((-1,) + tail), flat, axis=0).reshape(idx.shape + tail)
@@ -157,7 +155,7 @@ class ReplayBuffer:
 
     def sample_members(self, rngs: Sequence[np.random.Generator], batch_size: int, num_batches: int | None = None,
                        *, active: Sequence[bool] | None = None, finished: bool = False, offline: Dataset | None = None,
-                       offline_ratio: float = 0.0) -> dict:
+                       offline_ratio: float = 0.0) -> Batch:
         """One batch per member, drawn with ``rngs[i]`` as member i's own buffer would: offline rows
         first (``offline_ratio`` of the batch), then its buffer's (or its finished rows). Members not
         ``active`` draw nothing (their generator is not advanced) and get zeros. Stacked (N, [K,] B, ...)."""
@@ -204,7 +202,7 @@ class ReplayBuffer:
         """Filled rows plus counters, as numpy arrays (np.savez-able); a member buffer's also
         ``num_members`` and one ``open_rows`` per member."""
         lead = 0 if self.members is None else slice(None)  # a single buffer's fields have no member axis
-        state = {k: self._arrays[k][lead, :self.size].copy() for k in _FIELDS}
+        state = {k: self._arrays[k][lead, :self.size].copy() for k in BATCH_KEYS}
         if self.members is not None:
             state["num_members"] = np.asarray(self.members)
         state.update(capacity=np.asarray(self.capacity), obs_dim=np.asarray(self.obs_dim),
@@ -219,7 +217,7 @@ class ReplayBuffer:
         members = int(state["num_members"]) if "num_members" in state else None
         buf = cls(int(state["capacity"]), int(state["obs_dim"]), int(state["action_dim"]), members)
         n = int(state["size"])
-        for k in _FIELDS:
+        for k in BATCH_KEYS:
             arr = np.asarray(state[k])
             arr = arr[None] if members is None else arr
             if arr.shape[:2] != (buf.n, n):

@@ -11,9 +11,14 @@ from __future__ import annotations
 import csv
 import io
 import math
+import textwrap
 from typing import Any, Iterable, Sequence
 
 import numpy as np
+
+from botorl.errors import ConfigError
+from botorl.io import atomic_save_figure
+
 
 def mean_se(values: Sequence[float]) -> tuple[float, float, int]:
     """Mean and standard error (ddof=1) of the finite values; SE is nan for n < 2."""
@@ -159,10 +164,6 @@ def label_colors(labels: Iterable[str]) -> dict:
 
 def save_figure(fig, path, title: str, **savefig: Any) -> None:
     """The figure with its title wrapped to its width, written atomically and closed."""
-    import textwrap
-
-    from botorl.io import atomic_save_figure
-
     chars = max(20, int(fig.get_figwidth() * 11))  # ~11 characters an inch at 10 pt
     fig.suptitle("\n".join(textwrap.wrap(title, chars)), fontsize=10)
     fig.tight_layout()
@@ -181,8 +182,6 @@ MAX_RESAMPLES = 1_000_000  # 2,000 is the default; more than a million says noth
 
 def check_bootstrap(n_boot, confidence) -> None:
     """ConfigError unless 1 <= resamples <= MAX_RESAMPLES and 0 < confidence < 1."""
-    from botorl.errors import ConfigError
-
     if isinstance(n_boot, bool) or not isinstance(n_boot, int) or not 1 <= n_boot <= MAX_RESAMPLES:
         raise ConfigError(f"--bootstrap {n_boot!r}: give a whole number of resamples from 1 to {MAX_RESAMPLES:,} "
                           "(2000 is the default).")

@@ -18,6 +18,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from botorl.configs.members import Streams
+
 
 @dataclass
 class EpisodeStats:
@@ -29,7 +31,7 @@ class EpisodeStats:
 def make_eval_envs(spec, eval_cfg) -> list[Any]:
     """One member's ``eval_cfg.envs_per_member`` evaluation envs (the same for every member and
     run; episodes are seeded by their reset seeds)."""
-    return [spec.make_env(seed=10_000 + i, evaluation=True) for i in range(eval_cfg.envs_per_member)]
+    return [spec.make_env(seed=Streams.EVAL_ENVS + i, evaluation=True) for i in range(eval_cfg.envs_per_member)]
 
 
 def run_episodes(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Sequence[Any]], *, episodes: int,
@@ -67,11 +69,11 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Sequ
 
 def evaluate_policy(policy: Callable[[np.ndarray], np.ndarray], spec, cfg, episodes: int) -> EpisodeStats:
     """``botorl eval``'s ``episodes`` of one policy ((1, E, O) -> (1, E, A)) on its own evaluation
-    envs, reset seeds from ``200_000 + cfg.seed`` (not those of the run's evaluations)."""
+    envs, reset seeds from ``Streams.eval_command`` (not those of the run's evaluations)."""
     envs = make_eval_envs(spec, cfg.eval)
     try:
         return run_episodes(policy, [envs], episodes=episodes, success_mode=spec.success_mode,
-                            seeds=[200_000 + cfg.seed], max_steps=spec.max_episode_steps)[0]
+                            seeds=[Streams.of(cfg).eval_command], max_steps=spec.max_episode_steps)[0]
     finally:
         for e in envs:
             e.close()

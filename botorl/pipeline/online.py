@@ -15,6 +15,7 @@ import sys
 import numpy as np
 
 from botorl.agents import population as AP
+from botorl.configs.members import Streams
 from botorl.data.dataset import RewardTransform
 from botorl.data.replay import ReplayBuffer
 from botorl.envs.state import get_env_state, set_env_state
@@ -47,13 +48,13 @@ class OnlineState:
         self.ctx, self.start = ctx, int(extra.get("start", n_warm))
         self.step = n_warm if resume is None else int(resume["step"])
         rng_states = None if resume is None else resume.get("np_rng")
-        self.rngs = [rng_from(st, [mc.cfg.online_seed, 3])
+        self.rngs = [rng_from(st, Streams.of(mc.cfg).online_batches)
                      for mc, st in zip(ctx.members, rng_states if isinstance(rng_states, list) else [rng_states] * n)]
         episodes = extra.get("episodes", 0)
         self.episodes = list(episodes) if isinstance(episodes, list) else [int(episodes)] * n
         self.last_eval = int(extra.get("last_eval", -1))
         self.resumes = 0 if resume is None else int(extra.get("resumes", 0)) + 1
-        self.env_seeds = [mc.cfg.online_seed * 1000 + 11 for mc in ctx.members]
+        self.env_seeds = [Streams.of(mc.cfg).online_env for mc in ctx.members]
         self.envs = [ctx.spec.make_env(seed=s) for s in self.env_seeds]
         self.obs = np.zeros((n, self.buffer.obs_dim), np.float32)
         self.ep_succ = np.zeros(n)

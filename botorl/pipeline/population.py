@@ -50,8 +50,7 @@ def _rss_bytes() -> int | None:
 
 def env_bytes(make_env, probes: int = 6) -> int:
     """Host memory one more environment takes: the median resident-size growth over ``probes``
-    envs, after two that pay for imports, caches and the allocator's first arenas (the second
-    pointmaze env grows the process by 23 MB, each later one by 11.7); 0 where unreadable."""
+    envs, after two that pay for imports, caches and the allocator's first arenas; 0 where unreadable."""
     envs = []
 
     def one():

@@ -15,6 +15,7 @@ These are integrity records, not authenticity: anyone can write any value into a
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import platform
 import subprocess
@@ -87,8 +88,6 @@ def environment_record() -> dict:
 def comparable(record: dict) -> str:
     """The part of an environment record that can change a run's numbers (not the commit's
     dirtiness alone, not the core count), as one string for grouping."""
-    import json
-
     if not isinstance(record, dict):
         return "unknown"
     cpu = record.get("cpu") if isinstance(record.get("cpu"), dict) else {}

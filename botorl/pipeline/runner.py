@@ -18,7 +18,7 @@ import numpy as np
 
 from botorl.agents import checkpoint as agent_ckpt
 from botorl.agents import population as AP
-from botorl.configs.members import Member
+from botorl.configs.members import Member, Streams
 from botorl.configs.methods import get_method
 from botorl.configs.schema import RunConfig, to_dict
 from botorl.data.dataset import Dataset, RewardTransform
@@ -111,7 +111,7 @@ class RunContext:
         self.single = members[0].run.root == self.root
         self.ckpt = CheckpointManager(RunDir(root).checkpoints)
         self.d_offline = d_offline
-        self.probe = QProbe(d_offline.observations, d_offline.actions, seed=12345, size=cfg.eval.q_pairs)
+        self.probe = QProbe(d_offline.observations, d_offline.actions, seed=Streams.PROBE, size=cfg.eval.q_pairs)
         self.state = state  # done_stages, stage_seconds
         self.failed: set[int] = {i for i, m in enumerate(members) if m.error}
         self._envs = None
@@ -252,7 +252,7 @@ class RunContext:
         cfg = self.cfg
         stats = evaluation.run_episodes(
             lambda o: AP.eval_actions(agents, o), self.envs(), episodes=cfg.eval.episodes,
-            success_mode=self.spec.success_mode, seeds=[100_000 + 1_000 * mc.cfg.seed for mc in self.members],
+            success_mode=self.spec.success_mode, seeds=[Streams.of(mc.cfg).evaluation for mc in self.members],
             max_steps=self.spec.max_episode_steps,
         )
         qs = self.q_stats(agents)

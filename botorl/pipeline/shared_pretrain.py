@@ -104,13 +104,13 @@ def load(ctx, sources: list[Path]):
     into the member's run directory so its metrics read as if it had pre-trained itself."""
     d = ctx.d_offline
     agents = []
-    for src, mc in zip(sources, ctx.members):
-        like = make_pretrain_agent(mc.cfg, d.obs_dim, d.action_dim, mc.cfg.seed)
+    for src, member in zip(sources, ctx.members):
+        like = make_pretrain_agent(member.cfg, d.obs_dim, d.action_dim, member.cfg.seed)
         agents.append(agent_ckpt.load(str(src / "checkpoints" / PRETRAIN_FINAL / "agent.ckpt"), like=like))
         for name in ("pretrain.csv", "pretrain.jsonl"):
-            if (src / "metrics" / name).is_file() and src.resolve() != mc.run.root.resolve():
+            if (src / "metrics" / name).is_file() and src.resolve() != member.run.root.resolve():
                 try:
-                    atomic_write_bytes(mc.run.metrics / name, read_bounded_bytes(src / "metrics" / name, LOG_LIMIT))
+                    atomic_write_bytes(member.run.metrics / name, read_bounded_bytes(src / "metrics" / name, LOG_LIMIT))
                 except ValueError as err:  # not a regular file, or a huge one: the logs only, not the run
                     print(f"botorl: warning: {src / 'metrics' / name} not copied ({err}).", file=sys.stderr)
     return stack(agents)

@@ -23,11 +23,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from botorl.agents import population as AP
+from botorl.agents import population  # by module: a test swaps its functions to count calls
+from botorl.agents.common import jit_q_mean
 from botorl.agents.cql import CQLAgent
 from botorl.agents.iql import IQLAgent
 from botorl.agents.sac import SACAgent
 from botorl.boto.phase import train_boto
+from botorl.configs.members import Streams
 from botorl.configs.methods import get_method
 from botorl.data.dataset import Dataset
 from botorl.pipeline import faults, preempt
@@ -68,19 +70,19 @@ def start_finetuning(ctx, agents):
     if start == "warm_start":
         # WSRL's warm start: SAC (10 critics) from the pre-trained (or BOTO-trained) networks.
         # From IQL (no temperature) the initial one comes from the probe states (agents/temperature.py).
-        return AP.stack([SACAgent.from_pretrained(AP.member_of(agents, i), oc.sac, seed=mc.cfg.online_seed * 7919 + 3,
-                                                  observations=ctx.probe.observations)
-                         for i, mc in enumerate(ctx.members)])
+        return population.stack([SACAgent.from_pretrained(population.member_of(agents, i), oc.sac,
+                                                          seed=Streams.of(member.cfg).warm_start,
+                                                          observations=ctx.probe.observations)
+                                 for i, member in enumerate(ctx.members)])
     if start == "scratch":
         O, A = ctx.d_offline.obs_dim, ctx.d_offline.action_dim
-        return AP.stack([SACAgent.create(oc.sac, O, A, mc.cfg.online_seed) for mc in ctx.members])
+        return population.stack([SACAgent.create(oc.sac, O, A, Streams.of(member.cfg).scratch)
+                                 for member in ctx.members])
     return continued_learner(ctx.cfg, agents)  # "continue": the pre-trained agent keeps its own loss
 
 
 def q_fn(agent):
     """Q(s, a) averaged over one agent's critic ensemble, on host arrays (for QProbe)."""
-    from botorl.agents.common import jit_q_mean
-
     return lambda o, a: np.asarray(jit_q_mean(agent, jnp.asarray(o), jnp.asarray(a)))
 
 
@@ -177,7 +179,7 @@ def step_end(stage: str, step: int, total: int, due: Points, save: Callable[[boo
 def pretrain_groups(members) -> tuple[list[int], list[int]]:
     """(the first member of each seed, each member's index into that list)."""
     first: dict[int, int] = {}
-    group = [first.setdefault(mc.cfg.seed, len(first)) for mc in members]
+    group = [first.setdefault(member.cfg.seed, len(first)) for member in members]
     return [group.index(g) for g in range(len(first))], group
 
 
@@ -190,19 +192,20 @@ def pretrain(ctx, resume: dict | None = None):
     # share one pre-training (computed once, by the first of them; mid-stage checkpoints hold
     # one agent per seed) and each gets its copy at the end.
     reps, group = pretrain_groups(ctx.members)
-    seeds = [ctx.members[r].cfg.seed for r in reps]
-    agents = AP.stack([make_pretrain_agent(ctx.members[r].cfg, d.obs_dim, d.action_dim, s) for r, s in zip(reps, seeds)])
+    streams = [Streams.of(ctx.members[r].cfg) for r in reps]
+    agents = population.stack([make_pretrain_agent(ctx.members[r].cfg, d.obs_dim, d.action_dim, s.pretrain)
+                               for r, s in zip(reps, streams)])
     step, states = 0, [None] * len(reps)
     if resume is not None:
         agents = ctx.load_agents(resume["name"], agents)
         step, states = int(resume["step"]), resume.get("np_rng")
         states = states if isinstance(states, list) else [states] * len(reps)
-    rngs = [rng_from(st, [s, 1]) for s, st in zip(seeds, states)]
+    rngs = [rng_from(st, s.pretrain_batches) for s, st in zip(streams, states)]
     on_device = jax.default_backend() != "cpu" if oc.sample_on_device is None else oc.sample_on_device
     if on_device:
         arrays = d.to_device()
         # the key of each call follows from (seed, step), so a resumed run draws the same batches
-        base_keys = [jax.random.PRNGKey(s * 1_000_003 + 1) for s in seeds]
+        base_keys = [jax.random.PRNGKey(s.pretrain_keys) for s in streams]
     points = Schedule(oc.steps, oc.log_every, cfg.checkpoint_every)
     window, rate = Window(len(reps)), Rate(step)
     if resume is not None:
@@ -220,9 +223,9 @@ def pretrain(ctx, resume: dict | None = None):
             k = min(oc.updates_per_call, oc.steps - step, cfg.checkpoint_every - step % cfg.checkpoint_every)
             if on_device:
                 keys = jnp.stack([jax.random.fold_in(bk, step) for bk in base_keys])
-                agents, metrics = AP.update_many_on_device(agents, arrays, keys, k, oc.batch_size)
+                agents, metrics = population.update_many_on_device(agents, arrays, keys, k, oc.batch_size)
             else:
-                agents, metrics = AP.update_many(agents, d.sample_members(rngs, oc.batch_size, k))
+                agents, metrics = population.update_many(agents, d.sample_members(rngs, oc.batch_size, k))
             window.add(metrics)
             prev, step = step, step + k
             bar.update(k)
@@ -246,11 +249,11 @@ def pretrain(ctx, resume: dict | None = None):
 def _reseed_online(ctx, agents):
     """The pre-trained agents' keys, folded with ``online_reseed`` for the members that set it,
     so their warm-up (and BOTO) draws differ from the runs they share the pre-training with."""
-    reseeds = [mc.cfg.online_reseed for mc in ctx.members]
+    reseeds = [member.cfg.online_reseed for member in ctx.members]
     if not any(reseeds):
         return agents
-    keys = [jax.random.fold_in(AP.member_of(agents, i).rng, k) if k else AP.member_of(agents, i).rng
-            for i, k in enumerate(reseeds)]
+    rngs = [population.member_of(agents, i).rng for i in range(len(reseeds))]
+    keys = [jax.random.fold_in(rng, k) if k else rng for rng, k in zip(rngs, reseeds)]
     return agents.replace(rng=jnp.stack(keys))
 
 
@@ -262,7 +265,7 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
     n, N = ctx.cfg.warmup.steps, ctx.n
     if n == 0:
         return None, agents
-    seeds = [mc.cfg.online_seed * 1000 + 7 for mc in ctx.members]
+    seeds = [Streams.of(member.cfg).warmup_env for member in ctx.members]
     envs = [ctx.spec.make_env(seed=s) for s in seeds]
     obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(envs, seeds)])
     agents = _reseed_online(ctx, agents)
@@ -278,7 +281,7 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
             for t in range(n):
                 if t % ctx.cfg.eval.interval == 0:
                     first_eval = ctx.evaluate(agents, t) if first_eval is None else ctx.log_evaluation(first_eval, t)
-                actions, agents = AP.sample(agents, obs)
+                actions, agents = population.sample(agents, obs)
                 actions = np.asarray(actions, dtype=np.float32)
                 for i, env in enumerate(envs):
                     next_obs, r, terminated, truncated, info = env.step(actions[i])
@@ -327,9 +330,9 @@ def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = Non
             ctx.log("boto", step, [{"seconds": secs, **m} for m in ms])
         step_end("boto", step, bc.boto_steps, due, lambda interrupted: ctx.save_mid("boto", step, agents))
 
-    return train_boto(agents, ctx.d_offline, d_warmups or [None] * ctx.n, bc,
-                      [mc.cfg.alpha for mc in ctx.members], [mc.cfg.online_seed for mc in ctx.members],
-                      start_step=start, on_call=on_call, progress=cfg.progress)
+    return train_boto(agents, ctx.d_offline, d_warmups or [None] * ctx.n, bc, [member.cfg.alpha for member in ctx.members],
+                      [Streams.of(member.cfg).boto for member in ctx.members], start_step=start, on_call=on_call,
+                      progress=cfg.progress)
 
 
 # ---------------------------------------------------------------------------- stage 3
@@ -346,7 +349,7 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
     # first step on: a resumed run's loaded agents sit on one device, where the policy call
     # compiles another program than the uninterrupted run's at that step (its actions differed
     # in the last bit, and the run drifted from there)
-    agents = AP.placed(agents)[0]
+    agents = population.placed(agents)[0]
     points = Schedule(oc.steps, oc.log_every, cfg.checkpoint_every,
                       evaluate=lambda step: cfg.eval.due(step, oc.steps, cfg.warmup.steps))
     if state.step == state.start and state.last_eval < state.start:

@@ -21,7 +21,8 @@ from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
 from botorl.envs.antmaze import SUCCESS_RADIUS, layout  # the mazes: botorl/envs/antmaze.py
-from botorl.envs.pointmaze import cell_to_xy
+from botorl.envs.pointmaze import cell_to_xy, free_cells, next_cell_table
+from botorl.envs.wrappers import import_robotics
 
 ACTION_NOISE = 0.2  # create_antmaze_dataset.py --action-noise
 WAYPOINT_THRESHOLD = 0.45  # controller.py waypoint_threshold
@@ -101,8 +102,6 @@ class WaypointController:
 
 def make_maze_env(maze: str, *, continuing_task: bool = True):
     """Gymnasium-Robotics' AntMazeEnv on the maze's wall map (no goal/reset marks)."""
-    from botorl.envs.wrappers import import_robotics
-
     import_robotics()
     from gymnasium_robotics.envs.maze.ant_maze_v4 import AntMazeEnv
 
@@ -155,8 +154,6 @@ class _Sim:
 
 def _controller(maze: str, actor, seed: int):
     """(layout, maze map, simulator, generator, waypoint controller) of a run on ``maze``."""
-    from botorl.envs.pointmaze import next_cell_table
-
     spec = layout(maze)
     maze_map = [list(r) for r in spec.maze_map]
     policy = actor if actor is not None else load_actor()
@@ -167,8 +164,6 @@ def _controller(maze: str, actor, seed: int):
 def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True, *, actor=None,
              action_noise: float = ACTION_NOISE, episode_steps: int = EPISODE_STEPS) -> Dataset:
     """``steps`` transitions of the waypoint-following ant; see the module docstring."""
-    from botorl.envs.pointmaze import free_cells
-
     if kind not in ("diverse", "play"):
         raise ValueError(f"kind must be 'diverse' or 'play', not {kind!r}")
     if steps <= 0:
