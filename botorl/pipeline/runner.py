@@ -28,6 +28,7 @@ from botorl.data.tasks import load_task_data
 from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDivergedError
 from botorl.io import atomic_save_figure, atomic_write_json
+from botorl.jaxsetup import matmul_precision
 from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name
@@ -431,7 +432,9 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
 
     agents = d_warmups = None
     try:
-        with preempt.deferred():  # SIGTERM / SIGINT: the stages stop at a step with a checkpoint
+        # SIGTERM / SIGINT: the stages stop at a step with a checkpoint; every matmul at the
+        # config's precision (traced inside, so every jitted call of the stages follows it)
+        with preempt.deferred(), matmul_precision(cfg.precision):
             if state["done_stages"]:
                 last = state["done_stages"][-1]
                 agents = ctx.load_agents(checkpoint_name(last, None), _templates(member_cfgs, last, d_offline))
