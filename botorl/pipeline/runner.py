@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 
 from botorl.agents import checkpoint as agent_ckpt
@@ -237,8 +238,8 @@ class RunContext:
 
     def q_stats(self, agents) -> list[tuple[float, float]]:
         """(q_data, q_uniform) per member on the probe's pairs (one call for all members)."""
-        q_d = np.asarray(AP.q_mean(agents, self.probe.observations, self.probe.actions))
-        q_u = np.asarray(AP.q_mean(agents, self.probe.observations, self.probe.uniform))
+        q_d = jax.device_get(AP.q_mean(agents, self.probe.observations, self.probe.actions))
+        q_u = jax.device_get(AP.q_mean(agents, self.probe.observations, self.probe.uniform))
         return [(float(q_d[i].mean()), float(q_u[i].mean())) for i in range(self.n)]
 
     def log_q(self, stage: str, step: int, agents) -> None:
@@ -249,7 +250,7 @@ class RunContext:
         """All members' evaluation episodes, one batched policy call per env step; a row per member."""
         cfg = self.cfg
         stats = evaluation.run_episodes(
-            lambda o: AP.eval_actions(agents, o), self.envs(), episodes=cfg.eval.episodes,
+            lambda o: jax.device_get(AP.eval_actions(agents, o)), self.envs(), episodes=cfg.eval.episodes,
             success_mode=self.spec.success_mode, seeds=[100_000 + 1_000 * mc.cfg.seed for mc in self.members],
             max_steps=self.spec.max_episode_steps,
         )
