@@ -24,8 +24,8 @@ def test_steady_rate_skips_the_compiling_first_row():
 
 def test_fine_tuning_compile_time_counts_from_the_end_of_the_warm_up():
     """Fine-tuning logs on the online axis, which starts after the 500-step warm-up: its first
-    row (step 525) covers 25 steps, not 525 (issue 41: 313 s of 'compile' on an H100 were the
-    warm-up's 5,000 steps at the steady rate)."""
+    row (step 525) covers 25 steps, not 525 (issue 41: the 313 s of 'compile' an H100 gave were
+    21 times its real figure)."""
     rows = [{"step": str(525 + 25 * k), "env_steps_per_s": str(1.0 if k == 0 else 5.0)} for k in range(4)]
     rate, compile_s = PB._steady(rows, "step", "env_steps_per_s", start=500)
     assert rate == 5.0 and compile_s == pytest.approx(25 - 25 / 5)  # 20 s: 25 steps in 25 s, 5 s of them steady

@@ -86,6 +86,7 @@ def probes(tmp_path_factory):
             code = botorl_main(["run", "--task", "pointmaze-umaze", "--method", "boto", "--profile", "smoke",
                                 "--no-progress", "--no-tensorboard", "--out", str(root / name), *args])
             assert code == 0, f"{name}: a transfer the guard refused, or another failure (exit {code})"
+        probe.root = root / name
         out[name] = probe
     return out
 
@@ -121,3 +122,22 @@ def test_dispatches_per_online_step(probes):
         assert p.steps[0] == {"jit_sample": 1, "jit_act_after_update": 1}, name
         assert p.steps[1:] == [{"jit_act_after_update": 1}] * (len(p.steps) - 1), name
     assert probes["alone"].steps == probes["pair"].steps  # the same programs for 2 members as for 1
+
+
+def test_bench_paper_times_a_populations_evaluation_as_the_run_does(probes, tmp_path):
+    """`bench --paper`'s timed evaluation, in its own measured process: both members' last
+    checkpoints, their envs in one lockstep, one policy call per env step for both; the device's
+    memory where it has its own (None on a CPU: the arrays are host memory)."""
+    import json
+
+    from botorl.benchmarks import paper as PB
+
+    log = tmp_path / "eval.log"
+    code, wall, rss = PB._run(["--time-eval", str(probes["pair"].root), "2", "2"], log)
+    assert code == 0, log.read_text()[-2000:]
+    ev = json.loads(log.with_suffix(".stats.json").read_text())
+    assert ev["members"] == 2 and ev["episodes"] == 2 and ev["precision"] == "tf32" and rss > 0
+    # one call per lockstep env step: as many as the longest episode, never one per member's step
+    assert 0 < ev["episode_length"] <= ev["policy_calls"] <= ev["env_steps"]
+    assert ev["env_steps"] == pytest.approx(2 * ev["episode_length"] * 2)
+    assert ev["device_peak_mb"] is None and ev["seconds"] > 0

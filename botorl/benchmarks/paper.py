@@ -105,7 +105,7 @@ def _run(cmd: list[str], log: Path, stats: Path | None = None) -> tuple[int, flo
     t0 = time.perf_counter()
     stats = stats or log.with_suffix(".stats.json")
     with open(log, "w") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "botorl.benchmarks.paper", "--child", str(stats), *cmd],
+        proc = subprocess.Popen([sys.executable, "-m", "botorl.benchmarks.measured_cli", str(stats), *cmd],
                                 stdout=out, stderr=subprocess.STDOUT)
         _, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
@@ -175,23 +175,6 @@ def _member_dirs(out: Path) -> list[Path]:
     return [d for d in sorted(out.iterdir()) if (d / "summary.json").exists()]
 
 
-def _child(argv: list[str]) -> int:
-    """A measured process: ``STATS --time-eval OUT MEMBERS EPISODES`` (``time_evaluation``, its
-    result and the device's memory into STATS) or ``STATS <botorl command>`` (its exit code; the
-    device's memory into STATS)."""
-    stats, rest = Path(argv[0]), argv[1:]
-    result: dict = {}
-    if rest[:1] == ["--time-eval"]:
-        result = time_evaluation(Path(rest[1]), int(rest[2]), int(rest[3]))
-        code = 0
-    else:
-        from botorl.cli import main as botorl_main
-
-        code = botorl_main(rest)
-    atomic_write_bytes(stats, json.dumps({**result, **device_memory()}).encode())
-    return code
-
-
 def _rows(path: Path) -> list[dict]:
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
@@ -202,7 +185,7 @@ def _steady(rows: list[dict], step_key: str, rate_key: str | None, seconds_key: 
     """(steady-state rate, compile seconds) from a stage's metrics rows: the rows after the
     first give the rate; the first row's excess time over that rate is the compilation. The
     first row covers its steps since the stage's ``start`` (fine-tuning's rows are on the online
-    axis, which starts after the warm-up: counted from 0, its 5,000 steps were taken for
+    axis, which starts after the warm-up: counted from 0, the warm-up's steps were taken for
     fine-tuning's compile time)."""
     if len(rows) < 2:
         raise RuntimeError("a stage logged fewer than 2 rows: raise its window")
@@ -400,8 +383,3 @@ def main(argv: list[str]) -> int:
         shutil.rmtree(work, ignore_errors=True)
     return 0
 
-
-if __name__ == "__main__":  # a measured process (``_run``)
-    if sys.argv[1:2] == ["--child"]:
-        sys.exit(_child(sys.argv[2:]))
-    sys.exit(main(sys.argv[1:]))

@@ -202,8 +202,9 @@ class RunConfig:
     checkpoint_every: int = 50_000
     """Steps between checkpoints inside a stage (gradient or env steps); every stage ends with one."""
     precision: Literal["highest", "tf32", "bf16"] = "tf32"
-    """Every matmul's precision on a GPU: fp32 (highest), TF32 (JAX's own default there) or bf16
-    inputs, fp32 sums; a CPU computes fp32 whatever it says (docs/performance.md, "Precision")."""
+    """Every matmul's precision on a GPU: fp32 (highest), TF32 inputs (what JAX itself does on a
+    GPU) or bf16 inputs, fp32 sums; a CPU computes fp32 whatever it says (the docs' Performance
+    page, Precision)."""
     data: DataConfig = field(default_factory=DataConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     offline: OfflineConfig = field(default_factory=OfflineConfig)

@@ -81,6 +81,9 @@ class OnlineState:
         """A mid-stage checkpoint of the agents and this whole state (and the metrics ``window``
         since the last log point, from an interrupt)."""
         arrays = {"buffer": self.buffer.state_dict(), "online": {"obs": self.obs, "ep_succ": self.ep_succ}}
+        if self.drawn is not None:  # the next step's action, drawn by the fused call: resumed as drawn
+            actions, rng = jax.device_get(self.drawn)
+            arrays["online"].update(drawn_actions=np.asarray(actions), drawn_rng=np.asarray(rng))
         w = None if window is None else window.state_dict()
         if w:
             arrays["window"] = w
@@ -106,6 +109,8 @@ class OnlineState:
                 set_env_state(env, st)
             self.obs = np.array(arrays["obs"], np.float32)
             self.ep_succ = np.array(arrays["ep_succ"], np.float64)
+            if "drawn_actions" in arrays:  # an accelerator may compute the fused call's draw in other bits
+                self.drawn = (np.asarray(arrays["drawn_actions"], np.float32), np.asarray(arrays["drawn_rng"]))
             self.ep_rows = [[int(r) for r in rows] for rows in doc["ep_rows"]]
             self.recent_success = [[float(x) for x in xs] for xs in doc["recent_success"]]
         except (KeyError, TypeError, ValueError, IndexError) as err:
@@ -131,7 +136,7 @@ class OnlineState:
             actions, agents = AP.sample(agents, self.obs)
         else:  # drawn at this observation by the last step's update call, with the updated actor
             (actions, rng), self.drawn = self.drawn, None
-            agents = agents.replace(rng=rng)
+            agents = agents.replace(rng=jax.device_put(rng, agents.rng.sharding))  # a no-op unless resumed
         self.act(np.asarray(jax.device_get(actions), dtype=np.float32))  # explicit: no implicit transfer
         if self.step >= self.ctx.cfg.online.random_steps:
             agents = self.learn(agents, window)
