@@ -35,12 +35,14 @@ class Probe:
         self.dispatches: dict[str, int] = {}
         self.steps: list[dict[str, int]] = []  # per online step: program -> dispatches
         self.evaluations: list[dict] = []
+        self.precisions: set = set()  # JAX's default matmul precision while fine-tuning steps
         for name in PROGRAMS:
             if hasattr(AP, name):
                 monkeypatch.setattr(AP, name, self._counted(name, getattr(AP, name)))
         advance, evaluate, episodes = online.OnlineState.advance, runner.RunContext.evaluate, runner.evaluation.run_episodes
 
         def guarded_advance(state, agents, window):
+            self.precisions.add(jax.config.jax_default_matmul_precision)
             before = dict(self.dispatches)
             with jax.transfer_guard("disallow"):
                 out = advance(state, agents, window)
@@ -98,6 +100,12 @@ def test_fine_tuning_and_its_evaluations_run_under_the_transfer_guard(probes):
     for name, p in probes.items():
         assert len(p.steps) == 10, name  # the smoke profile: 40 online steps, 30 of them the warm-up
         assert sum(1 for e in p.evaluations) >= 3, name  # step 0 (warm-up), fine-tuning's start and end
+
+
+def test_the_run_computes_at_its_configs_precision(probes):
+    """Every step ran inside the run's precision scope (the default, tf32: JAX's "tensorfloat32")."""
+    for name, p in probes.items():
+        assert p.precisions == {"tensorfloat32"}, name
 
 
 def test_a_populations_evaluation_is_one_lockstep_over_all_its_members_envs(probes):
