@@ -19,7 +19,8 @@ from botorl.agents import common as C
 
 __all__ = [
     "stack", "unstack", "member_of", "population_size", "member_metrics", "host_shards", "member_sharding", "over_members",
-    "placed", "on_members", "update", "update_then_sample", "update_many", "update_masked", "update_many_on_device", "sample", "eval_actions", "q_mean",
+    "placed", "on_members", "update", "update_then_sample", "update_many", "update_masked", "update_many_on_device",
+    "sample", "eval_actions", "q_mean",
 ]
 
 
