@@ -76,3 +76,14 @@ def test_synthetic_data_is_read_by_the_tasks_own_loader(task, tmp_path):
     assert ds.obs_dim == spec.obs_dim and ds.action_dim == spec.action_dim
     assert len(ds.rewards) == 4 * spec.max_episode_steps  # every row kept (pen: every episode ends in success)
     assert eval_args == (["--allow-pickle"] if spec.dataset_source.kind == "calql_npy" else [])
+
+
+def test_the_json_names_the_device():
+    """The machine's description: the device JAX runs on by name and backend (a CPU here), and
+    its memory limit (None on a CPU, whose arrays are host memory)."""
+    import jax
+
+    m = PB.machine()
+    assert m["backend"] == jax.default_backend() and m["device_kind"] == jax.devices()[0].device_kind
+    assert m["device_count"] >= 1 and m["jax"] == jax.__version__
+    assert PB.device_memory() == {"device_peak_mb": None, "device_limit_mb": None} or jax.default_backend() != "cpu"
