@@ -93,3 +93,18 @@ def test_every_matmul_of_an_update_runs_at_the_precision(precision, want):
     # and outside the policy's scope the dots are JAX's default, as before the field
     assert all("precision = [DEFAULT, DEFAULT]" in ln and "algorithm" not in ln
                for ln, stats in _dots(jit_update.lower(agent, batch).as_text()) if not stats)
+
+
+def test_a_config_file_from_before_the_field_still_runs(tmp_path):
+    """`botorl run --config FILE` of a file a sweep wrote before the field (no "precision"): the
+    run computes at tf32, what it computed then; any other missing field is still refused."""
+    from botorl.configs.build import build_config
+
+    doc = to_dict(resolve(make_preset("pointmaze-umaze", "smoke", "boto")))
+    del doc["precision"]
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    assert build_config(["--config", str(tmp_path / "old.json")]).precision == "tf32"
+    del doc["seed"]
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    with pytest.raises(ConfigError, match="not every field"):
+        build_config(["--config", str(tmp_path / "bad.json")])

@@ -190,6 +190,9 @@ def _load_config(argv: list[str]):
                           f"--out, --pretrained and --no-progress can). Drop them, or give the flags without --config.")
     try:
         data = read_json_bounded(ns.config)
+        if isinstance(data, dict):
+            # a file written before the field: its runs computed at JAX's default, which is tf32
+            data.setdefault("precision", "tf32")
         cfg = from_dict(RunConfig, data)
         if json.dumps(to_dict(cfg), sort_keys=True) != json.dumps(data, sort_keys=True):  # missing, unknown, mistyped
             raise ValueError("not every field of a run config, as botorl writes it")
