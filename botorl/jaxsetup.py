@@ -61,3 +61,43 @@ def setup_jax() -> None:
         jax.config.update("jax_compilation_cache_dir", where)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+# ---------------------------------------------------------------------------- matmul precision
+# ``RunConfig.precision`` -> the name ``jax.default_matmul_precision`` takes. "tensorfloat32" is
+# JAX's HIGH: TF32 on GPUs that have it (Ampere, Hopper), fp32 elsewhere; bf16 is an algorithm
+# preset, because JAX's "bfloat16" (DEFAULT) means TF32 on those GPUs. A dot given its own
+# precision keeps it (LayerNorm's row statistics are HIGHEST whatever this says). XLA's CPU
+# dots compute fp32 whatever the precision says: on a CPU the three give the same numbers.
+MATMUL_PRECISIONS = {"highest": "float32", "tf32": "tensorfloat32", "bf16": "BF16_BF16_F32"}
+# the unit roundoff of a matmul's inputs at each precision: 2^-p for a p-bit significand
+# (fp32 24 bits, TF32 11, bf16 8); the accumulation is fp32 in all three
+MATMUL_ROUNDOFF = {"highest": 2.0**-24, "tf32": 2.0**-11, "bf16": 2.0**-8}
+DEFAULT_PRECISION = "tf32"
+
+
+def check_precision(precision: str) -> str:
+    if precision not in MATMUL_PRECISIONS:
+        raise ConfigError(f"precision {precision!r} is not one of {', '.join(MATMUL_PRECISIONS)}; "
+                          f"give --precision highest (fp32 matmuls), tf32 (the default) or bf16.")
+    return precision
+
+
+def matmul_precision(precision: str):
+    """A context in which every matmul JAX traces runs at ``precision`` (``highest``, ``tf32``,
+    ``bf16``; docs/performance.md, "Precision"). The setting is part of jit's cache key, so a
+    function called under two precisions compiles one program for each."""
+    import jax
+
+    return jax.default_matmul_precision(MATMUL_PRECISIONS[check_precision(precision)])
+
+
+def member_tolerance(precision: str) -> float:
+    """Largest |member - alone| accepted between a population member's parameters after one
+    update and the same agent's alone (tests/test_gpu.py). Both programs round the same inputs
+    the same way; they differ in the order of their fp32 sums, and a value that differs in its
+    last fp32 bits can round to the neighbouring input of the precision's format, a jump of up
+    to 2u (u: ``MATMUL_ROUNDOFF``) that the next layers carry. So the bound is 2u, and never
+    below 1e-4, what reordered fp32 sums alone were given before precision was a field:
+    highest 1e-4, tf32 9.8e-4 (an H100 measured 2.0e-4 at JAX's default, TF32), bf16 7.8e-3."""
+    return max(1e-4, 2.0 * MATMUL_ROUNDOFF[check_precision(precision)])

@@ -22,6 +22,17 @@ def test_steady_rate_skips_the_compiling_first_row():
     assert rate == pytest.approx(200.0) and compile_s == pytest.approx(1.0)
 
 
+def test_fine_tuning_compile_time_counts_from_the_end_of_the_warm_up():
+    """Fine-tuning logs on the online axis, which starts after the 500-step warm-up: its first
+    row (step 525) covers 25 steps, not 525 (issue 41: the 313 s of 'compile' an H100 gave were
+    21 times its real figure)."""
+    rows = [{"step": str(525 + 25 * k), "env_steps_per_s": str(1.0 if k == 0 else 5.0)} for k in range(4)]
+    rate, compile_s = PB._steady(rows, "step", "env_steps_per_s", start=500)
+    assert rate == 5.0 and compile_s == pytest.approx(25 - 25 / 5)  # 20 s: 25 steps in 25 s, 5 s of them steady
+    _, counted_from_0 = PB._steady(rows, "step", "env_steps_per_s")
+    assert counted_from_0 == pytest.approx(525 - 525 / 5)  # what it said before: 420 s
+
+
 def test_projection_of_the_antmaze_paper_budget_by_hand():
     cfg = resolve(make_preset("antmaze-large-diverse-local", "full", "boto"))
     budget = PB.paper_budget(cfg, horizon=1000)
@@ -65,3 +76,14 @@ def test_synthetic_data_is_read_by_the_tasks_own_loader(task, tmp_path):
     assert ds.obs_dim == spec.obs_dim and ds.action_dim == spec.action_dim
     assert len(ds.rewards) == 4 * spec.max_episode_steps  # every row kept (pen: every episode ends in success)
     assert eval_args == (["--allow-pickle"] if spec.dataset_source.kind == "calql_npy" else [])
+
+
+def test_the_json_names_the_device():
+    """The machine's description: the device JAX runs on by name and backend (a CPU here), and
+    its memory limit (None on a CPU, whose arrays are host memory)."""
+    import jax
+
+    m = PB.machine()
+    assert m["backend"] == jax.default_backend() and m["device_kind"] == jax.devices()[0].device_kind
+    assert m["device_count"] >= 1 and m["jax"] == jax.__version__
+    assert PB.device_memory() == {"device_peak_mb": None, "device_limit_mb": None} or jax.default_backend() != "cpu"

@@ -194,19 +194,19 @@ def test_divergence_stops_with_last_good_checkpoint(tmp_path, monkeypatch, capsy
     """A NaN loss in fine-tuning: exit 2, status failed, the checkpoint before it kept."""
     from botorl.agents import population
 
-    # every fine-tuning update of SAC goes through the population's batched update (a run is a
-    # population of one)
-    real_update = population.update
+    # every fine-tuning update of SAC goes through the population's batched update, fused with
+    # the next step's action (a run is a population of one)
+    real_update = population.update_then_sample
     calls = {"n": 0}
 
-    def poisoned(agents, batches):
-        agents, metrics = real_update(agents, batches)
+    def poisoned(agents, batches, observations, **kw):
+        agents, metrics, actions, rng = real_update(agents, batches, observations, **kw)
         calls["n"] += 1
         if calls["n"] >= 25:
             metrics = dict(metrics, critic_loss=np.full((1,), np.nan, np.float32))
-        return agents, metrics
+        return agents, metrics, actions, rng
 
-    monkeypatch.setattr(population, "update", poisoned)
+    monkeypatch.setattr(population, "update_then_sample", poisoned)
     out = tmp_path / "nan"
     code = _run(out, "--online.steps", "80")  # fine-tuning from 30 (after the warm-up) to 80
     err = capsys.readouterr().err

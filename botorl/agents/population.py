@@ -19,7 +19,8 @@ from botorl.agents import common
 
 __all__ = [
     "stack", "unstack", "member_of", "population_size", "member_metrics", "host_shards", "member_sharding", "over_members",
-    "placed", "update", "update_many", "update_masked", "update_many_on_device", "sample", "eval_actions", "q_mean",
+    "placed", "on_members", "update", "update_then_sample", "update_many", "update_masked", "update_many_on_device",
+    "sample", "eval_actions", "q_mean",
 ]
 
 
@@ -132,16 +133,23 @@ def member_sharding(n: int):
     return NamedSharding(_mesh(d), PartitionSpec("members") if n % d == 0 else PartitionSpec())
 
 
-def placed(*trees):
+def placed(*trees, every_leaf: bool = False):
     """The member-axis inputs of an update where its outputs will be, so that every call
-    (the first, with fresh arrays, and the later ones) compiles to one program."""
+    (the first, with fresh arrays, and the later ones) compiles to one program. Host arrays
+    (a batch) travel by one explicit ``device_put`` of the whole tree, never as a jitted call's
+    implicit per-argument transfers (what ``jax.transfer_guard("disallow")`` refuses).
+    ``every_leaf``: check each leaf, not only the first (agents put together from pieces that
+    lie in different places, as a warm start's: its fresh rng on one device, its networks
+    split over the members' devices, which every call would copy)."""
     sharding = member_sharding(population_size(trees[0]))
-    if sharding is None:
-        return trees
+
+    def there(x) -> bool:
+        return isinstance(x, jax.Array) and (sharding is None or x.sharding == sharding)
 
     def put(tree):
-        first = jax.tree_util.tree_leaves(tree)[0]
-        if isinstance(first, jax.Array) and first.sharding == sharding:
+        if every_leaf:
+            return jax.tree_util.tree_map(lambda x: x if there(x) else jax.device_put(x, sharding), tree)
+        if there(jax.tree_util.tree_leaves(tree)[0]):
             return tree  # the agents after their first update: already there (a per-leaf check costs ms)
         return jax.device_put(tree, sharding)
 
@@ -181,6 +189,23 @@ jit_update_many_on_device = jax.jit(over_members(common.update_many_on_device_fn
 jit_sample = jax.jit(over_members(common.sample_fn, (0, 0), across_cores=False))
 jit_eval = jax.jit(over_members(common.eval_fn, (0, 0), across_cores=False))
 jit_q_mean = jax.jit(over_members(common.q_mean_fn, (0, None, None), across_cores=False))
+_sample = over_members(common.sample_fn, (0, 0), across_cores=False)
+
+
+def _act_after(learn):
+    """``learn`` (an update), then every member's action at its next observation with the
+    updated actor, as one program: an online step's two dispatches in one. The agents come back
+    with the rng they had before the draw, and the draw's next rng beside them, so a checkpoint
+    between the two holds the agents the separate calls would hold (``act`` restores the rng)."""
+    def fn(agents, batches, observations):
+        agents, metrics = learn(agents, batches)
+        actions, rng = _sample(common.acting_view(agents), observations)
+        return agents, metrics, actions, rng
+    return fn
+
+
+jit_act_after_update = jax.jit(_act_after(_update))
+jit_act_after_update_many = jax.jit(_act_after(_update_many))
 
 
 def as_f32(x):
@@ -204,6 +229,15 @@ def update_many(agents, batches):
     return jit_update_many(*placed(agents, _f32(batches)))
 
 
+def update_then_sample(agents, batches, observations, *, many: bool = False):
+    """``update`` (``many``: ``update_many``) and then ``sample`` at ``observations`` (N, O) with
+    the updated agents, in one jitted call. Returns (agents, metrics, actions, rng): the agents
+    with the rng before the draw; ``agents.replace(rng=rng)`` is what ``sample`` would return."""
+    agents, batches = placed(agents, _f32(batches))
+    return (jit_act_after_update_many if many else jit_act_after_update)(agents, batches,
+                                                                          on_members(observations, agents))
+
+
 def update_masked(agents, batches, mask, *, many: bool = False):
     """``update`` (or ``update_many``) where only the members with ``mask`` True update; the
     others keep their agent exactly (their rows of ``batches`` are ignored)."""
@@ -216,17 +250,32 @@ def update_many_on_device(agents, arrays: dict, keys, num_updates: int, batch_si
                                      batch_size=batch_size)
 
 
+def on_members(x, like, *, shared: bool = False):
+    """A host array where a population's jitted call reads it: split over the devices its
+    agents ``like`` are split over (``shared``: a copy on each), by one explicit transfer; on
+    one device, there. Given as a host array, a call would copy it to one device and then on to
+    the members' (two transfers per call, the second device to device; ``jax.transfer_guard``
+    refuses both)."""
+    x = x.astype(jnp.float32) if isinstance(x, jax.Array) else np.asarray(x, np.float32)
+    sharding = getattr(jax.tree_util.tree_leaves(like)[0], "sharding", None)
+    if not isinstance(sharding, NamedSharding):
+        return jax.device_put(x)  # one device (uncommitted, as a jitted call's own copy would be)
+    return jax.device_put(x, NamedSharding(sharding.mesh, PartitionSpec()) if shared else sharding)
+
+
 def sample(agents, observations):
     """Stochastic actions of every member at its own observation(s): (N, O) -> (N, A)."""
-    actions, rng = jit_sample(common.acting_view(agents), jnp.asarray(observations, jnp.float32))
+    view = common.acting_view(agents)
+    actions, rng = jit_sample(view, on_members(observations, view))
     return actions, agents.replace(rng=rng)
 
 
 def eval_actions(agents, observations):
     """Deterministic actions: (N, O) -> (N, A) or (N, E, O) -> (N, E, A)."""
-    return jit_eval(common.acting_view(agents), jnp.asarray(observations, jnp.float32))
+    view = common.acting_view(agents)
+    return jit_eval(view, on_members(observations, view))
 
 
 def q_mean(agents, observations, actions):
     """Mean over each member's critic ensemble of Q(s, a) on shared (s, a): (N, B)."""
-    return jit_q_mean(agents, jnp.asarray(observations, jnp.float32), jnp.asarray(actions, jnp.float32))
+    return jit_q_mean(agents, on_members(observations, agents, shared=True), on_members(actions, agents, shared=True))

@@ -4,11 +4,14 @@ of the real pipeline at the ``full`` profile.
 For each task, one `botorl run --profile full` (a population of N members for each N of
 ``--members``) with every stage cut to a short window -- ``--pretrain-steps`` Cal-QL updates,
 ``--warmup-steps`` env steps of the frozen policy, ``--boto-steps`` BOTO updates,
-``--finetune-steps`` env steps of WSRL fine-tuning at UTD 4 with 10 critics -- and one
-`botorl eval` of its checkpoint. The rates are the pipeline's own: the steady state of each
-stage's metrics rows after the first (which holds the compilation), read from the run's
-``metrics/*.csv``; evaluation env steps/s from `botorl eval` (episodes x mean length /
-seconds). Peak host memory is each process's maximum resident size (``wait4``).
+``--finetune-steps`` env steps of WSRL fine-tuning at UTD 4 with 10 critics -- and one timed
+evaluation of its last checkpoint, every member's envs in one lockstep as the run evaluates
+them. The rates are the pipeline's own: the steady state of each stage's metrics rows after
+the first, read from the run's ``metrics/*.csv``; the first row's excess time over that rate
+is the stage's compilation (its rows count from the stage's own first step: fine-tuning's from
+the end of the warm-up). Evaluation env steps/s count all members' env steps. Peak host memory
+is each process's maximum resident size (``wait4``); peak device memory, off the CPU, what
+the device's allocator reports at the process's end (``memory_stats``).
 
 Projection of a paper run (``projected_hours``): the ``full`` preset's budgets (pre-training
 steps, the 5,000-step warm-up, Table 2's BOTO steps, 300k online steps of which the warm-up's
@@ -96,14 +99,80 @@ def _synthetic_data(spec, work: Path, rows: int) -> tuple[list[str], list[str]]:
     raise ValueError(f"{spec.name}: no synthetic writer for data of kind {kind!r}")
 
 
-def _run(cmd: list[str], log: Path) -> tuple[int, float, float]:
-    """(exit code, wall seconds, peak resident MB) of one botorl process."""
+def _run(cmd: list[str], log: Path, stats: Path | None = None) -> tuple[int, float, float]:
+    """(exit code, wall seconds, peak resident MB) of one botorl process (``cmd``: its command
+    line, or ``["--time-eval", ...]``); its peak device memory into ``stats`` (JSON)."""
     t0 = time.perf_counter()
+    stats = stats or log.with_suffix(".stats.json")
     with open(log, "w") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "botorl.cli", *cmd], stdout=out, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen([sys.executable, "-m", "botorl.benchmarks.measured_cli", str(stats), *cmd],
+                                stdout=out, stderr=subprocess.STDOUT)
         _, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
     return proc.returncode, time.perf_counter() - t0, usage.ru_maxrss / 1024  # Linux: KiB
+
+
+def device_memory() -> dict[str, float | None]:
+    """Peak and limit of the first device's memory in MB (None on a CPU, whose arrays are host
+    memory, counted in the resident size)."""
+    try:
+        import jax
+
+        st = jax.devices()[0].memory_stats() or {}
+    except Exception:  # noqa: BLE001 - a backend without memory statistics
+        st = {}
+    mb = {k: (st[k] / 2**20 if k in st else None) for k in ("peak_bytes_in_use", "bytes_limit")}
+    return {"device_peak_mb": mb["peak_bytes_in_use"], "device_limit_mb": mb["bytes_limit"]}
+
+
+def time_evaluation(out: Path, members: int, episodes: int) -> dict:
+    """``episodes`` evaluation episodes of every member of the run in ``out`` (its last
+    checkpoint) as the run evaluates: all members' envs in one lockstep, one policy call per env
+    step for all (botorl.pipeline.runner's ``RunContext.evaluate``), under the run's precision."""
+    from dataclasses import replace
+
+    from botorl.agents import population as AP
+    from botorl.envs.registry import get_task
+    from botorl.jaxsetup import matmul_precision, setup_jax
+    from botorl.pipeline.evaluation import make_eval_envs, run_episodes
+    from botorl.pipeline.policy import load_agent, read_run
+
+    setup_jax()
+    dirs = [out] if members == 1 else _member_dirs(out)
+    cfgs = [read_run(d)[1] for d in dirs]
+    cfg = cfgs[0]
+    cfg = replace(cfg, eval=replace(cfg.eval, episodes=episodes))
+    spec = get_task(cfg.task)
+    agents = AP.stack([load_agent(d) for d in dirs])
+    envs = [make_eval_envs(spec, cfg.eval) for _ in dirs]
+    calls = 0
+
+    def policy(obs):
+        nonlocal calls
+        calls += 1
+        return AP.eval_actions(agents, obs)
+
+    try:
+        with matmul_precision(cfg.precision):
+            t0 = time.perf_counter()  # the first call compiles
+            np.asarray(AP.eval_actions(agents, np.zeros((len(dirs), len(envs[0]), spec.obs_dim), np.float32)))
+            compile_s = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            stats = run_episodes(policy, envs, episodes=episodes, success_mode=spec.success_mode,
+                                 seeds=[200_000 + c.seed for c in cfgs], max_steps=spec.max_episode_steps)
+            seconds = time.perf_counter() - t0
+    finally:
+        for es in envs:
+            for e in es:
+                e.close()
+    lengths = [st.length for st in stats]
+    return {"seconds": seconds, "compile_s": compile_s, "env_steps": float(sum(lengths) * episodes),
+            "episode_length": float(np.mean(lengths)), "episodes": episodes, "members": len(dirs),
+            "envs_per_member": len(envs[0]), "policy_calls": calls, "precision": cfg.precision}
+
+
+def _member_dirs(out: Path) -> list[Path]:
+    return [d for d in sorted(out.iterdir()) if (d / "summary.json").exists()]
 
 
 def _rows(path: Path) -> list[dict]:
@@ -111,12 +180,16 @@ def _rows(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def _steady(rows: list[dict], step_key: str, rate_key: str | None, seconds_key: str | None = None) -> tuple[float, float]:
+def _steady(rows: list[dict], step_key: str, rate_key: str | None, seconds_key: str | None = None,
+            start: int = 0) -> tuple[float, float]:
     """(steady-state rate, compile seconds) from a stage's metrics rows: the rows after the
-    first give the rate; the first row's excess time over that rate is the compilation."""
+    first give the rate; the first row's excess time over that rate is the compilation. The
+    first row covers its steps since the stage's ``start`` (fine-tuning's rows are on the online
+    axis, which starts after the warm-up: counted from 0, the warm-up's steps were taken for
+    fine-tuning's compile time)."""
     if len(rows) < 2:
         raise RuntimeError("a stage logged fewer than 2 rows: raise its window")
-    steps = [float(r[step_key]) for r in rows]
+    steps = [float(r[step_key]) - start for r in rows]
     if seconds_key is not None:  # cumulative seconds (BOTO)
         secs = [float(r[seconds_key]) for r in rows]
         rate = (steps[-1] - steps[0]) / max(secs[-1] - secs[0], 1e-9)
@@ -137,9 +210,9 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
     cfg = resolve(make_preset(task, "full", "boto"))
     out = work / f"{task}-n{members}"
     shutil.rmtree(out, ignore_errors=True)
-    data_args, eval_args = ["--data.steps", str(data_steps)], []
+    data_args = ["--data.steps", str(data_steps)]
     if PAPER_TASKS.get(task) == "synthetic":
-        data_args, eval_args = _synthetic_data(spec, work, data_steps)
+        data_args = _synthetic_data(spec, work, data_steps)[0]
     p, w, b, f = (windows[k] for k in ("pretrain", "warmup", "boto", "finetune"))
     seeds = ["--seeds", f"0-{members - 1}"] if members > 1 else ["--seed", "0"]
     cmd = ["run", "--task", task, "--method", "boto", "--profile", "full", *seeds, "--out", str(out),
@@ -149,37 +222,44 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
            "--warmup.steps", str(w), "--boto.boto-steps", str(b), "--boto.steps-per-call", str(max(1, b // 4)),
            "--online.steps", str(w + f), "--online.log-every", str(max(1, f // 4)),
            "--eval.episodes", "1", "--eval.interval", str(10 * (w + f)),
-           "--checkpoint-every", str(10 * (w + f + p + b))]
-    code, wall, rss = _run(cmd, work / f"{task}-n{members}.log")
+           "--checkpoint-every", str(10 * (w + f + p + b)),
+           *(["--precision", windows["precision"]] if windows.get("precision") else [])]
+    log = work / f"{task}-n{members}.log"
+    code, wall, rss = _run(cmd, log)
     if code != 0:
-        raise RuntimeError(f"{task}: `botorl run` exited {code}; see {work / f'{task}-n{members}.log'}")
-    member = out if members == 1 else next(d for d in sorted(out.iterdir()) if (d / "summary.json").exists())
+        raise RuntimeError(f"{task}: `botorl run` exited {code}; see {log}")
+    run_stats = json.loads(log.with_suffix(".stats.json").read_text())
+    member = out if members == 1 else _member_dirs(out)[0]
     summary = json.loads((member / "summary.json").read_text())
+    run_cfg = json.loads((member / "config.json").read_text())
     stages: dict[str, dict] = {}
-    for stage, rate_key, seconds_key, unit in (("pretrain", "steps_per_s", None, "updates/s"),
-                                               ("boto", None, "seconds", "updates/s"),
-                                               ("finetune", "env_steps_per_s", None, "env steps/s (UTD 4)")):
-        rate, comp = _steady(_rows(member / "metrics" / f"{stage}.csv"), "step", rate_key, seconds_key)
+    for stage, rate_key, seconds_key, unit, start in (("pretrain", "steps_per_s", None, "updates/s", 0),
+                                                      ("boto", None, "seconds", "updates/s", 0),
+                                                      ("finetune", "env_steps_per_s", None, "env steps/s (UTD 4)", w)):
+        rate, comp = _steady(_rows(member / "metrics" / f"{stage}.csv"), "step", rate_key, seconds_key, start)
         stages[stage] = {"rate": rate, "unit": unit, "compile_s": comp}
-    # evaluation: `botorl eval` of the run's last checkpoint (a single run's or member 0's)
-    eval_dir = out if members == 1 else member
-    ecode, _, ers = _run(["eval", str(eval_dir), "--episodes", str(windows["eval_episodes"]), *eval_args],
-                         work / f"{task}-n{members}-eval.log")
-    ev = json.loads(next(eval_dir.glob("eval-*.json")).read_text()) if ecode == 0 else None
-    if ev is None:
-        raise RuntimeError(f"{task}: `botorl eval` exited {ecode}; see {work / f'{task}-n{members}-eval.log'}")
-    eval_rate = ev["episodes"] * ev["episode_length"] / max(ev["seconds"], 1e-9)
-    stages["eval"] = {"rate": eval_rate, "unit": f"env steps/s ({ev['episodes']} envs in lockstep, one member)",
-                      "compile_s": 0.0}
-    # the warm-up stage also ran one evaluation episode at step 0: take it out
-    warm_s = summary["stage_seconds"]["warmup"] - ev["episode_length"] / eval_rate
+    # evaluation: every member's last checkpoint, all members' envs in one lockstep (as the run)
+    elog = work / f"{task}-n{members}-eval.log"
+    ecode, _, ers = _run(["--time-eval", str(out), str(members), str(windows["eval_episodes"])], elog)
+    if ecode != 0:
+        raise RuntimeError(f"{task}: the timed evaluation exited {ecode}; see {elog}")
+    ev = json.loads(elog.with_suffix(".stats.json").read_text())
+    eval_rate = ev["env_steps"] / max(ev["seconds"], 1e-9)
+    stages["eval"] = {"rate": eval_rate, "compile_s": ev["compile_s"], "policy_calls": ev["policy_calls"],
+                      "unit": f"env steps/s of all members ({members} x {ev['envs_per_member']} envs in lockstep, "
+                              f"one policy call per step)"}
+    # the warm-up stage also ran one evaluation episode per member at step 0: take it out
+    warm_s = summary["stage_seconds"]["warmup"] - members * ev["episode_length"] / eval_rate
     stages["warmup"] = {"rate": w / max(warm_s, 1e-9), "unit": "env steps/s (frozen policy)", "compile_s": 0.0}
 
     budget = paper_budget(cfg, spec.max_episode_steps)
+    peaks = [x for x in (run_stats.get("device_peak_mb"), ev.get("device_peak_mb")) if x is not None]
     return {
         "task": task, "paper_task": paper_name(task), "data": PAPER_TASKS.get(task, "as configured"),
-        "members": members, "stages": stages, "budget": budget, **project(stages, budget, members),
-        "peak_host_mb": max(rss, ers), "device_memory_mb": None, "measure_wall_s": wall,
+        "members": members, "precision": run_cfg.get("precision"), "stages": stages, "budget": budget,
+        **project(stages, budget, members),
+        "peak_host_mb": max(rss, ers), "device_memory_mb": max(peaks) if peaks else None,
+        "device_memory_limit_mb": run_stats.get("device_limit_mb"), "measure_wall_s": wall,
         "paper_table3_hours": PAPER_TABLE3_HOURS.get(paper_name(task)),
     }
 
@@ -194,7 +274,8 @@ def paper_budget(cfg, horizon: int) -> dict[str, int]:
 
 def project(stages: dict[str, dict], budget: dict[str, int], members: int = 1) -> dict:
     """Hours of the whole budget at the measured rates, each stage compiled once; the
-    population's wall time (its evaluation timed for one member, so counted once per member)."""
+    population's wall time (every member evaluates its budget; the evaluation's rate counts all
+    members' env steps, stepped together)."""
     seconds = {s: budget[s] / stages[s]["rate"] + stages[s]["compile_s"] for s in STAGES}
     seconds["eval"] *= members
     total = sum(seconds.values())
@@ -219,6 +300,24 @@ def table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def machine() -> dict:
+    """The machine: host, and the device JAX runs on (its name, platform, count, memory)."""
+    out = {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count()}
+    try:
+        import jax
+
+        from botorl.jaxsetup import setup_jax
+
+        setup_jax()
+        d = jax.devices()[0]
+        out.update({"device": str(d), "device_kind": d.device_kind, "backend": jax.default_backend(),
+                    "device_count": jax.device_count(), "jax": jax.__version__,
+                    "device_memory_limit_mb": device_memory()["device_limit_mb"]})
+    except Exception:  # noqa: BLE001 - the machine description is best effort
+        pass
+    return out
+
+
 def main(argv: list[str]) -> int:
     from botorl.errors import ConfigError
 
@@ -233,15 +332,21 @@ def main(argv: list[str]) -> int:
     p.add_argument("--finetune-steps", type=int, default=100)
     p.add_argument("--eval-episodes", type=int, default=20, help="episodes of the timed evaluation (the paper's 20)")
     p.add_argument("--data-steps", type=int, default=20_000, help="rows of the (generated or synthetic) data")
+    p.add_argument("--precision", default=None, help="the runs' matmul precision: highest, tf32 or bf16 "
+                                                     "(default: the full preset's, tf32)")
     p.add_argument("--work", type=Path, default=None, help="folder for the runs (default: a temporary one)")
     args = p.parse_args(argv)
     try:
         members = [int(m) for m in args.members.split(",")]
     except ValueError:
         raise ConfigError(f"--members {args.members!r}: give population sizes like 1,4,16.") from None
+    if args.precision is not None:
+        from botorl.jaxsetup import check_precision
+
+        check_precision(args.precision)
     tasks = [t for t in args.tasks.split(",") if t]
     windows = {"pretrain": args.pretrain_steps, "warmup": args.warmup_steps, "boto": args.boto_steps,
-               "finetune": args.finetune_steps, "eval_episodes": args.eval_episodes}
+               "finetune": args.finetune_steps, "eval_episodes": args.eval_episodes, "precision": args.precision}
     flags = {"--pretrain-steps": args.pretrain_steps, "--boto-steps": args.boto_steps,
              "--finetune-steps": args.finetune_steps, "--warmup-steps": args.warmup_steps,
              "--eval-episodes": args.eval_episodes, "--data-steps": args.data_steps,
@@ -264,17 +369,17 @@ def main(argv: list[str]) -> int:
             print(table(results[-1:]).splitlines()[-1], flush=True)
     print()
     print(table(results))
-    doc = {"machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count()},
+    doc = {"machine": machine(), "precision": sorted({r["precision"] for r in results if r.get("precision")}),
            "windows": windows, "how": __doc__.split("\n\n", 1)[1], "results": results}
-    try:
-        import jax
-
-        doc["machine"]["device"] = str(jax.devices()[0])
-        doc["machine"]["jax"] = jax.__version__
-    except Exception:  # noqa: BLE001 - the machine description is best effort
-        pass
+    m = doc["machine"]
+    print(f"device: {m.get('device_kind', '?')} ({m.get('backend', '?')}, jax {m.get('jax', '?')}); matmul precision "
+          f"{', '.join(doc['precision']) or '?'}; peak device memory "
+          + ", ".join(f"{r['task']} x {r['members']}: " + ("- (a CPU's arrays are host memory, "
+                                                          f"{r['peak_host_mb']:.0f} MB)" if r["device_memory_mb"] is None
+                                                          else f"{r['device_memory_mb']:.0f} MB") for r in results))
     if args.json is not None:
         atomic_write_bytes(args.json, json.dumps(doc, indent=2).encode())
     if args.work is None:
         shutil.rmtree(work, ignore_errors=True)
     return 0
+

@@ -63,6 +63,7 @@ def _pre_parse(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--method", default="boto")
     p.add_argument("--profile", default="quick")
     p.add_argument("--pretrain", default=None)
+    p.add_argument("--precision", default="tf32")
     ns, _ = p.parse_known_args(argv)
     if ns.pretrain in ("None", "none"):
         ns.pretrain = None
@@ -89,12 +90,14 @@ def build_config(argv: list[str]):
     from botorl.configs.resolve import resolve, validate
     from botorl.configs.schema import RunConfig
     from botorl.envs.registry import get_task
+    from botorl.jaxsetup import check_precision
 
     argv = _expand_shortcuts(list(argv))
     argv = expand_argv(argv)  # --env MODULE:FUNCTION: a task of one's own, registered here (configs/custom.py)
     _refuse_derived(argv)
     pre = _pre_parse(argv)
     get_method(pre.method)  # clear errors before tyro's generic ones
+    check_precision(pre.precision)
     resolve_pretrain(pre.method, pre.pretrain)
     get_task(pre.task)
     default = make_preset(pre.task, pre.profile, pre.method, pre.pretrain)
@@ -189,6 +192,9 @@ def _load_config(argv: list[str]):
                           f"--out, --pretrained, --env and --no-progress can). Drop them, or give the flags without --config.")
     try:
         data = read_json_bounded(ns.config)
+        if isinstance(data, dict):
+            # a file written before the field: its runs computed at JAX's default, which is tf32
+            data.setdefault("precision", "tf32")
         cfg = from_dict(RunConfig, data)
         if json.dumps(to_dict(cfg), sort_keys=True) != json.dumps(data, sort_keys=True):  # missing, unknown, mistyped
             raise ValueError("not every field of a run config, as botorl writes it")

@@ -200,6 +200,7 @@ def validate(cfg: RunConfig) -> None:
     from botorl.configs.custom import ensure_task
     from botorl.configs.presets import PROFILES
     from botorl.configs.methods import get_method
+    from botorl.jaxsetup import check_precision
 
     check_bounds(cfg)
     ensure_task(cfg)  # a task of one's own: registered in this process (never imported from the file)
@@ -215,6 +216,7 @@ def validate(cfg: RunConfig) -> None:
     if cfg.pretrained is not None and "pretrain" not in method.stages:
         raise ConfigError(f"--pretrained {cfg.pretrained}: --method {cfg.method} has no pre-training to skip; "
                           f"drop --pretrained.")
+    check_precision(cfg.precision)  # a config file's value: the command line's is checked by tyro
     for name, v in (("seed", cfg.seed), ("data.seed", cfg.data.seed), ("online_reseed", cfg.online_reseed)):
         # NumPy's generators take only non-negative seeds; 2**31 keeps JAX keys in int32
         need(isinstance(v, int) and 0 <= v < 2**31, name, v, "a seed must be an integer in [0, 2**31)")

@@ -216,6 +216,10 @@ class RunConfig:
     """tqdm progress bars."""
     checkpoint_every: int = 50_000
     """Steps between checkpoints inside a stage (gradient or env steps); every stage ends with one."""
+    precision: Literal["highest", "tf32", "bf16"] = "tf32"
+    """Every matmul's precision on a GPU: fp32 (highest), TF32 inputs (what JAX itself does on a
+    GPU) or bf16 inputs, fp32 sums; a CPU computes fp32 whatever it says (the docs' Performance
+    page, Precision)."""
     data: DataConfig = field(default_factory=DataConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     offline: OfflineConfig = field(default_factory=OfflineConfig)
@@ -266,6 +270,10 @@ def run_identity(cfg: "RunConfig") -> dict[str, Any]:
     seed, alpha, and a digest of every config field that shapes the saved state."""
     flat = {k: v for k, v in flatten(to_dict(cfg)).items()
             if k not in _NOT_STATE and not k.startswith(("eval.", "metric.")) and not k.endswith("log_every")}
+    if flat.get("precision") == "tf32":
+        # the default, and what every run before the field computed (JAX's default on a GPU is
+        # TF32): left out, so those runs keep their identity and resume
+        del flat["precision"]
     pre = {k: v for k, v in flat.items() if k.startswith(("data.", "network.", "offline."))}
     return {"task": cfg.task, "method": cfg.method, "pretrain": cfg.pretrain, "pretraining": _digest(pre),
             "seed": cfg.seed, "alpha": cfg.alpha, "config": _digest(flat)}

@@ -18,7 +18,7 @@ import tyro
 from botorl.configs.build import build_config
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import atomic_write_json, open_regular
-from botorl.jaxsetup import setup_jax
+from botorl.jaxsetup import matmul_precision, setup_jax
 from botorl.pipeline import preempt
 from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step, \
     full_identity
@@ -402,8 +402,9 @@ def _eval(args, run, cfg) -> dict:
     like = S.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)
     agent = agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like)
     t0 = time.perf_counter()
-    stats = evaluate_policy(lambda o: agent.eval_actions(o[0])[None], spec, cfg, cfg.eval.episodes)
-    q_data, q_uniform = QProbe(d.observations, d.actions, seed=12345, size=cfg.eval.q_pairs)(S.q_fn(agent))
+    with matmul_precision(cfg.precision):  # the run's own
+        stats = evaluate_policy(lambda o: agent.eval_actions(o[0])[None], spec, cfg, cfg.eval.episodes)
+        q_data, q_uniform = QProbe(d.observations, d.actions, seed=12345, size=cfg.eval.q_pairs)(S.q_fn(agent))
     result = {"checkpoint": name, "stage": state["stage"], "step": checkpoint_step(cfg, state),
               "episodes": cfg.eval.episodes, **metric_fields(metric_of_config(cfg), stats),
               "episode_length": stats.length, "q_data": q_data, "q_uniform": q_uniform,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import sys
 
+import jax
 import numpy as np
 
 from botorl.agents import population as AP
@@ -61,6 +62,7 @@ class OnlineState:
         self.ep_rows: list[list[int]] = [[] for _ in range(n)]
         self.recent_success: list[list[float]] = [[] for _ in range(n)]
         self.finished_only = ctx.method.finished_episodes_only
+        self.drawn = None  # (actions, next rng) at self.obs from the last update call, not yet taken
         self.reward = RewardTransform.of(ctx.spec)
         self.offline = ctx.d_offline if oc.offline_ratio > 0 else None
         if resume is None:
@@ -80,6 +82,9 @@ class OnlineState:
         """A mid-stage checkpoint of the agents and this whole state (and the metrics ``window``
         since the last log point, from an interrupt)."""
         arrays = {"buffer": self.buffer.state_dict(), "online": {"obs": self.obs, "ep_succ": self.ep_succ}}
+        if self.drawn is not None:  # the next step's action, drawn by the fused call: resumed as drawn
+            actions, rng = jax.device_get(self.drawn)
+            arrays["online"].update(drawn_actions=np.asarray(actions), drawn_rng=np.asarray(rng))
         w = None if window is None else window.state_dict()
         if w:
             arrays["window"] = w
@@ -105,6 +110,8 @@ class OnlineState:
                 set_env_state(env, st)
             self.obs = np.array(arrays["obs"], np.float32)
             self.ep_succ = np.array(arrays["ep_succ"], np.float64)
+            if "drawn_actions" in arrays:  # an accelerator may compute the fused call's draw in other bits
+                self.drawn = (np.asarray(arrays["drawn_actions"], np.float32), np.asarray(arrays["drawn_rng"]))
             self.ep_rows = [[int(r) for r in rows] for rows in doc["ep_rows"]]
             self.recent_success = [[float(x) for x in xs] for xs in doc["recent_success"]]
         except (KeyError, TypeError, ValueError, IndexError) as err:
@@ -124,9 +131,14 @@ class OnlineState:
     # ------------------------------------------------------------------ one env step, one update
     def advance(self, agents, window):
         """One online step of every member (one policy call for all), then one UTD update (from
-        ``online.random_steps`` on): the body of fine-tuning's loop."""
-        actions, agents = AP.sample(agents, self.obs)
-        self.act(np.asarray(actions, dtype=np.float32))
+        ``online.random_steps`` on): the body of fine-tuning's loop. When every member learns,
+        the update and the next step's policy call are one jitted call (one dispatch per step)."""
+        if self.drawn is None:
+            actions, agents = AP.sample(agents, self.obs)
+        else:  # drawn at this observation by the last step's update call, with the updated actor
+            (actions, rng), self.drawn = self.drawn, None
+            agents = agents.replace(rng=jax.device_put(rng, agents.rng.sharding))  # a no-op unless resumed
+        self.act(np.asarray(jax.device_get(actions), dtype=np.float32))  # explicit: no implicit transfer
         if self.step >= self.ctx.cfg.online.random_steps:
             agents = self.learn(agents, window)
         self.step += 1
@@ -175,7 +187,10 @@ class OnlineState:
         if not many:  # (N, u, B, ...) -> (N, u*B, ...): each critic minibatch keeps the offline/online mix
             b = {k: v.reshape((n, u * B) + v.shape[3:]) for k, v in b.items()}
         if all(active):
-            agents, metrics = (AP.update_many if many else AP.update)(agents, b)
+            # one dispatch for the update and the next step's action; the agents keep the rng they
+            # had before the draw until that step takes it, so a checkpoint now is the separate calls'
+            agents, metrics, actions, rng = AP.update_then_sample(agents, b, self.obs, many=many)
+            self.drawn = (actions, rng)
         else:
             agents, metrics = AP.update_masked(agents, b, np.asarray(active), many=many)
         window.add(metrics, np.asarray(active))

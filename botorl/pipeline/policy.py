@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from botorl.errors import ConfigError
-from botorl.jaxsetup import setup_jax
+from botorl.jaxsetup import matmul_precision, setup_jax
 from botorl.pipeline.checkpoint import CheckpointManager
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, read_json
 
@@ -111,8 +111,10 @@ class Policy:
     flattened first. ``deterministic``: the tanh of the Gaussian's mean (as botorl evaluates);
     otherwise a sample, from the checkpoint's random key onwards."""
 
-    def __init__(self, agent, io: dict[str, Any], deterministic: bool = True, checkpoint: str | None = None):
+    def __init__(self, agent, io: dict[str, Any], deterministic: bool = True, checkpoint: str | None = None,
+                 precision: str = "tf32"):
         self.agent = agent
+        self.precision = precision  # the run's matmul precision (RunConfig.precision)
         self.obs_keys: tuple[str, ...] | None = io["obs_keys"]
         self.obs_dim: int = io["obs_dim"]
         self.action_dim: int = io["action_dim"]
@@ -138,10 +140,11 @@ class Policy:
 
     def unit_actions(self, flat_obs: np.ndarray) -> np.ndarray:
         """(B, obs_dim) float32 -> the agent's actions in [-1, 1], (B, action_dim)."""
-        if self.deterministic:
-            return np.asarray(self.agent.eval_actions(flat_obs))
-        actions, self.agent = self.agent.sample_actions(flat_obs)
-        return np.asarray(actions)
+        with matmul_precision(self.precision):
+            if self.deterministic:
+                return np.asarray(self.agent.eval_actions(flat_obs))
+            actions, self.agent = self.agent.sample_actions(flat_obs)
+            return np.asarray(actions)
 
     def transform_action(self, unit: np.ndarray) -> np.ndarray:
         """[-1, 1] -> the env's bounds (``action_to_env``), float32."""
@@ -168,5 +171,5 @@ def _size(obs) -> int:
 
 def load_policy(run_dir, checkpoint: str | None = None, deterministic: bool = True) -> Policy:
     """A run's policy as a NumPy callable in the env's own action bounds (see ``Policy``)."""
-    agent, _, io, name = _load(run_dir, checkpoint)
-    return Policy(agent, io, deterministic=deterministic, checkpoint=name)
+    agent, cfg, io, name = _load(run_dir, checkpoint)
+    return Policy(agent, io, deterministic=deterministic, checkpoint=name, precision=cfg.precision)

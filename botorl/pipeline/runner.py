@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 
 from botorl.agents import checkpoint as agent_ckpt
@@ -30,6 +31,7 @@ from botorl.envs.metric import of_config as metric_of_config
 from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDivergedError
 from botorl.io import atomic_save_figure, atomic_write_json
+from botorl.jaxsetup import matmul_precision
 from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
 from botorl.pipeline import stages as S
 from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name, full_identity
@@ -239,8 +241,8 @@ class RunContext:
 
     def q_stats(self, agents) -> list[tuple[float, float]]:
         """(q_data, q_uniform) per member on the probe's pairs (one call for all members)."""
-        q_d = np.asarray(AP.q_mean(agents, self.probe.observations, self.probe.actions))
-        q_u = np.asarray(AP.q_mean(agents, self.probe.observations, self.probe.uniform))
+        q_d = jax.device_get(AP.q_mean(agents, self.probe.observations, self.probe.actions))
+        q_u = jax.device_get(AP.q_mean(agents, self.probe.observations, self.probe.uniform))
         return [(float(q_d[i].mean()), float(q_u[i].mean())) for i in range(self.n)]
 
     def log_q(self, stage: str, step: int, agents) -> None:
@@ -251,7 +253,7 @@ class RunContext:
         """All members' evaluation episodes, one batched policy call per env step; a row per member."""
         cfg = self.cfg
         stats = evaluation.run_episodes(
-            lambda o: AP.eval_actions(agents, o), self.envs(), episodes=cfg.eval.episodes,
+            lambda o: jax.device_get(AP.eval_actions(agents, o)), self.envs(), episodes=cfg.eval.episodes,
             success_mode=self.spec.success_mode, seeds=[Streams.of(mc.cfg).evaluation for mc in self.members],
             max_steps=self.spec.max_episode_steps,
         )
@@ -450,7 +452,9 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
 
     agents = d_warmups = None
     try:
-        with preempt.deferred():  # SIGTERM / SIGINT: the stages stop at a step with a checkpoint
+        # SIGTERM / SIGINT: the stages stop at a step with a checkpoint; every matmul at the
+        # config's precision (traced inside, so every jitted call of the stages follows it)
+        with preempt.deferred(), matmul_precision(cfg.precision):
             if state["done_stages"]:
                 last = state["done_stages"][-1]
                 agents = ctx.load_agents(checkpoint_name(last, None), _templates(member_cfgs, last, d_offline))

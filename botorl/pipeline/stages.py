@@ -252,9 +252,11 @@ def _reseed_online(ctx, agents):
     reseeds = [member.cfg.online_reseed for member in ctx.members]
     if not any(reseeds):
         return agents
-    rngs = [population.member_of(agents, i).rng for i in range(len(reseeds))]
-    keys = [jax.random.fold_in(rng, k) if k else rng for rng, k in zip(rngs, reseeds)]
-    return agents.replace(rng=jnp.stack(keys))
+    keys = [jax.random.fold_in(population.member_of(agents, i).rng, k) if k else population.member_of(agents, i).rng
+            for i, k in enumerate(reseeds)]
+    # the new keys where the networks are (else the first policy call copies them there)
+    where = jax.tree_util.tree_leaves(agents.actor.params)[0].sharding
+    return agents.replace(rng=jax.device_put(jnp.stack(keys), where))
 
 
 def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
@@ -282,7 +284,7 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
                 if t % ctx.cfg.eval.interval == 0:
                     first_eval = ctx.evaluate(agents, t) if first_eval is None else ctx.log_evaluation(first_eval, t)
                 actions, agents = population.sample(agents, obs)
-                actions = np.asarray(actions, dtype=np.float32)
+                actions = np.asarray(jax.device_get(actions), dtype=np.float32)
                 for i, env in enumerate(envs):
                     next_obs, r, terminated, truncated, info = env.step(actions[i])
                     ep_success[i] = max(ep_success[i], float(info.get("success", 0.0)))
@@ -349,7 +351,7 @@ def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None =
     # first step on: a resumed run's loaded agents sit on one device, where the policy call
     # compiles another program than the uninterrupted run's at that step (its actions differed
     # in the last bit, and the run drifted from there)
-    agents = population.placed(agents)[0]
+    agents = population.placed(agents, every_leaf=True)[0]
     points = Schedule(oc.steps, oc.log_every, cfg.checkpoint_every,
                       evaluate=lambda step: cfg.eval.due(step, oc.steps, cfg.warmup.steps))
     if state.step == state.start and state.last_eval < state.start:
