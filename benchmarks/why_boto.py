@@ -113,10 +113,11 @@ def block_bootstrap(d: Diffs, n_boot: int = N_BOOT, seed: int = 0) -> tuple[floa
 
 
 def holm(pvalues: list[float]) -> list[float]:
-    """Holm's step-down adjusted p-values (nan stays nan and is not counted)."""
+    """Holm's step-down adjusted p-values over all the tests given, as the plan fixes the family
+    (a test without data, p nan, stays nan but still counts in m: conservative)."""
     idx = [i for i, p in enumerate(pvalues) if math.isfinite(p)]
     order = sorted(idx, key=lambda i: pvalues[i])
-    m, out, running = len(order), [math.nan] * len(pvalues), 0.0
+    m, out, running = len(pvalues), [math.nan] * len(pvalues), 0.0
     for rank, i in enumerate(order):
         running = max(running, min(1.0, (m - rank) * pvalues[i]))
         out[i] = running

@@ -57,9 +57,11 @@ def test_arms_pair_within_a_block_and_differences_by_hand(tmp_path):
 
 
 def test_holm_by_hand():
-    # sorted p: 0.01 (x4 = 0.04), 0.02 (x3 = 0.06), 0.03 (x2 = 0.06, monotone), 0.5 (x1 = 0.5)
+    # m = 5 (the nan test counts in the family): 0.01 x5 = 0.05, 0.02 x4 = 0.08, 0.03 x3 = 0.09,
+    # 0.5 x2 = 1.0
     got = WB.holm([0.03, 0.5, 0.01, math.nan, 0.02])
-    want = [0.06, 0.5, 0.04, math.nan, 0.06]
+    want = [0.09, 1.0, 0.05, math.nan, 0.08]
+    assert WB.holm([0.04, 0.01]) == [0.04, 0.02]  # step-down keeps the order monotone
     for g, w in zip(got, want):
         assert (math.isnan(g) and math.isnan(w)) or math.isclose(g, w)
 

@@ -29,7 +29,7 @@ def test_default_is_tf32_and_leaves_the_run_identity_as_before_the_field():
     from botorl.configs.schema import _NOT_STATE
 
     kept = {k: v for k, v in flat.items()
-            if k not in _NOT_STATE and not k.startswith("eval.") and not k.endswith("log_every")}
+            if k not in _NOT_STATE and not k.startswith(("eval.", "metric.")) and not k.endswith("log_every")}
     assert old == _digest(kept)
     # another precision computes other numbers: another run
     cfg.precision = "highest"
