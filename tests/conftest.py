@@ -38,6 +38,16 @@ def door_demos_path() -> Path:
     return path
 
 
+def load_example(name: str):
+    """``examples/<name>.py`` imported as a module (the examples are scripts, not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"{name}_example", REPO_ROOT / "examples" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def subprocess_env() -> dict[str, str]:
     """The environment of a botorl subprocess: this checkout first on the path."""
     env = dict(os.environ)

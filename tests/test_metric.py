@@ -5,7 +5,6 @@ and `botorl report`; Gymnasium's Pendulum-v1 end to end through examples/pendulu
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import os
 import math
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import load_example
 from conftest import subprocess_env as _env
 
 import botorl
@@ -25,15 +25,13 @@ from botorl.errors import ConfigError
 from botorl.experiments.report import make_report
 from botorl.pipeline.runner import format_population, format_summary
 
+
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "pendulum.py"
 
 
 def _example():
-    spec = importlib.util.spec_from_file_location("pendulum_example", EXAMPLE)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_example("pendulum")
 
 
 # ------------------------------------------------------------------ the metric itself

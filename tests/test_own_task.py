@@ -3,7 +3,6 @@ after kill -9, the policy outside botorl, and every bad input's exit code and me
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 import subprocess
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import sigkill_in_finetune
+from conftest import load_example
 from conftest import subprocess_env as _env
 from gymnasium import spaces
 
@@ -22,15 +22,13 @@ import botorl
 from botorl.cli import main as cli_main
 from botorl.envs.user import action_from_env, action_to_env, flatten_obs, obs_keys_of
 
+
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "own_task.py"
 
 
 def _example():
-    spec = importlib.util.spec_from_file_location("own_task_example", EXAMPLE)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_example("own_task")
 
 
 BADENVS = textwrap.dedent('''
