@@ -152,3 +152,8 @@ def test_ray_backend(tmp_path):
     assert manifest["counts"] == {"finished": 2}
     assert "ray_local_temp_dir" not in manifest  # the local instance was shut down
     assert processes_in(out) == []
+    # the sweep's token went to Ray's daemons only: a child this process starts later is no
+    # process of the sweep's (test_rundir_hostile's bystander failed after this test before)
+    from botorl.experiments.backend_local import TOKEN_ENV
+
+    assert TOKEN_ENV not in os.environ

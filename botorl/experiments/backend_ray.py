@@ -93,7 +93,11 @@ class RayBackend:
             self.sweep.manifest["ray_local_temp_dir"] = self.tmp
             self.sweep.save()
         if not ray.is_initialized():
-            if self.tmp:  # the local daemons inherit the token: what lets a later sweep stop them
+            # the local daemons inherit the token: what lets a later sweep stop them. Only while
+            # ray.init starts them: left in this process's environment, every child it starts
+            # afterwards (not the sweep's) would carry the token too
+            before = os.environ.get(TOKEN_ENV)
+            if self.tmp:
                 os.environ[TOKEN_ENV] = sweep_token()
             try:
                 ray.init(**kwargs)
@@ -103,6 +107,11 @@ class RayBackend:
                     f"{err}. Check --ray-address (e.g. ray://host:10001 or auto) or leave it out "
                     "to start a local instance."
                 ) from None
+            finally:
+                if before is None:
+                    os.environ.pop(TOKEN_ENV, None)
+                else:
+                    os.environ[TOKEN_ENV] = before
             if self.tmp:  # the local instance's daemons: the processes ray.init started
                 token = sweep_token()
                 self.processes = [r for p in descendants([os.getpid()])
