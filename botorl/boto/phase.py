@@ -103,19 +103,9 @@ def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alpha
     return agents
 
 
-def run_boto(
-    agent,
-    d_offline,
-    d_warmup,
-    config: BOTOConfig,
-    *,
-    alpha: float,
-    seed: int = 0,
-    start_step: int = 0,
-    num_steps: int | None = None,
-    callback: Callable[[int, Any, dict], None] | None = None,
-    progress: bool = True,
-) -> tuple[Any, list[dict]]:
+def run_boto(agent, d_offline, d_warmup, config: BOTOConfig, *, alpha: float, seed: int = 0, start_step: int = 0,
+             num_steps: int | None = None, callback: Callable[[int, Any, dict], None] | None = None,
+             progress: bool = True) -> tuple[Any, list[dict]]:
     """Train one agent's critic with BOTO at bias controller ``alpha`` in [-1, 1] (> 0 lowers Q
     far from the data, < 0 raises it; 1 is Oh & Lee's NAMDP); returns ``(agent, history)``.
 

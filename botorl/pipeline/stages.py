@@ -354,8 +354,8 @@ def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = Non
     label = f"BOTO alpha={alphas[0]:+.2f}" if ctx.n == 1 else f"BOTO x {ctx.n} members"
     with ctx.bar(bc.boto_steps, start, label) as bar:
         # the batches of a call follow from its index (boto_updates): no generator state to save,
-        # and calls of steps_per_call (not cut at checkpoint points) so a resume draws the same;
-        # the metrics are checked after every call, and a log point logs its call's
+        # and calls are not cut at checkpoint points (train_boto's calls, so its numbers); the
+        # metrics are checked after every call, and a log point logs its call's
         return offline_loop(agents, update, lambda s: min(bc.steps_per_call, bc.boto_steps - s), start,
                             Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every),
                             Window(ctx.n), bar, stage="boto", check=lambda step, ms: ctx.check("boto", step, ms),
