@@ -108,24 +108,12 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
 
     terminals = rewards > 0
     return Dataset(
-        observations=states[:-1],
-        actions=actions,
-        rewards=rewards,
-        next_observations=states[1:],
-        terminals=terminals,
-        episode_ends=ends | terminals,
-        infos={"success": rewards.copy()},
-        metadata={
-            "source": f"generated: pointmaze-{maze} (steps={steps}, seed={seed})",
-            "task": f"pointmaze-{maze}",
-            "generator": "botorl.data.generators.pointmaze",
-            "steps": int(steps),
-            "seed": int(seed),
-            "maze": maze,
-            "eval_start_cell": list(spec.start_cell),
-            "eval_goal_cell": list(spec.goal_cell),
-            "observation_layout": "x, y, vx, vy",
-        },
+        observations=states[:-1], actions=actions, rewards=rewards, next_observations=states[1:], terminals=terminals,
+        episode_ends=ends | terminals, infos={"success": rewards.copy()},
+        metadata={"source": f"generated: pointmaze-{maze} (steps={steps}, seed={seed})", "task": f"pointmaze-{maze}",
+                  "generator": "botorl.data.generators.pointmaze", "steps": int(steps), "seed": int(seed), "maze": maze,
+                  "eval_start_cell": list(spec.start_cell), "eval_goal_cell": list(spec.goal_cell),
+                  "observation_layout": "x, y, vx, vy"},
     )
 
 
