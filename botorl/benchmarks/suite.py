@@ -85,6 +85,66 @@ def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+def _options(cfg: BenchConfig) -> tuple[int, float, list[wl.Workload]]:
+    """(rounds, seconds per timing, the workloads) of ``cfg``; BotorlError for a bad one."""
+    if cfg.quick:
+        repeats, min_time = min(cfg.repeats, 2), min(cfg.min_time, 0.5)
+    else:
+        repeats, min_time = cfg.repeats, cfg.min_time
+    if repeats < 1 or min_time <= 0:
+        raise BotorlError(f"bench: --repeats ({cfg.repeats}) and --min-time ({cfg.min_time}) must be positive.")
+    names = cfg.only.split(",") if cfg.only else list(wl.QUICK if cfg.quick else wl.WORKLOADS)
+    unknown = [n for n in names if n not in wl.WORKLOADS]
+    if unknown:
+        raise BotorlError(f"bench: unknown workload(s) {', '.join(unknown)} in --only; "
+                          f"choose from {', '.join(wl.WORKLOADS)}.")
+    return repeats, min_time, [wl.WORKLOADS[n].tiny() if cfg.tiny else wl.WORKLOADS[n] for n in names]
+
+
+def _prepare(w: wl.Workload) -> tuple[dict[str, Any], wl.Bound]:
+    """A workload's row (its shapes and FLOP counts; the timings to come) and its bound update."""
+    import jax  # as in run: after its XLA flags and setup_jax
+
+    shapes = {"num_critics": w.num_critics, "critic_hidden": list(w.critic_hidden),
+              "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim,
+              "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples,
+              "updates_per_call": w.scan_k}
+    row = {"label": w.label, "note": w.note, "shapes": shapes,
+           "botorl_updates_per_s": None, "d3rlpy_updates_per_s": None,
+           "ratio": None, "gflops": None, "peak_fraction": None,
+           "flops_per_update": None, "flops_per_update_xla": None,
+           "botorl_samples": [], "d3rlpy_samples": [],
+           "botorl_cpu_samples": [], "d3rlpy_cpu_samples": []}
+    b = wl.build(w)
+    k = b.updates_per_call
+    count = flopmod.jaxpr_flops(b.flop_fn, *b.flop_args)
+    row["flops_per_update"] = count.flops / k
+    row["matmul_flops_per_update"] = count.matmul_flops / k
+    row["updates_per_call"] = k
+    try:
+        row["flops_per_update_xla"] = flopmod.xla_flops(jax.jit(b.flop_fn), *b.flop_args) / k
+    except Exception as err:  # the cross-check must not sink the run
+        row["flops_per_update_xla_error"] = str(err)
+    return row, b
+
+
+def _summarize(row: dict[str, Any], peak: float) -> None:
+    """A row's medians over the rounds, its ratios to d3rlpy and its share of the matmul peak."""
+    for side in ("botorl", "d3rlpy"):
+        row[f"{side}_updates_per_s"] = _median(row[f"{side}_samples"])
+        row[f"{side}_updates_per_cpu_s"] = _median(row[f"{side}_cpu_samples"])
+    if row["botorl_updates_per_s"] and row["d3rlpy_updates_per_s"]:
+        row["ratio"] = row["botorl_updates_per_s"] / row["d3rlpy_updates_per_s"]
+        # Per round, then the median: both sides of a round met the same load.
+        pairs = [b / d for b, d in zip(row["botorl_samples"], row["d3rlpy_samples"]) if d > 0]
+        row["ratio_median_of_rounds"] = _median(pairs)
+    if row["botorl_updates_per_cpu_s"] and row["d3rlpy_updates_per_cpu_s"]:
+        row["ratio_cpu"] = row["botorl_updates_per_cpu_s"] / row["d3rlpy_updates_per_cpu_s"]
+    if row["botorl_updates_per_s"] and row["flops_per_update"]:
+        row["gflops"] = row["flops_per_update"] * row["botorl_updates_per_s"] / 1e9
+        row["peak_fraction"] = row["gflops"] / peak
+
+
 def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> dict[str, Any]:
     """``twin``: starts the d3rlpy worker (benchmarks/against_d3rlpy.py) whose same updates are
     timed in the same rounds, once the options are checked."""
@@ -98,19 +158,7 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
     setup_jax()
     import jax
 
-    if cfg.quick:
-        repeats, min_time = min(cfg.repeats, 2), min(cfg.min_time, 0.5)
-    else:
-        repeats, min_time = cfg.repeats, cfg.min_time
-    if repeats < 1 or min_time <= 0:
-        raise BotorlError(f"bench: --repeats ({cfg.repeats}) and --min-time ({cfg.min_time}) must be positive.")
-    names = cfg.only.split(",") if cfg.only else list(wl.QUICK if cfg.quick else wl.WORKLOADS)
-    unknown = [n for n in names if n not in wl.WORKLOADS]
-    if unknown:
-        raise BotorlError(f"bench: unknown workload(s) {', '.join(unknown)} in --only; "
-                          f"choose from {', '.join(wl.WORKLOADS)}.")
-    chosen = [wl.WORKLOADS[n].tiny() if cfg.tiny else wl.WORKLOADS[n] for n in names]
-
+    repeats, min_time, chosen = _options(cfg)
     worker = None if twin is None else twin(cfg)
 
     load_start = _load()
@@ -119,31 +167,12 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
     bound: dict[str, wl.Bound] = {}
     calls: dict[str, int] = {}
     for w in chosen:
-        shapes = {"num_critics": w.num_critics, "critic_hidden": list(w.critic_hidden),
-                  "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim,
-                  "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples,
-                  "updates_per_call": w.scan_k}
-        row = rows[w.name] = {"label": w.label, "note": w.note, "shapes": shapes,
-                              "botorl_updates_per_s": None, "d3rlpy_updates_per_s": None,
-                              "ratio": None, "gflops": None, "peak_fraction": None,
-                              "flops_per_update": None, "flops_per_update_xla": None,
-                              "botorl_samples": [], "d3rlpy_samples": [],
-                              "botorl_cpu_samples": [], "d3rlpy_cpu_samples": []}
-        b = bound[w.name] = wl.build(w)
-        k = b.updates_per_call
-        count = flopmod.jaxpr_flops(b.flop_fn, *b.flop_args)
-        row["flops_per_update"] = count.flops / k
-        row["matmul_flops_per_update"] = count.matmul_flops / k
-        row["updates_per_call"] = k
-        try:
-            row["flops_per_update_xla"] = flopmod.xla_flops(jax.jit(b.flop_fn), *b.flop_args) / k
-        except Exception as err:  # the cross-check must not sink the run
-            row["flops_per_update_xla_error"] = str(err)
-        calls[w.name] = _calibrate(b.step, min_time)
+        rows[w.name], bound[w.name] = _prepare(w)
+        calls[w.name] = _calibrate(bound[w.name].step, min_time)
         if worker is not None and w.d3rlpy_algo is not None:
             err = worker.setup(w)
             if err:
-                row["d3rlpy_error"] = err
+                rows[w.name]["d3rlpy_error"] = err
 
     peaks: list[float] = []
     for r in range(repeats):
@@ -176,20 +205,8 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
             rows[w.name]["d3rlpy_samples"] = list(same["d3rlpy_samples"])
             rows[w.name]["d3rlpy_cpu_samples"] = list(same["d3rlpy_cpu_samples"])
             rows[w.name]["d3rlpy_same_as"] = w.d3rlpy_same_as
-    for name, row in rows.items():
-        for side in ("botorl", "d3rlpy"):
-            row[f"{side}_updates_per_s"] = _median(row[f"{side}_samples"])
-            row[f"{side}_updates_per_cpu_s"] = _median(row[f"{side}_cpu_samples"])
-        if row["botorl_updates_per_s"] and row["d3rlpy_updates_per_s"]:
-            row["ratio"] = row["botorl_updates_per_s"] / row["d3rlpy_updates_per_s"]
-            # Per round, then the median: both sides of a round met the same load.
-            pairs = [b / d for b, d in zip(row["botorl_samples"], row["d3rlpy_samples"]) if d > 0]
-            row["ratio_median_of_rounds"] = _median(pairs)
-        if row["botorl_updates_per_cpu_s"] and row["d3rlpy_updates_per_cpu_s"]:
-            row["ratio_cpu"] = row["botorl_updates_per_cpu_s"] / row["d3rlpy_updates_per_cpu_s"]
-        if row["botorl_updates_per_s"] and row["flops_per_update"]:
-            row["gflops"] = row["flops_per_update"] * row["botorl_updates_per_s"] / 1e9
-            row["peak_fraction"] = row["gflops"] / peak
+    for row in rows.values():
+        _summarize(row, peak)
 
     machine = {"platform": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,
                "jax_backend": jax.default_backend(), "load_start": load_start, "load_end": _load()}

@@ -64,14 +64,8 @@ def _check_log_sigma(log_sigma: float) -> None:
         )
 
 
-def hybrid_noise(
-    key: jax.Array,
-    actions: jax.Array,
-    log_sigma: float,
-    weight_fn: WeightSpec = "linear",
-    *,
-    clip: bool = True,
-) -> tuple[jax.Array, dict[str, jax.Array]]:
+def hybrid_noise(key: jax.Array, actions: jax.Array, log_sigma: float, weight_fn: WeightSpec = "linear", *,
+                 clip: bool = True) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Draw a_bar ~ q_sigma^hyb(. | a) for every row of ``actions`` (shape (..., A)).
 
     ``log_sigma`` may be a Python float (checked) or a traced scalar (not checked).
@@ -120,10 +114,8 @@ def no_noise(key: jax.Array, actions: jax.Array) -> tuple[jax.Array, dict[str, j
 NOISE_KINDS = ("hybrid", "gaussian", "none")
 
 
-def make_noise_fn(
-    kind: str, *, log_sigma: float = -20.0, sigma: float = 0.25, weight_fn: WeightSpec = "linear",
-    clip: bool = True,
-) -> Callable[[jax.Array, jax.Array], tuple[jax.Array, dict[str, jax.Array]]]:
+def make_noise_fn(kind: str, *, log_sigma: float = -20.0, sigma: float = 0.25, weight_fn: WeightSpec = "linear",
+                  clip: bool = True) -> Callable[[jax.Array, jax.Array], tuple[jax.Array, dict[str, jax.Array]]]:
     """``(key, actions) -> (a_bar, info)`` for ``kind`` in ``NOISE_KINDS``; checks the
     settings now so that a bad value fails before anything is compiled."""
     if kind == "hybrid":

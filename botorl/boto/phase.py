@@ -27,7 +27,7 @@ from botorl.boto.config import BOTOConfig
 from botorl.boto.objective import ObjectiveSettings, check_alpha, population_update_many
 from botorl.errors import ConfigError, TrainingDivergedError
 
-__all__ = ["BOTOConfig", "run_boto", "train_boto", "boto_batches"]
+__all__ = ["BOTOConfig", "run_boto", "train_boto", "boto_batches", "boto_updates"]
 
 
 def boto_batches(d_offline, d_warmups: Sequence, rngs: Sequence[np.random.Generator], batch_size: int,
@@ -54,19 +54,34 @@ def boto_batches(d_offline, d_warmups: Sequence, rngs: Sequence[np.random.Genera
     return {k: np.stack([o[k] for o in out]) for k in TRANSITION_KEYS}
 
 
+def boto_updates(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alphas: Sequence[float],
+                 seeds: Sequence[int]) -> Callable:
+    """``update(agents, step, k)`` -> (agents, stacked metrics): k BOTO steps of every member in
+    one jitted call, member i with ``alphas[i]`` on D_offline u ``d_warmups[i]`` (None: none),
+    the batches of the call at ``step`` from ``default_rng([seeds[i], step // steps_per_call])``."""
+    check_alpha(alphas[0] if len(alphas) == 1 else alphas)  # once, not at every call's update
+    settings = ObjectiveSettings.resolve(config, member_of(agents, 0))
+    alphas = np.asarray(alphas, np.float32)
+
+    def update(agents, step: int, k: int):
+        rngs = [np.random.default_rng([s, step // config.steps_per_call]) for s in seeds]
+        return population_update_many(agents, boto_batches(d_offline, d_warmups, rngs, config.batch_size, k),
+                                      alphas, settings)
+    return update
+
+
 def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alphas: Sequence[float],
                seeds: Sequence[int], *, start_step: int = 0, end_step: int | None = None,
                on_call: Callable[[int, int, Any, list], None] | None = None, progress: bool = True):
     """BOTO for every member of ``agents`` (stacked), member i with ``alphas[i]`` on
     D_offline u ``d_warmups[i]`` (None: none), its batches from ``seeds[i]``; returns the agents.
+    (The pipeline's BOTO stage runs ``boto_updates`` in its offline loop instead.)
 
     ``on_call(prev_step, step, agents, metrics)`` runs after every call with the call's new
     agents and one dict of floats per member (the means over the call's steps of
     ``boto_update_many``'s metrics); it may raise to stop (the agents before the call are then
     the last good ones)."""
-    check_alpha(alphas[0] if len(alphas) == 1 else alphas)  # once, not at every call's update
-    settings = ObjectiveSettings.resolve(config, member_of(agents, 0))
-    alphas = np.asarray(alphas, np.float32)
+    update = boto_updates(agents, d_offline, d_warmups, config, alphas, seeds)
     end = config.boto_steps if end_step is None else end_step
     step = start_step
     label = f"BOTO alpha={alphas[0]:+.2f}" if len(alphas) == 1 else f"BOTO x {len(alphas)} members"
@@ -75,9 +90,7 @@ def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alpha
     try:
         while step < end:
             k = min(config.steps_per_call, end - step)
-            rngs = [np.random.default_rng([s, step // config.steps_per_call]) for s in seeds]
-            batches = boto_batches(d_offline, d_warmups, rngs, config.batch_size, k)
-            new, metrics = population_update_many(agents, batches, alphas, settings)
+            new, metrics = update(agents, step, k)
             ms = member_metrics(metrics)
             if on_call is not None:
                 on_call(step, step + k, new, ms)
@@ -90,19 +103,9 @@ def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alpha
     return agents
 
 
-def run_boto(
-    agent,
-    d_offline,
-    d_warmup,
-    config: BOTOConfig,
-    *,
-    alpha: float,
-    seed: int = 0,
-    start_step: int = 0,
-    num_steps: int | None = None,
-    callback: Callable[[int, Any, dict], None] | None = None,
-    progress: bool = True,
-) -> tuple[Any, list[dict]]:
+def run_boto(agent, d_offline, d_warmup, config: BOTOConfig, *, alpha: float, seed: int = 0, start_step: int = 0,
+             num_steps: int | None = None, callback: Callable[[int, Any, dict], None] | None = None,
+             progress: bool = True) -> tuple[Any, list[dict]]:
     """Train one agent's critic with BOTO at bias controller ``alpha`` in [-1, 1] (> 0 lowers Q
     far from the data, < 0 raises it; 1 is Oh & Lee's NAMDP); returns ``(agent, history)``.
 

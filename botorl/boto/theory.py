@@ -42,14 +42,8 @@ class ExactSolution:
     upper: np.ndarray
 
 
-def namdp_exact(
-    query: np.ndarray,
-    actions: np.ndarray,
-    rewards: np.ndarray,
-    alpha: float,
-    log_density: Callable[[np.ndarray, np.ndarray], np.ndarray],
-    chunk: int = 512,
-) -> ExactSolution:
+def namdp_exact(query: np.ndarray, actions: np.ndarray, rewards: np.ndarray, alpha: float,
+                log_density: Callable[[np.ndarray, np.ndarray], np.ndarray], chunk: int = 512) -> ExactSolution:
     """Q*(a_bar) and its bounds at ``query`` (M, A) for the dataset (``actions`` (N, A), ``rewards`` (N,))."""
     query = np.atleast_2d(np.asarray(query, np.float64))
     actions = np.asarray(actions, np.float64).reshape(len(rewards), -1)

@@ -60,20 +60,9 @@ class Dataset:
     ``metadata["source"]`` names where the data came from (in error messages).
     """
 
-    def __init__(
-        self,
-        observations,
-        actions,
-        rewards,
-        next_observations,
-        terminals,
-        episode_ends=None,
-        mc_returns=None,
-        infos: dict[str, np.ndarray] | None = None,
-        metadata: dict[str, Any] | None = None,
-        *,
-        raw_action_max: float | None = None,
-    ):
+    def __init__(self, observations, actions, rewards, next_observations, terminals, episode_ends=None, mc_returns=None,
+                 infos: dict[str, np.ndarray] | None = None, metadata: dict[str, Any] | None = None, *,
+                 raw_action_max: float | None = None):
         src = _source(metadata)
         obs = np.asarray(observations, dtype=np.float32)
         nobs = np.asarray(next_observations, dtype=np.float32)
@@ -192,13 +181,8 @@ class Dataset:
             )
         return out
 
-    def with_mc_returns(
-        self,
-        gamma: float,
-        *,
-        sparse_negative_reward: float | None = None,
-        infinite_horizon: bool = False,
-    ) -> "Dataset":
+    def with_mc_returns(self, gamma: float, *, sparse_negative_reward: float | None = None,
+                        infinite_horizon: bool = False) -> "Dataset":
         """A copy with Monte-Carlo returns-to-go, as Cal-QL computes them (nakamotoo/Cal-QL
         JaxCQL/replay_buffer.py ``calc_return_to_go``).
 
@@ -313,12 +297,8 @@ class Dataset:
         return out
 
 
-def validate(
-    dataset: Dataset,
-    obs_dim: int | None = None,
-    action_dim: int | None = None,
-    action_tolerance: float = 1e-3,
-) -> Dataset:
+def validate(dataset: Dataset, obs_dim: int | None = None, action_dim: int | None = None,
+             action_tolerance: float = 1e-3) -> Dataset:
     """The dataset unchanged, after checking finite values, the widths (when given) and the raw
     actions within ``1 + action_tolerance``; a ``DataFormatError`` naming the file and problem."""
     src = _source(dataset.metadata)

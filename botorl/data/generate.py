@@ -45,14 +45,8 @@ def cached_datasets(task: str, steps: int | None = None, seed: int | None = None
     return [p for *_, p in sorted(found)]
 
 
-def ensure_dataset(
-    task: str,
-    steps: int | None = None,
-    seed: int = 0,
-    *,
-    progress: bool = True,
-    regenerate: bool = False,
-) -> Dataset:
+def ensure_dataset(task: str, steps: int | None = None, seed: int = 0, *, progress: bool = True,
+                   regenerate: bool = False) -> Dataset:
     """The generated dataset of ``task`` for (steps, seed; None: ``DEFAULT_STEPS``), from the cache
     or made and cached (deterministic for a seed, so a cache hit equals a fresh generation)."""
     from botorl.data.loaders import load_minari

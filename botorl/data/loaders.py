@@ -125,15 +125,9 @@ def _qlearning_rows(terminals: np.ndarray, timeouts: np.ndarray | None, max_epis
     return idx, ends
 
 
-def load_d4rl_hdf5(
-    path: str | os.PathLike,
-    *,
-    max_episode_steps: int | None = None,
-    obs_dim: int | None = None,
-    action_dim: int | None = None,
-    action_tolerance: float = 1e-3,
-    actions_to_unit: Callable[[np.ndarray], np.ndarray] | None = None,
-) -> Dataset:
+def load_d4rl_hdf5(path: str | os.PathLike, *, max_episode_steps: int | None = None, obs_dim: int | None = None,
+                   action_dim: int | None = None, action_tolerance: float = 1e-3,
+                   actions_to_unit: Callable[[np.ndarray], np.ndarray] | None = None) -> Dataset:
     """A D4RL hdf5 file, as ``qlearning_dataset`` reads it (``_qlearning_rows``); ``infos/success``
     or ``infos/goal_achieved`` become ``infos["success"]``. ``actions_to_unit`` maps the file's
     actions to [-1, 1] (a user's env with other bounds)."""
@@ -278,16 +272,9 @@ def _minari_rows(mds, data_path: Path, obs_keys, actions_to_unit, success_info_k
     return episodes
 
 
-def load_minari(
-    id_or_path: str | os.PathLike,
-    *,
-    obs_keys: Sequence[str] | None = None,
-    obs_dim: int | None = None,
-    action_dim: int | None = None,
-    action_tolerance: float = 1e-3,
-    success_info_key: str = "success",
-    actions_to_unit: Callable[[np.ndarray], np.ndarray] | None = None,
-) -> Dataset:
+def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None = None, obs_dim: int | None = None,
+                action_dim: int | None = None, action_tolerance: float = 1e-3, success_info_key: str = "success",
+                actions_to_unit: Callable[[np.ndarray], np.ndarray] | None = None) -> Dataset:
     """A Minari dataset, by id (from ``$MINARI_DATASETS_PATH``, never downloaded) or by path (a
     ``Path``, an existing path, or one starting with ``.``/``~``: the dataset folder, its ``data``
     folder or its ``main_data.hdf5``).
@@ -443,14 +430,9 @@ def _stack_obs(seq, key: str | None, path: Path, i: int) -> np.ndarray:
         ) from None
 
 
-def load_calql_adroit(
-    expert_path: str | os.PathLike | None,
-    bc_path: str | os.PathLike | None = None,
-    *,
-    obs_dim: int | None = None,
-    action_dim: int | None = None,
-    action_tolerance: float = ADROIT_ACTION_TOLERANCE,
-) -> Dataset:
+def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.PathLike | None = None, *,
+                      obs_dim: int | None = None, action_dim: int | None = None,
+                      action_tolerance: float = ADROIT_ACTION_TOLERANCE) -> Dataset:
     """Cal-QL's adroit-binary data: expert ``*2_sparse.npy`` and/or BC ``*_bc_sparse4.npy``
     (pickled object arrays of per-trajectory dicts), processed as Cal-QL does (nakamotoo/Cal-QL,
     JaxCQL/replay_buffer.py ``get_hand_dataset_with_mc_calculation``).
@@ -546,16 +528,10 @@ def _dapg_trajectories(p: Path) -> list[dict]:
     return out
 
 
-def load_dapg_demos(
-    path: str | os.PathLike,
-    *,
-    binary_reward: bool = False,
-    success_fn: Callable[[np.ndarray], np.ndarray] | None = door_success,
-    drop_unsuccessful: bool = True,
-    obs_dim: int | None = None,
-    action_dim: int | None = None,
-    action_tolerance: float = ADROIT_ACTION_TOLERANCE,
-) -> Dataset:
+def load_dapg_demos(path: str | os.PathLike, *, binary_reward: bool = False,
+                    success_fn: Callable[[np.ndarray], np.ndarray] | None = door_success,
+                    drop_unsuccessful: bool = True, obs_dim: int | None = None, action_dim: int | None = None,
+                    action_tolerance: float = ADROIT_ACTION_TOLERANCE) -> Dataset:
     """DAPG human demos: the original list-of-dicts pickle or botorl's ``.npz``
     (botorl/data/assets/README.md describes its arrays).
 

@@ -245,20 +245,10 @@ def _resolve(dataset_id: str | None, path: str | os.PathLike | None, root: str |
     return root_p, dataset_id
 
 
-def write_minari(
-    dataset: Dataset,
-    dataset_id: str | None = None,
-    *,
-    path: str | os.PathLike | None = None,
-    root: str | os.PathLike | None = None,
-    overwrite: bool = False,
-    description: str | None = None,
-    metadata: dict[str, Any] | None = None,
-    algorithm_name: str = "botorl generator",
-    progress: bool = False,
-    env_spec=None,
-    _minari_writer: bool = False,
-) -> Path:
+def write_minari(dataset: Dataset, dataset_id: str | None = None, *, path: str | os.PathLike | None = None,
+                 root: str | os.PathLike | None = None, overwrite: bool = False, description: str | None = None,
+                 metadata: dict[str, Any] | None = None, algorithm_name: str = "botorl generator",
+                 progress: bool = False, env_spec=None, _minari_writer: bool = False) -> Path:
     """Write ``dataset`` as a Minari dataset; returns its folder.
 
     Where: ``dataset_id`` under ``root`` (default: ``minari_root()``), or ``path``, a folder

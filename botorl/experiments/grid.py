@@ -319,16 +319,8 @@ def load_grid_file(path: str | Path) -> dict[str, Any]:
     return data
 
 
-def build_grid(
-    file_fields: dict[str, Any] | None = None,
-    *,
-    tasks: Any = None,
-    methods: Any = None,
-    seeds: Any = None,
-    alphas: Any = None,
-    overrides: Any = None,
-    profile: str | None = None,
-) -> Grid:
+def build_grid(file_fields: dict[str, Any] | None = None, *, tasks: Any = None, methods: Any = None, seeds: Any = None,
+               alphas: Any = None, overrides: Any = None, profile: str | None = None) -> Grid:
     """Command-line values win over the file's; overrides from both are merged."""
     from botorl.configs.members import parse_alphas
 

@@ -427,15 +427,9 @@ def _score(r: Run) -> float:
     return (r.success_10k + r.success_final) / 2
 
 
-def select_alpha(
-    runs: Sequence[Run],
-    *,
-    select_seeds: Sequence[int] | None = None,
-    report_seeds: Sequence[int] | None = None,
-    n_boot: int = 2000,
-    confidence: float = 0.95,
-    seed: int = 0,
-) -> AlphaSelection:
+def select_alpha(runs: Sequence[Run], *, select_seeds: Sequence[int] | None = None,
+                 report_seeds: Sequence[int] | None = None, n_boot: int = 2000, confidence: float = 0.95,
+                 seed: int = 0) -> AlphaSelection:
     """Choose alpha per (task, boto label) on selection seeds, report it on held-out seeds (the
     winner's score on the runs that chose it overstates it: the winner is partly the luckiest);
     by default each alpha's sorted seeds, the first len // 2 select. BotorlError when an alpha
@@ -448,8 +442,7 @@ def select_alpha(
         raise ConfigError(
             f"--select-seeds and --report-seeds share seeds {seeds_text(sel_set & rep_set)}; a seed "
             "that chooses alpha cannot also report its score. Give disjoint sets (e.g. --select-seeds 0-3 "
-            "--report-seeds 4-7) or leave out --report-seeds to report on every other seed."
-        )
+            "--report-seeds 4-7) or leave out --report-seeds to report on every other seed.")
     if sel_set is None:
         split = "Seeds: each alpha's seeds sorted by value, the first half (n // 2) selects and the rest reports."
     else:
@@ -475,16 +468,14 @@ def select_alpha(
             if unseeded:
                 raise DataFormatError(
                     f"{where(task, label, a)}: run(s) {', '.join(unseeded)} name no seed in "
-                    "summary.json or config.json, so they cannot be split into selection and report seeds."
-                )
+                    "summary.json or config.json, so they cannot be split into selection and report seeds.")
             seeds = sorted({r.seed for r in rs})
             if len(seeds) < 2:
                 raise ConfigError(
                     f"{where(task, label, a)} has {len(seeds)} finished seed(s) "
                     f"({seeds_text(seeds)}); held-out alpha selection needs at least 2 per alpha (some seeds choose "
                     "alpha, others report its score). Run more seeds of every alpha (botorl sweep ... --seeds 0-7) "
-                    "or leave the under-seeded alpha's runs out of the report directories."
-                )
+                    "or leave the under-seeded alpha's runs out of the report directories.")
             if sel_set is None:
                 chosen = set(seeds[: len(seeds) // 2])
                 held = set(seeds) - chosen
@@ -496,8 +487,7 @@ def select_alpha(
                     raise ConfigError(
                         f"{where(task, label, a)} has seeds {seeds_text(seeds)}, none of them in the "
                         f"{name} set ({split}) Choose --select-seeds/--report-seeds so that every alpha has seeds "
-                        "in both."
-                    )
+                        "in both.")
             sel_runs[a] = [r for r in rs if r.seed in chosen]
             rep_runs[a] = [r for r in rs if r.seed in held]
         scored = [(a, float(np.mean([_score(r) for r in rs])), len(rs)) for a, rs in sel_runs.items()]
@@ -556,19 +546,9 @@ def environment_notes(runs: Sequence[Run], rel) -> list[str]:
     return notes
 
 
-def make_report(
-    dirs: Sequence[Path],
-    out: Path,
-    *,
-    n_boot: int = 2000,
-    confidence: float = 0.95,
-    seed: int = 0,
-    grid_points: int = 101,
-    dip_window: float = DIP_WINDOW,
-    select_seeds: Sequence[int] | None = None,
-    report_seeds: Sequence[int] | None = None,
-    extra_pairs: Sequence[Pair] = (),
-) -> ReportResult:
+def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confidence: float = 0.95, seed: int = 0,
+                grid_points: int = 101, dip_window: float = DIP_WINDOW, select_seeds: Sequence[int] | None = None,
+                report_seeds: Sequence[int] | None = None, extra_pairs: Sequence[Pair] = ()) -> ReportResult:
     check_bootstrap(n_boot, confidence)
     if not (isinstance(dip_window, (int, float)) and math.isfinite(dip_window) and dip_window > 0):
         raise ConfigError(f"--dip-window must be a positive number of online env steps, got {dip_window!r}.")

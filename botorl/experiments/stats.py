@@ -43,13 +43,8 @@ def iqm(values: Sequence[float] | np.ndarray, axis: int = -1) -> Any:
     return float(out) if np.ndim(out) == 0 else out
 
 
-def stratified_bootstrap_iqm(
-    scores_per_task: Sequence[Sequence[float]],
-    *,
-    n_boot: int = 2000,
-    confidence: float = 0.95,
-    seed: int = 0,
-) -> tuple[float, float, float]:
+def stratified_bootstrap_iqm(scores_per_task: Sequence[Sequence[float]], *, n_boot: int = 2000,
+                             confidence: float = 0.95, seed: int = 0) -> tuple[float, float, float]:
     """IQM of all scores, and a percentile CI resampling runs within each task."""
     strata = [np.asarray([v for v in s if v is not None and math.isfinite(v)], dtype=np.float64) for s in scores_per_task]
     strata = [s for s in strata if s.size]

@@ -23,6 +23,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from botorl.data.minari_io import minari_root
+from botorl.data.safe import data_files, fingerprint
 from botorl.errors import ConfigError, DataFormatError
 from botorl.io import atomic_write_json
 from botorl.pipeline import faults
@@ -40,9 +42,6 @@ def data_identity(path: str | None) -> dict:
     ``botorl.data.safe.fingerprint``): every checkpoint of a run records what it started from, and
     a resume compares what is there now. Hashed once per process while the files' size, time and
     inode stay the same (a run saves many checkpoints)."""
-    from botorl.data.minari_io import minari_root
-    from botorl.data.safe import data_files, fingerprint
-
     key: tuple = (path,)
     if path is not None:
         with contextlib.suppress(OSError):
@@ -56,7 +55,7 @@ def data_identity(path: str | None) -> dict:
 def full_identity(cfg) -> dict[str, Any]:
     """``run_identity`` with the data's fingerprint: what a checkpoint records and what the
     commands that read the data (resume, eval) check."""
-    from botorl.configs.schema import run_identity
+    from botorl.configs.schema import run_identity  # JAX: botorl.api imports this module
 
     return {**run_identity(cfg), "data": data_identity(cfg.data.path)}
 
@@ -161,16 +160,9 @@ class CheckpointManager:
         self.root.mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------------ writing
-    def save(
-        self,
-        name: str,
-        *,
-        state: dict[str, Any],
-        agent: Any = None,
-        save_agent: Callable[[str, Any], None] | None = None,
-        arrays: dict[str, dict[str, Any]] | None = None,
-        documents: dict[str, Any] | None = None,
-    ) -> Path:
+    def save(self, name: str, *, state: dict[str, Any], agent: Any = None,
+             save_agent: Callable[[str, Any], None] | None = None, arrays: dict[str, dict[str, Any]] | None = None,
+             documents: dict[str, Any] | None = None) -> Path:
         tmp = self.root / f".tmp-{name}-{os.getpid()}"
         if tmp.exists():
             shutil.rmtree(tmp)

@@ -1,5 +1,8 @@
 """``botorl run``, ``botorl resume DIR``, ``botorl eval DIR``, ``botorl export RUN_DIR``
 (docs/running.md; a population's directory: docs/populations.md).
+
+What imports JAX or gymnasium (the runner, the stages, the configs' schema) is imported inside
+the command that needs it, so that `botorl run --help` and a refused command stay free of them.
 """
 
 from __future__ import annotations
@@ -16,13 +19,17 @@ from typing import Annotated, Literal
 import tyro
 
 from botorl.configs.build import build_config
+from botorl.configs.custom import register_given
+from botorl.envs.metric import of_config as metric_of_config
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import atomic_write_json, open_regular
 from botorl.jaxsetup import matmul_precision, setup_jax
 from botorl.pipeline import preempt
+from botorl.pipeline.export import contract_path, evaluate_exported, export_policy
 from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step, \
     full_identity
 from botorl.pipeline.policy import read_run
+from botorl.pipeline.provenance import environment_record
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_fault, io_guard, read_json
 from botorl.pipeline.tracking import require_wandb
 
@@ -117,7 +124,6 @@ def run_main(argv: list[str]) -> int:
     from botorl.configs.members import is_population, population
     from botorl.configs.schema import to_dict
     from botorl.envs.registry import get_task
-    from botorl.pipeline.provenance import environment_record
     from botorl.pipeline.runner import load_offline, write_population_file
 
     setup_jax()
@@ -195,7 +201,6 @@ def load_population(directory: str | Path, entry: str | None = None, checkpoint:
     ``entry``: the user's ``--env`` for a task of one's own (configs/custom.py); the checkpoint a
     resume starts from (``checkpoint``, else the latest) is checked to be the population's before
     any task is registered."""
-    from botorl.configs.custom import register_given
     from botorl.configs.members import member_config
     from botorl.configs.resolve import check_bounds, validate
     from botorl.configs.schema import RunConfig, from_dict
@@ -235,8 +240,6 @@ def check_resume_point(root: Path, cfgs, checkpoint: str | None = None) -> None:
     its check; none yet: nothing to check) must be the run's own (``check_identity``): checked
     before a task is registered or data read. A damaged one is left to the resume, which names it
     and falls back."""
-    from botorl.pipeline.checkpoint import full_identity
-
     ckpt = CheckpointManager(RunDir(root).checkpoints)
     try:
         if checkpoint is not None:
@@ -373,8 +376,6 @@ def eval_main(argv: list[str]) -> int:
     if args.policy is not None:  # an exported model through onnxruntime (botorl/pipeline/export.py)
         if args.checkpoint is not None:
             raise ConfigError("--policy and --checkpoint: the model names its checkpoint (in FILE.onnx.json); give one.")
-        from botorl.pipeline.export import evaluate_exported
-
         with RunLock(run.root):
             _print_result(evaluate_exported(run, cfg, args.policy, episodes=args.episodes))
         return 0
@@ -387,7 +388,6 @@ def _eval(args, run, cfg) -> dict:
     from botorl.agents import checkpoint as agent_ckpt
     from botorl.envs.registry import get_task
     from botorl.pipeline import stages as S
-    from botorl.envs.metric import of_config as metric_of_config
     from botorl.pipeline.evaluation import QProbe, evaluate_policy, metric_fields
     from botorl.pipeline.runner import load_run_data, transform_dataset
 
@@ -415,8 +415,6 @@ def _eval(args, run, cfg) -> dict:
 
 def export_main(argv: list[str]) -> int:
     args = tyro.cli(ExportArgs, args=argv, prog="botorl export")
-    from botorl.pipeline.export import contract_path, export_policy
-
     out = Path(args.out) if args.out else Path(args.dir) / "policy.onnx"
     c = export_policy(args.dir, out, checkpoint=args.checkpoint, format=args.format, force=args.force, env=args.env)
     v = c["verification"]

@@ -4,6 +4,9 @@ The graph is ``load_policy``'s deterministic chain after ``flatten_obs`` (the ca
 Dict observation in the contract's ``observation.layout`` order), traced by jax2onnx from the
 agent's own ``eval_fn``; it is written only once onnxruntime's actions match ``load_policy``'s
 (docs/deploy.md). ``OnnxPolicy`` runs an exported model (``botorl eval RUN --policy FILE``).
+
+JAX, gymnasium and the runner are imported inside the functions that need them: botorl.api
+imports this module, and ``import botorl`` stays free of them (tests/test_own_task.py).
 """
 
 from __future__ import annotations
@@ -12,6 +15,8 @@ import contextlib
 import hashlib
 import importlib
 import logging
+import os
+import stat
 import sys
 import time
 from importlib.metadata import PackageNotFoundError, version
@@ -21,11 +26,13 @@ from typing import Any
 import numpy as np
 
 from botorl import __version__ as botorl_version
+from botorl.configs.custom import ensure_task, register_given
+from botorl.envs.metric import of_config as metric_of_config
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import atomic_write_bytes, atomic_write_json
 from botorl.jaxsetup import setup_jax
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_step, file_sha256
-from botorl.pipeline.policy import load_policy, read_run, task_io
+from botorl.pipeline.policy import check_checkpoint, load_policy, read_run, task_io
 from botorl.pipeline.rundir import read_json
 
 INSTALL = 'pip install "botorl[export]"'
@@ -82,8 +89,6 @@ def check_replaceable(p: Path, force: bool) -> None:
     """ConfigError unless ``p`` may be written: absent, or (``force``) a regular file. A link, a
     device, a FIFO or a folder is never replaced (``--out /dev/null --force`` as root would
     otherwise put a regular file in its place)."""
-    import stat
-
     try:
         st = p.lstat()
     except FileNotFoundError:
@@ -102,8 +107,6 @@ def check_replaceable(p: Path, force: bool) -> None:
 def check_writable_folder(out: Path) -> None:
     """ConfigError, before any work, when ``out``'s folder cannot hold the model (``/proc/self``,
     a read-only or missing parent that cannot be made)."""
-    import os
-
     parent = out.parent if str(out.parent) else Path(".")
     probe = parent
     while not probe.exists() and probe != probe.parent:
@@ -269,9 +272,6 @@ MAX_MODEL_BYTES = 1 << 30  # a policy of 256x256 layers is under 1 MB
 
 def _model_bytes(path: Path) -> bytes:
     """The model file's bytes: a regular file (a FIFO would hang) of at most ``MAX_MODEL_BYTES``."""
-    import os
-    import stat
-
     try:
         st = os.stat(path)
         if not stat.S_ISREG(st.st_mode):
@@ -318,6 +318,33 @@ def max_gap(a, b) -> tuple[float, int]:
 
 
 # ------------------------------------------------------------------ the whole export
+def observation_entry(cfg, policy, here: str | None) -> dict[str, Any]:
+    """The contract's ``observation``: size, bounds and a Dict's layout (``here``: why the task
+    cannot be built here, None when it can)."""
+    flat_space, own_space = observation_spaces(cfg) if here is None else (None, None)
+    layout = observation_layout(policy.obs_keys, own_space)
+    if layout is not None and own_space is not None:  # a Dict: its leaves' bounds in the flat order
+        low, high = [v for leaf in layout for v in leaf["low"]], [v for leaf in layout for v in leaf["high"]]
+    else:  # a Box env of one's own has its own bounds; botorl's task envs are unbounded
+        space = own_space if getattr(own_space, "shape", None) == (policy.obs_dim,) else flat_space
+        low, high = (None, None) if space is None else (_bounds(space.low), _bounds(space.high))
+    return {"dim": policy.obs_dim, "low": low, "high": high, "layout": layout, "normalization": None}
+
+
+def verified_gap(policy, model: bytes, obs: np.ndarray, source: str, tolerance: float, ort_version: str) -> float:
+    """max |onnxruntime - load_policy| on ``obs``; ExportMismatch (nothing written) above ``tolerance``."""
+    expected = policy(obs)
+    gap, row = max_gap(OnnxPolicy(model)(obs), expected)
+    single, _ = max_gap(OnnxPolicy(model)(obs[:1]), expected[:1])  # the batch axis is dynamic: B = 1 too
+    gap = max(gap, single)
+    if not gap <= tolerance:
+        raise ExportMismatch(f"the exported model does not act as load_policy: max |onnxruntime - load_policy| = "
+                             f"{gap:.3g} (row {row} of {len(obs)} {source} observations) > {tolerance:g}; nothing "
+                             f"was written. Report it with the run's config.json and the versions of jax2onnx "
+                             f"({_version('jax2onnx')}) and onnxruntime ({ort_version}).")
+    return gap
+
+
 def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "onnx", force: bool = False,
                   observations=None, verify_rows: int = VERIFY_ROWS, tolerance: float = TOLERANCE,
                   opset: int = OPSET, env: str | None = None) -> dict[str, Any]:
@@ -335,9 +362,7 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
         check_replaceable(p, force)
     check_writable_folder(out)
     run, cfg = read_run(run_dir, "export")
-    from botorl.configs.custom import ensure_task, register_given
     from botorl.configs.resolve import check_bounds
-    from botorl.pipeline.policy import check_checkpoint
 
     check_bounds(cfg)
     name = pick_checkpoint(run, checkpoint)
@@ -363,27 +388,7 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
         if obs.ndim != 2 or obs.shape[1] != policy.obs_dim or len(obs) == 0:
             raise ConfigError(f"observations of shape {obs.shape}: give (N, {policy.obs_dim}) flat observations.")
     model = convert(policy, opset=opset)
-    expected = policy(obs)
-    got = OnnxPolicy(model)(obs)
-    gap, row = max_gap(got, expected)
-    single, _ = max_gap(OnnxPolicy(model)(obs[:1]), expected[:1])  # the batch axis is dynamic: B = 1 too
-    gap = max(gap, single)
-    if not gap <= tolerance:
-        raise ExportMismatch(f"the exported model does not act as load_policy: max |onnxruntime - load_policy| = "
-                             f"{gap:.3g} (row {row} of {len(obs)} {source} observations) > {tolerance:g}; nothing "
-                             f"was written. Report it with the run's config.json and the versions of jax2onnx "
-                             f"({_version('jax2onnx')}) and onnxruntime "
-                             f"({mods['onnxruntime'].__version__}).")
-
-    flat_space, own_space = observation_spaces(cfg) if here is None else (None, None)
-    layout = observation_layout(policy.obs_keys, own_space)
-    if layout is not None and own_space is not None:  # a Dict: its leaves' bounds in the flat order
-        obs_low = [v for leaf in layout for v in leaf["low"]]
-        obs_high = [v for leaf in layout for v in leaf["high"]]
-    else:  # a Box env of one's own has its own bounds; botorl's task envs are unbounded
-        space = own_space if getattr(own_space, "shape", None) == (policy.obs_dim,) else flat_space
-        obs_low = None if space is None else _bounds(space.low)
-        obs_high = None if space is None else _bounds(space.high)
+    gap = verified_gap(policy, model, obs, source, tolerance, mods["onnxruntime"].__version__)
     contract = {
         "format": "onnx",
         "model": out.name,
@@ -391,13 +396,7 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
         "opset": int(opset),
         "input": {"name": INPUT_NAME, "shape": ["batch", policy.obs_dim], "dtype": "float32"},
         "output": {"name": OUTPUT_NAME, "shape": ["batch", policy.action_dim], "dtype": "float32"},
-        "observation": {
-            "dim": policy.obs_dim,
-            "low": obs_low,
-            "high": obs_high,
-            "layout": layout,
-            "normalization": None,
-        },
+        "observation": observation_entry(cfg, policy, here),
         "action": {"dim": policy.action_dim, "low": _bounds(policy.action_low), "high": _bounds(policy.action_high),
                    "deterministic": True},
         "task": cfg.task,
@@ -481,7 +480,6 @@ def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, 
     acting through onnxruntime; written to ``RUN/eval-<FILE stem>-onnx.json``."""
     from botorl.envs.registry import get_task
     from botorl.envs.user import action_from_env, is_unit_box
-    from botorl.envs.metric import of_config as metric_of_config
     from botorl.pipeline.evaluation import evaluate_policy, metric_fields
 
     path = Path(path)

@@ -4,6 +4,9 @@ Both read only the run directory (``config.json`` and a checkpoint): the task ne
 registered and its env is never made. ``Policy`` is the chain ``flatten_obs`` -> the agent's
 actions in [-1, 1] -> ``action_to_env``, nothing else (docs/own-task.md, "The policy outside
 botorl").
+
+JAX, gymnasium and the configs' schema are imported inside the functions that need them:
+botorl.api imports this module, and ``import botorl`` stays free of them (tests/test_own_task.py).
 """
 
 from __future__ import annotations
@@ -14,9 +17,10 @@ from typing import Any
 
 import numpy as np
 
+from botorl.configs.custom import register_given
 from botorl.errors import ConfigError
 from botorl.jaxsetup import matmul_precision, setup_jax
-from botorl.pipeline.checkpoint import CheckpointManager
+from botorl.pipeline.checkpoint import CheckpointManager, check_identity
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, read_json
 
 
@@ -27,7 +31,6 @@ def read_run(run_dir, verb: str = "load", *, validate: bool = False, entry: str 
     counts, then ``before(run, cfg)`` (the caller's checkpoint identity check), and only then a task
     of one's own is registered from ``entry`` (the user's ``--env``), so nothing is imported or
     read for a directory that fails a check."""
-    from botorl.configs.custom import register_given
     from botorl.configs.resolve import check_bounds, validate as check
     from botorl.configs.schema import RunConfig, from_dict
 
@@ -59,7 +62,6 @@ def check_checkpoint(run, cfg, checkpoint: str | None = None) -> str:
     to be this run's (``check_identity``: what `botorl eval` refuses, export and load_policy refuse
     too); returns its name."""
     from botorl.configs.schema import run_identity
-    from botorl.pipeline.checkpoint import check_identity
 
     ckpt = CheckpointManager(run.checkpoints)
     name = ckpt.chosen(checkpoint)

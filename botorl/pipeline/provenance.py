@@ -70,7 +70,7 @@ def _cpu() -> dict[str, str | None]:
 
 def environment_record() -> dict:
     """The record ``config.json`` keeps under ``environment`` (see the module docstring)."""
-    import jax
+    import jax  # here: experiments/report.py and `botorl run --help` import this module
 
     devices = jax.devices()
     return {

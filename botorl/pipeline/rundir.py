@@ -289,7 +289,7 @@ class TBWriter:
         if self._writer is None or not math.isfinite(v):  # not a number, or one TensorBoard rejects
             return
         try:
-            from tensorboardX.proto.event_pb2 import Event
+            from tensorboardX.proto.event_pb2 import Event  # optional dependency (as in __init__)
             from tensorboardX.summary import scalar
 
             self._writer.write_event(Event(wall_time=time.time(), step=int(step), summary=scalar(tag, v)))

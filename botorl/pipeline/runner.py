@@ -16,6 +16,7 @@ from typing import Any
 
 import jax
 import numpy as np
+from tqdm.auto import tqdm
 
 from botorl.agents import checkpoint as agent_ckpt
 from botorl.agents import population as AP
@@ -155,8 +156,6 @@ class RunContext:
                 f"reward scale.")
 
     def bar(self, total: int, initial: int, desc: str, unit: str = "step"):
-        from tqdm.auto import tqdm
-
         return tqdm(total=total, initial=initial, desc=desc, unit=unit, dynamic_ncols=True,
                     disable=not self.cfg.progress, mininterval=1.0, smoothing=0.05)
 
@@ -542,7 +541,7 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
     rows = _eval_rows(run)
     if not rows:
         return None
-    import matplotlib
+    import matplotlib  # heavy: only where a curve is drawn (and its backend set before pyplot)
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -28,7 +28,7 @@ from botorl.agents.common import jit_q_mean
 from botorl.agents.cql import CQLAgent
 from botorl.agents.iql import IQLAgent
 from botorl.agents.sac import SACAgent
-from botorl.boto.phase import train_boto
+from botorl.boto.phase import boto_updates
 from botorl.configs.members import Streams
 from botorl.configs.methods import get_method
 from botorl.data.dataset import Dataset
@@ -183,6 +183,31 @@ def pretrain_groups(members) -> tuple[list[int], list[int]]:
     return [group.index(g) for g in range(len(first))], group
 
 
+def offline_loop(agents, update: Callable, chunk: Callable[[int], int], step: int, schedule: Schedule,
+                 window: Window, bar, *, stage: str, check: Callable, log: Callable, save: Callable,
+                 check_every_call: bool = False):
+    """The offline stages' loop (pre-training, BOTO; d3rlpy's one fitter is the model): from
+    ``step`` to ``schedule.total``, ``update(agents, step, k)`` -> (agents, metrics) runs k =
+    ``chunk(step)`` updates in one jitted call; at log and checkpoint points (at every call
+    with ``check_every_call``) the window's means are checked (``check(step, ms)``, which may
+    raise) and at log points logged (``log(step, ms)``); then ``step_end`` with
+    ``save(step, agents, interrupted)``. Returns the agents."""
+    while step < schedule.total:
+        k = chunk(step)
+        agents, metrics = update(agents, step, k)
+        window.add(metrics)
+        prev, step = step, step + k
+        bar.update(k)
+        due = schedule(prev, step)
+        if due.log or due.checkpoint or check_every_call:
+            ms = window.flush()
+            check(step, ms)
+            if due.log:
+                log(step, ms)
+        step_end(stage, step, schedule.total, due, lambda interrupted: save(step, agents, interrupted))
+    return agents
+
+
 # ---------------------------------------------------------------------------- stage 1
 def pretrain(ctx, resume: dict | None = None):
     """Offline pre-training with the configured algorithm on the transformed D_offline (held
@@ -206,40 +231,35 @@ def pretrain(ctx, resume: dict | None = None):
         arrays = d.to_device()
         # the key of each call follows from (seed, step), so a resumed run draws the same batches
         base_keys = [jax.random.PRNGKey(s.pretrain_keys) for s in streams]
-    points = Schedule(oc.steps, oc.log_every, cfg.checkpoint_every)
+
+        def update(agents, step: int, k: int):
+            keys = jnp.stack([jax.random.fold_in(bk, step) for bk in base_keys])
+            return population.update_many_on_device(agents, arrays, keys, k, oc.batch_size)
+    else:
+        def update(agents, step: int, k: int):
+            return population.update_many(agents, d.sample_members(rngs, oc.batch_size, k))
+
     window, rate = Window(len(reps)), Rate(step)
     if resume is not None:
         window.load(ctx.ckpt.arrays(resume["name"], "window"))
     shared = f" x {len(reps)} seeds for {ctx.n} members" if len(reps) < ctx.n else f" x {ctx.n} members"
 
-    def save(interrupted: bool) -> None:
+    def log(step: int, per_seed: list[dict]) -> None:
+        ms, steps_per_s = [per_seed[g] for g in group], rate(step)
+        ctx.log("pretrain", step, [{**m, "steps_per_s": steps_per_s} for m in ms])
+        bar.set_postfix(loss=f"{ms[0].get('critic_loss', float('nan')):.3g}", q=f"{ms[0].get('q_data', float('nan')):.3g}")
+
+    def save(step: int, agents, interrupted: bool) -> None:
         w = window.state_dict() if interrupted else None
         ctx.save_mid("pretrain", step, agents, np_rng=[r.bit_generator.state for r in rngs],
                      arrays={"window": w} if w else None)
 
     with ctx.bar(oc.steps, step, f"pretrain ({cfg.pretrain})" + (shared if ctx.n > 1 else "")) as bar:
-        while step < oc.steps:
-            # chunk ends at the next checkpoint boundary so that checkpoints land on multiples
-            k = min(oc.updates_per_call, oc.steps - step, cfg.checkpoint_every - step % cfg.checkpoint_every)
-            if on_device:
-                keys = jnp.stack([jax.random.fold_in(bk, step) for bk in base_keys])
-                agents, metrics = population.update_many_on_device(agents, arrays, keys, k, oc.batch_size)
-            else:
-                agents, metrics = population.update_many(agents, d.sample_members(rngs, oc.batch_size, k))
-            window.add(metrics)
-            prev, step = step, step + k
-            bar.update(k)
-            due = points(prev, step)
-            if due.log or due.checkpoint:
-                per_seed = window.flush()
-                ms = [per_seed[g] for g in group]
-                ctx.check("pretrain", step, ms)
-                if due.log:
-                    steps_per_s = rate(step)
-                    ctx.log("pretrain", step, [{**m, "steps_per_s": steps_per_s} for m in ms])
-                    bar.set_postfix(loss=f"{ms[0].get('critic_loss', float('nan')):.3g}",
-                                    q=f"{ms[0].get('q_data', float('nan')):.3g}")
-            step_end("pretrain", step, oc.steps, due, save)
+        # a call ends at the next checkpoint boundary so that checkpoints land on multiples
+        agents = offline_loop(
+            agents, update, lambda s: min(oc.updates_per_call, oc.steps - s, cfg.checkpoint_every - s % cfg.checkpoint_every),
+            step, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every), window, bar, stage="pretrain",
+            check=lambda step, per_seed: ctx.check("pretrain", step, [per_seed[g] for g in group]), log=log, save=save)
     if len(reps) < ctx.n:
         agents = jax.tree_util.tree_map(lambda x: x[np.asarray(group)], agents)
     return agents
@@ -315,26 +335,32 @@ def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
 # ---------------------------------------------------------------------------- stage 2b
 def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = None):
     """BOTO critic training on D_offline u D_warmup, each member with its own alpha and
-    D_warmup (botorl.boto.phase.train_boto with this run's logs and checkpoints)."""
+    D_warmup (botorl.boto.phase.boto_updates in the offline loop, with this run's logs and
+    checkpoints)."""
     cfg, bc = ctx.cfg, ctx.cfg.boto
     start = 0
     if resume is not None:
         agents = ctx.load_agents(resume["name"], agents)
         start = int(resume["step"])
-    points = Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every)
+    alphas = [member.cfg.alpha for member in ctx.members]
+    update = boto_updates(agents, ctx.d_offline, d_warmups or [None] * ctx.n, bc, alphas,
+                          [Streams.of(member.cfg).boto for member in ctx.members])
     t0 = time.perf_counter()
 
-    def on_call(prev: int, step: int, agents, ms: list[dict]) -> None:
-        ctx.check("boto", step, ms)
-        due = points(prev, step)
-        if due.log:
-            secs = time.perf_counter() - t0
-            ctx.log("boto", step, [{"seconds": secs, **m} for m in ms])
-        step_end("boto", step, bc.boto_steps, due, lambda interrupted: ctx.save_mid("boto", step, agents))
+    def log(step: int, ms: list[dict]) -> None:
+        ctx.log("boto", step, [{"seconds": time.perf_counter() - t0, **m} for m in ms])
+        bar.set_postfix(loss=f"{ms[0]['critic_loss']:.3g}", q_data=f"{ms[0]['q_data']:.3g}")
 
-    return train_boto(agents, ctx.d_offline, d_warmups or [None] * ctx.n, bc, [member.cfg.alpha for member in ctx.members],
-                      [Streams.of(member.cfg).boto for member in ctx.members], start_step=start, on_call=on_call,
-                      progress=cfg.progress)
+    label = f"BOTO alpha={alphas[0]:+.2f}" if ctx.n == 1 else f"BOTO x {ctx.n} members"
+    with ctx.bar(bc.boto_steps, start, label) as bar:
+        # the batches of a call follow from its index (boto_updates): no generator state to save,
+        # and calls are not cut at checkpoint points (train_boto's calls, so its numbers); the
+        # metrics are checked after every call, and a log point logs its call's
+        return offline_loop(agents, update, lambda s: min(bc.steps_per_call, bc.boto_steps - s), start,
+                            Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every),
+                            Window(ctx.n), bar, stage="boto", check=lambda step, ms: ctx.check("boto", step, ms),
+                            log=log, save=lambda step, agents, interrupted: ctx.save_mid("boto", step, agents),
+                            check_every_call=True)
 
 
 # ---------------------------------------------------------------------------- stage 3

@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import os
 import sys
+import threading
 from pathlib import Path
 
 from botorl.configs.methods import get_method
@@ -79,8 +80,6 @@ def timeout() -> float:
 def bounded(fn, seconds: float):
     """``fn()`` in a daemon thread: (True, its result) if it returned within ``seconds``, else
     (False, None) and the thread is left behind (it cannot hold the process: daemon)."""
-    import threading
-
     box: dict = {}
 
     def target():
@@ -111,9 +110,9 @@ def start(cfgs: list, runs: list) -> list:
     if not cfgs or not cfgs[0].wandb:
         return [None] * len(cfgs)
     require_wandb()
-    import wandb
+    import wandb  # optional dependency
 
-    from botorl.configs.schema import to_dict
+    from botorl.configs.schema import to_dict  # JAX: `botorl run --help` imports this module
 
     limit = timeout()
     out = []

@@ -224,25 +224,15 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
     observations = np.concatenate([obs_qpos, obs_qvel], axis=1)
     next_observations = np.concatenate([next_qpos, next_qvel], axis=1)
     return Dataset(
-        observations=observations,
-        actions=actions,
-        rewards=rewards,
-        next_observations=next_observations,
-        terminals=terminals,
-        episode_ends=ends | terminals,
+        observations=observations, actions=actions, rewards=rewards, next_observations=next_observations,
+        terminals=terminals, episode_ends=ends | terminals,
         infos={"success": success, "qpos": next_qpos.astype(np.float32), "qvel": next_qvel.astype(np.float32),
                "goal": goals.astype(np.float32)},
         metadata={
             "source": f"generated: antmaze-{maze}-{kind}-local (steps={steps}, seed={seed})",
-            "task": f"antmaze-{maze}-{kind}-local",
-            "generator": "botorl.data.generators.antmaze",
-            "steps": int(steps),
-            "seed": int(seed),
-            "maze": maze,
-            "kind": kind,
-            "action_noise": float(action_noise),
-            "eval_start_cell": list(spec.eval_start),
-            "eval_goal_cell": list(spec.eval_goal),
+            "task": f"antmaze-{maze}-{kind}-local", "generator": "botorl.data.generators.antmaze",
+            "steps": int(steps), "seed": int(seed), "maze": maze, "kind": kind, "action_noise": float(action_noise),
+            "eval_start_cell": list(spec.eval_start), "eval_goal_cell": list(spec.eval_goal),
             "observation_layout": "achieved_goal (x, y), observation (qpos[2:], qvel)",
             # write_minari stores these slices of the flat rows as Minari dict observations
             # (D4RL/antmaze/* keys); desired_goal comes from infos["goal"].

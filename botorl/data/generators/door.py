@@ -185,15 +185,8 @@ def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = Tr
     return trajs, n_eps, n_succ
 
 
-def generate(
-    steps: int,
-    seed: int,
-    progress: bool = True,
-    demos_path: str | os.PathLike | None = None,
-    bc_steps: int = 3000,
-    noise_std: float = 0.1,
-    drop_unsuccessful: bool = False,
-) -> Dataset:
+def generate(steps: int, seed: int, progress: bool = True, demos_path: str | os.PathLike | None = None,
+             bc_steps: int = 3000, noise_std: float = 0.1, drop_unsuccessful: bool = False) -> Dataset:
     if steps < 0:
         raise ValueError("steps must be >= 0")
     path = find_demos(demos_path)

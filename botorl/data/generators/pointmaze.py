@@ -25,6 +25,27 @@ MAX_STEPS_PER_GOAL = 1000
 VEL_CLIP = 5.0  # PointEnv._clip_velocity
 
 
+def _model(spec):
+    """The MuJoCo model the env builds for ``spec`` and fresh data for it (the env closed)."""
+    inner = make_inner(spec)
+    model = inner.point_env.model
+    data = mujoco.MjData(model)
+    inner.close()
+    return model, data
+
+
+def _place(model, data, rng: np.random.Generator, cells, centres):
+    """The point at rest near a random free cell's centre; returns that cell."""
+    start = cells[rng.integers(len(cells))]
+    sx, sy = centres[start]
+    mujoco.mj_resetData(model, data)
+    data.qpos[0] = sx + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
+    data.qpos[1] = sy + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
+    data.qvel[:] = 0.0
+    mujoco.mj_forward(model, data)
+    return start
+
+
 def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset:
     if maze not in MAZES:
         raise ValueError(f"unknown maze {maze!r}; one of {sorted(MAZES)}")
@@ -33,11 +54,7 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
     spec = MAZES[maze]
     maze_map = spec.maze_map
     rows, cols = len(maze_map), len(maze_map[0])
-    inner = make_inner(spec)
-    model = inner.point_env.model
-    data = mujoco.MjData(model)
-    inner.close()
-
+    model, data = _model(spec)
     table = next_cell_table(maze_map)
     cells = free_cells(maze_map)
     centres = {c: tuple(cell_to_xy(maze_map, c)) for c in cells}
@@ -54,14 +71,7 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
                 cx, cy = centres[c]
                 return c, cx + rng.uniform(-GOAL_NOISE, GOAL_NOISE), cy + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
 
-    start = cells[rng.integers(len(cells))]
-    sx, sy = centres[start]
-    mujoco.mj_resetData(model, data)
-    data.qpos[0] = sx + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
-    data.qpos[1] = sy + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
-    data.qvel[:] = 0.0
-    mujoco.mj_forward(model, data)
-    goal_cell, gx, gy = draw_goal(start)
+    goal_cell, gx, gy = draw_goal(_place(model, data, rng, cells, centres))
     steps_on_goal = 0
 
     states = np.empty((steps + 1, 4))
@@ -108,24 +118,12 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
 
     terminals = rewards > 0
     return Dataset(
-        observations=states[:-1],
-        actions=actions,
-        rewards=rewards,
-        next_observations=states[1:],
-        terminals=terminals,
-        episode_ends=ends | terminals,
-        infos={"success": rewards.copy()},
-        metadata={
-            "source": f"generated: pointmaze-{maze} (steps={steps}, seed={seed})",
-            "task": f"pointmaze-{maze}",
-            "generator": "botorl.data.generators.pointmaze",
-            "steps": int(steps),
-            "seed": int(seed),
-            "maze": maze,
-            "eval_start_cell": list(spec.start_cell),
-            "eval_goal_cell": list(spec.goal_cell),
-            "observation_layout": "x, y, vx, vy",
-        },
+        observations=states[:-1], actions=actions, rewards=rewards, next_observations=states[1:], terminals=terminals,
+        episode_ends=ends | terminals, infos={"success": rewards.copy()},
+        metadata={"source": f"generated: pointmaze-{maze} (steps={steps}, seed={seed})", "task": f"pointmaze-{maze}",
+                  "generator": "botorl.data.generators.pointmaze", "steps": int(steps), "seed": int(seed), "maze": maze,
+                  "eval_start_cell": list(spec.start_cell), "eval_goal_cell": list(spec.goal_cell),
+                  "observation_layout": "x, y, vx, vy"},
     )
 
 

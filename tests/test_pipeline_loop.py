@@ -1,0 +1,52 @@
+"""The offline loop that pre-training and the BOTO stage run (``stages.offline_loop``), on a
+counting update of two members: its calls, checks, logs and checkpoints against the points
+worked out by hand for 10 steps in calls of 3, logs every 4 and checkpoints every 6."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from botorl.pipeline.stages import Schedule, Window, offline_loop
+
+
+def _run(start: int = 0, check_every_call: bool = False):
+    seen: dict[str, list] = {"calls": [], "checks": [], "logs": [], "saves": []}
+
+    def update(agents, step, k):
+        seen["calls"].append((step, k))
+        # member i's metric "x" is step + i * k; a 2-d metric is not a scalar and is left out
+        return agents + k, {"x": np.array([step, step + k], np.float32), "m": np.zeros((2, 3))}
+
+    class Bar:
+        n = start
+
+        def update(self, k):
+            self.n += k
+
+    bar = Bar()
+    agents = offline_loop(start, update, lambda s: min(3, 10 - s), start, Schedule(10, 4, 6), Window(2), bar,
+                          stage="probe", check=lambda s, ms: seen["checks"].append((s, ms)),
+                          log=lambda s, ms: seen["logs"].append((s, ms)),
+                          save=lambda s, a, interrupted: seen["saves"].append((s, a, interrupted)),
+                          check_every_call=check_every_call)
+    return agents, bar.n, seen
+
+
+def test_offline_loop_points_and_window_means():
+    agents, n, seen = _run()
+    assert agents == 10 and n == 10
+    assert seen["calls"] == [(0, 3), (3, 3), (6, 3), (9, 1)]
+    # steps 3, 6, 9, 10: logs where step // 4 passes a multiple and at the end, a checkpoint at 6
+    # (the end's is the runner's); a log point's row is the mean over the calls since the last
+    assert seen["checks"] == seen["logs"] == [(6, [{"x": 1.5}, {"x": 4.5}]), (9, [{"x": 6.0}, {"x": 9.0}]),
+                                             (10, [{"x": 9.0}, {"x": 10.0}])]
+    assert seen["saves"] == [(6, 6, False)]
+
+
+def test_offline_loop_checks_every_call_and_resumes_on_the_same_points():
+    _, _, seen = _run(check_every_call=True)
+    assert [s for s, _ in seen["checks"]] == [3, 6, 9, 10]
+    assert seen["logs"][0] == (6, [{"x": 3.0}, {"x": 6.0}])  # the log point's own call
+    agents, n, resumed = _run(start=6)
+    assert agents == 10 and n == 10
+    assert resumed["calls"] == [(6, 3), (9, 1)] and resumed["logs"] == seen["logs"][1:] and resumed["saves"] == []
