@@ -117,36 +117,36 @@ def _quantities(run: Run, window: float) -> dict[str, float] | None:
             "success_10k": run.success_10k, "success_final": run.success_final}
 
 
-def _digest_notes(runs: Sequence[Run], relative_to: Path | None) -> list[str]:
-    """Runs with one pre-training fingerprint that start from different agents: never paired."""
-    notes = []
-    for key, group in group_by(runs, _pretraining_key).items():
-        digests = group_by([r for r in group if r.pretrain_sha256], lambda r: r.pretrain_sha256)
-        if key is not None and len(digests) > 1:
+def _by_agent(runs: Sequence[Run], relative_to: Path | None) -> tuple[list[list[Run]], list[str]]:
+    """The runs grouped by the pre-trained agent they start from: one pre-training fingerprint,
+    then its checkpoint digest (runs that predate the digest form their own group, never paired
+    with runs that have one); and a note for each fingerprint whose runs start from different
+    agents (another machine or code makes another pre-training)."""
+    groups: list[list[Run]] = []
+    notes: list[str] = []
+    for key, same_settings in group_by(runs, _pretraining_key).items():
+        if key is None:
+            continue
+        by_digest = group_by(same_settings, lambda r: r.pretrain_sha256 or "")
+        groups += by_digest.values()
+        digests = {d: rs for d, rs in by_digest.items() if d}
+        if len(digests) > 1:
             where = "; ".join(f"{d[:12]}: {', '.join(relative(r.path, relative_to) for r in rs[:3])}"
                               for d, rs in sorted(digests.items()))
+            first = same_settings[0]
             notes.append(f"{sum(map(len, digests.values()))} runs have the pre-training settings of seed "
-                         f"{group[0].seed} on {group[0].task} but start from {len(digests)} different pre-trained "
+                         f"{first.seed} on {first.task} but start from {len(digests)} different pre-trained "
                          f"agents (checkpoint SHA-256; another machine or code makes another pre-training), so they "
                          f"are paired only within one agent ({where})")
-    return notes
-
-
-def _pairing_key(run: Run) -> str | None:
-    """Runs are paired when they start from the same pre-trained agent: its checkpoint digest,
-    or the fingerprint for runs that predate the digest (never paired with runs that have one)."""
-    key = _pretraining_key(run)
-    return None if key is None else f"{key}|{run.pretrain_sha256 or ''}"
+    return groups, notes
 
 
 def find_pairs(runs: Sequence[Run], *, reference: str = REFERENCE, window: float = DIP_WINDOW,
                relative_to: Path | None = None) -> tuple[list[Pair], list[str]]:
     """Every (reference run, other run) that start from the same pre-trained agent, and notes."""
-    notes: list[str] = _digest_notes(runs, relative_to)
+    groups, notes = _by_agent(runs, relative_to)
     pairs: list[Pair] = []
-    for key, group in group_by(runs, _pairing_key).items():
-        if key is None:
-            continue
+    for group in groups:
         refs = [r for r in group if r.method == reference and _reseed(r) == 0]
         if not refs:
             continue

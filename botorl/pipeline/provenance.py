@@ -14,13 +14,14 @@ These are integrity records, not authenticity: anyone can write any value into a
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import platform
 import subprocess
 from importlib import metadata
 from pathlib import Path
+
+from botorl.pipeline.checkpoint import file_sha256 as checkpoint_file_sha256
 
 PACKAGES = ("botorl", "jax", "jaxlib", "flax", "optax", "numpy", "mujoco", "gymnasium")
 ENV_PREFIXES = ("XLA_", "JAX_", "BOTORL_CPU")  # settings of the environment that change numbers
@@ -110,11 +111,7 @@ def file_sha256(path: Path) -> str | None:
         return None
     key = (str(path), st.st_size, st.st_mtime_ns)
     if key not in _CACHE:
-        h = hashlib.sha256()
-        with open(path, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
-        _CACHE[key] = h.hexdigest()
+        _CACHE[key] = checkpoint_file_sha256(path)
     return _CACHE[key]
 
 
