@@ -77,6 +77,17 @@ IO_FAULTS = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is 
              errno.EPERM: "operation not permitted"}
 
 
+def pyplot():
+    """matplotlib's pyplot drawing to files only (figures are made on machines without a display)."""
+    # lazy: matplotlib only where a figure is drawn, and its backend chosen before pyplot loads
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # lazy: after the backend is chosen (above)
+
+    return plt
+
+
 def atomic_save_figure(fig: Any, path: str | os.PathLike, **savefig_kwargs: Any) -> Path:
     """``fig.savefig`` written atomically; the format comes from ``path``'s suffix."""
     out = io.BytesIO()

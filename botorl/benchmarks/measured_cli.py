@@ -13,19 +13,18 @@ import json
 import sys
 from pathlib import Path
 
+from botorl.benchmarks.paper import device_memory, time_evaluation
+from botorl.cli import main as botorl_main
+from botorl.io import atomic_write_bytes
+
 
 def main(argv: list[str]) -> int:
-    from botorl.benchmarks.paper import device_memory, time_evaluation
-    from botorl.io import atomic_write_bytes
-
     stats, rest = Path(argv[0]), argv[1:]
     result: dict = {}
     if rest[:1] == ["--time-eval"]:
         result = time_evaluation(Path(rest[1]), int(rest[2]), int(rest[3]))
         code = 0
     else:
-        from botorl.cli import main as botorl_main
-
         code = botorl_main(rest)
     atomic_write_bytes(stats, json.dumps({**result, **device_memory()}).encode())
     return code

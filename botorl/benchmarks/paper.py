@@ -36,11 +36,23 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
+import jax
 import numpy as np
 
+from botorl.agents import population
+from botorl.configs.presets import make_preset
+from botorl.configs.resolve import resolve
+from botorl.data.dataset import Dataset
+from botorl.data.minari_io import write_minari
+from botorl.envs.registry import get_task
+from botorl.errors import ConfigError
 from botorl.io import atomic_write_bytes
+from botorl.jaxsetup import check_precision, matmul_precision, setup_jax
+from botorl.pipeline.evaluation import make_eval_envs, run_episodes
+from botorl.pipeline.policy import load_agent, read_run
 
 # the paper's tasks as they can be run here: task -> where its data comes from
 PAPER_TASKS = {
@@ -76,9 +88,6 @@ def _synthetic_data(spec, work: Path, rows: int) -> tuple[list[str], list[str]]:
          "ends": (np.arange(rows) + 1) % spec.max_episode_steps == 0}
     kind = spec.dataset_source.kind
     if kind == "minari":
-        from botorl.data.dataset import Dataset
-        from botorl.data.minari_io import write_minari
-
         ds = Dataset(r["observations"], r["actions"], r["rewards"], r["next_observations"],
                      np.zeros(rows, bool), episode_ends=r["ends"], metadata={"source": "synthetic"})
         folder = write_minari(ds, path=work / f"{spec.name}-synthetic-v0", overwrite=True)
@@ -116,8 +125,6 @@ def device_memory() -> dict[str, float | None]:
     """Peak and limit of the first device's memory in MB (None on a CPU, whose arrays are host
     memory, counted in the resident size)."""
     try:
-        import jax
-
         st = jax.devices()[0].memory_stats() or {}
     except Exception:  # noqa: BLE001 - a backend without memory statistics
         st = {}
@@ -129,33 +136,25 @@ def time_evaluation(out: Path, members: int, episodes: int) -> dict:
     """``episodes`` evaluation episodes of every member of the run in ``out`` (its last
     checkpoint) as the run evaluates: all members' envs in one lockstep, one policy call per env
     step for all (botorl.pipeline.runner's ``RunContext.evaluate``), under the run's precision."""
-    from dataclasses import replace
-
-    from botorl.agents import population as AP
-    from botorl.envs.registry import get_task
-    from botorl.jaxsetup import matmul_precision, setup_jax
-    from botorl.pipeline.evaluation import make_eval_envs, run_episodes
-    from botorl.pipeline.policy import load_agent, read_run
-
     setup_jax()
     dirs = [out] if members == 1 else _member_dirs(out)
     cfgs = [read_run(d)[1] for d in dirs]
     cfg = cfgs[0]
     cfg = replace(cfg, eval=replace(cfg.eval, episodes=episodes))
     spec = get_task(cfg.task)
-    agents = AP.stack([load_agent(d) for d in dirs])
+    agents = population.stack([load_agent(d) for d in dirs])
     envs = [make_eval_envs(spec, cfg.eval) for _ in dirs]
     calls = 0
 
     def policy(obs):
         nonlocal calls
         calls += 1
-        return AP.eval_actions(agents, obs)
+        return population.eval_actions(agents, obs)
 
     try:
         with matmul_precision(cfg.precision):
             t0 = time.perf_counter()  # the first call compiles
-            np.asarray(AP.eval_actions(agents, np.zeros((len(dirs), len(envs[0]), spec.obs_dim), np.float32)))
+            np.asarray(population.eval_actions(agents, np.zeros((len(dirs), len(envs[0]), spec.obs_dim), np.float32)))
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
             stats = run_episodes(policy, envs, episodes=episodes, success_mode=spec.success_mode,
@@ -202,10 +201,6 @@ def _steady(rows: list[dict], step_key: str, rate_key: str | None, seconds_key: 
 
 def measure(task: str, members: int, work: Path, windows: dict, data_steps: int) -> dict:
     """One task at one population size: each stage's rate, compile time, memory, projection."""
-    from botorl.configs.presets import make_preset
-    from botorl.configs.resolve import resolve
-    from botorl.envs.registry import get_task
-
     spec = get_task(task)
     cfg = resolve(make_preset(task, "full", "boto"))
     out = work / f"{task}-n{members}"
@@ -304,10 +299,6 @@ def machine() -> dict:
     """The machine: host, and the device JAX runs on (its name, platform, count, memory)."""
     out = {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count()}
     try:
-        import jax
-
-        from botorl.jaxsetup import setup_jax
-
         setup_jax()
         d = jax.devices()[0]
         out.update({"device": str(d), "device_kind": d.device_kind, "backend": jax.default_backend(),
@@ -319,8 +310,6 @@ def machine() -> dict:
 
 
 def main(argv: list[str]) -> int:
-    from botorl.errors import ConfigError
-
     p = argparse.ArgumentParser(prog="botorl bench --paper", description=__doc__.split("\n\n")[0])
     p.add_argument("--paper", action="store_true", help="(this benchmark)")
     p.add_argument("--tasks", default=",".join(PAPER_TASKS), help="comma-separated tasks")
@@ -341,8 +330,6 @@ def main(argv: list[str]) -> int:
     except ValueError:
         raise ConfigError(f"--members {args.members!r}: give population sizes like 1,4,16.") from None
     if args.precision is not None:
-        from botorl.jaxsetup import check_precision
-
         check_precision(args.precision)
     tasks = [t for t in args.tasks.split(",") if t]
     windows = {"pretrain": args.pretrain_steps, "warmup": args.warmup_steps, "boto": args.boto_steps,
@@ -355,8 +342,6 @@ def main(argv: list[str]) -> int:
         if v < 1 or (flag in ("--pretrain-steps", "--boto-steps", "--finetune-steps") and v < 8):
             raise ConfigError(f"botorl bench --paper: {flag} {v} is too small (>= 8 for the stage windows "
                               "of pre-training, BOTO and fine-tuning, each logs 4 rows; >= 1 otherwise).")
-    from botorl.envs.registry import get_task
-
     for t in tasks:
         get_task(t)  # an unknown task fails here, before any run
     work = args.work or Path(tempfile.mkdtemp(prefix="botorl-paper-bench-"))

@@ -22,10 +22,18 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Optional
 
+import jax
+import tyro
+
+from botorl.agents.sac import SACAgent, SACConfig
 from botorl.benchmarks import flops as flopmod
 from botorl.benchmarks import workloads as wl
+from botorl.benchmarks.online_loop import OnlineLoop
+from botorl.benchmarks.paper import main as paper_main
+from botorl.envs.registry import get_task
 from botorl.errors import BotorlError
 from botorl.io import atomic_write_json
+from botorl.jaxsetup import setup_jax
 
 SCHEMA_VERSION = 1
 
@@ -103,8 +111,6 @@ def _options(cfg: BenchConfig) -> tuple[int, float, list[wl.Workload]]:
 
 def _prepare(w: wl.Workload) -> tuple[dict[str, Any], wl.Bound]:
     """A workload's row (its shapes and FLOP counts; the timings to come) and its bound update."""
-    import jax  # as in run: after its XLA flags and setup_jax
-
     shapes = {"num_critics": w.num_critics, "critic_hidden": list(w.critic_hidden),
               "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim,
               "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples,
@@ -153,11 +159,7 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
             _log("bench: --threads 1 must be set before JAX starts; XLA keeps its threads")
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
                                    " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1").strip()
-    from botorl.jaxsetup import setup_jax
-
     setup_jax()
-    import jax
-
     repeats, min_time, chosen = _options(cfg)
     worker = None if twin is None else twin(cfg)
 
@@ -229,10 +231,6 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
 
 def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, Any]:
     """The online loop and the same update alone, interleaved round by round."""
-    from botorl.agents.sac import SACAgent, SACConfig
-    from botorl.benchmarks.online_loop import OnlineLoop
-    from botorl.envs.registry import get_task
-
     spec = get_task("antmaze-large-diverse-v2")
     env = spec.make_env(0)
     obs_dim = int(env.observation_space.shape[0])
@@ -302,13 +300,9 @@ def write_json(result: dict[str, Any], path: str) -> None:
 
 def main(argv: list[str] | None = None, twin: Callable[[BenchConfig], Any] | None = None,
          prog: str = "botorl bench") -> int:
-    import tyro
-
     argv = sys.argv[1:] if argv is None else list(argv)
     if "--paper" in argv:
         # what a whole paper run costs, from the real pipeline's stages: its own options
-        from botorl.benchmarks.paper import main as paper_main
-
         return paper_main(argv)
     paper = "" if twin else " (`botorl bench --paper --help`: what a whole paper run costs)"
     cfg = tyro.cli(BenchConfig, args=argv, prog=prog, description=__doc__.split("\n")[0] + paper)

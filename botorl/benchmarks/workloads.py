@@ -13,7 +13,12 @@ from typing import Any, Callable
 import jax
 import numpy as np
 
+from botorl.agents.cql import CQLAgent, CQLConfig
+from botorl.agents.iql import IQLAgent, IQLConfig
+from botorl.agents.sac import SACAgent, SACConfig
 from botorl.batch import BATCH_KEYS
+from botorl.boto.config import BOTOConfig
+from botorl.boto.objective import ObjectiveSettings, boto_update_many
 
 
 @dataclass(frozen=True)
@@ -109,18 +114,11 @@ def _bound(agent: Any, call: Callable, batch: Any, updates_per_call: int) -> Bou
 
 def build(w: Workload, seed: int = 0) -> Bound:
     """The botorl side of a workload."""
-    from botorl.agents.cql import CQLAgent, CQLConfig
-    from botorl.agents.iql import IQLAgent, IQLConfig
-    from botorl.agents.sac import SACAgent, SACConfig
-
     nets = dict(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden, num_critics=w.num_critics)
     rows = w.batch
     if w.algo == "boto":
         # K critic steps per jitted call (lax.scan) as the BOTO phase runs them; the q_data /
         # q_uniform forward passes once per call cost a few % of a step at K = 10
-        from botorl.boto.config import BOTOConfig
-        from botorl.boto.objective import ObjectiveSettings, boto_update_many
-
         agent = SACAgent.create(SACConfig(**nets, utd_ratio=1), w.obs_dim, w.action_dim, seed)
         settings = ObjectiveSettings.resolve(BOTOConfig(), agent)
         batches = make_batch(w.batch, w.obs_dim, w.action_dim, seed, lead=(BOTO_STEPS_PER_CALL,))

@@ -15,10 +15,26 @@ from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+import optax
+import tyro
+from scipy.stats import gaussian_kde
+from tqdm.auto import tqdm
 
+from botorl.agents.common import TrainState, jit_q_mean
+from botorl.agents.cql import CQLAgent, CQLConfig
+from botorl.agents.iql import IQLAgent, IQLConfig
+from botorl.agents.population import q_mean
+from botorl.agents.sac import SACAgent, SACConfig
 from botorl.batch import TRANSITION_KEYS
-from botorl.io import atomic_save_figure, atomic_write_json
+from botorl.boto.config import BOTOConfig
+from botorl.boto.objective import ObjectiveSettings, boto_update_many_fn
+from botorl.boto.theory import gaussian_log_density, namdp_exact
+from botorl.data.generators.bandit import generate_1d, generate_pinwheel
+from botorl.io import atomic_save_figure, atomic_write_json, pyplot
+from botorl.jaxsetup import setup_jax
 
 FIG3_ALPHAS = (-1.0, -0.5, 0.0, 0.5, 1.0)
 FIG3_SIGMA = 0.25
@@ -57,8 +73,6 @@ SMALL_SAC = dict(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), actor_lay
 
 def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):
     """``state, loss = step(state, k)`` on chunks of at most ``chunk`` of ``steps`` steps, with a progress bar."""
-    from tqdm.auto import tqdm
-
     bar = tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True, disable=not progress)
     done = 0
     while done < steps:
@@ -76,15 +90,6 @@ def train_boto_bandit(dataset, alphas, boto_config, *, steps: int, batch_size: i
                       progress: bool, desc: str):
     """One fresh small critic per alpha, vmapped, Adam on a cosine-decayed ``lr``; returns
     ``q_fn(actions (M, A)) -> (len(alphas), M)``, the ensemble-mean Q at a constant observation."""
-    import jax
-    import jax.numpy as jnp
-    import optax
-
-    from botorl.agents.common import TrainState
-    from botorl.agents.population import q_mean
-    from botorl.agents.sac import SACAgent, SACConfig
-    from botorl.boto.objective import ObjectiveSettings, boto_update_many_fn
-
     agent = SACAgent.create(SACConfig(**SMALL_SAC), dataset.obs_dim, dataset.action_dim, seed=seed)
     sched = optax.cosine_decay_schedule(lr, steps)
     agent = agent.replace(
@@ -119,10 +124,6 @@ def train_boto_bandit(dataset, alphas, boto_config, *, steps: int, batch_size: i
 
 def run_fig3(cfg: BanditConfig) -> dict:
     """Train the Figure 3 critics and compare them with Q* and the bounds: the bandit.json part."""
-    from botorl.boto.config import BOTOConfig
-    from botorl.boto.theory import gaussian_log_density, namdp_exact
-    from botorl.data.generators.bandit import generate_1d
-
     ds = generate_1d(cfg.fig3_transitions, cfg.seed, progress=False)
     boto_cfg = BOTOConfig(noise="gaussian", sigma=FIG3_SIGMA, clip=False, discount=0.0, backup_entropy=False)
     t0 = time.perf_counter()
@@ -171,10 +172,7 @@ def run_fig3(cfg: BanditConfig) -> dict:
 
 
 def plot_fig3(res: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     grid = np.asarray(res["grid"])
     acts, rews = np.asarray(res["actions"]), np.asarray(res["rewards"])
@@ -226,11 +224,6 @@ def plot_fig3(res: dict, path: Path) -> None:
 
 def _offline_agents(ds, cfg: BanditConfig):
     """CQL, Cal-QL and IQL critics (small nets, gamma = 0) trained on the pinwheel data."""
-    import jax.numpy as jnp
-
-    from botorl.agents.cql import CQLAgent, CQLConfig
-    from botorl.agents.iql import IQLAgent, IQLConfig
-
     # CQL weight 5 with a fixed weight (no Lagrange): the one-step problem has no bootstrapping, so
     # the penalty is what shapes Q off the data (Cal-QL's kitchen setting).
     # 5 (not 10) penalty samples of each kind keep `botorl bandit` within its time budget.
@@ -256,12 +249,6 @@ def _offline_agents(ds, cfg: BanditConfig):
 
 
 def run_fig2(cfg: BanditConfig) -> dict:
-    import jax.numpy as jnp
-
-    from botorl.agents.common import jit_q_mean
-    from botorl.boto.config import BOTOConfig
-    from botorl.data.generators.bandit import generate_pinwheel
-
     ds = generate_pinwheel(cfg.fig2_transitions, cfg.seed, progress=False).with_mc_returns(0.0)
     boto_cfg = BOTOConfig(noise="hybrid", log_sigma=cfg.fig2_log_sigma, clip=True, discount=0.0, backup_entropy=False)
     t0 = time.perf_counter()
@@ -308,11 +295,7 @@ def run_fig2(cfg: BanditConfig) -> dict:
 
 
 def plot_fig2(res: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from scipy.stats import gaussian_kde
+    plt = pyplot()
 
     p = res["_plot"]
     names = list(p["methods"])
@@ -358,11 +341,7 @@ def plot_fig2(res: dict, path: Path) -> None:
 
 
 def main(argv: list[str]) -> int:
-    import tyro
-
     cfg = tyro.cli(BanditConfig, args=argv, description="Reproduce the paper's bandit figures 2 and 3.")
-    from botorl.jaxsetup import setup_jax
-
     setup_jax()
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -29,7 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from botorl.envs.ant_goal import ACTION_DIM, HORIZON, OBS_DIM, AntGoalSim, NumpyActor, actor_arrays
-from botorl.io import atomic_save_figure, atomic_write_bytes, atomic_write_json
+from botorl.io import atomic_save_figure, atomic_write_bytes, atomic_write_json, pyplot
+from botorl.jaxsetup import setup_jax
 
 
 @dataclass
@@ -74,7 +75,7 @@ class AntTrainConfig:
 
 
 def sac_config(cfg: AntTrainConfig):
-    from botorl.agents.sac import SACConfig
+    from botorl.agents.sac import SACConfig  # lazy: JAX; the spawned simulation workers import this module
 
     return SACConfig(
         actor_hidden_dims=tuple(cfg.hidden), critic_hidden_dims=tuple(cfg.hidden), actor_layer_norm=True,
@@ -189,8 +190,7 @@ class Collector:
 
 
 def _make_train_step(batch_size: int, updates: int):
-    import jax
-    import jax.numpy as jnp
+    import jax  # lazy: the spawned simulation workers import this module; they need no JAX
 
     @partial(jax.jit, donate_argnums=0)  # the buffer is updated in place, not copied
     def insert(buf, new, ptr):
@@ -201,7 +201,7 @@ def _make_train_step(batch_size: int, updates: int):
         def body(a, k):
             idx = jax.random.randint(k, (batch_size,), 0, size)
             batch = {n: v[idx] for n, v in buf.items()}
-            batch["mc_returns"] = jnp.zeros_like(batch["rewards"])
+            batch["mc_returns"] = jax.numpy.zeros_like(batch["rewards"])
             return a.train_step(batch)
 
         agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, updates))
@@ -211,7 +211,7 @@ def _make_train_step(batch_size: int, updates: int):
 
 
 def _host_actor(agent) -> dict:
-    import jax
+    import jax  # lazy: the spawned simulation workers import this module; they need no JAX
 
     return actor_arrays(jax.device_get(agent.actor.params), agent.config.log_std_min, agent.config.log_std_max)
 
@@ -228,16 +228,15 @@ CURVE_FIELDS = ["env_steps", "updates", "seconds", "eval_goals_per_1000", "eval_
 
 def train(cfg: AntTrainConfig) -> dict:
     """Train (or continue training) the goal-reaching ant; returns the final state dict."""
+    # lazy: JAX; the spawned simulation workers import this module, and need none
     import jax
-    import jax.numpy as jnp
 
-    from botorl.agents import checkpoint
-    from botorl.agents.sac import SACAgent
+    from botorl.agents import checkpoint, sac
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     scfg = sac_config(cfg)
-    agent = SACAgent.create(scfg, OBS_DIM, ACTION_DIM, seed=cfg.seed)
+    agent = sac.SACAgent.create(scfg, OBS_DIM, ACTION_DIM, seed=cfg.seed)
     state = {"env_steps": 0, "updates": 0, "seconds": 0.0, "calls": 0, "config": dataclasses.asdict(cfg)}
     resumed = (out / "agent.ckpt").exists() and (out / "state.json").exists()
     if resumed:
@@ -253,7 +252,7 @@ def train(cfg: AntTrainConfig) -> dict:
     n_envs = max(cfg.num_workers, 1) * cfg.envs_per_worker
     chunk = n_envs * cfg.rollout_len
     capacity = max(chunk, (cfg.buffer_size // chunk) * chunk)
-    buf = {k: jnp.zeros((capacity,) + s, jnp.float32) for k, s in FIELDS}
+    buf = {k: jax.numpy.zeros((capacity,) + s, jax.numpy.float32) for k, s in FIELDS}
     insert, train_step = _make_train_step(cfg.batch_size, cfg.updates_per_iter)
     seed_call = cfg.seed * 7_919 + state["calls"]
     collector = Collector(cfg.num_workers, cfg.envs_per_worker, seed_call)
@@ -267,7 +266,7 @@ def train(cfg: AntTrainConfig) -> dict:
     params = _host_actor(agent)
     bar = None
     if cfg.progress:
-        from tqdm import tqdm
+        from tqdm import tqdm  # lazy: `python -m` this file (below) runs without the CLI's dependencies
 
         bar = tqdm(total=cfg.total_env_steps, initial=state["env_steps"], unit="step", desc="train-ant",
                    mininterval=5.0)
@@ -315,7 +314,7 @@ def train(cfg: AntTrainConfig) -> dict:
             state["env_steps"] += chunk
             warm += chunk
             settle()  # the updates dispatched last iteration are done by now
-            buf = insert(buf, {k: jnp.asarray(v) for k, v in new.items()}, ptr)
+            buf = insert(buf, {k: jax.numpy.asarray(v) for k, v in new.items()}, ptr)
             ptr = (ptr + chunk) % capacity
             size = min(size + chunk, capacity)
             ready = warm >= cfg.start_steps
@@ -356,11 +355,7 @@ def train(cfg: AntTrainConfig) -> dict:
 
 
 def plot_curve(csv_path, png_path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     rows = list(csv.DictReader(open(csv_path)))
     if not rows:
         return
@@ -379,13 +374,12 @@ def plot_curve(csv_path, png_path) -> None:
 
 
 def main(argv: list[str]) -> int:
-    import tyro
-
-    from botorl.jaxsetup import setup_jax
+    import tyro  # lazy: `python -m` this file (below) runs without the CLI's dependencies
 
     cfg = tyro.cli(AntTrainConfig, args=argv, prog="botorl train-ant",
                    description="Train the goal-reaching ant with SAC (resumable: rerun with the same --out).")
     if cfg.eval_maze:
+        # lazy: --eval-maze only; `python -m` this file (below) runs without the CLI's dependencies
         from botorl.data.generators.antmaze import evaluate_controller, load_actor
 
         t0 = time.time()
