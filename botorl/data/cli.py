@@ -13,6 +13,13 @@ from typing import Annotated, Optional
 
 import tyro
 
+from botorl.data import minari_io  # write_minari looked up when called: the tests replace it
+from botorl.data.generate import cache_id, cache_path, cached_datasets, ensure_dataset
+from botorl.data.generators import DEFAULT_STEPS, GENERATORS, get_generator
+from botorl.data.generators.antmaze import maze_stats, plot_coverage
+from botorl.data.loaders import load_minari, load_path
+from botorl.data.tasks import load_task_data
+from botorl.envs.registry import get_task
 from botorl.errors import BotorlError
 
 
@@ -62,8 +69,6 @@ class Plot(_Target):
 
 
 def _plot(cfg: Plot) -> int:
-    from botorl.data.generators.antmaze import plot_coverage
-
     name, ds = _load_for_info(cfg)[0]
     out = cfg.out or Path(f"coverage_{Path(cfg.target).name}.png")
     print(f"{plot_coverage(ds, out)} ({name})")
@@ -71,11 +76,6 @@ def _plot(cfg: Plot) -> int:
 
 
 def _generate(cfg: Generate) -> int:
-    from botorl.data.generate import cache_id, cache_path, ensure_dataset
-    from botorl.data.generators import DEFAULT_STEPS, get_generator
-    from botorl.data.minari_io import write_minari
-    from botorl.envs.registry import get_task
-
     get_generator(cfg.task)  # unknown/missing generator: clear error before any work
     steps = cfg.steps if cfg.steps is not None else DEFAULT_STEPS[cfg.task]
     path = cache_path(cfg.task, steps, cfg.seed)
@@ -90,17 +90,13 @@ def _generate(cfg: Generate) -> int:
         # a folder named like name-v0 becomes that dataset, any other one a Minari root
         where = dict(path=out) if re.fullmatch(r"[-\w]+-v\d+", out.name) else dict(
             dataset_id=cache_id(cfg.task, steps, cfg.seed), root=out)
-        dest = write_minari(ds, **where, overwrite=cfg.overwrite, metadata=ds.metadata.get("botorl", {}),
+        dest = minari_io.write_minari(ds, **where, overwrite=cfg.overwrite, metadata=ds.metadata.get("botorl", {}),
                             env_spec=get_task(cfg.task).gym_spec())
         print(f"copy written to {dest}")
     return 0
 
 
 def _load_for_info(cfg: _Target) -> list[tuple[str, object]]:
-    from botorl.data.generate import cached_datasets
-    from botorl.data.generators import GENERATORS
-    from botorl.data.loaders import load_minari, load_path
-
     target = cfg.target
     if target in GENERATORS:
         found = cached_datasets(target)
@@ -115,9 +111,6 @@ def _load_for_info(cfg: _Target) -> list[tuple[str, object]]:
         return [(str(p), load_minari(p)) for p in chosen]
     if Path(target).expanduser().exists():
         return [(target, load_path(target))]
-    from botorl.data.tasks import load_task_data
-    from botorl.envs.registry import get_task
-
     try:
         task = get_task(target)
     except BotorlError:
@@ -129,8 +122,6 @@ def _load_for_info(cfg: _Target) -> list[tuple[str, object]]:
 
 
 def _info(cfg: Info) -> int:
-    from botorl.data.generators.antmaze import maze_stats
-
     results = []
     for name, ds in _load_for_info(cfg):
         st = ds.stats()

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Any, Iterator
 
 import numpy as np
+from scipy.signal import lfilter
 
 from botorl.batch import BATCH_KEYS, Batch
 from botorl.errors import DataFormatError
@@ -193,8 +194,6 @@ class Dataset:
         """
         if not 0.0 <= gamma < 1.0:
             raise ValueError(f"gamma must be in [0, 1), got {gamma}")
-        from scipy.signal import lfilter
-
         out = np.empty(len(self), dtype=np.float64)
         rew = self.rewards.astype(np.float64)
         # Segments end at episode ends and at terminals; inside a segment the recursion has
@@ -264,7 +263,7 @@ class Dataset:
 
     def to_device(self) -> Batch:
         """The Batch fields of all rows as a pytree of ``jnp`` arrays (for ``sample_batches``)."""
-        import jax.numpy as jnp
+        import jax.numpy as jnp  # lazy: JAX; botorl.api imports this module (`import botorl` stays without JAX)
 
         return {k: jnp.asarray(v) for k, v in self.batch_at(np.arange(len(self))).items()}
 

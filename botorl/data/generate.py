@@ -8,8 +8,11 @@ import os
 import re
 from pathlib import Path
 
+from botorl.data import minari_io  # write_minari looked up when called: the tests replace it
 from botorl.data.dataset import Dataset
 from botorl.data.generators import DEFAULT_STEPS, GENERATORS, get_generator
+from botorl.data.loaders import load_minari
+from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError
 
 
@@ -49,10 +52,6 @@ def ensure_dataset(task: str, steps: int | None = None, seed: int = 0, *, progre
                    regenerate: bool = False) -> Dataset:
     """The generated dataset of ``task`` for (steps, seed; None: ``DEFAULT_STEPS``), from the cache
     or made and cached (deterministic for a seed, so a cache hit equals a fresh generation)."""
-    from botorl.data.loaders import load_minari
-    from botorl.data.minari_io import write_minari
-    from botorl.envs.registry import get_task
-
     if steps is None and task not in DEFAULT_STEPS:
         raise ConfigError(f"no default size for {task!r}; pass steps explicitly.")
     steps = DEFAULT_STEPS[task] if steps is None else int(steps)
@@ -67,7 +66,7 @@ def ensure_dataset(task: str, steps: int | None = None, seed: int = 0, *, progre
     ds = generate(steps, seed, progress=progress)
     meta = {"task": task, "steps": steps, "seed": int(seed), "generator": get_generator_name(task)}
     try:
-        write_minari(ds, cache_id(task, steps, seed), root=data_dir(), overwrite=regenerate, metadata=meta,
+        minari_io.write_minari(ds, cache_id(task, steps, seed), root=data_dir(), overwrite=regenerate, metadata=meta,
                      description=f"botorl generated data for {task} ({steps} steps, seed {seed})",
                      progress=progress, env_spec=get_task(task).gym_spec())
     except (BotorlError, OSError):

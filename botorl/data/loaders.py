@@ -11,18 +11,22 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import json
 import os
 import pickle
 import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
+import h5py
 import numpy as np
+from minari import MinariDataset
 
 from botorl.data.dataset import Dataset, validate
 from botorl.data.minari_io import SPLIT_KEY, FlatCacheInvalid, minari_root, read_flat, rebuild_flat
 from botorl.data.safe import check_hdf5, check_npz, regular_file
 from botorl.envs.adroit import DOOR_SUCCESS_ANGLE
+from botorl.envs.registry import get_task, is_registered
 from botorl.envs.user import flatten_obs, obs_keys_of
 from botorl.errors import ConfigError, DataFormatError, DatasetNotFoundError
 
@@ -40,8 +44,6 @@ CALQL_DATA_INSTRUCTIONS = (
 
 def download_hint(name: str) -> str:
     """How a user gets the data of a task name or Minari id (one sentence or two)."""
-    from botorl.envs.registry import get_task, is_registered
-
     src = get_task(name).dataset_source if is_registered(name) else None
     if src is not None and src.kind == "minari":  # the paper's D4RL tasks' current Minari ports
         return (
@@ -131,8 +133,6 @@ def load_d4rl_hdf5(path: str | os.PathLike, *, max_episode_steps: int | None = N
     """A D4RL hdf5 file, as ``qlearning_dataset`` reads it (``_qlearning_rows``); ``infos/success``
     or ``infos/goal_achieved`` become ``infos["success"]``. ``actions_to_unit`` maps the file's
     actions to [-1, 1] (a user's env with other bounds)."""
-    import h5py
-
     p = _require_file(path, "D4RL hdf5")
     try:
         f = h5py.File(p, "r")
@@ -199,8 +199,6 @@ def _minari_data_path(id_or_path: str | os.PathLike) -> tuple[Path, bool]:
 
 
 def _h5_tree(node):
-    import h5py
-
     if isinstance(node, h5py.Dataset):
         return node[()]
     return {k: _h5_tree(node[k]) for k in node.keys()}
@@ -218,8 +216,6 @@ def _minari_episodes(mds, data_path: Path):
                 yield ep.id, {"observations": ep.observations, "actions": ep.actions, "rewards": ep.rewards,
                               "terminations": ep.terminations, "infos": ep.infos}
             return
-        import h5py
-
         regular_file(main, "Minari data file")
         with h5py.File(main, "r") as f:
             check_hdf5(f, main)
@@ -316,8 +312,6 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
         if os.path.lexists(data_path / fname):
             regular_file(data_path / fname, "Minari data file")
     try:
-        from minari import MinariDataset
-
         mds = MinariDataset(data_path)
     except Exception as err:  # minari raises assorted errors on broken folders
         raise DataFormatError(
@@ -336,8 +330,6 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
     try:
         extra = mds.storage.metadata.get("botorl_metadata")
         if extra:
-            import json
-
             meta["botorl"] = json.loads(extra)
     except Exception:
         pass

@@ -12,21 +12,31 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import io
 import json
 import os
 import shutil
+import socket
+import time
 import uuid
 import warnings
 from pathlib import Path
 from typing import Any
 from unittest import mock
 
+import gymnasium as gym
+import h5py
+import minari
 import numpy as np
+from h5py import h5a, h5d, h5g, h5s, h5t
+from minari.data_collector import EpisodeBuffer
+from minari.dataset.minari_dataset import parse_dataset_id
 from tqdm import tqdm
 
-from botorl.data.dataset import Dataset, segments
+from botorl.data.dataset import ACTION_CLIP, Dataset, segments
+from botorl.data.safe import check_npz, regular_file
 from botorl.errors import BotorlError, ConfigError
-from botorl.io import pid_alive
+from botorl.io import atomic_write_bytes, pid_alive
 
 # Marks an episode split that botorl had to make because next_observation[i] !=
 # observation[i + 1] inside one episode (Minari stores one observation sequence per
@@ -63,15 +73,11 @@ def _content_sha256(arrays: dict[str, np.ndarray]) -> str:
 
 
 def _host() -> str:
-    import socket
-
     return socket.gethostname().replace("-", "_") or "host"
 
 
 def clean_stale_tmp(root: Path) -> list[Path]:
     """Remove temporary roots left under ``root`` by writers that died (kill -9); returns them."""
-    import time as _time
-
     removed = []
     try:
         entries = list(Path(root).iterdir())
@@ -86,7 +92,7 @@ def clean_stale_tmp(root: Path) -> list[Path]:
             stale = not pid_alive(int(parts[1]))
         else:  # another host's, or the old unnamed form: only when clearly abandoned
             try:
-                stale = _time.time() - p.stat().st_mtime > TMP_MAX_AGE_S
+                stale = time.time() - p.stat().st_mtime > TMP_MAX_AGE_S
             except OSError:
                 stale = False
         if stale:
@@ -156,8 +162,6 @@ def _dict_layout(ds: Dataset):
 
 
 def _observation_space(ds: Dataset):
-    import gymnasium as gym
-
     layout = _dict_layout(ds)
     if not layout:
         return gym.spaces.Box(-np.inf, np.inf, (ds.obs_dim,), np.float32)
@@ -176,9 +180,6 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
     h5py's low-level calls with shared datatypes are about 2x faster than ``create_dataset``,
     and the in-memory ("core") driver writes the file once at close.
     """
-    import h5py
-    from h5py import h5a, h5d, h5g, h5s, h5t
-
     n_eps = len(_cuts(ds)[1])
     tid_of = functools.cache(functools.partial(h5t.py_create, logical=True))  # one datatype per dtype
 
@@ -226,8 +227,6 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
 
 
 def _resolve(dataset_id: str | None, path: str | os.PathLike | None, root: str | os.PathLike | None):
-    from minari.dataset.minari_dataset import parse_dataset_id
-
     if path is not None:
         p = Path(path).expanduser().resolve()
         root_p, dataset_id = p.parent, p.name
@@ -255,8 +254,6 @@ def write_minari(dataset: Dataset, dataset_id: str | None = None, *, path: str |
     whose name is the id. ``metadata`` is stored with botorl's dataset metadata; ``env_spec``
     (``TaskSpec.gym_spec()``) is recorded so that ``recover_environment()`` works.
     """
-    import minari
-
     root_p, dataset_id = _resolve(dataset_id, path, root)
     final = root_p / dataset_id
     if final.exists() and not overwrite:
@@ -267,8 +264,6 @@ def write_minari(dataset: Dataset, dataset_id: str | None = None, *, path: str |
     root_p.mkdir(parents=True, exist_ok=True)
     clean_stale_tmp(root_p)
     tmp_root = root_p / f"{TMP_PREFIX}{_host()}-{os.getpid()}-{uuid.uuid4().hex[:12]}"
-    import gymnasium as gym
-
     obs_space = _observation_space(dataset)
     act_space = gym.spaces.Box(-1.0, 1.0, (dataset.action_dim,), np.float32)
     meta = {k: v for k, v in dataset.metadata.items() if k not in ("source",)}
@@ -283,8 +278,6 @@ def write_minari(dataset: Dataset, dataset_id: str | None = None, *, path: str |
                           env=env_spec)
             extra = {"botorl_metadata": json.dumps(meta, default=_json_default)}
             if _minari_writer:  # Minari's own (slow) writer, one EpisodeBuffer per episode; tests compare the two
-                from minari.data_collector import EpisodeBuffer
-
                 buffers = [EpisodeBuffer(id=i, observations=obs, actions=act, rewards=rew, terminations=term.copy(),
                                          truncations=trunc, infos=infos or None)
                            for i, (obs, act, rew, term, trunc, infos) in enumerate(_episodes(dataset))]
@@ -316,8 +309,6 @@ def write_minari(dataset: Dataset, dataset_id: str | None = None, *, path: str |
 def _write_flat(ds: Dataset, path: Path, meta: dict) -> None:
     """The flat copy, with the size and sha256 of its source ``data/main_data.hdf5`` and a checksum
     of its own rows, written atomically."""
-    from botorl.io import atomic_write_bytes
-
     arrays = {
         "observations": ds.observations, "actions": ds.actions, "rewards": ds.rewards,
         "next_observations": ds.next_observations, "terminals": ds.terminals,
@@ -330,9 +321,7 @@ def _write_flat(ds: Dataset, path: Path, meta: dict) -> None:
     if source.exists():
         check.update(source_size=np.asarray(source.stat().st_size, np.int64),
                      source_sha256=np.asarray(_sha256_file(source)))
-    import io as _io
-
-    buf = _io.BytesIO()
+    buf = io.BytesIO()
     np.savez(buf, **arrays, **check)
     atomic_write_bytes(path, buf.getvalue())
 
@@ -344,15 +333,11 @@ def read_flat(folder: Path) -> Dataset | None:
     """The flat copy beside a botorl Minari dataset (None if there is none), trusted only if its
     source's size and sha256, its rows' checksum and its action range match the recorded ones
     (else ``FlatCacheInvalid`` naming the failed check)."""
-    from botorl.data.dataset import ACTION_CLIP
-
     folder = Path(folder)
     path = folder / FLAT_FILE
     if not path.exists():
         return None
     source = folder / "data" / "main_data.hdf5"
-    from botorl.data.safe import check_npz, regular_file
-
     if source.exists():
         regular_file(source, "Minari data file")  # its sha256 is read below: a FIFO would hang
     try:

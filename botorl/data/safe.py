@@ -7,11 +7,14 @@ links, virtual datasets) is refused, since it could make botorl read any file or
 
 from __future__ import annotations
 
+import hashlib
 import os
+import resource
 import stat
 import zipfile
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from botorl.errors import DataFormatError
@@ -28,12 +31,10 @@ def data_cap() -> int:
         have = 0
     cap = min(MAX_DATA_BYTES, have // 2) if have else MAX_DATA_BYTES
     try:  # a process under `ulimit -v` has less than the machine
-        import resource
-
         soft = resource.getrlimit(resource.RLIMIT_AS)[0]
         if soft != resource.RLIM_INFINITY:
             cap = min(cap, soft // 2)
-    except (ImportError, ValueError, OSError):
+    except (ValueError, OSError):
         pass
     return cap
 
@@ -97,8 +98,6 @@ def check_npz(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np.dt
 def check_hdf5(f, path) -> None:
     """DataFormatError when the open h5py file ``f`` stores data outside itself (external links,
     external storage, virtual datasets) or declares more than ``data_cap()`` bytes."""
-    import h5py
-
     cap = data_cap()
     total = 0
     todo = [f]
@@ -156,8 +155,6 @@ def fingerprint(path: str | os.PathLike | None, minari_root: Path | None = None)
     """``{"path", "size", "sha256"}`` of what a run reads for ``data.path`` (``data_files``; None:
     the task's own data, made or named by botorl, which the config's digest covers). An integrity
     check: it says the data did not change, not who made them."""
-    import hashlib
-
     if path is None:
         return {"path": None}
     h = hashlib.sha256()

@@ -7,6 +7,8 @@ from pathlib import Path
 
 from botorl.data import loaders
 from botorl.data.dataset import Dataset
+from botorl.data.generate import cached_datasets, ensure_dataset
+from botorl.data.user import load_task_data as load_user_data
 
 
 def load_task_data(spec, path: str | os.PathLike | None = None, *, action_tolerance: float = 1e-3,
@@ -19,8 +21,6 @@ def load_task_data(spec, path: str | os.PathLike | None = None, *, action_tolera
     """
     src = spec.dataset_source
     if src.kind == "user":  # a user's own task (botorl/data/user.py)
-        from botorl.data.user import load_task_data as load_user_data
-
         return load_user_data(spec, path, **kwargs)
     if src.kind == "minari":
         return loaders.load_minari(
@@ -32,8 +32,6 @@ def load_task_data(spec, path: str | os.PathLike | None = None, *, action_tolera
     if path is not None:
         return loaders.load_minari(Path(path), obs_dim=spec.obs_dim, action_dim=spec.action_dim,
                                    action_tolerance=action_tolerance)
-    from botorl.data.generate import ensure_dataset
-
     return ensure_dataset(spec.name, **kwargs)
 
 
@@ -49,8 +47,6 @@ def data_status(spec) -> tuple[str, str]:
         return "missing", loaders.download_hint(spec.name)
     if src.kind == "calql_npy":
         return "missing", "pass --data.path: " + loaders.download_hint(spec.name)
-    from botorl.data.generate import cached_datasets
-
     cached = cached_datasets(spec.name)
     if cached:
         return "generated-cached", str(cached[0])

@@ -24,6 +24,7 @@ class AdroitBinaryTask(TaskEnv):
 
 def make_door(seed: int | None = None) -> AdroitBinaryTask:
     import_robotics()
+    # lazy: after import_robotics(), which mutes its notice
     from gymnasium_robotics.envs.adroit_hand.adroit_door import AdroitHandDoorEnv
 
     return AdroitBinaryTask(AdroitHandDoorEnv(reward_type="dense"), DOOR_OBS_DIM, seed)
@@ -31,6 +32,7 @@ def make_door(seed: int | None = None) -> AdroitBinaryTask:
 
 def make_pen(seed: int | None = None) -> AdroitBinaryTask:
     import_robotics()
+    # lazy: after import_robotics(), which mutes its notice
     from gymnasium_robotics.envs.adroit_hand.adroit_pen import AdroitHandPenEnv
 
     return AdroitBinaryTask(AdroitHandPenEnv(reward_type="dense"), PEN_OBS_DIM, seed)

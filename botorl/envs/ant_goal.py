@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 
 import gymnasium as gym
+import mujoco
 import numpy as np
 
 FRAME_SKIP = 5  # Ant-v4
@@ -64,8 +65,6 @@ class AntGoalSim:
     reached; ended ants are reset after the step, their fresh observation in ``self.obs``."""
 
     def __init__(self, num_envs: int, seed: int = 0, *, horizon: int = HORIZON):
-        import mujoco
-
         self._mujoco = mujoco
         self.model = mujoco.MjModel.from_xml_path(ant_xml_path())
         self.datas = [mujoco.MjData(self.model) for _ in range(num_envs)]
@@ -167,6 +166,7 @@ class NumpyActor:
 
 def actor_arrays(actor_params, log_std_min: float = -20.0, log_std_max: float = 2.0) -> dict[str, np.ndarray]:
     """Flatten a botorl actor's parameter tree into ``NumpyActor``'s dict."""
+    # lazy: JAX (flax); the spawned simulation workers of experts/ant_train.py import this module
     from flax.traverse_util import flatten_dict
 
     out = {k: np.asarray(v, np.float32) for k, v in flatten_dict(actor_params, sep="/").items()}

@@ -50,7 +50,7 @@ def layout(maze: str) -> AntMazeLayout:
     if maze not in MAZES:
         raise ValueError(f"unknown maze {maze!r}; one of {sorted(MAZES)}")
     import_robotics()
-    from gymnasium_robotics.envs.maze import maps
+    from gymnasium_robotics.envs.maze import maps  # lazy: after import_robotics(), which mutes its notice
 
     spec = MAZES[maze]
     picked_grid = {"medium": maps.MEDIUM_MAZE_DIVERSE_GR, "large": maps.LARGE_MAZE_DIVERSE_GR}.get(maze)
@@ -62,6 +62,7 @@ def layout(maze: str) -> AntMazeLayout:
 def make_antmaze_task(maze: str, seed: int | None = None) -> AntMazeTask:
     """The D4RL-style evaluation env on a map: the same wrapper, this maze's start and goal."""
     import_robotics()
+    # lazy: after import_robotics(), which mutes its notice
     from gymnasium_robotics.envs.maze.ant_maze_v4 import AntMazeEnv
 
     spec = layout(maze)

@@ -31,7 +31,7 @@ BANDIT_1D_SPACING = 0.03
 
 def _radius_distribution():
     """rho ~ Normal(mean, std^2) truncated to ``PINWHEEL_RADIUS_RANGE`` (scipy's frozen truncnorm)."""
-    from scipy.stats import truncnorm
+    from scipy.stats import truncnorm  # lazy: scipy.stats takes ~0.5 s to import; the registry imports this module
 
     lo, hi = PINWHEEL_RADIUS_RANGE
     a, b = (lo - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD, (hi - PINWHEEL_RADIUS_MEAN) / PINWHEEL_RADIUS_STD

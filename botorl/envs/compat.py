@@ -60,7 +60,7 @@ def apply() -> bool:
     if not needs_patch():
         return False
     import_robotics()
-    from gymnasium_robotics.utils import mujoco_utils
+    from gymnasium_robotics.utils import mujoco_utils  # lazy: after import_robotics(), which mutes its notice
 
     # robot_get_obs and the kitchen env look these up as module globals at call time.
     for helper in (get_joint_qpos, get_joint_qvel, set_joint_qpos, set_joint_qvel):

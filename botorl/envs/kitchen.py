@@ -31,6 +31,7 @@ class KitchenTask(TaskEnv):
 def make_kitchen(tasks, seed: int | None = None) -> KitchenTask:
     compat.apply()
     import_robotics()
+    # lazy: after import_robotics(), which mutes its notice
     from gymnasium_robotics.envs.franka_kitchen import KitchenEnv
 
     inner = KitchenEnv(

@@ -13,7 +13,10 @@ from functools import cache, partial
 from typing import Callable
 
 import gymnasium as gym
+from gymnasium.envs.registration import EnvSpec
+from gymnasium.wrappers import TimeLimit
 
+from botorl.envs.bandit import ACTION_DIM as BANDIT_ACTION_DIM
 from botorl.errors import ConfigError
 
 
@@ -78,15 +81,11 @@ class TaskSpec:
     def make_env(self, seed: int = 0, *, evaluation: bool = False) -> gym.Env:
         """The wrapped env with the task's horizon. ``evaluation`` makes no difference: online
         training and evaluation use the same env, as in WSRL/Cal-QL."""
-        from gymnasium.wrappers import TimeLimit
-
         return TimeLimit(self.env_factory(seed), self.max_episode_steps)  # truncation, not termination
 
     def gym_spec(self):
         """A Gymnasium ``EnvSpec`` that makes this task's env (with its horizon: no TimeLimit
         added), recorded in the Minari datasets botorl writes for ``recover_environment()``."""
-        from gymnasium.envs.registration import EnvSpec
-
         return EnvSpec(id=f"botorl/{self.name}-v0", entry_point="botorl.envs.registry:make_gym_env",
                        kwargs={"task": self.name}, disable_env_checker=True)
 
@@ -114,7 +113,7 @@ def _make(entry: str, *args) -> gym.Env:
 
 
 def _build() -> dict[str, TaskSpec]:
-    from botorl.envs.bandit import ACTION_DIM as BANDIT_ACTION_DIM
+    # lazy: kitchen imports mujoco (through compat); a task's module loads when first used (``_make``)
     from botorl.envs.kitchen import MIXED_TASKS, PARTIAL_TASKS
 
     ant = dict(domain="antmaze", max_episode_steps=1000, success_mode="any", reward_scale=10.0, reward_bias=-5.0,

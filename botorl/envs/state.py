@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
+import mujoco
 import numpy as np
 
 FORMAT = "botorl-env-state-v1"
@@ -93,8 +94,6 @@ def _decode_rng(d: dict) -> np.random.Generator:
 
 def _mujoco(obj):
     """(model, data) if ``obj`` holds a MuJoCo simulation of its own, else None."""
-    import mujoco
-
     model, data = obj.__dict__.get("model"), obj.__dict__.get("data")
     if isinstance(model, mujoco.MjModel) and isinstance(data, mujoco.MjData):
         return model, data
@@ -103,8 +102,6 @@ def _mujoco(obj):
 
 def get_env_state(env: gym.Env) -> dict[str, Any]:
     """Everything that decides the env's future, as a JSON-serialisable dict."""
-    import mujoco
-
     layers, sims, seen = {}, {}, set()
     for path, obj in _layers(env):
         attrs = {}
@@ -135,8 +132,6 @@ def get_env_state(env: gym.Env) -> dict[str, Any]:
 
 def set_env_state(env: gym.Env, state: dict[str, Any]) -> None:
     """Restore ``get_env_state``'s dict into ``env`` (built the same way: same task and wrappers)."""
-    import mujoco
-
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise ValueError(f"not an env state of format {FORMAT!r}")
     layers = dict(_layers(env))

@@ -22,6 +22,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from botorl.envs.metric import check_refs
+from botorl.envs.registry import DOMAIN_NETS, DatasetSource, TaskSpec
 from botorl.envs.wrappers import TaskEnv
 from botorl.errors import ConfigError
 
@@ -279,9 +281,6 @@ def make_spec(name: str, make_env: Callable[[int], gym.Env], task: UserTask, *, 
               domain: str | None = None, reward_scale: float = 1.0, reward_bias: float = 0.0,
               data_ref: str | None = None, ref_min_score: float | None = None, ref_max_score: float | None = None):
     """The ``TaskSpec`` of a user's task (not registered yet: ``registry.register``)."""
-    from botorl.envs.metric import check_refs
-    from botorl.envs.registry import DOMAIN_NETS, DatasetSource, TaskSpec
-
     if not isinstance(name, str) or not name or any(c.isspace() for c in name) or "/" in name:
         raise ConfigError(f"task name {name!r}: give a non-empty name without spaces or '/', e.g. 'mytask'.")
     if domain is not None and domain not in PAPER_DOMAINS:

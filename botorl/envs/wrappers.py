@@ -22,7 +22,7 @@ def import_robotics() -> None:
         return
     buf = io.StringIO()
     with contextlib.redirect_stderr(buf):
-        import gymnasium_robotics  # noqa: F401
+        import gymnasium_robotics  # noqa: F401  # lazy: the one import of the package, its notice muted
     text = buf.getvalue()
     if text and "reward functions were updated" not in text:
         sys.stderr.write(text)

@@ -16,13 +16,17 @@ import os
 from functools import partial
 from pathlib import Path
 
+import mujoco
 import numpy as np
 from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
+from botorl.envs.ant_goal import NumpyActor
 from botorl.envs.antmaze import SUCCESS_RADIUS, layout  # the mazes: botorl/envs/antmaze.py
 from botorl.envs.pointmaze import cell_to_xy, free_cells, next_cell_table
 from botorl.envs.wrappers import import_robotics
+from botorl.errors import BotorlError
+from botorl.io import pyplot
 
 ACTION_NOISE = 0.2  # create_antmaze_dataset.py --action-noise
 WAYPOINT_THRESHOLD = 0.45  # controller.py waypoint_threshold
@@ -103,6 +107,7 @@ class WaypointController:
 def make_maze_env(maze: str, *, continuing_task: bool = True):
     """Gymnasium-Robotics' AntMazeEnv on the maze's wall map (no goal/reset marks)."""
     import_robotics()
+    # lazy: after import_robotics(), which mutes its notice
     from gymnasium_robotics.envs.maze.ant_maze_v4 import AntMazeEnv
 
     spec = layout(maze)
@@ -111,12 +116,8 @@ def make_maze_env(maze: str, *, continuing_task: bool = True):
 
 
 def load_actor(path=None):
-    from botorl.envs.ant_goal import NumpyActor
-
     path = Path(path or os.environ.get("BOTORL_ANT_ACTOR") or ASSET)
     if not path.exists():
-        from botorl.errors import BotorlError
-
         raise BotorlError(
             f"the goal-reaching ant's weights are missing ({path}); train them with `botorl train-ant "
             f"--out runs/ant_goal` and point BOTORL_ANT_ACTOR at runs/ant_goal/actor.npz."
@@ -128,8 +129,6 @@ class _Sim:
     """The AntMaze model stepped directly (see module docstring)."""
 
     def __init__(self, maze: str):
-        import mujoco
-
         env = make_maze_env(maze)
         self.model = env.ant_env.model
         self.data = mujoco.MjData(self.model)
@@ -322,15 +321,9 @@ def maze_stats(ds, maze: str | None = None) -> dict | None:
 
 def plot_coverage(ds, path, maze: str | None = None, title: str | None = None, max_points: int = 200_000) -> Path:
     """The visited (x, y) over the maze map (walls grey), written atomically as a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     maze = maze or maze_of(ds)
     if maze is None:
-        from botorl.errors import BotorlError
-
         raise BotorlError("`data plot` draws antmaze datasets made by botorl (their metadata name the maze); "
                           "this dataset names none.")
     spec = layout(maze)

@@ -12,11 +12,16 @@ import os
 from functools import partial
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+import optax
+from gymnasium.wrappers import TimeLimit
 from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
 from botorl.data.loaders import door_success
+from botorl.envs.adroit import make_door
 from botorl.errors import DatasetNotFoundError, DataFormatError
 
 ENV_VAR = "BOTORL_DOOR_DEMOS"
@@ -93,10 +98,6 @@ def _binary_trajectory(obs, act, next_obs, drop_unsuccessful: bool) -> dict | No
 # ---------------------------------------------------------------------------- behaviour cloning
 def train_bc(demos, steps: int, seed: int, progress: bool = True) -> list[tuple[np.ndarray, np.ndarray]]:
     """Fit a tanh MLP to the demos (MSE); returns [(W, b), ...] as numpy arrays."""
-    import jax
-    import jax.numpy as jnp
-    import optax
-
     x = jnp.asarray(np.concatenate([d["observations"] for d in demos]), dtype=jnp.float32)
     y = jnp.asarray(np.clip(np.concatenate([d["actions"] for d in demos]), -1, 1), dtype=jnp.float32)
     sizes = (x.shape[1], *HIDDEN, y.shape[1])
@@ -158,9 +159,6 @@ def bc_policy(params):
 def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = True):
     """Roll ``policy`` out in the door-binary env until ``steps`` env steps are collected
     (whole episodes). Returns (trajectories, number of episodes, number of successes)."""
-    from botorl.envs.adroit import make_door
-    from gymnasium.wrappers import TimeLimit
-
     env = TimeLimit(make_door(seed), HORIZON)
     rng = np.random.default_rng(seed)
     trajs, n_eps, n_succ, collected = [], 0, 0, 0
