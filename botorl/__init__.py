@@ -15,7 +15,7 @@ __all__ = ["BotorlError", "__version__", *_API]
 
 def __getattr__(name: str):
     if name in _API:
-        import importlib
+        import importlib  # lazy: keeps importlib out of the package's namespace (dir(botorl))
 
         return getattr(importlib.import_module("botorl.api"), name)
     raise AttributeError(f"module 'botorl' has no attribute {name!r}")

@@ -11,10 +11,14 @@ from __future__ import annotations
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
 from botorl.configs.build import override_args
+from botorl.data import user as data_user
+from botorl.envs import registry
+from botorl.envs.user import entry_of, import_entry, make_spec, probe
 from botorl.errors import BotorlError, ConfigError
 from botorl.pipeline.export import export_policy
 from botorl.pipeline.policy import load_agent, load_policy
@@ -35,12 +39,6 @@ def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_
     a poor and a good policy) in the normalised score ``100 * (R - min) / (max - min)``. Bad input
     raises ``BotorlError``; registering a name again replaces it.
     """
-    from dataclasses import replace
-
-    from botorl.data import user as data_user
-    from botorl.envs import registry
-    from botorl.envs.user import entry_of, import_entry, make_spec, probe
-
     if isinstance(make_env, str):
         entry = make_env
         make_env, path = import_entry(entry)
@@ -85,6 +83,7 @@ def run(task: str | Any = "pointmaze-umaze", method: str = "boto", profile: str 
     summary) and ``run_dir``. ``overrides``: any config field, dotted as on the command line, as
     ``online__steps=50_000`` or a dict (``online={"steps": 50_000}``, ``**{"online.steps": 50_000}``).
     """
+    # lazy: JAX; `import botorl` hands out this module's names without it (tests/test_own_task.py)
     from botorl.pipeline.cli import run_main
 
     name = getattr(task, "name", task)
@@ -111,7 +110,7 @@ def resume(run_dir: str | os.PathLike, *, checkpoint: str | None = None, progres
     from Python; returns the summary as ``run`` does. A task of one's own must be registered again
     in this process first (the same ``register_task`` call), or its entry point given again as
     ``env`` (the one the run recorded): botorl never imports what a run directory's files name."""
-    from botorl.pipeline.cli import resume_main
+    from botorl.pipeline.cli import resume_main  # lazy: JAX, as in ``run``
 
     root = Path(run_dir)
     argv = [str(root)] + (["--from", checkpoint] if checkpoint else []) + ([] if progress else ["--no-progress"]) + \

@@ -14,8 +14,10 @@ import re
 import signal
 import sys
 
+from botorl import __version__
 from botorl.errors import BotorlError, Interrupted
 from botorl.io import IO_FAULTS
+from botorl.pipeline.preempt import handling
 
 # name -> (module:function, one-line help). Imported lazily.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -54,8 +56,6 @@ def main(argv: list[str] | None = None) -> int:
         print(_usage())
         return 0
     if argv[0] in ("-V", "--version"):
-        from botorl import __version__
-
         print(__version__)
         return 0
     name, rest = argv[0], argv[1:]
@@ -67,8 +67,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # the commands that train stop at a step with a checkpoint on SIGTERM / SIGINT
         # (botorl/pipeline/preempt.py); the others keep Python's defaults
-        if name in PREEMPTIBLE:
-            from botorl.pipeline.preempt import handling
         with handling() if name in PREEMPTIBLE else contextlib.nullcontext():
             func = getattr(importlib.import_module(module_name), func_name)
             code = func(rest)
@@ -76,8 +74,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"botorl {name}: error: {err}", file=sys.stderr)
         return err.exit_code
     except Interrupted as err:
-        import signal
-
         what = signal.Signals(err.signum).name
         if err.how:
             at = f"; checkpoint {err.checkpoint}" if err.checkpoint else ""

@@ -39,7 +39,7 @@ def setup_jax() -> None:
     if _done:
         return
     _done = True
-    import jax
+    import jax  # lazy: botorl.api imports this module (through pipeline/policy.py), which must not import JAX
 
     # only possible before the first array: afterwards the backend is fixed and this is skipped
     with contextlib.suppress(AttributeError, RuntimeError, ValueError):
@@ -87,7 +87,7 @@ def matmul_precision(precision: str):
     """A context in which every matmul JAX traces runs at ``precision`` (``highest``, ``tf32``,
     ``bf16``; docs/performance.md, "Precision"). The setting is part of jit's cache key, so a
     function called under two precisions compiles one program for each."""
-    import jax
+    import jax  # lazy: as in setup_jax
 
     return jax.default_matmul_precision(MATMUL_PRECISIONS[check_precision(precision)])
 

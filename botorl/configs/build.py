@@ -7,11 +7,21 @@ sweep's trials); ``--config FILE`` reads back one it wrote.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import typing
 from collections.abc import Mapping
+from dataclasses import replace
 from typing import Any
 
+import tyro
+
+from botorl.configs.custom import expand_argv, register_given
+from botorl.configs.methods import get_method, resolve_pretrain
+from botorl.envs.registry import get_task
 from botorl.errors import ConfigError
+from botorl.io import read_json_bounded
+from botorl.jaxsetup import check_precision
 
 _SHORTCUTS = {"--demos": "--data.demos", "--dataset": "--data.path"}
 _LIST_FLAGS = ("--seeds", "--alphas")
@@ -42,7 +52,7 @@ _AGENT_PREFIXES = ("--offline.cql.", "--offline.iql.", "--online.sac.")
 def _refuse_derived(argv: list[str]) -> None:
     """A flag of a field ``resolve`` derives (``configs.resolve.DERIVED``) would be overwritten
     unseen: refuse it, naming the one flag that sets the fact."""
-    from botorl.configs.resolve import DERIVED
+    from botorl.configs.resolve import DERIVED  # lazy: JAX, as in build_config
 
     for a in argv:
         key = a.partition("=")[0]
@@ -82,15 +92,8 @@ def build_config(argv: list[str]):
     """Preset + command line -> resolved, validated RunConfig (ConfigError on bad input)."""
     if _given(argv, "--config"):
         return _load_config(argv)
-    import tyro
-
-    from botorl.configs.custom import expand_argv
-    from botorl.configs.methods import get_method, resolve_pretrain
-    from botorl.configs.presets import make_preset
-    from botorl.configs.resolve import resolve, validate
-    from botorl.configs.schema import RunConfig
-    from botorl.envs.registry import get_task
-    from botorl.jaxsetup import check_precision
+    # lazy: JAX (the agents' configs in the schema); botorl.api imports this module
+    from botorl.configs import presets, resolve, schema
 
     argv = _expand_shortcuts(list(argv))
     argv = expand_argv(argv)  # --env MODULE:FUNCTION: a task of one's own, registered here (configs/custom.py)
@@ -100,9 +103,9 @@ def build_config(argv: list[str]):
     check_precision(pre.precision)
     resolve_pretrain(pre.method, pre.pretrain)
     get_task(pre.task)
-    default = make_preset(pre.task, pre.profile, pre.method, pre.pretrain)
+    default = presets.make_preset(pre.task, pre.profile, pre.method, pre.pretrain)
     cfg = tyro.cli(
-        RunConfig,
+        schema.RunConfig,
         default=default,
         args=argv,
         prog="botorl run",
@@ -120,8 +123,8 @@ def build_config(argv: list[str]):
         raise ConfigError("--seed and --seeds are both given; a population takes --seeds (e.g. --seeds 0-7) only.")
     if cfg.alphas is not None and _given(argv, "--alpha"):
         raise ConfigError("--alpha and --alphas are both given; a population takes --alphas (e.g. --alphas -1:1:0.25) only.")
-    cfg = resolve(cfg)
-    validate(cfg)
+    cfg = resolve.resolve(cfg)
+    resolve.validate(cfg)
     return cfg
 
 
@@ -132,10 +135,7 @@ def _given(argv: list[str], flag: str) -> bool:
 def _is_flag(key: str) -> bool:
     """Whether ``key`` (a dotted path) is a plain bool field, which tyro makes a flag pair
     (``bool | None`` fields take a value)."""
-    import dataclasses
-    import typing
-
-    from botorl.configs.schema import RunConfig
+    from botorl.configs.schema import RunConfig  # lazy: JAX, as in build_config
 
     cls = RunConfig
     for part in key.replace("-", "_").split("."):
@@ -150,7 +150,7 @@ def _is_flag(key: str) -> bool:
 
 def flat_overrides(overrides: Mapping) -> dict[str, Any]:
     """``flatten``, where ``network__layer_norm`` also means ``network.layer_norm``."""
-    from botorl.configs.schema import flatten
+    from botorl.configs.schema import flatten  # lazy: JAX, as in build_config
 
     return {k.replace("__", "."): v for k, v in flatten(overrides).items()}
 
@@ -174,12 +174,7 @@ def override_args(overrides: Mapping) -> list[str]:
 def _load_config(argv: list[str]):
     """The config in FILE as `botorl sweep` wrote it, with the run's own --out, --pretrained and
     --no-progress; validated again."""
-    from dataclasses import replace
-
-    from botorl.configs.custom import register_given
-    from botorl.configs.resolve import check_bounds, validate
-    from botorl.configs.schema import RunConfig, from_dict, to_dict
-    from botorl.io import read_json_bounded
+    from botorl.configs import resolve, schema  # lazy: JAX, as in build_config
 
     p = argparse.ArgumentParser(prog="botorl run", add_help=False, allow_abbrev=False)
     for flag in ("--config", "--out", "--pretrained", "--env"):
@@ -195,15 +190,15 @@ def _load_config(argv: list[str]):
         if isinstance(data, dict):
             # a file written before the field: its runs computed at JAX's default, which is tf32
             data.setdefault("precision", "tf32")
-        cfg = from_dict(RunConfig, data)
-        if json.dumps(to_dict(cfg), sort_keys=True) != json.dumps(data, sort_keys=True):  # missing, unknown, mistyped
+        cfg = schema.from_dict(schema.RunConfig, data)
+        if json.dumps(schema.to_dict(cfg), sort_keys=True) != json.dumps(data, sort_keys=True):  # missing, unknown, mistyped
             raise ValueError("not every field of a run config, as botorl writes it")
     except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
         raise ConfigError(f"--config {ns.config} cannot be read as a run config ({err}); give a file botorl wrote "
                           f"(`botorl sweep` writes one per trial).") from None
     cfg = replace(cfg, out=ns.out or cfg.out, pretrained=ns.pretrained or cfg.pretrained,
                   progress=cfg.progress and not ns.no_progress)
-    check_bounds(cfg)
+    resolve.check_bounds(cfg)
     register_given(cfg, ns.env)  # a task of one's own: only from the user's --env, never from the file
-    validate(cfg)
+    resolve.validate(cfg)
     return cfg

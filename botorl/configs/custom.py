@@ -14,6 +14,8 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+from botorl.envs import registry
+from botorl.envs.user import import_entry, make_spec, probe, split_entry
 from botorl.errors import ConfigError
 
 # the command line's flags of a task of one's own
@@ -74,8 +76,6 @@ def expand_argv(argv: list[str]) -> list[str]:
     if Path(data).expanduser().exists():
         data = str(Path(data).expanduser().resolve())  # resume may run from another folder
     entry = found["--env"]
-    from botorl.envs.user import split_entry
-
     module, func = split_entry(entry)
     name = given.get("--task") or f"{module}.{func}"
     register_entry(name, entry, data, _number("--env-max-steps", found["--env-max-steps"], int),
@@ -93,9 +93,6 @@ def register_entry(name: str, entry: str, data: str, max_steps: int, *, success_
     """Import ``entry`` (one the user gave, never one a file names), look at its env and register
     the task ``name`` reading ``data`` (the file is read when the run loads its data). Returns the
     TaskSpec."""
-    from botorl.envs import registry
-    from botorl.envs.user import import_entry, make_spec, probe
-
     make_env, found = import_entry(entry)
     task = probe(make_env, max_steps, success_key, name=name, key_given=key_given)
     task = replace(task, entry=entry, path=found)
@@ -119,8 +116,6 @@ def register_given(cfg, entry: str | None) -> None:
     """Register a run's own task from ``entry``, the ``--env MODULE:FUNCTION`` the user gave again
     (None: nothing to do). It must be the entry the run recorded: the user says which code runs,
     the run directory only which code it expects."""
-    from botorl.envs import registry
-
     if entry is None:
         return
     e = cfg.env
@@ -144,8 +139,6 @@ def ensure_task(cfg) -> None:
     """A ConfigError unless a run's task of one's own is registered in this process (by
     ``register_given`` from the user's ``--env``, or by ``botorl.register_task``) with the env the
     run was trained on. Nothing a file names is imported here."""
-    from botorl.envs import registry
-
     e = cfg.env
     if e.max_steps is None:
         return  # one of botorl's tasks

@@ -31,6 +31,8 @@ from botorl.agents.iql import IQLConfig
 from botorl.agents.sac import SACConfig
 from botorl.boto.config import BOTOConfig
 from botorl.envs.metric import of_task as metric_of_task
+from botorl.envs.registry import get_task
+from botorl.errors import ConfigError
 from botorl.configs.schema import (
     DataConfig,
     EnvConfig,
@@ -83,9 +85,6 @@ def paper_settings(spec) -> tuple[float, int, float]:
 
 def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrain: str | None = None) -> RunConfig:
     """The default config of ``task`` under ``profile`` for ``method``."""
-    from botorl.envs.registry import get_task
-    from botorl.errors import ConfigError
-
     if profile not in PROFILES:
         raise ConfigError(f"unknown profile {profile!r} (--profile). Choose one of: {', '.join(PROFILES)}.")
     spec = get_task(task)

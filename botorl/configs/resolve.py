@@ -8,10 +8,15 @@ import os
 from dataclasses import replace
 
 from botorl.boto.config import check_alpha
+from botorl.configs.custom import ensure_task
 from botorl.configs.members import parse_alphas, parse_seeds
-from botorl.configs.presets import paper_settings
+from botorl.configs.methods import get_method, resolve_pretrain
+from botorl.configs.presets import PROFILES, paper_settings
 from botorl.configs.schema import RunConfig
+from botorl.envs.metric import check_refs
+from botorl.envs.registry import get_task
 from botorl.errors import ConfigError
+from botorl.jaxsetup import check_precision
 
 
 # The fields of the agents' configs that repeat a fact of the run config, and the run config's
@@ -48,9 +53,6 @@ def derive(agent_cfg, cfg: RunConfig, **special):
 
 def resolve(cfg: RunConfig) -> RunConfig:
     """Fill the derived fields: pretrain, alpha, and what the pipeline owns in agent configs."""
-    from botorl.envs.registry import get_task
-    from botorl.configs.methods import get_method, resolve_pretrain
-
     spec = get_task(cfg.task)
     method = get_method(cfg.method)
     pretrain = resolve_pretrain(cfg.method, cfg.pretrain)
@@ -162,8 +164,6 @@ def _check_sizes(cfg: RunConfig, method, need) -> None:
     for name, v in batches.items():
         need(isinstance(v, int) and 1 <= v <= MAX_BATCH, name, v, f"a batch size must be an integer in [1, {MAX_BATCH:,}]")
     try:
-        from botorl.envs.registry import get_task
-
         spec = get_task(cfg.task)
     except ConfigError:
         return  # an unknown task is refused where the task is looked up, naming the valid ones
@@ -197,11 +197,6 @@ def _check_sizes(cfg: RunConfig, method, need) -> None:
 
 def validate(cfg: RunConfig) -> None:
     """Raise ConfigError for any value that cannot run (call after ``resolve``)."""
-    from botorl.configs.custom import ensure_task
-    from botorl.configs.presets import PROFILES
-    from botorl.configs.methods import get_method
-    from botorl.jaxsetup import check_precision
-
     check_bounds(cfg)
     ensure_task(cfg)  # a task of one's own: registered in this process (never imported from the file)
 
@@ -257,6 +252,4 @@ def validate(cfg: RunConfig) -> None:
     if "boto" in method.stages:
         cfg.boto.validate()
     if cfg.metric.name == "score":
-        from botorl.envs.metric import check_refs
-
         check_refs(cfg.metric.ref_min_score, cfg.metric.ref_max_score, f"task {cfg.task!r}")

@@ -55,7 +55,7 @@ def data_identity(path: str | None) -> dict:
 def full_identity(cfg) -> dict[str, Any]:
     """``run_identity`` with the data's fingerprint: what a checkpoint records and what the
     commands that read the data (resume, eval) check."""
-    from botorl.configs.schema import run_identity  # JAX: botorl.api imports this module
+    from botorl.configs.schema import run_identity  # lazy: JAX (through the configs' schema); botorl.api imports this module
 
     return {**run_identity(cfg), "data": data_identity(cfg.data.path)}
 

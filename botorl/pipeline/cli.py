@@ -1,8 +1,9 @@
 """``botorl run``, ``botorl resume DIR``, ``botorl eval DIR``, ``botorl export RUN_DIR``
 (docs/running.md; a population's directory: docs/populations.md).
 
-What imports JAX or gymnasium (the runner, the stages, the configs' schema) is imported inside
-the command that needs it, so that `botorl run --help` and a refused command stay free of them.
+Imported only when one of these commands runs (botorl/cli.py), so its JAX and gymnasium
+imports (the runner, the stages, the configs' schema) are at module level; `botorl --help` and
+`import botorl` stay without them.
 """
 
 from __future__ import annotations
@@ -18,19 +19,28 @@ from typing import Annotated, Literal
 
 import tyro
 
+from botorl.agents import checkpoint as agent_ckpt
 from botorl.configs.build import build_config
 from botorl.configs.custom import register_given
+from botorl.configs.members import MEMBER_NAME, Streams, is_population, member_config, population
+from botorl.configs.resolve import BOUNDS, check_bounds, validate
+from botorl.configs.schema import RunConfig, from_dict, to_dict
 from botorl.envs.metric import of_config as metric_of_config
+from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import atomic_write_json, open_regular
 from botorl.jaxsetup import matmul_precision, setup_jax
-from botorl.pipeline import preempt
-from botorl.pipeline.export import contract_path, evaluate_exported, export_policy
+from botorl.pipeline import preempt, shared_pretrain, stages
 from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step, \
     full_identity
+from botorl.pipeline.evaluation import QProbe, evaluate_policy, metric_fields
+from botorl.pipeline.export import contract_path, evaluate_exported, export_policy
 from botorl.pipeline.policy import read_run
+from botorl.pipeline.population import check_fits
 from botorl.pipeline.provenance import environment_record
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_fault, io_guard, read_json
+from botorl.pipeline.runner import build_summary, execute, format_population, format_summary, load_offline, \
+    load_run_data, read_summary, transform_dataset, write_population_file
 from botorl.pipeline.tracking import require_wandb
 
 
@@ -65,8 +75,6 @@ def _mark_failed(path: Path, reason: str, fresh=None) -> None:
 def _execute(cfg, member_cfgs, root: Path, runs: list[RunDir], d_raw, *, resume: bool, resume_from: str | None = None):
     """``runner.execute`` with I/O faults and corrupt checkpoints turned into exit 2 and a
     truthful status (the run's summary.json, a population's population.json)."""
-    from botorl.pipeline.runner import build_summary, execute
-
     def mark(reason: str) -> None:
         if runs[0].root == root:  # a single run
             _mark_failed(runs[0].summary, reason, lambda: build_summary(cfg, runs[0], "failed", {}, reason))
@@ -115,17 +123,10 @@ def _resume_hint(root: Path, resume_from: str | None) -> str:
 
 
 def _print_summaries(summaries: list[dict], single: bool) -> None:
-    from botorl.pipeline.runner import format_population, format_summary
-
     print(format_summary(summaries[0]) if single else format_population(summaries))
 
 
 def run_main(argv: list[str]) -> int:
-    from botorl.configs.members import is_population, population
-    from botorl.configs.schema import to_dict
-    from botorl.envs.registry import get_task
-    from botorl.pipeline.runner import load_offline, write_population_file
-
     setup_jax()
     print_config = "--print-config" in argv
     cfg = build_config([a for a in argv if a != "--print-config"])
@@ -152,12 +153,8 @@ def run_main(argv: list[str]) -> int:
     spec = get_task(cfg.task)
     d_raw = load_offline(cfg, spec)  # a missing dataset fails here, before any directory exists
     if cfg.pretrained is not None:  # so does a --pretrained without every member's pre-training
-        from botorl.pipeline import shared_pretrain
-
         shared_pretrain.match(member_cfgs, cfg.pretrained)
     if not single:
-        from botorl.pipeline.population import check_fits
-
         check_fits(cfg, len(members), d_raw, spec)
     runs = [RunDir(out)] if single else [RunDir(out / m.name) for m in members]
     member_cfgs = [replace(c, out=str(r.root)) for c, r in zip(member_cfgs, runs)]
@@ -183,8 +180,6 @@ def member_dir(root: Path, entry) -> Path:
     """The run directory of a population member named in population.json: only a name botorl
     itself makes (``seed<k>``, ``alpha<+0.50>-seed<k>``: configs.members.Member.name) of a
     real folder directly inside ``root``; ConfigError (exit 2) for anything else."""
-    from botorl.configs.members import MEMBER_NAME
-
     name = entry.get("name") if isinstance(entry, dict) else None
     if not isinstance(name, str) or not MEMBER_NAME.fullmatch(name):
         raise ConfigError(f"{root / POPULATION_FILE} names a member {name!r}, which is not a member name botorl "
@@ -201,10 +196,6 @@ def load_population(directory: str | Path, entry: str | None = None, checkpoint:
     ``entry``: the user's ``--env`` for a task of one's own (configs/custom.py); the checkpoint a
     resume starts from (``checkpoint``, else the latest) is checked to be the population's before
     any task is registered."""
-    from botorl.configs.members import member_config
-    from botorl.configs.resolve import check_bounds, validate
-    from botorl.configs.schema import RunConfig, from_dict
-
     root = Path(directory)
     try:
         data = read_json(root / POPULATION_FILE)
@@ -223,15 +214,15 @@ def load_population(directory: str | Path, entry: str | None = None, checkpoint:
     check_resume_point(root, member_cfgs, checkpoint)
     register_given(cfg, entry)
     validate(cfg)
-    for r, mc in zip(runs, member_cfgs):
+    for r, member_cfg in zip(runs, member_cfgs):
         # a member differs from the population in its seed, alpha and folder only
-        want = member_config(cfg, mc.seed, mc.alpha, mc.out)
-        if replace(mc, progress=cfg.progress) != want:
+        want = member_config(cfg, member_cfg.seed, member_cfg.alpha, member_cfg.out)
+        if replace(member_cfg, progress=cfg.progress) != want:
             raise ConfigError(f"{r.config} does not describe a member of the population in {root} (its settings "
                               f"other than seed and alpha differ from {root / POPULATION_FILE}'s config); was it "
                               f"edited by hand?")
     # where the members are is where they were found, whatever the files say
-    member_cfgs = [replace(mc, out=str(r.root)) for r, mc in zip(runs, member_cfgs)]
+    member_cfgs = [replace(c, out=str(r.root)) for r, c in zip(runs, member_cfgs)]
     return replace(cfg, out=str(root)), member_cfgs, runs, data
 
 
@@ -317,8 +308,6 @@ class ExportArgs:
 
 def resume_main(argv: list[str]) -> int:
     args = tyro.cli(ResumeArgs, args=argv, prog="botorl resume")
-    from botorl.pipeline.runner import load_run_data, read_summary
-
     setup_jax()
     root = Path(args.dir)
     single = not (root / POPULATION_FILE).exists()
@@ -365,8 +354,6 @@ def _print_result(result: dict) -> None:
 
 def eval_main(argv: list[str]) -> int:
     args = tyro.cli(EvalArgs, args=argv, prog="botorl eval")
-    from botorl.configs.resolve import BOUNDS
-
     if args.episodes is not None and not 1 <= args.episodes <= BOUNDS["eval.episodes"]:
         raise ConfigError(f"--episodes {args.episodes}: give 1 to {BOUNDS['eval.episodes']:,} episodes.")
     setup_jax()
@@ -385,12 +372,6 @@ def eval_main(argv: list[str]) -> int:
 
 
 def _eval(args, run, cfg) -> dict:
-    from botorl.agents import checkpoint as agent_ckpt
-    from botorl.envs.registry import get_task
-    from botorl.pipeline import stages as S
-    from botorl.pipeline.evaluation import QProbe, evaluate_policy, metric_fields
-    from botorl.pipeline.runner import load_run_data, transform_dataset
-
     if args.episodes is not None:
         cfg = replace(cfg, eval=replace(cfg.eval, episodes=args.episodes))
     ckpt = CheckpointManager(run.checkpoints)
@@ -399,12 +380,12 @@ def _eval(args, run, cfg) -> dict:
     check_identity(state, [full_identity(cfg)], run.checkpoints, name)
     spec = get_task(cfg.task)
     d = transform_dataset(cfg, spec, load_run_data(cfg, run.config, args.allow_pickle))
-    like = S.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)
+    like = stages.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)
     agent = agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like)
     t0 = time.perf_counter()
     with matmul_precision(cfg.precision):  # the run's own
         stats = evaluate_policy(lambda o: agent.eval_actions(o[0])[None], spec, cfg, cfg.eval.episodes)
-        q_data, q_uniform = QProbe(d.observations, d.actions, seed=12345, size=cfg.eval.q_pairs)(S.q_fn(agent))
+        q_data, q_uniform = QProbe(d.observations, d.actions, seed=Streams.PROBE, size=cfg.eval.q_pairs)(stages.q_fn(agent))
     result = {"checkpoint": name, "stage": state["stage"], "step": checkpoint_step(cfg, state),
               "episodes": cfg.eval.episodes, **metric_fields(metric_of_config(cfg), stats),
               "episode_length": stats.length, "q_data": q_data, "q_uniform": q_uniform,

@@ -5,8 +5,8 @@ Dict observation in the contract's ``observation.layout`` order), traced by jax2
 agent's own ``eval_fn``; it is written only once onnxruntime's actions match ``load_policy``'s
 (docs/deploy.md). ``OnnxPolicy`` runs an exported model (``botorl eval RUN --policy FILE``).
 
-JAX, gymnasium and the runner are imported inside the functions that need them: botorl.api
-imports this module, and ``import botorl`` stays free of them (tests/test_own_task.py).
+JAX (and the runner, the configs' schema, which import it) is imported inside the functions that
+need it: botorl.api imports this module, and the API's names stay free of it (tests/test_own_task.py).
 """
 
 from __future__ import annotations
@@ -28,6 +28,9 @@ import numpy as np
 from botorl import __version__ as botorl_version
 from botorl.configs.custom import ensure_task, register_given
 from botorl.envs.metric import of_config as metric_of_config
+from botorl.envs.registry import get_task
+from botorl.envs.user import action_from_env, is_unit_box
+from botorl.envs.wrappers import TaskEnv
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import atomic_write_bytes, atomic_write_json
 from botorl.jaxsetup import setup_jax
@@ -138,14 +141,10 @@ def observation_spaces(cfg):
     """(the policy's flat observation space, the env's own one) of the run's task; (None, None)
     when its env cannot be made here (the contract then lists the layout without shapes)."""
     try:
-        from botorl.envs.registry import get_task
-
         env = get_task(cfg.task).make_env(seed=0)
     except Exception:  # noqa: BLE001 - the bounds are a courtesy; an unbuildable env must not stop the export
         return None, None
     try:
-        from botorl.envs.wrappers import TaskEnv
-
         inner = env
         while not isinstance(inner, TaskEnv) and hasattr(inner, "env"):
             inner = inner.env  # TimeLimit -> the task env
@@ -183,7 +182,7 @@ def observation_layout(obs_keys, own_space) -> list[dict[str, Any]] | None:
 def verification_observations(cfg, run, n: int, seed: int = 0, why: str | None = None) -> tuple[np.ndarray, str]:
     """``n`` observations of the run's dataset and where they came from; standard normal ones
     when the data cannot be read here (``why``: the task cannot be built here; a pickle)."""
-    from botorl.pipeline.runner import load_run_data
+    from botorl.pipeline.runner import load_run_data  # lazy: JAX; botorl.api imports this module
 
     try:
         if why is not None:
@@ -203,10 +202,10 @@ def verification_observations(cfg, run, n: int, seed: int = 0, why: str | None =
 def policy_function(policy):
     """``load_policy``'s deterministic chain after ``flatten_obs`` as one JAX function of (B, obs_dim)
     float32: ``eval_fn`` (what ``agent.eval_actions`` jits) then ``action_to_env`` in float32."""
+    # lazy: JAX; botorl.api imports this module
     import jax.numpy as jnp
 
     from botorl.agents.common import acting_view, eval_fn
-    from botorl.envs.user import is_unit_box
 
     view = acting_view(policy.agent)
     unit_box = is_unit_box(policy.action_low, policy.action_high)
@@ -362,7 +361,7 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
         check_replaceable(p, force)
     check_writable_folder(out)
     run, cfg = read_run(run_dir, "export")
-    from botorl.configs.resolve import check_bounds
+    from botorl.configs.resolve import check_bounds  # lazy: JAX (through the configs' schema); botorl.api imports this module
 
     check_bounds(cfg)
     name = pick_checkpoint(run, checkpoint)
@@ -478,9 +477,7 @@ def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path)
 def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, Any]:
     """``botorl eval RUN --policy FILE``: ``botorl eval``'s episodes with the exported model
     acting through onnxruntime; written to ``RUN/eval-<FILE stem>-onnx.json``."""
-    from botorl.envs.registry import get_task
-    from botorl.envs.user import action_from_env, is_unit_box
-    from botorl.pipeline.evaluation import evaluate_policy, metric_fields
+    from botorl.pipeline.evaluation import evaluate_policy, metric_fields  # lazy: JAX; botorl.api imports this module
 
     path = Path(path)
     model = OnnxPolicy(path)  # exit 2 when onnxruntime is missing or the file is not a model

@@ -5,8 +5,8 @@ registered and its env is never made. ``Policy`` is the chain ``flatten_obs`` ->
 actions in [-1, 1] -> ``action_to_env``, nothing else (docs/own-task.md, "The policy outside
 botorl").
 
-JAX, gymnasium and the configs' schema are imported inside the functions that need them:
-botorl.api imports this module, and ``import botorl`` stays free of them (tests/test_own_task.py).
+JAX (and the configs' schema, which imports it) is imported inside the functions that need it:
+botorl.api imports this module, and the API's names stay free of it (tests/test_own_task.py).
 """
 
 from __future__ import annotations
@@ -18,6 +18,8 @@ from typing import Any
 import numpy as np
 
 from botorl.configs.custom import register_given
+from botorl.envs.registry import get_task
+from botorl.envs.user import action_to_env, flatten_obs
 from botorl.errors import ConfigError
 from botorl.jaxsetup import matmul_precision, setup_jax
 from botorl.pipeline.checkpoint import CheckpointManager, check_identity
@@ -31,8 +33,7 @@ def read_run(run_dir, verb: str = "load", *, validate: bool = False, entry: str 
     counts, then ``before(run, cfg)`` (the caller's checkpoint identity check), and only then a task
     of one's own is registered from ``entry`` (the user's ``--env``), so nothing is imported or
     read for a directory that fails a check."""
-    from botorl.configs.resolve import check_bounds, validate as check
-    from botorl.configs.schema import RunConfig, from_dict
+    from botorl.configs import resolve, schema  # lazy: JAX (the agents' configs); botorl.api imports this module
 
     root = Path(run_dir)
     if (root / POPULATION_FILE).exists():
@@ -45,15 +46,15 @@ def read_run(run_dir, verb: str = "load", *, validate: bool = False, entry: str 
         data = read_json(run.config)
         if not isinstance(data, dict):
             raise ValueError("not a JSON object")
-        cfg = from_dict(RunConfig, data)
+        cfg = schema.from_dict(schema.RunConfig, data)
     except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
         raise ConfigError(f"{run.config} cannot be read as a run config ({err}); was it edited by hand?") from None
     if validate:
-        check_bounds(cfg)
+        resolve.check_bounds(cfg)
         if before is not None:
             before(run, cfg)
         register_given(cfg, entry)
-        check(cfg)
+        resolve.validate(cfg)
     return run, cfg
 
 
@@ -61,7 +62,7 @@ def check_checkpoint(run, cfg, checkpoint: str | None = None) -> str:
     """The checkpoint ``checkpoint`` (default: the latest verified one) of a single run, checked
     to be this run's (``check_identity``: what `botorl eval` refuses, export and load_policy refuse
     too); returns its name."""
-    from botorl.configs.schema import run_identity
+    from botorl.configs.schema import run_identity  # lazy: JAX, as in read_run
 
     ckpt = CheckpointManager(run.checkpoints)
     name = ckpt.chosen(checkpoint)
@@ -77,8 +78,6 @@ def task_io(cfg) -> dict[str, Any]:
         return {"obs_keys": tuple(e.obs_keys) if e.obs_keys else None, "obs_dim": int(e.obs_dim),
                 "action_dim": int(e.action_dim), "action_low": np.asarray(e.action_low, np.float64),
                 "action_high": np.asarray(e.action_high, np.float64)}
-    from botorl.envs.registry import get_task
-
     spec = get_task(cfg.task)  # botorl's own: the registry is plain data, no env is made
     return {"obs_keys": None, "obs_dim": spec.obs_dim, "action_dim": spec.action_dim,
             "action_low": -np.ones(spec.action_dim), "action_high": np.ones(spec.action_dim)}
@@ -93,9 +92,10 @@ def load_agent(run_dir, checkpoint: str | None = None):
 
 
 def _load(run_dir, checkpoint):
+    # lazy: JAX, as in read_run
     from botorl.agents import checkpoint as agent_ckpt
     from botorl.configs.resolve import check_bounds
-    from botorl.pipeline import stages as S
+    from botorl.pipeline import stages
 
     setup_jax()
     run, cfg = read_run(run_dir)
@@ -103,7 +103,7 @@ def _load(run_dir, checkpoint):
     name = check_checkpoint(run, cfg, checkpoint)
     ckpt = CheckpointManager(run.checkpoints)
     io = task_io(cfg)
-    like = S.agent_template(cfg, ckpt.state(name)["stage"], io["obs_dim"], io["action_dim"], cfg.seed)
+    like = stages.agent_template(cfg, ckpt.state(name)["stage"], io["obs_dim"], io["action_dim"], cfg.seed)
     return agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like), cfg, io, name
 
 
@@ -127,8 +127,6 @@ class Policy:
 
     def transform_obs(self, obs) -> np.ndarray:
         """The env's observation(s) -> (B, obs_dim) float32 (``flatten_obs``)."""
-        from botorl.envs.user import flatten_obs
-
         if isinstance(obs, Mapping):
             flat = flatten_obs(obs, self.obs_keys or tuple(sorted(obs)), batched=_size(obs) != self.obs_dim)
         else:
@@ -150,8 +148,6 @@ class Policy:
 
     def transform_action(self, unit: np.ndarray) -> np.ndarray:
         """[-1, 1] -> the env's bounds (``action_to_env``), float32."""
-        from botorl.envs.user import action_to_env
-
         return action_to_env(unit, self.action_low, self.action_high).astype(np.float32)
 
     def __call__(self, obs) -> np.ndarray:
@@ -166,7 +162,7 @@ class Policy:
 
 
 def _size(obs) -> int:
-    import jax
+    import jax  # lazy: JAX, as in read_run
 
     return sum(int(np.size(v)) for v in jax.tree_util.tree_leaves(obs))
 

@@ -21,6 +21,8 @@ import subprocess
 from importlib import metadata
 from pathlib import Path
 
+import jax
+
 from botorl.pipeline.checkpoint import file_sha256 as checkpoint_file_sha256
 
 PACKAGES = ("botorl", "jax", "jaxlib", "flax", "optax", "numpy", "mujoco", "gymnasium")
@@ -71,8 +73,6 @@ def _cpu() -> dict[str, str | None]:
 
 def environment_record() -> dict:
     """The record ``config.json`` keeps under ``environment`` (see the module docstring)."""
-    import jax  # here: experiments/report.py and `botorl run --help` import this module
-
     devices = jax.devices()
     return {
         "commit": _commit(),

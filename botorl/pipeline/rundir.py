@@ -260,7 +260,7 @@ class TBWriter:
     """
 
     def __init__(self, logdir: Path, flush_secs: float = 30.0):
-        from tensorboardX.event_file_writer import EventsWriter  # optional dependency
+        from tensorboardX.event_file_writer import EventsWriter  # lazy: optional dependency (the tensorboard extra)
 
         self.logdir = Path(logdir)
         self.flush_secs = flush_secs
@@ -289,7 +289,8 @@ class TBWriter:
         if self._writer is None or not math.isfinite(v):  # not a number, or one TensorBoard rejects
             return
         try:
-            from tensorboardX.proto.event_pb2 import Event  # optional dependency (as in __init__)
+            # lazy: optional dependency (the tensorboard extra), as in __init__
+            from tensorboardX.proto.event_pb2 import Event
             from tensorboardX.summary import scalar
 
             self._writer.write_event(Event(wall_time=time.time(), step=int(step), summary=scalar(tag, v)))

@@ -12,6 +12,7 @@ import threading
 from pathlib import Path
 
 from botorl.configs.methods import get_method
+from botorl.configs.schema import to_dict
 from botorl.errors import ConfigError
 
 MIN_VERSION = (0, 19, 10)  # reinit="create_new": several live runs in one process (a population)
@@ -21,7 +22,7 @@ INSTALL = 'pip install "botorl[wandb]"'
 def require_wandb() -> None:
     """ConfigError (exit 2) unless a wandb that can log a population is importable."""
     try:
-        import wandb
+        import wandb  # lazy: optional dependency (the wandb extra)
     except ImportError:
         raise ConfigError(f"--wandb needs the wandb package: `{INSTALL}` (or `pip install 'wandb>=0.19.10'`), "
                           f"or drop --wandb.") from None
@@ -110,9 +111,7 @@ def start(cfgs: list, runs: list) -> list:
     if not cfgs or not cfgs[0].wandb:
         return [None] * len(cfgs)
     require_wandb()
-    import wandb  # optional dependency
-
-    from botorl.configs.schema import to_dict  # JAX: `botorl run --help` imports this module
+    import wandb  # lazy: optional dependency (the wandb extra)
 
     limit = timeout()
     out = []
