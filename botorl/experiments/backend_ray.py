@@ -74,7 +74,7 @@ class RayBackend:
         if not pending:
             return 1
         try:
-            import ray
+            import ray  # lazy: optional dependency (the ray extra)
         except ImportError:
             raise BotorlError(
                 "The ray backend needs Ray, which is not installed. Install it with "

@@ -15,6 +15,12 @@ from typing import Literal, Optional
 import tyro
 
 from botorl.errors import BotorlError, ConfigError
+from botorl.experiments.grid import build_grid, load_grid_file, parse_seeds
+from botorl.experiments.pairs import read_pairs_csv, write_paired_report
+from botorl.experiments.report import make_report, select_alpha
+from botorl.experiments.runner import Sweep, SweepOptions, next_action
+from botorl.experiments.runs import find_runs
+from botorl.pipeline.tracking import require_wandb
 
 
 @dataclasses.dataclass
@@ -77,9 +83,6 @@ def _gather_set(argv: list[str]) -> list[str]:
 
 
 def sweep_main(argv: list[str]) -> int:
-    from botorl.experiments.grid import build_grid, load_grid_file
-    from botorl.experiments.runner import Sweep, SweepOptions, next_action
-
     args = tyro.cli(SweepArgs, args=_gather_set(list(argv)), prog="botorl sweep")
     file_fields = load_grid_file(args.grid) if args.grid else None
     grid = build_grid(file_fields, tasks=args.tasks, methods=args.methods, seeds=args.seeds, alphas=args.alphas,
@@ -125,8 +128,6 @@ def _check_trial_configs(sweep) -> None:
             with contextlib.redirect_stderr(captured), contextlib.redirect_stdout(captured):
                 cfg = sweep.config(trial)
             if cfg.wandb:  # once, now, rather than exit 2 in every trial
-                from botorl.pipeline.tracking import require_wandb
-
                 require_wandb()
         except BotorlError as err:
             raise ConfigError(f"Sweep trial {trial.relpath}: {err}") from None
@@ -169,23 +170,17 @@ class ReportArgs:
 
 
 def report_main(argv: list[str]) -> int:
-    from botorl.experiments.report import make_report, select_alpha
-
     args = tyro.cli(ReportArgs, args=list(argv), prog="botorl report")
     extra_pairs = _read_pairs(args.pairs_from)
     if not args.dirs and not extra_pairs:
         raise ConfigError("botorl report needs at least one run or sweep directory (or --pairs-from paired.csv files).")
     stats = dict(n_boot=args.bootstrap, confidence=args.confidence, seed=args.seed)
     if not args.dirs:
-        from botorl.experiments.pairs import write_paired_report
-
         if not args.out:
             raise ConfigError("botorl report --pairs-from without run directories needs --out.")
         for f in write_paired_report(extra_pairs, Path(args.out), sources=args.pairs_from, **stats):
             print(f"  wrote {f}")
         return 0
-    from botorl.experiments.runs import find_runs
-
     runs, skipped = find_runs([Path(d) for d in args.dirs])
     if not runs:  # an empty report would look like a result; say why there is none
         why = "; ".join(f"{s.path}: {s.reason}" for s in skipped[:5]) or "no run directory (summary.json) under them"
@@ -213,8 +208,6 @@ def report_main(argv: list[str]) -> int:
 
 
 def _read_pairs(paths: tuple[str, ...]) -> list:
-    from botorl.experiments.pairs import read_pairs_csv
-
     pairs = []
     for p in paths:
         try:
@@ -225,8 +218,6 @@ def _read_pairs(paths: tuple[str, ...]) -> list:
 
 
 def _seed_flag(flag: str, value: Optional[str]) -> Optional[list[int]]:
-    from botorl.experiments.grid import parse_seeds
-
     if value is None:
         return None
     try:

@@ -6,12 +6,18 @@ command again finds the trials the first one made) and the config each runs.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
+import re
 from pathlib import Path
 from typing import Any
 
+import yaml
+
+from botorl.configs import members
 from botorl.configs.build import flat_overrides, make_config
+from botorl.configs.members import Member, parse_alphas
 from botorl.configs.methods import METHODS, PRETRAIN_ALGOS
 from botorl.errors import ConfigError
 
@@ -72,16 +78,12 @@ class PopulationJob:
     @property
     def relpath(self) -> str:
         """`<task>/<method>[-<pretrain>]/pop-<members>m-<hash>`: the same members, the same name."""
-        import hashlib
-
         key = json.dumps([list(self.seeds), [None if a is None else round(a, 6) for a in self.alphas]])
         digest = hashlib.sha1(key.encode()).hexdigest()[:8]
         return f"{self.task}/{self.method_label}/pop-{len(self.seeds) * len(self.alphas)}m-{digest}"
 
     def member_dir(self, trial: Trial) -> str:
         """A member's run directory, relative to the sweep directory."""
-        from botorl.configs.members import Member
-
         return f"{self.relpath}/{Member(trial.seed, trial.alpha).name}"
 
     @property
@@ -145,9 +147,7 @@ def _as_list(value: Any, field: str) -> list[Any]:
 
 def parse_seeds(value: Any) -> list[int]:
     """The grid's seeds (configs.members.parse_seeds) in increasing order: the trials' order."""
-    from botorl.configs.members import parse_seeds as parse
-
-    return sorted(parse(value, "seeds"))
+    return sorted(members.parse_seeds(value, "seeds"))
 
 
 def parse_methods(value: Any) -> list[tuple[str, str | None]]:
@@ -274,10 +274,6 @@ MAX_TRIALS = 100_000  # a grid's trials: far more than a study runs, few enough 
 def _grid_loader() -> type:
     """A safe YAML loader with YAML 1.2 numbers: PyYAML's 1.1 rules read `-1:1:0.1` as the
     base-60 number -3660.9, not the alpha range the user wrote."""
-    import re
-
-    import yaml
-
     class GridLoader(yaml.SafeLoader):
         pass
 
@@ -296,8 +292,6 @@ def _grid_loader() -> type:
 
 
 def load_grid_file(path: str | Path) -> dict[str, Any]:
-    import yaml
-
     path = Path(path)
     try:
         data = yaml.load(path.read_text(), Loader=_grid_loader())  # noqa: S506 (a SafeLoader)
@@ -322,8 +316,6 @@ def load_grid_file(path: str | Path) -> dict[str, Any]:
 def build_grid(file_fields: dict[str, Any] | None = None, *, tasks: Any = None, methods: Any = None, seeds: Any = None,
                alphas: Any = None, overrides: Any = None, profile: str | None = None) -> Grid:
     """Command-line values win over the file's; overrides from both are merged."""
-    from botorl.configs.members import parse_alphas
-
     f = file_fields or {}
     grid = Grid(
         tasks=list(dict.fromkeys(str(t) for t in _as_list(tasks if tasks is not None else f.get("tasks"), "tasks"))),

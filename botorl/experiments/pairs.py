@@ -40,6 +40,7 @@ from botorl.experiments.stats import (
     wilcoxon_p,
 )
 from botorl.io import CSV_LIMIT, atomic_write_text, read_bounded
+from botorl.pipeline.shared_pretrain import fingerprint_of
 
 REFERENCE = "wsrl"
 # quantities compared, in the order of paired.csv (each: the reference's, the other's, other - reference)
@@ -93,8 +94,6 @@ def _groups(pairs: Sequence[Pair]) -> list[list[Pair]]:
 def _pretraining_key(run: Run) -> str | None:
     """The run's pre-training fingerprint as a string; None (never paired) when its config.json
     does not record the pre-training settings."""
-    from botorl.pipeline.shared_pretrain import fingerprint_of
-
     cfg = run.config
     if not run.pretrain or not all(isinstance(cfg.get(k), dict) for k in ("offline", "network", "data")):
         return None

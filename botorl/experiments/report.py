@@ -13,7 +13,9 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+from matplotlib.ticker import FuncFormatter
 
+from botorl.configs.schema import flatten
 from botorl.envs.metric import Metric
 from botorl.errors import BotorlError, ConfigError, DataFormatError
 from botorl.experiments.dip import (
@@ -47,6 +49,7 @@ from botorl.experiments.stats import (
     stratified_bootstrap_iqm,
 )
 from botorl.io import atomic_write_text
+from botorl.pipeline.provenance import comparable
 
 POINTS = (("initial", "success_initial"), ("10k", "success_10k"), ("final", "success_final"))
 SELECT_ALPHA_CRITERION = (
@@ -227,8 +230,6 @@ def mean_se_curves(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 
 def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
-    from matplotlib.ticker import FuncFormatter
-
     plt = pyplot()
     metrics = task_metrics(runs)
     tasks = sorted({r.task for r in runs})
@@ -529,9 +530,6 @@ class ReportResult:
 def environment_notes(runs: Sequence[Run], rel) -> list[str]:
     """A note when the runs were made in more than one environment (config.json's ``environment``:
     botorl commit, package versions, CPU, XLA settings, backend), naming what differs."""
-    from botorl.configs.schema import flatten
-    from botorl.pipeline.provenance import comparable
-
     records = {r.path: r.config.get("environment") for r in runs if isinstance(r.config.get("environment"), dict)}
     kinds = group_by(list(records), lambda p: comparable(records[p]))
     notes = []

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime as _dt
+import fcntl
 import os
 import signal
 import socket
@@ -23,6 +24,11 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Sequence
 
+from tqdm import tqdm
+
+from botorl.configs.members import population
+from botorl.configs.methods import get_method
+from botorl.configs.schema import to_dict
 from botorl.errors import BotorlError, ConfigError, Interrupted
 from botorl.experiments.backend_local import TOKEN_ENV, TRIAL_PID, LocalBackend, read_json, single_thread_env, \
     stop_orphan, sweep_token
@@ -30,7 +36,7 @@ from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial, group_populations
 from botorl.io import SWEEP_JSON_LIMIT, append_text, atomic_write_json, open_regular, read_bounded
-from botorl.pipeline import preempt
+from botorl.pipeline import preempt, shared_pretrain
 
 MANIFEST = "sweep.json"
 LOCKFILE = ".sweep.lock"
@@ -95,10 +101,6 @@ def same_data(cfg, run_dir: Path) -> bool:
 def shared_pretraining_args(cfg, directory: Path) -> list[str]:
     """``["--pretrained", directory]`` when every member of ``cfg`` has a finished pre-training with
     its settings under ``directory`` (BOTO's, for WSRL at the same seeds), else ``[]``."""
-    from botorl.pipeline import shared_pretrain
-    from botorl.configs.methods import get_method
-    from botorl.configs.members import population
-
     if cfg.pretrained is not None or "pretrain" not in get_method(cfg.method).stages:
         return []
     if shared_pretrain.match(population(cfg)[1], directory, strict=False) is None:
@@ -212,8 +214,6 @@ class Sweep:
 
     def _acquire_lock(self) -> None:
         """Two sweeps in one directory would launch every trial twice."""
-        import fcntl
-
         self.out.mkdir(parents=True, exist_ok=True)
         f = os.fdopen(open_regular(self.out / LOCKFILE, os.O_RDWR | os.O_CREAT), "r+")
         try:
@@ -252,8 +252,6 @@ class Sweep:
         action, cmd = trial_command(cfg, run_dir, self.opt.command, self.out if self.opt.share_pretraining else None)
         run_dir.mkdir(parents=True, exist_ok=True)
         if action == "run":
-            from botorl.configs.schema import to_dict
-
             # a stand-in command's own task has no RunConfig: it gets the fields the grid gives it
             atomic_write_json(run_dir / TRIAL_CONFIG, trial.fields if cfg is None else to_dict(cfg), exact=True)
         log = run_dir / TRIAL_LOG
@@ -320,8 +318,6 @@ class Sweep:
             return self._run()
 
     def _run(self) -> dict[str, Any]:
-        from tqdm import tqdm
-
         self._acquire_lock()
         running: dict[int, _Running] = {}
         try:

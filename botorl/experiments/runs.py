@@ -18,6 +18,7 @@ import numpy as np
 
 from botorl.errors import BotorlError
 from botorl.configs.methods import METHODS
+from botorl.configs.schema import flatten
 from botorl.envs.metric import Metric
 from botorl.envs.metric import of_config as metric_of_config
 from botorl.io import CSV_LIMIT, JSON_LIMIT, read_bounded
@@ -107,8 +108,6 @@ _SAME_METHOD = {"seed", "alpha", "out", "pretrained", "progress", "tensorboard",
 
 
 def _settings(config: dict) -> dict[str, Any]:
-    from botorl.configs.schema import flatten
-
     # environment.*: what the run was made with (pipeline/provenance.py), not a setting;
     # metric.*: recorded from the task, the same for every run of it (runs made before the
     # record have none, and are the same method)

@@ -15,9 +15,10 @@ import textwrap
 from typing import Any, Iterable, Sequence
 
 import numpy as np
+from scipy import stats
 
 from botorl.errors import ConfigError
-from botorl.io import atomic_save_figure
+from botorl.io import atomic_save_figure, pyplot
 
 
 def mean_se(values: Sequence[float]) -> tuple[float, float, int]:
@@ -79,8 +80,6 @@ EQUAL = 1e-9  # differences within this are ties
 
 def t_interval(values: Sequence[float], confidence: float = 0.95) -> tuple[float, float]:
     """mean +- t_{(1+c)/2, n-1} * s.e.; (nan, nan) for n < 2."""
-    from scipy import stats
-
     mean, se, n = mean_se(values)
     if n < 2:
         return math.nan, math.nan
@@ -90,8 +89,6 @@ def t_interval(values: Sequence[float], confidence: float = 0.95) -> tuple[float
 
 def wilcoxon_p(values: Sequence[float]) -> float:
     """Two-sided Wilcoxon signed-rank p-value; zero differences dropped; nan if none is left."""
-    from scipy import stats
-
     d = np.asarray([v for v in values if math.isfinite(v) and abs(v) > EQUAL], dtype=np.float64)
     if d.size == 0:
         return math.nan
@@ -130,16 +127,6 @@ def fmt_iqm(st: dict[str, float], sign: str = "") -> str:
 
 def alpha_text(alpha: float | None) -> str:
     return "" if alpha is None else f"{alpha:+.2f}"
-
-
-def pyplot():
-    """matplotlib's pyplot drawing to files only (reports are made on machines without a display)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def panels(n: int, width: float, height: float, ncols: int | None = None):
