@@ -7,6 +7,8 @@ so ``import botorl`` stays light (no JAX).
 
 __version__ = "0.1.0"
 
+from importlib import import_module as _import_module  # noqa: E402 (private: dir(botorl) lists the API)
+
 from botorl.errors import BotorlError  # noqa: E402,F401
 
 _API = ("register_task", "run", "resume", "load_policy", "load_agent", "export_policy")
@@ -15,9 +17,7 @@ __all__ = ["BotorlError", "__version__", *_API]
 
 def __getattr__(name: str):
     if name in _API:
-        import importlib  # lazy: keeps importlib out of the package's namespace (dir(botorl))
-
-        return getattr(importlib.import_module("botorl.api"), name)
+        return getattr(_import_module("botorl.api"), name)
     raise AttributeError(f"module 'botorl' has no attribute {name!r}")
 
 

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from typing import Any, Iterator
 
 import numpy as np
-from scipy.signal import lfilter
 
 from botorl.batch import BATCH_KEYS, Batch
 from botorl.errors import DataFormatError
@@ -194,6 +193,9 @@ class Dataset:
         """
         if not 0.0 <= gamma < 1.0:
             raise ValueError(f"gamma must be in [0, 1), got {gamma}")
+        # lazy: scipy.signal takes ~1 s to import, and botorl.api imports this module; only MC returns need it
+        from scipy.signal import lfilter
+
         out = np.empty(len(self), dtype=np.float64)
         rew = self.rewards.astype(np.float64)
         # Segments end at episode ends and at terminals; inside a segment the recursion has
