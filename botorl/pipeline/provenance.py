@@ -28,7 +28,7 @@ ENV_PREFIXES = ("XLA_", "JAX_", "BOTORL_CPU")  # settings of the environment tha
 PRETRAIN_AGENT = Path("pretrain-final") / "agent.ckpt"
 
 
-def _version(name: str) -> str | None:
+def package_version(name: str) -> str | None:
     try:
         return metadata.version(name)
     except metadata.PackageNotFoundError:
@@ -77,7 +77,7 @@ def environment_record() -> dict:
     return {
         "commit": _commit(),
         "python": platform.python_version(),
-        "versions": {name: _version(name) for name in PACKAGES},
+        "versions": {name: package_version(name) for name in PACKAGES},
         "cpu": _cpu(),
         "backend": jax.default_backend(),
         "device": devices[0].device_kind if devices else None,
