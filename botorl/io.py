@@ -7,6 +7,7 @@ so run directories stay readable by a shared group.
 from __future__ import annotations
 
 import errno
+import hashlib
 import io
 import json
 import math
@@ -104,6 +105,11 @@ def pid_alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -73,7 +73,6 @@ MATMUL_PRECISIONS = {"highest": "float32", "tf32": "tensorfloat32", "bf16": "BF1
 # the unit roundoff of a matmul's inputs at each precision: 2^-p for a p-bit significand
 # (fp32 24 bits, TF32 11, bf16 8); the accumulation is fp32 in all three
 MATMUL_ROUNDOFF = {"highest": 2.0**-24, "tf32": 2.0**-11, "bf16": 2.0**-8}
-DEFAULT_PRECISION = "tf32"
 
 
 def check_precision(precision: str) -> str:

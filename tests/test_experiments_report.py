@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
@@ -455,3 +456,12 @@ def test_dip_of_a_method_without_pretraining_is_marked(tmp_path):
     md = (tmp_path / "rep" / "report.md").read_text()
     assert "rlpd on d1 trains from scratch (no pre-training)" in md
     assert "wsrl on d1 trains from scratch" not in md
+
+
+def test_alpha_csv_keeps_a_label_with_commas_in_one_field():
+    """A variant's label joins its settings with ", " (runs.py): the CSV must quote it, so every
+    row keeps as many fields as its header."""
+    row = R.AlphaRow(task="pointmaze-medium", label="boto+calql [boto.noise=none, online_reseed=1]", alpha=-1.0, n=8,
+                     stats={f: (0.5, 0.1) for f in R.ALPHA_FIELDS})
+    (parsed,) = list(csv.DictReader(io.StringIO(R.alpha_csv([row]))))
+    assert parsed["method"] == row.label and parsed["alpha"] == "-1" and parsed["dip_se"] == "0.1"

@@ -1,27 +1,13 @@
 """``botorl bench --paper``: what a whole paper run costs, projected from short timed windows
-of the real pipeline at the ``full`` profile.
+of the real pipeline at the ``full`` profile. What it runs, how each stage's rate and compile
+time are read from the run's ``metrics/*.csv`` and how a paper run is projected from them:
+docs/performance.md, "What a paper run costs".
 
-For each task, one `botorl run --profile full` (a population of N members for each N of
-``--members``) with every stage cut to a short window -- ``--pretrain-steps`` Cal-QL updates,
-``--warmup-steps`` env steps of the frozen policy, ``--boto-steps`` BOTO updates,
-``--finetune-steps`` env steps of WSRL fine-tuning at UTD 4 with 10 critics -- and one timed
-evaluation of its last checkpoint, every member's envs in one lockstep as the run evaluates
-them. The rates are the pipeline's own: the steady state of each stage's metrics rows after
-the first, read from the run's ``metrics/*.csv``; the first row's excess time over that rate
-is the stage's compilation (its rows count from the stage's own first step: fine-tuning's from
-the end of the warm-up). Evaluation env steps/s count all members' env steps. Peak host memory
-is each process's maximum resident size (``wait4``); peak device memory, off the CPU, what
-the device's allocator reports at the process's end (``memory_stats``).
-
-Projection of a paper run (``projected_hours``): the ``full`` preset's budgets (pre-training
-steps, the 5,000-step warm-up, Table 2's BOTO steps, 300k online steps of which the warm-up's
-are the first) divided by these rates, plus every evaluation (one at step 0 and every
-``eval.interval``, ``eval.episodes`` episodes of the task's horizon: the worst case, a policy
-that never ends an episode early) at the measured evaluation rate, plus each stage's compile
-time once. Tasks whose data cannot be made here (kitchen, pen) run on synthetic data of their
-shapes (random rows in the format each task reads: a Minari dataset for kitchen, a
-Cal-QL expert ``.npy`` for pen), marked ``"data": "synthetic"``: their rates are the
-real networks' and envs', their learning means nothing.
+Peak host memory is each process's maximum resident size (``wait4``); peak device memory, off
+the CPU, what the device's allocator reports at the process's end (``memory_stats``). Tasks
+whose data cannot be made here (kitchen, pen) run on synthetic rows in the format each task
+reads (a Minari dataset for kitchen, a Cal-QL expert ``.npy`` for pen), marked ``"data":
+"synthetic"``: their rates are the real networks' and envs', their learning means nothing.
 """
 
 from __future__ import annotations

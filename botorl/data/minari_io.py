@@ -36,7 +36,7 @@ from tqdm import tqdm
 from botorl.data.dataset import ACTION_CLIP, Dataset, segments
 from botorl.data.safe import check_npz, regular_file
 from botorl.errors import BotorlError, ConfigError
-from botorl.io import atomic_write_bytes, pid_alive
+from botorl.io import atomic_write_bytes, file_sha256, pid_alive
 
 # Marks an episode split that botorl had to make because next_observation[i] !=
 # observation[i + 1] inside one episode (Minari stores one observation sequence per
@@ -55,11 +55,6 @@ TMP_MAX_AGE_S = 24 * 3600
 
 class FlatCacheInvalid(BotorlError):
     """The flat copy does not match its Minari source or its own recorded contents."""
-
-
-def _sha256_file(path: Path) -> str:
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def _content_sha256(arrays: dict[str, np.ndarray]) -> str:
@@ -320,7 +315,7 @@ def _write_flat(ds: Dataset, path: Path, meta: dict) -> None:
     check = {"content_sha256": np.asarray(_content_sha256(arrays))}
     if source.exists():
         check.update(source_size=np.asarray(source.stat().st_size, np.int64),
-                     source_sha256=np.asarray(_sha256_file(source)))
+                     source_sha256=np.asarray(file_sha256(source)))
     buf = io.BytesIO()
     np.savez(buf, **arrays, **check)
     atomic_write_bytes(path, buf.getvalue())
@@ -350,7 +345,7 @@ def read_flat(folder: Path) -> Dataset | None:
         raise FlatCacheInvalid(f"{path} was written without checksums of its source (an older botorl)")
     if not source.exists():
         raise FlatCacheInvalid(f"{path}: its source {source} is missing")
-    if int(arrays["source_size"]) != source.stat().st_size or str(arrays["source_sha256"]) != _sha256_file(source):
+    if int(arrays["source_size"]) != source.stat().st_size or str(arrays["source_sha256"]) != file_sha256(source):
         raise FlatCacheInvalid(f"{path} was made from a different {source} (size or sha256 differ)")
     body = {k: v for k, v in arrays.items() if k not in _CHECK_KEYS}
     if _content_sha256(body) != str(arrays["content_sha256"]):

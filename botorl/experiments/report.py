@@ -309,12 +309,10 @@ def alpha_table(runs: Sequence[Run], window: float = DIP_WINDOW) -> list[AlphaRo
 
 
 def alpha_csv(rows: Sequence[AlphaRow]) -> str:
+    # csv quoting: a label names its variant settings joined by ", " (runs.py)
     head = ["task", "method", "alpha", "n"] + [f"{f}_{k}" for f in ALPHA_FIELDS for k in ("mean", "se")]
-    lines = [",".join(head)]
-    for r in rows:
-        vals = [f"{x:.6g}" for f in ALPHA_FIELDS for x in r.stats[f]]
-        lines.append(",".join([r.task, r.label, f"{r.alpha:g}", str(r.n)] + vals))
-    return "\n".join(lines) + "\n"
+    return csv_text(head, ([r.task, r.label, f"{r.alpha:g}", str(r.n)] + [f"{x:.6g}" for f in ALPHA_FIELDS for x in r.stats[f]]
+                           for r in rows))
 
 
 def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WINDOW,

@@ -14,7 +14,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime as _dt
-import fcntl
 import os
 import signal
 import socket
@@ -35,8 +34,9 @@ from botorl.experiments.backend_local import TOKEN_ENV, TRIAL_PID, LocalBackend,
 from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial, group_populations
-from botorl.io import SWEEP_JSON_LIMIT, append_text, atomic_write_json, open_regular, read_bounded
+from botorl.io import SWEEP_JSON_LIMIT, append_text, atomic_write_json, read_bounded
 from botorl.pipeline import preempt, shared_pretrain
+from botorl.pipeline.rundir import POPULATION_FILE, RunLock
 
 MANIFEST = "sweep.json"
 LOCKFILE = ".sweep.lock"
@@ -52,9 +52,6 @@ def default_command() -> list[str]:
 
 def _now() -> str:
     return _dt.datetime.now().isoformat(timespec="seconds")
-
-
-POPULATION_FILE = "population.json"  # a population directory's (botorl.pipeline.population_run)
 
 
 def run_status(run_dir: Path) -> str | None:
@@ -146,7 +143,11 @@ class Sweep:
         self.trials = grid.trials() if size <= 1 else group_populations(grid.trials(), size)
         self.configs: dict[str, Any] = {}  # relpath -> RunConfig, each built once (config)
         self.manifest: dict[str, Any] = {}
-        self._lock_file = None
+        # two sweeps in one directory would launch every trial twice
+        stamp = f"pid {os.getpid()} on {socket.gethostname()}"
+        self._lock = RunLock(self.out, LOCKFILE, stamp, lambda who: BotorlError(
+            f"Another sweep ({who}) is running in {self.out}. Wait for it to end, or stop it "
+            "and start this command again: finished trials are kept and the rest resume."))
         self._pbar = None
         self.backend = (RayBackend if options.backend == "ray" else LocalBackend)(self)
 
@@ -211,31 +212,6 @@ class Sweep:
 
     def entry(self, trial: Trial) -> dict[str, Any]:
         return self.manifest["trials"][trial.relpath]
-
-    def _acquire_lock(self) -> None:
-        """Two sweeps in one directory would launch every trial twice."""
-        self.out.mkdir(parents=True, exist_ok=True)
-        f = os.fdopen(open_regular(self.out / LOCKFILE, os.O_RDWR | os.O_CREAT), "r+")
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            f.seek(0)
-            who = f.read().strip() or "another process"
-            f.close()
-            raise BotorlError(
-                f"Another sweep ({who}) is running in {self.out}. Wait for it to end, or stop it "
-                "and start this command again: finished trials are kept and the rest resume."
-            ) from None
-        f.seek(0)
-        f.truncate()
-        f.write(f"pid {os.getpid()} on {socket.gethostname()}")
-        f.flush()
-        self._lock_file = f
-
-    def _release_lock(self) -> None:
-        if self._lock_file is not None:
-            self._lock_file.close()
-            self._lock_file = None
 
     def trial_env(self, threads: int = 1) -> dict[str, str]:
         env = dict(os.environ)
@@ -318,7 +294,7 @@ class Sweep:
             return self._run()
 
     def _run(self) -> dict[str, Any]:
-        self._acquire_lock()
+        self._lock.acquire()
         running: dict[int, _Running] = {}
         try:
             self._load_manifest()
@@ -364,6 +340,6 @@ class Sweep:
                 self._pbar.close()
                 self._pbar = None
             self.backend.close()
-            self._release_lock()
+            self._lock.release()
         return self.manifest
 

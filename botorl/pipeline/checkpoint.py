@@ -12,7 +12,6 @@ accepted unverified.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import os
 import shutil
 import stat
@@ -26,7 +25,7 @@ import numpy as np
 from botorl.data.minari_io import minari_root
 from botorl.data.safe import data_files, fingerprint
 from botorl.errors import ConfigError, DataFormatError
-from botorl.io import atomic_write_json
+from botorl.io import atomic_write_json, file_sha256
 from botorl.pipeline import faults
 from botorl.pipeline.rundir import read_json
 
@@ -98,11 +97,6 @@ def check_identity(state: dict[str, Any], expected: list[dict[str, Any]], where:
         f"was trained on: put back that run's config.json and data, or start this one afresh with `botorl run` and "
         f"another --out."
     )
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 class CheckpointCorrupt(DataFormatError):

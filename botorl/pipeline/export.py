@@ -19,7 +19,6 @@ import os
 import stat
 import sys
 import time
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +35,7 @@ from botorl.io import atomic_write_bytes, atomic_write_json
 from botorl.jaxsetup import setup_jax
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_step, file_sha256
 from botorl.pipeline.policy import check_checkpoint, load_policy, read_run, task_io
+from botorl.pipeline.provenance import package_version
 from botorl.pipeline.rundir import read_json
 
 INSTALL = 'pip install "botorl[export]"'
@@ -72,13 +72,6 @@ def require(*modules: str) -> dict[str, Any]:
         raise MissingExportDependency(f"{', '.join(missing)} {'is' if len(missing) == 1 else 'are'} not installed; "
                                       f"exporting and running an ONNX policy need the export extra: {INSTALL}")
     return got
-
-
-def _version(dist: str) -> str | None:
-    try:
-        return version(dist)
-    except PackageNotFoundError:
-        return None
 
 
 def contract_path(model: str | Path) -> Path:
@@ -340,7 +333,7 @@ def verified_gap(policy, model: bytes, obs: np.ndarray, source: str, tolerance: 
         raise ExportMismatch(f"the exported model does not act as load_policy: max |onnxruntime - load_policy| = "
                              f"{gap:.3g} (row {row} of {len(obs)} {source} observations) > {tolerance:g}; nothing "
                              f"was written. Report it with the run's config.json and the versions of jax2onnx "
-                             f"({_version('jax2onnx')}) and onnxruntime ({ort_version}).")
+                             f"({package_version('jax2onnx')}) and onnxruntime ({ort_version}).")
     return gap
 
 
@@ -406,7 +399,7 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
         "stage": state.get("stage"),
         "step": checkpoint_step(cfg, state),
         "botorl_version": botorl_version,
-        "converter": {"name": "jax2onnx", "version": _version("jax2onnx")},
+        "converter": {"name": "jax2onnx", "version": package_version("jax2onnx")},
         "verification": {"runtime": f"onnxruntime {mods['onnxruntime'].__version__}", "observations": len(obs),
                          "source": source, "max_abs_gap": gap, "tolerance": tolerance},
     }

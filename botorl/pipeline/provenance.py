@@ -21,8 +21,6 @@ import subprocess
 from importlib import metadata
 from pathlib import Path
 
-import jax
-
 from botorl.pipeline.checkpoint import file_sha256 as checkpoint_file_sha256
 
 PACKAGES = ("botorl", "jax", "jaxlib", "flax", "optax", "numpy", "mujoco", "gymnasium")
@@ -30,7 +28,7 @@ ENV_PREFIXES = ("XLA_", "JAX_", "BOTORL_CPU")  # settings of the environment tha
 PRETRAIN_AGENT = Path("pretrain-final") / "agent.ckpt"
 
 
-def _version(name: str) -> str | None:
+def package_version(name: str) -> str | None:
     try:
         return metadata.version(name)
     except metadata.PackageNotFoundError:
@@ -73,11 +71,13 @@ def _cpu() -> dict[str, str | None]:
 
 def environment_record() -> dict:
     """The record ``config.json`` keeps under ``environment`` (see the module docstring)."""
+    import jax  # lazy: botorl.api imports this module (through pipeline/export.py's package_version)
+
     devices = jax.devices()
     return {
         "commit": _commit(),
         "python": platform.python_version(),
-        "versions": {name: _version(name) for name in PACKAGES},
+        "versions": {name: package_version(name) for name in PACKAGES},
         "cpu": _cpu(),
         "backend": jax.default_backend(),
         "device": devices[0].device_kind if devices else None,

@@ -18,7 +18,7 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import (IO_FAULTS, UnsafeFileError, append_text, atomic_write_bytes, jsonable, open_regular,
@@ -105,16 +105,20 @@ class RunLock:
     """One owner per run directory: an exclusive ``flock`` on ``DIR/.lock``, which holds the PID;
     a second live process gets ``RunLockedError`` (exit 2). The kernel drops a flock when its
     process dies (kill -9 too), so a killed run's lock is taken over; the file is never deleted
-    (that would let two processes lock two different files)."""
+    (that would let two processes lock two different files). A sweep's lock is one too:
+    ``name`` its file, ``stamp`` what it holds instead of the PID, ``busy(holder)`` its error."""
 
-    def __init__(self, root: str | os.PathLike):
+    def __init__(self, root: str | os.PathLike, name: str = LOCK_FILE, stamp: str | None = None,
+                 busy: Callable[[str], BotorlError] | None = None):
         self.root = Path(root)
-        self.path = self.root / LOCK_FILE
+        self.path = self.root / name
+        self.stamp = stamp
+        self.busy = busy
         self._fd: int | None = None
 
     def holder(self) -> str:
         try:
-            return read_bounded(self.path, 64).strip() or "unknown"
+            return read_bounded(self.path, 256).strip() or "unknown"
         except (OSError, ValueError):
             return "unknown"
 
@@ -128,13 +132,15 @@ class RunLock:
         except OSError as err:
             os.close(fd)
             if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                if self.busy is not None:
+                    raise self.busy(self.holder()) from None
                 raise RunLockedError(
                     f"{self.root} is in use by another botorl process (PID {self.holder()}, lock file "
                     f"{self.path}). Wait for it to finish or stop it, or give another --out."
                 ) from None
             raise
         os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        os.pwrite(fd, (self.stamp or f"{os.getpid()}\n").encode(), 0)
         self._fd = fd
         return self
 
