@@ -27,6 +27,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from botorl.envs.ant_goal import ACTION_DIM, HORIZON, OBS_DIM, AntGoalSim, NumpyActor, actor_arrays
 from botorl.io import atomic_save_figure, atomic_write_bytes, atomic_write_json, pyplot
@@ -266,8 +267,6 @@ def train(cfg: AntTrainConfig) -> dict:
     params = _host_actor(agent)
     bar = None
     if cfg.progress:
-        from tqdm import tqdm  # lazy: `python -m` this file (below) runs without the CLI's dependencies
-
         bar = tqdm(total=cfg.total_env_steps, initial=state["env_steps"], unit="step", desc="train-ant",
                    mininterval=5.0)
 
