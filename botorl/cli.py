@@ -131,8 +131,15 @@ def _silence_stdout() -> None:
 def console_main() -> None:
     """The `botorl` command: ``main``, then a Ctrl-C during Python's shutdown (atexit handlers;
     JAX's, Ray's and W&B's threads) exits 130 without a traceback. Not in ``main``, which tests
-    and `botorl.run` call in-process."""
-    code = main()
+    and `botorl.run` call in-process. Output piped into a reader that stops early (`| head`)
+    ends quietly, as other commands do: stdout goes to /dev/null so the exit's flush cannot
+    raise again."""
+    try:
+        code = main()
+        sys.stdout.flush()
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        sys.exit(1)
 
     def exit_130(signum, frame):
         for stream in (sys.stdout, sys.stderr):

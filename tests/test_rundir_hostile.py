@@ -750,6 +750,24 @@ def test_ctrl_c_during_shutdown_exits_130_quietly():
     assert res.stdout.strip()  # the version was printed and flushed
 
 
+def test_output_into_a_closed_pipe_ends_quietly():
+    """`botorl --help | head -1`: a reader that stops early closed the pipe, and the usage's print
+    ended in a BrokenPipeError traceback. Here the pipe is closed before the first write."""
+    import subprocess
+    import sys
+
+    from conftest import subprocess_env
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        res = subprocess.run([sys.executable, "-m", "botorl.cli", "--help"], env=subprocess_env(), stdout=write_end,
+                             stderr=subprocess.PIPE, text=True, timeout=60)
+    finally:
+        os.close(write_end)
+    assert res.returncode == 1 and "Traceback" not in res.stderr and "BrokenPipe" not in res.stderr, res.stderr[-2000:]
+
+
 def test_export_replaces_only_a_regular_file(tmp_path, capsys):
     """Issue 39: `export --out /dev/null --force` replaced the device with a regular file (as root);
     a FIFO, a link or a folder at --out is refused too, and so is a folder that cannot be written
