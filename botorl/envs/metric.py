@@ -117,3 +117,10 @@ def headline_of_summary(summary: Mapping[str, Any]) -> str:
         if f"{name}_initial" in summary:
             return name
     return "success"
+
+
+def episode_success(prev: float, success, mode: str) -> float:
+    """An episode's success after a step whose ``info["success"]`` is ``success``: ``mode``
+    "any" keeps the maximum so far, "last" this step's value (kitchen: the tasks done at the
+    end). The one rule for evaluation, the online loop and ``botorl tasks check``."""
+    return max(prev, float(success)) if mode == "any" else float(success)

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from botorl.agents import checkpoint as agent_ckpt
-from botorl.agents import population as AP
+from botorl.agents import population
 from botorl.configs.members import Member, Streams
 from botorl.configs.methods import get_method
 from botorl.configs.schema import RunConfig, to_dict
@@ -34,7 +34,7 @@ from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDiverge
 from botorl.io import atomic_save_figure, atomic_write_json
 from botorl.jaxsetup import matmul_precision
 from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
-from botorl.pipeline import stages as S
+from botorl.pipeline import stages
 from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name, full_identity
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
 from botorl.pipeline.rundir import EVAL_COLUMNS, POPULATION_FILE, CsvLog, MetricsLogger, RunDir, number, read_json
@@ -123,12 +123,12 @@ class RunContext:
 
     def live(self, ms: list):
         """(member, its item of ``ms``) for the members that have not failed."""
-        return [(mc, m) for i, (mc, m) in enumerate(zip(self.members, ms)) if i not in self.failed]
+        return [(member, m) for i, (member, m) in enumerate(zip(self.members, ms)) if i not in self.failed]
 
     def log(self, stage: str, step: int, rows: list[dict]) -> None:
         """Each live member's row of ``rows`` into its metrics/<stage> logs."""
-        for mc, row in self.live(rows):
-            mc.logger.log(stage, step, row)
+        for member, row in self.live(rows):
+            member.logger.log(stage, step, row)
 
     def check(self, stage: str, step: int, ms: list[dict[str, float]]) -> None:
         """Each live member's metrics must be finite: a population of one raises (the last good
@@ -187,7 +187,7 @@ class RunContext:
         """The population's agents saved under ``name`` (``like``: a stacked template)."""
         path = self.ckpt.file(name, "agent.ckpt")
         if self.single:  # the member's own agent
-            return AP.stack([agent_ckpt.load(path, like=AP.member_of(like, 0))])
+            return population.stack([agent_ckpt.load(path, like=population.member_of(like, 0))])
         return agent_ckpt.load(path, like=like)
 
     def _stored(self, x):
@@ -202,7 +202,7 @@ class RunContext:
     def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None,
               documents=None):
         state = {
-            "identity": [full_identity(mc.cfg) for mc in self.members],
+            "identity": [full_identity(member.cfg) for member in self.members],
             "stage": stage,
             "step": step,
             "stage_done": done,
@@ -213,14 +213,14 @@ class RunContext:
             "failed": {str(i): self.members[i].error for i in sorted(self.failed)},
             "time": time.time(),
         }
-        self.ckpt.save(name, state=state, agent=AP.member_of(agents, 0) if self.single else agents,
+        self.ckpt.save(name, state=state, agent=population.member_of(agents, 0) if self.single else agents,
                        save_agent=agent_ckpt.save, arrays=arrays, documents=documents)
         if not self.single and done:
             # each member's own agent in its run directory, for `botorl eval MEMBER_DIR`
-            for i, mc in enumerate(self.members):
-                CheckpointManager(mc.run.checkpoints).save(
+            for i, member in enumerate(self.members):
+                CheckpointManager(member.run.checkpoints).save(
                     name, state={**state, "np_rng": None, "extra": {}, "member": i, "identity": [state["identity"][i]]},
-                    agent=AP.member_of(agents, i), save_agent=agent_ckpt.save)
+                    agent=population.member_of(agents, i), save_agent=agent_ckpt.save)
         self.write_summary("running")
 
     def save_mid(self, stage: str, step: int, agents, *, np_rng=None, arrays=None, extra=None, documents=None) -> None:
@@ -231,6 +231,25 @@ class RunContext:
     def save_stage_end(self, stage: str, agents, arrays=None) -> None:
         self._save(checkpoint_name(stage, None), stage, None, True, agents, arrays=arrays)
 
+    def contents(self, point: dict) -> dict:
+        """What a stage resumes from: the checkpoint ``point`` names (``_resume_point``), its
+        arrays and documents read whole, and ``agents(like)``, its agents loaded on a template
+        of the stage's (the stage knows their structure)."""
+        root = self.ckpt.root / point["name"]
+        return {**point, "arrays": {p.stem: self.ckpt.arrays(point["name"], p.stem) for p in sorted(root.glob("*.npz"))},
+                "documents": {p.stem: self.ckpt.document(point["name"], p.stem) for p in sorted(root.glob("*.json"))
+                              if p.stem not in ("state", "MANIFEST")},
+                "agents": lambda like: self.load_agents(point["name"], like)}
+
+    def hooks(self) -> stages.Hooks:
+        """The stages' callbacks into this run (stages.Hooks): logs, checks, progress bars,
+        evaluations, and their mid-stage checkpoints, written here."""
+        return stages.Hooks(log=self.log, check=self.check, bar=self.bar, evaluate=self.evaluate,
+                            log_evaluation=self.log_evaluation,
+                            save=lambda stage, step, agents, sd: self.save_mid(
+                                stage, step, agents, np_rng=sd.get("np_rng"), arrays=sd.get("arrays"),
+                                extra=sd.get("extra"), documents=sd.get("documents")))
+
     # -- evaluation
     def envs(self):
         """``eval.envs_per_member`` evaluation envs per member (the same seeds for every member)."""
@@ -240,20 +259,20 @@ class RunContext:
 
     def q_stats(self, agents) -> list[tuple[float, float]]:
         """(q_data, q_uniform) per member on the probe's pairs (one call for all members)."""
-        q_d = jax.device_get(AP.q_mean(agents, self.probe.observations, self.probe.actions))
-        q_u = jax.device_get(AP.q_mean(agents, self.probe.observations, self.probe.uniform))
+        q_d = jax.device_get(population.q_mean(agents, self.probe.observations, self.probe.actions))
+        q_u = jax.device_get(population.q_mean(agents, self.probe.observations, self.probe.uniform))
         return [(float(q_d[i].mean()), float(q_u[i].mean())) for i in range(self.n)]
 
     def log_q(self, stage: str, step: int, agents) -> None:
-        for mc, (q_data, q_uniform) in self.live(self.q_stats(agents)):
-            mc.q_log.append({"stage": stage, "step": step, "q_data": q_data, "q_uniform": q_uniform})
+        for member, (q_data, q_uniform) in self.live(self.q_stats(agents)):
+            member.q_log.append({"stage": stage, "step": step, "q_data": q_data, "q_uniform": q_uniform})
 
     def evaluate(self, agents, env_step: int) -> list[dict[str, Any]]:
         """All members' evaluation episodes, one batched policy call per env step; a row per member."""
         cfg = self.cfg
         stats = evaluation.run_episodes(
-            lambda o: jax.device_get(AP.eval_actions(agents, o)), self.envs(), episodes=cfg.eval.episodes,
-            success_mode=self.spec.success_mode, seeds=[Streams.of(mc.cfg).evaluation for mc in self.members],
+            lambda o: jax.device_get(population.eval_actions(agents, o)), self.envs(), episodes=cfg.eval.episodes,
+            success_mode=self.spec.success_mode, seeds=[Streams.of(member.cfg).evaluation for member in self.members],
             max_steps=self.spec.max_episode_steps,
         )
         qs = self.q_stats(agents)
@@ -267,9 +286,9 @@ class RunContext:
         unchanged policies, which deterministic episodes from the same seeds would repeat)."""
         if env_step is not None:
             rows = [dict(r, env_step=int(env_step)) for r in rows]
-        for mc, row in self.live(rows):
-            mc.eval_log.append(row)
-            mc.logger.log_eval(row)
+        for member, row in self.live(rows):
+            member.eval_log.append(row)
+            member.logger.log_eval(row)
         return rows
 
     def close(self) -> None:
@@ -277,25 +296,25 @@ class RunContext:
             for e in es:
                 e.close()
         self._envs = None
-        for mc in self.members:
-            mc.logger.close()
+        for member in self.members:
+            member.logger.close()
 
     # -- summary
     def write_member_summary(self, i: int, status: str, error: str | None = None) -> dict[str, Any]:
-        mc = self.members[i]
+        member = self.members[i]
         if i in self.failed:
-            status, error = "failed", mc.error
-        summary = build_summary(mc.cfg, mc.run, status, self.stage_seconds(), error)
+            status, error = "failed", member.error
+        summary = build_summary(member.cfg, member.run, status, self.stage_seconds(), error)
         if not self.single:
             summary["population"] = str(self.root)
-        atomic_write_json(mc.run.summary, summary)
+        atomic_write_json(member.run.summary, summary)
         return summary
 
     def write_summary(self, status: str, error: str | None = None) -> dict[str, Any]:
         """Every member's summary.json (and a population's population.json); returns member 0's."""
         out = [self.write_member_summary(i, status, error) for i in range(self.n)]
         if not self.single:
-            write_population_file(self.root, self.cfg, [mc.cfg for mc in self.members], status,
+            write_population_file(self.root, self.cfg, [member.cfg for member in self.members], status,
                                   [s["status"] for s in out], self.stage_seconds(), error)
         return out[0]
 
@@ -385,7 +404,7 @@ def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict,
 
 # ---------------------------------------------------------------------------- the run
 def _templates(member_cfgs: list[RunConfig], stage: str, d: Dataset):
-    return AP.stack([S.agent_template(c, stage, d.obs_dim, d.action_dim, c.seed) for c in member_cfgs])
+    return population.stack([stages.agent_template(c, stage, d.obs_dim, d.action_dim, c.seed) for c in member_cfgs])
 
 
 def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig], resume: bool):
@@ -402,28 +421,31 @@ def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig], resume:
 
 
 def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | None):
-    """One stage of the method: (agents, D_warmups, the arrays its end-of-stage checkpoint keeps)."""
-    cfg, arrays, member_cfgs = ctx.cfg, None, [mc.cfg for mc in ctx.members]
+    """One stage of the method, given its inputs (and any checkpoint it resumes from, read here):
+    (agents, D_warmups, the arrays its end-of-stage checkpoint keeps)."""
+    cfg, arrays, member_cfgs, d, hooks = ctx.cfg, None, [member.cfg for member in ctx.members], ctx.d_offline, ctx.hooks()
+    resume = None if resume is None else ctx.contents(resume)
     if stage == "pretrain":
         if cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
             agents = shared_pretrain.load(ctx, shared_pretrain.match(member_cfgs, cfg.pretrained))
         else:
-            agents = S.pretrain(ctx, resume)
+            agents = stages.pretrain(cfg, member_cfgs, d, hooks, resume)
         ctx.log_q("pretrain", cfg.offline.steps, agents)
     elif stage == "warmup":
-        d_warmups, agents = S.warmup(ctx, agents)
+        d_warmups, agents = stages.warmup(cfg, member_cfgs, ctx.spec, agents, ctx.transform, hooks)
         if d_warmups is not None:
-            arrays = {k: {f: getattr(d, f) for f in _DS_FIELDS if getattr(d, f) is not None}
-                      for k, d in zip(ctx.warmup_keys(), d_warmups)}
+            arrays = {k: {f: getattr(dw, f) for f in _DS_FIELDS if getattr(dw, f) is not None}
+                      for k, dw in zip(ctx.warmup_keys(), d_warmups)}
     elif stage == "boto":
         if resume is not None and agents is None:
-            agents = _templates(member_cfgs, "boto", ctx.d_offline)
-        agents = S.boto(ctx, agents, d_warmups, resume)
+            agents = _templates(member_cfgs, "boto", d)
+        agents = stages.boto(cfg, member_cfgs, agents, d, d_warmups, hooks, resume)
         ctx.log_q("boto", cfg.boto.boto_steps, agents)
     elif stage == "finetune":
         if agents is None:  # rlpd, or a resume inside fine-tuning of a method without pre-training
-            agents = _templates(member_cfgs, "pretrain", ctx.d_offline) if ctx.method.pretrains else None
-        agents = S.finetune(ctx, agents, d_warmups, resume)
+            agents = _templates(member_cfgs, "pretrain", d) if ctx.method.pretrains else None
+        loop = stages.online_state(cfg, member_cfgs, ctx.method, ctx.spec, d, ctx.mc_returns, d_warmups)
+        agents = stages.finetune(cfg, member_cfgs, ctx.method, agents, loop, ctx.probe.observations, hooks, resume)
     return agents, d_warmups, arrays
 
 
@@ -442,8 +464,8 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
     for i, err in failed.items():
         members[int(i)].error = err
     ctx = RunContext(cfg, spec, root, members, d_offline, state)
-    for mc in members:
-        _truncate_logs(mc, method.stages, mid, state["done_stages"])
+    for member in members:
+        _truncate_logs(member, method.stages, mid, state["done_stages"])
     if latest is not None:
         where = f"{mid['stage']} step {mid['step']}" if mid else f"the end of {state['done_stages'][-1]}"
         print(f"botorl: resuming {root} from {where} (checkpoint {latest['name']})", file=sys.stderr)
@@ -490,7 +512,7 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
         tracking.finish(wandb_runs, 128 + err.signum, seconds=min(tracking.timeout(), 10.0))
         raise
     ctx.write_summary("finished")
-    summaries = [read_summary(mc.run) for mc in members]
+    summaries = [read_summary(member.run) for member in members]
     _finish_outputs(ctx)
     ctx.close()
     tracking.finish(wandb_runs)
@@ -515,26 +537,26 @@ def _load_warmups(ckpt: CheckpointManager, keys: list[str]) -> list[Dataset] | N
     return [Dataset(**{k: a.get(k) for k in _DS_FIELDS}, metadata={"source": "D_warmup (checkpoint)"}) for a in saved]
 
 
-def _truncate_logs(mc: "MemberRun", stages: tuple[str, ...], mid: dict | None, done: list[str]) -> None:
+def _truncate_logs(member: "MemberRun", order: tuple[str, ...], mid: dict | None, done: list[str]) -> None:
     """Forget a member's log rows written after the checkpoint a resume starts from."""
     def kept(stage: str) -> int:  # the last step of a stage's logs that stays: its mid-stage checkpoint's
         return int(mid["step"]) if (mid is not None and mid["stage"] == stage) else -1
 
-    for stage in stages:
+    for stage in order:
         if stage not in done:
-            mc.logger.truncate(stage, kept(stage))
+            member.logger.truncate(stage, kept(stage))
     if "finetune" not in done:
         # evaluations of finished stages (the warm-up's) stay; fine-tuning's up to its checkpoint
-        mc.eval_log.truncate(lambda r: r.get("stage") in done or number(r.get("env_step")) <= kept("finetune"))
-    mc.q_log.truncate(lambda r: r.get("stage") in done)
+        member.eval_log.truncate(lambda r: r.get("stage") in done or number(r.get("env_step")) <= kept("finetune"))
+    member.q_log.truncate(lambda r: r.get("stage") in done)
 
 
 def _finish_outputs(ctx: RunContext) -> None:
-    for mc in ctx.members:
+    for member in ctx.members:
         try:
-            plot_curve(mc.run, mc.cfg)
+            plot_curve(member.run, member.cfg)
         except Exception as err:  # a plot must never fail a run
-            print(f"botorl: could not draw {mc.run.curve} ({err})", file=sys.stderr)
+            print(f"botorl: could not draw {member.run.curve} ({err})", file=sys.stderr)
 
 
 def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
