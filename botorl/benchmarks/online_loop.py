@@ -12,13 +12,9 @@ import jax
 import numpy as np
 
 from botorl.agents.population import stack
-from botorl.configs.members import Streams
 from botorl.configs.methods import get_method
 from botorl.configs.schema import OnlineConfig, RunConfig
-from botorl.data.dataset import RewardTransform
-from botorl.data.replay import ReplayBuffer
-from botorl.pipeline.online import OnlineState
-from botorl.pipeline.stages import Window
+from botorl.pipeline.stages import Window, online_state
 
 
 class OnlineLoop:
@@ -26,14 +22,10 @@ class OnlineLoop:
 
     def __init__(self, agent: Any, spec: Any, batch: int, utd: int, seed: int = 0, prefill: int = 2000):
         # WSRL's learner: the buffer alone (no offline data), utd x batch rows per update; the
-        # loop's real inputs, as the runner builds them (stages.online_state)
+        # loop's real inputs, made as the run makes them
         online = OnlineConfig(steps=10**12, batch_size=batch, utd=utd, buffer_capacity=max(100_000, prefill * 2))
-        streams = Streams.of(RunConfig(seed=seed))
-        buffer = ReplayBuffer(online.buffer_capacity, spec.obs_dim, spec.action_dim, members=1)
-        self.state = OnlineState([spec.make_env(seed=streams.online_env)], buffer,
-                                 [np.random.default_rng(streams.online_batches)], online, get_method("wsrl"),
-                                 RewardTransform.of(spec), mc_returns=None, success_mode=spec.success_mode)
-        self.state.reset([streams.online_env])
+        cfg = RunConfig(seed=seed, online=online)
+        self.state = online_state(cfg, [cfg], get_method("wsrl"), spec, None, None)
         self.agents, self.window = stack([agent]), Window(1)
         # WSRL starts fine-tuning with the warm-up data in the buffer; random actions here.
         rng = np.random.default_rng(seed)

@@ -120,7 +120,6 @@ def headline_of_summary(summary: Mapping[str, Any]) -> str:
 
 
 def episode_success(prev: float, success, mode: str) -> float:
-    """An episode's success after a step whose ``info["success"]`` is ``success``: ``mode``
-    "any" keeps the maximum so far, "last" this step's value (kitchen: the tasks done at the
-    end). The one rule for evaluation, the online loop and ``botorl tasks check``."""
+    """An episode's success after a step whose ``info["success"]`` is ``success``: "any" mode the
+    maximum so far, "last" this step's (kitchen's). The one rule for every loop that steps envs."""
     return max(prev, float(success)) if mode == "any" else float(success)

@@ -12,6 +12,7 @@ returns filled when one ends; ``batch_layout``; botorl/configs/methods.py).
 
 from __future__ import annotations
 
+import sys
 from typing import Callable
 
 import jax
@@ -34,65 +35,69 @@ def rng_from(state: dict | None, seed_seq) -> np.random.Generator:
 
 
 class OnlineState:
-    """The state of the online loop beside the agents (see the module docstring): ``envs`` (one
-    per member), ``buffer`` (a member buffer), ``rngs`` (each member's batch generator), the
-    online config, the ``method``, the ``reward`` transform of online rewards, the MC-return
-    rule ``mc_returns`` and ``success_mode`` (botorl.envs.metric.episode_success); ``offline``:
-    the data batches mix in at ``cfg.offline_ratio``. ``reset(seeds)`` starts every episode."""
+    """The online loop's state beside the agents (the module docstring), with the MC-return rule
+    ``mc_returns``, the ``success_mode`` and the ``offline`` data batches mix in at
+    ``cfg.offline_ratio``. With ``learning`` off (the warm-up) it only acts and stores; while
+    ``ended`` is a list (the warm-up's, never saved: it is not resumed mid-way) each member's
+    episode ends go into it as buffer rows, for D_warmup."""
 
     def __init__(self, envs: list, buffer: ReplayBuffer, rngs: list[np.random.Generator], cfg, method,
                  reward: RewardTransform, *, mc_returns: Callable[[Dataset], np.ndarray], success_mode: str,
-                 offline: Dataset | None = None, step: int = 0):
+                 offline: Dataset | None = None):
         n = len(envs)
         self.envs, self.buffer, self.rngs, self.cfg, self.method, self.reward = envs, buffer, rngs, cfg, method, reward
         self.mc_returns, self.success_mode = mc_returns, success_mode
         self.offline = offline if cfg.offline_ratio > 0 else None
-        self.start = self.step = step
-        self.episodes = [0] * n
-        self.last_eval, self.resumes = -1, 0
-        self.obs = np.zeros((n, buffer.obs_dim), np.float32)
-        self.ep_succ = np.zeros(n)
-        self.ep_rows: list[list[int]] = [[] for _ in range(n)]
-        self.recent_success: list[list[float]] = [[] for _ in range(n)]
+        self.step, self.episodes, self.resumes = 0, [0] * n, 0
+        self.learning, self.ended = True, None
+        self.obs, self.ep_succ = np.zeros((n, buffer.obs_dim), np.float32), np.zeros(n)
+        # each member's running episode's buffer rows; the successes of the episodes since the last log
+        self.ep_rows, self.recent_success = [[] for _ in range(n)], [[] for _ in range(n)]
         self.finished_only = method.finished_episodes_only
         self.drawn = None  # (actions, next rng) at self.obs from the last update call, not yet taken
 
     def reset(self, seeds) -> None:
         self.obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(self.envs, seeds)])
+        self.seeds = list(seeds)
 
     def state_dict(self) -> dict:
-        """This whole state as a checkpoint holds it: ``step``, ``np_rng`` (each member's
-        generator), ``extra`` (counters), ``arrays`` (npz groups) and ``documents`` (JSON)."""
+        """This whole state as a checkpoint holds it: ``np_rng`` (each member's generator),
+        ``extra`` (the step, counters), ``arrays`` (npz groups) and ``documents`` (JSON)."""
         arrays = {"buffer": self.buffer.state_dict(), "online": {"obs": self.obs, "ep_succ": self.ep_succ}}
         if self.drawn is not None:  # the next step's action, drawn by the fused call: resumed as drawn
             actions, rng = jax.device_get(self.drawn)
             arrays["online"].update(drawn_actions=np.asarray(actions), drawn_rng=np.asarray(rng))
-        return {"step": self.step, "np_rng": [r.bit_generator.state for r in self.rngs], "arrays": arrays,
-                "extra": {"episodes": self.episodes, "last_eval": self.last_eval, "resumes": self.resumes,
-                          "start": self.start},
+        return {"np_rng": [r.bit_generator.state for r in self.rngs], "arrays": arrays,
+                "extra": {"step": self.step, "episodes": self.episodes, "resumes": self.resumes},
                 # what of the running episodes is not in arrays: each member's env state, the buffer rows
                 # of its running episode (their MC returns are filled when it ends), the recent successes
                 "documents": {"envs": {"envs": [get_env_state(e) for e in self.envs],
                                        "ep_rows": [[int(r) for r in rows] for rows in self.ep_rows],
                                        "recent_success": [[float(x) for x in xs] for xs in self.recent_success]}}}
 
-    def load_state_dict(self, state: dict) -> bool:
+    def load_state_dict(self, state: dict) -> None:
         """The state ``state_dict()`` gave (read back from checkpoint ``state["name"]``), each env
-        set to its saved state mid-episode; False where it holds no env states (a checkpoint of
-        an older botorl: the caller starts new episodes)."""
+        set to its saved state mid-episode. A checkpoint of an older botorl, without env states:
+        each member starts a new episode, with seeds not used before (the run is then not exact)."""
         n, extra, arrays = len(self.envs), state.get("extra", {}), state["arrays"]
+        if "buffer" not in arrays:  # the warm-up's end as an older botorl saved it (D_warmup alone)
+            raise CheckpointCorrupt(
+                f"checkpoint {state.get('name')} holds no online loop (an older botorl's warm-up end); resume "
+                f"from the pre-training's end, which runs the warm-up again: `botorl resume RUN_DIR --from pretrain-final`.")
         self.buffer = ReplayBuffer.from_state_dict(arrays["buffer"])
-        self.step, self.start = int(state["step"]), int(extra.get("start", self.start))
+        self.step = int(extra.get("step", state["step"]))  # a stage end's state.json has no step
         rng_states = state.get("np_rng")
         for rng, st in zip(self.rngs, rng_states if isinstance(rng_states, list) else [rng_states] * n):
             rng.bit_generator.state = st
         episodes = extra.get("episodes", 0)
         self.episodes = list(episodes) if isinstance(episodes, list) else [int(episodes)] * n
-        self.last_eval = int(extra.get("last_eval", -1))
         self.resumes = int(extra.get("resumes", 0)) + 1
         doc, online = state["documents"].get("envs"), arrays.get("online")
         if doc is None or online is None:
-            return False
+            print("botorl: warning: this checkpoint has no env state (written by an older botorl); fine-tuning "
+                  "continues with new episodes, so the run will not repeat an uninterrupted one exactly.",
+                  file=sys.stderr)
+            return self.reset([s + 100_003 * self.resumes for s in self.seeds])
         try:
             if len(doc["envs"]) != n or online["obs"].shape[0] != n:
                 raise ValueError(f"it holds {len(doc['envs'])} envs, the run has {n} members")
@@ -109,7 +114,6 @@ class OnlineState:
                 f"checkpoint {state.get('name')}: its env state (envs.json, online.npz) does not fit this run "
                 f"({type(err).__name__}: {err}). Resume from another checkpoint: `botorl resume RUN_DIR --from NAME`."
             ) from None
-        return True
 
     def __enter__(self) -> "OnlineState":
         return self
@@ -117,11 +121,12 @@ class OnlineState:
     def __exit__(self, *exc) -> None:
         for env in self.envs:
             env.close()
+        self.envs = []  # closed once: the runner closes a loop a failed stage left open
 
     # ------------------------------------------------------------------ one env step, one update
     def advance(self, agents, window):
-        """One online step of every member (one policy call for all), then one UTD update (from
-        ``online.random_steps`` on): the body of fine-tuning's loop. When every member learns,
+        """One online step of every member (one policy call for all), then one UTD update (with
+        ``learning`` on, from ``online.random_steps`` on): the body of the online loop. When every member learns,
         the update and the next step's policy call are one jitted call (one dispatch per step)."""
         if self.drawn is None:
             actions, agents = population.sample(agents, self.obs)
@@ -129,7 +134,7 @@ class OnlineState:
             (actions, rng), self.drawn = self.drawn, None
             agents = agents.replace(rng=jax.device_put(rng, agents.rng.sharding))  # a no-op unless resumed
         self.act(np.asarray(jax.device_get(actions), dtype=np.float32))  # explicit: no implicit transfer
-        if self.step >= self.cfg.random_steps:
+        if self.learning and self.step >= self.cfg.random_steps:
             agents = self.learn(agents, window)
         self.step += 1
         return agents
@@ -155,6 +160,8 @@ class OnlineState:
             if self.finished_only:
                 self.buffer.set_mc_returns(self.ep_rows[i], self.mc_returns, member=i)
             self.buffer.end_episode(i)
+            if self.ended is not None:
+                self.ended[i].append(self.ep_rows[i][-1])
             self.ep_rows[i] = []
             self.episodes[i] += 1
             self.recent_success[i].append(self.ep_succ[i])

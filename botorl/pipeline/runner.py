@@ -118,6 +118,7 @@ class RunContext:
         self.state = state  # done_stages, stage_seconds
         self.failed: set[int] = {i for i, m in enumerate(members) if m.error}
         self._envs = None
+        self.loop = None  # the online loop's state (stages.online_state), from the warm-up to fine-tuning's end
         self._stage = None
         self._stage_t0 = 0.0
 
@@ -176,9 +177,6 @@ class RunContext:
         self._stage = None
 
     # -- data
-    def transform(self, ds: Dataset) -> Dataset:
-        return transform_dataset(self.cfg, self.spec, ds)
-
     def mc_returns(self, ds: Dataset) -> np.ndarray:
         return with_mc_returns(self.cfg, self.spec, ds).mc_returns
 
@@ -199,22 +197,25 @@ class RunContext:
     def warmup_keys(self) -> list[str]:
         return ["warmup"] if self.single else [f"warmup-m{i}" for i in range(self.n)]
 
-    def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None,
-              documents=None):
+    def save(self, stage: str, step: int | None, agents, saved: dict | None = None) -> None:
+        """A checkpoint of ``stage`` at ``step`` (None: its end): the agents and the stage's state
+        dict ``saved`` (each member's generator state ``np_rng``, ``extra`` counters in state.json,
+        ``arrays`` npz groups, ``documents`` JSON files; the warm-up's end: the online loop's)."""
+        saved, name, done = saved or {}, checkpoint_name(stage, step), step is None
         state = {
             "identity": [full_identity(member.cfg) for member in self.members],
             "stage": stage,
-            "step": step,
+            "step": None if done else int(step),
             "stage_done": done,
             "done_stages": list(self.state["done_stages"]),
             "stage_seconds": self.stage_seconds(),
-            "np_rng": self._stored(np_rng),
-            "extra": self._stored(extra or {}),
+            "np_rng": self._stored(saved.get("np_rng")),
+            "extra": self._stored(saved.get("extra") or {}),
             "failed": {str(i): self.members[i].error for i in sorted(self.failed)},
             "time": time.time(),
         }
         self.ckpt.save(name, state=state, agent=population.member_of(agents, 0) if self.single else agents,
-                       save_agent=agent_ckpt.save, arrays=arrays, documents=documents)
+                       save_agent=agent_ckpt.save, arrays=saved.get("arrays"), documents=saved.get("documents"))
         if not self.single and done:
             # each member's own agent in its run directory, for `botorl eval MEMBER_DIR`
             for i, member in enumerate(self.members):
@@ -223,32 +224,20 @@ class RunContext:
                     agent=population.member_of(agents, i), save_agent=agent_ckpt.save)
         self.write_summary("running")
 
-    def save_mid(self, stage: str, step: int, agents, *, np_rng=None, arrays=None, extra=None, documents=None) -> None:
-        """A mid-stage checkpoint: the agents, each member's generator state, ``arrays`` (npz
-        groups), ``extra`` (counters, in state.json) and ``documents`` (JSON files)."""
-        self._save(checkpoint_name(stage, step), stage, int(step), False, agents, np_rng, arrays, extra, documents)
-
-    def save_stage_end(self, stage: str, agents, arrays=None) -> None:
-        self._save(checkpoint_name(stage, None), stage, None, True, agents, arrays=arrays)
-
     def contents(self, point: dict) -> dict:
         """What a stage resumes from: the checkpoint ``point`` names (``_resume_point``), its
         arrays and documents read whole, and ``agents(like)``, its agents loaded on a template
         of the stage's (the stage knows their structure)."""
-        root = self.ckpt.root / point["name"]
-        return {**point, "arrays": {p.stem: self.ckpt.arrays(point["name"], p.stem) for p in sorted(root.glob("*.npz"))},
+        root, st = self.ckpt.root / point["name"], self.ckpt.state(point["name"])
+        return {"step": st["step"], "np_rng": st.get("np_rng"), "extra": st.get("extra", {}), **point,
+                "arrays": {p.stem: self.ckpt.arrays(point["name"], p.stem) for p in sorted(root.glob("*.npz"))},
                 "documents": {p.stem: self.ckpt.document(point["name"], p.stem) for p in sorted(root.glob("*.json"))
                               if p.stem not in ("state", "MANIFEST")},
                 "agents": lambda like: self.load_agents(point["name"], like)}
 
     def hooks(self) -> stages.Hooks:
-        """The stages' callbacks into this run (stages.Hooks): logs, checks, progress bars,
-        evaluations, and their mid-stage checkpoints, written here."""
-        return stages.Hooks(log=self.log, check=self.check, bar=self.bar, evaluate=self.evaluate,
-                            log_evaluation=self.log_evaluation,
-                            save=lambda stage, step, agents, sd: self.save_mid(
-                                stage, step, agents, np_rng=sd.get("np_rng"), arrays=sd.get("arrays"),
-                                extra=sd.get("extra"), documents=sd.get("documents")))
+        """The stages' callbacks into this run (stages.Hooks); their checkpoints are written here."""
+        return stages.Hooks(self.log, self.check, self.bar, self.evaluate, self.log_evaluation, self.save)
 
     # -- evaluation
     def envs(self):
@@ -292,6 +281,8 @@ class RunContext:
         return rows
 
     def close(self) -> None:
+        if self.loop is not None:  # its envs, when a stage stopped before fine-tuning closed them
+            self.loop.__exit__()
         for es in self._envs or []:
             for e in es:
                 e.close()
@@ -352,29 +343,21 @@ def _eval_rows(run: RunDir) -> list[dict[str, float]]:
     return sorted(rows, key=lambda r: r["env_step"])
 
 
-def _points(rows: list[dict], name: str, of) -> dict[str, float | None]:
-    """``{name}_initial / _10k / _final`` of the metric ``of(row)``: at step 0, at the first
-    evaluation at or after 10k online steps (exactly 10k with the presets), and at the last one
-    (at online.steps once the run has finished)."""
-    initial = {r["env_step"]: r for r in rows}.get(0)
-    after_10k = [r for r in rows if r["env_step"] >= 10_000]
-    final = rows[-1] if rows else None
-    return {f"{name}_initial": of(initial) if initial else None,
-            f"{name}_10k": of(after_10k[0]) if after_10k else None,
-            f"{name}_final": of(final) if final else None}
-
-
 def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict, error: str | None = None) -> dict:
     rows = _eval_rows(run)
+    # the evaluations at step 0, at the first at or after 10k online steps (exactly 10k with the
+    # presets), and the last one (at online.steps once the run has finished)
     initial = {r["env_step"]: r for r in rows}.get(0)
     after_10k = [r for r in rows if r["env_step"] >= 10_000]
     final = rows[-1] if rows else None
-    metric = metric_of_config(cfg)
+    metric, points = metric_of_config(cfg), {}
     # success only where the task defines it (absent, not 0, where it does not); the return always
-    points = _points(rows, "success", lambda r: r["success"]) if metric.name == "success" else {}
-    points.update(_points(rows, "return", lambda r: r["return"]))
-    if metric.name == "score":
-        points.update(_points(rows, "score", lambda r: metric.of(r["success"], r["return"])))
+    for name in ("success", "return", "score"):
+        if name == "return" or name == metric.name:
+            of = (lambda r: r[name]) if name != "score" else (lambda r: metric.of(r["success"], r["return"]))
+            points.update({f"{name}_initial": of(initial) if initial else None,
+                           f"{name}_10k": of(after_10k[0]) if after_10k else None,
+                           f"{name}_final": of(final) if final else None})
     out = {
         "task": cfg.task,
         "method": cfg.method,
@@ -422,8 +405,9 @@ def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig], resume:
 
 def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | None):
     """One stage of the method, given its inputs (and any checkpoint it resumes from, read here):
-    (agents, D_warmups, the arrays its end-of-stage checkpoint keeps)."""
-    cfg, arrays, member_cfgs, d, hooks = ctx.cfg, None, [member.cfg for member in ctx.members], ctx.d_offline, ctx.hooks()
+    (agents, D_warmups, what its end-of-stage checkpoint keeps). The online loop's state
+    (``ctx.loop``) is made at the warm-up's start and kept for fine-tuning."""
+    cfg, end, member_cfgs, d, hooks = ctx.cfg, None, [member.cfg for member in ctx.members], ctx.d_offline, ctx.hooks()
     resume = None if resume is None else ctx.contents(resume)
     if stage == "pretrain":
         if cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
@@ -431,11 +415,14 @@ def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | No
         else:
             agents = stages.pretrain(cfg, member_cfgs, d, hooks, resume)
         ctx.log_q("pretrain", cfg.offline.steps, agents)
-    elif stage == "warmup":
-        d_warmups, agents = stages.warmup(cfg, member_cfgs, ctx.spec, agents, ctx.transform, hooks)
-        if d_warmups is not None:
-            arrays = {k: {f: getattr(dw, f) for f in _DS_FIELDS if getattr(dw, f) is not None}
-                      for k, dw in zip(ctx.warmup_keys(), d_warmups)}
+    elif stage == "warmup":  # the online loop starts here, and fine-tuning goes on with it
+        ctx.loop = stages.online_state(cfg, member_cfgs, ctx.method, ctx.spec, d, ctx.mc_returns)
+        d_warmups, agents = stages.warmup(cfg, member_cfgs, agents, ctx.loop,
+                                          lambda ds: with_mc_returns(cfg, ctx.spec, ds), hooks)
+        if d_warmups is not None:  # its end's checkpoint: the loop's state, and D_warmup for BOTO
+            end = ctx.loop.state_dict()
+            end["arrays"].update({k: {f: getattr(dw, f) for f in _DS_FIELDS if getattr(dw, f) is not None}
+                                  for k, dw in zip(ctx.warmup_keys(), d_warmups)})
     elif stage == "boto":
         if resume is not None and agents is None:
             agents = _templates(member_cfgs, "boto", d)
@@ -444,9 +431,14 @@ def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | No
     elif stage == "finetune":
         if agents is None:  # rlpd, or a resume inside fine-tuning of a method without pre-training
             agents = _templates(member_cfgs, "pretrain", d) if ctx.method.pretrains else None
-        loop = stages.online_state(cfg, member_cfgs, ctx.method, ctx.spec, d, ctx.mc_returns, d_warmups)
-        agents = stages.finetune(cfg, member_cfgs, ctx.method, agents, loop, ctx.probe.observations, hooks, resume)
-    return agents, d_warmups, arrays
+        if ctx.loop is None:  # a method without a warm-up, or a run resumed after it: from its checkpoint
+            ctx.loop = stages.online_state(cfg, member_cfgs, ctx.method, ctx.spec, d, ctx.mc_returns)
+            warm = "warmup" in ctx.method.stages and cfg.warmup.steps > 0
+            saved = resume or (ctx.contents({"name": checkpoint_name("warmup", None)}) if warm else None)
+            if saved is not None:
+                ctx.loop.load_state_dict(saved)
+        agents = stages.finetune(cfg, member_cfgs, ctx.method, agents, ctx.loop, ctx.probe.observations, hooks, resume)
+    return agents, d_warmups, end
 
 
 def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_runs: list[RunDir],
@@ -488,10 +480,10 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
                     raise preempt.interrupted()
                 ctx.begin_stage(stage)
                 resume_at = mid if (mid is not None and mid["stage"] == stage) else None
-                agents, d_warmups, arrays = _run_stage(ctx, stage, agents, d_warmups, resume_at)
+                agents, d_warmups, end = _run_stage(ctx, stage, agents, d_warmups, resume_at)
                 ctx.end_stage()
                 state["done_stages"].append(stage)
-                ctx.save_stage_end(stage, agents, arrays=arrays)
+                ctx.save(stage, None, agents, end)
     except BaseException as err:  # a signal, a divergence, a Ctrl-C or a bug: the run can be resumed
         ctx.end_stage()
         if isinstance(err, Interrupted):

@@ -1,16 +1,16 @@
-"""The four stages of a run. Each is a function from explicit inputs to its outputs.
+"""The four stages of a run, each a function from explicit inputs to its outputs:
 
-    pretrain(cfg, member_cfgs, d, hooks)               -> agents     Cal-QL / CQL / IQL on D_offline
-    warmup(cfg, member_cfgs, spec, agents, ...)         -> D_warmups  frozen policy, stochastic actions, no updates
+    pretrain(cfg, member_cfgs, d, hooks)                -> agents     Cal-QL / CQL / IQL on D_offline
+    warmup(cfg, member_cfgs, agents, state, ...)        -> D_warmups  the online loop, learning off
     boto(cfg, member_cfgs, agents, d, d_warmups, hooks) -> agents     BOTO critic training on D_offline u D_warmup
-    finetune(cfg, member_cfgs, method, agents, loop, hooks) -> agents online learning (WSRL / continued / scratch)
+    finetune(cfg, member_cfgs, method, agents, state, ...) -> agents  the online loop, learning on
 
-A stage reads no run context: it takes the data, the members' configs (their streams:
-``Streams.of``), the agents, the method, and for the online stages the ``OnlineState`` (its envs,
-buffer and generators), plus ``Hooks``, the narrow callbacks by which it logs, checks,
-evaluates, shows progress and hands a mid-stage checkpoint's contents (agents and a state dict)
-to the runner, which does every checkpoint read and write (runner.py) and gives a resumed
-stage the checkpoint's contents as ``resume``.
+Every stage runs one loop (``stage_loop``); the warm-up and fine-tuning run it over one online
+loop state (``OnlineState``; the warm-up is its first ``warmup.steps`` steps with learning off,
+as WSRL's finetune.py). A stage reads no run context: beside its inputs it gets ``Hooks``, the
+callbacks by which it logs, checks, evaluates, shows progress and hands a checkpoint's contents
+to the runner, which does every checkpoint read and write and gives a resumed stage the
+checkpoint's contents as ``resume`` (runner.py).
 
 Every stage runs a population (a single run is one of one): ``agents`` are the members'
 agents stacked on a leading axis, and every update, policy call and evaluation is one jitted
@@ -22,8 +22,8 @@ continues exactly (docs/reliability.md).
 
 from __future__ import annotations
 
-import sys
 import time
+from collections import namedtuple
 from dataclasses import dataclass, replace
 from typing import Any, Callable
 
@@ -44,24 +44,11 @@ from botorl.data.replay import ReplayBuffer
 from botorl.pipeline import faults, preempt
 from botorl.pipeline.online import OnlineState, rng_from
 
-STAGES = ("pretrain", "warmup", "boto", "finetune")
-
-
-@dataclass(frozen=True)
-class Hooks:
-    """What a stage reports to its run (the runner's ``RunContext`` gives them): ``log(stage,
-    step, rows)`` and ``check(stage, step, metrics)`` (one item per member; check may raise),
-    ``bar(total, initial, desc, unit=...)`` a progress bar, ``evaluate(agents, env_step)`` ->
-    rows and ``log_evaluation(rows, env_step)`` (an earlier evaluation of unchanged policies
-    logged again), and ``save(stage, step, agents, state)``: a mid-stage checkpoint of the
-    agents and the stage's state dict (step, np_rng, extra, arrays, documents)."""
-
-    log: Callable
-    check: Callable
-    bar: Callable
-    evaluate: Callable
-    log_evaluation: Callable
-    save: Callable
+# A stage's callbacks into its run (runner.RunContext's): ``log`` and ``check`` (stage, step, one
+# item per member; check may raise), ``bar`` (a progress bar), ``evaluate(agents, step)`` -> rows,
+# ``log_evaluation(rows, step)`` (unchanged policies' rows again), and ``save(stage, step, agents,
+# state_dict)`` (step None: the stage's end).
+Hooks = namedtuple("Hooks", "log check bar evaluate log_evaluation save")
 
 
 # ---------------------------------------------------------------------------- agents
@@ -161,17 +148,12 @@ class Window:
             self.rows = [({k: arrays[f"m.{k}"][t] for k in keys}, arrays["mask"][t]) for t in range(len(arrays["mask"]))]
 
     def flush(self) -> list[dict[str, float]]:
-        rows, self.rows = self.rows, []
-        if not rows:
+        arrays, self.rows = self.state_dict(), []
+        if arrays is None:
             return [{} for _ in range(self.n)]
-        host = jax.device_get([w for w, _ in rows])
-        masks = np.stack([m for _, m in rows])  # (T, N)
-        keys = [k for k, v in host[0].items() if np.asarray(v).ndim == 1]
-        out = []
-        for i in range(self.n):
-            t = np.flatnonzero(masks[:, i])
-            out.append({k: float(np.mean([np.asarray(host[j][k])[i] for j in t])) for k in keys} if len(t) else {})
-        return out
+        mask, keys = arrays["mask"], [k for k in arrays if k.startswith("m.")]  # mask: (T, N)
+        return [{k[2:]: float(np.mean(arrays[k][mask[:, i], i])) for k in keys} if mask[:, i].any() else {}
+                for i in range(self.n)]
 
 
 class Rate:
@@ -207,19 +189,22 @@ def pretrain_groups(member_cfgs) -> tuple[list[int], list[int]]:
     return [group.index(g) for g in range(len(first))], group
 
 
-def offline_loop(agents, update: Callable, chunk: Callable[[int], int], step: int, schedule: Schedule,
-                 window: Window, bar, *, stage: str, check: Callable, log: Callable, save: Callable,
-                 check_every_call: bool = False):
-    """The offline stages' loop (pre-training, BOTO; d3rlpy's one fitter is the model): from
-    ``step`` to ``schedule.total``, ``update(agents, step, k)`` -> (agents, metrics) runs k =
-    ``chunk(step)`` updates in one jitted call; at log and checkpoint points (at every call
-    with ``check_every_call``) the window's means are checked (``check(step, ms)``, which may
-    raise) and at log points logged (``log(step, ms)``); then ``step_end`` with
+def stage_loop(agents, update: Callable, chunk: Callable[[int], int], step: int, schedule: Schedule,
+               window: Window, bar, *, stage: str, check: Callable, log: Callable, save: Callable,
+               evaluate: Callable | None = None, check_every_call: bool = False):
+    """Every stage's loop (d3rlpy's one fitter is the model): from ``step`` to
+    ``schedule.total``, ``update(agents, step, k)`` -> (agents, metrics or None: the update
+    added its own) runs k = ``chunk(step)`` updates in one jitted call (the offline stages) or
+    one online step (``OnlineState.advance``: the warm-up with learning off, then fine-tuning);
+    at log and checkpoint points (at every call with ``check_every_call``) the window's means
+    are checked (``check(step, ms)``, which may raise) and at log points logged (``log(step,
+    ms)``); at evaluation points ``evaluate(agents, step)``; then ``step_end`` with
     ``save(step, agents, interrupted)``. Returns the agents."""
     while step < schedule.total:
         k = chunk(step)
         agents, metrics = update(agents, step, k)
-        window.add(metrics)
+        if metrics is not None:
+            window.add(metrics)
         prev, step = step, step + k
         bar.update(k)
         due = schedule(prev, step)
@@ -228,6 +213,8 @@ def offline_loop(agents, update: Callable, chunk: Callable[[int], int], step: in
             check(step, ms)
             if due.log:
                 log(step, ms)
+        if due.evaluate:
+            evaluate(agents, step)
         step_end(stage, step, schedule.total, due, lambda interrupted: save(step, agents, interrupted))
     return agents
 
@@ -280,13 +267,36 @@ def pretrain(cfg, member_cfgs, d: Dataset, hooks: Hooks, resume: dict | None = N
 
     with hooks.bar(oc.steps, step, f"pretrain ({cfg.pretrain})" + (shared if n > 1 else "")) as bar:
         # a call ends at the next checkpoint boundary so that checkpoints land on multiples
-        agents = offline_loop(
+        agents = stage_loop(
             agents, update, lambda s: min(oc.updates_per_call, oc.steps - s, cfg.checkpoint_every - s % cfg.checkpoint_every),
             step, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every), window, bar, stage="pretrain",
             check=lambda step, per_seed: hooks.check("pretrain", step, [per_seed[g] for g in group]), log=log, save=save)
     if len(reps) < n:
         agents = jax.tree_util.tree_map(lambda x: x[np.asarray(group)], agents)
     return agents
+
+
+# ---------------------------------------------------------------------------- the online loop
+def online_state(cfg, member_cfgs, method, spec, offline: Dataset | None, mc_returns: Callable | None) -> OnlineState:
+    """The online loop at step 0, from its inputs: one env per member (``Streams.online_env``;
+    the warm-up's and fine-tuning's, one loop) at its first reset, a member buffer for every
+    online step, each member's batch generator (``Streams.online_batches``), the online config,
+    the method and the task's reward transform (``botorl bench`` builds its loop here too)."""
+    oc, streams = cfg.online, [Streams.of(c) for c in member_cfgs]
+    buffer = ReplayBuffer(oc.buffer_capacity or (oc.steps + 1), spec.obs_dim, spec.action_dim, members=len(streams))
+    state = OnlineState([spec.make_env(seed=s.online_env) for s in streams], buffer,
+                        [rng_from(None, s.online_batches) for s in streams], oc, method, RewardTransform.of(spec),
+                        mc_returns=mc_returns, success_mode=spec.success_mode, offline=offline)
+    state.reset([s.online_env for s in streams])
+    return state
+
+
+def online_loop(state: OnlineState, agents, schedule: Schedule, window: Window, bar, **kw):
+    """``stage_loop`` over the online loop ``state``: one ``state.advance`` a step (act, step the
+    envs, store; one UTD update while ``state.learning``), as WSRL's finetune.py, whose warm-up
+    is this loop with learning off."""
+    return stage_loop(agents, lambda agents, step, k: (state.advance(agents, window), None), lambda step: 1,
+                      state.step, schedule, window, bar, **kw)
 
 
 # ---------------------------------------------------------------------------- stage 2a
@@ -303,57 +313,40 @@ def _reseed_online(member_cfgs, agents):
     return agents.replace(rng=jax.device_put(jnp.stack(keys), where))
 
 
-def warmup(cfg, member_cfgs, spec, agents, transform: Callable[[Dataset], Dataset],
+def warmup(cfg, member_cfgs, agents, state: OnlineState, with_mc_returns: Callable[[Dataset], Dataset],
            hooks: Hooks) -> tuple[list[Dataset] | None, Any]:
-    """D_warmup: ``warmup.steps`` env steps of the frozen pre-trained policy (stochastic), one
-    env per member. These are the first online env steps (WSRL's accounting); the frozen
-    policy's step-0 evaluation is logged again at each evaluation point the warm-up passes.
-    No mid-stage checkpoint: a resume runs it again, which gives the same D_warmup."""
+    """D_warmup: the online loop ``state`` (at step 0) for ``warmup.steps`` env steps with learning
+    off, as WSRL's finetune.py: the frozen pre-trained policy acts (stochastic), nothing updates.
+    These are the first online steps (WSRL's accounting): fine-tuning goes on with the same loop
+    (its envs mid-episode, its step, its buffer). The frozen policy's step-0 evaluation is logged
+    again at each evaluation point passed. D_warmup is each member's buffer rows (MC returns by
+    ``with_mc_returns``). No mid-stage checkpoint: a resume runs it again from the pre-training's
+    end (the same D_warmup); the runner saves the loop's state at its end."""
     n, N = cfg.warmup.steps, len(member_cfgs)
     if n == 0:
         return None, agents
-    seeds = [Streams.of(c).warmup_env for c in member_cfgs]
-    envs = [spec.make_env(seed=s) for s in seeds]
-    obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(envs, seeds)])
     agents = _reseed_online(member_cfgs, agents)
-    O, A = spec.obs_dim, spec.action_dim
-    rows = {"observations": np.zeros((N, n, O), np.float32), "actions": np.zeros((N, n, A), np.float32),
-            "rewards": np.zeros((N, n), np.float32), "next_observations": np.zeros((N, n, O), np.float32),
-            "terminals": np.zeros((N, n), bool), "episode_ends": np.zeros((N, n), bool)}
-    successes: list[list[float]] = [[] for _ in range(N)]
-    ep_success = np.zeros(N)
-    first_eval = None
-    try:
-        with hooks.bar(n, 0, "warm-up (frozen policy)", unit="env step") as bar:
-            for t in range(n):
-                if t % cfg.eval.interval == 0:
-                    first_eval = hooks.evaluate(agents, t) if first_eval is None else hooks.log_evaluation(first_eval, t)
-                actions, agents = population.sample(agents, obs)
-                actions = np.asarray(jax.device_get(actions), dtype=np.float32)
-                for i, env in enumerate(envs):
-                    next_obs, r, terminated, truncated, info = env.step(actions[i])
-                    ep_success[i] = max(ep_success[i], float(info.get("success", 0.0)))
-                    for k, v in zip(rows, (obs[i], actions[i], r, next_obs, terminated, terminated or truncated)):
-                        rows[k][i, t] = v
-                    obs[i] = next_obs
-                    if terminated or truncated:
-                        successes[i].append(ep_success[i])
-                        ep_success[i] = 0.0
-                        obs[i] = env.reset()[0]
-                if t % 200 == 0:
-                    bar.update(min(200, n - bar.n))
-                faults.step("warmup", t + 1)
-                if preempt.requested():  # the resume starts the warm-up again (exact; see the docstring)
-                    raise preempt.interrupted()
-            bar.update(n - bar.n)
-    finally:
-        for env in envs:
-            env.close()
-    d_warmups = [transform(Dataset(**{k: v[i] for k, v in rows.items()},
-                                   metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"}))
-                 for i in range(N)]
-    hooks.log("warmup", n, [{"episodes": len(s), "success_rate": float(np.mean(s)) if s else float("nan"),
-                             "reward_mean": float(np.mean(rows["rewards"][i]))} for i, s in enumerate(successes)])
+    first = hooks.evaluate(agents, state.step)
+    state.learning, state.ended = False, [[] for _ in range(N)]
+    with hooks.bar(n, 0, "warm-up (frozen policy)", unit="env step") as bar:
+        agents = online_loop(
+            state, agents, Schedule(n, n, n + 1, evaluate=lambda step: step % cfg.eval.interval == 0 and step < n),
+            Window(N), bar, stage="warmup", evaluate=lambda agents, step: hooks.log_evaluation(first, step),
+            check=lambda step, ms: None, log=lambda step, ms: None, save=lambda step, agents, interrupted: None)
+    ended, state.ended, state.learning = state.ended, None, True
+    rows, t = state.buffer.state_dict(), state.reward
+    d_warmups = []
+    for i, ends in enumerate(ended):
+        episode_ends = np.zeros(n, bool)
+        episode_ends[ends] = True
+        d_warmups.append(with_mc_returns(Dataset(
+            *(rows[k][i, :n] for k in ("observations", "actions", "rewards", "next_observations")), rows["dones"][i, :n] > 0.5,
+            episode_ends=episode_ends, metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})))
+    # the rewards as the env gave them, as before the loop stored transformed ones
+    hooks.log("warmup", n, [{"episodes": state.episodes[i], "success_rate": float(np.mean(s)) if s else float("nan"),
+                             "reward_mean": float((np.mean(rows["rewards"][i, :n]) - t.bias) / t.scale)}
+                            for i, s in enumerate(state.recent_success)])
+    state.recent_success = [[] for _ in range(N)]  # fine-tuning's train_success: its own episodes
     return d_warmups, agents
 
 
@@ -361,7 +354,7 @@ def warmup(cfg, member_cfgs, spec, agents, transform: Callable[[Dataset], Datase
 def boto(cfg, member_cfgs, agents, d: Dataset, d_warmups: list[Dataset] | None, hooks: Hooks,
          resume: dict | None = None):
     """BOTO critic training on D_offline u D_warmup, each member with its own alpha and
-    D_warmup (botorl.boto.phase.boto_updates in the offline loop, with this run's logs and
+    D_warmup (botorl.boto.phase.boto_updates in the stage loop, with this run's logs and
     checkpoints)."""
     bc, n, start = cfg.boto, len(member_cfgs), 0
     if resume is not None:
@@ -379,87 +372,49 @@ def boto(cfg, member_cfgs, agents, d: Dataset, d_warmups: list[Dataset] | None, 
         # the batches of a call follow from its index (boto_updates): no generator state to save,
         # and calls are not cut at checkpoint points (train_boto's calls, so its numbers); the
         # metrics are checked after every call, and a log point logs its call's
-        return offline_loop(agents, update, lambda s: min(bc.steps_per_call, bc.boto_steps - s), start,
-                            Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every),
-                            Window(n), bar, stage="boto", check=lambda step, ms: hooks.check("boto", step, ms),
-                            log=log, save=lambda step, agents, interrupted: hooks.save("boto", step, agents, {}),
-                            check_every_call=True)
+        return stage_loop(agents, update, lambda s: min(bc.steps_per_call, bc.boto_steps - s), start,
+                          Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every),
+                          Window(n), bar, stage="boto", check=lambda step, ms: hooks.check("boto", step, ms),
+                          log=log, save=lambda step, agents, interrupted: hooks.save("boto", step, agents, {}),
+                          check_every_call=True)
 
 
 # ---------------------------------------------------------------------------- stage 3
-def online_state(cfg, member_cfgs, method, spec, d: Dataset, mc_returns: Callable[[Dataset], np.ndarray],
-                 d_warmups: list[Dataset] | None) -> OnlineState:
-    """The online loop at its start, from its inputs: one env per member (``Streams.online_env``)
-    at its first reset, a member buffer (holding D_warmup for WSRL's warm start), each member's
-    batch generator (``Streams.online_batches``), the online config, the method and the task's
-    reward transform; the step after the warm-up."""
-    oc, streams = cfg.online, [Streams.of(c) for c in member_cfgs]
-    n_warm = len(d_warmups[0]) if d_warmups is not None else 0
-    buffer = ReplayBuffer(oc.buffer_capacity or (oc.steps + n_warm + 1), d.obs_dim, d.action_dim, members=len(streams))
-    if d_warmups is not None and method.finetune_start == "warm_start":
-        buffer.insert_dataset(d_warmups)  # WSRL: the online buffer starts with D_warmup
-    state = OnlineState([spec.make_env(seed=s.online_env) for s in streams], buffer,
-                        [rng_from(None, s.online_batches) for s in streams], oc, method, RewardTransform.of(spec),
-                        mc_returns=mc_returns, success_mode=spec.success_mode, offline=d, step=n_warm)
-    state.reset([s.online_env for s in streams])
-    return state
-
-
-def resume_online(state: OnlineState, resume: dict, member_cfgs) -> None:
-    """``state`` as the checkpoint ``resume`` saved it; one written before env states were saved
-    starts new episodes, with seeds not used before (the run is then not exact)."""
-    if not state.load_state_dict(resume):
-        print("botorl: warning: this checkpoint has no env state (written by an older botorl); fine-tuning "
-              "continues with new episodes, so the run will not repeat an uninterrupted one exactly.",
-              file=sys.stderr)
-        state.reset([Streams.of(c).online_env + 100_003 * state.resumes for c in member_cfgs])
-
-
 def finetune(cfg, member_cfgs, method, agents, state: OnlineState, probe_observations: np.ndarray, hooks: Hooks,
              resume: dict | None = None):
-    """Online learning with ``state`` (online_state) from the step after the warm-up to
-    ``online.steps`` (the warm-up's env steps counted, as WSRL), evaluating at its start, at
-    ``eval.due`` points and at the end; what decides the future besides the agents is ``state``."""
+    """Online learning: the online loop ``state`` (online_state; after the warm-up, where it
+    left it; resumed, as the runner restored it) from its step to ``online.steps`` (the warm-up's
+    env steps counted, as WSRL) with the fine-tuning learners, evaluating at its start, at
+    ``eval.due`` points and at the end; what decides the future besides the agents is ``state``.
+    Every method with a warm-up starts warm (configs/methods.py), so its buffer keeps D_warmup."""
     oc, n = cfg.online, len(member_cfgs)
     agents = start_finetuning(cfg, member_cfgs, method, agents, state.buffer.action_dim, probe_observations)
     if resume is not None:
-        resume_online(state, resume, member_cfgs)
         agents = resume["agents"](agents)
     # where the updates keep them (a population's members split over the CPU devices), from the
     # first step on: a resumed run's loaded agents sit on one device, where the policy call
     # compiles another program than the uninterrupted run's at that step (its actions differed
     # in the last bit, and the run drifted from there)
     agents = population.placed(agents, every_leaf=True)[0]
-    points = Schedule(oc.steps, oc.log_every, cfg.checkpoint_every,
-                      evaluate=lambda step: cfg.eval.due(step, oc.steps, cfg.warmup.steps))
-    if state.step == state.start and state.last_eval < state.start:
-        hooks.evaluate(agents, state.start)
-        state.last_eval = state.start
+    if resume is None:  # a checkpoint comes after a step: a resumed fine-tuning is past its start
+        hooks.evaluate(agents, state.step)
     window, rate = Window(n), Rate(state.step)
     if resume is not None:
         window.load(resume["arrays"].get("window"))
 
-    def save(interrupted: bool) -> None:
-        sd = state.state_dict()
-        w = window.state_dict() if interrupted else None
+    def evaluate(agents, step: int) -> None:
+        bar.set_postfix(success=f"{hooks.evaluate(agents, step)[0]['success']:.2f}")
+
+    def save(step: int, agents, interrupted: bool) -> None:
+        sd, w = state.state_dict(), window.state_dict() if interrupted else None
         if w:
             sd["arrays"]["window"] = w
-        hooks.save("finetune", state.step, agents, sd)
+        hooks.save("finetune", step, agents, sd)
 
     label = f"fine-tune ({cfg.method})" + (f" x {n} members" if n > 1 else "")
     with state, hooks.bar(oc.steps, state.step, label, unit="env step") as bar:
-        while state.step < oc.steps:
-            agents = state.advance(agents, window)  # act, step the envs, store; one UTD update
-            bar.update(1)
-            due = points(state.step - 1, state.step)
-            if due.log or due.checkpoint:
-                ms = window.flush()
-                hooks.check("finetune", state.step, ms)
-                if due.log:
-                    hooks.log("finetune", state.step, state.log_rows(ms, rate(state.step)))
-            if due.evaluate:
-                rows = hooks.evaluate(agents, state.step)
-                state.last_eval = state.step
-                bar.set_postfix(success=f"{rows[0]['success']:.2f}")
-            step_end("finetune", state.step, oc.steps, due, save)
-    return agents
+        return online_loop(state, agents, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every,
+                                                   evaluate=lambda step: cfg.eval.due(step, oc.steps, cfg.warmup.steps)),
+                           window, bar, stage="finetune", evaluate=evaluate,
+                           check=lambda step, ms: hooks.check("finetune", step, ms),
+                           log=lambda step, ms: hooks.log("finetune", step, state.log_rows(ms, rate(step))), save=save)
