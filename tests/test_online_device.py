@@ -17,7 +17,7 @@ import jax
 import numpy as np
 import pytest
 
-from botorl.agents import population as AP
+from botorl.agents import population
 from botorl.cli import main as botorl_main
 from botorl.pipeline import online, runner
 
@@ -37,8 +37,8 @@ class Probe:
         self.evaluations: list[dict] = []
         self.precisions: set = set()  # JAX's default matmul precision while fine-tuning steps
         for name in PROGRAMS:
-            if hasattr(AP, name):
-                monkeypatch.setattr(AP, name, self._counted(name, getattr(AP, name)))
+            if hasattr(population, name):
+                monkeypatch.setattr(population, name, self._counted(name, getattr(population, name)))
         advance, evaluate, episodes = online.OnlineState.advance, runner.RunContext.evaluate, runner.evaluation.run_episodes
 
         def guarded_advance(state, agents, window):
