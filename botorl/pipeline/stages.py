@@ -340,8 +340,9 @@ def warmup(cfg, member_cfgs, agents, state: OnlineState, with_mc_returns: Callab
         episode_ends = np.zeros(n, bool)
         episode_ends[ends] = True
         d_warmups.append(with_mc_returns(Dataset(
-            *(rows[k][i, :n] for k in ("observations", "actions", "rewards", "next_observations")), rows["dones"][i, :n] > 0.5,
-            episode_ends=episode_ends, metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})))
+            *(rows[k][i, :n] for k in ("observations", "actions", "rewards", "next_observations")),
+            rows["dones"][i, :n] > 0.5, episode_ends=episode_ends,
+            metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})))
     # the rewards as the env gave them, as before the loop stored transformed ones
     hooks.log("warmup", n, [{"episodes": state.episodes[i], "success_rate": float(np.mean(s)) if s else float("nan"),
                              "reward_mean": float((np.mean(rows["rewards"][i, :n]) - t.bias) / t.scale)}
