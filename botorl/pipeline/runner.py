@@ -397,8 +397,7 @@ def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig], resume:
         return None, {"done_stages": [], "stage_seconds": {}}, {}, None
     st = ckpt.state(latest["name"])
     check_identity(st, [full_identity(c) for c in member_cfgs], ckpt.root, latest["name"])
-    mid = None if st["stage_done"] else {"name": latest["name"], "stage": st["stage"], "step": st["step"],
-                                         "np_rng": st.get("np_rng"), "extra": st.get("extra", {})}
+    mid = None if st["stage_done"] else {"name": latest["name"], "stage": st["stage"], "step": st["step"]}
     return latest, {"done_stages": list(st["done_stages"]), "stage_seconds": dict(st["stage_seconds"])}, \
         st.get("failed") or {}, mid
 
