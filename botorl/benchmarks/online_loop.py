@@ -6,29 +6,26 @@ updates/s in the same run: 1.0 means everything beside the update costs nothing.
 
 from __future__ import annotations
 
-from types import SimpleNamespace
 from typing import Any
 
 import jax
 import numpy as np
+
+from botorl.agents.population import stack
+from botorl.configs.methods import get_method
+from botorl.configs.schema import OnlineConfig, RunConfig
+from botorl.pipeline.stages import Window, online_state
 
 
 class OnlineLoop:
     """A running fine-tuning loop (a population of one) whose ``run(n)`` does n env steps."""
 
     def __init__(self, agent: Any, spec: Any, batch: int, utd: int, seed: int = 0, prefill: int = 2000):
-        from botorl.agents.population import stack
-        from botorl.configs.methods import get_method
-        from botorl.configs.schema import OnlineConfig, RunConfig
-        from botorl.pipeline.online import OnlineState
-        from botorl.pipeline.stages import Window
-
-        # WSRL's learner: the buffer alone (no offline data), utd x batch rows per update
+        # WSRL's learner: the buffer alone (no offline data), utd x batch rows per update; the
+        # loop's real inputs, made as the run makes them
         online = OnlineConfig(steps=10**12, batch_size=batch, utd=utd, buffer_capacity=max(100_000, prefill * 2))
-        ctx = SimpleNamespace(cfg=SimpleNamespace(online=online), n=1, members=[SimpleNamespace(cfg=RunConfig(seed=seed))],
-                              spec=spec, method=get_method("wsrl"),
-                              d_offline=SimpleNamespace(obs_dim=spec.obs_dim, action_dim=spec.action_dim))
-        self.state = OnlineState(ctx, None)
+        cfg = RunConfig(seed=seed, online=online)
+        self.state = online_state(cfg, [cfg], get_method("wsrl"), spec, None, None)
         self.agents, self.window = stack([agent]), Window(1)
         # WSRL starts fine-tuning with the warm-up data in the buffer; random actions here.
         rng = np.random.default_rng(seed)

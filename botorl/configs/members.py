@@ -55,11 +55,10 @@ class Streams:
     pretrain: int  # the pre-training agent: its networks and key
     pretrain_batches: list[int]  # SeedSequence of pre-training's host batches
     pretrain_keys: int  # PRNGKey of its device batches, folded with the step
-    warmup_env: int  # the warm-up's env and its first reset
     boto: int  # BOTO's batches and noise: call c draws from [boto, c] (boto/phase.py)
     scratch: int  # fine-tuning's SAC from nothing (RLPD)
     warm_start: int  # WSRL's SAC from the pre-trained networks
-    online_env: int  # fine-tuning's env and its resets
+    online_env: int  # the online loop's env and its resets (the warm-up's and fine-tuning's: one loop)
     online_batches: list[int]  # SeedSequence of fine-tuning's batches
     evaluation: int  # the run's evaluation episodes reset from evaluation + episode index
     eval_command: int  # `botorl eval`'s episodes: others than the run's
@@ -70,7 +69,7 @@ class Streams:
     @classmethod
     def of(cls, cfg) -> "Streams":
         s, o = cfg.seed, cfg.online_seed
-        return cls(pretrain=s, pretrain_batches=[s, 1], pretrain_keys=s * 1_000_003 + 1, warmup_env=o * 1000 + 7,
+        return cls(pretrain=s, pretrain_batches=[s, 1], pretrain_keys=s * 1_000_003 + 1,
                    boto=o, scratch=o, warm_start=o * 7919 + 3, online_env=o * 1000 + 11, online_batches=[o, 3],
                    evaluation=100_000 + 1_000 * s, eval_command=200_000 + s)
 

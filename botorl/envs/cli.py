@@ -12,6 +12,7 @@ import numpy as np
 import tyro
 
 from botorl.data.tasks import data_status
+from botorl.envs.metric import episode_success
 from botorl.envs.registry import TaskSpec, get_task, list_tasks
 
 
@@ -77,7 +78,7 @@ def check_task(spec: TaskSpec, steps: int = 1000, seed: int = 0) -> dict:
         if s is None or not 0.0 <= float(s) <= 1.0:
             problems.append(f"step {t}: info['success'] = {s!r}, expected a value in [0, 1]")
             s = 0.0
-        ep_success = max(ep_success, float(s)) if spec.success_mode == "any" else float(s)
+        ep_success = episode_success(ep_success, s, spec.success_mode)
         if not np.isfinite(reward):
             problems.append(f"step {t}: non-finite reward {reward}")
         if len(problems) > 10:

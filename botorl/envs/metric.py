@@ -117,3 +117,9 @@ def headline_of_summary(summary: Mapping[str, Any]) -> str:
         if f"{name}_initial" in summary:
             return name
     return "success"
+
+
+def episode_success(prev: float, success, mode: str) -> float:
+    """An episode's success after a step whose ``info["success"]`` is ``success``: "any" mode the
+    maximum so far, "last" this step's (kitchen's). The one rule for every loop that steps envs."""
+    return max(prev, float(success)) if mode == "any" else float(success)

@@ -4,7 +4,7 @@ that show the estimation bias.
 The envs are stepped in lockstep with one policy call per step on the whole batch (a
 single-row call costs ~140 us); finished envs keep their last observation in the batch, so its
 shape, and the compiled function, never change. Success per episode follows the task's
-``success_mode``: "any" = the maximum of ``info["success"]``, "last" = its final value.
+``success_mode`` (botorl.envs.metric.episode_success).
 
 Q statistics, in the critic's (reward-transformed) units: the ensemble's mean Q on fixed
 dataset pairs (``q_data``) and on the same states with uniform actions (``q_uniform``); the
@@ -19,6 +19,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from botorl.configs.members import Streams
+from botorl.envs.metric import episode_success
 
 
 @dataclass
@@ -54,8 +55,7 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Sequ
             actions = np.asarray(policy(obs))
             for m, i in zip(*np.nonzero(active)):
                 o, r, terminated, truncated, info = envs[m][i].step(actions[m, i])
-                s = float(info.get("success", 0.0))
-                succ[m, i] = max(succ[m, i], s) if success_mode == "any" else s
+                succ[m, i] = episode_success(succ[m, i], info.get("success", 0.0), success_mode)
                 ret[m, i] += float(r)
                 length[m, i] += 1
                 obs[m, i] = np.asarray(o, dtype=np.float32)

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from botorl.agents import checkpoint as agent_ckpt
-from botorl.agents import population as AP
+from botorl.agents import population
 from botorl.configs.members import Member, Streams
 from botorl.configs.methods import get_method
 from botorl.configs.schema import RunConfig, to_dict
@@ -34,7 +34,7 @@ from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDiverge
 from botorl.io import atomic_save_figure, atomic_write_json
 from botorl.jaxsetup import matmul_precision
 from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
-from botorl.pipeline import stages as S
+from botorl.pipeline import stages
 from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name, full_identity
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
 from botorl.pipeline.rundir import EVAL_COLUMNS, POPULATION_FILE, CsvLog, MetricsLogger, RunDir, number, read_json
@@ -118,17 +118,18 @@ class RunContext:
         self.state = state  # done_stages, stage_seconds
         self.failed: set[int] = {i for i, m in enumerate(members) if m.error}
         self._envs = None
+        self.loop = None  # the online loop's state (stages.online_state), from the warm-up to fine-tuning's end
         self._stage = None
         self._stage_t0 = 0.0
 
     def live(self, ms: list):
         """(member, its item of ``ms``) for the members that have not failed."""
-        return [(mc, m) for i, (mc, m) in enumerate(zip(self.members, ms)) if i not in self.failed]
+        return [(member, m) for i, (member, m) in enumerate(zip(self.members, ms)) if i not in self.failed]
 
     def log(self, stage: str, step: int, rows: list[dict]) -> None:
         """Each live member's row of ``rows`` into its metrics/<stage> logs."""
-        for mc, row in self.live(rows):
-            mc.logger.log(stage, step, row)
+        for member, row in self.live(rows):
+            member.logger.log(stage, step, row)
 
     def check(self, stage: str, step: int, ms: list[dict[str, float]]) -> None:
         """Each live member's metrics must be finite: a population of one raises (the last good
@@ -176,9 +177,6 @@ class RunContext:
         self._stage = None
 
     # -- data
-    def transform(self, ds: Dataset) -> Dataset:
-        return transform_dataset(self.cfg, self.spec, ds)
-
     def mc_returns(self, ds: Dataset) -> np.ndarray:
         return with_mc_returns(self.cfg, self.spec, ds).mc_returns
 
@@ -187,7 +185,7 @@ class RunContext:
         """The population's agents saved under ``name`` (``like``: a stacked template)."""
         path = self.ckpt.file(name, "agent.ckpt")
         if self.single:  # the member's own agent
-            return AP.stack([agent_ckpt.load(path, like=AP.member_of(like, 0))])
+            return population.stack([agent_ckpt.load(path, like=population.member_of(like, 0))])
         return agent_ckpt.load(path, like=like)
 
     def _stored(self, x):
@@ -199,37 +197,47 @@ class RunContext:
     def warmup_keys(self) -> list[str]:
         return ["warmup"] if self.single else [f"warmup-m{i}" for i in range(self.n)]
 
-    def _save(self, name: str, stage: str, step: int | None, done: bool, agents, np_rng=None, arrays=None, extra=None,
-              documents=None):
+    def save(self, stage: str, step: int | None, agents, saved: dict | None = None) -> None:
+        """A checkpoint of ``stage`` at ``step`` (None: its end): the agents and the stage's state
+        dict ``saved`` (each member's generator state ``np_rng``, ``extra`` counters in state.json,
+        ``arrays`` npz groups, ``documents`` JSON files; the warm-up's end: the online loop's)."""
+        saved, name, done = saved or {}, checkpoint_name(stage, step), step is None
         state = {
-            "identity": [full_identity(mc.cfg) for mc in self.members],
+            "identity": [full_identity(member.cfg) for member in self.members],
             "stage": stage,
-            "step": step,
+            "step": None if done else int(step),
             "stage_done": done,
             "done_stages": list(self.state["done_stages"]),
             "stage_seconds": self.stage_seconds(),
-            "np_rng": self._stored(np_rng),
-            "extra": self._stored(extra or {}),
+            "np_rng": self._stored(saved.get("np_rng")),
+            "extra": self._stored(saved.get("extra") or {}),
             "failed": {str(i): self.members[i].error for i in sorted(self.failed)},
             "time": time.time(),
         }
-        self.ckpt.save(name, state=state, agent=AP.member_of(agents, 0) if self.single else agents,
-                       save_agent=agent_ckpt.save, arrays=arrays, documents=documents)
+        self.ckpt.save(name, state=state, agent=population.member_of(agents, 0) if self.single else agents,
+                       save_agent=agent_ckpt.save, arrays=saved.get("arrays"), documents=saved.get("documents"))
         if not self.single and done:
             # each member's own agent in its run directory, for `botorl eval MEMBER_DIR`
-            for i, mc in enumerate(self.members):
-                CheckpointManager(mc.run.checkpoints).save(
+            for i, member in enumerate(self.members):
+                CheckpointManager(member.run.checkpoints).save(
                     name, state={**state, "np_rng": None, "extra": {}, "member": i, "identity": [state["identity"][i]]},
-                    agent=AP.member_of(agents, i), save_agent=agent_ckpt.save)
+                    agent=population.member_of(agents, i), save_agent=agent_ckpt.save)
         self.write_summary("running")
 
-    def save_mid(self, stage: str, step: int, agents, *, np_rng=None, arrays=None, extra=None, documents=None) -> None:
-        """A mid-stage checkpoint: the agents, each member's generator state, ``arrays`` (npz
-        groups), ``extra`` (counters, in state.json) and ``documents`` (JSON files)."""
-        self._save(checkpoint_name(stage, step), stage, int(step), False, agents, np_rng, arrays, extra, documents)
+    def contents(self, point: dict) -> dict:
+        """What a stage resumes from: the checkpoint ``point`` names (``_resume_point``), its
+        arrays and documents read whole, and ``agents(like)``, its agents loaded on a template
+        of the stage's (the stage knows their structure)."""
+        root, st = self.ckpt.root / point["name"], self.ckpt.state(point["name"])
+        return {"step": st["step"], "np_rng": st.get("np_rng"), "extra": st.get("extra", {}), **point,
+                "arrays": {p.stem: self.ckpt.arrays(point["name"], p.stem) for p in sorted(root.glob("*.npz"))},
+                "documents": {p.stem: self.ckpt.document(point["name"], p.stem) for p in sorted(root.glob("*.json"))
+                              if p.stem not in ("state", "MANIFEST")},
+                "agents": lambda like: self.load_agents(point["name"], like)}
 
-    def save_stage_end(self, stage: str, agents, arrays=None) -> None:
-        self._save(checkpoint_name(stage, None), stage, None, True, agents, arrays=arrays)
+    def hooks(self) -> stages.Hooks:
+        """The stages' callbacks into this run (stages.Hooks); their checkpoints are written here."""
+        return stages.Hooks(self.log, self.check, self.bar, self.evaluate, self.log_evaluation, self.save)
 
     # -- evaluation
     def envs(self):
@@ -240,20 +248,20 @@ class RunContext:
 
     def q_stats(self, agents) -> list[tuple[float, float]]:
         """(q_data, q_uniform) per member on the probe's pairs (one call for all members)."""
-        q_d = jax.device_get(AP.q_mean(agents, self.probe.observations, self.probe.actions))
-        q_u = jax.device_get(AP.q_mean(agents, self.probe.observations, self.probe.uniform))
+        q_d = jax.device_get(population.q_mean(agents, self.probe.observations, self.probe.actions))
+        q_u = jax.device_get(population.q_mean(agents, self.probe.observations, self.probe.uniform))
         return [(float(q_d[i].mean()), float(q_u[i].mean())) for i in range(self.n)]
 
     def log_q(self, stage: str, step: int, agents) -> None:
-        for mc, (q_data, q_uniform) in self.live(self.q_stats(agents)):
-            mc.q_log.append({"stage": stage, "step": step, "q_data": q_data, "q_uniform": q_uniform})
+        for member, (q_data, q_uniform) in self.live(self.q_stats(agents)):
+            member.q_log.append({"stage": stage, "step": step, "q_data": q_data, "q_uniform": q_uniform})
 
     def evaluate(self, agents, env_step: int) -> list[dict[str, Any]]:
         """All members' evaluation episodes, one batched policy call per env step; a row per member."""
         cfg = self.cfg
         stats = evaluation.run_episodes(
-            lambda o: jax.device_get(AP.eval_actions(agents, o)), self.envs(), episodes=cfg.eval.episodes,
-            success_mode=self.spec.success_mode, seeds=[Streams.of(mc.cfg).evaluation for mc in self.members],
+            lambda o: jax.device_get(population.eval_actions(agents, o)), self.envs(), episodes=cfg.eval.episodes,
+            success_mode=self.spec.success_mode, seeds=[Streams.of(member.cfg).evaluation for member in self.members],
             max_steps=self.spec.max_episode_steps,
         )
         qs = self.q_stats(agents)
@@ -267,35 +275,37 @@ class RunContext:
         unchanged policies, which deterministic episodes from the same seeds would repeat)."""
         if env_step is not None:
             rows = [dict(r, env_step=int(env_step)) for r in rows]
-        for mc, row in self.live(rows):
-            mc.eval_log.append(row)
-            mc.logger.log_eval(row)
+        for member, row in self.live(rows):
+            member.eval_log.append(row)
+            member.logger.log_eval(row)
         return rows
 
     def close(self) -> None:
+        if self.loop is not None:  # its envs, when a stage stopped before fine-tuning closed them
+            self.loop.__exit__()
         for es in self._envs or []:
             for e in es:
                 e.close()
         self._envs = None
-        for mc in self.members:
-            mc.logger.close()
+        for member in self.members:
+            member.logger.close()
 
     # -- summary
     def write_member_summary(self, i: int, status: str, error: str | None = None) -> dict[str, Any]:
-        mc = self.members[i]
+        member = self.members[i]
         if i in self.failed:
-            status, error = "failed", mc.error
-        summary = build_summary(mc.cfg, mc.run, status, self.stage_seconds(), error)
+            status, error = "failed", member.error
+        summary = build_summary(member.cfg, member.run, status, self.stage_seconds(), error)
         if not self.single:
             summary["population"] = str(self.root)
-        atomic_write_json(mc.run.summary, summary)
+        atomic_write_json(member.run.summary, summary)
         return summary
 
     def write_summary(self, status: str, error: str | None = None) -> dict[str, Any]:
         """Every member's summary.json (and a population's population.json); returns member 0's."""
         out = [self.write_member_summary(i, status, error) for i in range(self.n)]
         if not self.single:
-            write_population_file(self.root, self.cfg, [mc.cfg for mc in self.members], status,
+            write_population_file(self.root, self.cfg, [member.cfg for member in self.members], status,
                                   [s["status"] for s in out], self.stage_seconds(), error)
         return out[0]
 
@@ -333,29 +343,21 @@ def _eval_rows(run: RunDir) -> list[dict[str, float]]:
     return sorted(rows, key=lambda r: r["env_step"])
 
 
-def _points(rows: list[dict], name: str, of) -> dict[str, float | None]:
-    """``{name}_initial / _10k / _final`` of the metric ``of(row)``: at step 0, at the first
-    evaluation at or after 10k online steps (exactly 10k with the presets), and at the last one
-    (at online.steps once the run has finished)."""
-    initial = {r["env_step"]: r for r in rows}.get(0)
-    after_10k = [r for r in rows if r["env_step"] >= 10_000]
-    final = rows[-1] if rows else None
-    return {f"{name}_initial": of(initial) if initial else None,
-            f"{name}_10k": of(after_10k[0]) if after_10k else None,
-            f"{name}_final": of(final) if final else None}
-
-
 def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict, error: str | None = None) -> dict:
     rows = _eval_rows(run)
+    # the evaluations at step 0, at the first at or after 10k online steps (exactly 10k with the
+    # presets), and the last one (at online.steps once the run has finished)
     initial = {r["env_step"]: r for r in rows}.get(0)
     after_10k = [r for r in rows if r["env_step"] >= 10_000]
     final = rows[-1] if rows else None
-    metric = metric_of_config(cfg)
+    metric, points = metric_of_config(cfg), {}
     # success only where the task defines it (absent, not 0, where it does not); the return always
-    points = _points(rows, "success", lambda r: r["success"]) if metric.name == "success" else {}
-    points.update(_points(rows, "return", lambda r: r["return"]))
-    if metric.name == "score":
-        points.update(_points(rows, "score", lambda r: metric.of(r["success"], r["return"])))
+    for name in ("success", "return", "score"):
+        if name == "return" or name == metric.name:
+            of = (lambda r: r[name]) if name != "score" else (lambda r: metric.of(r["success"], r["return"]))
+            points.update({f"{name}_initial": of(initial) if initial else None,
+                           f"{name}_10k": of(after_10k[0]) if after_10k else None,
+                           f"{name}_final": of(final) if final else None})
     out = {
         "task": cfg.task,
         "method": cfg.method,
@@ -385,7 +387,7 @@ def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict,
 
 # ---------------------------------------------------------------------------- the run
 def _templates(member_cfgs: list[RunConfig], stage: str, d: Dataset):
-    return AP.stack([S.agent_template(c, stage, d.obs_dim, d.action_dim, c.seed) for c in member_cfgs])
+    return population.stack([stages.agent_template(c, stage, d.obs_dim, d.action_dim, c.seed) for c in member_cfgs])
 
 
 def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig], resume: bool):
@@ -395,36 +397,47 @@ def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig], resume:
         return None, {"done_stages": [], "stage_seconds": {}}, {}, None
     st = ckpt.state(latest["name"])
     check_identity(st, [full_identity(c) for c in member_cfgs], ckpt.root, latest["name"])
-    mid = None if st["stage_done"] else {"name": latest["name"], "stage": st["stage"], "step": st["step"],
-                                         "np_rng": st.get("np_rng"), "extra": st.get("extra", {})}
+    mid = None if st["stage_done"] else {"name": latest["name"], "stage": st["stage"], "step": st["step"]}
     return latest, {"done_stages": list(st["done_stages"]), "stage_seconds": dict(st["stage_seconds"])}, \
         st.get("failed") or {}, mid
 
 
 def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | None):
-    """One stage of the method: (agents, D_warmups, the arrays its end-of-stage checkpoint keeps)."""
-    cfg, arrays, member_cfgs = ctx.cfg, None, [mc.cfg for mc in ctx.members]
+    """One stage of the method, given its inputs (and any checkpoint it resumes from, read here):
+    (agents, D_warmups, what its end-of-stage checkpoint keeps). The online loop's state
+    (``ctx.loop``) is made at the warm-up's start and kept for fine-tuning."""
+    cfg, end, member_cfgs, d, hooks = ctx.cfg, None, [member.cfg for member in ctx.members], ctx.d_offline, ctx.hooks()
+    resume = None if resume is None else ctx.contents(resume)
     if stage == "pretrain":
         if cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
             agents = shared_pretrain.load(ctx, shared_pretrain.match(member_cfgs, cfg.pretrained))
         else:
-            agents = S.pretrain(ctx, resume)
+            agents = stages.pretrain(cfg, member_cfgs, d, hooks, resume)
         ctx.log_q("pretrain", cfg.offline.steps, agents)
-    elif stage == "warmup":
-        d_warmups, agents = S.warmup(ctx, agents)
-        if d_warmups is not None:
-            arrays = {k: {f: getattr(d, f) for f in _DS_FIELDS if getattr(d, f) is not None}
-                      for k, d in zip(ctx.warmup_keys(), d_warmups)}
+    elif stage == "warmup":  # the online loop starts here, and fine-tuning goes on with it
+        ctx.loop = stages.online_state(cfg, member_cfgs, ctx.method, ctx.spec, d, ctx.mc_returns)
+        d_warmups, agents = stages.warmup(cfg, member_cfgs, agents, ctx.loop,
+                                          lambda ds: with_mc_returns(cfg, ctx.spec, ds), hooks)
+        if d_warmups is not None:  # its end's checkpoint: the loop's state, and D_warmup for BOTO
+            end = ctx.loop.state_dict()
+            end["arrays"].update({k: {f: getattr(dw, f) for f in _DS_FIELDS if getattr(dw, f) is not None}
+                                  for k, dw in zip(ctx.warmup_keys(), d_warmups)})
     elif stage == "boto":
         if resume is not None and agents is None:
-            agents = _templates(member_cfgs, "boto", ctx.d_offline)
-        agents = S.boto(ctx, agents, d_warmups, resume)
+            agents = _templates(member_cfgs, "boto", d)
+        agents = stages.boto(cfg, member_cfgs, agents, d, d_warmups, hooks, resume)
         ctx.log_q("boto", cfg.boto.boto_steps, agents)
     elif stage == "finetune":
         if agents is None:  # rlpd, or a resume inside fine-tuning of a method without pre-training
-            agents = _templates(member_cfgs, "pretrain", ctx.d_offline) if ctx.method.pretrains else None
-        agents = S.finetune(ctx, agents, d_warmups, resume)
-    return agents, d_warmups, arrays
+            agents = _templates(member_cfgs, "pretrain", d) if ctx.method.pretrains else None
+        if ctx.loop is None:  # a method without a warm-up, or a run resumed after it: from its checkpoint
+            ctx.loop = stages.online_state(cfg, member_cfgs, ctx.method, ctx.spec, d, ctx.mc_returns)
+            warm = "warmup" in ctx.method.stages and cfg.warmup.steps > 0
+            saved = resume or (ctx.contents({"name": checkpoint_name("warmup", None)}) if warm else None)
+            if saved is not None:
+                ctx.loop.load_state_dict(saved)
+        agents = stages.finetune(cfg, member_cfgs, ctx.method, agents, ctx.loop, ctx.probe.observations, hooks, resume)
+    return agents, d_warmups, end
 
 
 def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_runs: list[RunDir],
@@ -442,8 +455,8 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
     for i, err in failed.items():
         members[int(i)].error = err
     ctx = RunContext(cfg, spec, root, members, d_offline, state)
-    for mc in members:
-        _truncate_logs(mc, method.stages, mid, state["done_stages"])
+    for member in members:
+        _truncate_logs(member, method.stages, mid, state["done_stages"])
     if latest is not None:
         where = f"{mid['stage']} step {mid['step']}" if mid else f"the end of {state['done_stages'][-1]}"
         print(f"botorl: resuming {root} from {where} (checkpoint {latest['name']})", file=sys.stderr)
@@ -466,10 +479,10 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
                     raise preempt.interrupted()
                 ctx.begin_stage(stage)
                 resume_at = mid if (mid is not None and mid["stage"] == stage) else None
-                agents, d_warmups, arrays = _run_stage(ctx, stage, agents, d_warmups, resume_at)
+                agents, d_warmups, end = _run_stage(ctx, stage, agents, d_warmups, resume_at)
                 ctx.end_stage()
                 state["done_stages"].append(stage)
-                ctx.save_stage_end(stage, agents, arrays=arrays)
+                ctx.save(stage, None, agents, end)
     except BaseException as err:  # a signal, a divergence, a Ctrl-C or a bug: the run can be resumed
         ctx.end_stage()
         if isinstance(err, Interrupted):
@@ -490,7 +503,7 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
         tracking.finish(wandb_runs, 128 + err.signum, seconds=min(tracking.timeout(), 10.0))
         raise
     ctx.write_summary("finished")
-    summaries = [read_summary(mc.run) for mc in members]
+    summaries = [read_summary(member.run) for member in members]
     _finish_outputs(ctx)
     ctx.close()
     tracking.finish(wandb_runs)
@@ -515,26 +528,26 @@ def _load_warmups(ckpt: CheckpointManager, keys: list[str]) -> list[Dataset] | N
     return [Dataset(**{k: a.get(k) for k in _DS_FIELDS}, metadata={"source": "D_warmup (checkpoint)"}) for a in saved]
 
 
-def _truncate_logs(mc: "MemberRun", stages: tuple[str, ...], mid: dict | None, done: list[str]) -> None:
+def _truncate_logs(member: "MemberRun", order: tuple[str, ...], mid: dict | None, done: list[str]) -> None:
     """Forget a member's log rows written after the checkpoint a resume starts from."""
     def kept(stage: str) -> int:  # the last step of a stage's logs that stays: its mid-stage checkpoint's
         return int(mid["step"]) if (mid is not None and mid["stage"] == stage) else -1
 
-    for stage in stages:
+    for stage in order:
         if stage not in done:
-            mc.logger.truncate(stage, kept(stage))
+            member.logger.truncate(stage, kept(stage))
     if "finetune" not in done:
         # evaluations of finished stages (the warm-up's) stay; fine-tuning's up to its checkpoint
-        mc.eval_log.truncate(lambda r: r.get("stage") in done or number(r.get("env_step")) <= kept("finetune"))
-    mc.q_log.truncate(lambda r: r.get("stage") in done)
+        member.eval_log.truncate(lambda r: r.get("stage") in done or number(r.get("env_step")) <= kept("finetune"))
+    member.q_log.truncate(lambda r: r.get("stage") in done)
 
 
 def _finish_outputs(ctx: RunContext) -> None:
-    for mc in ctx.members:
+    for member in ctx.members:
         try:
-            plot_curve(mc.run, mc.cfg)
+            plot_curve(member.run, member.cfg)
         except Exception as err:  # a plot must never fail a run
-            print(f"botorl: could not draw {mc.run.curve} ({err})", file=sys.stderr)
+            print(f"botorl: could not draw {member.run.curve} ({err})", file=sys.stderr)
 
 
 def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:

@@ -1,9 +1,16 @@
-"""The four stages of a run. Each is a function from its config and inputs to its outputs.
+"""The four stages of a run, each a function from explicit inputs to its outputs:
 
-    pretrain(ctx)                       -> agents     Cal-QL / CQL / IQL on D_offline
-    warmup(ctx, agents)                 -> D_warmups  frozen policy, stochastic actions, no updates
-    boto(ctx, agents, d_warmups)        -> agents     BOTO critic training on D_offline u D_warmup
-    finetune(ctx, agents, d_warmups)    -> agents     online learning (WSRL / continued / scratch)
+    pretrain(cfg, member_cfgs, d, hooks)                -> agents     Cal-QL / CQL / IQL on D_offline
+    warmup(cfg, member_cfgs, agents, state, ...)        -> D_warmups  the online loop, learning off
+    boto(cfg, member_cfgs, agents, d, d_warmups, hooks) -> agents     BOTO critic training on D_offline u D_warmup
+    finetune(cfg, member_cfgs, method, agents, state, ...) -> agents  the online loop, learning on
+
+Every stage runs one loop (``stage_loop``); the warm-up and fine-tuning run it over one online
+loop state (``OnlineState``; the warm-up is its first ``warmup.steps`` steps with learning off,
+as WSRL's finetune.py). A stage reads no run context: beside its inputs it gets ``Hooks``, the
+callbacks by which it logs, checks, evaluates, shows progress and hands a checkpoint's contents
+to the runner, which does every checkpoint read and write and gives a resumed stage the
+checkpoint's contents as ``resume`` (runner.py).
 
 Every stage runs a population (a single run is one of one): ``agents`` are the members'
 agents stacked on a leading axis, and every update, policy call and evaluation is one jitted
@@ -16,6 +23,7 @@ continues exactly (docs/reliability.md).
 from __future__ import annotations
 
 import time
+from collections import namedtuple
 from dataclasses import dataclass, replace
 from typing import Any, Callable
 
@@ -31,11 +39,16 @@ from botorl.agents.sac import SACAgent
 from botorl.boto.phase import boto_updates
 from botorl.configs.members import Streams
 from botorl.configs.methods import get_method
-from botorl.data.dataset import Dataset
+from botorl.data.dataset import Dataset, RewardTransform
+from botorl.data.replay import ReplayBuffer
 from botorl.pipeline import faults, preempt
 from botorl.pipeline.online import OnlineState, rng_from
 
-STAGES = ("pretrain", "warmup", "boto", "finetune")
+# A stage's callbacks into its run (runner.RunContext's): ``log`` and ``check`` (stage, step, one
+# item per member; check may raise), ``bar`` (a progress bar), ``evaluate(agents, step)`` -> rows,
+# ``log_evaluation(rows, step)`` (unchanged policies' rows again), and ``save(stage, step, agents,
+# state_dict)`` (step None: the stage's end).
+Hooks = namedtuple("Hooks", "log check bar evaluate log_evaluation save")
 
 
 # ---------------------------------------------------------------------------- agents
@@ -64,21 +77,19 @@ def agent_template(cfg, stage: str, obs_dim: int, action_dim: int, seed: int):
     return SACAgent.create(cfg.online.sac, obs_dim, action_dim, seed)
 
 
-def start_finetuning(ctx, agents):
+def start_finetuning(cfg, member_cfgs, method, agents, action_dim: int, probe_observations: np.ndarray):
     """The fine-tuning learners, as the method starts them (``Method.finetune_start``)."""
-    oc, start = ctx.cfg.online, ctx.method.finetune_start
+    oc, start = cfg.online, method.finetune_start
     if start == "warm_start":
         # WSRL's warm start: SAC (10 critics) from the pre-trained (or BOTO-trained) networks.
         # From IQL (no temperature) the initial one comes from the probe states (agents/temperature.py).
         return population.stack([SACAgent.from_pretrained(population.member_of(agents, i), oc.sac,
-                                                          seed=Streams.of(member.cfg).warm_start,
-                                                          observations=ctx.probe.observations)
-                                 for i, member in enumerate(ctx.members)])
+                                                          seed=Streams.of(c).warm_start, observations=probe_observations)
+                                 for i, c in enumerate(member_cfgs)])
     if start == "scratch":
-        O, A = ctx.d_offline.obs_dim, ctx.d_offline.action_dim
-        return population.stack([SACAgent.create(oc.sac, O, A, Streams.of(member.cfg).scratch)
-                                 for member in ctx.members])
-    return continued_learner(ctx.cfg, agents)  # "continue": the pre-trained agent keeps its own loss
+        return population.stack([SACAgent.create(oc.sac, probe_observations.shape[1], action_dim, Streams.of(c).scratch)
+                                 for c in member_cfgs])
+    return continued_learner(cfg, agents)  # "continue": the pre-trained agent keeps its own loss
 
 
 def q_fn(agent):
@@ -137,17 +148,12 @@ class Window:
             self.rows = [({k: arrays[f"m.{k}"][t] for k in keys}, arrays["mask"][t]) for t in range(len(arrays["mask"]))]
 
     def flush(self) -> list[dict[str, float]]:
-        rows, self.rows = self.rows, []
-        if not rows:
+        arrays, self.rows = self.state_dict(), []
+        if arrays is None:
             return [{} for _ in range(self.n)]
-        host = jax.device_get([w for w, _ in rows])
-        masks = np.stack([m for _, m in rows])  # (T, N)
-        keys = [k for k, v in host[0].items() if np.asarray(v).ndim == 1]
-        out = []
-        for i in range(self.n):
-            t = np.flatnonzero(masks[:, i])
-            out.append({k: float(np.mean([np.asarray(host[j][k])[i] for j in t])) for k in keys} if len(t) else {})
-        return out
+        mask, keys = arrays["mask"], [k for k in arrays if k.startswith("m.")]  # mask: (T, N)
+        return [{k[2:]: float(np.mean(arrays[k][mask[:, i], i])) for k in keys} if mask[:, i].any() else {}
+                for i in range(self.n)]
 
 
 class Rate:
@@ -176,26 +182,29 @@ def step_end(stage: str, step: int, total: int, due: Points, save: Callable[[boo
         raise preempt.interrupted()
 
 
-def pretrain_groups(members) -> tuple[list[int], list[int]]:
+def pretrain_groups(member_cfgs) -> tuple[list[int], list[int]]:
     """(the first member of each seed, each member's index into that list)."""
     first: dict[int, int] = {}
-    group = [first.setdefault(member.cfg.seed, len(first)) for member in members]
+    group = [first.setdefault(c.seed, len(first)) for c in member_cfgs]
     return [group.index(g) for g in range(len(first))], group
 
 
-def offline_loop(agents, update: Callable, chunk: Callable[[int], int], step: int, schedule: Schedule,
-                 window: Window, bar, *, stage: str, check: Callable, log: Callable, save: Callable,
-                 check_every_call: bool = False):
-    """The offline stages' loop (pre-training, BOTO; d3rlpy's one fitter is the model): from
-    ``step`` to ``schedule.total``, ``update(agents, step, k)`` -> (agents, metrics) runs k =
-    ``chunk(step)`` updates in one jitted call; at log and checkpoint points (at every call
-    with ``check_every_call``) the window's means are checked (``check(step, ms)``, which may
-    raise) and at log points logged (``log(step, ms)``); then ``step_end`` with
+def stage_loop(agents, update: Callable, chunk: Callable[[int], int], step: int, schedule: Schedule,
+               window: Window, bar, *, stage: str, check: Callable, log: Callable, save: Callable,
+               evaluate: Callable | None = None, check_every_call: bool = False):
+    """Every stage's loop (d3rlpy's one fitter is the model): from ``step`` to
+    ``schedule.total``, ``update(agents, step, k)`` -> (agents, metrics or None: the update
+    added its own) runs k = ``chunk(step)`` updates in one jitted call (the offline stages) or
+    one online step (``OnlineState.advance``: the warm-up with learning off, then fine-tuning);
+    at log and checkpoint points (at every call with ``check_every_call``) the window's means
+    are checked (``check(step, ms)``, which may raise) and at log points logged (``log(step,
+    ms)``); at evaluation points ``evaluate(agents, step)``; then ``step_end`` with
     ``save(step, agents, interrupted)``. Returns the agents."""
     while step < schedule.total:
         k = chunk(step)
         agents, metrics = update(agents, step, k)
-        window.add(metrics)
+        if metrics is not None:
+            window.add(metrics)
         prev, step = step, step + k
         bar.update(k)
         due = schedule(prev, step)
@@ -204,25 +213,27 @@ def offline_loop(agents, update: Callable, chunk: Callable[[int], int], step: in
             check(step, ms)
             if due.log:
                 log(step, ms)
+        if due.evaluate:
+            evaluate(agents, step)
         step_end(stage, step, schedule.total, due, lambda interrupted: save(step, agents, interrupted))
     return agents
 
 
 # ---------------------------------------------------------------------------- stage 1
-def pretrain(ctx, resume: dict | None = None):
-    """Offline pre-training with the configured algorithm on the transformed D_offline (held
-    once; each member samples its own batches)."""
-    cfg, oc, d = ctx.cfg, ctx.cfg.offline, ctx.d_offline
+def pretrain(cfg, member_cfgs, d: Dataset, hooks: Hooks, resume: dict | None = None):
+    """Offline pre-training with the configured algorithm on the transformed D_offline ``d``
+    (held once; each member samples its own batches)."""
+    oc, n = cfg.offline, len(member_cfgs)
     # Members of one seed differ only in BOTO's alpha, which pre-training does not read: they
     # share one pre-training (computed once, by the first of them; mid-stage checkpoints hold
     # one agent per seed) and each gets its copy at the end.
-    reps, group = pretrain_groups(ctx.members)
-    streams = [Streams.of(ctx.members[r].cfg) for r in reps]
-    agents = population.stack([make_pretrain_agent(ctx.members[r].cfg, d.obs_dim, d.action_dim, s.pretrain)
+    reps, group = pretrain_groups(member_cfgs)
+    streams = [Streams.of(member_cfgs[r]) for r in reps]
+    agents = population.stack([make_pretrain_agent(member_cfgs[r], d.obs_dim, d.action_dim, s.pretrain)
                                for r, s in zip(reps, streams)])
     step, states = 0, [None] * len(reps)
     if resume is not None:
-        agents = ctx.load_agents(resume["name"], agents)
+        agents = resume["agents"](agents)
         step, states = int(resume["step"]), resume.get("np_rng")
         states = states if isinstance(states, list) else [states] * len(reps)
     rngs = [rng_from(st, s.pretrain_batches) for s, st in zip(streams, states)]
@@ -241,35 +252,58 @@ def pretrain(ctx, resume: dict | None = None):
 
     window, rate = Window(len(reps)), Rate(step)
     if resume is not None:
-        window.load(ctx.ckpt.arrays(resume["name"], "window"))
-    shared = f" x {len(reps)} seeds for {ctx.n} members" if len(reps) < ctx.n else f" x {ctx.n} members"
+        window.load(resume["arrays"].get("window"))
+    shared = f" x {len(reps)} seeds for {n} members" if len(reps) < n else f" x {n} members"
 
     def log(step: int, per_seed: list[dict]) -> None:
         ms, steps_per_s = [per_seed[g] for g in group], rate(step)
-        ctx.log("pretrain", step, [{**m, "steps_per_s": steps_per_s} for m in ms])
+        hooks.log("pretrain", step, [{**m, "steps_per_s": steps_per_s} for m in ms])
         bar.set_postfix(loss=f"{ms[0].get('critic_loss', float('nan')):.3g}", q=f"{ms[0].get('q_data', float('nan')):.3g}")
 
     def save(step: int, agents, interrupted: bool) -> None:
         w = window.state_dict() if interrupted else None
-        ctx.save_mid("pretrain", step, agents, np_rng=[r.bit_generator.state for r in rngs],
-                     arrays={"window": w} if w else None)
+        hooks.save("pretrain", step, agents, {"np_rng": [r.bit_generator.state for r in rngs],
+                                              "arrays": {"window": w} if w else None})
 
-    with ctx.bar(oc.steps, step, f"pretrain ({cfg.pretrain})" + (shared if ctx.n > 1 else "")) as bar:
+    with hooks.bar(oc.steps, step, f"pretrain ({cfg.pretrain})" + (shared if n > 1 else "")) as bar:
         # a call ends at the next checkpoint boundary so that checkpoints land on multiples
-        agents = offline_loop(
+        agents = stage_loop(
             agents, update, lambda s: min(oc.updates_per_call, oc.steps - s, cfg.checkpoint_every - s % cfg.checkpoint_every),
             step, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every), window, bar, stage="pretrain",
-            check=lambda step, per_seed: ctx.check("pretrain", step, [per_seed[g] for g in group]), log=log, save=save)
-    if len(reps) < ctx.n:
+            check=lambda step, per_seed: hooks.check("pretrain", step, [per_seed[g] for g in group]), log=log, save=save)
+    if len(reps) < n:
         agents = jax.tree_util.tree_map(lambda x: x[np.asarray(group)], agents)
     return agents
 
 
+# ---------------------------------------------------------------------------- the online loop
+def online_state(cfg, member_cfgs, method, spec, offline: Dataset | None, mc_returns: Callable | None) -> OnlineState:
+    """The online loop at step 0, from its inputs: one env per member (``Streams.online_env``;
+    the warm-up's and fine-tuning's, one loop) at its first reset, a member buffer for every
+    online step, each member's batch generator (``Streams.online_batches``), the online config,
+    the method and the task's reward transform (``botorl bench`` builds its loop here too)."""
+    oc, streams = cfg.online, [Streams.of(c) for c in member_cfgs]
+    buffer = ReplayBuffer(oc.buffer_capacity or (oc.steps + 1), spec.obs_dim, spec.action_dim, members=len(streams))
+    state = OnlineState([spec.make_env(seed=s.online_env) for s in streams], buffer,
+                        [rng_from(None, s.online_batches) for s in streams], oc, method, RewardTransform.of(spec),
+                        mc_returns=mc_returns, success_mode=spec.success_mode, offline=offline)
+    state.reset([s.online_env for s in streams])
+    return state
+
+
+def online_loop(state: OnlineState, agents, schedule: Schedule, window: Window, bar, **kw):
+    """``stage_loop`` over the online loop ``state``: one ``state.advance`` a step (act, step the
+    envs, store; one UTD update while ``state.learning``), as WSRL's finetune.py, whose warm-up
+    is this loop with learning off."""
+    return stage_loop(agents, lambda agents, step, k: (state.advance(agents, window), None), lambda step: 1,
+                      state.step, schedule, window, bar, **kw)
+
+
 # ---------------------------------------------------------------------------- stage 2a
-def _reseed_online(ctx, agents):
+def _reseed_online(member_cfgs, agents):
     """The pre-trained agents' keys, folded with ``online_reseed`` for the members that set it,
     so their warm-up (and BOTO) draws differ from the runs they share the pre-training with."""
-    reseeds = [member.cfg.online_reseed for member in ctx.members]
+    reseeds = [c.online_reseed for c in member_cfgs]
     if not any(reseeds):
         return agents
     keys = [jax.random.fold_in(population.member_of(agents, i).rng, k) if k else population.member_of(agents, i).rng
@@ -279,128 +313,109 @@ def _reseed_online(ctx, agents):
     return agents.replace(rng=jax.device_put(jnp.stack(keys), where))
 
 
-def warmup(ctx, agents) -> tuple[list[Dataset] | None, Any]:
-    """D_warmup: ``warmup.steps`` env steps of the frozen pre-trained policy (stochastic), one
-    env per member. These are the first online env steps (WSRL's accounting); the frozen
-    policy's step-0 evaluation is logged again at each evaluation point the warm-up passes.
-    No mid-stage checkpoint: a resume runs it again, which gives the same D_warmup."""
-    n, N = ctx.cfg.warmup.steps, ctx.n
+def warmup(cfg, member_cfgs, agents, state: OnlineState, with_mc_returns: Callable[[Dataset], Dataset],
+           hooks: Hooks) -> tuple[list[Dataset] | None, Any]:
+    """D_warmup: the online loop ``state`` (at step 0) for ``warmup.steps`` env steps with learning
+    off, as WSRL's finetune.py: the frozen pre-trained policy acts (stochastic), nothing updates.
+    These are the first online steps (WSRL's accounting): fine-tuning goes on with the same loop
+    (its envs mid-episode, its step, its buffer). The frozen policy's step-0 evaluation is logged
+    again at each evaluation point passed. D_warmup is each member's buffer rows (MC returns by
+    ``with_mc_returns``). No mid-stage checkpoint: a resume runs it again from the pre-training's
+    end (the same D_warmup); the runner saves the loop's state at its end."""
+    n, N = cfg.warmup.steps, len(member_cfgs)
     if n == 0:
         return None, agents
-    seeds = [Streams.of(member.cfg).warmup_env for member in ctx.members]
-    envs = [ctx.spec.make_env(seed=s) for s in seeds]
-    obs = np.stack([np.asarray(e.reset(seed=s)[0], np.float32) for e, s in zip(envs, seeds)])
-    agents = _reseed_online(ctx, agents)
-    O, A = ctx.d_offline.obs_dim, ctx.d_offline.action_dim
-    rows = {"observations": np.zeros((N, n, O), np.float32), "actions": np.zeros((N, n, A), np.float32),
-            "rewards": np.zeros((N, n), np.float32), "next_observations": np.zeros((N, n, O), np.float32),
-            "terminals": np.zeros((N, n), bool), "episode_ends": np.zeros((N, n), bool)}
-    successes: list[list[float]] = [[] for _ in range(N)]
-    ep_success = np.zeros(N)
-    first_eval = None
-    try:
-        with ctx.bar(n, 0, "warm-up (frozen policy)", unit="env step") as bar:
-            for t in range(n):
-                if t % ctx.cfg.eval.interval == 0:
-                    first_eval = ctx.evaluate(agents, t) if first_eval is None else ctx.log_evaluation(first_eval, t)
-                actions, agents = population.sample(agents, obs)
-                actions = np.asarray(jax.device_get(actions), dtype=np.float32)
-                for i, env in enumerate(envs):
-                    next_obs, r, terminated, truncated, info = env.step(actions[i])
-                    ep_success[i] = max(ep_success[i], float(info.get("success", 0.0)))
-                    for k, v in zip(rows, (obs[i], actions[i], r, next_obs, terminated, terminated or truncated)):
-                        rows[k][i, t] = v
-                    obs[i] = next_obs
-                    if terminated or truncated:
-                        successes[i].append(ep_success[i])
-                        ep_success[i] = 0.0
-                        obs[i] = env.reset()[0]
-                if t % 200 == 0:
-                    bar.update(min(200, n - bar.n))
-                faults.step("warmup", t + 1)
-                if preempt.requested():  # the resume starts the warm-up again (exact; see the docstring)
-                    raise preempt.interrupted()
-            bar.update(n - bar.n)
-    finally:
-        for env in envs:
-            env.close()
-    d_warmups = [ctx.transform(Dataset(**{k: v[i] for k, v in rows.items()},
-                                       metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"}))
-                 for i in range(N)]
-    ctx.log("warmup", n, [{"episodes": len(s), "success_rate": float(np.mean(s)) if s else float("nan"),
-                           "reward_mean": float(np.mean(rows["rewards"][i]))} for i, s in enumerate(successes)])
+    agents = _reseed_online(member_cfgs, agents)
+    first = hooks.evaluate(agents, state.step)
+    state.learning, state.ended = False, [[] for _ in range(N)]
+    with hooks.bar(n, 0, "warm-up (frozen policy)", unit="env step") as bar:
+        agents = online_loop(
+            state, agents, Schedule(n, n, n + 1, evaluate=lambda step: step % cfg.eval.interval == 0 and step < n),
+            Window(N), bar, stage="warmup", evaluate=lambda agents, step: hooks.log_evaluation(first, step),
+            check=lambda step, ms: None, log=lambda step, ms: None, save=lambda step, agents, interrupted: None)
+    ended, state.ended, state.learning = state.ended, None, True
+    rows, t = state.buffer.state_dict(), state.reward
+    d_warmups = []
+    for i, ends in enumerate(ended):
+        episode_ends = np.zeros(n, bool)
+        episode_ends[ends] = True
+        d_warmups.append(with_mc_returns(Dataset(
+            *(rows[k][i, :n] for k in ("observations", "actions", "rewards", "next_observations")),
+            rows["dones"][i, :n] > 0.5, episode_ends=episode_ends,
+            metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})))
+    # the rewards as the env gave them, as before the loop stored transformed ones
+    hooks.log("warmup", n, [{"episodes": state.episodes[i], "success_rate": float(np.mean(s)) if s else float("nan"),
+                             "reward_mean": float((np.mean(rows["rewards"][i, :n]) - t.bias) / t.scale)}
+                            for i, s in enumerate(state.recent_success)])
+    state.recent_success = [[] for _ in range(N)]  # fine-tuning's train_success: its own episodes
     return d_warmups, agents
 
 
 # ---------------------------------------------------------------------------- stage 2b
-def boto(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = None):
+def boto(cfg, member_cfgs, agents, d: Dataset, d_warmups: list[Dataset] | None, hooks: Hooks,
+         resume: dict | None = None):
     """BOTO critic training on D_offline u D_warmup, each member with its own alpha and
-    D_warmup (botorl.boto.phase.boto_updates in the offline loop, with this run's logs and
+    D_warmup (botorl.boto.phase.boto_updates in the stage loop, with this run's logs and
     checkpoints)."""
-    cfg, bc = ctx.cfg, ctx.cfg.boto
-    start = 0
+    bc, n, start = cfg.boto, len(member_cfgs), 0
     if resume is not None:
-        agents = ctx.load_agents(resume["name"], agents)
-        start = int(resume["step"])
-    alphas = [member.cfg.alpha for member in ctx.members]
-    update = boto_updates(agents, ctx.d_offline, d_warmups or [None] * ctx.n, bc, alphas,
-                          [Streams.of(member.cfg).boto for member in ctx.members])
+        agents, start = resume["agents"](agents), int(resume["step"])
+    alphas = [c.alpha for c in member_cfgs]
+    update = boto_updates(agents, d, d_warmups or [None] * n, bc, alphas, [Streams.of(c).boto for c in member_cfgs])
     t0 = time.perf_counter()
 
     def log(step: int, ms: list[dict]) -> None:
-        ctx.log("boto", step, [{"seconds": time.perf_counter() - t0, **m} for m in ms])
+        hooks.log("boto", step, [{"seconds": time.perf_counter() - t0, **m} for m in ms])
         bar.set_postfix(loss=f"{ms[0]['critic_loss']:.3g}", q_data=f"{ms[0]['q_data']:.3g}")
 
-    label = f"BOTO alpha={alphas[0]:+.2f}" if ctx.n == 1 else f"BOTO x {ctx.n} members"
-    with ctx.bar(bc.boto_steps, start, label) as bar:
+    label = f"BOTO alpha={alphas[0]:+.2f}" if n == 1 else f"BOTO x {n} members"
+    with hooks.bar(bc.boto_steps, start, label) as bar:
         # the batches of a call follow from its index (boto_updates): no generator state to save,
         # and calls are not cut at checkpoint points (train_boto's calls, so its numbers); the
         # metrics are checked after every call, and a log point logs its call's
-        return offline_loop(agents, update, lambda s: min(bc.steps_per_call, bc.boto_steps - s), start,
-                            Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every),
-                            Window(ctx.n), bar, stage="boto", check=lambda step, ms: ctx.check("boto", step, ms),
-                            log=log, save=lambda step, agents, interrupted: ctx.save_mid("boto", step, agents),
-                            check_every_call=True)
+        return stage_loop(agents, update, lambda s: min(bc.steps_per_call, bc.boto_steps - s), start,
+                          Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every),
+                          Window(n), bar, stage="boto", check=lambda step, ms: hooks.check("boto", step, ms),
+                          log=log, save=lambda step, agents, interrupted: hooks.save("boto", step, agents, {}),
+                          check_every_call=True)
 
 
 # ---------------------------------------------------------------------------- stage 3
-def finetune(ctx, agents, d_warmups: list[Dataset] | None, resume: dict | None = None):
-    """Online learning from the step after the warm-up to ``online.steps`` (the warm-up's env
-    steps counted, as WSRL), evaluating at its start, at ``eval.due`` points and at the end;
-    what decides the future besides the agents is the ``OnlineState`` (online.py)."""
-    cfg, oc = ctx.cfg, ctx.cfg.online
-    agents = start_finetuning(ctx, agents)
-    state = OnlineState(ctx, d_warmups, resume)
+def finetune(cfg, member_cfgs, method, agents, state: OnlineState, probe_observations: np.ndarray, hooks: Hooks,
+             resume: dict | None = None):
+    """Online learning: the online loop ``state`` (online_state; after the warm-up, where it
+    left it; resumed, as the runner restored it) from its step to ``online.steps`` (the warm-up's
+    env steps counted, as WSRL) with the fine-tuning learners, evaluating at its start, at
+    ``eval.due`` points and at the end; what decides the future besides the agents is ``state``.
+    Every method with a warm-up starts warm (configs/methods.py), so its buffer keeps D_warmup."""
+    oc, n = cfg.online, len(member_cfgs)
+    agents = start_finetuning(cfg, member_cfgs, method, agents, state.buffer.action_dim, probe_observations)
     if resume is not None:
-        agents = ctx.load_agents(resume["name"], agents)
+        agents = resume["agents"](agents)
     # where the updates keep them (a population's members split over the CPU devices), from the
     # first step on: a resumed run's loaded agents sit on one device, where the policy call
     # compiles another program than the uninterrupted run's at that step (its actions differed
     # in the last bit, and the run drifted from there)
     agents = population.placed(agents, every_leaf=True)[0]
-    points = Schedule(oc.steps, oc.log_every, cfg.checkpoint_every,
-                      evaluate=lambda step: cfg.eval.due(step, oc.steps, cfg.warmup.steps))
-    if state.step == state.start and state.last_eval < state.start:
-        ctx.evaluate(agents, state.start)
-        state.last_eval = state.start
-    window, rate = Window(ctx.n), Rate(state.step)
+    if resume is None:  # a checkpoint comes after a step: a resumed fine-tuning is past its start
+        hooks.evaluate(agents, state.step)
+    window, rate = Window(n), Rate(state.step)
     if resume is not None:
-        window.load(ctx.ckpt.arrays(resume["name"], "window"))
-    label = f"fine-tune ({cfg.method})" + (f" x {ctx.n} members" if ctx.n > 1 else "")
-    with state, ctx.bar(oc.steps, state.step, label, unit="env step") as bar:
-        while state.step < oc.steps:
-            agents = state.advance(agents, window)  # act, step the envs, store; one UTD update
-            bar.update(1)
-            due = points(state.step - 1, state.step)
-            if due.log or due.checkpoint:
-                ms = window.flush()
-                ctx.check("finetune", state.step, ms)
-                if due.log:
-                    ctx.log("finetune", state.step, state.log_rows(ms, rate(state.step)))
-            if due.evaluate:
-                rows = ctx.evaluate(agents, state.step)
-                state.last_eval = state.step
-                bar.set_postfix(success=f"{rows[0]['success']:.2f}")
-            step_end("finetune", state.step, oc.steps, due,
-                     lambda interrupted: state.save(agents, window if interrupted else None))
-    return agents
+        window.load(resume["arrays"].get("window"))
+
+    def evaluate(agents, step: int) -> None:
+        bar.set_postfix(success=f"{hooks.evaluate(agents, step)[0]['success']:.2f}")
+
+    def save(step: int, agents, interrupted: bool) -> None:
+        sd, w = state.state_dict(), window.state_dict() if interrupted else None
+        if w:
+            sd["arrays"]["window"] = w
+        hooks.save("finetune", step, agents, sd)
+
+    label = f"fine-tune ({cfg.method})" + (f" x {n} members" if n > 1 else "")
+    with state, hooks.bar(oc.steps, state.step, label, unit="env step") as bar:
+        return online_loop(state, agents, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every,
+                                                   evaluate=lambda step: cfg.eval.due(step, oc.steps, cfg.warmup.steps)),
+                           window, bar, stage="finetune", evaluate=evaluate,
+                           check=lambda step, ms: hooks.check("finetune", step, ms),
+                           log=lambda step, ms: hooks.log("finetune", step, state.log_rows(ms, rate(step))), save=save)
