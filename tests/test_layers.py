@@ -134,10 +134,6 @@ def test_no_private_name_from_another_module():
 # imports, a module the spawned workers import, an import order a library needs. Everything
 # else is imported at module level.
 MAX_LAZY = 60
-# Rewritten on another branch of issue 43 at the time this test came; their imports count
-# towards MAX_LAZY but owe their reasons until that branch lands (then drop the entries).
-REASON_PENDING = {"botorl/pipeline/stages.py", "botorl/pipeline/online.py", "botorl/pipeline/runner.py",
-                  "botorl/pipeline/evaluation.py", "botorl/benchmarks/online_loop.py"}
 
 
 def _lazy_imports(path: Path) -> list[tuple[int, bool]]:
@@ -169,8 +165,7 @@ def test_imports_inside_functions_are_few_and_say_why():
     found = {p: _lazy_imports(p) for p in sorted(ROOT.rglob("*.py"))}
     total = sum(len(v) for v in found.values())
     rel = {p: str(p.relative_to(ROOT.parent)) for p in found}
-    missing = [f"{rel[p]}:{line}" for p, v in found.items() for line, ok in v
-               if not ok and rel[p] not in REASON_PENDING]
+    missing = [f"{rel[p]}:{line}" for p, v in found.items() for line, ok in v if not ok]
     assert not missing, ("imports inside a function without a `# lazy: <reason>` comment (move them to "
                          "module level, or say why not):\n" + "\n".join(missing))
     assert total <= MAX_LAZY, (f"{total} imports inside functions, more than {MAX_LAZY}:\n" + "\n".join(

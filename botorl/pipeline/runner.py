@@ -31,7 +31,7 @@ from botorl.envs.metric import headline_of_summary
 from botorl.envs.metric import of_config as metric_of_config
 from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDivergedError
-from botorl.io import atomic_save_figure, atomic_write_json
+from botorl.io import atomic_save_figure, atomic_write_json, pyplot
 from botorl.jaxsetup import matmul_precision
 from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
 from botorl.pipeline import stages
@@ -554,11 +554,7 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
     rows = _eval_rows(run)
     if not rows:
         return None
-    import matplotlib  # heavy: only where a curve is drawn (and its backend set before pyplot)
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     metric = metric_of_config(cfg)
     x = [r["env_step"] for r in rows]
     y = [metric.of(r["success"], r["return"]) for r in rows]
