@@ -350,14 +350,13 @@ def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict,
     initial = {r["env_step"]: r for r in rows}.get(0)
     after_10k = [r for r in rows if r["env_step"] >= 10_000]
     final = rows[-1] if rows else None
-    metric, points = metric_of_config(cfg), {}
+    metric = metric_of_config(cfg)
+    values = {"success": lambda r: r["success"], "return": lambda r: r["return"],
+              "score": lambda r: metric.of(r["success"], r["return"])}
+    at = {"initial": initial, "10k": after_10k[0] if after_10k else None, "final": final}
     # success only where the task defines it (absent, not 0, where it does not); the return always
-    for name in ("success", "return", "score"):
-        if name == "return" or name == metric.name:
-            of = (lambda r: r[name]) if name != "score" else (lambda r: metric.of(r["success"], r["return"]))
-            points.update({f"{name}_initial": of(initial) if initial else None,
-                           f"{name}_10k": of(after_10k[0]) if after_10k else None,
-                           f"{name}_final": of(final) if final else None})
+    points = {f"{name}_{when}": of(row) if row else None for name, of in values.items()
+              if name == "return" or name == metric.name for when, row in at.items()}
     out = {
         "task": cfg.task,
         "method": cfg.method,
