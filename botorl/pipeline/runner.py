@@ -178,6 +178,7 @@ class RunContext:
 
     # -- data
     def mc_returns(self, ds: Dataset) -> np.ndarray:
+        """The MC returns of an episode or D_warmup by the offline data's rule: the online loop's."""
         return with_mc_returns(self.cfg, self.spec, ds).mc_returns
 
     # -- checkpoints
@@ -415,8 +416,7 @@ def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | No
         ctx.log_q("pretrain", cfg.offline.steps, agents)
     elif stage == "warmup":  # the online loop starts here, and fine-tuning goes on with it
         ctx.loop = stages.online_state(cfg, member_cfgs, ctx.method, ctx.spec, d, ctx.mc_returns)
-        d_warmups, agents = stages.warmup(cfg, member_cfgs, agents, ctx.loop,
-                                          lambda ds: with_mc_returns(cfg, ctx.spec, ds), hooks)
+        d_warmups, agents = stages.warmup(cfg, member_cfgs, agents, ctx.loop, hooks)
         if d_warmups is not None:  # its end's checkpoint: the loop's state, and D_warmup for BOTO
             end = ctx.loop.state_dict()
             end["arrays"].update({k: {f: getattr(dw, f) for f in _DS_FIELDS if getattr(dw, f) is not None}

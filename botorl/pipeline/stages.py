@@ -1,7 +1,7 @@
 """The four stages of a run, each a function from explicit inputs to its outputs:
 
     pretrain(cfg, member_cfgs, d, hooks)                -> agents     Cal-QL / CQL / IQL on D_offline
-    warmup(cfg, member_cfgs, agents, state, ...)        -> D_warmups  the online loop, learning off
+    warmup(cfg, member_cfgs, agents, state, hooks)      -> D_warmups  the online loop, learning off
     boto(cfg, member_cfgs, agents, d, d_warmups, hooks) -> agents     BOTO critic training on D_offline u D_warmup
     finetune(cfg, member_cfgs, method, agents, state, ...) -> agents  the online loop, learning on
 
@@ -313,15 +313,14 @@ def _reseed_online(member_cfgs, agents):
     return agents.replace(rng=jax.device_put(jnp.stack(keys), where))
 
 
-def warmup(cfg, member_cfgs, agents, state: OnlineState, with_mc_returns: Callable[[Dataset], Dataset],
-           hooks: Hooks) -> tuple[list[Dataset] | None, Any]:
+def warmup(cfg, member_cfgs, agents, state: OnlineState, hooks: Hooks) -> tuple[list[Dataset] | None, Any]:
     """D_warmup: the online loop ``state`` (at step 0) for ``warmup.steps`` env steps with learning
     off, as WSRL's finetune.py: the frozen pre-trained policy acts (stochastic), nothing updates.
     These are the first online steps (WSRL's accounting): fine-tuning goes on with the same loop
     (its envs mid-episode, its step, its buffer). The frozen policy's step-0 evaluation is logged
     again at each evaluation point passed. D_warmup is each member's buffer rows (MC returns by
-    ``with_mc_returns``). No mid-stage checkpoint: a resume runs it again from the pre-training's
-    end (the same D_warmup); the runner saves the loop's state at its end."""
+    the loop's rule, ``state.mc_returns``). No mid-stage checkpoint: a resume runs it again from
+    the pre-training's end (the same D_warmup); the runner saves the loop's state at its end."""
     n, N = cfg.warmup.steps, len(member_cfgs)
     if n == 0:
         return None, agents
@@ -339,10 +338,10 @@ def warmup(cfg, member_cfgs, agents, state: OnlineState, with_mc_returns: Callab
     for i, ends in enumerate(ended):
         episode_ends = np.zeros(n, bool)
         episode_ends[ends] = True
-        d_warmups.append(with_mc_returns(Dataset(
-            *(rows[k][i, :n] for k in ("observations", "actions", "rewards", "next_observations")),
-            rows["dones"][i, :n] > 0.5, episode_ends=episode_ends,
-            metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})))
+        dw = Dataset(*(rows[k][i, :n] for k in ("observations", "actions", "rewards", "next_observations")),
+                     rows["dones"][i, :n] > 0.5, episode_ends=episode_ends,
+                     metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})
+        d_warmups.append(dw._replace(mc_returns=state.mc_returns(dw)))
     # the rewards as the env gave them, as before the loop stored transformed ones
     hooks.log("warmup", n, [{"episodes": state.episodes[i], "success_rate": float(np.mean(s)) if s else float("nan"),
                              "reward_mean": float((np.mean(rows["rewards"][i, :n]) - t.bias) / t.scale)}
