@@ -5,19 +5,13 @@
     boto(cfg, member_cfgs, agents, d, d_warmups, hooks) -> agents     BOTO critic training on D_offline u D_warmup
     finetune(cfg, member_cfgs, method, agents, state, ...) -> agents  the online loop, learning on
 
-Every stage runs one loop (``stage_loop``); the warm-up and fine-tuning run it over one online
-loop state (``OnlineState``; the warm-up is its first ``warmup.steps`` steps with learning off,
-as WSRL's finetune.py). A stage reads no run context: beside its inputs it gets ``Hooks``, the
-callbacks by which it logs, checks, evaluates, shows progress and hands a checkpoint's contents
-to the runner, which does every checkpoint read and write and gives a resumed stage the
-checkpoint's contents as ``resume`` (runner.py).
-
-Every stage runs a population (a single run is one of one): ``agents`` are the members'
-agents stacked on a leading axis, and every update, policy call and evaluation is one jitted
-call for all; each member's streams are seeded by its own seed only (docs/populations.md).
-Log, checkpoint and evaluation points follow from the step alone (``Schedule``), and a
-checkpoint holds everything that decides a stage's future, so a stage given ``resume``
-continues exactly (docs/reliability.md).
+Every stage runs ``stage_loop``; the warm-up and fine-tuning run it over one online loop state
+(``OnlineState``). A stage reads no run context: it gets ``Hooks``, its callbacks into the
+runner, which does every checkpoint read and write and hands a resumed stage the checkpoint's
+contents as ``resume``. ``agents`` are a population's agents stacked on a leading axis (a single
+run is one of one), each member's streams seeded by its own seed only (docs/populations.md). Log,
+checkpoint and evaluation points follow from the step alone (``Schedule``), so a stage given
+``resume`` continues exactly (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -98,11 +92,7 @@ def q_fn(agent):
 
 
 # ---------------------------------------------------------------------------- the loop's pieces
-@dataclass(frozen=True)
-class Points:
-    log: bool
-    checkpoint: bool
-    evaluate: bool = False
+Points = namedtuple("Points", "log checkpoint evaluate")  # what is due at a step
 
 
 @dataclass(frozen=True)
@@ -192,14 +182,12 @@ def pretrain_groups(member_cfgs) -> tuple[list[int], list[int]]:
 def stage_loop(agents, update: Callable, chunk: Callable[[int], int], step: int, schedule: Schedule,
                window: Window, bar, *, stage: str, check: Callable, log: Callable, save: Callable,
                evaluate: Callable | None = None, check_every_call: bool = False):
-    """Every stage's loop (d3rlpy's one fitter is the model): from ``step`` to
-    ``schedule.total``, ``update(agents, step, k)`` -> (agents, metrics or None: the update
-    added its own) runs k = ``chunk(step)`` updates in one jitted call (the offline stages) or
-    one online step (``OnlineState.advance``: the warm-up with learning off, then fine-tuning);
-    at log and checkpoint points (at every call with ``check_every_call``) the window's means
-    are checked (``check(step, ms)``, which may raise) and at log points logged (``log(step,
-    ms)``); at evaluation points ``evaluate(agents, step)``; then ``step_end`` with
-    ``save(step, agents, interrupted)``. Returns the agents."""
+    """Every stage's loop, from ``step`` to ``schedule.total``: ``update(agents, step, k)`` ->
+    (agents, metrics or None: the update added its own) runs k = ``chunk(step)`` updates in one
+    jitted call (the offline stages) or one online step; at log and checkpoint points (at every
+    call with ``check_every_call``) the window's means are checked (``check(step, ms)``, which may
+    raise) and at log points logged; at evaluation points ``evaluate(agents, step)``; then
+    ``step_end`` with ``save(step, agents, interrupted)``. Returns the agents."""
     while step < schedule.total:
         k = chunk(step)
         agents, metrics = update(agents, step, k)
@@ -316,11 +304,10 @@ def _reseed_online(member_cfgs, agents):
 def warmup(cfg, member_cfgs, agents, state: OnlineState, hooks: Hooks) -> tuple[list[Dataset] | None, Any]:
     """D_warmup: the online loop ``state`` (at step 0) for ``warmup.steps`` env steps with learning
     off, as WSRL's finetune.py: the frozen pre-trained policy acts (stochastic), nothing updates.
-    These are the first online steps (WSRL's accounting): fine-tuning goes on with the same loop
-    (its envs mid-episode, its step, its buffer). The frozen policy's step-0 evaluation is logged
-    again at each evaluation point passed. D_warmup is each member's buffer rows (MC returns by
-    the loop's rule, ``state.mc_returns``). No mid-stage checkpoint: a resume runs it again from
-    the pre-training's end (the same D_warmup); the runner saves the loop's state at its end."""
+    These are the first online steps: fine-tuning goes on with the same loop. The frozen policy's
+    step-0 evaluation is logged again at each evaluation point passed. D_warmup is each member's
+    buffer rows, MC returns by the loop's rule (``state.mc_returns``). No mid-stage checkpoint: a
+    resume runs it again from the pre-training's end (the same D_warmup)."""
     n, N = cfg.warmup.steps, len(member_cfgs)
     if n == 0:
         return None, agents
@@ -342,7 +329,7 @@ def warmup(cfg, member_cfgs, agents, state: OnlineState, hooks: Hooks) -> tuple[
                      rows["dones"][i, :n] > 0.5, episode_ends=episode_ends,
                      metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})
         d_warmups.append(dw._replace(mc_returns=state.mc_returns(dw)))
-    # the rewards as the env gave them, as before the loop stored transformed ones
+    # the rewards as the env gave them
     hooks.log("warmup", n, [{"episodes": state.episodes[i], "success_rate": float(np.mean(s)) if s else float("nan"),
                              "reward_mean": float((np.mean(rows["rewards"][i, :n]) - t.bias) / t.scale)}
                             for i, s in enumerate(state.recent_success)])
@@ -391,10 +378,8 @@ def finetune(cfg, member_cfgs, method, agents, state: OnlineState, probe_observa
     agents = start_finetuning(cfg, member_cfgs, method, agents, state.buffer.action_dim, probe_observations)
     if resume is not None:
         agents = resume["agents"](agents)
-    # where the updates keep them (a population's members split over the CPU devices), from the
-    # first step on: a resumed run's loaded agents sit on one device, where the policy call
-    # compiles another program than the uninterrupted run's at that step (its actions differed
-    # in the last bit, and the run drifted from there)
+    # where the updates keep them (members split over the CPU devices) from the first step on: on one
+    # device, a resumed run's loaded agents would compile another policy program (other last bits)
     agents = population.placed(agents, every_leaf=True)[0]
     if resume is None:  # a checkpoint comes after a step: a resumed fine-tuning is past its start
         hooks.evaluate(agents, state.step)
