@@ -313,15 +313,11 @@ class RunContext:
 
 def write_population_file(root: Path, cfg: RunConfig, member_cfgs: list[RunConfig], status: str,
                           member_status: list[str], stage_seconds: dict, error: str | None = None) -> None:
-    members = []
-    for mcfg, st in zip(member_cfgs, member_status):
-        m = Member(mcfg.seed, mcfg.alpha if get_method(cfg.method).uses_alpha else None)
-        entry = {**m.to_json(), "status": st}
-        if mcfg.out:
-            # the member's run directory as it was made: without --alphas a BOTO member takes the
-            # preset's alpha but its directory is seed<k> (`botorl resume POPDIR` reads this name)
-            entry["name"] = Path(mcfg.out).name
-        members.append(entry)
+    uses_alpha = get_method(cfg.method).uses_alpha
+    # `name`: the member's run directory as it was made: without --alphas a BOTO member takes the
+    # preset's alpha but its directory is seed<k> (`botorl resume POPDIR` reads this name)
+    members = [{**Member(c.seed, c.alpha if uses_alpha else None).to_json(), "status": st,
+                **({"name": Path(c.out).name} if c.out else {})} for c, st in zip(member_cfgs, member_status)]
     if status == "finished" and any(st != "finished" for st in member_status):
         status = "finished" if any(st == "finished" for st in member_status) else "failed"
     data = {"task": cfg.task, "method": cfg.method, "pretrain": cfg.pretrain, "profile": cfg.profile,
@@ -560,8 +556,7 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
     fig, ax = plt.subplots(figsize=(6, 3.6))
     label = cfg.method if cfg.alpha is None else f"{cfg.method} (alpha={cfg.alpha:+.2f})"
     ax.plot(x, y, marker="o", ms=3, label=label)
-    method = get_method(cfg.method)
-    start = cfg.warmup.steps if "warmup" in method.stages else 0
+    start = cfg.warmup.steps if "warmup" in get_method(cfg.method).stages else 0
     if start > 0:
         ax.axvspan(0, start, color="0.9", label="warm-up (frozen policy, no updates)")
     ax.axvline(start, color="k", ls="--", lw=1, label="fine-tuning starts")
@@ -603,8 +598,7 @@ def format_summary(summary: dict) -> str:
         "",
         f"{'stage':<10} {'seconds':>9}",
     ]
-    for k, v in summary["stage_seconds"].items():
-        lines.append(f"{k:<10} {v:>9.1f}")
+    lines += [f"{k:<10} {v:>9.1f}" for k, v in summary["stage_seconds"].items()]
     lines.append(f"{'total':<10} {summary['total_seconds']:>9.1f}")
     lines += [
         "",
