@@ -78,9 +78,7 @@ def hybrid_noise(key: jax.Array, actions: jax.Array, log_sigma: float, weight_fn
     lam = jax.random.uniform(k_lam, batch_shape, minval=log_sigma, maxval=0.0)
     t = jnp.exp(lam)
     uniform = jax.random.uniform(k_mix, batch_shape) < w(t)
-    a_uni = jax.random.uniform(
-        k_uni, actions.shape, minval=ACTION_LOW, maxval=ACTION_HIGH, dtype=actions.dtype
-    )
+    a_uni = jax.random.uniform(k_uni, actions.shape, minval=ACTION_LOW, maxval=ACTION_HIGH, dtype=actions.dtype)
     a_gauss = actions + t[..., None] * jax.random.normal(k_gauss, actions.shape, actions.dtype)
     a_bar = jnp.where(uniform[..., None], a_uni, a_gauss)
     if clip:
@@ -88,9 +86,8 @@ def hybrid_noise(key: jax.Array, actions: jax.Array, log_sigma: float, weight_fn
     return a_bar, {"uniform": uniform, "t": t}
 
 
-def gaussian_noise(
-    key: jax.Array, actions: jax.Array, sigma: float, *, clip: bool = True
-) -> tuple[jax.Array, dict[str, jax.Array]]:
+def gaussian_noise(key: jax.Array, actions: jax.Array, sigma: float, *,
+                   clip: bool = True) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Draw a_bar ~ Normal(a, sigma^2 I) for every row of ``actions``."""
     if isinstance(sigma, (int, float)) and not sigma > 0.0:
         raise ConfigError(f"boto gaussian noise sigma={sigma!r} must be positive (e.g. 0.25).")
@@ -98,10 +95,7 @@ def gaussian_noise(
     if clip:
         a_bar = jnp.clip(a_bar, ACTION_LOW, ACTION_HIGH)
     batch_shape = actions.shape[:-1]
-    return a_bar, {
-        "uniform": jnp.zeros(batch_shape, bool),
-        "t": jnp.full(batch_shape, sigma, actions.dtype),
-    }
+    return a_bar, {"uniform": jnp.zeros(batch_shape, bool), "t": jnp.full(batch_shape, sigma, actions.dtype)}
 
 
 def no_noise(key: jax.Array, actions: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:

@@ -55,8 +55,7 @@ class ObjectiveSettings:
         n = int(jax.tree_util.tree_leaves(agent.critic.params)[0].shape[0])
         k = config.num_min_critics or getattr(acfg, "num_min_critics", n)
         replace = config.subsample_replace
-        if replace is None:
-            replace = bool(getattr(acfg, "subsample_replace", False))
+        replace = bool(getattr(acfg, "subsample_replace", False)) if replace is None else replace
         if not replace and k > n:
             raise ConfigError(
                 f"BOTOConfig.num_min_critics = {k} exceeds the agent's {n} critics; without "
@@ -83,9 +82,8 @@ class ObjectiveSettings:
         )
 
     def noise_fn(self):
-        return make_noise_fn(
-            self.noise, log_sigma=self.log_sigma, sigma=self.sigma, weight_fn=self.weight_fn, clip=self.clip
-        )
+        return make_noise_fn(self.noise, log_sigma=self.log_sigma, sigma=self.sigma, weight_fn=self.weight_fn,
+                             clip=self.clip)
 
 
 # ----------------------------------------------------------------------------- pure pieces
@@ -137,11 +135,7 @@ def boto_critic_step(agent, batch, alpha, settings: ObjectiveSettings):
 def boto_update_many_fn(agent, batches, alpha, settings: ObjectiveSettings):
     """K BOTO critic steps under one ``lax.scan`` (traced; ``boto_update_many`` jits it, and
     ``population_update_many`` maps it over a population)."""
-
-    def body(a, b):
-        return boto_critic_step(a, b, alpha, settings)
-
-    agent, infos = jax.lax.scan(body, agent, batches)
+    agent, infos = jax.lax.scan(lambda a, b: boto_critic_step(a, b, alpha, settings), agent, batches)
     info = jax.tree_util.tree_map(jnp.mean, infos)
     # mean Q (over members and rows) at the last batch's dataset actions and at uniform actions
     obs, act = batches["observations"][-1], batches["actions"][-1]
