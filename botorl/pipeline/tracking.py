@@ -99,12 +99,6 @@ def bounded(fn, seconds: float):
     return True, box.get("value")
 
 
-def files_dir(run_root) -> str:
-    """Where W&B writes its files: $WANDB_DIR when the user sets it (W&B's own convention, e.g. a
-    scratch disk; each run keeps its own folder there), else the run directory."""
-    return os.environ.get("WANDB_DIR") or str(run_root)
-
-
 def start(cfgs: list, runs: list) -> list:
     """One W&B run per member (``cfgs[i]``, run directory ``runs[i]``), or Nones: without
     ``--wandb``, or when W&B fails or does not answer (then once, with a warning, for all)."""
@@ -117,9 +111,11 @@ def start(cfgs: list, runs: list) -> list:
     out = []
     for cfg, run in zip(cfgs, runs):
         def init(cfg=cfg, run=run):
+            # W&B's files in $WANDB_DIR when the user sets it (W&B's own convention, e.g. a scratch
+            # disk; each run keeps its own folder there), else in the run directory
             wb = wandb.init(project=os.environ.get("WANDB_PROJECT", "botorl"), id=run_id(run.root), name=name(cfg),
-                            group=group(cfg), job_type=job_type(cfg), dir=files_dir(run.root), config=to_dict(cfg),
-                            resume="allow", reinit="create_new")
+                            group=group(cfg), job_type=job_type(cfg), dir=os.environ.get("WANDB_DIR") or str(run.root),
+                            config=to_dict(cfg), resume="allow", reinit="create_new")
             define_metrics(wb)
             return wb
 
