@@ -89,9 +89,7 @@ def run(task: str | Any = "pointmaze-umaze", method: str = "boto", profile: str 
     name = getattr(task, "name", task)
     if not isinstance(name, str):
         raise ConfigError(f"task = {task!r}: give a task name or the TaskSpec register_task returned.")
-    if out is None:
-        out = Path("runs") / f"{name}-{method}-{time.strftime('%Y%m%d-%H%M%S')}"
-    out = Path(out)
+    out = Path("runs") / f"{name}-{method}-{time.strftime('%Y%m%d-%H%M%S')}" if out is None else Path(out)
     argv = ["--task", name, "--method", method, "--profile", profile, "--out", str(out)]
     if seeds is not None:
         if isinstance(seeds, int) and not isinstance(seeds, bool):
