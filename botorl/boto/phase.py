@@ -1,8 +1,8 @@
 """The BOTO phase (stage 2b): train the critic with the BOTO objective on D_BOTO.
 
-``train_boto`` trains a population (agents/population.py), member i with its own alpha on
-D_offline u D_warmup_i, all members in one jitted call; the pipeline runs it, and ``run_boto``
-is a population of one. The actor (and SAC temperature) stay frozen unless
+``boto_updates`` trains a population (agents/population.py), member i with its own alpha on
+D_offline u D_warmup_i, all members in one jitted call: the pipeline's stage runs it in its loop,
+``train_boto`` in its own, and ``run_boto`` is a population of one. The actor (and SAC temperature) stay frozen unless
 ``config.train_actor``; an IQL agent comes back changed only in its critics and rng, for
 ``SACAgent.from_pretrained`` to carry into fine-tuning (converting it first would put a fresh
 SAC temperature into the target; set ``backup_entropy=False`` then).
@@ -75,7 +75,6 @@ def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alpha
                on_call: Callable[[int, int, Any, list], None] | None = None, progress: bool = True):
     """BOTO for every member of ``agents`` (stacked), member i with ``alphas[i]`` on
     D_offline u ``d_warmups[i]`` (None: none), its batches from ``seeds[i]``; returns the agents.
-    (The pipeline's BOTO stage runs ``boto_updates`` in its offline loop instead.)
 
     ``on_call(prev_step, step, agents, metrics)`` runs after every call with the call's new
     agents and one dict of floats per member (the means over the call's steps of

@@ -1,12 +1,10 @@
 """The online loop's resumable state: everything besides the agents that decides what comes next.
 
 ``OnlineState`` (the members' envs mid-episode, observations, counters, the replay buffer with
-a member axis, each member's batch generator, the step) is built from explicit inputs (d3rlpy's
-``fit_online(env, buffer, ...)``): the envs, the buffer, the generators, the online config, the
-method and the reward transform. ``state_dict()`` gives it whole for a checkpoint and
-``load_state_dict()`` restores it, so a resumed loop repeats an uninterrupted one exactly
-(docs/CONTRACTS.md "Runs"); the runner reads and writes the checkpoints. What a method needs of
-it is in its ``Method`` (``finished_episodes_only``: Cal-QL's batches of finished episodes, MC
+a member axis, each member's batch generator, the step) is built from explicit inputs. Its
+``state_dict()`` is the whole state for a checkpoint and ``load_state_dict()`` restores it, so a
+resumed loop repeats an uninterrupted one exactly (docs/CONTRACTS.md "Runs"). What a method needs
+of it is in its ``Method`` (``finished_episodes_only``: Cal-QL's batches of finished episodes, MC
 returns filled when one ends; ``batch_layout``; botorl/configs/methods.py).
 """
 
