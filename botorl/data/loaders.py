@@ -101,27 +101,17 @@ def _qlearning_rows(terminals: np.ndarray, timeouts: np.ndarray | None, max_epis
     per-episode step counter reaches ``max_episode_steps - 1``) starts no transition and resets the
     counter; a terminal row is kept (done) and resets the counter."""
     n = terminals.shape[0]
-    if timeouts is not None:
-        keep = ~timeouts[: n - 1].astype(bool)
-        skipped = timeouts[: n - 1].astype(bool)
-    else:
-        keep = np.ones(n - 1, bool)
-        skipped = np.zeros(n - 1, bool)
-        if max_episode_steps is not None:
-            step = 0
-            term = terminals.astype(bool).tolist()
-            for i in range(n - 1):
-                if step == max_episode_steps - 1:
-                    keep[i] = False
-                    skipped[i] = True
-                    step = 0
-                    continue
-                step = 0 if term[i] else step + 1
-    idx = np.flatnonzero(keep)
+    skipped = np.zeros(n - 1, bool) if timeouts is None else timeouts[: n - 1].astype(bool)
+    if timeouts is None and max_episode_steps is not None:
+        step = 0
+        term = terminals.astype(bool).tolist()
+        for i in range(n - 1):
+            skipped[i] = step == max_episode_steps - 1
+            step = 0 if skipped[i] or term[i] else step + 1
+    idx = np.flatnonzero(~skipped)
     # A kept row ends its episode if it is terminal, or the next row is a skipped
     # time-out row, or it is the last kept row.
-    nxt = idx + 1
-    ends = terminals[idx].astype(bool) | np.concatenate([skipped, [True]])[nxt]
+    ends = terminals[idx].astype(bool) | np.concatenate([skipped, [True]])[idx + 1]
     if len(ends):
         ends[-1] = True
     return idx, ends
@@ -280,7 +270,6 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
     ``infos[success_info_key]`` as ``infos["success"]``.
     """
     data_path, as_path = _minari_data_path(id_or_path)
-    name = str(id_or_path)
     given = Path(id_or_path).expanduser()
     if as_path and given.is_file() and given.name != "main_data.hdf5":
         raise DataFormatError(
@@ -305,8 +294,7 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
                 f"{given} exists but is not a Minari dataset folder: it has neither data/main_data.hdf5 nor "
                 "data/metadata.json. Pass the folder of a Minari dataset (or regenerate it with `botorl data generate`)."
             )
-        looked = [data_path]
-        raise dataset_not_found(name, looked, None if not as_path else
+        raise dataset_not_found(str(id_or_path), [data_path], None if not as_path else
                                 "Pass the folder of a Minari dataset (it contains data/main_data.hdf5 and data/metadata.json).")
     for fname in ("main_data.hdf5", "metadata.json"):  # Minari opens both: a FIFO would hang it
         if os.path.lexists(data_path / fname):
@@ -406,9 +394,7 @@ def _as_list_of_dicts(obj, path: Path, what: str) -> list[dict]:
 def _need(traj: dict, keys: Sequence[str], path: Path, i: int) -> None:
     missing = [k for k in keys if k not in traj]
     if missing:
-        raise DataFormatError(
-            f"{path}: trajectory {i} lacks key(s) {missing} (has {sorted(traj)})."
-        )
+        raise DataFormatError(f"{path}: trajectory {i} lacks key(s) {missing} (has {sorted(traj)}).")
 
 
 def _stack_obs(seq, key: str | None, path: Path, i: int) -> np.ndarray:
@@ -449,8 +435,7 @@ def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.P
             o = _stack_obs(tr["observations"], key, p, i)
             no = _stack_obs(tr["next_observations"], key, p, i)
             a = np.asarray(tr["actions"], np.float32).reshape(len(o), -1)
-            r = np.asarray(tr["rewards"], np.float32).squeeze()
-            r = np.atleast_1d(r)[: len(o)]
+            r = np.atleast_1d(np.asarray(tr["rewards"], np.float32).squeeze())[: len(o)]
             if not (len(o) == len(no) == len(a) == len(r)):
                 raise DataFormatError(
                     f"{p}: trajectory {i} has mismatched lengths: {len(o)} observations, "
