@@ -4,7 +4,6 @@ a ``ConfigError`` (exit code 2) that names the field and says what to change."""
 from __future__ import annotations
 
 import functools
-import os
 from dataclasses import replace
 
 from botorl.boto.config import check_alpha
@@ -13,6 +12,7 @@ from botorl.configs.members import parse_alphas, parse_seeds
 from botorl.configs.methods import get_method, resolve_pretrain
 from botorl.configs.presets import PROFILES, paper_settings
 from botorl.configs.schema import RunConfig
+from botorl.data.safe import machine_memory
 from botorl.envs.metric import check_refs
 from botorl.envs.registry import get_task
 from botorl.errors import ConfigError
@@ -146,14 +146,6 @@ def check_bounds(cfg: RunConfig) -> None:
     if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol >= 0:  # NaN too
         raise ConfigError(f"--data.action-tolerance = {tol!r} is invalid: give a number >= 0 (the largest "
                           f"|action| - 1 accepted in the data; inf accepts any).")
-
-
-def machine_memory() -> int:
-    """Bytes of physical memory (0 when the system does not say)."""
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        return 0
 
 
 def _check_sizes(cfg: RunConfig, method, need) -> None:
