@@ -80,14 +80,8 @@ def resolve(cfg: RunConfig) -> RunConfig:
         sac = replace(sac, log_std_min=iql.log_std_min, log_std_max=iql.log_std_max)
     if sac.target_entropy is None and method.target_entropy_per_dim is not None:
         sac = replace(sac, target_entropy=method.target_entropy_per_dim * spec.action_dim)
-    return replace(
-        cfg,
-        seed=seed,
-        pretrain=pretrain,
-        alpha=alpha,
-        offline=replace(cfg.offline, cql=cql, iql=iql),
-        online=replace(cfg.online, sac=sac),
-    )
+    return replace(cfg, seed=seed, pretrain=pretrain, alpha=alpha, offline=replace(cfg.offline, cql=cql, iql=iql),
+                   online=replace(cfg.online, sac=sac))
 
 
 # The fields ``validate`` checks are step budgets (0 skips the work) and positive integers.
@@ -219,12 +213,7 @@ def validate(cfg: RunConfig) -> None:
     need(0.0 <= cfg.online.offline_ratio <= 1.0, "online.offline_ratio", cfg.online.offline_ratio, "must lie in [0, 1]")
     if cfg.online.buffer_capacity is not None:
         need(cfg.online.buffer_capacity >= 1, "online.buffer_capacity", cfg.online.buffer_capacity, "must be positive or None")
-    _check_sizes(cfg, method, need)
-    for name, dims in (("network.actor_hidden_dims", cfg.network.actor_hidden_dims),
-                       ("network.critic_hidden_dims", cfg.network.critic_hidden_dims)):
-        need(all(isinstance(d, int) and d <= MAX_WIDTH for d in dims), name, dims,
-             f"a layer is at most {MAX_WIDTH:,} units wide")
-        need(len(dims) >= 1 and all(int(d) >= 1 for d in dims), name, dims, "give positive layer widths, e.g. 256 256")
+    _check_sizes(cfg, method, need)  # the layer widths: check_bounds
     if method.uses_alpha:
         check_alpha(cfg.alpha)
     if cfg.seeds is not None:
