@@ -106,13 +106,9 @@ class WaypointController:
 
 def make_maze_env(maze: str, *, continuing_task: bool = True):
     """Gymnasium-Robotics' AntMazeEnv on the maze's wall map (no goal/reset marks)."""
-    import_robotics()
-    # lazy: after import_robotics(), which mutes its notice
-    from gymnasium_robotics.envs.maze.ant_maze_v4 import AntMazeEnv
-
-    spec = layout(maze)
-    return AntMazeEnv(maze_map=[list(r) for r in spec.maze_map], reward_type="sparse",
-                      continuing_task=continuing_task, reset_target=False)
+    return import_robotics("gymnasium_robotics.envs.maze.ant_maze_v4").AntMazeEnv(
+        maze_map=[list(r) for r in layout(maze).maze_map], reward_type="sparse", continuing_task=continuing_task,
+        reset_target=False)
 
 
 def load_actor(path=None):
