@@ -82,8 +82,7 @@ def _generate(cfg: Generate) -> int:
     cached = (path / "data" / "metadata.json").exists() and not cfg.overwrite
     t0 = time.time()
     ds = ensure_dataset(cfg.task, steps, cfg.seed, progress=not cfg.no_progress, regenerate=cfg.overwrite)
-    took = time.time() - t0
-    verb = "found cached" if cached else f"generated in {took:.1f} s"
+    verb = "found cached" if cached else f"generated in {time.time() - t0:.1f} s"
     print(f"{cfg.task}: {verb}: {len(ds):,} transitions, {ds.num_episodes:,} episodes -> {path}")
     if cfg.out is not None:
         out = cfg.out.expanduser()
