@@ -108,10 +108,8 @@ def parse_seeds(value, flag: str = "--seeds") -> list[int]:
             else:
                 lo = hi = int(item)
         except ValueError:
-            raise ConfigError(
-                f"{flag}: cannot read {item!r}. Give a range like 0-7 (both ends included), a list like "
-                f"0,2,5, or both (0-3,9)."
-            ) from None
+            raise ConfigError(f"{flag}: cannot read {item!r}. Give a range like 0-7 (both ends included), a list like "
+                              f"0,2,5, or both (0-3,9).") from None
         if lo < 0 or hi >= SEED_LIMIT:
             raise ConfigError(f"{flag}: {item!r}: seeds must lie in [0, 2**31), got {lo if lo < 0 else hi}.")
         if len(seeds) + hi - lo + 1 > MAX_MEMBERS:  # counted before the list is built

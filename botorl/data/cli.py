@@ -102,21 +102,17 @@ def _load_for_info(cfg: _Target) -> list[tuple[str, object]]:
         chosen = cached_datasets(target, cfg.steps, cfg.seed)
         if not chosen:
             sel = "".join(f" --{k} {v}" for k, v in (("steps", cfg.steps), ("seed", cfg.seed)) if v is not None)
-            raise BotorlError(
-                f"no generated dataset of {target}{sel or ''} in the cache "
-                f"({Path(found[0]).parent if found else 'BOTORL_DATA_DIR'}); make it with "
-                f"`botorl data generate {target}{sel}`."
-            )
+            raise BotorlError(f"no generated dataset of {target}{sel or ''} in the cache "
+                              f"({Path(found[0]).parent if found else 'BOTORL_DATA_DIR'}); make it with "
+                              f"`botorl data generate {target}{sel}`.")
         return [(str(p), load_minari(p)) for p in chosen]
     if Path(target).expanduser().exists():
         return [(target, load_path(target))]
     try:
         task = get_task(target)
     except BotorlError:
-        raise BotorlError(
-            f"{target!r} is neither a task name nor an existing dataset path. Tasks with "
-            f"generated data: {', '.join(GENERATORS)}; `botorl tasks` lists all tasks."
-        ) from None
+        raise BotorlError(f"{target!r} is neither a task name nor an existing dataset path. Tasks with "
+                          f"generated data: {', '.join(GENERATORS)}; `botorl tasks` lists all tasks.") from None
     return [(target, load_task_data(task))]
 
 

@@ -75,18 +75,14 @@ class Dataset:
         shapes = {"observations": obs.shape, "actions": act.shape, "rewards": rew.shape,
                   "next_observations": nobs.shape, "terminals": term.shape}
         if obs.ndim != 2 or nobs.ndim != 2 or act.ndim != 2 or rew.ndim != 1 or term.ndim != 1:
-            raise DataFormatError(
-                f"{src}: arrays have the wrong number of dimensions ({shapes}); expected "
-                "observations/next_observations (N, O), actions (N, A), rewards and terminals (N,). "
-                "Flatten observations before building a Dataset."
-            )
+            raise DataFormatError(f"{src}: arrays have the wrong number of dimensions ({shapes}); expected "
+                                  "observations/next_observations (N, O), actions (N, A), rewards and terminals (N,). "
+                                  "Flatten observations before building a Dataset.")
         lengths = {k: s[0] for k, s in shapes.items()}
         if len(set(lengths.values())) != 1 or nobs.shape[1] != obs.shape[1]:
-            raise DataFormatError(
-                f"{src}: mismatched array lengths/shapes {shapes}. Every field needs one row per "
-                "transition and next_observations must have the same width as observations; the "
-                "file is truncated or was written inconsistently."
-            )
+            raise DataFormatError(f"{src}: mismatched array lengths/shapes {shapes}. Every field needs one row per "
+                                  "transition and next_observations must have the same width as observations; the "
+                                  "file is truncated or was written inconsistently.")
         if n == 0:
             raise DataFormatError(f"{src}: the dataset has no transitions.")
         ends = term.copy() if episode_ends is None else np.asarray(episode_ends).astype(bool).reshape(-1)
@@ -212,11 +208,9 @@ class Dataset:
     def concat(self, other: "Dataset") -> "Dataset":
         """Rows of ``self`` then ``other``; MC returns only if both have them, infos only the keys both have."""
         if other.obs_dim != self.obs_dim or other.action_dim != self.action_dim:
-            raise DataFormatError(
-                f"cannot concatenate {_source(self.metadata)} (obs {self.obs_dim}, action "
-                f"{self.action_dim}) with {_source(other.metadata)} (obs {other.obs_dim}, action "
-                f"{other.action_dim}): the dimensions differ."
-            )
+            raise DataFormatError(f"cannot concatenate {_source(self.metadata)} (obs {self.obs_dim}, action "
+                                  f"{self.action_dim}) with {_source(other.metadata)} (obs {other.obs_dim}, action "
+                                  f"{other.action_dim}): the dimensions differ.")
         both_mc = self.mc_returns is not None and other.mc_returns is not None
         mc = np.concatenate([self.mc_returns, other.mc_returns]) if both_mc else None
         keys = sorted(set(self.infos) & set(other.infos))
@@ -287,29 +281,21 @@ def validate(dataset: Dataset, obs_dim: int | None = None, action_dim: int | Non
         bad = ~np.isfinite(arr)
         if bad.any():
             rows = np.flatnonzero(bad.reshape(len(arr), -1).any(axis=1))
-            raise DataFormatError(
-                f"{src}: field {name!r} has {int(bad.sum())} NaN/inf values (first at row "
-                f"{int(rows[0])}, {len(rows)} rows affected). Clean or drop those transitions "
-                "before loading; botorl does not train on non-finite data."
-            )
+            raise DataFormatError(f"{src}: field {name!r} has {int(bad.sum())} NaN/inf values (first at row "
+                                  f"{int(rows[0])}, {len(rows)} rows affected). Clean or drop those transitions "
+                                  "before loading; botorl does not train on non-finite data.")
     if dataset.mc_returns is not None and not np.isfinite(dataset.mc_returns).all():
         raise DataFormatError(f"{src}: mc_returns contain NaN/inf values.")
     if obs_dim is not None and dataset.obs_dim != obs_dim:
-        raise DataFormatError(
-            f"{src}: observations have {dataset.obs_dim} dimensions but the task expects "
-            f"{obs_dim}. The file belongs to a different task or version (or its dict "
-            "observations were flattened in another order/subset); load the matching dataset."
-        )
+        raise DataFormatError(f"{src}: observations have {dataset.obs_dim} dimensions but the task expects "
+                              f"{obs_dim}. The file belongs to a different task or version (or its dict "
+                              "observations were flattened in another order/subset); load the matching dataset.")
     if action_dim is not None and dataset.action_dim != action_dim:
-        raise DataFormatError(
-            f"{src}: actions have {dataset.action_dim} dimensions but the task expects "
-            f"{action_dim}. The file belongs to a different task; load the matching dataset."
-        )
+        raise DataFormatError(f"{src}: actions have {dataset.action_dim} dimensions but the task expects "
+                              f"{action_dim}. The file belongs to a different task; load the matching dataset.")
     if dataset.raw_action_max > 1.0 + action_tolerance:
-        raise DataFormatError(
-            f"{src}: actions reach magnitude {dataset.raw_action_max:.6g}, outside [-1, 1] by more "
-            f"than the tolerance {action_tolerance:g}. botorl expects actions normalised to "
-            "[-1, 1]; rescale the actions, or pass a larger action_tolerance if clipping them "
-            "is acceptable."
-        )
+        raise DataFormatError(f"{src}: actions reach magnitude {dataset.raw_action_max:.6g}, outside [-1, 1] by more "
+                              f"than the tolerance {action_tolerance:g}. botorl expects actions normalised to "
+                              "[-1, 1]; rescale the actions, or pass a larger action_tolerance if clipping them "
+                              "is acceptable.")
     return dataset

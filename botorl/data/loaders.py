@@ -127,18 +127,14 @@ def load_d4rl_hdf5(path: str | os.PathLike, *, max_episode_steps: int | None = N
     try:
         f = h5py.File(p, "r")
     except OSError as err:
-        raise DataFormatError(
-            f"{p}: not a readable HDF5 file ({err}). A D4RL dataset is an .hdf5 file with "
-            "datasets observations, actions, rewards, terminals; re-download it."
-        ) from None
+        raise DataFormatError(f"{p}: not a readable HDF5 file ({err}). A D4RL dataset is an .hdf5 file with "
+                              "datasets observations, actions, rewards, terminals; re-download it.") from None
     with f:
         check_hdf5(f, p)  # external storage or links could read any file, or hang on a FIFO
         missing = [k for k in ("observations", "actions", "rewards", "terminals") if k not in f]
         if missing:
-            raise DataFormatError(
-                f"{p}: missing D4RL field(s) {missing} (found {sorted(f.keys())}). A D4RL file "
-                "needs observations, actions, rewards, terminals (and usually timeouts)."
-            )
+            raise DataFormatError(f"{p}: missing D4RL field(s) {missing} (found {sorted(f.keys())}). A D4RL file "
+                                  "needs observations, actions, rewards, terminals (and usually timeouts).")
         try:
             obs = np.asarray(f["observations"], np.float32)
             act = np.asarray(f["actions"], np.float32)
@@ -240,10 +236,8 @@ def _minari_rows(mds, data_path: Path, obs_keys, actions_to_unit, success_info_k
         if actions_to_unit is not None:
             actions = np.asarray(actions_to_unit(actions), np.float32)
         if o.shape[0] != t + 1 or actions.shape[0] != t:
-            raise DataFormatError(
-                f"{data_path}: episode {ep_id} has {o.shape[0]} observations and "
-                f"{actions.shape[0]} actions for {t} rewards (expected T + 1, T, T)."
-            )
+            raise DataFormatError(f"{data_path}: episode {ep_id} has {o.shape[0]} observations and "
+                                  f"{actions.shape[0]} actions for {t} rewards (expected T + 1, T, T).")
         if t == 0:
             continue
         info = ep["infos"] if isinstance(ep["infos"], dict) else {}
@@ -302,10 +296,8 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
     try:
         mds = MinariDataset(data_path)
     except Exception as err:  # minari raises assorted errors on broken folders
-        raise DataFormatError(
-            f"{data_path}: not a readable Minari dataset ({type(err).__name__}: {err}). "
-            "Re-download it with `minari download <id>` or rewrite it."
-        ) from None
+        raise DataFormatError(f"{data_path}: not a readable Minari dataset ({type(err).__name__}: {err}). "
+                              "Re-download it with `minari download <id>` or rewrite it.") from None
     try:
         episodes = _minari_rows(mds, data_path, obs_keys, actions_to_unit, success_info_key)
     except (ValueError, TypeError) as err:  # bytes or strings where numbers belong
@@ -374,20 +366,16 @@ def _load_pickle_array(path: Path, what: str):
         with open(path, "rb") as fh:
             return pickle.load(fh)
     except Exception as err:
-        raise DataFormatError(
-            f"{path}: cannot be read as a {what} ({type(err).__name__}: {err}). Check that this "
-            "is the right file (pickle-based files are opened only from paths you name)."
-        ) from None
+        raise DataFormatError(f"{path}: cannot be read as a {what} ({type(err).__name__}: {err}). Check that this "
+                              "is the right file (pickle-based files are opened only from paths you name).") from None
 
 
 def _as_list_of_dicts(obj, path: Path, what: str) -> list[dict]:
     if isinstance(obj, np.ndarray) and obj.dtype == object:
         obj = list(obj.reshape(-1))
     if not isinstance(obj, (list, tuple)) or not obj or not all(isinstance(t, dict) for t in obj):
-        raise DataFormatError(
-            f"{path}: expected a {what}: a non-empty list (or object array) of per-trajectory "
-            f"dicts, got {type(obj).__name__}."
-        )
+        raise DataFormatError(f"{path}: expected a {what}: a non-empty list (or object array) of per-trajectory "
+                              f"dicts, got {type(obj).__name__}.")
     return list(obj)
 
 
@@ -437,10 +425,8 @@ def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.P
             a = np.asarray(tr["actions"], np.float32).reshape(len(o), -1)
             r = np.atleast_1d(np.asarray(tr["rewards"], np.float32).squeeze())[: len(o)]
             if not (len(o) == len(no) == len(a) == len(r)):
-                raise DataFormatError(
-                    f"{p}: trajectory {i} has mismatched lengths: {len(o)} observations, "
-                    f"{len(no)} next_observations, {len(a)} actions, {len(r)} rewards."
-                )
+                raise DataFormatError(f"{p}: trajectory {i} has mismatched lengths: {len(o)} observations, "
+                                      f"{len(no)} next_observations, {len(a)} actions, {len(r)} rewards.")
             succ = np.flatnonzero(r == 0.0)
             if len(succ) == 0:
                 continue  # never succeeds: Cal-QL drops it
@@ -469,10 +455,8 @@ def _dapg_trajectories(p: Path) -> list[dict]:
             with np.load(p, allow_pickle=False) as z:
                 missing = [k for k in ("observations", "actions", "rewards", "episode_lengths") if k not in z.files]
                 if missing:
-                    raise DataFormatError(
-                        f"{p}: .npz lacks key(s) {missing} (has {sorted(z.files)}); botorl's DAPG "
-                        "demo file has observations, actions, rewards, episode_lengths."
-                    )
+                    raise DataFormatError(f"{p}: .npz lacks key(s) {missing} (has {sorted(z.files)}); botorl's DAPG "
+                                          "demo file has observations, actions, rewards, episode_lengths.")
                 obs, act, rew, lens = (np.asarray(z[k]) for k in ("observations", "actions", "rewards", "episode_lengths"))
         except DataFormatError:
             raise
@@ -480,10 +464,8 @@ def _dapg_trajectories(p: Path) -> list[dict]:
             raise DataFormatError(f"{p}: not a readable .npz file ({type(err).__name__}: {err}).") from None
         lens = lens.astype(np.int64).reshape(-1)
         if (lens <= 0).any() or lens.sum() != obs.shape[0] or not (obs.shape[0] == act.shape[0] == rew.shape[0]):
-            raise DataFormatError(
-                f"{p}: lengths do not fit: episode_lengths sum to {int(lens.sum())}, observations "
-                f"{obs.shape[0]}, actions {act.shape[0]}, rewards {rew.shape[0]}."
-            )
+            raise DataFormatError(f"{p}: lengths do not fit: episode_lengths sum to {int(lens.sum())}, observations "
+                                  f"{obs.shape[0]}, actions {act.shape[0]}, rewards {rew.shape[0]}.")
         bounds = np.concatenate([[0], np.cumsum(lens)])
         return [
             {"observations": obs[s:e], "actions": act[s:e], "rewards": rew[s:e]}
@@ -497,10 +479,8 @@ def _dapg_trajectories(p: Path) -> list[dict]:
         a = np.asarray(tr["actions"], np.float32)
         r = np.asarray(tr["rewards"], np.float32).reshape(-1)
         if not (len(o) == len(a) == len(r)) or o.ndim != 2 or a.ndim != 2:
-            raise DataFormatError(
-                f"{p}: demo {i} has observations {o.shape}, actions {a.shape}, rewards {r.shape}; "
-                "expected (T, O), (T, A), (T,)."
-            )
+            raise DataFormatError(f"{p}: demo {i} has observations {o.shape}, actions {a.shape}, rewards {r.shape}; "
+                                  "expected (T, O), (T, A), (T,).")
         out.append({"observations": o, "actions": a, "rewards": r})
     return out
 
@@ -563,7 +543,5 @@ def load_path(path: str | os.PathLike, **kwargs) -> Dataset:
         first = obj[0].get("observations")
         is_expert = first is not None and len(first) and isinstance(first[0], dict)
         return load_calql_adroit(p, None, **kwargs) if is_expert else load_calql_adroit(None, p, **kwargs)
-    raise DataFormatError(
-        f"{p}: unknown dataset format {suffix!r}; botorl reads Minari folders, D4RL .hdf5, "
-        "DAPG .npz/.pickle and Cal-QL .npy files."
-    )
+    raise DataFormatError(f"{p}: unknown dataset format {suffix!r}; botorl reads Minari folders, D4RL .hdf5, "
+                          "DAPG .npz/.pickle and Cal-QL .npy files.")

@@ -222,10 +222,8 @@ def _resolve(dataset_id: str | None, path: str | os.PathLike | None, root: str |
     try:
         parse_dataset_id(dataset_id)
     except Exception:
-        raise ConfigError(
-            f"{dataset_id!r} is not a valid Minari dataset id: use (namespace/)name-v<N> with "
-            "letters, digits, '-' and '_' (e.g. botorl/pointmaze-large/steps1000000-seed0-v0)."
-        ) from None
+        raise ConfigError(f"{dataset_id!r} is not a valid Minari dataset id: use (namespace/)name-v<N> with "
+                          "letters, digits, '-' and '_' (e.g. botorl/pointmaze-large/steps1000000-seed0-v0).") from None
     return root_p, dataset_id
 
 
@@ -242,10 +240,8 @@ def write_minari(dataset: Dataset, dataset_id: str | None = None, *, path: str |
     root_p, dataset_id = _resolve(dataset_id, path, root)
     final = root_p / dataset_id
     if final.exists() and not overwrite:
-        raise BotorlError(
-            f"a dataset already exists at {final}; pass overwrite=True (CLI: --overwrite) to "
-            "replace it, or choose another id."
-        )
+        raise BotorlError(f"a dataset already exists at {final}; pass overwrite=True (CLI: --overwrite) to "
+                          "replace it, or choose another id.")
     root_p.mkdir(parents=True, exist_ok=True)
     clean_stale_tmp(root_p)
     tmp_root = root_p / f"{TMP_PREFIX}{_host()}-{os.getpid()}-{uuid.uuid4().hex[:12]}"

@@ -114,10 +114,8 @@ def make_maze_env(maze: str, *, continuing_task: bool = True):
 def load_actor(path=None):
     path = Path(path or os.environ.get("BOTORL_ANT_ACTOR") or ASSET)
     if not path.exists():
-        raise BotorlError(
-            f"the goal-reaching ant's weights are missing ({path}); train them with `botorl train-ant "
-            f"--out runs/ant_goal` and point BOTORL_ANT_ACTOR at runs/ant_goal/actor.npz."
-        )
+        raise BotorlError(f"the goal-reaching ant's weights are missing ({path}); train them with `botorl train-ant "
+                          f"--out runs/ant_goal` and point BOTORL_ANT_ACTOR at runs/ant_goal/actor.npz.")
     return NumpyActor.load(path)
 
 
