@@ -139,10 +139,8 @@ def parse_alphas(value, flag: str = "--alphas") -> list[float]:
             else:
                 alphas.append(round(float(item), 6))
         except (ValueError, OverflowError):
-            raise ConfigError(
-                f"{flag}: cannot read {item!r}. Give start:stop:step with the stop included (-1:1:0.25 gives "
-                f"9 values) or a list like -0.5,0,0.5."
-            ) from None
+            raise ConfigError(f"{flag}: cannot read {item!r}. Give start:stop:step with the stop included (-1:1:0.25 "
+                              "gives 9 values) or a list like -0.5,0,0.5.") from None
     alphas = [0.0 if a == 0 else a for a in alphas]
     bad = [a for a in alphas if math.isnan(a) or not -1.0 <= a <= 1.0]
     if bad:

@@ -221,11 +221,10 @@ def validate(cfg: RunConfig) -> None:
     if cfg.alphas is not None:
         parse_alphas(cfg.alphas)
     if "warmup" in method.stages and cfg.online.steps <= cfg.warmup.steps:
-        raise ConfigError(
-            f"--online.steps = {cfg.online.steps} leaves no fine-tuning after the {cfg.warmup.steps}-step warm-up: "
-            f"the warm-up's env steps count as online steps (WSRL's accounting), so online.steps is the whole "
-            f"online budget. Raise --online.steps above --warmup.steps or lower --warmup.steps."
-        )
+        raise ConfigError(f"--online.steps = {cfg.online.steps} leaves no fine-tuning after the "
+                          f"{cfg.warmup.steps}-step warm-up: the warm-up's env steps count as online steps (WSRL's "
+                          "accounting), so online.steps is the whole online budget. Raise --online.steps above "
+                          "--warmup.steps or lower --warmup.steps.")
     if method.pretrains:
         (cfg.offline.iql if cfg.pretrain == "iql" else cfg.offline.cql).validate()
     if method.finetune_start in ("warm_start", "scratch"):

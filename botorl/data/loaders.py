@@ -266,11 +266,10 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
     data_path, as_path = _minari_data_path(id_or_path)
     given = Path(id_or_path).expanduser()
     if as_path and given.is_file() and given.name != "main_data.hdf5":
-        raise DataFormatError(
-            f"{given} exists, but it is a file and this task reads a Minari dataset: give the dataset's folder "
-            "(the one holding data/main_data.hdf5 and data/metadata.json) or its main_data.hdf5. A D4RL .hdf5 "
-            "file is read by `botorl data info FILE` / botorl.data.loaders.load_d4rl_hdf5, not as a Minari dataset."
-        )
+        raise DataFormatError(f"{given} exists, but it is a file and this task reads a Minari dataset: give the "
+                              "dataset's folder (the one holding data/main_data.hdf5 and data/metadata.json) or its "
+                              "main_data.hdf5. A D4RL .hdf5 file is read by `botorl data info FILE` / "
+                              "botorl.data.loaders.load_d4rl_hdf5, not as a Minari dataset.")
     rebuild = False
     if obs_keys is None and data_path.name == "data" and actions_to_unit is None:
         try:
@@ -284,10 +283,9 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
             return validate(flat, obs_dim, action_dim, action_tolerance)
     if not (data_path / "metadata.json").exists() and not (data_path / "main_data.hdf5").exists():
         if as_path and given.is_dir():
-            raise DataFormatError(
-                f"{given} exists but is not a Minari dataset folder: it has neither data/main_data.hdf5 nor "
-                "data/metadata.json. Pass the folder of a Minari dataset (or regenerate it with `botorl data generate`)."
-            )
+            raise DataFormatError(f"{given} exists but is not a Minari dataset folder: it has neither "
+                                  "data/main_data.hdf5 nor data/metadata.json. Pass the folder of a Minari dataset (or "
+                                  "regenerate it with `botorl data generate`).")
         raise dataset_not_found(str(id_or_path), [data_path], None if not as_path else
                                 "Pass the folder of a Minari dataset (it contains data/main_data.hdf5 and data/metadata.json).")
     for fname in ("main_data.hdf5", "metadata.json"):  # Minari opens both: a FIFO would hang it
@@ -355,11 +353,10 @@ def _load_pickle_array(path: Path, what: str):
         except Exception as err:
             raise DataFormatError(f"{path}: cannot be read as a {what} ({type(err).__name__}: {err}).") from None
     if origin is not None:
-        raise DataFormatError(
-            f"{path}: this {what} is a pickle, and its path comes from {origin}, not from you; a pickle can "
-            "run code when loaded, so botorl does not open it. If you trust the file, pass --allow-pickle to "
-            f"`botorl resume`/`botorl eval`, or name it yourself: `botorl run ... --data.path {path}`."
-        )
+        raise DataFormatError(f"{path}: this {what} is a pickle, and its path comes from {origin}, not from you; a "
+                              "pickle can run code when loaded, so botorl does not open it. If you trust the file, "
+                              "pass --allow-pickle to `botorl resume`/`botorl eval`, or name it yourself: `botorl run "
+                              f"... --data.path {path}`.")
     try:
         if path.suffix == ".npy":
             return np.load(path, allow_pickle=True)
@@ -391,9 +388,8 @@ def _stack_obs(seq, key: str | None, path: Path, i: int) -> np.ndarray:
             return np.stack([np.asarray(x[key], np.float32) for x in seq])
         return np.asarray(seq, np.float32).reshape(len(seq), -1)
     except (KeyError, TypeError, IndexError, ValueError) as err:
-        raise DataFormatError(
-            f"{path}: trajectory {i}: observations are not {'dicts with ' + repr(key) if key else 'numeric arrays'} ({err})."
-        ) from None
+        raise DataFormatError(f"{path}: trajectory {i}: observations are not "
+                              f"{'dicts with ' + repr(key) if key else 'numeric arrays'} ({err}).") from None
 
 
 def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.PathLike | None = None, *,

@@ -39,11 +39,10 @@ def find_demos(demos_path: str | os.PathLike | None = None) -> Path:
     if not where:
         if SHIPPED_DEMOS.is_file():
             return SHIPPED_DEMOS
-        raise DatasetNotFoundError(
-            f"door-binary-local needs the 25 DAPG door demonstrations (door_human_demos.npz); the copy that "
-            f"ships with botorl ({SHIPPED_DEMOS}) is missing from this install. Reinstall botorl, or set "
-            f"{ENV_VAR}=/path/to/door_human_demos.npz or pass --data.demos PATH."
-        )
+        raise DatasetNotFoundError("door-binary-local needs the 25 DAPG door demonstrations (door_human_demos.npz); "
+                                   f"the copy that ships with botorl ({SHIPPED_DEMOS}) is missing from this install. "
+                                   f"Reinstall botorl, or set {ENV_VAR}=/path/to/door_human_demos.npz or pass "
+                                   "--data.demos PATH.")
     path = Path(where).expanduser()
     if not path.is_file():
         raise DatasetNotFoundError(
@@ -61,10 +60,8 @@ def load_demos(path: Path) -> list[dict[str, np.ndarray]]:
         raise DataFormatError(f"{path}: not a door demos .npz with observations, actions and episode_lengths "
                               f"({err}).") from None
     if obs.ndim != 2 or obs.shape[1] != 39 or act.shape != (obs.shape[0], 28) or lengths.sum() != obs.shape[0]:
-        raise DataFormatError(
-            f"{path}: expected observations (N, 39), actions (N, 28) and episode_lengths summing to N; "
-            f"got {obs.shape}, {act.shape}, sum {int(lengths.sum())}."
-        )
+        raise DataFormatError(f"{path}: expected observations (N, 39), actions (N, 28) and episode_lengths summing to "
+                              f"N; got {obs.shape}, {act.shape}, sum {int(lengths.sum())}.")
     starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
     return [{"observations": obs[s : s + n].astype(np.float64), "actions": act[s : s + n].astype(np.float64)}
             for s, n in zip(starts, lengths)]
