@@ -69,11 +69,9 @@ def _refuse_derived(argv: list[str]) -> None:
 
 def _pre_parse(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(add_help=False)
-    p.add_argument("--task", default="pointmaze-umaze")
-    p.add_argument("--method", default="boto")
-    p.add_argument("--profile", default="quick")
-    p.add_argument("--pretrain", default=None)
-    p.add_argument("--precision", default="tf32")
+    for flag, default in (("--task", "pointmaze-umaze"), ("--method", "boto"), ("--profile", "quick"),
+                          ("--pretrain", None), ("--precision", "tf32")):
+        p.add_argument(flag, default=default)
     ns, _ = p.parse_known_args(argv)
     if ns.pretrain in ("None", "none"):
         ns.pretrain = None

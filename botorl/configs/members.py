@@ -108,10 +108,8 @@ def parse_seeds(value, flag: str = "--seeds") -> list[int]:
             else:
                 lo = hi = int(item)
         except ValueError:
-            raise ConfigError(
-                f"{flag}: cannot read {item!r}. Give a range like 0-7 (both ends included), a list like "
-                f"0,2,5, or both (0-3,9)."
-            ) from None
+            raise ConfigError(f"{flag}: cannot read {item!r}. Give a range like 0-7 (both ends included), a list like "
+                              f"0,2,5, or both (0-3,9).") from None
         if lo < 0 or hi >= SEED_LIMIT:
             raise ConfigError(f"{flag}: {item!r}: seeds must lie in [0, 2**31), got {lo if lo < 0 else hi}.")
         if len(seeds) + hi - lo + 1 > MAX_MEMBERS:  # counted before the list is built
@@ -141,10 +139,8 @@ def parse_alphas(value, flag: str = "--alphas") -> list[float]:
             else:
                 alphas.append(round(float(item), 6))
         except (ValueError, OverflowError):
-            raise ConfigError(
-                f"{flag}: cannot read {item!r}. Give start:stop:step with the stop included (-1:1:0.25 gives "
-                f"9 values) or a list like -0.5,0,0.5."
-            ) from None
+            raise ConfigError(f"{flag}: cannot read {item!r}. Give start:stop:step with the stop included (-1:1:0.25 "
+                              "gives 9 values) or a list like -0.5,0,0.5.") from None
     alphas = [0.0 if a == 0 else a for a in alphas]
     bad = [a for a in alphas if math.isnan(a) or not -1.0 <= a <= 1.0]
     if bad:

@@ -29,7 +29,7 @@ class Method:
     # one place it is set (configs/resolve.py fills it). RLPD's -|A|/2 as WSRL ran it. boto and
     # wsrl -|A|: WSRL's sac_config passes 0.0 and, since its commit f73d11e ("fix target entropy
     # in SAC, align with CQL"), its SAC agent turns any value >= 0 into -|A| (zhouzypaul/wsrl,
-    # wsrl/agents/sac.py, create; docs/methods.md); before it, -|A|/2, botorl's until issue 40.
+    # wsrl/agents/sac.py, create; docs/methods.md).
     target_entropy_per_dim: float | None = None
     description: str = ""
 
@@ -66,10 +66,8 @@ METHODS: dict[str, Method] = {
 
 def get_method(name: str) -> Method:
     if name not in METHODS:
-        raise ConfigError(
-            f"unknown method {name!r} (--method). Choose one of: {', '.join(METHODS)}. "
-            f"For BOTO on top of CQL or IQL use `--method boto --pretrain cql|iql`."
-        )
+        raise ConfigError(f"unknown method {name!r} (--method). Choose one of: {', '.join(METHODS)}. "
+                          f"For BOTO on top of CQL or IQL use `--method boto --pretrain cql|iql`.")
     return METHODS[name]
 
 
@@ -77,23 +75,17 @@ def resolve_pretrain(method: str, pretrain: str | None) -> str | None:
     """The offline algorithm a method uses, or None (rlpd)."""
     m = get_method(method)
     if pretrain is not None and pretrain not in PRETRAIN_ALGOS:
-        raise ConfigError(
-            f"unknown pre-training algorithm {pretrain!r} (--pretrain). Choose one of: "
-            f"{', '.join(PRETRAIN_ALGOS)}."
-        )
+        raise ConfigError(f"unknown pre-training algorithm {pretrain!r} (--pretrain). Choose one of: "
+                          f"{', '.join(PRETRAIN_ALGOS)}.")
     if m.fixed_pretrain is not None:
         if pretrain is not None and pretrain != m.fixed_pretrain:
-            raise ConfigError(
-                f"--method {method} pre-trains with {m.fixed_pretrain}; --pretrain {pretrain} "
-                f"contradicts it. Drop --pretrain, or use `--method boto --pretrain {pretrain}` "
-                f"(or `--method wsrl --pretrain {pretrain}`)."
-            )
+            raise ConfigError(f"--method {method} pre-trains with {m.fixed_pretrain}; --pretrain {pretrain} "
+                              f"contradicts it. Drop --pretrain, or use `--method boto --pretrain {pretrain}` "
+                              f"(or `--method wsrl --pretrain {pretrain}`).")
         return m.fixed_pretrain
     if "pretrain" not in m.stages:
         if pretrain is not None:
-            raise ConfigError(
-                f"--method {method} trains from scratch and has no pre-training; drop "
-                f"--pretrain {pretrain}."
-            )
+            raise ConfigError(f"--method {method} trains from scratch and has no pre-training; drop "
+                              f"--pretrain {pretrain}.")
         return None
     return pretrain or "calql"

@@ -113,13 +113,8 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
         # |a| = 1.37; the env clips actions to the box, so the Dataset's clip to +-1 keeps what
         # the env executed. Accept them instead of rejecting the file.
         cfg = replace(cfg, data=replace(cfg.data, action_tolerance=0.5))
-    if profile == "quick":
-        cfg = _quick(cfg, spec)
-    elif profile == "mid":
-        cfg = _mid(cfg, spec)
-    elif profile == "smoke":
-        cfg = _smoke(cfg, spec)
-    return _method_defaults(cfg, spec)
+    reduce = {"quick": _quick, "mid": _mid, "smoke": _smoke}.get(profile)  # full: the preset as it is
+    return _method_defaults(cfg if reduce is None else reduce(cfg, spec), spec)
 
 
 def env_record(spec) -> EnvConfig:

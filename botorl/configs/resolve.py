@@ -4,7 +4,6 @@ a ``ConfigError`` (exit code 2) that names the field and says what to change."""
 from __future__ import annotations
 
 import functools
-import os
 from dataclasses import replace
 
 from botorl.boto.config import check_alpha
@@ -13,6 +12,7 @@ from botorl.configs.members import parse_alphas, parse_seeds
 from botorl.configs.methods import get_method, resolve_pretrain
 from botorl.configs.presets import PROFILES, paper_settings
 from botorl.configs.schema import RunConfig
+from botorl.data.safe import machine_memory
 from botorl.envs.metric import check_refs
 from botorl.envs.registry import get_task
 from botorl.errors import ConfigError
@@ -80,14 +80,8 @@ def resolve(cfg: RunConfig) -> RunConfig:
         sac = replace(sac, log_std_min=iql.log_std_min, log_std_max=iql.log_std_max)
     if sac.target_entropy is None and method.target_entropy_per_dim is not None:
         sac = replace(sac, target_entropy=method.target_entropy_per_dim * spec.action_dim)
-    return replace(
-        cfg,
-        seed=seed,
-        pretrain=pretrain,
-        alpha=alpha,
-        offline=replace(cfg.offline, cql=cql, iql=iql),
-        online=replace(cfg.online, sac=sac),
-    )
+    return replace(cfg, seed=seed, pretrain=pretrain, alpha=alpha, offline=replace(cfg.offline, cql=cql, iql=iql),
+                   online=replace(cfg.online, sac=sac))
 
 
 # The fields ``validate`` checks are step budgets (0 skips the work) and positive integers.
@@ -146,14 +140,6 @@ def check_bounds(cfg: RunConfig) -> None:
     if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol >= 0:  # NaN too
         raise ConfigError(f"--data.action-tolerance = {tol!r} is invalid: give a number >= 0 (the largest "
                           f"|action| - 1 accepted in the data; inf accepts any).")
-
-
-def machine_memory() -> int:
-    """Bytes of physical memory (0 when the system does not say)."""
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        return 0
 
 
 def _check_sizes(cfg: RunConfig, method, need) -> None:
@@ -227,12 +213,7 @@ def validate(cfg: RunConfig) -> None:
     need(0.0 <= cfg.online.offline_ratio <= 1.0, "online.offline_ratio", cfg.online.offline_ratio, "must lie in [0, 1]")
     if cfg.online.buffer_capacity is not None:
         need(cfg.online.buffer_capacity >= 1, "online.buffer_capacity", cfg.online.buffer_capacity, "must be positive or None")
-    _check_sizes(cfg, method, need)
-    for name, dims in (("network.actor_hidden_dims", cfg.network.actor_hidden_dims),
-                       ("network.critic_hidden_dims", cfg.network.critic_hidden_dims)):
-        need(all(isinstance(d, int) and d <= MAX_WIDTH for d in dims), name, dims,
-             f"a layer is at most {MAX_WIDTH:,} units wide")
-        need(len(dims) >= 1 and all(int(d) >= 1 for d in dims), name, dims, "give positive layer widths, e.g. 256 256")
+    _check_sizes(cfg, method, need)  # the layer widths: check_bounds
     if method.uses_alpha:
         check_alpha(cfg.alpha)
     if cfg.seeds is not None:
@@ -240,11 +221,10 @@ def validate(cfg: RunConfig) -> None:
     if cfg.alphas is not None:
         parse_alphas(cfg.alphas)
     if "warmup" in method.stages and cfg.online.steps <= cfg.warmup.steps:
-        raise ConfigError(
-            f"--online.steps = {cfg.online.steps} leaves no fine-tuning after the {cfg.warmup.steps}-step warm-up: "
-            f"the warm-up's env steps count as online steps (WSRL's accounting), so online.steps is the whole "
-            f"online budget. Raise --online.steps above --warmup.steps or lower --warmup.steps."
-        )
+        raise ConfigError(f"--online.steps = {cfg.online.steps} leaves no fine-tuning after the "
+                          f"{cfg.warmup.steps}-step warm-up: the warm-up's env steps count as online steps (WSRL's "
+                          "accounting), so online.steps is the whole online budget. Raise --online.steps above "
+                          "--warmup.steps or lower --warmup.steps.")
     if method.pretrains:
         (cfg.offline.iql if cfg.pretrain == "iql" else cfg.offline.cql).validate()
     if method.finetune_start in ("warm_start", "scratch"):

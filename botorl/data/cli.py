@@ -82,8 +82,7 @@ def _generate(cfg: Generate) -> int:
     cached = (path / "data" / "metadata.json").exists() and not cfg.overwrite
     t0 = time.time()
     ds = ensure_dataset(cfg.task, steps, cfg.seed, progress=not cfg.no_progress, regenerate=cfg.overwrite)
-    took = time.time() - t0
-    verb = "found cached" if cached else f"generated in {took:.1f} s"
+    verb = "found cached" if cached else f"generated in {time.time() - t0:.1f} s"
     print(f"{cfg.task}: {verb}: {len(ds):,} transitions, {ds.num_episodes:,} episodes -> {path}")
     if cfg.out is not None:
         out = cfg.out.expanduser()
@@ -103,21 +102,17 @@ def _load_for_info(cfg: _Target) -> list[tuple[str, object]]:
         chosen = cached_datasets(target, cfg.steps, cfg.seed)
         if not chosen:
             sel = "".join(f" --{k} {v}" for k, v in (("steps", cfg.steps), ("seed", cfg.seed)) if v is not None)
-            raise BotorlError(
-                f"no generated dataset of {target}{sel or ''} in the cache "
-                f"({Path(found[0]).parent if found else 'BOTORL_DATA_DIR'}); make it with "
-                f"`botorl data generate {target}{sel}`."
-            )
+            raise BotorlError(f"no generated dataset of {target}{sel or ''} in the cache "
+                              f"({Path(found[0]).parent if found else 'BOTORL_DATA_DIR'}); make it with "
+                              f"`botorl data generate {target}{sel}`.")
         return [(str(p), load_minari(p)) for p in chosen]
     if Path(target).expanduser().exists():
         return [(target, load_path(target))]
     try:
         task = get_task(target)
     except BotorlError:
-        raise BotorlError(
-            f"{target!r} is neither a task name nor an existing dataset path. Tasks with "
-            f"generated data: {', '.join(GENERATORS)}; `botorl tasks` lists all tasks."
-        ) from None
+        raise BotorlError(f"{target!r} is neither a task name nor an existing dataset path. Tasks with "
+                          f"generated data: {', '.join(GENERATORS)}; `botorl tasks` lists all tasks.") from None
     return [(target, load_task_data(task))]
 
 

@@ -72,26 +72,17 @@ class Dataset:
         obs, nobs, act = (x[:, None] if x.ndim == 1 else x for x in (obs, nobs, act))
         rew, term = (x.reshape(-1) if x.ndim == 2 and x.shape[1] == 1 else x for x in (rew, term))
         n = obs.shape[0]
-        shapes = {
-            "observations": obs.shape,
-            "actions": act.shape,
-            "rewards": rew.shape,
-            "next_observations": nobs.shape,
-            "terminals": term.shape,
-        }
+        shapes = {"observations": obs.shape, "actions": act.shape, "rewards": rew.shape,
+                  "next_observations": nobs.shape, "terminals": term.shape}
         if obs.ndim != 2 or nobs.ndim != 2 or act.ndim != 2 or rew.ndim != 1 or term.ndim != 1:
-            raise DataFormatError(
-                f"{src}: arrays have the wrong number of dimensions ({shapes}); expected "
-                "observations/next_observations (N, O), actions (N, A), rewards and terminals (N,). "
-                "Flatten observations before building a Dataset."
-            )
+            raise DataFormatError(f"{src}: arrays have the wrong number of dimensions ({shapes}); expected "
+                                  "observations/next_observations (N, O), actions (N, A), rewards and terminals (N,). "
+                                  "Flatten observations before building a Dataset.")
         lengths = {k: s[0] for k, s in shapes.items()}
         if len(set(lengths.values())) != 1 or nobs.shape[1] != obs.shape[1]:
-            raise DataFormatError(
-                f"{src}: mismatched array lengths/shapes {shapes}. Every field needs one row per "
-                "transition and next_observations must have the same width as observations; the "
-                "file is truncated or was written inconsistently."
-            )
+            raise DataFormatError(f"{src}: mismatched array lengths/shapes {shapes}. Every field needs one row per "
+                                  "transition and next_observations must have the same width as observations; the "
+                                  "file is truncated or was written inconsistently.")
         if n == 0:
             raise DataFormatError(f"{src}: the dataset has no transitions.")
         ends = term.copy() if episode_ends is None else np.asarray(episode_ends).astype(bool).reshape(-1)
@@ -174,11 +165,8 @@ class Dataset:
         mc = self.metadata.get("mc_returns")
         if self.mc_returns is not None and mc is not None:
             r_neg = mc["sparse_negative_reward"]
-            out = out.with_mc_returns(
-                mc["gamma"],
-                sparse_negative_reward=None if r_neg is None else float(tf(r_neg)),
-                infinite_horizon=mc["infinite_horizon"],
-            )
+            out = out.with_mc_returns(mc["gamma"], sparse_negative_reward=None if r_neg is None else float(tf(r_neg)),
+                                      infinite_horizon=mc["infinite_horizon"])
         return out
 
     def with_mc_returns(self, gamma: float, *, sparse_negative_reward: float | None = None,
@@ -213,24 +201,18 @@ class Dataset:
                 if np.all(np.isclose(rew[sl], r_neg, rtol=0.0, atol=1e-6)):
                     out[sl] = r_neg / (1.0 - gamma)
         meta = copy.deepcopy(self.metadata)
-        meta["mc_returns"] = {
-            "gamma": float(gamma),
-            "sparse_negative_reward": sparse_negative_reward,
-            "infinite_horizon": bool(infinite_horizon),
-        }
+        meta["mc_returns"] = {"gamma": float(gamma), "sparse_negative_reward": sparse_negative_reward,
+                              "infinite_horizon": bool(infinite_horizon)}
         return self._replace(mc_returns=out.astype(np.float32), metadata=meta)
 
     def concat(self, other: "Dataset") -> "Dataset":
         """Rows of ``self`` then ``other``; MC returns only if both have them, infos only the keys both have."""
         if other.obs_dim != self.obs_dim or other.action_dim != self.action_dim:
-            raise DataFormatError(
-                f"cannot concatenate {_source(self.metadata)} (obs {self.obs_dim}, action "
-                f"{self.action_dim}) with {_source(other.metadata)} (obs {other.obs_dim}, action "
-                f"{other.action_dim}): the dimensions differ."
-            )
-        mc = None
-        if self.mc_returns is not None and other.mc_returns is not None:
-            mc = np.concatenate([self.mc_returns, other.mc_returns])
+            raise DataFormatError(f"cannot concatenate {_source(self.metadata)} (obs {self.obs_dim}, action "
+                                  f"{self.action_dim}) with {_source(other.metadata)} (obs {other.obs_dim}, action "
+                                  f"{other.action_dim}): the dimensions differ.")
+        both_mc = self.mc_returns is not None and other.mc_returns is not None
+        mc = np.concatenate([self.mc_returns, other.mc_returns]) if both_mc else None
         keys = sorted(set(self.infos) & set(other.infos))
         meta = copy.deepcopy(self.metadata)
         meta["source"] = f"{_source(self.metadata)} + {_source(other.metadata)}"
@@ -277,25 +259,16 @@ class Dataset:
         csum = np.concatenate([[0.0], np.cumsum(self.rewards, dtype=np.float64)])
         rets = np.array([csum[s.stop] - csum[s.start] for s in slices])
         lens = np.array([s.stop - s.start for s in slices])
-        out: dict[str, Any] = {
-            "transitions": len(self),
-            "episodes": len(slices),
-            "obs_dim": self.obs_dim,
-            "action_dim": self.action_dim,
-            "terminals": int(self.terminals.sum()),
-            "episode_length_mean": float(lens.mean()),
-            "return_mean": float(rets.mean()),
-            "return_std": float(rets.std()),
-            "return_min": float(rets.min()),
-            "return_max": float(rets.max()),
-            "reward_min": float(self.rewards.min()),
-            "reward_max": float(self.rewards.max()),
-            "success_rate": None,
-        }
+        success_rate = None
         if success_key in self.infos:
             succ = np.asarray(self.infos[success_key], dtype=np.float64)
-            out["success_rate"] = float(np.mean([succ[s].max() for s in slices]))
-        return out
+            success_rate = float(np.mean([succ[s].max() for s in slices]))
+        return {"transitions": len(self), "episodes": len(slices), "obs_dim": self.obs_dim,
+                "action_dim": self.action_dim, "terminals": int(self.terminals.sum()),
+                "episode_length_mean": float(lens.mean()), "return_mean": float(rets.mean()),
+                "return_std": float(rets.std()), "return_min": float(rets.min()), "return_max": float(rets.max()),
+                "reward_min": float(self.rewards.min()), "reward_max": float(self.rewards.max()),
+                "success_rate": success_rate}
 
 
 def validate(dataset: Dataset, obs_dim: int | None = None, action_dim: int | None = None,
@@ -308,29 +281,21 @@ def validate(dataset: Dataset, obs_dim: int | None = None, action_dim: int | Non
         bad = ~np.isfinite(arr)
         if bad.any():
             rows = np.flatnonzero(bad.reshape(len(arr), -1).any(axis=1))
-            raise DataFormatError(
-                f"{src}: field {name!r} has {int(bad.sum())} NaN/inf values (first at row "
-                f"{int(rows[0])}, {len(rows)} rows affected). Clean or drop those transitions "
-                "before loading; botorl does not train on non-finite data."
-            )
+            raise DataFormatError(f"{src}: field {name!r} has {int(bad.sum())} NaN/inf values (first at row "
+                                  f"{int(rows[0])}, {len(rows)} rows affected). Clean or drop those transitions "
+                                  "before loading; botorl does not train on non-finite data.")
     if dataset.mc_returns is not None and not np.isfinite(dataset.mc_returns).all():
         raise DataFormatError(f"{src}: mc_returns contain NaN/inf values.")
     if obs_dim is not None and dataset.obs_dim != obs_dim:
-        raise DataFormatError(
-            f"{src}: observations have {dataset.obs_dim} dimensions but the task expects "
-            f"{obs_dim}. The file belongs to a different task or version (or its dict "
-            "observations were flattened in another order/subset); load the matching dataset."
-        )
+        raise DataFormatError(f"{src}: observations have {dataset.obs_dim} dimensions but the task expects "
+                              f"{obs_dim}. The file belongs to a different task or version (or its dict "
+                              "observations were flattened in another order/subset); load the matching dataset.")
     if action_dim is not None and dataset.action_dim != action_dim:
-        raise DataFormatError(
-            f"{src}: actions have {dataset.action_dim} dimensions but the task expects "
-            f"{action_dim}. The file belongs to a different task; load the matching dataset."
-        )
+        raise DataFormatError(f"{src}: actions have {dataset.action_dim} dimensions but the task expects "
+                              f"{action_dim}. The file belongs to a different task; load the matching dataset.")
     if dataset.raw_action_max > 1.0 + action_tolerance:
-        raise DataFormatError(
-            f"{src}: actions reach magnitude {dataset.raw_action_max:.6g}, outside [-1, 1] by more "
-            f"than the tolerance {action_tolerance:g}. botorl expects actions normalised to "
-            "[-1, 1]; rescale the actions, or pass a larger action_tolerance if clipping them "
-            "is acceptable."
-        )
+        raise DataFormatError(f"{src}: actions reach magnitude {dataset.raw_action_max:.6g}, outside [-1, 1] by more "
+                              f"than the tolerance {action_tolerance:g}. botorl expects actions normalised to "
+                              "[-1, 1]; rescale the actions, or pass a larger action_tolerance if clipping them "
+                              "is acceptable.")
     return dataset

@@ -101,27 +101,17 @@ def _qlearning_rows(terminals: np.ndarray, timeouts: np.ndarray | None, max_epis
     per-episode step counter reaches ``max_episode_steps - 1``) starts no transition and resets the
     counter; a terminal row is kept (done) and resets the counter."""
     n = terminals.shape[0]
-    if timeouts is not None:
-        keep = ~timeouts[: n - 1].astype(bool)
-        skipped = timeouts[: n - 1].astype(bool)
-    else:
-        keep = np.ones(n - 1, bool)
-        skipped = np.zeros(n - 1, bool)
-        if max_episode_steps is not None:
-            step = 0
-            term = terminals.astype(bool).tolist()
-            for i in range(n - 1):
-                if step == max_episode_steps - 1:
-                    keep[i] = False
-                    skipped[i] = True
-                    step = 0
-                    continue
-                step = 0 if term[i] else step + 1
-    idx = np.flatnonzero(keep)
+    skipped = np.zeros(n - 1, bool) if timeouts is None else timeouts[: n - 1].astype(bool)
+    if timeouts is None and max_episode_steps is not None:
+        step = 0
+        term = terminals.astype(bool).tolist()
+        for i in range(n - 1):
+            skipped[i] = step == max_episode_steps - 1
+            step = 0 if skipped[i] or term[i] else step + 1
+    idx = np.flatnonzero(~skipped)
     # A kept row ends its episode if it is terminal, or the next row is a skipped
     # time-out row, or it is the last kept row.
-    nxt = idx + 1
-    ends = terminals[idx].astype(bool) | np.concatenate([skipped, [True]])[nxt]
+    ends = terminals[idx].astype(bool) | np.concatenate([skipped, [True]])[idx + 1]
     if len(ends):
         ends[-1] = True
     return idx, ends
@@ -137,18 +127,14 @@ def load_d4rl_hdf5(path: str | os.PathLike, *, max_episode_steps: int | None = N
     try:
         f = h5py.File(p, "r")
     except OSError as err:
-        raise DataFormatError(
-            f"{p}: not a readable HDF5 file ({err}). A D4RL dataset is an .hdf5 file with "
-            "datasets observations, actions, rewards, terminals; re-download it."
-        ) from None
+        raise DataFormatError(f"{p}: not a readable HDF5 file ({err}). A D4RL dataset is an .hdf5 file with "
+                              "datasets observations, actions, rewards, terminals; re-download it.") from None
     with f:
         check_hdf5(f, p)  # external storage or links could read any file, or hang on a FIFO
         missing = [k for k in ("observations", "actions", "rewards", "terminals") if k not in f]
         if missing:
-            raise DataFormatError(
-                f"{p}: missing D4RL field(s) {missing} (found {sorted(f.keys())}). A D4RL file "
-                "needs observations, actions, rewards, terminals (and usually timeouts)."
-            )
+            raise DataFormatError(f"{p}: missing D4RL field(s) {missing} (found {sorted(f.keys())}). A D4RL file "
+                                  "needs observations, actions, rewards, terminals (and usually timeouts).")
         try:
             obs = np.asarray(f["observations"], np.float32)
             act = np.asarray(f["actions"], np.float32)
@@ -250,10 +236,8 @@ def _minari_rows(mds, data_path: Path, obs_keys, actions_to_unit, success_info_k
         if actions_to_unit is not None:
             actions = np.asarray(actions_to_unit(actions), np.float32)
         if o.shape[0] != t + 1 or actions.shape[0] != t:
-            raise DataFormatError(
-                f"{data_path}: episode {ep_id} has {o.shape[0]} observations and "
-                f"{actions.shape[0]} actions for {t} rewards (expected T + 1, T, T)."
-            )
+            raise DataFormatError(f"{data_path}: episode {ep_id} has {o.shape[0]} observations and "
+                                  f"{actions.shape[0]} actions for {t} rewards (expected T + 1, T, T).")
         if t == 0:
             continue
         info = ep["infos"] if isinstance(ep["infos"], dict) else {}
@@ -280,14 +264,12 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
     ``infos[success_info_key]`` as ``infos["success"]``.
     """
     data_path, as_path = _minari_data_path(id_or_path)
-    name = str(id_or_path)
     given = Path(id_or_path).expanduser()
     if as_path and given.is_file() and given.name != "main_data.hdf5":
-        raise DataFormatError(
-            f"{given} exists, but it is a file and this task reads a Minari dataset: give the dataset's folder "
-            "(the one holding data/main_data.hdf5 and data/metadata.json) or its main_data.hdf5. A D4RL .hdf5 "
-            "file is read by `botorl data info FILE` / botorl.data.loaders.load_d4rl_hdf5, not as a Minari dataset."
-        )
+        raise DataFormatError(f"{given} exists, but it is a file and this task reads a Minari dataset: give the "
+                              "dataset's folder (the one holding data/main_data.hdf5 and data/metadata.json) or its "
+                              "main_data.hdf5. A D4RL .hdf5 file is read by `botorl data info FILE` / "
+                              "botorl.data.loaders.load_d4rl_hdf5, not as a Minari dataset.")
     rebuild = False
     if obs_keys is None and data_path.name == "data" and actions_to_unit is None:
         try:
@@ -301,12 +283,10 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
             return validate(flat, obs_dim, action_dim, action_tolerance)
     if not (data_path / "metadata.json").exists() and not (data_path / "main_data.hdf5").exists():
         if as_path and given.is_dir():
-            raise DataFormatError(
-                f"{given} exists but is not a Minari dataset folder: it has neither data/main_data.hdf5 nor "
-                "data/metadata.json. Pass the folder of a Minari dataset (or regenerate it with `botorl data generate`)."
-            )
-        looked = [data_path]
-        raise dataset_not_found(name, looked, None if not as_path else
+            raise DataFormatError(f"{given} exists but is not a Minari dataset folder: it has neither "
+                                  "data/main_data.hdf5 nor data/metadata.json. Pass the folder of a Minari dataset (or "
+                                  "regenerate it with `botorl data generate`).")
+        raise dataset_not_found(str(id_or_path), [data_path], None if not as_path else
                                 "Pass the folder of a Minari dataset (it contains data/main_data.hdf5 and data/metadata.json).")
     for fname in ("main_data.hdf5", "metadata.json"):  # Minari opens both: a FIFO would hang it
         if os.path.lexists(data_path / fname):
@@ -314,10 +294,8 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
     try:
         mds = MinariDataset(data_path)
     except Exception as err:  # minari raises assorted errors on broken folders
-        raise DataFormatError(
-            f"{data_path}: not a readable Minari dataset ({type(err).__name__}: {err}). "
-            "Re-download it with `minari download <id>` or rewrite it."
-        ) from None
+        raise DataFormatError(f"{data_path}: not a readable Minari dataset ({type(err).__name__}: {err}). "
+                              "Re-download it with `minari download <id>` or rewrite it.") from None
     try:
         episodes = _minari_rows(mds, data_path, obs_keys, actions_to_unit, success_info_key)
     except (ValueError, TypeError) as err:  # bytes or strings where numbers belong
@@ -375,40 +353,33 @@ def _load_pickle_array(path: Path, what: str):
         except Exception as err:
             raise DataFormatError(f"{path}: cannot be read as a {what} ({type(err).__name__}: {err}).") from None
     if origin is not None:
-        raise DataFormatError(
-            f"{path}: this {what} is a pickle, and its path comes from {origin}, not from you; a pickle can "
-            "run code when loaded, so botorl does not open it. If you trust the file, pass --allow-pickle to "
-            f"`botorl resume`/`botorl eval`, or name it yourself: `botorl run ... --data.path {path}`."
-        )
+        raise DataFormatError(f"{path}: this {what} is a pickle, and its path comes from {origin}, not from you; a "
+                              "pickle can run code when loaded, so botorl does not open it. If you trust the file, "
+                              "pass --allow-pickle to `botorl resume`/`botorl eval`, or name it yourself: `botorl run "
+                              f"... --data.path {path}`.")
     try:
         if path.suffix == ".npy":
             return np.load(path, allow_pickle=True)
         with open(path, "rb") as fh:
             return pickle.load(fh)
     except Exception as err:
-        raise DataFormatError(
-            f"{path}: cannot be read as a {what} ({type(err).__name__}: {err}). Check that this "
-            "is the right file (pickle-based files are opened only from paths you name)."
-        ) from None
+        raise DataFormatError(f"{path}: cannot be read as a {what} ({type(err).__name__}: {err}). Check that this "
+                              "is the right file (pickle-based files are opened only from paths you name).") from None
 
 
 def _as_list_of_dicts(obj, path: Path, what: str) -> list[dict]:
     if isinstance(obj, np.ndarray) and obj.dtype == object:
         obj = list(obj.reshape(-1))
     if not isinstance(obj, (list, tuple)) or not obj or not all(isinstance(t, dict) for t in obj):
-        raise DataFormatError(
-            f"{path}: expected a {what}: a non-empty list (or object array) of per-trajectory "
-            f"dicts, got {type(obj).__name__}."
-        )
+        raise DataFormatError(f"{path}: expected a {what}: a non-empty list (or object array) of per-trajectory "
+                              f"dicts, got {type(obj).__name__}.")
     return list(obj)
 
 
 def _need(traj: dict, keys: Sequence[str], path: Path, i: int) -> None:
     missing = [k for k in keys if k not in traj]
     if missing:
-        raise DataFormatError(
-            f"{path}: trajectory {i} lacks key(s) {missing} (has {sorted(traj)})."
-        )
+        raise DataFormatError(f"{path}: trajectory {i} lacks key(s) {missing} (has {sorted(traj)}).")
 
 
 def _stack_obs(seq, key: str | None, path: Path, i: int) -> np.ndarray:
@@ -417,9 +388,8 @@ def _stack_obs(seq, key: str | None, path: Path, i: int) -> np.ndarray:
             return np.stack([np.asarray(x[key], np.float32) for x in seq])
         return np.asarray(seq, np.float32).reshape(len(seq), -1)
     except (KeyError, TypeError, IndexError, ValueError) as err:
-        raise DataFormatError(
-            f"{path}: trajectory {i}: observations are not {'dicts with ' + repr(key) if key else 'numeric arrays'} ({err})."
-        ) from None
+        raise DataFormatError(f"{path}: trajectory {i}: observations are not "
+                              f"{'dicts with ' + repr(key) if key else 'numeric arrays'} ({err}).") from None
 
 
 def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.PathLike | None = None, *,
@@ -449,13 +419,10 @@ def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.P
             o = _stack_obs(tr["observations"], key, p, i)
             no = _stack_obs(tr["next_observations"], key, p, i)
             a = np.asarray(tr["actions"], np.float32).reshape(len(o), -1)
-            r = np.asarray(tr["rewards"], np.float32).squeeze()
-            r = np.atleast_1d(r)[: len(o)]
+            r = np.atleast_1d(np.asarray(tr["rewards"], np.float32).squeeze())[: len(o)]
             if not (len(o) == len(no) == len(a) == len(r)):
-                raise DataFormatError(
-                    f"{p}: trajectory {i} has mismatched lengths: {len(o)} observations, "
-                    f"{len(no)} next_observations, {len(a)} actions, {len(r)} rewards."
-                )
+                raise DataFormatError(f"{p}: trajectory {i} has mismatched lengths: {len(o)} observations, "
+                                      f"{len(no)} next_observations, {len(a)} actions, {len(r)} rewards.")
             succ = np.flatnonzero(r == 0.0)
             if len(succ) == 0:
                 continue  # never succeeds: Cal-QL drops it
@@ -484,10 +451,8 @@ def _dapg_trajectories(p: Path) -> list[dict]:
             with np.load(p, allow_pickle=False) as z:
                 missing = [k for k in ("observations", "actions", "rewards", "episode_lengths") if k not in z.files]
                 if missing:
-                    raise DataFormatError(
-                        f"{p}: .npz lacks key(s) {missing} (has {sorted(z.files)}); botorl's DAPG "
-                        "demo file has observations, actions, rewards, episode_lengths."
-                    )
+                    raise DataFormatError(f"{p}: .npz lacks key(s) {missing} (has {sorted(z.files)}); botorl's DAPG "
+                                          "demo file has observations, actions, rewards, episode_lengths.")
                 obs, act, rew, lens = (np.asarray(z[k]) for k in ("observations", "actions", "rewards", "episode_lengths"))
         except DataFormatError:
             raise
@@ -495,10 +460,8 @@ def _dapg_trajectories(p: Path) -> list[dict]:
             raise DataFormatError(f"{p}: not a readable .npz file ({type(err).__name__}: {err}).") from None
         lens = lens.astype(np.int64).reshape(-1)
         if (lens <= 0).any() or lens.sum() != obs.shape[0] or not (obs.shape[0] == act.shape[0] == rew.shape[0]):
-            raise DataFormatError(
-                f"{p}: lengths do not fit: episode_lengths sum to {int(lens.sum())}, observations "
-                f"{obs.shape[0]}, actions {act.shape[0]}, rewards {rew.shape[0]}."
-            )
+            raise DataFormatError(f"{p}: lengths do not fit: episode_lengths sum to {int(lens.sum())}, observations "
+                                  f"{obs.shape[0]}, actions {act.shape[0]}, rewards {rew.shape[0]}.")
         bounds = np.concatenate([[0], np.cumsum(lens)])
         return [
             {"observations": obs[s:e], "actions": act[s:e], "rewards": rew[s:e]}
@@ -512,10 +475,8 @@ def _dapg_trajectories(p: Path) -> list[dict]:
         a = np.asarray(tr["actions"], np.float32)
         r = np.asarray(tr["rewards"], np.float32).reshape(-1)
         if not (len(o) == len(a) == len(r)) or o.ndim != 2 or a.ndim != 2:
-            raise DataFormatError(
-                f"{p}: demo {i} has observations {o.shape}, actions {a.shape}, rewards {r.shape}; "
-                "expected (T, O), (T, A), (T,)."
-            )
+            raise DataFormatError(f"{p}: demo {i} has observations {o.shape}, actions {a.shape}, rewards {r.shape}; "
+                                  "expected (T, O), (T, A), (T,).")
         out.append({"observations": o, "actions": a, "rewards": r})
     return out
 
@@ -578,7 +539,5 @@ def load_path(path: str | os.PathLike, **kwargs) -> Dataset:
         first = obj[0].get("observations")
         is_expert = first is not None and len(first) and isinstance(first[0], dict)
         return load_calql_adroit(p, None, **kwargs) if is_expert else load_calql_adroit(None, p, **kwargs)
-    raise DataFormatError(
-        f"{p}: unknown dataset format {suffix!r}; botorl reads Minari folders, D4RL .hdf5, "
-        "DAPG .npz/.pickle and Cal-QL .npy files."
-    )
+    raise DataFormatError(f"{p}: unknown dataset format {suffix!r}; botorl reads Minari folders, D4RL .hdf5, "
+                          "DAPG .npz/.pickle and Cal-QL .npy files.")

@@ -10,6 +10,7 @@ metadata is a JSON string under the metadata key ``botorl_metadata``.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import io
@@ -71,13 +72,12 @@ def _host() -> str:
     return socket.gethostname().replace("-", "_") or "host"
 
 
-def clean_stale_tmp(root: Path) -> list[Path]:
-    """Remove temporary roots left under ``root`` by writers that died (kill -9); returns them."""
-    removed = []
+def clean_stale_tmp(root: Path) -> None:
+    """Remove temporary roots left under ``root`` by writers that died (kill -9)."""
     try:
         entries = list(Path(root).iterdir())
     except OSError:
-        return removed
+        return
     host = _host()
     for p in entries:
         if not p.name.startswith(TMP_PREFIX) or not p.is_dir():
@@ -92,8 +92,6 @@ def clean_stale_tmp(root: Path) -> list[Path]:
                 stale = False
         if stale:
             shutil.rmtree(p, ignore_errors=True)
-            removed.append(p)
-    return removed
 
 
 def minari_root() -> Path:
@@ -116,8 +114,7 @@ def _episodes(ds: Dataset):
     """Per episode of T steps: T + 1 observations, T actions, rewards, terminations, truncations (the
     last truncated unless terminal), infos of T + 1 entries (the first, Minari's reset info, 0)."""
     starts, ends, jump = _cuts(ds)
-    info_keys = sorted(ds.infos)
-    infos_all = {k: np.asarray(ds.infos[k]) for k in info_keys}
+    infos_all = {k: np.asarray(ds.infos[k]) for k in sorted(ds.infos)}
     split_any = bool(jump.any())
     layout = _dict_layout(ds)
     for s, e in zip(starts.tolist(), ends.tolist()):
@@ -127,9 +124,8 @@ def _episodes(ds: Dataset):
         term = ds.terminals[s:e]
         trunc = np.zeros(e - s, bool)
         trunc[-1] = not term[-1]
-        infos: dict[str, Any] = {}
-        for k, v in infos_all.items():
-            infos[k] = np.concatenate([np.zeros((1,) + v.shape[1:], v.dtype), v[s:e]])
+        infos: dict[str, Any] = {k: np.concatenate([np.zeros((1,) + v.shape[1:], v.dtype), v[s:e]])
+                                 for k, v in infos_all.items()}
         if split_any:
             split = np.zeros(e - s + 1, np.float32)
             split[-1] = float(jump[e - 1])
@@ -160,12 +156,8 @@ def _observation_space(ds: Dataset):
     layout = _dict_layout(ds)
     if not layout:
         return gym.spaces.Box(-np.inf, np.inf, (ds.obs_dim,), np.float32)
-    dims = {}
-    for key, spec in layout.items():
-        if isinstance(spec, str):
-            dims[key] = int(np.prod(np.asarray(ds.infos[spec[6:]]).shape[1:]))
-        else:
-            dims[key] = int(spec[1]) - int(spec[0])
+    dims = {key: int(np.prod(np.asarray(ds.infos[spec[6:]]).shape[1:])) if isinstance(spec, str)
+            else int(spec[1]) - int(spec[0]) for key, spec in layout.items()}
     return gym.spaces.Dict({k: gym.spaces.Box(-np.inf, np.inf, (d,), np.float64) for k, d in dims.items()})
 
 
@@ -205,10 +197,8 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
                     write(og, k.encode(), v)
             else:
                 write(g, b"observations", obs)
-            write(g, b"actions", act)
-            write(g, b"rewards", rew)
-            write(g, b"terminations", term)
-            write(g, b"truncations", trunc)
+            for key, v in ((b"actions", act), (b"rewards", rew), (b"terminations", term), (b"truncations", trunc)):
+                write(g, key, v)
             if infos:
                 ig = h5g.create(g, b"infos")
                 for k, v in infos.items():
@@ -232,10 +222,8 @@ def _resolve(dataset_id: str | None, path: str | os.PathLike | None, root: str |
     try:
         parse_dataset_id(dataset_id)
     except Exception:
-        raise ConfigError(
-            f"{dataset_id!r} is not a valid Minari dataset id: use (namespace/)name-v<N> with "
-            "letters, digits, '-' and '_' (e.g. botorl/pointmaze-large/steps1000000-seed0-v0)."
-        ) from None
+        raise ConfigError(f"{dataset_id!r} is not a valid Minari dataset id: use (namespace/)name-v<N> with "
+                          "letters, digits, '-' and '_' (e.g. botorl/pointmaze-large/steps1000000-seed0-v0).") from None
     return root_p, dataset_id
 
 
@@ -252,10 +240,8 @@ def write_minari(dataset: Dataset, dataset_id: str | None = None, *, path: str |
     root_p, dataset_id = _resolve(dataset_id, path, root)
     final = root_p / dataset_id
     if final.exists() and not overwrite:
-        raise BotorlError(
-            f"a dataset already exists at {final}; pass overwrite=True (CLI: --overwrite) to "
-            "replace it, or choose another id."
-        )
+        raise BotorlError(f"a dataset already exists at {final}; pass overwrite=True (CLI: --overwrite) to "
+                          "replace it, or choose another id.")
     root_p.mkdir(parents=True, exist_ok=True)
     clean_stale_tmp(root_p)
     tmp_root = root_p / f"{TMP_PREFIX}{_host()}-{os.getpid()}-{uuid.uuid4().hex[:12]}"
@@ -361,14 +347,10 @@ def read_flat(folder: Path) -> Dataset | None:
                    body["episode_ends"], infos=infos, metadata=meta, raw_action_max=raw)
 
 
-def rebuild_flat(ds: Dataset, folder: Path) -> bool:
+def rebuild_flat(ds: Dataset, folder: Path) -> None:
     """Rewrite the flat copy of the Minari dataset in ``folder`` from ``ds`` (read from the source)."""
-    meta = dict(ds.metadata.get("botorl") or {})
-    try:
-        _write_flat(ds, Path(folder) / FLAT_FILE, meta)
-        return True
-    except OSError:
-        return False  # a read-only dataset folder: the Minari data are used each time
+    with contextlib.suppress(OSError):  # a read-only dataset folder: the Minari data are used each time
+        _write_flat(ds, Path(folder) / FLAT_FILE, dict(ds.metadata.get("botorl") or {}))
 
 
 def _json_default(obj):

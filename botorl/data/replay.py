@@ -139,12 +139,8 @@ class ReplayBuffer:
         two-array fancy index (``arr[m, idx]``) is 4-10x slower, and with 8 members it was a
         fifth of a fine-tuning step's host time."""
         flat = (members.reshape(members.shape + (1,) * (idx.ndim - 1)) * self.capacity + idx).ravel()
-        out = {}
-        for k in BATCH_KEYS:
-            arr = self._arrays[k]
-            tail = arr.shape[2:]
-            out[k] = np.take(arr.reshape((-1,) + tail), flat, axis=0).reshape(idx.shape + tail)
-        return out
+        return {k: np.take(a.reshape((-1,) + a.shape[2:]), flat, axis=0).reshape(idx.shape + a.shape[2:])
+                for k, a in self._arrays.items()}
 
     def _row_index(self, i: int, rng: np.random.Generator, shape, finished: bool) -> np.ndarray:
         """Member i's row indices: all rows, or (``finished``) those of closed episodes, oldest first."""

@@ -1,4 +1,4 @@
-"""Checks a data file passes before botorl reads it (issue 39): a data path can come from a run
+"""Checks a data file passes before botorl reads it: a data path can come from a run
 directory's config.json, which is data, never orders. Only a regular file is opened (a FIFO would
 hang the reader, a device would be read without end); a ``.npz`` is sized from its headers before
 any array is inflated; an HDF5 file that stores data outside itself (external storage, external
@@ -22,13 +22,18 @@ from botorl.errors import DataFormatError
 MAX_DATA_BYTES = 64 << 30  # one dataset's arrays: far above any offline RL dataset botorl reads
 
 
+def machine_memory() -> int:
+    """Bytes of physical memory (0 when the system does not say)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
 def data_cap() -> int:
     """Bytes a dataset may declare: ``MAX_DATA_BYTES``, at most half this machine's memory (and of
     the process's address-space limit)."""
-    try:
-        have = int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        have = 0
+    have = machine_memory()
     cap = min(MAX_DATA_BYTES, have // 2) if have else MAX_DATA_BYTES
     try:  # a process under `ulimit -v` has less than the machine
         soft = resource.getrlimit(resource.RLIMIT_AS)[0]
@@ -67,11 +72,9 @@ def check_npz(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np.dt
                 if not info.filename.endswith(".npy"):
                     continue
                 with z.open(info) as f:
-                    version = np.lib.format.read_magic(f)
-                    if version == (1, 0):
-                        shape, _, dtype = np.lib.format.read_array_header_1_0(f)
-                    else:
-                        shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+                    fmt = np.lib.format
+                    v1 = fmt.read_magic(f) == (1, 0)
+                    shape, _, dtype = (fmt.read_array_header_1_0 if v1 else fmt.read_array_header_2_0)(f)
                     header = f.tell() if f.seekable() else None
                 if dtype.hasobject:
                     raise DataFormatError(f"{p}: array {info.filename[:-4]!r} holds Python objects (a pickle); save "
@@ -144,11 +147,7 @@ def data_files(path: str | os.PathLike, minari_root: Path | None = None) -> list
     for main in (p / "data" / "main_data.hdf5", p / "main_data.hdf5"):
         if os.path.lexists(main):
             return [main]
-    found = []
-    for entry in sorted(p.iterdir())[:10_000]:
-        if entry.is_file() and stat.S_ISREG(entry.stat().st_mode):
-            found.append(entry)
-    return found
+    return [e for e in sorted(p.iterdir())[:10_000] if e.is_file() and stat.S_ISREG(e.stat().st_mode)]
 
 
 def fingerprint(path: str | os.PathLike | None, minari_root: Path | None = None) -> dict:

@@ -59,29 +59,26 @@ def check_dims(ds: Dataset, task: UserTask, source: str) -> None:
     """The data's widths against the env's (DataFormatError naming both)."""
     _check_obs(ds.obs_dim, task, source, "observations")
     if ds.action_dim != task.action_dim:
-        raise DataFormatError(
-            f"{source}: actions have {ds.action_dim} dimensions, but the env's action space has {task.action_dim}. "
-            f"The data were logged from another env; log the actions passed to this env's step()."
-        )
+        raise DataFormatError(f"{source}: actions have {ds.action_dim} dimensions, but the env's action space has "
+                              f"{task.action_dim}. The data were logged from another env; log the actions passed to "
+                              "this env's step().")
 
 
 def _check_obs(width: int, task: UserTask, source: str, field: str) -> None:
     if width != task.obs_dim:
         layout = f" (the env's dict observation flattened as {', '.join(task.obs_keys)})" if task.obs_keys else ""
-        raise DataFormatError(
-            f"{source}: {field} have {width} dimensions, but the env's have {task.obs_dim}{layout}. The data were "
-            f"logged from another env (or another version of it); log them from this env's observations."
-        )
+        raise DataFormatError(f"{source}: {field} have {width} dimensions, but the env's have {task.obs_dim}{layout}. "
+                              "The data were logged from another env (or another version of it); log them from this "
+                              "env's observations.")
 
 
 def from_arrays(arrays: Mapping, task: UserTask, *, source: str) -> Dataset:
     """A dict of arrays (see the module docstring) -> Dataset, actions mapped to [-1, 1]."""
     missing = [k for k in REQUIRED if k not in arrays]
     if missing:
-        raise DataFormatError(
-            f"{source}: missing {', '.join(map(repr, missing))} (found {', '.join(map(repr, sorted(arrays)))}). The data "
-            f"need {', '.join(REQUIRED)} with one row per transition, and optionally {' and '.join(OPTIONAL)}."
-        )
+        raise DataFormatError(f"{source}: missing {', '.join(map(repr, missing))} (found "
+                              f"{', '.join(map(repr, sorted(arrays)))}). The data need {', '.join(REQUIRED)} with one "
+                              f"row per transition, and optionally {' and '.join(OPTIONAL)}.")
     obs = _obs(arrays["observations"], task, "observations", source)
     nobs = _obs(arrays["next_observations"], task, "next_observations", source)
     _check_obs(obs.shape[1], task, source, "observations")
@@ -179,18 +176,15 @@ def load_task_data(spec, path: str | os.PathLike | None = None, *, action_tolera
     ds = held(spec.name, ref)
     if ds is None:
         if not ref:
-            raise DatasetNotFoundError(
-                f"task {spec.name!r}: its data were given in memory to botorl.register_task in another process. "
-                f"Register the task again (the same script) before botorl.resume / botorl.run, or save the data to a "
-                f".npz and register that path."
-            )
+            raise DatasetNotFoundError(f"task {spec.name!r}: its data were given in memory to botorl.register_task in "
+                                       "another process. Register the task again (the same script) before "
+                                       "botorl.resume / botorl.run, or save the data to a .npz and register that path.")
         ds = load_file(ref, task, max_episode_steps=spec.max_episode_steps)
     if ds.raw_action_max > 1.0 + action_tolerance:
         bounds = "[-1, 1]" if is_unit_box(task.action_low, task.action_high) else \
             f"low {list(task.action_low)}, high {list(task.action_high)}"
-        raise DataFormatError(
-            f"{ds.metadata.get('source', spec.name)}: the logged actions leave the env's action box ({bounds}): "
-            f"{ds.raw_action_max:.4g} in botorl's [-1, 1] units, beyond the tolerance {action_tolerance:g}. Log the "
-            f"actions in the env's own units (those passed to env.step), or raise --data.action_tolerance to clip them."
-        )
+        raise DataFormatError(f"{ds.metadata.get('source', spec.name)}: the logged actions leave the env's action box "
+                              f"({bounds}): {ds.raw_action_max:.4g} in botorl's [-1, 1] units, beyond the tolerance "
+                              f"{action_tolerance:g}. Log the actions in the env's own units (those passed to "
+                              "env.step), or raise --data.action_tolerance to clip them.")
     return ds

@@ -23,16 +23,10 @@ class AdroitBinaryTask(TaskEnv):
 
 
 def make_door(seed: int | None = None) -> AdroitBinaryTask:
-    import_robotics()
-    # lazy: after import_robotics(), which mutes its notice
-    from gymnasium_robotics.envs.adroit_hand.adroit_door import AdroitHandDoorEnv
-
-    return AdroitBinaryTask(AdroitHandDoorEnv(reward_type="dense"), DOOR_OBS_DIM, seed)
+    door = import_robotics("gymnasium_robotics.envs.adroit_hand.adroit_door").AdroitHandDoorEnv
+    return AdroitBinaryTask(door(reward_type="dense"), DOOR_OBS_DIM, seed)
 
 
 def make_pen(seed: int | None = None) -> AdroitBinaryTask:
-    import_robotics()
-    # lazy: after import_robotics(), which mutes its notice
-    from gymnasium_robotics.envs.adroit_hand.adroit_pen import AdroitHandPenEnv
-
-    return AdroitBinaryTask(AdroitHandPenEnv(reward_type="dense"), PEN_OBS_DIM, seed)
+    pen = import_robotics("gymnasium_robotics.envs.adroit_hand.adroit_pen").AdroitHandPenEnv
+    return AdroitBinaryTask(pen(reward_type="dense"), PEN_OBS_DIM, seed)

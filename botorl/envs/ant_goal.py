@@ -65,7 +65,6 @@ class AntGoalSim:
     reached; ended ants are reset after the step, their fresh observation in ``self.obs``."""
 
     def __init__(self, num_envs: int, seed: int = 0, *, horizon: int = HORIZON):
-        self._mujoco = mujoco
         self.model = mujoco.MjModel.from_xml_path(ant_xml_path())
         self.datas = [mujoco.MjData(self.model) for _ in range(num_envs)]
         self.torso = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, "torso")
@@ -80,11 +79,11 @@ class AntGoalSim:
 
     def reset(self, i: int) -> None:
         m, d = self.model, self.datas[i]
-        self._mujoco.mj_resetData(m, d)
+        mujoco.mj_resetData(m, d)
         # Ant-v4 reset_model: qpos0 + U(-s, s), qvel N(0, s^2)
         d.qpos[:] = m.qpos0 + self.rng.uniform(-RESET_NOISE, RESET_NOISE, m.nq)
         d.qvel[:] = RESET_NOISE * self.rng.standard_normal(m.nv)
-        self._mujoco.mj_forward(m, d)
+        mujoco.mj_forward(m, d)
         self.goals[i] = draw_goal(self.rng, d.qpos[:2].copy())
         self.t[i] = 0
         self.obs[i] = goal_observation(d.qpos, d.qvel, self.goals[i])
@@ -97,7 +96,7 @@ class AntGoalSim:
         terminated = np.zeros(n, bool)
         truncated = np.zeros(n, bool)
         reached = np.zeros(n, bool)
-        mj_step, torso = self._mujoco.mj_step, self.torso
+        mj_step, torso = mujoco.mj_step, self.torso
         for i, d in enumerate(self.datas):
             before = d.xpos[torso, :2].copy()
             d.ctrl[:] = actions[i]
@@ -170,6 +169,5 @@ def actor_arrays(actor_params, log_std_min: float = -20.0, log_std_max: float = 
     from flax.traverse_util import flatten_dict
 
     out = {k: np.asarray(v, np.float32) for k, v in flatten_dict(actor_params, sep="/").items()}
-    out["log_std_min"] = np.asarray(log_std_min, np.float32)
-    out["log_std_max"] = np.asarray(log_std_max, np.float32)
-    return out
+    return {**out, "log_std_min": np.asarray(log_std_min, np.float32),
+            "log_std_max": np.asarray(log_std_max, np.float32)}

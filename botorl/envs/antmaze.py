@@ -49,9 +49,7 @@ def layout(maze: str) -> AntMazeLayout:
     evaluation pair) and D4RL's evaluation start and goal (pointmaze's ``MAZES``)."""
     if maze not in MAZES:
         raise ValueError(f"unknown maze {maze!r}; one of {sorted(MAZES)}")
-    import_robotics()
-    from gymnasium_robotics.envs.maze import maps  # lazy: after import_robotics(), which mutes its notice
-
+    maps = import_robotics("gymnasium_robotics.envs.maze.maps")
     spec = MAZES[maze]
     picked_grid = {"medium": maps.MEDIUM_MAZE_DIVERSE_GR, "large": maps.LARGE_MAZE_DIVERSE_GR}.get(maze)
     picked = (spec.start_cell, spec.goal_cell) if picked_grid is None else tuple(
@@ -61,14 +59,10 @@ def layout(maze: str) -> AntMazeLayout:
 
 def make_antmaze_task(maze: str, seed: int | None = None) -> AntMazeTask:
     """The D4RL-style evaluation env on a map: the same wrapper, this maze's start and goal."""
-    import_robotics()
-    # lazy: after import_robotics(), which mutes its notice
-    from gymnasium_robotics.envs.maze.ant_maze_v4 import AntMazeEnv
-
     spec = layout(maze)
     # The class name is recorded in a mid-episode env state (botorl.envs.state): "_Task" off the large map.
     cls = AntMazeTask if maze == "large" else type(
         "_Task", (AntMazeTask,), {"start_cell": spec.eval_start, "goal_cell": spec.eval_goal})
-    inner = AntMazeEnv(maze_map=[list(r) for r in spec.maze_map], reward_type="sparse", continuing_task=False,
-                       reset_target=False)
+    inner = import_robotics("gymnasium_robotics.envs.maze.ant_maze_v4").AntMazeEnv(
+        maze_map=[list(r) for r in spec.maze_map], reward_type="sparse", continuing_task=False, reset_target=False)
     return cls(inner, OBS_DIM, seed)

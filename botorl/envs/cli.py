@@ -92,16 +92,9 @@ def check_task(spec: TaskSpec, steps: int = 1000, seed: int = 0) -> dict:
     elapsed = time.perf_counter() - start
     env.close()
     successes, lengths, returns = zip(*(episodes or [(ep_success, ep_len, ret)]))  # none finished: the running one
-    return {
-        "task": spec.name,
-        "steps": steps,
-        "steps_per_s": steps / max(elapsed, 1e-9),
-        "episodes": len(successes),
-        "success_rate": float(np.mean(successes)),
-        "mean_return": float(np.mean(returns)),
-        "mean_length": float(np.mean(lengths)),
-        "problems": problems,
-    }
+    return {"task": spec.name, "steps": steps, "steps_per_s": steps / max(elapsed, 1e-9), "episodes": len(successes),
+            "success_rate": float(np.mean(successes)), "mean_return": float(np.mean(returns)),
+            "mean_length": float(np.mean(lengths)), "problems": problems}
 
 
 def check_main(cfg: CheckConfig) -> int:

@@ -59,9 +59,7 @@ def apply() -> bool:
     """Patch gymnasium-robotics' joint helpers if needed (once). Returns True if patched."""
     if not needs_patch():
         return False
-    import_robotics()
-    from gymnasium_robotics.utils import mujoco_utils  # lazy: after import_robotics(), which mutes its notice
-
+    mujoco_utils = import_robotics("gymnasium_robotics.utils.mujoco_utils")
     # robot_get_obs and the kitchen env look these up as module globals at call time.
     for helper in (get_joint_qpos, get_joint_qvel, set_joint_qpos, set_joint_qvel):
         setattr(mujoco_utils, helper.__name__, helper)

@@ -30,11 +30,7 @@ class KitchenTask(TaskEnv):
 
 def make_kitchen(tasks, seed: int | None = None) -> KitchenTask:
     compat.apply()
-    import_robotics()
-    # lazy: after import_robotics(), which mutes its notice
-    from gymnasium_robotics.envs.franka_kitchen import KitchenEnv
-
-    inner = KitchenEnv(
+    inner = import_robotics("gymnasium_robotics.envs.franka_kitchen").KitchenEnv(
         tasks_to_complete=list(tasks),
         terminate_on_tasks_completed=False,  # we terminate when all are done at once
         remove_task_when_completed=False,

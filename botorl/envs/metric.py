@@ -71,15 +71,14 @@ def check_refs(ref_min: Any, ref_max: Any, where: str) -> tuple[float | None, fl
     flags = "ref_min_score and ref_max_score (--ref-min-score, --ref-max-score)"
     if ref_min is None or ref_max is None:
         raise ConfigError(f"{where}: give both {flags} or neither; the normalised score needs both ends.")
-    vals = []
-    for v in (ref_min, ref_max):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
-            raise ConfigError(f"{where}: {flags} must be finite numbers, got {ref_min!r} and {ref_max!r}.")
-        vals.append(float(v))
-    if not vals[0] < vals[1]:
-        raise ConfigError(f"{where}: ref_min_score {vals[0]:g} must be below ref_max_score {vals[1]:g} (the "
+    if any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v))
+           for v in (ref_min, ref_max)):
+        raise ConfigError(f"{where}: {flags} must be finite numbers, got {ref_min!r} and {ref_max!r}.")
+    lo, hi = float(ref_min), float(ref_max)
+    if not lo < hi:
+        raise ConfigError(f"{where}: ref_min_score {lo:g} must be below ref_max_score {hi:g} (the "
                           f"return of a poor policy, e.g. random, and of a good one, e.g. an expert).")
-    return vals[0], vals[1]
+    return lo, hi
 
 
 def of_task(spec) -> Metric:

@@ -28,9 +28,7 @@ class MazeSpec:
 
     @property
     def maze_map(self) -> list[list[int]]:
-        import_robotics()
-        from gymnasium_robotics.envs.maze import maps  # lazy: after import_robotics(), which mutes its notice
-
+        maps = import_robotics("gymnasium_robotics.envs.maze.maps")
         grid = {"umaze": maps.U_MAZE, "medium": maps.MEDIUM_MAZE, "large": maps.LARGE_MAZE}[self.name]
         return [[int(c) for c in row] for row in grid]
 
@@ -99,11 +97,8 @@ class PointMazeTask(TaskEnv):
 
 
 def make_inner(spec: MazeSpec):
-    import_robotics()
-    # lazy: after import_robotics(), which mutes its notice
-    from gymnasium_robotics.envs.maze.point_maze import PointMazeEnv
-
-    return PointMazeEnv(maze_map=spec.maze_map, reward_type="sparse", continuing_task=False, reset_target=False)
+    return import_robotics("gymnasium_robotics.envs.maze.point_maze").PointMazeEnv(
+        maze_map=spec.maze_map, reward_type="sparse", continuing_task=False, reset_target=False)
 
 
 def make_pointmaze(name: str, seed: int | None = None) -> PointMazeTask:

@@ -208,7 +208,5 @@ def get_task(name: str) -> TaskSpec:
         return tasks[name]
     close = difflib.get_close_matches(name, list(tasks), n=1, cutoff=0.5)
     hint = f" Did you mean {close[0]!r}?" if close else ""
-    raise ConfigError(
-        f"unknown task {name!r}.{hint} Valid tasks: {', '.join(tasks)}. "
-        "`botorl tasks` lists them with the state of their data."
-    )
+    raise ConfigError(f"unknown task {name!r}.{hint} Valid tasks: {', '.join(tasks)}. "
+                      "`botorl tasks` lists them with the state of their data.")

@@ -8,6 +8,7 @@ restored env steps bit-identically (tests/test_envs_state.py).
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import gymnasium as gym
@@ -95,9 +96,7 @@ def _decode_rng(d: dict) -> np.random.Generator:
 def _mujoco(obj):
     """(model, data) if ``obj`` holds a MuJoCo simulation of its own, else None."""
     model, data = obj.__dict__.get("model"), obj.__dict__.get("data")
-    if isinstance(model, mujoco.MjModel) and isinstance(data, mujoco.MjData):
-        return model, data
-    return None
+    return (model, data) if isinstance(model, mujoco.MjModel) and isinstance(data, mujoco.MjData) else None
 
 
 def get_env_state(env: gym.Env) -> dict[str, Any]:
@@ -108,16 +107,12 @@ def get_env_state(env: gym.Env) -> dict[str, Any]:
         for name, val in vars(obj).items():
             if name in _SKIP or name == "env" or isinstance(val, gym.Env):
                 continue
-            try:
+            with contextlib.suppress(_Skip):
                 attrs[name] = _encode(val)
-            except _Skip:
-                continue
-        layers[path] = {
-            "class": type(obj).__name__,
-            "attrs": attrs,
-            "np_random": _encode_rng(getattr(obj, "_np_random", None)),
-            "action_space_rng": _encode_rng(getattr(getattr(obj, "action_space", None), "_np_random", None)),
-        }
+        space_rng = getattr(getattr(obj, "action_space", None), "_np_random", None)
+        layers[path] = {"class": type(obj).__name__, "attrs": attrs,
+                        "np_random": _encode_rng(getattr(obj, "_np_random", None)),
+                        "action_space_rng": _encode_rng(space_rng)}
         sim = _mujoco(obj)
         if sim is not None and id(sim[1]) not in seen:
             seen.add(id(sim[1]))

@@ -42,11 +42,9 @@ def obs_keys_of(space) -> tuple[str, ...] | None:
             inner = obs_keys_of(children[k])
             keys += [str(k)] if inner is None else [f"{k}/{i}" for i in inner]
         return tuple(keys)
-    raise ConfigError(
-        f"the env's observation space is {space}; botorl takes a gymnasium.spaces.Box, or a Dict of Boxes "
-        f"(flattened in sorted key order). Wrap the env so that it observes a Box (e.g. "
-        f"gymnasium.wrappers.FlattenObservation)."
-    )
+    raise ConfigError(f"the env's observation space is {space}; botorl takes a gymnasium.spaces.Box, or a Dict of "
+                      "Boxes (flattened in sorted key order). Wrap the env so that it observes a Box (e.g. "
+                      "gymnasium.wrappers.FlattenObservation).")
 
 
 def _leaf(obs: Any, key: str):
@@ -159,11 +157,9 @@ def import_entry(entry: str) -> tuple[Callable[[int], gym.Env], str | None]:
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as err:
-        raise ConfigError(
-            f"--env {entry}: cannot import module {module_name!r} ({err}). botorl looks in the current folder "
-            f"({cwd}) and on PYTHONPATH; run from the folder holding {module_name.replace('.', '/')}.py or add its "
-            f"folder to PYTHONPATH."
-        ) from None
+        raise ConfigError(f"--env {entry}: cannot import module {module_name!r} ({err}). botorl looks in the current "
+                          f"folder ({cwd}) and on PYTHONPATH; run from the folder holding "
+                          f"{module_name.replace('.', '/')}.py or add its folder to PYTHONPATH.") from None
     except (Exception, SystemExit) as err:  # the user's module failed (or called sys.exit) while importing
         raise ConfigError(f"--env {entry}: importing module {module_name!r} failed: {type(err).__name__}: {err}. "
                           f"Fix the module (`python -c \"import {module_name}\"` shows the traceback).") from None
@@ -223,10 +219,8 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
     try:
         act = env.action_space
         if not isinstance(act, spaces.Box):
-            raise ConfigError(
-                f"{what}(0) has the action space {act}; botorl's agents act in continuous boxes and need a "
-                f"gymnasium.spaces.Box action space (a discrete task needs another library)."
-            )
+            raise ConfigError(f"{what}(0) has the action space {act}; botorl's agents act in continuous boxes and need "
+                              "a gymnasium.spaces.Box action space (a discrete task needs another library).")
         low, high = (np.broadcast_to(np.asarray(b, np.float64), act.shape).reshape(-1) for b in (act.low, act.high))
         if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(high > low)):
             raise ConfigError(f"{what}(0) has the action space {act} with unbounded or empty dimensions; botorl "
@@ -260,11 +254,9 @@ def probe(make_env: Callable[[int], gym.Env], max_episode_steps: int, success_ke
     elif not seen:
         found = ", ".join(sorted(map(str, info))) or "none"
         if key_given:
-            raise ConfigError(
-                f"task {name!r}: --success-key {success_key!r} is not in the env's info (keys seen: {found}). "
-                f"Name the info key that says the episode succeeded, or leave --success-key out (success is then "
-                f"off if the env has no {'success'!r} key)."
-            )
+            raise ConfigError(f"task {name!r}: --success-key {success_key!r} is not in the env's info (keys seen: "
+                              f"{found}). Name the info key that says the episode succeeded, or leave --success-key "
+                              f"out (success is then off if the env has no {'success'!r} key).")
         off = (f"the env's info has no {success_key!r} key (keys seen: {found}), so success is off: botorl "
                f"reports the episode return instead (the normalised score with ref_min_score and ref_max_score); "
                f"pass success_key (--success-key) naming the info key if the env does mark success")

@@ -6,8 +6,10 @@ flat float32 observation, actions in [-1, 1]^A, the task's reward / termination 
 from __future__ import annotations
 
 import contextlib
+import importlib
 import io
 import sys
+import types
 from typing import Any
 
 import gymnasium as gym
@@ -15,17 +17,18 @@ import numpy as np
 from gymnasium import spaces
 
 
-def import_robotics() -> None:
-    """Import gymnasium_robotics without its notice that the Adroit *Dense* rewards changed (botorl
-    uses the binary reward); anything else printed still reaches stderr."""
-    if "gymnasium_robotics" in sys.modules:
-        return
-    buf = io.StringIO()
-    with contextlib.redirect_stderr(buf):
-        import gymnasium_robotics  # noqa: F401  # lazy: the one import of the package, its notice muted
-    text = buf.getvalue()
-    if text and "reward functions were updated" not in text:
-        sys.stderr.write(text)
+def import_robotics(module: str = "gymnasium_robotics") -> types.ModuleType:
+    """``module`` (gymnasium_robotics or one of its modules), gymnasium_robotics imported without
+    its notice that the Adroit *Dense* rewards changed (botorl uses the binary reward); anything
+    else printed still reaches stderr."""
+    if "gymnasium_robotics" not in sys.modules:
+        buf = io.StringIO()
+        with contextlib.redirect_stderr(buf):
+            import gymnasium_robotics  # noqa: F401  # lazy: the one import of the package, its notice muted
+        text = buf.getvalue()
+        if text and "reward functions were updated" not in text:
+            sys.stderr.write(text)
+    return importlib.import_module(module)
 
 
 class TaskEnv(gym.Wrapper):

@@ -106,22 +106,16 @@ class WaypointController:
 
 def make_maze_env(maze: str, *, continuing_task: bool = True):
     """Gymnasium-Robotics' AntMazeEnv on the maze's wall map (no goal/reset marks)."""
-    import_robotics()
-    # lazy: after import_robotics(), which mutes its notice
-    from gymnasium_robotics.envs.maze.ant_maze_v4 import AntMazeEnv
-
-    spec = layout(maze)
-    return AntMazeEnv(maze_map=[list(r) for r in spec.maze_map], reward_type="sparse",
-                      continuing_task=continuing_task, reset_target=False)
+    return import_robotics("gymnasium_robotics.envs.maze.ant_maze_v4").AntMazeEnv(
+        maze_map=[list(r) for r in layout(maze).maze_map], reward_type="sparse", continuing_task=continuing_task,
+        reset_target=False)
 
 
 def load_actor(path=None):
     path = Path(path or os.environ.get("BOTORL_ANT_ACTOR") or ASSET)
     if not path.exists():
-        raise BotorlError(
-            f"the goal-reaching ant's weights are missing ({path}); train them with `botorl train-ant "
-            f"--out runs/ant_goal` and point BOTORL_ANT_ACTOR at runs/ant_goal/actor.npz."
-        )
+        raise BotorlError(f"the goal-reaching ant's weights are missing ({path}); train them with `botorl train-ant "
+                          f"--out runs/ant_goal` and point BOTORL_ANT_ACTOR at runs/ant_goal/actor.npz.")
     return NumpyActor.load(path)
 
 
@@ -133,22 +127,19 @@ class _Sim:
         self.model = env.ant_env.model
         self.data = mujoco.MjData(self.model)
         self.qpos0 = env.ant_env.init_qpos.copy()
-        self._step = mujoco.mj_step
-        self._forward = mujoco.mj_forward
-        self._reset = mujoco.mj_resetData
         env.close()
 
     def reset(self, xy) -> None:
         d = self.data
-        self._reset(self.model, d)
+        mujoco.mj_resetData(self.model, d)
         d.qpos[:] = self.qpos0
         d.qpos[:2] = xy
         d.qvel[:] = 0.0
-        self._forward(self.model, d)
+        mujoco.mj_forward(self.model, d)
 
     def step(self, action) -> None:
         self.data.ctrl[:] = action
-        self._step(self.model, self.data, FRAME_SKIP)
+        mujoco.mj_step(self.model, self.data, FRAME_SKIP)
 
 
 def _controller(maze: str, actor, seed: int):
@@ -287,10 +278,8 @@ def evaluate_controller(maze: str = "large", episodes: int = 20, seed: int = 0, 
 def maze_of(ds) -> str | None:
     """The maze of a generated antmaze dataset (fresh or loaded from the cache), else None."""
     meta = ds.metadata.get("botorl") or ds.metadata
-    gen = str(meta.get("generator", ""))
-    if "antmaze" in gen and meta.get("maze") in ("umaze", "medium", "large"):
-        return meta["maze"]
-    return None
+    antmaze = "antmaze" in str(meta.get("generator", "")) and meta.get("maze") in ("umaze", "medium", "large")
+    return meta["maze"] if antmaze else None
 
 
 def visited_cells(maze: str, xy: np.ndarray) -> np.ndarray:
@@ -341,11 +330,8 @@ def plot_coverage(ds, path, maze: str | None = None, title: str | None = None, m
     for cell, mark, colour in ((spec.eval_start, "o", "tab:green"), (spec.eval_goal, "*", "tab:red")):
         x, y = cell_xy(spec.maze_map, cell)
         ax.plot(x, y, mark, color=colour, ms=12, mec="k")
-    ax.set_xlim(-cols * SCALE / 2, cols * SCALE / 2)
-    ax.set_ylim(-rows * SCALE / 2, rows * SCALE / 2)
-    ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
+    ax.set(xlim=(-cols * SCALE / 2, cols * SCALE / 2), ylim=(-rows * SCALE / 2, rows * SCALE / 2), aspect="equal",
+           xticks=[], yticks=[])
     st = maze_stats(ds, maze)
     ax.set_title(title or f"{len(ds):,} steps, {st['cells_covered']}/{st['cells_free']} cells covered", fontsize=9)
     fig.tight_layout()

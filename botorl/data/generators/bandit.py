@@ -11,24 +11,14 @@ from botorl.data.dataset import Dataset
 from botorl.envs.bandit import OBS_DIM, bandit_1d_reward, pinwheel_reward, sample_1d, sample_pinwheel
 
 
-# ----------------------------------------------------------------------------- datasets
 
-
-def _one_step_dataset(actions: np.ndarray, rewards: np.ndarray, task: str, steps: int, seed: int, extra=None) -> Dataset:
+def _one_step_dataset(actions: np.ndarray, rewards: np.ndarray, task: str, steps: int, seed: int) -> Dataset:
     n = len(actions)
     obs = np.zeros((n, OBS_DIM), np.float32)
     ones = np.ones(n, bool)
-    return Dataset(
-        obs, actions, rewards, obs.copy(), ones, ones,
-        metadata={
-            "source": f"generated: {task} (steps={steps}, seed={seed})",
-            "task": task,
-            "generator": "botorl.data.generators.bandit",
-            "steps": int(steps),
-            "seed": int(seed),
-            **(extra or {}),
-        },
-    )
+    return Dataset(obs, actions, rewards, obs.copy(), ones, ones,
+                   metadata={"source": f"generated: {task} (steps={steps}, seed={seed})", "task": task,
+                             "generator": "botorl.data.generators.bandit", "steps": int(steps), "seed": int(seed)})
 
 
 def generate_pinwheel(steps: int, seed: int, progress: bool = True) -> Dataset:

@@ -39,11 +39,10 @@ def find_demos(demos_path: str | os.PathLike | None = None) -> Path:
     if not where:
         if SHIPPED_DEMOS.is_file():
             return SHIPPED_DEMOS
-        raise DatasetNotFoundError(
-            f"door-binary-local needs the 25 DAPG door demonstrations (door_human_demos.npz); the copy that "
-            f"ships with botorl ({SHIPPED_DEMOS}) is missing from this install. Reinstall botorl, or set "
-            f"{ENV_VAR}=/path/to/door_human_demos.npz or pass --data.demos PATH."
-        )
+        raise DatasetNotFoundError("door-binary-local needs the 25 DAPG door demonstrations (door_human_demos.npz); "
+                                   f"the copy that ships with botorl ({SHIPPED_DEMOS}) is missing from this install. "
+                                   f"Reinstall botorl, or set {ENV_VAR}=/path/to/door_human_demos.npz or pass "
+                                   "--data.demos PATH.")
     path = Path(where).expanduser()
     if not path.is_file():
         raise DatasetNotFoundError(
@@ -58,19 +57,14 @@ def load_demos(path: Path) -> list[dict[str, np.ndarray]]:
         with np.load(path, allow_pickle=False) as f:
             obs, act, lengths = f["observations"], f["actions"], f["episode_lengths"]
     except (KeyError, ValueError, OSError) as err:
-        raise DataFormatError(
-            f"{path}: not a door demos .npz with observations, actions and episode_lengths ({err})."
-        ) from None
+        raise DataFormatError(f"{path}: not a door demos .npz with observations, actions and episode_lengths "
+                              f"({err}).") from None
     if obs.ndim != 2 or obs.shape[1] != 39 or act.shape != (obs.shape[0], 28) or lengths.sum() != obs.shape[0]:
-        raise DataFormatError(
-            f"{path}: expected observations (N, 39), actions (N, 28) and episode_lengths summing to N; "
-            f"got {obs.shape}, {act.shape}, sum {int(lengths.sum())}."
-        )
+        raise DataFormatError(f"{path}: expected observations (N, 39), actions (N, 28) and episode_lengths summing to "
+                              f"N; got {obs.shape}, {act.shape}, sum {int(lengths.sum())}.")
     starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-    return [
-        {"observations": obs[s : s + n].astype(np.float64), "actions": act[s : s + n].astype(np.float64)}
-        for s, n in zip(starts, lengths)
-    ]
+    return [{"observations": obs[s : s + n].astype(np.float64), "actions": act[s : s + n].astype(np.float64)}
+            for s, n in zip(starts, lengths)]
 
 
 def _binary_trajectory(obs, act, next_obs, drop_unsuccessful: bool) -> dict | None:
@@ -85,14 +79,8 @@ def _binary_trajectory(obs, act, next_obs, drop_unsuccessful: bool) -> dict | No
         end = int(np.nonzero(success)[0][-1]) + 1
     ends = np.zeros(end, dtype=bool)
     ends[-1] = True
-    return {
-        "observations": obs[:end],
-        "actions": act[:end],
-        "next_observations": next_obs[:end],
-        "rewards": success[:end].astype(np.float32) - 1.0,
-        "terminals": success[:end],
-        "episode_ends": ends,
-    }
+    return {"observations": obs[:end], "actions": act[:end], "next_observations": next_obs[:end],
+            "rewards": success[:end].astype(np.float32) - 1.0, "terminals": success[:end], "episode_ends": ends}
 
 
 # ---------------------------------------------------------------------------- behaviour cloning
@@ -102,10 +90,8 @@ def train_bc(demos, steps: int, seed: int, progress: bool = True) -> list[tuple[
     y = jnp.asarray(np.clip(np.concatenate([d["actions"] for d in demos]), -1, 1), dtype=jnp.float32)
     sizes = (x.shape[1], *HIDDEN, y.shape[1])
     keys = jax.random.split(jax.random.PRNGKey(seed), len(sizes))
-    params = [
-        (jax.random.normal(k, (i, o)) * jnp.sqrt(1.0 / i), jnp.zeros(o))
-        for k, i, o in zip(keys[1:], sizes[:-1], sizes[1:])
-    ]
+    params = [(jax.random.normal(k, (i, o)) * jnp.sqrt(1.0 / i), jnp.zeros(o))
+              for k, i, o in zip(keys[1:], sizes[:-1], sizes[1:])]
     opt = optax.adam(1e-3)
 
     def forward(p, obs):
@@ -206,21 +192,10 @@ def generate(steps: int, seed: int, progress: bool = True, demos_path: str | os.
     is_demo = np.zeros(len(arr["rewards"]), dtype=np.float32)
     is_demo[: sum(len(p["rewards"]) for p in parts[:n_demo_kept])] = 1.0
     return Dataset(
-        **arr,
-        infos={"success": arr["terminals"].astype(np.float32), "is_demo": is_demo},
-        metadata={
-            "source": f"generated: door-binary-local (steps={steps}, seed={seed}, demos={path})",
-            "task": "door-binary-local",
-            "generator": "botorl.data.generators.door",
-            "steps": int(steps),
-            "seed": int(seed),
-            "demos_kept": n_demo_kept,
-            "demos_total": len(demos),
-            "bc_steps": int(bc_steps),
-            "noise_std": float(noise_std),
-            "drop_unsuccessful": bool(drop_unsuccessful),
-            "bc_episodes": int(n_eps),
-            "bc_success_rate": bc_rate,
-            "bc_trajectories_kept": len(parts) - n_demo_kept,
-        },
-    )
+        **arr, infos={"success": arr["terminals"].astype(np.float32), "is_demo": is_demo},
+        metadata={"source": f"generated: door-binary-local (steps={steps}, seed={seed}, demos={path})",
+                  "task": "door-binary-local", "generator": "botorl.data.generators.door", "steps": int(steps),
+                  "seed": int(seed), "demos_kept": n_demo_kept, "demos_total": len(demos), "bc_steps": int(bc_steps),
+                  "noise_std": float(noise_std), "drop_unsuccessful": bool(drop_unsuccessful),
+                  "bc_episodes": int(n_eps), "bc_success_rate": bc_rate,
+                  "bc_trajectories_kept": len(parts) - n_demo_kept})
