@@ -66,10 +66,9 @@ class Skipped:
 
 def _num(v: Any) -> float:
     try:
-        f = float(v)
+        return float(v)
     except (TypeError, ValueError):
         return math.nan
-    return f
 
 
 def relative(path: Path | str, base: Path | str | None) -> str:
