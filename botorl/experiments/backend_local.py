@@ -7,6 +7,7 @@ only adds context switches."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import re
 import secrets
@@ -29,15 +30,12 @@ TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan d
 # do not prove that a sweep started it (anyone can read both from /proc).
 TOKEN_ENV = "BOTORL_SWEEP_TOKEN"
 _TOKEN_FORM = re.compile(r"[0-9a-f]{32}")
-_token: str | None = None
 
 
+@functools.cache
 def sweep_token() -> str:
     """This process's secret token (made once, 128 random bits)."""
-    global _token
-    if _token is None:
-        _token = secrets.token_hex(16)
-    return _token
+    return secrets.token_hex(16)
 
 
 def carries_token(pid: int, token: Any) -> bool:
@@ -58,20 +56,12 @@ def carries_token(pid: int, token: Any) -> bool:
 # is accepted by JAX 0.10 but did not change that, and any XLA_FLAGS value is part of the
 # persistent compile cache's key, so setting it would make pinned trials recompile everything
 # that unpinned runs already cached. Extra flags for pinned trials: $BOTORL_SWEEP_XLA_FLAGS.
-SINGLE_THREAD_ENV = {
-    "OMP_NUM_THREADS": "1",
-    "OPENBLAS_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "VECLIB_MAXIMUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1",
-    "TF_NUM_INTRAOP_THREADS": "1",
-    "TF_NUM_INTEROP_THREADS": "1",
-}
+SINGLE_THREAD_ENV = dict.fromkeys(("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
+                                   "NUMEXPR_NUM_THREADS", "TF_NUM_INTRAOP_THREADS", "TF_NUM_INTEROP_THREADS"), "1")
 
 
-def single_thread_env(base: dict[str, str] | None = None) -> dict[str, str]:
-    env = dict(os.environ if base is None else base)
-    env.update(SINGLE_THREAD_ENV)
+def single_thread_env(base: dict[str, str]) -> dict[str, str]:
+    env = {**base, **SINGLE_THREAD_ENV}
     extra = env.get("BOTORL_SWEEP_XLA_FLAGS", "").strip()
     if extra:
         env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {extra}".strip()

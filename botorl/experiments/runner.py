@@ -168,23 +168,20 @@ class Sweep:
     def _load_manifest(self) -> None:
         old = read_json(self.out / MANIFEST, SWEEP_JSON_LIMIT) or {}
         cleanup_previous_ray(old)
-        old_grid = old.get("grid") or {}
+        old_grid, grid = old.get("grid") or {}, self.grid.to_json()
         for field in ("profile", "overrides"):
-            if old_grid and old_grid.get(field) != self.grid.to_json()[field]:
+            if old_grid and old_grid.get(field) != grid[field]:
                 # finished trials are never rerun, so mixing settings would go unnoticed
                 raise BotorlError(
-                    f"{self.out / MANIFEST} holds a sweep made with {field} "
-                    f"{old_grid.get(field)!r}, but this command asks for "
-                    f"{self.grid.to_json()[field]!r}. Runs of one sweep directory share their "
-                    "settings (tasks, methods, seeds and alphas may be added); use another --out "
-                    "or the same profile and overrides."
+                    f"{self.out / MANIFEST} holds a sweep made with {field} {old_grid.get(field)!r}, but this command "
+                    f"asks for {grid[field]!r}. Runs of one sweep directory share their settings (tasks, methods, "
+                    "seeds and alphas may be added); use another --out or the same profile and overrides."
                 )
         trials = old.get("trials", {}) if isinstance(old.get("trials"), dict) else {}
-        history = list(old.get("invocations", []))
-        history.append({"started": _now(), "grid": self.grid.to_json(), "backend": self.opt.backend})
+        history = list(old.get("invocations", [])) + [{"started": _now(), "grid": grid, "backend": self.opt.backend}]
         self.manifest = {
             "version": 1,
-            "grid": self.grid.to_json(),
+            "grid": grid,
             "backend": self.opt.backend,
             "command": list(self.opt.command) if self.opt.command else default_command(),
             "max_retries": self.opt.max_retries,
@@ -258,14 +255,12 @@ class Sweep:
         except (OSError, ValueError):
             tail = ""
         entry["error"] = reason + "; log tail:\n" + tail
-        if returncode == USER_ERROR_EXIT:
-            entry["state"] = "failed"  # a BotorlError (bad config, missing data) fails again
-        elif entry["failures_this_invocation"] <= self.opt.max_retries:
+        # a BotorlError (USER_ERROR_EXIT: bad config, missing data) fails again
+        if returncode != USER_ERROR_EXIT and entry["failures_this_invocation"] <= self.opt.max_retries:
             entry["state"] = "retrying"
             queue.appendleft(trial)
         else:
             entry["state"] = "failed"
-        if entry["state"] == "failed":
             self._tick(1)
         what = "retrying" if entry["state"] == "retrying" else "gave up"
         self._say(f"botorl sweep: {trial.relpath} {reason} ({what}; log {run_dir / TRIAL_LOG})")
