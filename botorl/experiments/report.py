@@ -238,16 +238,11 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
             curves = np.stack([curve_on_grid(r, grid) for r in groups[key]])
             mean, se, count = mean_se_curves(curves)
             ok = count > 0
-            siblings = per_label[key[1]]
-            style = "-"
-            if len(siblings) > 1:  # an alpha sweep: blue (alpha -1) to red (alpha +1)
-                alpha_value = 0.0 if key[2] is None else key[2]
-                color = plt.cm.coolwarm((alpha_value + 1.0) / 2.0)
-            else:
-                color = colors[key[1]]
-                if len(per_label) < len(keys):  # beside a sweep: dashed, to tell them apart
-                    style = "--"
-            name = line_label(key[1], key[2], len(siblings) > 1) + f" (n={len(groups[key])})"
+            sweep = len(per_label[key[1]]) > 1
+            # an alpha sweep: blue (alpha -1) to red (alpha +1); a line beside a sweep: dashed
+            color = plt.cm.coolwarm(((0.0 if key[2] is None else key[2]) + 1.0) / 2.0) if sweep else colors[key[1]]
+            style = "--" if not sweep and len(per_label) < len(keys) else "-"
+            name = line_label(key[1], key[2], sweep) + f" (n={len(groups[key])})"
             ax.plot(grid[ok], mean[ok], style, color=color, label=name, lw=1.6)
             ax.fill_between(grid[ok], (mean - se)[ok], (mean + se)[ok], color=color, alpha=0.2, lw=0)
         ax.set_title(task)
