@@ -114,12 +114,11 @@ def group_populations(trials: list[Trial], size: int) -> list[PopulationJob]:
         alphas = list(dict.fromkeys(t.alpha for t in ts))
         if len(seeds) <= size:
             per = max(1, size // len(seeds))
-            for i in range(0, len(alphas), per):
-                jobs.append(PopulationJob(task, method, pretrain, tuple(seeds), tuple(alphas[i:i + per])))
+            jobs += [PopulationJob(task, method, pretrain, tuple(seeds), tuple(alphas[i:i + per]))
+                     for i in range(0, len(alphas), per)]
         else:
-            for a in alphas:
-                for i in range(0, len(seeds), size):
-                    jobs.append(PopulationJob(task, method, pretrain, tuple(seeds[i:i + size]), (a,)))
+            jobs += [PopulationJob(task, method, pretrain, tuple(seeds[i:i + size]), (a,))
+                     for a in alphas for i in range(0, len(seeds), size)]
     return jobs
 
 
@@ -191,12 +190,9 @@ def parse_overrides(value: Any) -> dict[str, str]:
                 )
             key, val = text.split("=", 1)
             items.append((key.strip().lstrip("-"), val.strip()))
-    out: dict[str, str] = {}
-    for key, val in items:
-        if not key:
-            raise ConfigError("An override has an empty name; write dotted.path=value.")
-        out[key] = str(val)  # YAML's true, null: "True", "None", as the command line writes them
-    return out
+    if not all(key for key, _ in items):
+        raise ConfigError("An override has an empty name; write dotted.path=value.")
+    return {key: str(val) for key, val in items}  # YAML's true, null: "True", "None", as the command line writes them
 
 
 # Overrides that name a file or folder. Trials run in the sweep's folder (--out), not where the
@@ -304,12 +300,8 @@ def load_grid_file(path: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ConfigError(f"Grid file {path} must be a YAML mapping with tasks, methods, seeds, ...")
     known = {"tasks", "methods", "seeds", "alphas", "overrides", "profile"}
-    unknown = set(data) - known
-    if unknown:
-        raise ConfigError(
-            f"Grid file {path} has unknown field(s) {sorted(unknown)}; known fields are "
-            f"{sorted(known)}."
-        )
+    if unknown := set(data) - known:
+        raise ConfigError(f"Grid file {path} has unknown field(s) {sorted(unknown)}; known fields are {sorted(known)}.")
     return data
 
 
