@@ -267,30 +267,26 @@ class Grid:
 MAX_TRIALS = 100_000  # a grid's trials: far more than a study runs, few enough to list
 
 
-def _grid_loader() -> type:
+class _GridLoader(yaml.SafeLoader):
     """A safe YAML loader with YAML 1.2 numbers: PyYAML's 1.1 rules read `-1:1:0.1` as the
     base-60 number -3660.9, not the alpha range the user wrote."""
-    class GridLoader(yaml.SafeLoader):
-        pass
 
-    num_tags = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
-    GridLoader.yaml_implicit_resolvers = {
-        ch: [(tag, rx) for tag, rx in resolvers if tag not in num_tags]
-        for ch, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
-    }
-    GridLoader.add_implicit_resolver(num_tags[0], re.compile(r"^[-+]?[0-9]+$"), list("-+0123456789"))
-    GridLoader.add_implicit_resolver(
-        num_tags[1],
-        re.compile(r"^[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?$|^[-+]?\.(inf|Inf|INF)$|^\.(nan|NaN|NAN)$"),
-        list("-+0123456789."),
-    )
-    return GridLoader
+
+_NUM_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
+_GridLoader.yaml_implicit_resolvers = {ch: [(tag, rx) for tag, rx in resolvers if tag not in _NUM_TAGS]
+                                       for ch, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+_GridLoader.add_implicit_resolver(_NUM_TAGS[0], re.compile(r"^[-+]?[0-9]+$"), list("-+0123456789"))
+_GridLoader.add_implicit_resolver(
+    _NUM_TAGS[1],
+    re.compile(r"^[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?$|^[-+]?\.(inf|Inf|INF)$|^\.(nan|NaN|NAN)$"),
+    list("-+0123456789."),
+)
 
 
 def load_grid_file(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
-        data = yaml.load(path.read_text(), Loader=_grid_loader())  # noqa: S506 (a SafeLoader)
+        data = yaml.load(path.read_text(), Loader=_GridLoader)  # noqa: S506 (a SafeLoader)
     except FileNotFoundError:
         raise ConfigError(f"Grid file {path} does not exist; check the --grid path.") from None
     except yaml.YAMLError as err:

@@ -211,8 +211,7 @@ class Sweep:
         return self.manifest["trials"][trial.relpath]
 
     def trial_env(self, threads: int = 1) -> dict[str, str]:
-        env = dict(os.environ)
-        env[TOKEN_ENV] = sweep_token()  # what lets a later sweep stop this trial if it is orphaned
+        env = {**os.environ, TOKEN_ENV: sweep_token()}  # the token lets a later sweep stop this trial if orphaned
         if self.opt.backend != "sequential" and threads == 1:
             env = single_thread_env(env)
         env.setdefault("PYTHONUNBUFFERED", "1")
