@@ -154,11 +154,8 @@ def parse_methods(value: Any) -> list[tuple[str, str | None]]:
     out: list[tuple[str, str | None]] = []
     for item in _as_list(value, "methods"):
         text = str(item).strip().lower()
-        method, pretrain = text, None
-        for sep in ("+", "-", ":"):
-            if sep in text:
-                method, pretrain = text.split(sep, 1)
-                break
+        sep = next((s for s in "+-:" if s in text), None)
+        method, pretrain = text.split(sep, 1) if sep else (text, None)
         if method not in METHODS:
             raise ConfigError(
                 f"Grid field 'methods': unknown method {item!r}. Known: {', '.join(METHODS)}; "

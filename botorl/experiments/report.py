@@ -393,10 +393,8 @@ class AlphaSelection:
         ]
         labels_per_task = Counter(c.task for c in self.choices)  # one choice per (task, label)
         for c in self.choices:
-            runner_up = ""
-            if len(c.ranking) > 1:
-                a2, s2, _ = c.ranking[1]
-                runner_up = f"; next alpha = {a2:g} ({s2:.3f} in selection)"
+            runner_up = (f"; next alpha = {c.ranking[1][0]:g} ({c.ranking[1][1]:.3f} in selection)"
+                         if len(c.ranking) > 1 else "")
             which = f"{c.label}: " if labels_per_task[c.task] > 1 else ""
             se = f" ± {c.se:.3f}" if math.isfinite(c.se) else ""
             ci = f", {pct} CI [{c.lo:.3f}, {c.hi:.3f}]" if math.isfinite(c.lo) else f", no CI from {c.n} seed"
@@ -448,8 +446,7 @@ def select_alpha(runs: Sequence[Run], *, select_seeds: Sequence[int] | None = No
         sel_runs: dict[float, list[Run]] = {}
         rep_runs: dict[float, list[Run]] = {}
         for a, rs in sorted(per_alpha.items()):
-            unseeded = [str(r.path) for r in rs if r.seed is None]
-            if unseeded:
+            if unseeded := [str(r.path) for r in rs if r.seed is None]:
                 raise DataFormatError(
                     f"{where(task, label, a)}: run(s) {', '.join(unseeded)} name no seed in "
                     "summary.json or config.json, so they cannot be split into selection and report seeds.")
