@@ -54,8 +54,9 @@ def carries_token(pid: int, token: Any) -> bool:
 # flag: its CPU thread pools are sized from the affinity mask, and any XLA_FLAGS value is part
 # of the persistent compile cache's key (pinned trials would recompile what unpinned runs
 # cached). Extra flags for pinned trials: $BOTORL_SWEEP_XLA_FLAGS.
-SINGLE_THREAD_ENV = dict.fromkeys(("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
-                                   "NUMEXPR_NUM_THREADS", "TF_NUM_INTRAOP_THREADS", "TF_NUM_INTEROP_THREADS"), "1")
+SINGLE_THREAD_ENV = dict.fromkeys(("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                                   "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS", "TF_NUM_INTRAOP_THREADS",
+                                   "TF_NUM_INTEROP_THREADS"), "1")
 
 
 def single_thread_env(base: dict[str, str]) -> dict[str, str]:

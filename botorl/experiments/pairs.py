@@ -152,11 +152,11 @@ def find_pairs(runs: Sequence[Run], *, reference: str = REFERENCE, window: float
         if len(refs) > 1:
             notes.append(f"{len(refs)} {reference} runs share one pre-training ({', '.join(relative(r.path, relative_to) for r in refs)}); "
                          f"the others are paired with the first")
-        ref_q = _quantities(ref, window)
+        ref_q, ref_path = _quantities(ref, window), relative(ref.path, relative_to)
         if ref_q is None:
             continue
         pairs += [Pair(ref.task, ref.seed, canonical_label(o.label), o.alpha if o.method == "boto" else None,
-                       canonical_label(ref.label), ref_q, q, relative(ref.path, relative_to), relative(o.path, relative_to))
+                       canonical_label(ref.label), ref_q, q, ref_path, relative(o.path, relative_to))
                   for o in group if o not in refs and (q := _quantities(o, window)) is not None]
     pairs.sort(key=lambda p: (*p.group, -1 if p.seed is None else p.seed))
     return pairs, notes
