@@ -279,15 +279,12 @@ class Sweep:
         states = [self.entry(t)["state"] for t in self.trials]
         self._pbar.set_postfix(running=states.count("running"), failed=states.count("failed"), refresh=False)
 
+    # SIGTERM (a scheduler's preemption) and SIGINT stop the sweep at once and are forwarded
+    # to the trials, which stop at a step with a checkpoint (pipeline/preempt.py); the sweep
+    # records them as interrupted and the same command resumes them. SIGKILL is handled by
+    # PR_SET_PDEATHSIG and the next invocation.
+    @preempt.handling()
     def run(self) -> dict[str, Any]:
-        # SIGTERM (a scheduler's preemption) and SIGINT stop the sweep at once and are forwarded
-        # to the trials, which stop at a step with a checkpoint (pipeline/preempt.py); the sweep
-        # records them as interrupted and the same command resumes them. SIGKILL is handled by
-        # PR_SET_PDEATHSIG and the next invocation.
-        with preempt.handling():
-            return self._run()
-
-    def _run(self) -> dict[str, Any]:
         self._lock.acquire()
         running: dict[int, _Running] = {}
         try:
