@@ -289,8 +289,7 @@ def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") ->
             ax.plot([0, 1], [p.ref[quantity] + j, p.other[quantity] + j], "-o", ms=3, lw=0.8, alpha=0.6,
                     color="tab:green" if p.diff(quantity) > EQUAL else "tab:red" if p.diff(quantity) < -EQUAL
                     else "grey")
-        d = [p.diff(quantity) for p in group]
-        mean, _, n = mean_se(d)
+        mean, _, n = mean_se([p.diff(quantity) for p in group])
         ax.set_xticks([0, 1], [group[0].reference, group[0].label.replace(" [", "\n[")], fontsize=7)
         a = "" if group[0].alpha is None else f" α={group[0].alpha:+.2f}"
         ax.set_title(f"{group[0].task}{a}\nmean difference {mean:+.3f} (n={n})", fontsize=8)

@@ -316,8 +316,7 @@ def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WI
             alphas = [r.alpha for r in rs]
 
             def series(field):
-                m = np.array([r.stats[field][0] for r in rs])
-                se = np.array([r.stats[field][1] for r in rs])
+                m, se = np.array([r.stats[field] for r in rs]).T
                 return m, np.where(np.isfinite(se), se, 0.0)
 
             points = [("success_10k", "10k", "--"), ("success_final", "final", "-")]
