@@ -303,8 +303,7 @@ class Sweep:
                 while queue and free_slots:
                     trial = queue.popleft()
                     slot = free_slots.pop(0)
-                    handle = self.backend.launch(trial, slot)
-                    running[next_key] = _Running(trial, handle, slot)
+                    running[next_key] = _Running(trial, self.backend.launch(trial, slot), slot)
                     next_key += 1
                     self._set_postfix()
                 finished_keys = self.backend.poll(running)
