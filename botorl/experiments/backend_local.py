@@ -7,6 +7,7 @@ only adds context switches."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import re
 import secrets
@@ -29,15 +30,12 @@ TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan d
 # do not prove that a sweep started it (anyone can read both from /proc).
 TOKEN_ENV = "BOTORL_SWEEP_TOKEN"
 _TOKEN_FORM = re.compile(r"[0-9a-f]{32}")
-_token: str | None = None
 
 
+@functools.cache
 def sweep_token() -> str:
     """This process's secret token (made once, 128 random bits)."""
-    global _token
-    if _token is None:
-        _token = secrets.token_hex(16)
-    return _token
+    return secrets.token_hex(16)
 
 
 def carries_token(pid: int, token: Any) -> bool:
@@ -53,27 +51,17 @@ def carries_token(pid: int, token: Any) -> bool:
     return f"{TOKEN_ENV}={token}".encode() in env.split(b"\0")
 
 # Thread settings for a trial pinned to one core: the usual BLAS/OpenMP knobs. XLA needs no
-# flag: its CPU thread pools are sized from the affinity mask (a JAX 0.10 process pinned to
-# one core starts 13 threads instead of 17, all on that core). --xla_cpu_multi_thread_eigen=false
-# is accepted by JAX 0.10 but did not change that, and any XLA_FLAGS value is part of the
-# persistent compile cache's key, so setting it would make pinned trials recompile everything
-# that unpinned runs already cached. Extra flags for pinned trials: $BOTORL_SWEEP_XLA_FLAGS.
-SINGLE_THREAD_ENV = {
-    "OMP_NUM_THREADS": "1",
-    "OPENBLAS_NUM_THREADS": "1",
-    "MKL_NUM_THREADS": "1",
-    "VECLIB_MAXIMUM_THREADS": "1",
-    "NUMEXPR_NUM_THREADS": "1",
-    "TF_NUM_INTRAOP_THREADS": "1",
-    "TF_NUM_INTEROP_THREADS": "1",
-}
+# flag: its CPU thread pools are sized from the affinity mask, and any XLA_FLAGS value is part
+# of the persistent compile cache's key (pinned trials would recompile what unpinned runs
+# cached). Extra flags for pinned trials: $BOTORL_SWEEP_XLA_FLAGS.
+SINGLE_THREAD_ENV = dict.fromkeys(("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                                   "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS", "TF_NUM_INTRAOP_THREADS",
+                                   "TF_NUM_INTEROP_THREADS"), "1")
 
 
-def single_thread_env(base: dict[str, str] | None = None) -> dict[str, str]:
-    env = dict(os.environ if base is None else base)
-    env.update(SINGLE_THREAD_ENV)
-    extra = env.get("BOTORL_SWEEP_XLA_FLAGS", "").strip()
-    if extra:
+def single_thread_env(base: dict[str, str]) -> dict[str, str]:
+    env = {**base, **SINGLE_THREAD_ENV}
+    if extra := env.get("BOTORL_SWEEP_XLA_FLAGS", "").strip():
         env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {extra}".strip()
     return env
 
@@ -104,13 +92,11 @@ def start_time(pid: int) -> int | None:
         return None
 
 
-def process_record(pid: int, token: str | None = None) -> dict[str, Any] | None:
+def process_record(pid: int, token: str) -> dict[str, Any] | None:
     """What a sweep writes down to stop a process of its own later: its pid, start time and the
     token the sweep put in its environment."""
     start = start_time(pid)
-    if start is None:
-        return None
-    return {"pid": int(pid), "start": start, **({"token": token} if token is not None else {})}
+    return None if start is None else {"pid": int(pid), "start": start, "token": token}
 
 
 def recorded_alive(record: Any) -> int | None:
@@ -123,13 +109,10 @@ def recorded_alive(record: Any) -> int | None:
     if type(pid) is not int or type(start) is not int or pid <= 1 or pid == os.getpid():
         return None
     try:
-        if Path(f"/proc/{pid}").stat().st_uid != os.getuid():
-            return None
+        mine = Path(f"/proc/{pid}").stat().st_uid == os.getuid()
     except OSError:
         return None
-    if start_time(pid) != start or not carries_token(pid, record.get("token")):
-        return None
-    return pid
+    return pid if mine and start_time(pid) == start and carries_token(pid, record.get("token")) else None
 
 
 def descendants(pids: list[int]) -> list[int]:
@@ -160,8 +143,6 @@ def stop_recorded(records: Any, timeout: float = 10.0) -> int:
         token = rec["token"]  # a descendant is stopped only if it carries the same token
         victims += [r for p in [root] + descendants([root]) if carries_token(p, token)
                     and (r := process_record(p, token)) is not None and r not in victims]
-    if not victims:
-        return 0
     for r in victims:
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.kill(r["pid"], signal.SIGTERM)

@@ -43,11 +43,8 @@ def own_ray_temp_dir(value: Any) -> str | None:
         st = os.lstat(value)
     except OSError:
         return None
-    if not stat.S_ISDIR(st.st_mode) or st.st_uid != os.getuid():
-        return None
-    if os.path.realpath(value) != os.path.join(os.path.realpath(RAY_TEMP_ROOT), name):
-        return None
-    return value
+    mine = stat.S_ISDIR(st.st_mode) and st.st_uid == os.getuid()
+    return value if mine and os.path.realpath(value) == os.path.join(os.path.realpath(RAY_TEMP_ROOT), name) else None
 
 
 def cleanup_previous(old_manifest: dict[str, Any]) -> None:
@@ -87,7 +84,6 @@ class RayBackend:
             kwargs["address"] = opt.ray_address
         else:
             kwargs["num_cpus"] = workers
-            # Short path: Ray's unix sockets live under it (108-byte limit).
             self.tmp = tempfile.mkdtemp(prefix=RAY_TEMP_PREFIX, dir=RAY_TEMP_ROOT)
             kwargs["_temp_dir"] = self.tmp
             self.sweep.manifest["ray_local_temp_dir"] = self.tmp

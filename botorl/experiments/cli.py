@@ -103,15 +103,11 @@ def sweep_main(argv: list[str]) -> int:
     n = len(states)
     print(f"botorl sweep: {n - len(failed)}/{n} trials finished in {sweep.out}")
     for tid in failed:
-        entry = states[tid]
-        reason = (entry.get("error") or entry["state"]).splitlines()[0]
+        reason = (states[tid].get("error") or states[tid]["state"]).splitlines()[0]
         print(f"  FAILED {tid}: {reason} (log: {sweep.out / tid / 'sweep-trial.log'})", file=sys.stderr)
     if failed:
-        print(
-            "botorl sweep: start the same command again to retry the failed trials "
-            "(finished ones are kept).",
-            file=sys.stderr,
-        )
+        print("botorl sweep: start the same command again to retry the failed trials (finished ones are kept).",
+              file=sys.stderr)
     return 1 if failed else 0
 
 
@@ -181,7 +177,8 @@ def report_main(argv: list[str]) -> int:
         for f in write_paired_report(extra_pairs, Path(args.out), sources=args.pairs_from, **stats):
             print(f"  wrote {f}")
         return 0
-    runs, skipped = find_runs([Path(d) for d in args.dirs])
+    dirs = [Path(d) for d in args.dirs]
+    runs, skipped = find_runs(dirs)
     if not runs:  # an empty report would look like a result; say why there is none
         why = "; ".join(f"{s.path}: {s.reason}" for s in skipped[:5]) or "no run directory (summary.json) under them"
         raise ConfigError(f"no finished run in {', '.join(map(str, args.dirs))} ({why}). Give the "
@@ -191,16 +188,8 @@ def report_main(argv: list[str]) -> int:
     if args.select_alpha:  # refuse before writing anything when held-out selection is impossible
         select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **stats)
     out = Path(args.out) if args.out else Path(args.dirs[0]) / "report"
-    result = make_report(
-        [Path(d) for d in args.dirs],
-        out,
-        grid_points=args.grid_points,
-        dip_window=args.dip_window,
-        select_seeds=select_seeds,
-        report_seeds=report_seeds,
-        extra_pairs=extra_pairs,
-        **stats,
-    )
+    result = make_report(dirs, out, grid_points=args.grid_points, dip_window=args.dip_window, select_seeds=select_seeds,
+                         report_seeds=report_seeds, extra_pairs=extra_pairs, **stats)
     print(result.summary_text())
     if args.select_alpha and result.selection is not None:
         print(result.selection.text())

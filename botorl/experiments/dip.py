@@ -75,15 +75,9 @@ def run_dip(run: Run, window: float = DIP_WINDOW) -> Dip | str:
 
 
 def dips_of(runs: Sequence[Run], window: float) -> tuple[list[Dip], list[Skipped]]:
-    dips: list[Dip] = []
-    no_dip: list[Skipped] = []
-    for r in runs:
-        d = run_dip(r, window)
-        if isinstance(d, Dip):
-            dips.append(d)
-        else:
-            no_dip.append(Skipped(r.path, d))
-    return dips, no_dip
+    """The runs' dips, and the runs without one (with the reason)."""
+    found = [(r, run_dip(r, window)) for r in runs]
+    return [d for _, d in found if isinstance(d, Dip)], [Skipped(r.path, d) for r, d in found if isinstance(d, str)]
 
 
 def dip_stats(values: Sequence[float], *, n_boot: int, confidence: float, seed: int) -> dict[str, float]:

@@ -114,12 +114,11 @@ def group_populations(trials: list[Trial], size: int) -> list[PopulationJob]:
         alphas = list(dict.fromkeys(t.alpha for t in ts))
         if len(seeds) <= size:
             per = max(1, size // len(seeds))
-            for i in range(0, len(alphas), per):
-                jobs.append(PopulationJob(task, method, pretrain, tuple(seeds), tuple(alphas[i:i + per])))
+            jobs += [PopulationJob(task, method, pretrain, tuple(seeds), tuple(alphas[i:i + per]))
+                     for i in range(0, len(alphas), per)]
         else:
-            for a in alphas:
-                for i in range(0, len(seeds), size):
-                    jobs.append(PopulationJob(task, method, pretrain, tuple(seeds[i:i + size]), (a,)))
+            jobs += [PopulationJob(task, method, pretrain, tuple(seeds[i:i + size]), (a,))
+                     for a in alphas for i in range(0, len(seeds), size)]
     return jobs
 
 
@@ -155,11 +154,8 @@ def parse_methods(value: Any) -> list[tuple[str, str | None]]:
     out: list[tuple[str, str | None]] = []
     for item in _as_list(value, "methods"):
         text = str(item).strip().lower()
-        method, pretrain = text, None
-        for sep in ("+", "-", ":"):
-            if sep in text:
-                method, pretrain = text.split(sep, 1)
-                break
+        sep = next((s for s in "+-:" if s in text), None)
+        method, pretrain = text.split(sep, 1) if sep else (text, None)
         if method not in METHODS:
             raise ConfigError(
                 f"Grid field 'methods': unknown method {item!r}. Known: {', '.join(METHODS)}; "
@@ -191,12 +187,9 @@ def parse_overrides(value: Any) -> dict[str, str]:
                 )
             key, val = text.split("=", 1)
             items.append((key.strip().lstrip("-"), val.strip()))
-    out: dict[str, str] = {}
-    for key, val in items:
-        if not key:
-            raise ConfigError("An override has an empty name; write dotted.path=value.")
-        out[key] = str(val)  # YAML's true, null: "True", "None", as the command line writes them
-    return out
+    if not all(key for key, _ in items):
+        raise ConfigError("An override has an empty name; write dotted.path=value.")
+    return {key: str(val) for key, val in items}  # YAML's true, null: "True", "None", as the command line writes them
 
 
 # Overrides that name a file or folder. Trials run in the sweep's folder (--out), not where the
@@ -271,30 +264,26 @@ class Grid:
 MAX_TRIALS = 100_000  # a grid's trials: far more than a study runs, few enough to list
 
 
-def _grid_loader() -> type:
+class _GridLoader(yaml.SafeLoader):
     """A safe YAML loader with YAML 1.2 numbers: PyYAML's 1.1 rules read `-1:1:0.1` as the
     base-60 number -3660.9, not the alpha range the user wrote."""
-    class GridLoader(yaml.SafeLoader):
-        pass
 
-    num_tags = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
-    GridLoader.yaml_implicit_resolvers = {
-        ch: [(tag, rx) for tag, rx in resolvers if tag not in num_tags]
-        for ch, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
-    }
-    GridLoader.add_implicit_resolver(num_tags[0], re.compile(r"^[-+]?[0-9]+$"), list("-+0123456789"))
-    GridLoader.add_implicit_resolver(
-        num_tags[1],
-        re.compile(r"^[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?$|^[-+]?\.(inf|Inf|INF)$|^\.(nan|NaN|NAN)$"),
-        list("-+0123456789."),
-    )
-    return GridLoader
+
+_NUM_TAGS = ("tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
+_GridLoader.yaml_implicit_resolvers = {ch: [(tag, rx) for tag, rx in resolvers if tag not in _NUM_TAGS]
+                                       for ch, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+_GridLoader.add_implicit_resolver(_NUM_TAGS[0], re.compile(r"^[-+]?[0-9]+$"), list("-+0123456789"))
+_GridLoader.add_implicit_resolver(
+    _NUM_TAGS[1],
+    re.compile(r"^[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?$|^[-+]?\.(inf|Inf|INF)$|^\.(nan|NaN|NAN)$"),
+    list("-+0123456789."),
+)
 
 
 def load_grid_file(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
-        data = yaml.load(path.read_text(), Loader=_grid_loader())  # noqa: S506 (a SafeLoader)
+        data = yaml.load(path.read_text(), Loader=_GridLoader)  # noqa: S506 (a SafeLoader)
     except FileNotFoundError:
         raise ConfigError(f"Grid file {path} does not exist; check the --grid path.") from None
     except yaml.YAMLError as err:
@@ -304,12 +293,8 @@ def load_grid_file(path: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ConfigError(f"Grid file {path} must be a YAML mapping with tasks, methods, seeds, ...")
     known = {"tasks", "methods", "seeds", "alphas", "overrides", "profile"}
-    unknown = set(data) - known
-    if unknown:
-        raise ConfigError(
-            f"Grid file {path} has unknown field(s) {sorted(unknown)}; known fields are "
-            f"{sorted(known)}."
-        )
+    if unknown := set(data) - known:
+        raise ConfigError(f"Grid file {path} has unknown field(s) {sorted(unknown)}; known fields are {sorted(known)}.")
     return data
 
 

@@ -109,8 +109,7 @@ def _reseed(run: Run) -> int:
 
 
 def _quantities(run: Run, window: float) -> dict[str, float] | None:
-    d = run_dip(run, window)
-    if isinstance(d, str):
+    if isinstance(d := run_dip(run, window), str):
         return None
     return {"success_0": d.initial, "lowest": d.lowest, "dip": d.value,
             "success_10k": run.success_10k, "success_final": run.success_final}
@@ -153,17 +152,12 @@ def find_pairs(runs: Sequence[Run], *, reference: str = REFERENCE, window: float
         if len(refs) > 1:
             notes.append(f"{len(refs)} {reference} runs share one pre-training ({', '.join(relative(r.path, relative_to) for r in refs)}); "
                          f"the others are paired with the first")
-        ref_q = _quantities(ref, window)
+        ref_q, ref_path = _quantities(ref, window), relative(ref.path, relative_to)
         if ref_q is None:
             continue
-        for other in group:
-            if other in refs:
-                continue
-            q = _quantities(other, window)
-            if q is None:
-                continue
-            pairs.append(Pair(ref.task, ref.seed, canonical_label(other.label),
-                              other.alpha if other.method == "boto" else None, canonical_label(ref.label), ref_q, q, relative(ref.path, relative_to), relative(other.path, relative_to)))
+        pairs += [Pair(ref.task, ref.seed, canonical_label(o.label), o.alpha if o.method == "boto" else None,
+                       canonical_label(ref.label), ref_q, q, ref_path, relative(o.path, relative_to))
+                  for o in group if o not in refs and (q := _quantities(o, window)) is not None]
     pairs.sort(key=lambda p: (*p.group, -1 if p.seed is None else p.seed))
     return pairs, notes
 
@@ -233,16 +227,13 @@ def read_pairs_csv(path: Path) -> list[Pair]:
         except ValueError:
             return math.nan
 
-    pairs = []
     with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:
-        for row in csv.DictReader(f):
-            pairs.append(Pair(
-                row["task"], int(row["seed"]) if row["seed"] else None, canonical_label(row["method"]),
-                float(row["alpha"]) if row["alpha"] else None, canonical_label(row["reference"]),
-                {q: num(row[f"{q}_reference"]) for q in QUANTITIES}, {q: num(row[f"{q}_method"]) for q in QUANTITIES},
-                row.get("reference_path", ""), row.get("path", ""),
-            ))
-    return pairs
+        return [Pair(
+            row["task"], int(row["seed"]) if row["seed"] else None, canonical_label(row["method"]),
+            float(row["alpha"]) if row["alpha"] else None, canonical_label(row["reference"]),
+            {q: num(row[f"{q}_reference"]) for q in QUANTITIES}, {q: num(row[f"{q}_method"]) for q in QUANTITIES},
+            row.get("reference_path", ""), row.get("path", ""),
+        ) for row in csv.DictReader(f)]
 
 
 def paired_cells_csv(cells: Sequence[PairedCell]) -> str:
@@ -298,8 +289,7 @@ def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") ->
             ax.plot([0, 1], [p.ref[quantity] + j, p.other[quantity] + j], "-o", ms=3, lw=0.8, alpha=0.6,
                     color="tab:green" if p.diff(quantity) > EQUAL else "tab:red" if p.diff(quantity) < -EQUAL
                     else "grey")
-        d = [p.diff(quantity) for p in group]
-        mean, _, n = mean_se(d)
+        mean, _, n = mean_se([p.diff(quantity) for p in group])
         ax.set_xticks([0, 1], [group[0].reference, group[0].label.replace(" [", "\n[")], fontsize=7)
         a = "" if group[0].alpha is None else f" α={group[0].alpha:+.2f}"
         ax.set_title(f"{group[0].task}{a}\nmean difference {mean:+.3f} (n={n})", fontsize=8)

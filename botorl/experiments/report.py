@@ -67,14 +67,13 @@ def task_metrics(runs: Sequence[Run]) -> dict[str, Metric]:
 
 
 def metric_words(runs: Sequence[Run]) -> tuple[str, str]:
-    """(what Table 1 and the figures are in, what the dip measures), in words: "success rate" and
-    "success" when every task has success, as the report always said."""
-    names = {m.name for m in task_metrics(runs).values()}
+    """(what Table 1 and the figures are in, what the dip measures), in words."""
+    metrics = list(task_metrics(runs).values())
+    names = {m.name for m in metrics}
     if names <= {"success"}:
         return "success rate", "success"
     if len(names) == 1:
-        label = next(iter(task_metrics(runs).values())).label
-        return label, label
+        return metrics[0].label, metrics[0].label
     return "the headline metric of each task", "headline metric"
 
 
@@ -127,6 +126,7 @@ def aggregate_iqm(runs: Sequence[Run], *, n_boot: int, confidence: float, seed: 
     by_label: dict[str, dict[str, set]] = defaultdict(lambda: defaultdict(set))
     for r in runs:
         by_label[r.label][r.task].add(r.alpha if r.method == "boto" else None)
+    metrics = task_metrics(runs)
     out, notes = [], []
     for label in sorted(by_label):
         swept = sorted(t for t, alphas in by_label[label].items() if len(alphas) > 1)
@@ -137,7 +137,7 @@ def aggregate_iqm(runs: Sequence[Run], *, n_boot: int, confidence: float, seed: 
             )
             continue
         tasks = sorted(by_label[label])
-        scales = {task_metrics([r for r in runs if r.task == t])[t].name for t in tasks}
+        scales = {metrics[t].name for t in tasks}
         if len(tasks) > 1 and not scales <= {"success"} and scales != {"score"}:
             notes.append(
                 f"{label}: no aggregate over {', '.join(tasks)}: returns of different tasks are on different "
@@ -148,10 +148,8 @@ def aggregate_iqm(runs: Sequence[Run], *, n_boot: int, confidence: float, seed: 
         for point, fieldname in POINTS:
             per_task = [[getattr(r, fieldname) for r in runs if r.label == label and r.task == t] for t in tasks]
             value, lo, hi = stratified_bootstrap_iqm(per_task, n_boot=n_boot, confidence=confidence, seed=seed)
-            stats[point] = {
-                "iqm": value, "iqm_lo": lo, "iqm_hi": hi,
-                "n": sum(1 for s in per_task for v in s if math.isfinite(v)),
-            }
+            n = sum(1 for s in per_task for v in s if math.isfinite(v))
+            stats[point] = {"iqm": value, "iqm_lo": lo, "iqm_hi": hi, "n": n}
         out.append(Aggregate(label, tasks, stats))
     return out, notes
 
@@ -183,9 +181,8 @@ def cells_markdown(cells: Sequence[Cell]) -> str:
         "| task | method | alpha | seeds | initial (t=0) | unlearning (t=10k) | final |",
         "|---|---|---|---|---|---|---|",
     ]
-    for c in cells:
-        parts = [fmt_mean_se(c.stats[p]) for p, _ in POINTS]
-        lines.append(f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {len(c.seeds)} | " + " | ".join(parts) + " |")
+    lines += [f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {len(c.seeds)} | "
+              + " | ".join(fmt_mean_se(c.stats[p]) for p, _ in POINTS) + " |" for c in cells]
     return "\n".join(lines)
 
 
@@ -195,16 +192,10 @@ def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: f
         f"| task | method | alpha | IQM initial [{pct} CI] | IQM 10k | IQM final |",
         "|---|---|---|---|---|---|",
     ]
-    for c in cells:
-        lines.append(
-            f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | "
-            + " | ".join(fmt_iqm(c.stats[p]) for p, _ in POINTS) + " |"
-        )
-    for a in aggs:
-        lines.append(
-            f"| **all ({len(a.tasks)} task{'s' if len(a.tasks) != 1 else ''})** | {a.label} | | "
-            + " | ".join(fmt_iqm(a.stats[p]) for p, _ in POINTS) + " |"
-        )
+    lines += [f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | " + " | ".join(fmt_iqm(c.stats[p]) for p, _ in POINTS)
+              + " |" for c in cells]
+    lines += [f"| **all ({len(a.tasks)} task{'s' if len(a.tasks) != 1 else ''})** | {a.label} | | "
+              + " | ".join(fmt_iqm(a.stats[p]) for p, _ in POINTS) + " |" for a in aggs]
     return "\n".join(lines)
 
 
@@ -247,16 +238,11 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
             curves = np.stack([curve_on_grid(r, grid) for r in groups[key]])
             mean, se, count = mean_se_curves(curves)
             ok = count > 0
-            siblings = per_label[key[1]]
-            style = "-"
-            if len(siblings) > 1:  # an alpha sweep: blue (alpha -1) to red (alpha +1)
-                alpha_value = 0.0 if key[2] is None else key[2]
-                color = plt.cm.coolwarm((alpha_value + 1.0) / 2.0)
-            else:
-                color = colors[key[1]]
-                if len(per_label) < len(keys):  # beside a sweep: dashed, to tell them apart
-                    style = "--"
-            name = line_label(key[1], key[2], len(siblings) > 1) + f" (n={len(groups[key])})"
+            sweep = len(per_label[key[1]]) > 1
+            # an alpha sweep: blue (alpha -1) to red (alpha +1); a line beside a sweep: dashed
+            color = plt.cm.coolwarm(((0.0 if key[2] is None else key[2]) + 1.0) / 2.0) if sweep else colors[key[1]]
+            style = "--" if not sweep and len(per_label) < len(keys) else "-"
+            name = line_label(key[1], key[2], sweep) + f" (n={len(groups[key])})"
             ax.plot(grid[ok], mean[ok], style, color=color, label=name, lw=1.6)
             ax.fill_between(grid[ok], (mean - se)[ok], (mean + se)[ok], color=color, alpha=0.2, lw=0)
         ax.set_title(task)
@@ -330,8 +316,7 @@ def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WI
             alphas = [r.alpha for r in rs]
 
             def series(field):
-                m = np.array([r.stats[field][0] for r in rs])
-                se = np.array([r.stats[field][1] for r in rs])
+                m, se = np.array([r.stats[field] for r in rs]).T
                 return m, np.where(np.isfinite(se), se, 0.0)
 
             points = [("success_10k", "10k", "--"), ("success_final", "final", "-")]
@@ -407,10 +392,8 @@ class AlphaSelection:
         ]
         labels_per_task = Counter(c.task for c in self.choices)  # one choice per (task, label)
         for c in self.choices:
-            runner_up = ""
-            if len(c.ranking) > 1:
-                a2, s2, _ = c.ranking[1]
-                runner_up = f"; next alpha = {a2:g} ({s2:.3f} in selection)"
+            runner_up = (f"; next alpha = {c.ranking[1][0]:g} ({c.ranking[1][1]:.3f} in selection)"
+                         if len(c.ranking) > 1 else "")
             which = f"{c.label}: " if labels_per_task[c.task] > 1 else ""
             se = f" ± {c.se:.3f}" if math.isfinite(c.se) else ""
             ci = f", {pct} CI [{c.lo:.3f}, {c.hi:.3f}]" if math.isfinite(c.lo) else f", no CI from {c.n} seed"
@@ -450,9 +433,8 @@ def select_alpha(runs: Sequence[Run], *, select_seeds: Sequence[int] | None = No
                     else "every other seed reports."))
     by: dict[tuple[str, str], dict[float, list[Run]]] = defaultdict(lambda: defaultdict(list))
     for r in runs:
-        if r.method != "boto" or r.alpha is None:
-            continue
-        if math.isfinite(r.success_10k) and math.isfinite(r.success_final):
+        finite = math.isfinite(r.success_10k) and math.isfinite(r.success_final)
+        if r.method == "boto" and r.alpha is not None and finite:
             by[(r.task, r.label)][r.alpha].append(r)
 
     def where(task: str, label: str, alpha: float) -> str:
@@ -463,8 +445,7 @@ def select_alpha(runs: Sequence[Run], *, select_seeds: Sequence[int] | None = No
         sel_runs: dict[float, list[Run]] = {}
         rep_runs: dict[float, list[Run]] = {}
         for a, rs in sorted(per_alpha.items()):
-            unseeded = [str(r.path) for r in rs if r.seed is None]
-            if unseeded:
+            if unseeded := [str(r.path) for r in rs if r.seed is None]:
                 raise DataFormatError(
                     f"{where(task, label, a)}: run(s) {', '.join(unseeded)} name no seed in "
                     "summary.json or config.json, so they cannot be split into selection and report seeds.")
@@ -475,12 +456,8 @@ def select_alpha(runs: Sequence[Run], *, select_seeds: Sequence[int] | None = No
                     f"({seeds_text(seeds)}); held-out alpha selection needs at least 2 per alpha (some seeds choose "
                     "alpha, others report its score). Run more seeds of every alpha (botorl sweep ... --seeds 0-7) "
                     "or leave the under-seeded alpha's runs out of the report directories.")
-            if sel_set is None:
-                chosen = set(seeds[: len(seeds) // 2])
-                held = set(seeds) - chosen
-            else:
-                chosen = set(seeds) & sel_set
-                held = set(seeds) & rep_set if rep_set is not None else set(seeds) - sel_set
+            chosen = set(seeds[: len(seeds) // 2]) if sel_set is None else set(seeds) & sel_set
+            held = set(seeds) & rep_set if rep_set is not None else set(seeds) - chosen
             for name, got in (("selection", chosen), ("report", held)):
                 if not got:
                     raise ConfigError(
@@ -577,11 +554,8 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
     pairs, pair_notes = find_pairs(runs, window=dip_window, relative_to=out)
     pairs = merge_pairs(pairs, extra_pairs)
     notes += pair_notes
-    paired_md: list[str] = []
-    paired_cells: list[PairedCell] = []
-    if pairs:
-        paired_files, paired_md, paired_cells = write_paired(pairs, out, **boot, metrics=metrics)
-        files += paired_files
+    paired_files, paired_md, paired_cells = write_paired(pairs, out, **boot, metrics=metrics) if pairs else ([], [], [])
+    files += paired_files
     aggs, agg_notes = aggregate_iqm(runs, **boot)
     notes += agg_notes
     for (task, label, alpha), group in sorted(group_by(runs, lambda r: r.key).items(), key=lambda kv: str(kv[0])):
@@ -665,9 +639,7 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
         if selection is not None:
             md += ["Selected alpha, held out (`botorl report --select-alpha`):", "", "```", selection.text(), "```", ""]
     if skipped:
-        md += ["## Skipped run directories", ""]
-        md += [f"- `{rel(s.path)}`: {s.reason}" for s in skipped]
-        md.append("")
+        md += ["## Skipped run directories", ""] + [f"- `{rel(s.path)}`: {s.reason}" for s in skipped] + [""]
     if notes:
         md += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]
     atomic_write_text(out / "report.md", "\n".join(md))

@@ -168,23 +168,20 @@ class Sweep:
     def _load_manifest(self) -> None:
         old = read_json(self.out / MANIFEST, SWEEP_JSON_LIMIT) or {}
         cleanup_previous_ray(old)
-        old_grid = old.get("grid") or {}
+        old_grid, grid = old.get("grid") or {}, self.grid.to_json()
         for field in ("profile", "overrides"):
-            if old_grid and old_grid.get(field) != self.grid.to_json()[field]:
+            if old_grid and old_grid.get(field) != grid[field]:
                 # finished trials are never rerun, so mixing settings would go unnoticed
                 raise BotorlError(
-                    f"{self.out / MANIFEST} holds a sweep made with {field} "
-                    f"{old_grid.get(field)!r}, but this command asks for "
-                    f"{self.grid.to_json()[field]!r}. Runs of one sweep directory share their "
-                    "settings (tasks, methods, seeds and alphas may be added); use another --out "
-                    "or the same profile and overrides."
+                    f"{self.out / MANIFEST} holds a sweep made with {field} {old_grid.get(field)!r}, but this command "
+                    f"asks for {grid[field]!r}. Runs of one sweep directory share their settings (tasks, methods, "
+                    "seeds and alphas may be added); use another --out or the same profile and overrides."
                 )
         trials = old.get("trials", {}) if isinstance(old.get("trials"), dict) else {}
-        history = list(old.get("invocations", []))
-        history.append({"started": _now(), "grid": self.grid.to_json(), "backend": self.opt.backend})
+        history = list(old.get("invocations", [])) + [{"started": _now(), "grid": grid, "backend": self.opt.backend}]
         self.manifest = {
             "version": 1,
-            "grid": self.grid.to_json(),
+            "grid": grid,
             "backend": self.opt.backend,
             "command": list(self.opt.command) if self.opt.command else default_command(),
             "max_retries": self.opt.max_retries,
@@ -214,8 +211,7 @@ class Sweep:
         return self.manifest["trials"][trial.relpath]
 
     def trial_env(self, threads: int = 1) -> dict[str, str]:
-        env = dict(os.environ)
-        env[TOKEN_ENV] = sweep_token()  # what lets a later sweep stop this trial if it is orphaned
+        env = {**os.environ, TOKEN_ENV: sweep_token()}  # the token lets a later sweep stop this trial if orphaned
         if self.opt.backend != "sequential" and threads == 1:
             env = single_thread_env(env)
         env.setdefault("PYTHONUNBUFFERED", "1")
@@ -258,14 +254,12 @@ class Sweep:
         except (OSError, ValueError):
             tail = ""
         entry["error"] = reason + "; log tail:\n" + tail
-        if returncode == USER_ERROR_EXIT:
-            entry["state"] = "failed"  # a BotorlError (bad config, missing data) fails again
-        elif entry["failures_this_invocation"] <= self.opt.max_retries:
+        # a BotorlError (USER_ERROR_EXIT: bad config, missing data) fails again
+        if returncode != USER_ERROR_EXIT and entry["failures_this_invocation"] <= self.opt.max_retries:
             entry["state"] = "retrying"
             queue.appendleft(trial)
         else:
             entry["state"] = "failed"
-        if entry["state"] == "failed":
             self._tick(1)
         what = "retrying" if entry["state"] == "retrying" else "gave up"
         self._say(f"botorl sweep: {trial.relpath} {reason} ({what}; log {run_dir / TRIAL_LOG})")
@@ -285,15 +279,12 @@ class Sweep:
         states = [self.entry(t)["state"] for t in self.trials]
         self._pbar.set_postfix(running=states.count("running"), failed=states.count("failed"), refresh=False)
 
+    # SIGTERM (a scheduler's preemption) and SIGINT stop the sweep at once and are forwarded
+    # to the trials, which stop at a step with a checkpoint (pipeline/preempt.py); the sweep
+    # records them as interrupted and the same command resumes them. SIGKILL is handled by
+    # PR_SET_PDEATHSIG and the next invocation.
+    @preempt.handling()
     def run(self) -> dict[str, Any]:
-        # SIGTERM (a scheduler's preemption) and SIGINT stop the sweep at once and are forwarded
-        # to the trials, which stop at a step with a checkpoint (pipeline/preempt.py); the sweep
-        # records them as interrupted and the same command resumes them. SIGKILL is handled by
-        # PR_SET_PDEATHSIG and the next invocation.
-        with preempt.handling():
-            return self._run()
-
-    def _run(self) -> dict[str, Any]:
         self._lock.acquire()
         running: dict[int, _Running] = {}
         try:
@@ -312,8 +303,7 @@ class Sweep:
                 while queue and free_slots:
                     trial = queue.popleft()
                     slot = free_slots.pop(0)
-                    handle = self.backend.launch(trial, slot)
-                    running[next_key] = _Running(trial, handle, slot)
+                    running[next_key] = _Running(trial, self.backend.launch(trial, slot), slot)
                     next_key += 1
                     self._set_postfix()
                 finished_keys = self.backend.poll(running)

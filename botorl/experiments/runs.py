@@ -66,10 +66,9 @@ class Skipped:
 
 def _num(v: Any) -> float:
     try:
-        f = float(v)
+        return float(v)
     except (TypeError, ValueError):
         return math.nan
-    return f
 
 
 def relative(path: Path | str, base: Path | str | None) -> str:
@@ -230,10 +229,8 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
                 if root_p in seen:
                     continue
                 seen.add(root_p)
-                if "summary.json" not in files:
-                    skipped.append(Skipped(Path(root), "no summary.json (the run never got far enough to write one)"))
-                    continue
-                loaded = _load_run(Path(root))
+                loaded = (_load_run(Path(root)) if "summary.json" in files
+                          else Skipped(Path(root), "no summary.json (the run never got far enough to write one)"))
                 (runs if isinstance(loaded, Run) else skipped).append(loaded)
             elif "population.json" in files:  # a population: its members are run directories
                 subdirs[:] = sorted(d for d in subdirs if not d.startswith(".") and d != "checkpoints")

@@ -27,9 +27,8 @@ def mean_se(values: Sequence[float]) -> tuple[float, float, int]:
     n = int(x.size)
     if n == 0:
         return math.nan, math.nan, 0
-    mean = float(x.mean())
     se = float(x.std(ddof=1) / math.sqrt(n)) if n >= 2 else math.nan
-    return mean, se, n
+    return float(x.mean()), se, n
 
 
 def iqm(values: Sequence[float] | np.ndarray, axis: int = -1) -> Any:
@@ -39,8 +38,7 @@ def iqm(values: Sequence[float] | np.ndarray, axis: int = -1) -> Any:
     if n == 0:
         return math.nan
     cut = int(0.25 * n)
-    kept = np.take(x, np.arange(cut, n - cut), axis=axis)
-    out = kept.mean(axis=axis)
+    out = np.take(x, np.arange(cut, n - cut), axis=axis).mean(axis=axis)
     return float(out) if np.ndim(out) == 0 else out
 
 
