@@ -233,11 +233,7 @@ def check_resume_point(root: Path, cfgs, checkpoint: str | None = None) -> None:
     and falls back."""
     ckpt = CheckpointManager(RunDir(root).checkpoints)
     try:
-        if checkpoint is not None:
-            ckpt.verify_named(checkpoint)
-            name = checkpoint
-        else:
-            name = (ckpt.latest() or {}).get("name")
+        name = ckpt.chosen(checkpoint) if checkpoint is not None else (ckpt.latest() or {}).get("name")
         if name is not None:
             check_identity(ckpt.state(name), [full_identity(c) for c in cfgs], ckpt.root, name)
     except CheckpointCorrupt:
