@@ -151,8 +151,7 @@ class CheckpointManager:
              save_agent: Callable[[str, Any], None] | None = None, arrays: dict[str, dict[str, Any]] | None = None,
              documents: dict[str, Any] | None = None) -> Path:
         tmp = self.root / f".tmp-{name}-{os.getpid()}"
-        if tmp.exists():
-            shutil.rmtree(tmp)
+        shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
         if agent is not None:
             assert save_agent is not None
@@ -169,18 +168,15 @@ class CheckpointManager:
         atomic_write_json(tmp / "state.json", state)
         files = {q.name: {"size": q.stat().st_size, "sha256": file_sha256(q)} for q in sorted(tmp.iterdir())
                  if q.is_file() and not q.name.startswith(".")}
-        atomic_write_json(tmp / MANIFEST, {"name": name, "seq": self._next_seq(), "time": time.time(), "files": files})
+        seq = int(max([0.0, *(self.order(n)[0] for n in self.names())])) + 1  # after every checkpoint's
+        atomic_write_json(tmp / MANIFEST, {"name": name, "seq": seq, "time": time.time(), "files": files})
         _fsync_dir(tmp)
-        final = self.root / name
+        final, trash = self.root / name, self.root / f".trash-{name}-{os.getpid()}"
         if final.exists():  # re-saving the same name (e.g. after a resume): swap, then remove
-            trash = self.root / f".trash-{name}-{os.getpid()}"
-            if trash.exists():
-                shutil.rmtree(trash)
-            os.replace(final, trash)
-            os.replace(tmp, final)
             shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(tmp, final)
+            os.replace(final, trash)
+        os.replace(tmp, final)
+        shutil.rmtree(trash, ignore_errors=True)
         _fsync_dir(self.root)
         faults.checkpoint(name, "renamed")
         previous = self._latest_name()
@@ -206,9 +202,6 @@ class CheckpointManager:
             return m
         except (OSError, ValueError) as err:
             raise CheckpointCorrupt(f"checkpoint {name}: {MANIFEST} cannot be read ({err}).") from None
-
-    def _next_seq(self) -> int:
-        return int(max([0.0, *(self.order(n)[0] for n in self.names())])) + 1
 
     def _prune(self, keep: set[str]) -> None:
         """Remove ``-step`` checkpoints other than ``keep`` (the newest and the one before it)."""
@@ -283,8 +276,7 @@ class CheckpointManager:
             if self._manifest(n) is None:  # unverifiable: read its arrays
                 try:
                     for p in (self.root / n).glob("*.npz"):
-                        self._check_file(n, p.name)
-                        load_npz(p)
+                        load_npz(self.file(n, p.name))
                 except CheckpointCorrupt:
                     return False
             return True
