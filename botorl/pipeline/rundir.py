@@ -74,27 +74,19 @@ class RunIOError(BotorlError):
     """The run directory cannot be written (disk full, read-only, no permission)."""
 
 
-def io_fault(err: OSError, where) -> RunIOError | None:
-    """The exit-2 error for an OSError that is a full / read-only / forbidden output, else None."""
-    if not isinstance(err, OSError) or err.errno not in IO_FAULTS:
-        return None
-    detail = f" ({err.filename})" if getattr(err, "filename", None) else ""
-    return RunIOError(
-        f"cannot write to {where}{detail}: {IO_FAULTS[err.errno]} ({err.strerror}). Free space or pick a "
-        f"writable --out; the run's checkpoints so far are kept, and `botorl resume {where}` continues it."
-    )
-
-
 @contextlib.contextmanager
 def io_guard(where):
-    """I/O faults inside (a full disk, read-only, no permission) become exit 2 (``io_fault``)."""
+    """An OSError inside that is a full / read-only / forbidden output becomes ``RunIOError`` (exit 2)."""
     try:
         yield
     except OSError as err:
-        fault = io_fault(err, where)
-        if fault is None:
+        if err.errno not in IO_FAULTS:
             raise
-        raise fault from None
+        detail = f" ({err.filename})" if err.filename else ""
+        raise RunIOError(
+            f"cannot write to {where}{detail}: {IO_FAULTS[err.errno]} ({err.strerror}). Free space or pick a "
+            f"writable --out; the run's checkpoints so far are kept, and `botorl resume {where}` continues it."
+        ) from None
 
 
 class RunLockedError(BotorlError):
