@@ -62,8 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     if name not in COMMANDS:
         print(f"botorl: unknown command {name!r}.\n\n{_usage()}", file=sys.stderr)
         return 2
-    target, _ = COMMANDS[name]
-    module_name, func_name = target.split(":")
+    module_name, func_name = COMMANDS[name][0].split(":")
     try:
         # the commands that train stop at a step with a checkpoint on SIGTERM / SIGINT
         # (botorl/pipeline/preempt.py); the others keep Python's defaults
