@@ -227,12 +227,10 @@ def check_resume_point(root: Path, cfgs, checkpoint: str | None = None) -> None:
     before a task is registered or data read. A damaged one is left to the resume, which names it
     and falls back."""
     ckpt = CheckpointManager(RunDir(root).checkpoints)
-    try:
+    with contextlib.suppress(CheckpointCorrupt):
         name = ckpt.chosen(checkpoint) if checkpoint is not None else (ckpt.latest() or {}).get("name")
         if name is not None:
             check_identity(ckpt.state(name), [full_identity(c) for c in cfgs], ckpt.root, name)
-    except CheckpointCorrupt:
-        pass
 
 
 ENV_HELP = ("a task of your own: its entry point MODULE:FUNCTION again (the one the run recorded); botorl never "
