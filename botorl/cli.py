@@ -62,8 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     if name not in COMMANDS:
         print(f"botorl: unknown command {name!r}.\n\n{_usage()}", file=sys.stderr)
         return 2
-    target, _ = COMMANDS[name]
-    module_name, func_name = target.split(":")
+    module_name, func_name = COMMANDS[name][0].split(":")
     try:
         # the commands that train stop at a step with a checkpoint on SIGTERM / SIGINT
         # (botorl/pipeline/preempt.py); the others keep Python's defaults
@@ -90,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
         _silence_stdout()
         return 2
     except OSError as err:
-        code = err.errno if err.errno is not None else _hdf5_errno(err)
+        m = re.search(r"errno = (\d+)", str(err))  # h5py's OSErrors carry their errno in the text only
+        code = err.errno if err.errno is not None else (int(m.group(1)) if m else None)
         if code not in IO_FAULTS:
             raise
         where = f" {err.filename}" if err.filename else ""
@@ -104,13 +104,6 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         raise err
     return int(code or 0) if _flushed() else 2
-
-
-def _hdf5_errno(err: OSError) -> int | None:
-    """The errno inside an h5py OSError, which has none of its own ("... errno = 28, error
-    message = 'No space left on device' ...")."""
-    m = re.search(r"errno = (\d+)", str(err))
-    return int(m.group(1)) if m else None
 
 
 def _flushed() -> bool:
@@ -138,7 +131,7 @@ def console_main() -> None:
         code = main()
         sys.stdout.flush()
     except BrokenPipeError:
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        _silence_stdout()
         sys.exit(1)
 
     def exit_130(signum, frame):

@@ -93,10 +93,8 @@ def matmul_precision(precision: str):
 
 def member_tolerance(precision: str) -> float:
     """Largest |member - alone| accepted between a population member's parameters after one
-    update and the same agent's alone (tests/test_gpu.py). Both programs round the same inputs
-    the same way; they differ in the order of their fp32 sums, and a value that differs in its
-    last fp32 bits can round to the neighbouring input of the precision's format, a jump of up
-    to 2u (u: ``MATMUL_ROUNDOFF``) that the next layers carry. So the bound is 2u, and never
-    below 1e-4, what reordered fp32 sums alone were given before precision was a field:
-    highest 1e-4, tf32 9.8e-4 (an H100 measured 2.0e-4 at JAX's default, TF32), bf16 7.8e-3."""
+    update and the same agent's alone (tests/test_gpu.py): 2u (u: ``MATMUL_ROUNDOFF``), never below
+    1e-4. The two programs sum in other orders, and a value that differs in its last fp32 bits can
+    round to the neighbouring input of the precision's format, a jump of up to 2u that the next
+    layers carry: highest 1e-4, tf32 9.8e-4 (an H100 measured 2.0e-4), bf16 7.8e-3."""
     return max(1e-4, 2.0 * MATMUL_ROUNDOFF[check_precision(precision)])

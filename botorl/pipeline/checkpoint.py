@@ -125,13 +125,6 @@ def _fsync_dir(path: Path) -> None:
             os.close(fd)
 
 
-def _save_npz(path: Path, arrays: dict[str, Any]) -> None:
-    with open(path, "wb") as f:
-        np.savez(f, **{k: np.asarray(v) for k, v in arrays.items() if v is not None})
-        f.flush()
-        os.fsync(f.fileno())
-
-
 def load_npz(path: Path) -> dict[str, np.ndarray]:
     try:
         with np.load(path, allow_pickle=False) as z:
@@ -158,33 +151,32 @@ class CheckpointManager:
              save_agent: Callable[[str, Any], None] | None = None, arrays: dict[str, dict[str, Any]] | None = None,
              documents: dict[str, Any] | None = None) -> Path:
         tmp = self.root / f".tmp-{name}-{os.getpid()}"
-        if tmp.exists():
-            shutil.rmtree(tmp)
+        shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
         if agent is not None:
             assert save_agent is not None
             save_agent(str(tmp / "agent.ckpt"), agent)
         faults.checkpoint(name, "files")
         for key, group in (arrays or {}).items():
-            _save_npz(tmp / f"{key}.npz", group)
+            with open(tmp / f"{key}.npz", "wb") as f:
+                np.savez(f, **{k: np.asarray(v) for k, v in group.items() if v is not None})
+                f.flush()
+                os.fsync(f.fileno())
         for key, doc in (documents or {}).items():  # "state" and "MANIFEST" are the checkpoint's own
             # plain json (NaN / Infinity kept as such: an env's state must come back exactly)
             atomic_write_json(tmp / f"{key}.json", doc, indent=None, exact=True)
         atomic_write_json(tmp / "state.json", state)
         files = {q.name: {"size": q.stat().st_size, "sha256": file_sha256(q)} for q in sorted(tmp.iterdir())
                  if q.is_file() and not q.name.startswith(".")}
-        atomic_write_json(tmp / MANIFEST, {"name": name, "seq": self._next_seq(), "time": time.time(), "files": files})
+        seq = int(max([0.0, *(self.order(n)[0] for n in self.names())])) + 1  # after every checkpoint's
+        atomic_write_json(tmp / MANIFEST, {"name": name, "seq": seq, "time": time.time(), "files": files})
         _fsync_dir(tmp)
-        final = self.root / name
+        final, trash = self.root / name, self.root / f".trash-{name}-{os.getpid()}"
         if final.exists():  # re-saving the same name (e.g. after a resume): swap, then remove
-            trash = self.root / f".trash-{name}-{os.getpid()}"
-            if trash.exists():
-                shutil.rmtree(trash)
-            os.replace(final, trash)
-            os.replace(tmp, final)
             shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(tmp, final)
+            os.replace(final, trash)
+        os.replace(tmp, final)
+        shutil.rmtree(trash, ignore_errors=True)
         _fsync_dir(self.root)
         faults.checkpoint(name, "renamed")
         previous = self._latest_name()
@@ -210,17 +202,6 @@ class CheckpointManager:
             return m
         except (OSError, ValueError) as err:
             raise CheckpointCorrupt(f"checkpoint {name}: {MANIFEST} cannot be read ({err}).") from None
-
-    def _next_seq(self) -> int:
-        seq = 0
-        for name in self.names():
-            try:
-                m = self._manifest(name)
-            except CheckpointCorrupt:
-                continue
-            if m is not None:
-                seq = max(seq, int(m.get("seq", 0)))
-        return seq + 1
 
     def _prune(self, keep: set[str]) -> None:
         """Remove ``-step`` checkpoints other than ``keep`` (the newest and the one before it)."""
@@ -295,8 +276,7 @@ class CheckpointManager:
             if self._manifest(n) is None:  # unverifiable: read its arrays
                 try:
                     for p in (self.root / n).glob("*.npz"):
-                        self._check_file(n, p.name)
-                        load_npz(p)
+                        load_npz(self.file(n, p.name))
                 except CheckpointCorrupt:
                     return False
             return True
@@ -346,7 +326,7 @@ class CheckpointManager:
             return (float(m.get("seq", 0)), float(m.get("time", 0)))
         try:  # written before manifests: by its time
             return (0.0, float(read_json(self.root / name / "state.json").get("time", 0)))
-        except (OSError, ValueError, AttributeError):
+        except (OSError, ValueError, AttributeError, TypeError):
             return (-1.0, 0.0)
 
     # ------------------------------------------------------------------ reading
@@ -386,8 +366,7 @@ class CheckpointManager:
         return (self.root / name / "state.json").exists()
 
     def state(self, name: str) -> dict[str, Any]:
-        self._check_file(name, "state.json")
-        path = self.root / name / "state.json"
+        path = self.file(name, "state.json")
         try:
             st = read_json(path)
         except (OSError, ValueError) as err:
@@ -402,16 +381,12 @@ class CheckpointManager:
         p = self.root / name / f"{key}.json"
         if not p.exists():
             return None
-        self._check_file(name, p.name)
         try:
-            return read_json(p)
+            return read_json(self.file(name, p.name))
         except (OSError, ValueError) as err:
             raise CheckpointCorrupt(f"checkpoint {name}: {p} cannot be read ({err}). Resume from an earlier "
                                     f"one with `botorl resume RUN_DIR --from NAME`.") from None
 
     def arrays(self, name: str, key: str) -> dict[str, np.ndarray] | None:
         p = self.root / name / f"{key}.npz"
-        if not p.exists():
-            return None
-        self._check_file(name, p.name)
-        return load_npz(p)
+        return load_npz(self.file(name, p.name)) if p.exists() else None

@@ -38,7 +38,7 @@ from botorl.pipeline.export import contract_path, evaluate_exported, export_poli
 from botorl.pipeline.policy import read_run
 from botorl.pipeline.population import check_fits
 from botorl.pipeline.provenance import environment_record
-from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_fault, io_guard, read_json
+from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_guard, read_json
 from botorl.pipeline.runner import build_summary, execute, format_population, format_summary, load_offline, \
     load_run_data, read_summary, transform_dataset, write_population_file
 from botorl.pipeline.tracking import require_wandb
@@ -82,17 +82,12 @@ def _execute(cfg, member_cfgs, root: Path, runs: list[RunDir], d_raw, *, resume:
             _mark_failed(root / POPULATION_FILE, reason)
 
     try:
-        if resume_from is not None:
-            # latest.json is pointed at the chosen (verified) checkpoint; execute(resume=True)
-            # starts from ckpt.latest(), so the runner needs no argument for it.
-            CheckpointManager(RunDir(root).checkpoints).select(resume_from)
-        return execute(cfg, member_cfgs, root, runs, d_raw, resume=resume)
-    except OSError as err:
-        fault = io_fault(err, root)
-        if fault is None:
-            raise
-        mark(str(fault))
-        raise fault from None
+        with io_guard(root):
+            if resume_from is not None:
+                # latest.json is pointed at the chosen (verified) checkpoint; execute(resume=True)
+                # starts from ckpt.latest(), so the runner needs no argument for it.
+                CheckpointManager(RunDir(root).checkpoints).select(resume_from)
+            return execute(cfg, member_cfgs, root, runs, d_raw, resume=resume)
     except CheckpointCorrupt as err:
         msg = f"{err} {_resume_hint(root, resume_from)}" if resume else str(err)
         mark(msg)
@@ -232,16 +227,10 @@ def check_resume_point(root: Path, cfgs, checkpoint: str | None = None) -> None:
     before a task is registered or data read. A damaged one is left to the resume, which names it
     and falls back."""
     ckpt = CheckpointManager(RunDir(root).checkpoints)
-    try:
-        if checkpoint is not None:
-            ckpt.verify_named(checkpoint)
-            name = checkpoint
-        else:
-            name = (ckpt.latest() or {}).get("name")
+    with contextlib.suppress(CheckpointCorrupt):
+        name = ckpt.chosen(checkpoint) if checkpoint is not None else (ckpt.latest() or {}).get("name")
         if name is not None:
             check_identity(ckpt.state(name), [full_identity(c) for c in cfgs], ckpt.root, name)
-    except CheckpointCorrupt:
-        pass
 
 
 ENV_HELP = ("a task of your own: its entry point MODULE:FUNCTION again (the one the run recorded); botorl never "

@@ -103,10 +103,8 @@ def check_replaceable(p: Path, force: bool) -> None:
 def check_writable_folder(out: Path) -> None:
     """ConfigError, before any work, when ``out``'s folder cannot hold the model (``/proc/self``,
     a read-only or missing parent that cannot be made)."""
-    parent = out.parent if str(out.parent) else Path(".")
-    probe = parent
-    while not probe.exists() and probe != probe.parent:
-        probe = probe.parent
+    parent = out.parent
+    probe = next((p for p in (parent, *parent.parents) if p.exists()), Path("."))  # the nearest that exists
     if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK) or str(probe.resolve()).startswith(("/proc", "/sys")):
         raise ConfigError(f"--out {out}: its folder {parent} cannot be written; give a file in a folder you can write.")
 
@@ -186,8 +184,7 @@ def verification_observations(cfg, run, n: int, seed: int = 0, why: str | None =
               f"observations instead (the contract's verification.source says so).", file=sys.stderr)
         obs = np.random.default_rng(seed).standard_normal((n, int(task_io(cfg)["obs_dim"])))
         return obs.astype(np.float32), "standard-normal"
-    rng = np.random.default_rng(seed)
-    idx = rng.choice(len(obs), size=n, replace=len(obs) < n)
+    idx = np.random.default_rng(seed).choice(len(obs), size=n, replace=len(obs) < n)
     return obs[idx], "dataset"
 
 
@@ -304,8 +301,7 @@ def max_gap(a, b) -> tuple[float, int]:
     """The max abs difference of two action batches and the row where it is."""
     d = np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64))
     if not np.all(np.isfinite(d)):
-        row = int(np.argwhere(~np.isfinite(d))[0][0])
-        return float("inf"), row
+        return float("inf"), int(np.argwhere(~np.isfinite(d))[0][0])
     return float(d.max()), int(np.unravel_index(int(d.argmax()), d.shape)[0])
 
 
@@ -443,28 +439,22 @@ def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path)
             raise ConfigError(f"{path} is not the file its contract describes (sha256 differs): it changed since "
                               f"`botorl export`; export it again.")
 
-        def said(*keys):
-            node = contract
-            for k in keys:
-                node = node.get(k) if isinstance(node, dict) else None
-            return node
+        def said(part, key):
+            node = contract.get(part)
+            return node.get(key) if isinstance(node, dict) else None
 
-        wrong = []
-        for what, got, want_ in (("input width", said("input", "shape"), ["batch", io["obs_dim"]]),
-                                 ("output width", said("output", "shape"), ["batch", io["action_dim"]]),
-                                 ("action low", said("action", "low"), _bounds(io["action_low"])),
-                                 ("action high", said("action", "high"), _bounds(io["action_high"]))):
-            if got != want_:
-                wrong.append(f"{what} {got!r} in the contract, {want_!r} for the run")
+        wrong = [f"{what} {got!r} in the contract, {want_!r} for the run" for what, got, want_ in (
+            ("input width", said("input", "shape"), ["batch", io["obs_dim"]]),
+            ("output width", said("output", "shape"), ["batch", io["action_dim"]]),
+            ("action low", said("action", "low"), _bounds(io["action_low"])),
+            ("action high", said("action", "high"), _bounds(io["action_high"]))) if got != want_]
         if wrong:
             raise ConfigError(f"{contract_path(path)} does not describe this run's policy ({'; '.join(wrong)}); export "
                               f"the policy again.")
-    if model.obs_dim is not None and model.obs_dim != io["obs_dim"]:
-        raise ConfigError(f"{path} takes {model.obs_dim} observation values; this run's task {cfg.task!r} has "
-                          f"{io['obs_dim']}.")
-    if model.action_dim is not None and model.action_dim != io["action_dim"]:
-        raise ConfigError(f"{path} gives {model.action_dim} action values; this run's task {cfg.task!r} has "
-                          f"{io['action_dim']}.")
+    for verb, got, want, what in (("takes", model.obs_dim, io["obs_dim"], "observation"),
+                                  ("gives", model.action_dim, io["action_dim"], "action")):
+        if got is not None and got != want:
+            raise ConfigError(f"{path} {verb} {got} {what} values; this run's task {cfg.task!r} has {want}.")
 
 
 def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, Any]:
@@ -490,9 +480,8 @@ def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, 
 
     t0 = time.perf_counter()
     stats = evaluate_policy(act, get_task(cfg.task), cfg, n)
-    result = {"policy": str(path), "checkpoint": (contract or {}).get("checkpoint"), "stage": (contract or {}).get("stage"),
-              "step": (contract or {}).get("step"), "episodes": n, **metric_fields(metric_of_config(cfg), stats),
-              "episode_length": stats.length,
+    result = {"policy": str(path), **{k: (contract or {}).get(k) for k in ("checkpoint", "stage", "step")},
+              "episodes": n, **metric_fields(metric_of_config(cfg), stats), "episode_length": stats.length,
               "seconds": round(time.perf_counter() - t0, 2)}
     atomic_write_json(run.root / f"eval-{path.stem}-onnx.json", result)
     return result

@@ -27,18 +27,15 @@ _active = False
 
 def _read_env() -> None:
     global _kill_at, _kill_ckpt, _pause_at, _active
-    at = os.environ.get("BOTORL_KILL_AT")
-    if at:
+    if at := os.environ.get("BOTORL_KILL_AT"):
         stage, _, step = at.rpartition(":")
         _kill_at = (stage, int(step))
-    ck = os.environ.get("BOTORL_KILL_IN_CHECKPOINT")
-    if ck:
+    if ck := os.environ.get("BOTORL_KILL_IN_CHECKPOINT"):
         name, _, phase = ck.rpartition(":")
         if phase not in ("files", "renamed"):
             raise ValueError(f"BOTORL_KILL_IN_CHECKPOINT: phase must be files or renamed, not {phase!r}")
         _kill_ckpt = (name, phase)
-    pause = os.environ.get("BOTORL_PAUSE_AT")
-    if pause:
+    if pause := os.environ.get("BOTORL_PAUSE_AT"):
         stage, _, step = pause.rpartition(":")
         _pause_at = (stage, int(step), os.environ["BOTORL_PAUSE_FILE"])
     _active = _hook is not None or _kill_at is not None or _kill_ckpt is not None or _pause_at is not None

@@ -151,8 +151,7 @@ class Policy:
         return action_to_env(unit, self.action_low, self.action_high).astype(np.float32)
 
     def __call__(self, obs) -> np.ndarray:
-        single = (not isinstance(obs, Mapping) and np.ndim(obs) == 1) or (
-            isinstance(obs, Mapping) and _size(obs) == self.obs_dim)
+        single = _size(obs) == self.obs_dim if isinstance(obs, Mapping) else np.ndim(obs) == 1
         out = self.transform_action(self.unit_actions(self.transform_obs(obs)))
         return out[0] if single else out
 

@@ -14,6 +14,7 @@ These are integrity records, not authenticity: anyone can write any value into a
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -51,22 +52,14 @@ def _commit() -> str | None:
 
 
 def _cpu() -> dict[str, str | None]:
-    model = flags = None
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
-            for line in f:
-                key, _, value = line.partition(":")
-                key = key.strip()
-                if key == "model name" and model is None:
-                    model = value.strip()
-                elif key in ("flags", "Features") and flags is None:
-                    flags = value.strip()
-                if model is not None and flags is not None:
-                    break
-    except OSError:
-        pass
-    return {"model": model or platform.processor() or None, "flags": flags, "machine": platform.machine(),
-            "cores": os.cpu_count()}
+    info: dict[str, str] = {}  # the first value of each key: the first core's
+    with contextlib.suppress(OSError), open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+        for line in f:
+            key, _, value = line.partition(":")
+            info.setdefault(key.strip(), value.strip())
+    return {"model": info.get("model name") or platform.processor() or None,
+            "flags": info.get("flags", info.get("Features")),  # x86's name, ARM's
+            "machine": platform.machine(), "cores": os.cpu_count()}
 
 
 def environment_record() -> dict:

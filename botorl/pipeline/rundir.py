@@ -74,27 +74,19 @@ class RunIOError(BotorlError):
     """The run directory cannot be written (disk full, read-only, no permission)."""
 
 
-def io_fault(err: OSError, where) -> RunIOError | None:
-    """The exit-2 error for an OSError that is a full / read-only / forbidden output, else None."""
-    if not isinstance(err, OSError) or err.errno not in IO_FAULTS:
-        return None
-    detail = f" ({err.filename})" if getattr(err, "filename", None) else ""
-    return RunIOError(
-        f"cannot write to {where}{detail}: {IO_FAULTS[err.errno]} ({err.strerror}). Free space or pick a "
-        f"writable --out; the run's checkpoints so far are kept, and `botorl resume {where}` continues it."
-    )
-
-
 @contextlib.contextmanager
 def io_guard(where):
-    """I/O faults inside (a full disk, read-only, no permission) become exit 2 (``io_fault``)."""
+    """An OSError inside that is a full / read-only / forbidden output becomes ``RunIOError`` (exit 2)."""
     try:
         yield
     except OSError as err:
-        fault = io_fault(err, where)
-        if fault is None:
+        if err.errno not in IO_FAULTS:
             raise
-        raise fault from None
+        detail = f" ({err.filename})" if err.filename else ""
+        raise RunIOError(
+            f"cannot write to {where}{detail}: {IO_FAULTS[err.errno]} ({err.strerror}). Free space or pick a "
+            f"writable --out; the run's checkpoints so far are kept, and `botorl resume {where}` continues it."
+        ) from None
 
 
 class RunLockedError(BotorlError):
@@ -174,12 +166,11 @@ def log_lines(path: Path, *, warn: bool = False) -> list[str]:
                               f"run the command again.") from None
     lines = data.split(b"\n")
     torn = lines.pop()  # what follows the last newline: empty unless the last line was cut
-    out, bad = [], 0
+    out = []
     for b in lines:
-        try:
+        with contextlib.suppress(UnicodeDecodeError):
             out.append(b.decode("utf-8"))
-        except UnicodeDecodeError:
-            bad += 1
+    bad = len(lines) - len(out)
     if warn and (torn or bad):
         what = [f"{bad} line(s) that are not UTF-8 text"] if bad else []
         what += ["a last line cut short"] if torn else []
@@ -207,8 +198,7 @@ class CsvLog:
         append_text(self.path, buf.getvalue())
 
     def rows(self, *, warn: bool = False) -> list[dict[str, str]]:
-        lines = log_lines(self.path, warn=warn)
-        return [r for r in csv.DictReader(lines) if r]
+        return [r for r in csv.DictReader(log_lines(self.path, warn=warn)) if r]
 
     def truncate(self, keep) -> None:
         """Keep only rows for which ``keep(row)`` is true (atomic rewrite)."""
@@ -244,12 +234,10 @@ class JsonlLog:
             return
         out = []
         for line in log_lines(self.path, warn=True):
-            try:
+            with contextlib.suppress(ValueError, RecursionError):  # an empty line, one cut by a kill, or not botorl's
                 row = json.loads(line)
-            except (ValueError, RecursionError):  # an empty line, one cut by a kill, or not botorl's
-                continue
-            if keep(row):
-                out.append(json.dumps(row))
+                if keep(row):
+                    out.append(json.dumps(row))
         atomic_write_bytes(self.path, ("\n".join(out) + ("\n" if out else "")).encode())
 
 
@@ -341,11 +329,9 @@ class MetricsLogger:
         return self._by_stage[stage]
 
     def log(self, stage: str, step: int, metrics: dict[str, Any]) -> None:
-        row = {"step": int(step)}
-        row.update({k: _scalar(v) for k, v in metrics.items()})
-        c, j = self._logs(stage)
-        c.append(row)
-        j.append(row)
+        row = {"step": int(step)} | {k: _scalar(v) for k, v in metrics.items()}
+        for log in self._logs(stage):
+            log.append(row)
         if self._tb is not None:
             for k, v in row.items():
                 if k != "step" and isinstance(v, (int, float)):
@@ -365,9 +351,8 @@ class MetricsLogger:
 
     def truncate(self, stage: str, max_step: int) -> None:
         """Drop rows of ``stage`` logged after ``max_step`` (they are redone after a resume)."""
-        c, j = self._logs(stage)
-        c.truncate(lambda r: number(r.get("step")) <= max_step)
-        j.truncate(lambda r: number(r.get("step")) <= max_step)
+        for log in self._logs(stage):
+            log.truncate(lambda r: number(r.get("step")) <= max_step)
 
     def close(self) -> None:
         if self._tb is not None:

@@ -60,9 +60,8 @@ def candidates(directory: str | Path) -> list[tuple[Path, dict]]:
     found = []
     for config in sorted(root.rglob("config.json")):
         run = config.parent
-        if "checkpoints" in run.relative_to(root).parts:
-            continue
-        if not (run / "checkpoints" / PRETRAIN_FINAL / "agent.ckpt").is_file():
+        if ("checkpoints" in run.relative_to(root).parts
+                or not (run / "checkpoints" / PRETRAIN_FINAL / "agent.ckpt").is_file()):
             continue
         try:
             cfg = from_dict(RunConfig, read_json(config))
