@@ -23,7 +23,7 @@ from botorl.networks import CriticEnsemble, TanhGaussianActor, sample_tanh_gauss
 __all__ = [
     "TrainState", "polyak", "acting_view", "update_fn", "update_many_fn", "sample_fn", "eval_fn", "q_mean_fn",
     "update_many_on_device_fn", "jit_update", "jit_update_many", "jit_sample", "jit_eval", "jit_q_mean", "adam",
-    "checked_batch", "chunk_size", "summed_value_and_grad", "update_many_on_device", "sample_batches",
+    "train_state", "checked_batch", "chunk_size", "summed_value_and_grad", "update_many_on_device", "sample_batches",
     "actor_def", "critic_def", "ActorCriticAgent", "check_fields",
 ]
 
@@ -37,6 +37,11 @@ def adam(lr: float) -> optax.GradientTransformation:
     # Cached so the same learning rate gives the same (hashable, equal) static object and
     # agents built from equal configs share jit cache entries.
     return optax.adam(lr)
+
+
+def train_state(module, key, lr: float, *inputs) -> TrainState:
+    """A fresh ``TrainState`` of ``module`` initialised on ``inputs``, trained by Adam at ``lr``."""
+    return TrainState.create(apply_fn=module.apply, params=module.init(key, *inputs)["params"], tx=adam(lr))
 
 
 # ------------------------------------------------------------------ chunked gradients
@@ -246,11 +251,9 @@ class ActorCriticAgent:
         rng, k_actor, k_critic, k_third = jax.random.split(rng, 4)
         obs = jnp.zeros((1, obs_dim), jnp.float32)
         act = jnp.zeros((1, action_dim), jnp.float32)
-        a_def = actor_def(config, action_dim)
-        actor = TrainState.create(apply_fn=a_def.apply, params=a_def.init(k_actor, obs)["params"], tx=adam(config.actor_lr))
+        actor = train_state(actor_def(config, action_dim), k_actor, config.actor_lr, obs)
         c_def = critic_def(config.critic_hidden_dims, config.num_critics, config.critic_layer_norm)
-        critic = TrainState.create(apply_fn=c_def.apply, params=c_def.init(k_critic, obs, act)["params"],
-                                   tx=adam(config.critic_lr))
+        critic = train_state(c_def, k_critic, config.critic_lr, obs, act)
         return rng, actor, critic, k_third, obs
 
     @property

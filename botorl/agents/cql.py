@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 
 from botorl.agents.common import (
-    RATE_WHY, TrainState, adam, check_fields, chunk_size, critic_def, is_rate, summed_value_and_grad,
+    RATE_WHY, TrainState, check_fields, chunk_size, critic_def, is_rate, summed_value_and_grad, train_state,
 )
 from botorl.agents.sac import SAC_CHECKS, SACAgent, SACConfig, temp_def
 from botorl.networks import sample_tanh_gaussian
@@ -87,8 +87,7 @@ class CQLAgent(SACAgent):
     def create(cls, config: CQLConfig | None = None, obs_dim: int = 0, action_dim: int = 0, seed: int = 0):
         agent = super().create(CQLConfig() if config is None else config, obs_dim, action_dim, seed)
         l_def = temp_def(math.exp(agent.config.cql_lagrange_init_log))
-        lagrange = TrainState.create(apply_fn=l_def.apply, params=l_def.init(jax.random.PRNGKey(0))["params"],
-                                     tx=adam(agent.config.cql_lagrange_lr))
+        lagrange = train_state(l_def, jax.random.PRNGKey(0), agent.config.cql_lagrange_lr)
         return agent.replace(lagrange=lagrange)
 
     def lagrange_value(self, params=None) -> jax.Array:

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from botorl.agents.common import (
-    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, adam, check_fields, is_rate,
+    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, check_fields, is_rate, train_state,
 )
 from botorl.networks import ValueNetwork, tanh_gaussian_log_prob
 
@@ -95,7 +95,7 @@ class IQLAgent(ActorCriticAgent, struct.PyTreeNode):
         config = IQLConfig() if config is None else config
         rng, actor, critic, k_value, obs = cls._init(config, obs_dim, action_dim, seed)
         v_def = value_def(config.value_hidden_dims, config.critic_layer_norm)
-        value = TrainState.create(apply_fn=v_def.apply, params=v_def.init(k_value, obs)["params"], tx=adam(config.value_lr))
+        value = train_state(v_def, k_value, config.value_lr, obs)
         return cls(actor=actor, critic=critic, target_critic_params=critic.params, value=value, rng=rng, config=config)
 
     # ------------------------------------------------------------------ pieces

@@ -26,8 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from botorl.agents.common import (
-    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, adam, check_fields, chunk_size, is_rate,
-    summed_value_and_grad,
+    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, check_fields, chunk_size, is_rate,
+    summed_value_and_grad, train_state,
 )
 from botorl.agents.temperature import INIT_TEMP_RULES, log_temp_params, stationary_temperature
 from botorl.errors import ConfigError
@@ -117,8 +117,7 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
         if config.target_entropy is None:
             config = dataclasses.replace(config, target_entropy=-float(action_dim))
         rng, actor, critic, k_temp, _ = cls._init(config, obs_dim, action_dim, seed)
-        t_def = temp_def(config.init_temp)
-        temp = TrainState.create(apply_fn=t_def.apply, params=t_def.init(k_temp)["params"], tx=adam(config.temp_lr))
+        temp = train_state(temp_def(config.init_temp), k_temp, config.temp_lr)
         return cls(actor=actor, critic=critic, target_critic_params=critic.params, temp=temp, rng=rng, config=config)
 
     @classmethod
