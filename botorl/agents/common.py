@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import optax
 from flax.training.train_state import TrainState
 
-from botorl.batch import BATCH_KEYS, Batch
+from botorl.batch import BATCH_KEYS, TRANSITION_KEYS, Batch
 from botorl.errors import ConfigError
 from botorl.networks import CriticEnsemble, TanhGaussianActor, sample_tanh_gaussian, subsample_ensemble
 
@@ -166,16 +166,14 @@ def checked_batch(batch) -> Batch:
             f"an agent update got a {type(batch).__name__}, not a batch dict; pass a dict with "
             f"the keys {', '.join(BATCH_KEYS)} (CONTRACTS.md, Batch)."
         )
-    missing = [k for k in BATCH_KEYS if k not in batch and k != "mc_returns"]
-    if missing:
+    if missing := [k for k in TRANSITION_KEYS if k not in batch]:
         raise ConfigError(
             f"the batch given to an agent update lacks {', '.join(missing)}; a Batch needs "
             f"{', '.join(BATCH_KEYS)} (mc_returns may be zeros). Build it with "
             f"Dataset.sample or ReplayBuffer.sample."
         )
     if "mc_returns" not in batch:
-        batch = dict(batch)
-        batch["mc_returns"] = jnp.zeros_like(batch["rewards"])
+        batch = {**batch, "mc_returns": jnp.zeros_like(batch["rewards"])}
     return batch
 
 
