@@ -150,14 +150,10 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
             temp = fresh.temp.replace(params=log_temp_params(tau0))
         else:
             temp = fresh.temp
-        rng = agent.rng if seed is None else jax.random.PRNGKey(seed)
-        rng = jax.random.fold_in(rng, 0x5AC)
+        rng = jax.random.fold_in(agent.rng if seed is None else jax.random.PRNGKey(seed), 0x5AC)
         return fresh.replace(
-            actor=_carry(fresh.actor, agent.actor),
-            critic=_carry(fresh.critic, agent.critic),
-            target_critic_params=getattr(agent, "target_critic_params", agent.critic.params),
-            temp=temp,
-            rng=rng,
+            actor=_carry(fresh.actor, agent.actor), critic=_carry(fresh.critic, agent.critic),
+            target_critic_params=getattr(agent, "target_critic_params", agent.critic.params), temp=temp, rng=rng,
         )
 
     # ------------------------------------------------------------------ pieces (traced)
@@ -291,9 +287,8 @@ def _carry(fresh: TrainState, pre: TrainState) -> TrainState:
 
 
 def _check_same_shapes(name, want, got, config) -> None:
-    ws = jax.tree_util.tree_map(lambda x: tuple(np.shape(x)), want)
-    gs = jax.tree_util.tree_map(lambda x: tuple(np.shape(x)), got)
-    if jax.tree_util.tree_structure(want) != jax.tree_util.tree_structure(got) or ws != gs:
+    if (jax.tree_util.tree_structure(want) != jax.tree_util.tree_structure(got)
+            or jax.tree_util.tree_map(np.shape, want) != jax.tree_util.tree_map(np.shape, got)):
         raise ConfigError(
             f"from_pretrained: the pre-trained {name} does not match the network that {type(config).__name__} "
             f"describes (hidden sizes, LayerNorm, state_dependent_std, ensemble size). Set those fields of the "
