@@ -127,15 +127,13 @@ class CQLAgent(SACAgent):
         bsz, m, adim = acts.shape
         if members is None:
             q_all = self.critic_values(params, jnp.repeat(obs, m, axis=0), acts.reshape(bsz * m, adim))
-            q_all = q_all.reshape(q_all.shape[0], bsz, m)  # (N, b, m)
-            q_data_all = q_all[:, :, 0]
         else:
             # every member on the data actions (Bellman error), the picked ones on all 3n + 1
             q_data_all = self.critic_values(params, obs, acts[:, 0])
             sub = jax.tree_util.tree_map(lambda p: p[members], params)
             sub_def = critic_def(cfg.critic_hidden_dims, members.shape[0], cfg.critic_layer_norm)
             q_all = sub_def.apply({"params": sub}, jnp.repeat(obs, m, axis=0), acts.reshape(bsz * m, adim))
-            q_all = q_all.reshape(q_all.shape[0], bsz, m)  # (K, b, m)
+        q_all = q_all.reshape(q_all.shape[0], bsz, m)  # (N or K, b, m)
         q_data = q_all[:, :, 0]
         q_unif = q_all[:, :, 1 : 1 + n]
         q_cur = q_all[:, :, 1 + n : 1 + 2 * n]
@@ -147,16 +145,14 @@ class CQLAgent(SACAgent):
             sums["calql_bound_rate"] = jnp.sum(jnp.concatenate([q_cur, q_next], -1) < bound).astype(q_all.dtype)
             q_cur = jnp.maximum(q_cur, bound)
             q_next = jnp.maximum(q_next, bound)
-        if cfg.cql_importance_sample:
-            log_unif_density = adim * math.log(0.5)
-            cat = jnp.concatenate(
-                [q_unif - log_unif_density, q_next - rows["next_logp"][None], q_cur - rows["cur_logp"][None]], axis=-1
-            )
+        if cfg.cql_importance_sample:  # minus the log-densities: 0.5^A of the uniform actions, pi's of its samples
+            cat = jnp.concatenate([q_unif - adim * math.log(0.5), q_next - rows["next_logp"][None],
+                                   q_cur - rows["cur_logp"][None]], axis=-1)
         else:
             cat = jnp.concatenate([q_unif, q_data[..., None], q_next, q_cur], axis=-1)
         ood = jax.scipy.special.logsumexp(cat / cfg.cql_temp, axis=-1) * cfg.cql_temp  # (N, b)
         diff_rows = jnp.clip(ood - q_data, cfg.cql_clip_diff_min, cfg.cql_clip_diff_max)
-        return diff_rows, q_data_all, sums
+        return diff_rows, q_data if members is None else q_data_all, sums
 
     def _sums_to_info(self, sums: dict, bsz: int, num: int) -> dict:
         """Means over the whole batch from the sums of its chunks."""
