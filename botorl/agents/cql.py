@@ -176,9 +176,7 @@ class CQLAgent(SACAgent):
         rows = self._rows(batch, key)
         diff_rows, q_data, sums = self._penalty_rows(params, rows, self.penalty_members(key))
         diff = diff_rows.mean(axis=-1)
-        info = self._sums_to_info(sums, q_data.shape[1], diff.shape[0])
-        info["cql_diff"] = diff.mean()
-        return diff, q_data, info
+        return diff, q_data, {**self._sums_to_info(sums, q_data.shape[1], diff.shape[0]), "cql_diff": diff.mean()}
 
     def _penalty_weight(self):
         """Per unit of ``diff``: alpha' (Lagrange, held fixed here; WSRL's scale) or cql_weight."""
@@ -193,25 +191,21 @@ class CQLAgent(SACAgent):
         diff_rows, q_data, sums = self._penalty_rows(params, rows, members)
         bellman_sum = jnp.sum((q_data - rows["target"][None]) ** 2, axis=-1)  # (N,)
         diff_sum = diff_rows.sum(axis=-1)  # (K,)
-        # mean over all members of the Bellman error + weight * mean over the K penalised
-        # members of diff: WSRL's scale (its CQL loss is the mean of the penalty over the
-        # subset), so a weight means the same whatever K and N are
+        # WSRL's scale: the mean over the K penalised members of diff (module docstring)
         loss = (jnp.mean(bellman_sum) + self._penalty_weight() * jnp.mean(diff_sum)) / bsz
         return loss, {**sums, "bellman_sum": bellman_sum, "diff_sum": diff_sum, "q_data": q_data.sum()}
 
     def _loss_info(self, loss_part, sums, bsz: int) -> tuple[jax.Array, dict]:
         cfg = self.config
-        num = sums["diff_sum"].shape[0]
-        num_all = sums["bellman_sum"].shape[0]
         diff = sums["diff_sum"] / bsz
         bellman = sums["bellman_sum"] / bsz
         weight = self._penalty_weight()
         offset = weight * cfg.cql_target_action_gap if cfg.cql_lagrange else 0.0
         loss = loss_part - offset
         penalty = weight * diff - offset
-        info = self._sums_to_info(sums, bsz, num)
+        info = self._sums_to_info(sums, bsz, diff.shape[0])
         info.update(critic_loss=loss, bellman_loss=bellman.mean(), cql_loss=penalty.mean(), cql_diff=diff.mean(),
-                    q_data=sums["q_data"] / (num_all * bsz), _diff=diff)
+                    q_data=sums["q_data"] / (bellman.shape[0] * bsz), _diff=diff)
         return loss, info
 
     def critic_loss(self, params, batch, target, key):
