@@ -76,12 +76,6 @@ def value_def(hidden_dims: tuple[int, ...], layer_norm: bool) -> ValueNetwork:
     return ValueNetwork(hidden_dims=hidden_dims, use_layer_norm=layer_norm)
 
 
-def expectile_loss(diff: jax.Array, expectile: float) -> jax.Array:
-    """Asymmetric squared loss of diff = Q - V (mean)."""
-    weight = jnp.where(diff < 0, 1.0 - expectile, expectile)
-    return jnp.mean(weight * diff**2)
-
-
 class IQLAgent(ActorCriticAgent, struct.PyTreeNode):
     actor: TrainState
     critic: TrainState  # Q ensemble, leading axis num_critics
@@ -105,7 +99,9 @@ class IQLAgent(ActorCriticAgent, struct.PyTreeNode):
 
     def value_loss(self, value_params, batch, q):
         v = self.value.apply_fn({"params": value_params}, batch["observations"])
-        loss = expectile_loss(jax.lax.stop_gradient(q) - v, self.config.expectile)
+        diff = jax.lax.stop_gradient(q) - v
+        weight = jnp.where(diff < 0, 1.0 - self.config.expectile, self.config.expectile)  # the expectile's asymmetry
+        loss = jnp.mean(weight * diff**2)
         return loss, {"value_loss": loss, "v": v.mean()}
 
     def actor_loss(self, actor_params, batch, key, q):
