@@ -55,9 +55,9 @@ def unstack(agents) -> list:
 
 def member_metrics(metrics) -> list[dict[str, float]]:
     """Stacked metrics {name: (N,)} -> one dict of floats per member (one host transfer)."""
-    host = jax.device_get(metrics)
+    host = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
     n = len(next(iter(host.values())))
-    return [{k: float(np.asarray(v)[i]) for k, v in host.items() if np.asarray(v)[i].size == 1} for i in range(n)]
+    return [{k: float(v[i]) for k, v in host.items() if v[i].size == 1} for i in range(n)]
 
 
 # ============================================================================ mapping over the members
@@ -105,12 +105,9 @@ def _across_cores(fn, axes, *args):
     d = host_shards(n)
     if d == 1:
         return _per_member(fn, axes, *args)
-    pad = (-n) % d
-
-    def padded(x):
-        return x if pad == 0 else jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)])
-
-    args = [jax.tree_util.tree_map(padded, a) if ax == 0 else a for a, ax in zip(args, axes)]
+    if pad := (-n) % d:
+        args = [jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[:1], pad, axis=0)]), a)
+                if ax == 0 else a for a, ax in zip(args, axes)]
     specs = tuple(PartitionSpec("members") if ax == 0 else PartitionSpec() for ax in axes)
     out = jax.shard_map(lambda *a: _member_loop(fn, axes, *a), mesh=_mesh(d), in_specs=specs,
                         out_specs=PartitionSpec("members"), check_vma=False)(*args)
@@ -186,10 +183,10 @@ jit_update_many = jax.jit(_update_many)
 jit_update_masked = jax.jit(_masked, static_argnames=("many",))
 jit_update_many_on_device = jax.jit(over_members(common.update_many_on_device_fn, (0, None, 0), across_cores=False),
                                     static_argnames=("num_updates", "batch_size"))
-jit_sample = jax.jit(over_members(common.sample_fn, (0, 0), across_cores=False))
+_sample = over_members(common.sample_fn, (0, 0), across_cores=False)
+jit_sample = jax.jit(_sample)
 jit_eval = jax.jit(over_members(common.eval_fn, (0, 0), across_cores=False))
 jit_q_mean = jax.jit(over_members(common.q_mean_fn, (0, None, None), across_cores=False))
-_sample = over_members(common.sample_fn, (0, 0), across_cores=False)
 
 
 def _act_after(learn):
