@@ -131,13 +131,11 @@ def member_sharding(n: int):
 
 
 def placed(*trees, every_leaf: bool = False):
-    """The member-axis inputs of an update where its outputs will be, so that every call
-    (the first, with fresh arrays, and the later ones) compiles to one program. Host arrays
-    (a batch) travel by one explicit ``device_put`` of the whole tree, never as a jitted call's
-    implicit per-argument transfers (what ``jax.transfer_guard("disallow")`` refuses).
-    ``every_leaf``: check each leaf, not only the first (agents put together from pieces that
-    lie in different places, as a warm start's: its fresh rng on one device, its networks
-    split over the members' devices, which every call would copy)."""
+    """The member-axis inputs of an update put where its outputs will be, so that every call
+    compiles to one program; host arrays (a batch) travel by one explicit ``device_put`` of the
+    whole tree, never as a jitted call's implicit per-argument transfers. ``every_leaf``: check
+    each leaf, not only the first (a warm start's agents: a fresh rng on one device, networks
+    split over the members' devices)."""
     sharding = member_sharding(population_size(trees[0]))
 
     def there(x) -> bool:
@@ -248,12 +246,10 @@ def update_many_on_device(agents, arrays: dict, keys, num_updates: int, batch_si
 
 
 def on_members(x, like, *, shared: bool = False):
-    """A host array where a population's jitted call reads it: split over the devices its
-    agents ``like`` are split over (``shared``: a copy on each), by one explicit transfer; on
-    one device, there. Given as a host array, a call would copy it to one device and then on to
-    the members' (two transfers per call, the second device to device; ``jax.transfer_guard``
-    refuses both)."""
-    x = x.astype(jnp.float32) if isinstance(x, jax.Array) else np.asarray(x, np.float32)
+    """A host array where a population's jitted call reads it: split over the devices its agents
+    ``like`` are split over (``shared``: a copy on each), by one explicit transfer; given the
+    host array, a call would copy it twice (to one device, then on to the members')."""
+    x = as_f32(x)
     sharding = getattr(jax.tree_util.tree_leaves(like)[0], "sharding", None)
     if not isinstance(sharding, NamedSharding):
         return jax.device_put(x)  # one device (uncommitted, as a jitted call's own copy would be)
