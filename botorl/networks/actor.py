@@ -60,12 +60,10 @@ def _log_det_tanh(u: jax.Array) -> jax.Array:
 def sample_tanh_gaussian(key: jax.Array, mean: jax.Array, log_std: jax.Array, num_samples: int | None = None):
     """Reparameterised sample ``a = tanh(mean + std * eps)`` and its log-prob; ``num_samples=n``
     adds an axis before the action axis: actions ``(..., n, A)``, log-probs ``(..., n)``."""
+    shape = mean.shape
     if num_samples is not None:
-        mean = jnp.expand_dims(mean, -2)
-        log_std = jnp.expand_dims(log_std, -2)
+        mean, log_std = jnp.expand_dims(mean, -2), jnp.expand_dims(log_std, -2)
         shape = mean.shape[:-2] + (num_samples, mean.shape[-1])
-    else:
-        shape = mean.shape
     return tanh_gaussian_from_noise(jax.random.normal(key, shape, mean.dtype), mean, log_std)
 
 
