@@ -205,13 +205,9 @@ ACTOR_CRITIC_CHECKS = (
 def actor_def(config, action_dim: int) -> TanhGaussianActor:
     """Actor module for a config (cached: equal configs give the same object -> one jit)."""
     return TanhGaussianActor(
-        hidden_dims=config.actor_hidden_dims,
-        action_dim=action_dim,
-        use_layer_norm=config.actor_layer_norm,
-        dropout_rate=getattr(config, "actor_dropout", None),
-        state_dependent_std=config.state_dependent_std,
-        log_std_min=config.log_std_min,
-        log_std_max=config.log_std_max,
+        hidden_dims=config.actor_hidden_dims, action_dim=action_dim, use_layer_norm=config.actor_layer_norm,
+        dropout_rate=getattr(config, "actor_dropout", None), state_dependent_std=config.state_dependent_std,
+        log_std_min=config.log_std_min, log_std_max=config.log_std_max,
     )
 
 

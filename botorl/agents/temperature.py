@@ -73,12 +73,8 @@ def stationary_temperature(agent, observations, init_temp: float = 1.0, min_temp
     ok = (k > 0) & np.isfinite(tau_sd)
     with np.errstate(invalid="ignore"):
         per_dim = np.where(ok.any(0), np.where(ok, tau_sd, 0.0).sum(0) / ok.sum(0), np.nan)
-    info = {
-        "used": float(ok.mean()),
-        "tau_per_dim": per_dim.tolist(),
-        "mean_sigma_eff": float(sigma.mean()),
-        "mean_curvature": float(k.mean()),
-    }
+    info = {"used": float(ok.mean()), "tau_per_dim": per_dim.tolist(), "mean_sigma_eff": float(sigma.mean()),
+            "mean_curvature": float(k.mean())}
     if not ok.any():
         return float(init_temp), {
             **info, "rule": "fallback", "tau_raw": None, "clipped": False,

@@ -36,12 +36,8 @@ class TanhGaussianActor(nn.Module):
 
     @nn.compact
     def __call__(self, observations: jax.Array, training: bool = False):
-        x = MLP(
-            self.hidden_dims,
-            activate_final=True,
-            use_layer_norm=self.use_layer_norm,
-            dropout_rate=self.dropout_rate,
-        )(observations, training=training)
+        x = MLP(self.hidden_dims, activate_final=True, use_layer_norm=self.use_layer_norm,
+                dropout_rate=self.dropout_rate)(observations, training=training)
         mean = nn.Dense(self.action_dim, kernel_init=default_init(), name="mean")(x)
         if self.state_dependent_std:
             log_std = nn.Dense(self.action_dim, kernel_init=default_init(), name="log_std")(x)
