@@ -118,8 +118,7 @@ def sample_fn(view, observations):
     """(actions, next rng) of an ``acting_view``. Every agent's actor is a tanh-Gaussian behind
     ``policy`` (SAC, CQL, IQL alike)."""
     rng, key = jax.random.split(view.rng)
-    mean, log_std = view.policy(observations)
-    actions, _ = sample_tanh_gaussian(key, mean, log_std)
+    actions, _ = sample_tanh_gaussian(key, *view.policy(observations))
     return actions, rng
 
 

@@ -102,10 +102,8 @@ class CQLAgent(SACAgent):
         bsz, adim = data_a.shape
         k_unif, k_cur, k_next = jax.random.split(key, 3)
         unif = jax.random.uniform(k_unif, (bsz, n, adim), minval=-1.0, maxval=1.0)
-        mean, log_std = self.policy(obs)
-        cur_a, cur_logp = sample_tanh_gaussian(k_cur, mean, log_std, n)  # (B, n, A), (B, n)
-        mean_n, log_std_n = self.policy(next_obs)
-        next_a, next_logp = sample_tanh_gaussian(k_next, mean_n, log_std_n, n)
+        cur_a, cur_logp = sample_tanh_gaussian(k_cur, *self.policy(obs), n)  # (B, n, A), (B, n)
+        next_a, next_logp = sample_tanh_gaussian(k_next, *self.policy(next_obs), n)
         acts = jnp.concatenate([data_a[:, None], unif, cur_a, next_a], axis=1)
         return jax.lax.stop_gradient({"cql_actions": acts, "cur_logp": cur_logp, "next_logp": next_logp})
 
