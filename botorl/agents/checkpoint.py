@@ -82,10 +82,9 @@ def load(path: str | os.PathLike, like):
             f"checkpoint {path} holds a {payload['agent_class']}, but the template is a {type(like).__name__}; "
             f"build the template with the same agent class and config as the saved run."
         )
-    template = serialization.to_state_dict(like)
     state = payload["state"]
     # Shapes only: a fresh template holds Python ints (step 0) where a trained agent has int32.
-    want = jax.tree_util.tree_map(np.shape, template)
+    want = jax.tree_util.tree_map(np.shape, serialization.to_state_dict(like))
     try:
         got = jax.tree_util.tree_map(np.shape, state)
         same = jax.tree_util.tree_structure(want) == jax.tree_util.tree_structure(got) and want == got
@@ -96,6 +95,5 @@ def load(path: str | os.PathLike, like):
             f"checkpoint {path} does not match the template agent (network sizes, ensemble size or optimiser "
             f"differ). Saved config: {payload['config']}. Build the template from that config."
         )
-    restored = serialization.from_state_dict(like, state)
     # Device arrays with the saved dtypes, like the agent that was saved.
-    return jax.tree_util.tree_map(jax.numpy.asarray, restored)
+    return jax.tree_util.tree_map(jax.numpy.asarray, serialization.from_state_dict(like, state))

@@ -115,8 +115,7 @@ def acting_view(agent):
 
 
 def sample_fn(view, observations):
-    """(actions, next rng) of an ``acting_view``. Every agent's actor is a tanh-Gaussian behind
-    ``policy`` (SAC, CQL, IQL alike)."""
+    """(actions, next rng) of an ``acting_view``: a draw from its tanh-Gaussian ``policy``."""
     rng, key = jax.random.split(view.rng)
     actions, _ = sample_tanh_gaussian(key, *view.policy(observations))
     return actions, rng
