@@ -235,13 +235,11 @@ class CQLAgent(SACAgent):
         return -jnp.mean(value * (jax.lax.stop_gradient(diff) - cfg.cql_target_action_gap))
 
     def critic_step(self, batch, key):
-        k_target, k_loss = jax.random.split(key)
-        target, t_info = self.target_values(batch, k_target)
-        grads, info = self.critic_grads(self.critic.params, batch, target, k_loss)
+        """SAC's critic step with the CQL loss, then the Lagrange multiplier's step."""
+        agent, info = super().critic_step(batch, key)
         diff = info.pop("_diff")
-        agent = self.critic_stepped(grads, self.config.tau)
         if self.config.cql_lagrange:
             l_loss, l_grads = jax.value_and_grad(self.lagrange_loss)(self.lagrange.params, diff)
             agent = agent.replace(lagrange=self.lagrange.apply_gradients(grads=l_grads))
             info.update(lagrange_loss=l_loss, cql_alpha_prime=self.lagrange_value())
-        return agent, {**info, **t_info}
+        return agent, info

@@ -195,10 +195,13 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
         loss = jnp.mean((q - target[None]) ** 2)
         return loss, {"critic_loss": loss, "q_data": q.mean()}
 
+    def critic_grads(self, params, batch, target, key) -> tuple[dict, dict]:
+        return jax.grad(self.critic_loss, has_aux=True)(params, batch, target, key)
+
     def critic_step(self, batch, key):
         k_target, k_loss = jax.random.split(key)
         target, t_info = self.target_values(batch, k_target)
-        grads, info = jax.grad(self.critic_loss, has_aux=True)(self.critic.params, batch, target, k_loss)
+        grads, info = self.critic_grads(self.critic.params, batch, target, k_loss)
         return self.critic_stepped(grads, self.config.tau), {**info, **t_info}
 
     def _actor_rows(self, batch, key) -> dict:
