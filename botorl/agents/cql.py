@@ -110,8 +110,7 @@ class CQLAgent(SACAgent):
     def penalty_members(self, key) -> jax.Array | None:
         """Indices of the members the penalty applies to in this step (None: all); drawn from a
         key of their own, so the penalty's action samples do not depend on them."""
-        k = self.config.cql_penalty_critics
-        if k is None:
+        if (k := self.config.cql_penalty_critics) is None:
             return None
         return jax.random.randint(jax.random.fold_in(key, 0x9E), (k,), 0, self.config.num_critics)
 
@@ -178,10 +177,7 @@ class CQLAgent(SACAgent):
 
     def _penalty_weight(self):
         """Per unit of ``diff``: alpha' (Lagrange, held fixed here; WSRL's scale) or cql_weight."""
-        cfg = self.config
-        if cfg.cql_lagrange:
-            return jax.lax.stop_gradient(self.lagrange_value())
-        return cfg.cql_weight
+        return jax.lax.stop_gradient(self.lagrange_value()) if self.config.cql_lagrange else self.config.cql_weight
 
     def _loss_sum(self, params, rows, bsz: int, members=None):
         """These states' share of the critic loss (their terms over the whole batch size,
@@ -230,9 +226,8 @@ class CQLAgent(SACAgent):
         return grads, info
 
     def lagrange_loss(self, lagrange_params, diff):
-        cfg = self.config
         value = self.lagrange_value(lagrange_params)
-        return -jnp.mean(value * (jax.lax.stop_gradient(diff) - cfg.cql_target_action_gap))
+        return -jnp.mean(value * (jax.lax.stop_gradient(diff) - self.config.cql_target_action_gap))
 
     def critic_step(self, batch, key):
         """SAC's critic step with the CQL loss, then the Lagrange multiplier's step."""
