@@ -239,8 +239,7 @@ class ActorCriticAgent:
         config.validate()
         if obs_dim < 1 or action_dim < 1:
             raise ConfigError(f"{cls.__name__}.create needs obs_dim >= 1 and action_dim >= 1, got {obs_dim}, {action_dim}.")
-        rng = jax.random.PRNGKey(seed)
-        rng, k_actor, k_critic, k_third = jax.random.split(rng, 4)
+        rng, k_actor, k_critic, k_third = jax.random.split(jax.random.PRNGKey(seed), 4)
         obs = jnp.zeros((1, obs_dim), jnp.float32)
         act = jnp.zeros((1, action_dim), jnp.float32)
         actor = train_state(actor_def(config, action_dim), k_actor, config.actor_lr, obs)

@@ -86,13 +86,11 @@ def host_shards(n: int) -> int:
 def _member_loop(fn, axes, *args):
     """``fn`` on each member in turn (``lax.map``): every member runs the single run's own
     unbatched program (up to how XLA fuses it inside the loop)."""
-    mapped = tuple(a for a, ax in zip(args, axes) if ax == 0)
-
     def one(ms):
         it = iter(ms)
         return fn(*[next(it) if ax == 0 else a for a, ax in zip(args, axes)])
 
-    return jax.lax.map(one, mapped)
+    return jax.lax.map(one, tuple(a for a, ax in zip(args, axes) if ax == 0))
 
 
 def _across_cores(fn, axes, *args):
