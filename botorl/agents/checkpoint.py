@@ -29,8 +29,6 @@ AGENT_LIMIT = 1 << 36  # bytes of one agent file: a population of large agents, 
 
 
 def save(path: str | os.PathLike, agent) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     state = jax.tree_util.tree_map(np.asarray, serialization.to_state_dict(agent))
     state_bytes = serialization.msgpack_serialize(state)
     payload = {
@@ -40,8 +38,7 @@ def save(path: str | os.PathLike, agent) -> Path:
         "state_msgpack": state_bytes,
         "sha256": hashlib.sha256(state_bytes).hexdigest(),
     }
-    atomic_write_bytes(path, serialization.msgpack_serialize(payload))
-    return path
+    return atomic_write_bytes(path, serialization.msgpack_serialize(payload))  # makes the parent folders too
 
 
 def _read(path: Path) -> dict:
