@@ -122,8 +122,7 @@ def sample_fn(view, observations):
 
 
 def eval_fn(view, observations):
-    mean, _ = view.policy(observations)
-    return jnp.tanh(mean)  # the deterministic evaluation action of WSRL/Cal-QL
+    return jnp.tanh(view.policy(observations)[0])  # the deterministic evaluation action of WSRL/Cal-QL
 
 
 def q_mean_fn(agent, observations, actions):

@@ -213,8 +213,7 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
     def _actor_loss_sum(self, actor_params, rows, bsz: int):
         """These rows' share of the actor loss (over the whole batch size) and -sum log pi."""
         obs = rows["observations"]
-        mean, log_std = self.policy(obs, actor_params)
-        actions, log_prob = tanh_gaussian_from_noise(rows["eps"], mean, log_std)
+        actions, log_prob = tanh_gaussian_from_noise(rows["eps"], *self.policy(obs, actor_params))
         q = self.critic_values(self.critic.params, obs, actions)
         q = q.min(axis=0) if self.config.actor_objective == "min" else q.mean(axis=0)
         return jnp.sum(self.temperature() * log_prob - q) / bsz, -jnp.sum(log_prob)
