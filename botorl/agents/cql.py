@@ -142,7 +142,7 @@ class CQLAgent(SACAgent):
             sums["calql_bound_rate"] = jnp.sum(jnp.concatenate([q_cur, q_next], -1) < bound).astype(q_all.dtype)
             q_cur = jnp.maximum(q_cur, bound)
             q_next = jnp.maximum(q_next, bound)
-        if cfg.cql_importance_sample:  # minus the log-densities: 0.5^A of the uniform actions, pi's of its samples
+        if cfg.cql_importance_sample:  # minus the log-densities: 0.5^A of the uniform actions, pi of the policy samples
             cat = jnp.concatenate([q_unif - adim * math.log(0.5), q_next - rows["next_logp"][None],
                                    q_cur - rows["cur_logp"][None]], axis=-1)
         else:
