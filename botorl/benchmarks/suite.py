@@ -95,10 +95,7 @@ def _log(msg: str) -> None:
 
 def _options(cfg: BenchConfig) -> tuple[int, float, list[wl.Workload]]:
     """(rounds, seconds per timing, the workloads) of ``cfg``; BotorlError for a bad one."""
-    if cfg.quick:
-        repeats, min_time = min(cfg.repeats, 2), min(cfg.min_time, 0.5)
-    else:
-        repeats, min_time = cfg.repeats, cfg.min_time
+    repeats, min_time = (min(cfg.repeats, 2), min(cfg.min_time, 0.5)) if cfg.quick else (cfg.repeats, cfg.min_time)
     if repeats < 1 or min_time <= 0:
         raise BotorlError(f"bench: --repeats ({cfg.repeats}) and --min-time ({cfg.min_time}) must be positive.")
     names = cfg.only.split(",") if cfg.only else list(wl.QUICK if cfg.quick else wl.WORKLOADS)
@@ -115,18 +112,16 @@ def _prepare(w: wl.Workload) -> tuple[dict[str, Any], wl.Bound]:
               "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim,
               "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples,
               "updates_per_call": w.scan_k}
-    row = {"label": w.label, "note": w.note, "shapes": shapes,
-           "botorl_updates_per_s": None, "d3rlpy_updates_per_s": None,
-           "ratio": None, "gflops": None, "peak_fraction": None,
-           "flops_per_update": None, "flops_per_update_xla": None,
-           "botorl_samples": [], "d3rlpy_samples": [],
-           "botorl_cpu_samples": [], "d3rlpy_cpu_samples": []}
     b = wl.build(w)
     k = b.updates_per_call
     count = flopmod.jaxpr_flops(b.flop_fn, *b.flop_args)
-    row["flops_per_update"] = count.flops / k
-    row["matmul_flops_per_update"] = count.matmul_flops / k
-    row["updates_per_call"] = k
+    row = {"label": w.label, "note": w.note, "shapes": shapes,
+           "botorl_updates_per_s": None, "d3rlpy_updates_per_s": None,
+           "ratio": None, "gflops": None, "peak_fraction": None,
+           "flops_per_update": count.flops / k, "flops_per_update_xla": None,
+           "botorl_samples": [], "d3rlpy_samples": [],
+           "botorl_cpu_samples": [], "d3rlpy_cpu_samples": [],
+           "matmul_flops_per_update": count.matmul_flops / k, "updates_per_call": k}
     try:
         row["flops_per_update_xla"] = flopmod.xla_flops(jax.jit(b.flop_fn), *b.flop_args) / k
     except Exception as err:  # the cross-check must not sink the run
@@ -232,10 +227,7 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
 def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, Any]:
     """The online loop and the same update alone, interleaved round by round."""
     spec = get_task("antmaze-large-diverse-v2")
-    env = spec.make_env(0)
-    obs_dim = int(env.observation_space.shape[0])
-    action_dim = int(env.action_space.shape[0])
-    env.close()
+    obs_dim, action_dim = spec.obs_dim, spec.action_dim
     cfg = SACConfig(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden,
                     num_critics=w.num_critics, utd_ratio=w.utd)
     agent = SACAgent.create(cfg, obs_dim, action_dim, 0)
@@ -245,14 +237,12 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
     alone = wl.build(replace(w, obs_dim=obs_dim, action_dim=action_dim))
     n_loop = _calibrate(loop.run, min_time)
     n_alone = _calibrate(alone.step, min_time)
-    loop_rates, alone_rates, ratios = [], [], []
+    loop_rates, alone_rates = [], []
     for _ in range(repeats):
-        lr, _ = _time_block(loop.run, n_loop)
-        ar, _ = _time_block(alone.step, n_alone)
-        loop_rates.append(lr)
-        alone_rates.append(ar)
-        ratios.append(lr / ar)
+        loop_rates.append(_time_block(loop.run, n_loop)[0])
+        alone_rates.append(_time_block(alone.step, n_alone)[0])
     loop.close()
+    ratios = [lr / ar for lr, ar in zip(loop_rates, alone_rates)]
     return {"env": spec.name, "obs_dim": obs_dim, "action_dim": action_dim,
             "env_steps_per_s": _median(loop_rates), "samples": loop_rates,
             "update_alone_per_s": _median(alone_rates), "update_alone_samples": alone_rates,
@@ -264,14 +254,13 @@ def _fmt(x: Any, spec: str) -> str:
 
 
 def format_table(result: dict[str, Any]) -> str:
-    lines = []
     m = result["machine"]
-    lines.append(f"botorl bench  (jax {m['jax']} {m['jax_backend']}, {m['cpu_count']} cores, "
-                 f"load {m['load_start']} -> {m['load_end']}"
-                 + (f"; d3rlpy {m['d3rlpy_worker'].get('d3rlpy')} torch {m['d3rlpy_worker'].get('torch')}"
-                    f" x{m['d3rlpy_worker'].get('torch_threads')} threads" if "d3rlpy_worker" in m else "") + ")")
-    lines.append(f"fp32 matmul peak (1024^2, jitted, best of {len(result['matmul_peak_samples'])}): "
-                 f"{result['matmul_peak_gflops']:.0f} GFLOP/s")
+    lines = [f"botorl bench  (jax {m['jax']} {m['jax_backend']}, {m['cpu_count']} cores, "
+             f"load {m['load_start']} -> {m['load_end']}"
+             + (f"; d3rlpy {m['d3rlpy_worker'].get('d3rlpy')} torch {m['d3rlpy_worker'].get('torch')}"
+                f" x{m['d3rlpy_worker'].get('torch_threads')} threads" if "d3rlpy_worker" in m else "") + ")",
+             f"fp32 matmul peak (1024^2, jitted, best of {len(result['matmul_peak_samples'])}): "
+             f"{result['matmul_peak_gflops']:.0f} GFLOP/s"]
     head = (f"{'update':34s} {'botorl/s':>9s} {'d3rlpy/s':>9s} {'ratio':>6s} {'ratio_cpu':>9s} "
             f"{'MFLOP/upd':>10s} {'GFLOP/s':>8s} {'%peak':>6s}")
     lines += [head, "-" * len(head)]
