@@ -103,8 +103,7 @@ def _run(cmd: list[str], log: Path, stats: Path | None = None) -> tuple[int, flo
         proc = subprocess.Popen([sys.executable, "-m", "botorl.benchmarks.measured_cli", str(stats), *cmd],
                                 stdout=out, stderr=subprocess.STDOUT)
         _, status, usage = os.wait4(proc.pid, 0)
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    return proc.returncode, time.perf_counter() - t0, usage.ru_maxrss / 1024  # Linux: KiB
+    return os.waitstatus_to_exitcode(status), time.perf_counter() - t0, usage.ru_maxrss / 1024  # Linux: KiB
 
 
 def device_memory() -> dict[str, float | None]:
@@ -125,8 +124,7 @@ def time_evaluation(out: Path, members: int, episodes: int) -> dict:
     setup_jax()
     dirs = [out] if members == 1 else _member_dirs(out)
     cfgs = [read_run(d)[1] for d in dirs]
-    cfg = cfgs[0]
-    cfg = replace(cfg, eval=replace(cfg.eval, episodes=episodes))
+    cfg = replace(cfgs[0], eval=replace(cfgs[0].eval, episodes=episodes))
     spec = get_task(cfg.task)
     agents = population.stack([load_agent(d) for d in dirs])
     envs = [make_eval_envs(spec, cfg.eval) for _ in dirs]
@@ -160,18 +158,12 @@ def _member_dirs(out: Path) -> list[Path]:
     return [d for d in sorted(out.iterdir()) if (d / "summary.json").exists()]
 
 
-def _rows(path: Path) -> list[dict]:
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
-
-
 def _steady(rows: list[dict], step_key: str, rate_key: str | None, seconds_key: str | None = None,
             start: int = 0) -> tuple[float, float]:
     """(steady-state rate, compile seconds) from a stage's metrics rows: the rows after the
     first give the rate; the first row's excess time over that rate is the compilation. The
     first row covers its steps since the stage's ``start`` (fine-tuning's rows are on the online
-    axis, which starts after the warm-up: counted from 0, the warm-up's steps were taken for
-    fine-tuning's compile time)."""
+    axis, which starts after the warm-up's steps)."""
     if len(rows) < 2:
         raise RuntimeError("a stage logged fewer than 2 rows: raise its window")
     steps = [float(r[step_key]) - start for r in rows]
@@ -191,9 +183,8 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
     cfg = resolve(make_preset(task, "full", "boto"))
     out = work / f"{task}-n{members}"
     shutil.rmtree(out, ignore_errors=True)
-    data_args = ["--data.steps", str(data_steps)]
-    if PAPER_TASKS.get(task) == "synthetic":
-        data_args = _synthetic_data(spec, work, data_steps)[0]
+    data_args = (_synthetic_data(spec, work, data_steps)[0] if PAPER_TASKS.get(task) == "synthetic"
+                 else ["--data.steps", str(data_steps)])
     p, w, b, f = (windows[k] for k in ("pretrain", "warmup", "boto", "finetune"))
     seeds = ["--seeds", f"0-{members - 1}"] if members > 1 else ["--seed", "0"]
     cmd = ["run", "--task", task, "--method", "boto", "--profile", "full", *seeds, "--out", str(out),
@@ -217,7 +208,8 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
     for stage, rate_key, seconds_key, unit, start in (("pretrain", "steps_per_s", None, "updates/s", 0),
                                                       ("boto", None, "seconds", "updates/s", 0),
                                                       ("finetune", "env_steps_per_s", None, "env steps/s (UTD 4)", w)):
-        rate, comp = _steady(_rows(member / "metrics" / f"{stage}.csv"), "step", rate_key, seconds_key, start)
+        with open(member / "metrics" / f"{stage}.csv", newline="") as fh:
+            rate, comp = _steady(list(csv.DictReader(fh)), "step", rate_key, seconds_key, start)
         stages[stage] = {"rate": rate, "unit": unit, "compile_s": comp}
     # evaluation: every member's last checkpoint, all members' envs in one lockstep (as the run)
     elog = work / f"{task}-n{members}-eval.log"
