@@ -42,8 +42,7 @@ class FlopCount:
 
 
 def _size(aval: Any) -> int:
-    shape = getattr(aval, "shape", ())
-    return int(math.prod(shape)) if shape is not None else 1
+    return math.prod(getattr(aval, "shape", None) or ())
 
 
 def _dot_flops(eqn: Any) -> float:
@@ -96,8 +95,7 @@ def _count_jaxpr(jaxpr: Any) -> FlopCount:
 
 def jaxpr_flops(fn: Callable, *args: Any, **kwargs: Any) -> FlopCount:
     """FLOPs of one call of ``fn(*args)`` counted on its traced program (see module doc)."""
-    closed = jax.make_jaxpr(fn)(*args, **kwargs)
-    return _count_jaxpr(closed.jaxpr)
+    return _count_jaxpr(jax.make_jaxpr(fn)(*args, **kwargs).jaxpr)
 
 
 def xla_flops(fn: Callable, *args: Any, **kwargs: Any) -> float:
