@@ -94,16 +94,20 @@ def _synthetic_data(spec, work: Path, rows: int) -> tuple[list[str], list[str]]:
     raise ValueError(f"{spec.name}: no synthetic writer for data of kind {kind!r}")
 
 
-def _run(cmd: list[str], log: Path, stats: Path | None = None) -> tuple[int, float, float]:
-    """(exit code, wall seconds, peak resident MB) of one botorl process (``cmd``: its command
-    line, or ``["--time-eval", ...]``); its peak device memory into ``stats`` (JSON)."""
+def _run(cmd: list[str], log: Path, what: str) -> tuple[float, float, dict]:
+    """(wall seconds, peak resident MB, its stats JSON: peak device memory and a timed evaluation's
+    figures) of one botorl process (``cmd``: its command line, or ``["--time-eval", ...]``);
+    RuntimeError, naming ``what``, if it fails."""
     t0 = time.perf_counter()
-    stats = stats or log.with_suffix(".stats.json")
+    stats = log.with_suffix(".stats.json")
     with open(log, "w") as out:
         proc = subprocess.Popen([sys.executable, "-m", "botorl.benchmarks.measured_cli", str(stats), *cmd],
                                 stdout=out, stderr=subprocess.STDOUT)
         _, status, usage = os.wait4(proc.pid, 0)
-    return os.waitstatus_to_exitcode(status), time.perf_counter() - t0, usage.ru_maxrss / 1024  # Linux: KiB
+    wall = time.perf_counter() - t0
+    if code := os.waitstatus_to_exitcode(status):
+        raise RuntimeError(f"{what} exited {code}; see {log}")
+    return wall, usage.ru_maxrss / 1024, json.loads(stats.read_text())  # Linux: KiB
 
 
 def device_memory() -> dict[str, float | None]:
@@ -196,11 +200,7 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
            "--eval.episodes", "1", "--eval.interval", str(10 * (w + f)),
            "--checkpoint-every", str(10 * (w + f + p + b)),
            *(["--precision", windows["precision"]] if windows.get("precision") else [])]
-    log = work / f"{task}-n{members}.log"
-    code, wall, rss = _run(cmd, log)
-    if code != 0:
-        raise RuntimeError(f"{task}: `botorl run` exited {code}; see {log}")
-    run_stats = json.loads(log.with_suffix(".stats.json").read_text())
+    wall, rss, run_stats = _run(cmd, work / f"{task}-n{members}.log", f"{task}: `botorl run`")
     member = out if members == 1 else _member_dirs(out)[0]
     summary = json.loads((member / "summary.json").read_text())
     run_cfg = json.loads((member / "config.json").read_text())
@@ -212,11 +212,8 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
             rate, comp = _steady(list(csv.DictReader(fh)), "step", rate_key, seconds_key, start)
         stages[stage] = {"rate": rate, "unit": unit, "compile_s": comp}
     # evaluation: every member's last checkpoint, all members' envs in one lockstep (as the run)
-    elog = work / f"{task}-n{members}-eval.log"
-    ecode, _, ers = _run(["--time-eval", str(out), str(members), str(windows["eval_episodes"])], elog)
-    if ecode != 0:
-        raise RuntimeError(f"{task}: the timed evaluation exited {ecode}; see {elog}")
-    ev = json.loads(elog.with_suffix(".stats.json").read_text())
+    _, ers, ev = _run(["--time-eval", str(out), str(members), str(windows["eval_episodes"])],
+                      work / f"{task}-n{members}-eval.log", f"{task}: the timed evaluation")
     eval_rate = ev["env_steps"] / max(ev["seconds"], 1e-9)
     stages["eval"] = {"rate": eval_rate, "compile_s": ev["compile_s"], "policy_calls": ev["policy_calls"],
                       "unit": f"env steps/s of all members ({members} x {ev['envs_per_member']} envs in lockstep, "
