@@ -167,8 +167,7 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
         rows[w.name], bound[w.name] = _prepare(w)
         calls[w.name] = _calibrate(bound[w.name].step, min_time)
         if worker is not None and w.d3rlpy_algo is not None:
-            err = worker.setup(w)
-            if err:
+            if err := worker.setup(w):
                 rows[w.name]["d3rlpy_error"] = err
 
     peaks: list[float] = []
