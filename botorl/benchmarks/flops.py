@@ -55,18 +55,6 @@ def _dot_flops(eqn: Any) -> float:
     return 2.0 * batch * m * n * contract
 
 
-def _sub_jaxprs(eqn: Any) -> list[Any]:
-    """Closed or open jaxprs inside an equation's params (pjit, custom_jvp, remat, ...)."""
-    found = []
-    for value in eqn.params.values():
-        for item in value if isinstance(value, (tuple, list)) else (value,):
-            if hasattr(item, "eqns"):
-                found.append(item)
-            elif hasattr(item, "jaxpr") and hasattr(item.jaxpr, "eqns"):
-                found.append(item.jaxpr)
-    return found
-
-
 def _count_jaxpr(jaxpr: Any) -> FlopCount:
     total = FlopCount()
     for eqn in jaxpr.eqns:
@@ -88,8 +76,11 @@ def _count_jaxpr(jaxpr: Any) -> FlopCount:
         elif name in _REDUCE:
             total += FlopCount(float(_size(eqn.invars[0].aval)))
         else:  # a call (pjit, custom_jvp, remat, ...) counts its body; any other primitive is free
-            for sub in _sub_jaxprs(eqn):
-                total += _count_jaxpr(sub)
+            for value in eqn.params.values():
+                for item in value if isinstance(value, (tuple, list)) else (value,):
+                    sub = item if hasattr(item, "eqns") else getattr(item, "jaxpr", None)  # open or closed jaxpr
+                    if hasattr(sub, "eqns"):
+                        total += _count_jaxpr(sub)
     return total
 
 
