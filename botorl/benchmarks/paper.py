@@ -327,8 +327,7 @@ def main(argv: list[str]) -> int:
             print(f"botorl bench --paper: {t}, {n} member(s) ...", flush=True)
             results.append(measure(t, n, work, windows, args.data_steps))
             print(table(results[-1:]).splitlines()[-1], flush=True)
-    print()
-    print(table(results))
+    print("\n" + table(results))
     doc = {"machine": machine(), "precision": sorted({r["precision"] for r in results if r.get("precision")}),
            "windows": windows, "how": __doc__.split("\n\n", 1)[1], "results": results}
     m = doc["machine"]

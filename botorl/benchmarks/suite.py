@@ -196,11 +196,9 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
 
     peak = max(peaks)
     for w in chosen:  # rows that share another row's d3rlpy update (same round, same figures)
-        same = rows.get(w.d3rlpy_same_as or "")
-        if same is not None:
-            rows[w.name]["d3rlpy_samples"] = list(same["d3rlpy_samples"])
-            rows[w.name]["d3rlpy_cpu_samples"] = list(same["d3rlpy_cpu_samples"])
-            rows[w.name]["d3rlpy_same_as"] = w.d3rlpy_same_as
+        if (same := rows.get(w.d3rlpy_same_as or "")) is not None:
+            rows[w.name].update(d3rlpy_samples=list(same["d3rlpy_samples"]),
+                                d3rlpy_cpu_samples=list(same["d3rlpy_cpu_samples"]), d3rlpy_same_as=w.d3rlpy_same_as)
     for row in rows.values():
         _summarize(row, peak)
 

@@ -74,11 +74,9 @@ SMALL_SAC = dict(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), actor_lay
 def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):
     """``state, loss = step(state, k)`` on chunks of at most ``chunk`` of ``steps`` steps, with a progress bar."""
     bar = tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True, disable=not progress)
-    done = 0
-    while done < steps:
+    for done in range(0, steps, chunk):
         k = min(chunk, steps - done)
         state, loss = step(state, k)
-        done += k
         bar.update(k)
         if progress and loss is not None:
             bar.set_postfix(loss=f"{float(loss):.3g}")
@@ -94,8 +92,7 @@ def train_boto_bandit(dataset, alphas, boto_config, *, steps: int, batch_size: i
     tx = optax.adam(optax.cosine_decay_schedule(lr, steps))
     agent = agent.replace(critic=TrainState.create(apply_fn=agent.critic.apply_fn, params=agent.critic.params, tx=tx))
     settings = ObjectiveSettings.resolve(boto_config, agent)
-    n = len(alphas)
-    agents = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)), agent)
+    agents = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (len(alphas),) + jnp.shape(x)), agent)
     alpha_arr = jnp.asarray(alphas, jnp.float32)
 
     @jax.jit
