@@ -107,11 +107,7 @@ def train_boto_bandit(dataset, alphas, boto_config, *, steps: int, batch_size: i
         return ags, info["critic_loss"].mean()
 
     agents = _in_chunks(agents, step, steps, 500, desc, progress)
-
-    def q_fn(actions):
-        return np.asarray(q_mean(agents, np.zeros((len(actions), dataset.obs_dim), np.float32), actions))
-
-    return q_fn
+    return lambda actions: np.asarray(q_mean(agents, np.zeros((len(actions), dataset.obs_dim), np.float32), actions))
 
 
 # ----------------------------------------------------------------------------- Figure 3

@@ -201,12 +201,6 @@ def _make_train_step(batch_size: int, updates: int):
     return insert, train
 
 
-def _host_actor(agent) -> dict:
-    import jax  # lazy: the spawned simulation workers import this module; they need no JAX
-
-    return actor_arrays(jax.device_get(agent.actor.params), agent.config.log_std_min, agent.config.log_std_max)
-
-
 def export_actor(params: dict, path: str | os.PathLike, meta: dict | None = None) -> Path:
     out = io.BytesIO()
     np.savez_compressed(out, **params, meta_json=np.asarray(json.dumps(meta or {})))
@@ -223,6 +217,9 @@ def train(cfg: AntTrainConfig) -> dict:
     import jax
 
     from botorl.agents import checkpoint, sac
+
+    def host_actor(agent) -> dict:
+        return actor_arrays(jax.device_get(agent.actor.params), agent.config.log_std_min, agent.config.log_std_max)
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -251,7 +248,7 @@ def train(cfg: AntTrainConfig) -> dict:
     last_ckpt = last_eval = time.time()
     returns: list[float] = []
     metrics = {}
-    params = _host_actor(agent)
+    params = host_actor(agent)
     bar = tqdm(total=cfg.total_env_steps, initial=state["env_steps"], unit="step", desc="train-ant", mininterval=5.0,
                disable=not cfg.progress)
 
@@ -284,7 +281,7 @@ def train(cfg: AntTrainConfig) -> dict:
         if pending is not None:
             agent, metrics = pending[0], {k: float(v) for k, v in pending[1].items()}
             state["updates"] += cfg.updates_per_iter
-            params, pending = _host_actor(agent), None
+            params, pending = host_actor(agent), None
 
     pending = None
     try:
