@@ -99,8 +99,7 @@ def _options(cfg: BenchConfig) -> tuple[int, float, list[wl.Workload]]:
     if repeats < 1 or min_time <= 0:
         raise BotorlError(f"bench: --repeats ({cfg.repeats}) and --min-time ({cfg.min_time}) must be positive.")
     names = cfg.only.split(",") if cfg.only else list(wl.QUICK if cfg.quick else wl.WORKLOADS)
-    unknown = [n for n in names if n not in wl.WORKLOADS]
-    if unknown:
+    if unknown := [n for n in names if n not in wl.WORKLOADS]:
         raise BotorlError(f"bench: unknown workload(s) {', '.join(unknown)} in --only; "
                           f"choose from {', '.join(wl.WORKLOADS)}.")
     return repeats, min_time, [wl.WORKLOADS[n].tiny() if cfg.tiny else wl.WORKLOADS[n] for n in names]
@@ -187,10 +186,8 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
                     row["d3rlpy_error"] = str(err)
         _log(f"bench: round {r + 1}/{repeats} done")
 
-    loop = None
-    if cfg.loop and "online_utd4" in rows:
-        loop = _loop_benchmark(wl.WORKLOADS["online_utd4"].tiny() if cfg.tiny else wl.WORKLOADS["online_utd4"],
-                               repeats, min_time)
+    online = next((w for w in chosen if w.name == "online_utd4"), None)  # --tiny: its tiny form
+    loop = _loop_benchmark(online, repeats, min_time) if cfg.loop and online else None
     if worker is not None:
         worker.close()
 

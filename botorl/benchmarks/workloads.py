@@ -42,8 +42,8 @@ class Workload:
 
     def tiny(self) -> "Workload":
         """Same update on toy sizes (tests: compiles in seconds)."""
-        return dataclasses.replace(self, label=self.label[:26] + " [tiny]", critic_hidden=(16,), actor_hidden=(16,), batch=8,
-                                   num_critics=min(self.num_critics, 2), obs_dim=5, action_dim=2,
+        return dataclasses.replace(self, label=self.label[:26] + " [tiny]", critic_hidden=(16,), actor_hidden=(16,),
+                                   batch=8, num_critics=min(self.num_critics, 2), obs_dim=5, action_dim=2,
                                    n_action_samples=2)
 
 
