@@ -261,12 +261,9 @@ def train(cfg: AntTrainConfig) -> dict:
 
     def evaluate():
         collector.send("evaluate", params, HORIZON, 12345)
-        res = collector.recv()
-        goals = [g for r in res for g in r[0]]
-        ret = float(np.mean([r[1] for r in res]))
-        falls = int(sum(r[2] for r in res))
+        goals, rets, falls = zip(*collector.recv())  # per worker
         row = [state["env_steps"], state["updates"], round(base_seconds + time.time() - t0, 1),
-               round(float(np.mean(goals)), 3), round(ret, 3), falls,
+               round(float(np.mean(sum(goals, []))), 3), round(float(np.mean(rets)), 3), int(sum(falls)),
                round(float(np.mean(returns)), 1) if returns else "",
                round(float(metrics.get("temperature", float("nan"))), 5) if metrics else "",
                round(float(metrics.get("critic_loss", float("nan"))), 4) if metrics else ""]
