@@ -222,9 +222,8 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
     """The online loop and the same update alone, interleaved round by round."""
     spec = get_task("antmaze-large-diverse-v2")
     obs_dim, action_dim = spec.obs_dim, spec.action_dim
-    cfg = SACConfig(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden,
-                    num_critics=w.num_critics, utd_ratio=w.utd)
-    agent = SACAgent.create(cfg, obs_dim, action_dim, 0)
+    agent = SACAgent.create(SACConfig(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden,
+                                      num_critics=w.num_critics, utd_ratio=w.utd), obs_dim, action_dim, 0)
     loop = OnlineLoop(agent, spec, w.batch, w.utd, prefill=max(w.batch * w.utd, 2000))
     # The update alone on the env's shapes (the same jit cache entry as the table's row
     # when those are the same).
@@ -236,11 +235,10 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
         loop_rates.append(_time_block(loop.run, n_loop)[0])
         alone_rates.append(_time_block(alone.step, n_alone)[0])
     loop.close()
-    ratios = [lr / ar for lr, ar in zip(loop_rates, alone_rates)]
     return {"env": spec.name, "obs_dim": obs_dim, "action_dim": action_dim,
             "env_steps_per_s": _median(loop_rates), "samples": loop_rates,
             "update_alone_per_s": _median(alone_rates), "update_alone_samples": alone_rates,
-            "online_loop_efficiency": _median(ratios)}
+            "online_loop_efficiency": _median([lr / ar for lr, ar in zip(loop_rates, alone_rates)])}
 
 
 def _fmt(x: Any, spec: str) -> str:
