@@ -42,8 +42,7 @@ class FlopCount:
 
 
 def _size(aval: Any) -> int:
-    shape = getattr(aval, "shape", ())
-    return int(math.prod(shape)) if shape is not None else 1
+    return math.prod(getattr(aval, "shape", None) or ())
 
 
 def _dot_flops(eqn: Any) -> float:
@@ -54,18 +53,6 @@ def _dot_flops(eqn: Any) -> float:
     m = math.prod(s for d, s in enumerate(lhs.shape) if d not in lc and d not in lb)
     n = math.prod(s for d, s in enumerate(rhs.shape) if d not in rc and d not in _rb)
     return 2.0 * batch * m * n * contract
-
-
-def _sub_jaxprs(eqn: Any) -> list[Any]:
-    """Closed or open jaxprs inside an equation's params (pjit, custom_jvp, remat, ...)."""
-    found = []
-    for value in eqn.params.values():
-        for item in value if isinstance(value, (tuple, list)) else (value,):
-            if hasattr(item, "eqns"):
-                found.append(item)
-            elif hasattr(item, "jaxpr") and hasattr(item.jaxpr, "eqns"):
-                found.append(item.jaxpr)
-    return found
 
 
 def _count_jaxpr(jaxpr: Any) -> FlopCount:
@@ -89,15 +76,17 @@ def _count_jaxpr(jaxpr: Any) -> FlopCount:
         elif name in _REDUCE:
             total += FlopCount(float(_size(eqn.invars[0].aval)))
         else:  # a call (pjit, custom_jvp, remat, ...) counts its body; any other primitive is free
-            for sub in _sub_jaxprs(eqn):
-                total += _count_jaxpr(sub)
+            for value in eqn.params.values():
+                for item in value if isinstance(value, (tuple, list)) else (value,):
+                    sub = item if hasattr(item, "eqns") else getattr(item, "jaxpr", None)  # open or closed jaxpr
+                    if hasattr(sub, "eqns"):
+                        total += _count_jaxpr(sub)
     return total
 
 
 def jaxpr_flops(fn: Callable, *args: Any, **kwargs: Any) -> FlopCount:
     """FLOPs of one call of ``fn(*args)`` counted on its traced program (see module doc)."""
-    closed = jax.make_jaxpr(fn)(*args, **kwargs)
-    return _count_jaxpr(closed.jaxpr)
+    return _count_jaxpr(jax.make_jaxpr(fn)(*args, **kwargs).jaxpr)
 
 
 def xla_flops(fn: Callable, *args: Any, **kwargs: Any) -> float:

@@ -20,10 +20,9 @@ from botorl.io import atomic_write_bytes
 
 def main(argv: list[str]) -> int:
     stats, rest = Path(argv[0]), argv[1:]
-    result: dict = {}
+    result, code = {}, 0
     if rest[:1] == ["--time-eval"]:
         result = time_evaluation(Path(rest[1]), int(rest[2]), int(rest[3]))
-        code = 0
     else:
         code = botorl_main(rest)
     atomic_write_bytes(stats, json.dumps({**result, **device_memory()}).encode())

@@ -94,17 +94,20 @@ def _synthetic_data(spec, work: Path, rows: int) -> tuple[list[str], list[str]]:
     raise ValueError(f"{spec.name}: no synthetic writer for data of kind {kind!r}")
 
 
-def _run(cmd: list[str], log: Path, stats: Path | None = None) -> tuple[int, float, float]:
-    """(exit code, wall seconds, peak resident MB) of one botorl process (``cmd``: its command
-    line, or ``["--time-eval", ...]``); its peak device memory into ``stats`` (JSON)."""
+def _run(cmd: list[str], log: Path, what: str) -> tuple[float, float, dict]:
+    """(wall seconds, peak resident MB, its stats JSON: peak device memory and a timed evaluation's
+    figures) of one botorl process (``cmd``: its command line, or ``["--time-eval", ...]``);
+    RuntimeError, naming ``what``, if it fails."""
     t0 = time.perf_counter()
-    stats = stats or log.with_suffix(".stats.json")
+    stats = log.with_suffix(".stats.json")
     with open(log, "w") as out:
         proc = subprocess.Popen([sys.executable, "-m", "botorl.benchmarks.measured_cli", str(stats), *cmd],
                                 stdout=out, stderr=subprocess.STDOUT)
         _, status, usage = os.wait4(proc.pid, 0)
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    return proc.returncode, time.perf_counter() - t0, usage.ru_maxrss / 1024  # Linux: KiB
+    wall = time.perf_counter() - t0
+    if code := os.waitstatus_to_exitcode(status):
+        raise RuntimeError(f"{what} exited {code}; see {log}")
+    return wall, usage.ru_maxrss / 1024, json.loads(stats.read_text())  # Linux: KiB
 
 
 def device_memory() -> dict[str, float | None]:
@@ -125,8 +128,7 @@ def time_evaluation(out: Path, members: int, episodes: int) -> dict:
     setup_jax()
     dirs = [out] if members == 1 else _member_dirs(out)
     cfgs = [read_run(d)[1] for d in dirs]
-    cfg = cfgs[0]
-    cfg = replace(cfg, eval=replace(cfg.eval, episodes=episodes))
+    cfg = replace(cfgs[0], eval=replace(cfgs[0].eval, episodes=episodes))
     spec = get_task(cfg.task)
     agents = population.stack([load_agent(d) for d in dirs])
     envs = [make_eval_envs(spec, cfg.eval) for _ in dirs]
@@ -160,18 +162,12 @@ def _member_dirs(out: Path) -> list[Path]:
     return [d for d in sorted(out.iterdir()) if (d / "summary.json").exists()]
 
 
-def _rows(path: Path) -> list[dict]:
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
-
-
 def _steady(rows: list[dict], step_key: str, rate_key: str | None, seconds_key: str | None = None,
             start: int = 0) -> tuple[float, float]:
     """(steady-state rate, compile seconds) from a stage's metrics rows: the rows after the
     first give the rate; the first row's excess time over that rate is the compilation. The
     first row covers its steps since the stage's ``start`` (fine-tuning's rows are on the online
-    axis, which starts after the warm-up: counted from 0, the warm-up's steps were taken for
-    fine-tuning's compile time)."""
+    axis, which starts after the warm-up's steps)."""
     if len(rows) < 2:
         raise RuntimeError("a stage logged fewer than 2 rows: raise its window")
     steps = [float(r[step_key]) - start for r in rows]
@@ -191,9 +187,8 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
     cfg = resolve(make_preset(task, "full", "boto"))
     out = work / f"{task}-n{members}"
     shutil.rmtree(out, ignore_errors=True)
-    data_args = ["--data.steps", str(data_steps)]
-    if PAPER_TASKS.get(task) == "synthetic":
-        data_args = _synthetic_data(spec, work, data_steps)[0]
+    data_args = (_synthetic_data(spec, work, data_steps)[0] if PAPER_TASKS.get(task) == "synthetic"
+                 else ["--data.steps", str(data_steps)])
     p, w, b, f = (windows[k] for k in ("pretrain", "warmup", "boto", "finetune"))
     seeds = ["--seeds", f"0-{members - 1}"] if members > 1 else ["--seed", "0"]
     cmd = ["run", "--task", task, "--method", "boto", "--profile", "full", *seeds, "--out", str(out),
@@ -205,11 +200,7 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
            "--eval.episodes", "1", "--eval.interval", str(10 * (w + f)),
            "--checkpoint-every", str(10 * (w + f + p + b)),
            *(["--precision", windows["precision"]] if windows.get("precision") else [])]
-    log = work / f"{task}-n{members}.log"
-    code, wall, rss = _run(cmd, log)
-    if code != 0:
-        raise RuntimeError(f"{task}: `botorl run` exited {code}; see {log}")
-    run_stats = json.loads(log.with_suffix(".stats.json").read_text())
+    wall, rss, run_stats = _run(cmd, work / f"{task}-n{members}.log", f"{task}: `botorl run`")
     member = out if members == 1 else _member_dirs(out)[0]
     summary = json.loads((member / "summary.json").read_text())
     run_cfg = json.loads((member / "config.json").read_text())
@@ -217,14 +208,12 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
     for stage, rate_key, seconds_key, unit, start in (("pretrain", "steps_per_s", None, "updates/s", 0),
                                                       ("boto", None, "seconds", "updates/s", 0),
                                                       ("finetune", "env_steps_per_s", None, "env steps/s (UTD 4)", w)):
-        rate, comp = _steady(_rows(member / "metrics" / f"{stage}.csv"), "step", rate_key, seconds_key, start)
+        with open(member / "metrics" / f"{stage}.csv", newline="") as fh:
+            rate, comp = _steady(list(csv.DictReader(fh)), "step", rate_key, seconds_key, start)
         stages[stage] = {"rate": rate, "unit": unit, "compile_s": comp}
     # evaluation: every member's last checkpoint, all members' envs in one lockstep (as the run)
-    elog = work / f"{task}-n{members}-eval.log"
-    ecode, _, ers = _run(["--time-eval", str(out), str(members), str(windows["eval_episodes"])], elog)
-    if ecode != 0:
-        raise RuntimeError(f"{task}: the timed evaluation exited {ecode}; see {elog}")
-    ev = json.loads(elog.with_suffix(".stats.json").read_text())
+    _, ers, ev = _run(["--time-eval", str(out), str(members), str(windows["eval_episodes"])],
+                      work / f"{task}-n{members}-eval.log", f"{task}: the timed evaluation")
     eval_rate = ev["env_steps"] / max(ev["seconds"], 1e-9)
     stages["eval"] = {"rate": eval_rate, "compile_s": ev["compile_s"], "policy_calls": ev["policy_calls"],
                       "unit": f"env steps/s of all members ({members} x {ev['envs_per_member']} envs in lockstep, "
@@ -338,8 +327,7 @@ def main(argv: list[str]) -> int:
             print(f"botorl bench --paper: {t}, {n} member(s) ...", flush=True)
             results.append(measure(t, n, work, windows, args.data_steps))
             print(table(results[-1:]).splitlines()[-1], flush=True)
-    print()
-    print(table(results))
+    print("\n" + table(results))
     doc = {"machine": machine(), "precision": sorted({r["precision"] for r in results if r.get("precision")}),
            "windows": windows, "how": __doc__.split("\n\n", 1)[1], "results": results}
     m = doc["machine"]

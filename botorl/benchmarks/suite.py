@@ -95,15 +95,11 @@ def _log(msg: str) -> None:
 
 def _options(cfg: BenchConfig) -> tuple[int, float, list[wl.Workload]]:
     """(rounds, seconds per timing, the workloads) of ``cfg``; BotorlError for a bad one."""
-    if cfg.quick:
-        repeats, min_time = min(cfg.repeats, 2), min(cfg.min_time, 0.5)
-    else:
-        repeats, min_time = cfg.repeats, cfg.min_time
+    repeats, min_time = (min(cfg.repeats, 2), min(cfg.min_time, 0.5)) if cfg.quick else (cfg.repeats, cfg.min_time)
     if repeats < 1 or min_time <= 0:
         raise BotorlError(f"bench: --repeats ({cfg.repeats}) and --min-time ({cfg.min_time}) must be positive.")
     names = cfg.only.split(",") if cfg.only else list(wl.QUICK if cfg.quick else wl.WORKLOADS)
-    unknown = [n for n in names if n not in wl.WORKLOADS]
-    if unknown:
+    if unknown := [n for n in names if n not in wl.WORKLOADS]:
         raise BotorlError(f"bench: unknown workload(s) {', '.join(unknown)} in --only; "
                           f"choose from {', '.join(wl.WORKLOADS)}.")
     return repeats, min_time, [wl.WORKLOADS[n].tiny() if cfg.tiny else wl.WORKLOADS[n] for n in names]
@@ -115,18 +111,16 @@ def _prepare(w: wl.Workload) -> tuple[dict[str, Any], wl.Bound]:
               "actor_hidden": list(w.actor_hidden), "obs_dim": w.obs_dim, "action_dim": w.action_dim,
               "batch": w.batch, "utd": w.utd, "cql_samples_per_kind": w.n_action_samples,
               "updates_per_call": w.scan_k}
-    row = {"label": w.label, "note": w.note, "shapes": shapes,
-           "botorl_updates_per_s": None, "d3rlpy_updates_per_s": None,
-           "ratio": None, "gflops": None, "peak_fraction": None,
-           "flops_per_update": None, "flops_per_update_xla": None,
-           "botorl_samples": [], "d3rlpy_samples": [],
-           "botorl_cpu_samples": [], "d3rlpy_cpu_samples": []}
     b = wl.build(w)
     k = b.updates_per_call
     count = flopmod.jaxpr_flops(b.flop_fn, *b.flop_args)
-    row["flops_per_update"] = count.flops / k
-    row["matmul_flops_per_update"] = count.matmul_flops / k
-    row["updates_per_call"] = k
+    row = {"label": w.label, "note": w.note, "shapes": shapes,
+           "botorl_updates_per_s": None, "d3rlpy_updates_per_s": None,
+           "ratio": None, "gflops": None, "peak_fraction": None,
+           "flops_per_update": count.flops / k, "flops_per_update_xla": None,
+           "botorl_samples": [], "d3rlpy_samples": [],
+           "botorl_cpu_samples": [], "d3rlpy_cpu_samples": [],
+           "matmul_flops_per_update": count.matmul_flops / k, "updates_per_call": k}
     try:
         row["flops_per_update_xla"] = flopmod.xla_flops(jax.jit(b.flop_fn), *b.flop_args) / k
     except Exception as err:  # the cross-check must not sink the run
@@ -172,8 +166,7 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
         rows[w.name], bound[w.name] = _prepare(w)
         calls[w.name] = _calibrate(bound[w.name].step, min_time)
         if worker is not None and w.d3rlpy_algo is not None:
-            err = worker.setup(w)
-            if err:
+            if err := worker.setup(w):
                 rows[w.name]["d3rlpy_error"] = err
 
     peaks: list[float] = []
@@ -193,20 +186,16 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
                     row["d3rlpy_error"] = str(err)
         _log(f"bench: round {r + 1}/{repeats} done")
 
-    loop = None
-    if cfg.loop and "online_utd4" in rows:
-        loop = _loop_benchmark(wl.WORKLOADS["online_utd4"].tiny() if cfg.tiny else wl.WORKLOADS["online_utd4"],
-                               repeats, min_time)
+    online = next((w for w in chosen if w.name == "online_utd4"), None)  # --tiny: its tiny form
+    loop = _loop_benchmark(online, repeats, min_time) if cfg.loop and online else None
     if worker is not None:
         worker.close()
 
     peak = max(peaks)
     for w in chosen:  # rows that share another row's d3rlpy update (same round, same figures)
-        same = rows.get(w.d3rlpy_same_as or "")
-        if same is not None:
-            rows[w.name]["d3rlpy_samples"] = list(same["d3rlpy_samples"])
-            rows[w.name]["d3rlpy_cpu_samples"] = list(same["d3rlpy_cpu_samples"])
-            rows[w.name]["d3rlpy_same_as"] = w.d3rlpy_same_as
+        if (same := rows.get(w.d3rlpy_same_as or "")) is not None:
+            rows[w.name].update(d3rlpy_samples=list(same["d3rlpy_samples"]),
+                                d3rlpy_cpu_samples=list(same["d3rlpy_cpu_samples"]), d3rlpy_same_as=w.d3rlpy_same_as)
     for row in rows.values():
         _summarize(row, peak)
 
@@ -232,31 +221,24 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
 def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, Any]:
     """The online loop and the same update alone, interleaved round by round."""
     spec = get_task("antmaze-large-diverse-v2")
-    env = spec.make_env(0)
-    obs_dim = int(env.observation_space.shape[0])
-    action_dim = int(env.action_space.shape[0])
-    env.close()
-    cfg = SACConfig(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden,
-                    num_critics=w.num_critics, utd_ratio=w.utd)
-    agent = SACAgent.create(cfg, obs_dim, action_dim, 0)
+    obs_dim, action_dim = spec.obs_dim, spec.action_dim
+    agent = SACAgent.create(SACConfig(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden,
+                                      num_critics=w.num_critics, utd_ratio=w.utd), obs_dim, action_dim, 0)
     loop = OnlineLoop(agent, spec, w.batch, w.utd, prefill=max(w.batch * w.utd, 2000))
     # The update alone on the env's shapes (the same jit cache entry as the table's row
     # when those are the same).
     alone = wl.build(replace(w, obs_dim=obs_dim, action_dim=action_dim))
     n_loop = _calibrate(loop.run, min_time)
     n_alone = _calibrate(alone.step, min_time)
-    loop_rates, alone_rates, ratios = [], [], []
+    loop_rates, alone_rates = [], []
     for _ in range(repeats):
-        lr, _ = _time_block(loop.run, n_loop)
-        ar, _ = _time_block(alone.step, n_alone)
-        loop_rates.append(lr)
-        alone_rates.append(ar)
-        ratios.append(lr / ar)
+        loop_rates.append(_time_block(loop.run, n_loop)[0])
+        alone_rates.append(_time_block(alone.step, n_alone)[0])
     loop.close()
     return {"env": spec.name, "obs_dim": obs_dim, "action_dim": action_dim,
             "env_steps_per_s": _median(loop_rates), "samples": loop_rates,
             "update_alone_per_s": _median(alone_rates), "update_alone_samples": alone_rates,
-            "online_loop_efficiency": _median(ratios)}
+            "online_loop_efficiency": _median([lr / ar for lr, ar in zip(loop_rates, alone_rates)])}
 
 
 def _fmt(x: Any, spec: str) -> str:
@@ -264,14 +246,13 @@ def _fmt(x: Any, spec: str) -> str:
 
 
 def format_table(result: dict[str, Any]) -> str:
-    lines = []
     m = result["machine"]
-    lines.append(f"botorl bench  (jax {m['jax']} {m['jax_backend']}, {m['cpu_count']} cores, "
-                 f"load {m['load_start']} -> {m['load_end']}"
-                 + (f"; d3rlpy {m['d3rlpy_worker'].get('d3rlpy')} torch {m['d3rlpy_worker'].get('torch')}"
-                    f" x{m['d3rlpy_worker'].get('torch_threads')} threads" if "d3rlpy_worker" in m else "") + ")")
-    lines.append(f"fp32 matmul peak (1024^2, jitted, best of {len(result['matmul_peak_samples'])}): "
-                 f"{result['matmul_peak_gflops']:.0f} GFLOP/s")
+    lines = [f"botorl bench  (jax {m['jax']} {m['jax_backend']}, {m['cpu_count']} cores, "
+             f"load {m['load_start']} -> {m['load_end']}"
+             + (f"; d3rlpy {m['d3rlpy_worker'].get('d3rlpy')} torch {m['d3rlpy_worker'].get('torch')}"
+                f" x{m['d3rlpy_worker'].get('torch_threads')} threads" if "d3rlpy_worker" in m else "") + ")",
+             f"fp32 matmul peak (1024^2, jitted, best of {len(result['matmul_peak_samples'])}): "
+             f"{result['matmul_peak_gflops']:.0f} GFLOP/s"]
     head = (f"{'update':34s} {'botorl/s':>9s} {'d3rlpy/s':>9s} {'ratio':>6s} {'ratio_cpu':>9s} "
             f"{'MFLOP/upd':>10s} {'GFLOP/s':>8s} {'%peak':>6s}")
     lines += [head, "-" * len(head)]

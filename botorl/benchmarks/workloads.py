@@ -42,8 +42,8 @@ class Workload:
 
     def tiny(self) -> "Workload":
         """Same update on toy sizes (tests: compiles in seconds)."""
-        return dataclasses.replace(self, label=self.label[:26] + " [tiny]", critic_hidden=(16,), actor_hidden=(16,), batch=8,
-                                   num_critics=min(self.num_critics, 2), obs_dim=5, action_dim=2,
+        return dataclasses.replace(self, label=self.label[:26] + " [tiny]", critic_hidden=(16,), actor_hidden=(16,),
+                                   batch=8, num_critics=min(self.num_critics, 2), obs_dim=5, action_dim=2,
                                    n_action_samples=2)
 
 
@@ -100,14 +100,11 @@ def make_batch(rows: int, obs_dim: int, action_dim: int, seed: int = 0, lead: tu
 
 def _bound(agent: Any, call: Callable, batch: Any, updates_per_call: int) -> Bound:
     """``step(n)``: n calls of ``call(agent, batch)``, each on the agent the previous returned."""
-    state = {"agent": agent}
-
     def step(n: int) -> None:
-        a = state["agent"]
+        nonlocal agent
         for _ in range(n):
-            a, _ = call(a, batch)
-        jax.block_until_ready(a)
-        state["agent"] = a
+            agent, _ = call(agent, batch)
+        jax.block_until_ready(agent)
 
     return Bound(step, call, (agent, batch), updates_per_call)
 

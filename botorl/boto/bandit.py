@@ -74,11 +74,9 @@ SMALL_SAC = dict(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), actor_lay
 def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):
     """``state, loss = step(state, k)`` on chunks of at most ``chunk`` of ``steps`` steps, with a progress bar."""
     bar = tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True, disable=not progress)
-    done = 0
-    while done < steps:
+    for done in range(0, steps, chunk):
         k = min(chunk, steps - done)
         state, loss = step(state, k)
-        done += k
         bar.update(k)
         if progress and loss is not None:
             bar.set_postfix(loss=f"{float(loss):.3g}")
@@ -91,13 +89,10 @@ def train_boto_bandit(dataset, alphas, boto_config, *, steps: int, batch_size: i
     """One fresh small critic per alpha, vmapped, Adam on a cosine-decayed ``lr``; returns
     ``q_fn(actions (M, A)) -> (len(alphas), M)``, the ensemble-mean Q at a constant observation."""
     agent = SACAgent.create(SACConfig(**SMALL_SAC), dataset.obs_dim, dataset.action_dim, seed=seed)
-    sched = optax.cosine_decay_schedule(lr, steps)
-    agent = agent.replace(
-        critic=TrainState.create(apply_fn=agent.critic.apply_fn, params=agent.critic.params, tx=optax.adam(sched))
-    )
+    tx = optax.adam(optax.cosine_decay_schedule(lr, steps))
+    agent = agent.replace(critic=TrainState.create(apply_fn=agent.critic.apply_fn, params=agent.critic.params, tx=tx))
     settings = ObjectiveSettings.resolve(boto_config, agent)
-    n = len(alphas)
-    agents = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + jnp.shape(x)), agent)
+    agents = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (len(alphas),) + jnp.shape(x)), agent)
     alpha_arr = jnp.asarray(alphas, jnp.float32)
 
     @jax.jit
@@ -112,11 +107,7 @@ def train_boto_bandit(dataset, alphas, boto_config, *, steps: int, batch_size: i
         return ags, info["critic_loss"].mean()
 
     agents = _in_chunks(agents, step, steps, 500, desc, progress)
-
-    def q_fn(actions):
-        return np.asarray(q_mean(agents, np.zeros((len(actions), dataset.obs_dim), np.float32), actions))
-
-    return q_fn
+    return lambda actions: np.asarray(q_mean(agents, np.zeros((len(actions), dataset.obs_dim), np.float32), actions))
 
 
 # ----------------------------------------------------------------------------- Figure 3
@@ -228,23 +219,20 @@ def _offline_agents(ds, cfg: BanditConfig):
     # the penalty is what shapes Q off the data (Cal-QL's kitchen setting).
     # 5 (not 10) penalty samples of each kind keep `botorl bandit` within its time budget.
     cql_common = dict(SMALL_SAC, max_target_backup=False, cql_lagrange=False, cql_weight=5.0, cql_n_actions=5)
-    makers = {
-        "CQL": lambda: CQLAgent.create(CQLConfig(**cql_common, calql=False), ds.obs_dim, ds.action_dim, cfg.seed),
-        "Cal-QL": lambda: CQLAgent.create(CQLConfig(**cql_common, calql=True), ds.obs_dim, ds.action_dim, cfg.seed),
-        "IQL": lambda: IQLAgent.create(
-            IQLConfig(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), value_hidden_dims=(64, 64), discount=0.0,
-                      expectile=0.9, awr_beta=10.0),
-            ds.obs_dim, ds.action_dim, cfg.seed),
-    }
+    iql = IQLConfig(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), value_hidden_dims=(64, 64), discount=0.0,
+                    expectile=0.9, awr_beta=10.0)
+    configs = {"CQL": (CQLAgent, CQLConfig(**cql_common, calql=False)),
+               "Cal-QL": (CQLAgent, CQLConfig(**cql_common, calql=True)), "IQL": (IQLAgent, iql)}
     out = {}
-    for name, make in makers.items():
+    for name, (agent_cls, config) in configs.items():
         rng = np.random.default_rng(cfg.seed + 1)
 
         def step(agent, k):
             agent, _ = agent.update_many({key: jnp.asarray(v) for key, v in ds.sample(rng, 256, num_batches=k).items()})
             return agent, None
 
-        out[name] = _in_chunks(make(), step, cfg.fig2_offline_steps, 250, f"Figure 2: {name}", cfg.progress)
+        agent = agent_cls.create(config, ds.obs_dim, ds.action_dim, cfg.seed)
+        out[name] = _in_chunks(agent, step, cfg.fig2_offline_steps, 250, f"Figure 2: {name}", cfg.progress)
     return out
 
 
@@ -273,15 +261,13 @@ def run_fig2(cfg: BanditConfig) -> dict:
     for name, agent in offline.items():
         methods[name] = (q_of(agent, grid), q_of(agent, uniform), q_of(agent, data_acts))
     r_lo, r_hi = float(ds.rewards.min()), float(ds.rewards.max())
-    summary = {}
-    for name, (qg, qu, qd) in methods.items():
-        summary[name] = {
-            "mean_q_data": float(qd.mean()),
-            "mean_q_uniform": float(qu.mean()),
-            "min_q_uniform": float(qu.min()),
-            "max_q_uniform": float(qu.max()),
-            "share_uniform_outside_reward_range": float(np.mean((qu < r_lo) | (qu > r_hi))),
-        }
+    summary = {name: {
+        "mean_q_data": float(qd.mean()),
+        "mean_q_uniform": float(qu.mean()),
+        "min_q_uniform": float(qu.min()),
+        "max_q_uniform": float(qu.max()),
+        "share_uniform_outside_reward_range": float(np.mean((qu < r_lo) | (qu > r_hi))),
+    } for name, (_, qu, qd) in methods.items()}
     return {
         "task": "bandit-pinwheel",
         "noise": {"kind": "hybrid", "log_sigma": cfg.fig2_log_sigma, "weight_fn": "linear", "clip": True},
@@ -318,8 +304,7 @@ def plot_fig2(res: dict, path: Path) -> None:
         ax.set_xticks([-1, 0, 1])
         ax.set_yticks([-1, 0, 1] if j == 0 else [])
         k = axes[1, j]
-        lo = min(qu.min(), qd.min())
-        hi = max(qu.max(), qd.max())
+        lo, hi = min(qu.min(), qd.min()), max(qu.max(), qd.max())
         span = max(hi - lo, 1e-3)
         xs = np.linspace(lo - 0.1 * span, hi + 0.1 * span, 300)
         for vals, lab, col in ((qu, "uniform actions", "tab:blue"), (qd, "dataset actions", "tab:red")):

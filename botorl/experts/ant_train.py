@@ -103,20 +103,13 @@ class _Ants:
         self.ep_return = np.zeros(n)
         self.finished: list[float] = []
 
-    def run(self, method: str, *args):
-        """A message of the main process: (method name, arguments), in a worker or in-process."""
-        return getattr(self, method)(*args)
-
     def collect(self, params, steps: int, random: bool):
         sim, n = self.sim, self.sim.n
         actor = None if random else NumpyActor(params)
         out = {k: np.empty((steps, n) + s, np.float32) for k, s in FIELDS}
         for t in range(steps):
             obs = sim.obs.copy()
-            if actor is None:
-                act = self.rng.uniform(-1, 1, (n, ACTION_DIM))
-            else:
-                act = actor(obs, self.rng)
+            act = self.rng.uniform(-1, 1, (n, ACTION_DIM)) if actor is None else actor(obs, self.rng)
             nobs, rew, term, trunc, _ = sim.step(act)
             out["observations"][t], out["actions"][t], out["rewards"][t] = obs, act, rew
             out["next_observations"][t], out["dones"][t] = nobs, term
@@ -133,9 +126,7 @@ class _Ants:
         ant and the mean return per step."""
         sim = AntGoalSim(self.sim.n, seed + 1_000 * self.index, horizon=episodes_steps + 1)
         actor = NumpyActor(params)
-        reached = np.zeros(sim.n)
-        ret = 0.0
-        falls = 0
+        reached, ret, falls = np.zeros(sim.n), 0.0, 0
         for _ in range(episodes_steps):
             _, rew, term, _, got = sim.step(actor(sim.obs))
             reached += got
@@ -147,8 +138,8 @@ class _Ants:
 def _worker(conn, n: int, seed: int, index: int):
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     ants = _Ants(n, seed, index)
-    while (msg := conn.recv())[0] != "stop":
-        conn.send(ants.run(*msg))
+    while (msg := conn.recv())[0] != "stop":  # (method name, arguments)
+        conn.send(getattr(ants, msg[0])(*msg[1:]))
 
 
 class Collector:
@@ -165,17 +156,16 @@ class Collector:
             self.procs.append(p)
             self.conns.append(a)
 
-    def send(self, *msg):
+    def send(self, method: str, *args):
+        """Calls ``method(*args)`` of every worker's ants (in-process: when ``recv`` asks)."""
         if self.local is None:
             for c in self.conns:
-                c.send(msg)
+                c.send((method, *args))
         else:
-            self._pending = msg
+            self._pending = partial(getattr(self.local, method), *args)
 
     def recv(self):
-        if self.local is not None:
-            return [self.local.run(*self._pending)]
-        return [c.recv() for c in self.conns]
+        return [self._pending()] if self.local is not None else [c.recv() for c in self.conns]
 
     def close(self):
         for c in self.conns:
@@ -211,12 +201,6 @@ def _make_train_step(batch_size: int, updates: int):
     return insert, train
 
 
-def _host_actor(agent) -> dict:
-    import jax  # lazy: the spawned simulation workers import this module; they need no JAX
-
-    return actor_arrays(jax.device_get(agent.actor.params), agent.config.log_std_min, agent.config.log_std_max)
-
-
 def export_actor(params: dict, path: str | os.PathLike, meta: dict | None = None) -> Path:
     out = io.BytesIO()
     np.savez_compressed(out, **params, meta_json=np.asarray(json.dumps(meta or {})))
@@ -234,10 +218,12 @@ def train(cfg: AntTrainConfig) -> dict:
 
     from botorl.agents import checkpoint, sac
 
+    def host_actor(agent) -> dict:
+        return actor_arrays(jax.device_get(agent.actor.params), agent.config.log_std_min, agent.config.log_std_max)
+
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    scfg = sac_config(cfg)
-    agent = sac.SACAgent.create(scfg, OBS_DIM, ACTION_DIM, seed=cfg.seed)
+    agent = sac.SACAgent.create(sac_config(cfg), OBS_DIM, ACTION_DIM, seed=cfg.seed)
     state = {"env_steps": 0, "updates": 0, "seconds": 0.0, "calls": 0, "config": dataclasses.asdict(cfg)}
     resumed = (out / "agent.ckpt").exists() and (out / "state.json").exists()
     if resumed:
@@ -250,13 +236,11 @@ def train(cfg: AntTrainConfig) -> dict:
         with open(curve_path, "w", newline="") as fh:
             csv.writer(fh).writerow(CURVE_FIELDS)
 
-    n_envs = max(cfg.num_workers, 1) * cfg.envs_per_worker
-    chunk = n_envs * cfg.rollout_len
+    chunk = max(cfg.num_workers, 1) * cfg.envs_per_worker * cfg.rollout_len  # env steps per iteration
     capacity = max(chunk, (cfg.buffer_size // chunk) * chunk)
     buf = {k: jax.numpy.zeros((capacity,) + s, jax.numpy.float32) for k, s in FIELDS}
     insert, train_step = _make_train_step(cfg.batch_size, cfg.updates_per_iter)
-    seed_call = cfg.seed * 7_919 + state["calls"]
-    collector = Collector(cfg.num_workers, cfg.envs_per_worker, seed_call)
+    collector = Collector(cfg.num_workers, cfg.envs_per_worker, cfg.seed * 7_919 + state["calls"])
     key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["calls"])
     ptr = size = 0
     t0 = time.time()
@@ -264,11 +248,9 @@ def train(cfg: AntTrainConfig) -> dict:
     last_ckpt = last_eval = time.time()
     returns: list[float] = []
     metrics = {}
-    params = _host_actor(agent)
-    bar = None
-    if cfg.progress:
-        bar = tqdm(total=cfg.total_env_steps, initial=state["env_steps"], unit="step", desc="train-ant",
-                   mininterval=5.0)
+    params = host_actor(agent)
+    bar = tqdm(total=cfg.total_env_steps, initial=state["env_steps"], unit="step", desc="train-ant", mininterval=5.0,
+               disable=not cfg.progress)
 
     def save():
         checkpoint.save(out / "agent.ckpt", agent)
@@ -279,12 +261,9 @@ def train(cfg: AntTrainConfig) -> dict:
 
     def evaluate():
         collector.send("evaluate", params, HORIZON, 12345)
-        res = collector.recv()
-        goals = [g for r in res for g in r[0]]
-        ret = float(np.mean([r[1] for r in res]))
-        falls = int(sum(r[2] for r in res))
+        goals, rets, falls = zip(*collector.recv())  # per worker
         row = [state["env_steps"], state["updates"], round(base_seconds + time.time() - t0, 1),
-               round(float(np.mean(goals)), 3), round(ret, 3), falls,
+               round(float(np.mean(sum(goals, []))), 3), round(float(np.mean(rets)), 3), int(sum(falls)),
                round(float(np.mean(returns)), 1) if returns else "",
                round(float(metrics.get("temperature", float("nan"))), 5) if metrics else "",
                round(float(metrics.get("critic_loss", float("nan"))), 4) if metrics else ""]
@@ -299,7 +278,7 @@ def train(cfg: AntTrainConfig) -> dict:
         if pending is not None:
             agent, metrics = pending[0], {k: float(v) for k, v in pending[1].items()}
             state["updates"] += cfg.updates_per_iter
-            params, pending = _host_actor(agent), None
+            params, pending = host_actor(agent), None
 
     pending = None
     try:
@@ -322,8 +301,7 @@ def train(cfg: AntTrainConfig) -> dict:
             if ready:
                 key, k = jax.random.split(key)
                 pending = train_step(agent, buf, size, k)
-            if bar is not None:
-                bar.update(chunk)
+            bar.update(chunk)
             now = time.time()
             if now - last_eval >= cfg.eval_every_s and metrics:
                 collector.recv()  # finish the rollout in flight before the evaluation
@@ -343,8 +321,7 @@ def train(cfg: AntTrainConfig) -> dict:
         evaluate()
         save()
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
         collector.close()
     try:
         plot_curve(curve_path, out / "curve.png")
@@ -360,12 +337,12 @@ def plot_curve(csv_path, png_path) -> None:
         return
     x = np.array([float(r["env_steps"]) for r in rows]) / 1e6
     g = np.array([float(r["eval_goals_per_1000"]) for r in rows])
-    u = np.array([float(r["updates"]) for r in rows]) / 1e6
     fig, ax = plt.subplots(figsize=(6, 3.5))
     ax.plot(x, g, marker=".")
     ax.set_xlabel("environment steps (millions)")
     ax.set_ylabel("goals reached per 1,000 steps\n(deterministic actor)")
-    ax.set_title(f"goal-reaching ant, SAC ({u[-1]:.2f}M updates, {float(rows[-1]['seconds']):.0f} s)")
+    ax.set_title(f"goal-reaching ant, SAC ({float(rows[-1]['updates']) / 1e6:.2f}M updates, "
+                 f"{float(rows[-1]['seconds']):.0f} s)")
     ax.grid(alpha=0.3)
     fig.tight_layout()
     atomic_save_figure(fig, png_path, dpi=110)
