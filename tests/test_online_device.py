@@ -145,9 +145,11 @@ def test_bench_paper_times_a_populations_evaluation_as_the_run_does(probes, tmp_
     from botorl.benchmarks import paper as PB
 
     log = tmp_path / "eval.log"
-    code, wall, rss = PB._run(["--time-eval", str(probes["pair"].root), "2", "2"], log)
-    assert code == 0, log.read_text()[-2000:]
-    ev = json.loads(log.with_suffix(".stats.json").read_text())
+    try:  # _run raises when the measured process exits non-zero
+        wall, rss, ev = PB._run(["--time-eval", str(probes["pair"].root), "2", "2"], log, "the timed evaluation")
+    except RuntimeError as e:
+        pytest.fail(f"{e}\n{log.read_text()[-2000:]}")
+    assert ev == json.loads(log.with_suffix(".stats.json").read_text())
     assert ev["members"] == 2 and ev["episodes"] == 2 and ev["precision"] == "tf32" and rss > 0
     # one call per lockstep env step: as many as the longest episode, never one per member's step
     assert 0 < ev["episode_length"] <= ev["policy_calls"] <= ev["env_steps"]
