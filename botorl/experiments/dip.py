@@ -27,11 +27,10 @@ from botorl.experiments.stats import (
     fmt_mean_se,
     label_colors,
     line_label,
-    mean_se,
     panels,
     pyplot,
     save_figure,
-    stratified_bootstrap_iqm,
+    seed_stats,
 )
 
 DIP_WINDOW = 10_000
@@ -81,12 +80,11 @@ def dips_of(runs: Sequence[Run], window: float) -> tuple[list[Dip], list[Skipped
 
 
 def dip_stats(values: Sequence[float], *, n_boot: int, confidence: float, seed: int) -> dict[str, float]:
-    mean, se, n = mean_se(values)
-    lo, hi = bootstrap_mean_ci(values, n_boot=n_boot, confidence=confidence, seed=seed)
-    point_iqm, iqm_lo, iqm_hi = stratified_bootstrap_iqm([values], n_boot=n_boot, confidence=confidence, seed=seed)
-    if n < 2:  # resampling one run gives a zero-width interval, which would read as certainty
-        iqm_lo = iqm_hi = math.nan
-    return {"mean": mean, "se": se, "n": n, "lo": lo, "hi": hi, "iqm": point_iqm, "iqm_lo": iqm_lo, "iqm_hi": iqm_hi}
+    st = seed_stats(values, n_boot=n_boot, confidence=confidence, seed=seed)
+    st["lo"], st["hi"] = bootstrap_mean_ci(values, n_boot=n_boot, confidence=confidence, seed=seed)
+    if st["n"] < 2:  # resampling one run gives a zero-width interval, which would read as certainty
+        st["iqm_lo"] = st["iqm_hi"] = math.nan
+    return st
 
 
 @dataclasses.dataclass

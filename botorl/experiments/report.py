@@ -46,6 +46,7 @@ from botorl.experiments.stats import (
     panels,
     pyplot,
     save_figure,
+    seed_stats,
     stratified_bootstrap_iqm,
 )
 from botorl.io import atomic_write_text
@@ -104,12 +105,8 @@ def table1(
     cells = []
     for task, label, alpha in sorted(groups, key=key_order):
         group = groups[(task, label, alpha)]
-        stats: dict[str, dict[str, float]] = {}
-        for point, fieldname in POINTS:
-            values = [getattr(r, fieldname) for r in group]
-            mean, se, n = mean_se(values)
-            point_iqm, lo, hi = stratified_bootstrap_iqm([values], n_boot=n_boot, confidence=confidence, seed=seed)
-            stats[point] = {"mean": mean, "se": se, "n": n, "iqm": point_iqm, "iqm_lo": lo, "iqm_hi": hi}
+        stats = {point: seed_stats([getattr(r, fieldname) for r in group], n_boot=n_boot, confidence=confidence,
+                                   seed=seed) for point, fieldname in POINTS}
         cells.append(Cell(task, label, alpha, [r.seed for r in group], stats, dip_by_key.get((task, label, alpha))))
     return cells
 

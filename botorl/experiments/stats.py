@@ -59,6 +59,13 @@ def stratified_bootstrap_iqm(scores_per_task: Sequence[Sequence[float]], *, n_bo
     return point, float(lo), float(hi)
 
 
+def seed_stats(values: Sequence[float], *, n_boot: int, confidence: float, seed: int) -> dict[str, float]:
+    """Mean, s.e., n and the IQM with its bootstrap CI of one group's runs."""
+    mean, se, n = mean_se(values)
+    point, lo, hi = stratified_bootstrap_iqm([values], n_boot=n_boot, confidence=confidence, seed=seed)
+    return {"mean": mean, "se": se, "n": n, "iqm": point, "iqm_lo": lo, "iqm_hi": hi}
+
+
 def bootstrap_mean_ci(
     values: Sequence[float], *, n_boot: int = 2000, confidence: float = 0.95, seed: int = 0
 ) -> tuple[float, float]:
