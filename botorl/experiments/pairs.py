@@ -34,6 +34,7 @@ from botorl.experiments.stats import (
     fmt_ci,
     fmt_float,
     mean_se,
+    panels,
     pyplot,
     save_figure,
     t_interval,
@@ -279,9 +280,7 @@ def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") ->
     """One panel per group: each pair a line from the reference's value to the other's (jittered
     so that equal pairs stay visible)."""
     groups = _groups(pairs)
-    cols = min(4, len(groups))
-    rows = math.ceil(len(groups) / cols)
-    fig, axes = pyplot().subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False, sharey=True)
+    fig, axes = panels(len(groups), 3.2, 3.0, min(4, len(groups)), sharey=True)
     rng = np.random.default_rng(0)
     for ax, group in zip(axes.flat, groups):
         for p in group:
@@ -294,8 +293,6 @@ def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") ->
         a = "" if group[0].alpha is None else f" α={group[0].alpha:+.2f}"
         ax.set_title(f"{group[0].task}{a}\nmean difference {mean:+.3f} (n={n})", fontsize=8)
         ax.set_xlim(-0.3, 1.3)
-    for ax in list(axes.flat)[len(groups):]:
-        ax.axis("off")
     axes[0][0].set_ylabel(_NAMES[quantity], fontsize=8)
     save_figure(fig, path, f"Paired runs (same pre-training): {_NAMES[quantity]}, one line per pair; "
                            "green: the method above the reference, red: below")

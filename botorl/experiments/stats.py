@@ -134,12 +134,12 @@ def alpha_text(alpha: float | None) -> str:
     return "" if alpha is None else f"{alpha:+.2f}"
 
 
-def panels(n: int, width: float, height: float, ncols: int | None = None):
+def panels(n: int, width: float, height: float, ncols: int | None = None, **subplots: Any):
     """(fig, axes): ``n`` panels of ``width`` x ``height`` inches, ``ncols`` (default up to 3) a
     row, the spare ones hidden."""
     ncols = ncols or min(3, max(1, n))
     nrows = math.ceil(n / ncols)
-    fig, axes = pyplot().subplots(nrows, ncols, figsize=(width * ncols, height * nrows), squeeze=False)
+    fig, axes = pyplot().subplots(nrows, ncols, figsize=(width * ncols, height * nrows), squeeze=False, **subplots)
     for ax in list(axes.flat)[n:]:
         ax.set_visible(False)
     return fig, axes
