@@ -245,11 +245,9 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
         ax.set_title(task)
         ax.set_xlabel("online env steps")
         ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
+        ax.set_ylabel("success rate" if metrics[task].bounded else metrics[task].label)
         if metrics[task].bounded:
-            ax.set_ylabel("success rate")
             ax.set_ylim(-0.03, 1.03)
-        else:
-            ax.set_ylabel(metrics[task].label)
         ax.grid(alpha=0.3)
         if len(keys) > 6:
             ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.0, 1.0))
@@ -326,12 +324,10 @@ def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WI
             bottom.errorbar(alphas, m, yerr=se, fmt="o-", ms=3, capsize=2, label=label)
         top.set_title(task)
         metric = (metrics or {}).get(task, Metric())
+        top.set_ylabel("success rate" if metric.bounded else metric.label)
         if metric.bounded:
-            top.set_ylabel("success rate")
             top.set_ylim(-0.03, 1.03)
             bottom.set_ylim(-1.03, 0.03)
-        else:
-            top.set_ylabel(metric.label)
         bottom.set_ylabel(f"dip (lowest in 0..{window:g} - at 0)")
         bottom.set_xlabel("alpha")
         for ax in (top, bottom):
