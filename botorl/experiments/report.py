@@ -120,20 +120,19 @@ class Aggregate:
 
 def aggregate_iqm(runs: Sequence[Run], *, n_boot: int, confidence: float, seed: int) -> tuple[list[Aggregate], list[str]]:
     """IQM over all tasks per method, bootstrap stratified by task (rliable's aggregate)."""
-    by_label: dict[str, dict[str, set]] = defaultdict(lambda: defaultdict(set))
-    for r in runs:
-        by_label[r.label][r.task].add(r.alpha if r.method == "boto" else None)
     metrics = task_metrics(runs)
     out, notes = [], []
+    by_label = group_by(runs, lambda r: r.label)
     for label in sorted(by_label):
-        swept = sorted(t for t, alphas in by_label[label].items() if len(alphas) > 1)
+        by_task = group_by(by_label[label], lambda r: r.task)
+        swept = sorted(t for t, rs in by_task.items() if len({r.alpha if r.method == "boto" else None for r in rs}) > 1)
         if swept:
             notes.append(
                 f"{label}: no aggregate, it has several alphas on {', '.join(swept)} (an alpha "
                 "sweep); pick one per task with --select-alpha and report those runs."
             )
             continue
-        tasks = sorted(by_label[label])
+        tasks = sorted(by_task)
         scales = {metrics[t].name for t in tasks}
         if len(tasks) > 1 and not scales <= {"success"} and scales != {"score"}:
             notes.append(
@@ -143,7 +142,7 @@ def aggregate_iqm(runs: Sequence[Run], *, n_boot: int, confidence: float, seed: 
             continue
         stats = {}
         for point, fieldname in POINTS:
-            per_task = [[getattr(r, fieldname) for r in runs if r.label == label and r.task == t] for t in tasks]
+            per_task = [[getattr(r, fieldname) for r in by_task[t]] for t in tasks]
             value, lo, hi = stratified_bootstrap_iqm(per_task, n_boot=n_boot, confidence=confidence, seed=seed)
             n = sum(1 for s in per_task for v in s if math.isfinite(v))
             stats[point] = {"iqm": value, "iqm_lo": lo, "iqm_hi": hi, "n": n}
