@@ -167,12 +167,9 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
             # the runs, spread a little sideways (fixed offsets: the figure is reproducible)
             offsets = np.linspace(-0.18, 0.18, len(c.values)) if len(c.values) > 1 else np.zeros(1)
             ax.plot(x + 0.25 + offsets * 0.5, c.values, ".", color="0.55", ms=3, zorder=2)
-            if math.isfinite(st["lo"]):
-                yerr = [[max(st["mean"] - st["lo"], 0.0)], [max(st["hi"] - st["mean"], 0.0)]]
-                ax.errorbar([x], [st["mean"]], yerr=yerr, fmt="o", color=color, ms=6, mec="0.2", capsize=4, lw=1.6,
-                            ecolor="0.2" if multi[c.label] else color, zorder=3)
-            else:
-                ax.plot([x], [st["mean"]], "o", color=color, ms=6, mec="0.2", zorder=3)
+            yerr = [[max(st["mean"] - st["lo"], 0.0)], [max(st["hi"] - st["mean"], 0.0)]] if math.isfinite(st["lo"]) else None
+            ax.errorbar([x], [st["mean"]], yerr=yerr, fmt="o", color=color, ms=6, mec="0.2", capsize=4, lw=1.6,
+                        ecolor="0.2" if multi[c.label] else color, zorder=3)
         ax.axhline(0.0, color="0.3", lw=0.8)
         ax.set_xticks(range(len(row)))
         ax.set_xticklabels([line_label(c.label, c.alpha, multi[c.label]) + ("\n(no pre-training)" if c.from_scratch else "")
