@@ -8,7 +8,7 @@ import dataclasses
 import itertools
 import json
 import math
-from collections import Counter, defaultdict
+from collections import Counter
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -272,12 +272,10 @@ ALPHA_FIELDS = ("success_initial", "success_10k", "success_final", "dip")
 def alpha_table(runs: Sequence[Run], window: float = DIP_WINDOW) -> list[AlphaRow]:
     """Per (task, boto label, alpha) of a sweep of at least two alphas: mean ± s.e. over seeds of
     the success at 0, 10k and final and of the dip (nan for a run without one)."""
-    sweeps: dict[tuple[str, str], dict[float, list[Run]]] = defaultdict(lambda: defaultdict(list))
-    for r in runs:
-        if r.method == "boto" and r.alpha is not None:
-            sweeps[(r.task, r.label)][r.alpha].append(r)
+    sweeps = group_by([r for r in runs if r.method == "boto" and r.alpha is not None], lambda r: (r.task, r.label))
     rows = []
-    for (task, label), by_alpha in sorted(sweeps.items()):
+    for (task, label), sweep in sorted(sweeps.items()):
+        by_alpha = group_by(sweep, lambda r: r.alpha)
         if len(by_alpha) < 2:
             continue
         for a in sorted(by_alpha):
@@ -423,20 +421,17 @@ def select_alpha(runs: Sequence[Run], *, select_seeds: Sequence[int] | None = No
         split = (f"Seeds: {seeds_text(sel_set)} select (--select-seeds), "
                  + (f"{seeds_text(rep_set)} report (--report-seeds)." if rep_set is not None
                     else "every other seed reports."))
-    by: dict[tuple[str, str], dict[float, list[Run]]] = defaultdict(lambda: defaultdict(list))
-    for r in runs:
-        finite = math.isfinite(r.success_10k) and math.isfinite(r.success_final)
-        if r.method == "boto" and r.alpha is not None and finite:
-            by[(r.task, r.label)][r.alpha].append(r)
+    sweeps = group_by([r for r in runs if r.method == "boto" and r.alpha is not None
+                       and math.isfinite(r.success_10k) and math.isfinite(r.success_final)], lambda r: (r.task, r.label))
 
     def where(task: str, label: str, alpha: float) -> str:
         return f"{task} / {label} alpha {alpha:+.2f}"
 
     choices = []
-    for (task, label), per_alpha in sorted(by.items()):
+    for (task, label), sweep in sorted(sweeps.items()):
         sel_runs: dict[float, list[Run]] = {}
         rep_runs: dict[float, list[Run]] = {}
-        for a, rs in sorted(per_alpha.items()):
+        for a, rs in sorted(group_by(sweep, lambda r: r.alpha).items()):
             if unseeded := [str(r.path) for r in rs if r.seed is None]:
                 raise DataFormatError(
                     f"{where(task, label, a)}: run(s) {', '.join(unseeded)} name no seed in "
