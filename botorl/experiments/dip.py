@@ -180,8 +180,7 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
         if metric.bounded:  # a return's dip has no fixed scale
             ax.set_ylim(-1.05, 0.08)
         ax.set_title(task)
-        what = "success" if metric.bounded else metric.label
-        ax.set_ylabel(f"dip (lowest {what} in 0..{window / 1000:g}k − {what} at 0)", fontsize=8)
+        ax.set_ylabel(f"dip (lowest {metric.label} in 0..{window / 1000:g}k − {metric.label} at 0)", fontsize=8)
         ax.grid(alpha=0.3, axis="y")
     save_figure(fig, path, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs",
                 dpi=120)

@@ -250,9 +250,7 @@ _NAMES = {"success_0": "success at 0", "lowest": "lowest in window", "dip": "dip
 def _name(quantity: str, metric: Metric | None = None) -> str:
     """A quantity in words; on a task without success (``metric``) in its metric's words (the
     quantities keep their names in the CSV files)."""
-    if metric is None or metric.bounded or quantity in ("lowest", "dip"):
-        return _NAMES[quantity]
-    return _NAMES[quantity].replace("success", metric.label)
+    return _NAMES[quantity] if metric is None else _NAMES[quantity].replace("success", metric.label)
 
 
 def paired_markdown(cells: Sequence[PairedCell], confidence: float, *,
