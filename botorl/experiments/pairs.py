@@ -117,10 +117,8 @@ def _quantities(run: Run, window: float) -> dict[str, float] | None:
 
 
 def _by_agent(runs: Sequence[Run], relative_to: Path | None) -> tuple[list[list[Run]], list[str]]:
-    """The runs grouped by the pre-trained agent they start from: one pre-training fingerprint,
-    then its checkpoint digest (runs that predate the digest form their own group, never paired
-    with runs that have one); and a note for each fingerprint whose runs start from different
-    agents (another machine or code makes another pre-training)."""
+    """The runs grouped by pre-training fingerprint, then checkpoint digest (runs without one form
+    their own group); and a note for each fingerprint whose runs start from different agents."""
     groups: list[list[Run]] = []
     notes: list[str] = []
     for key, same_settings in group_by(runs, _pretraining_key).items():
