@@ -278,8 +278,7 @@ def alpha_table(runs: Sequence[Run], window: float = DIP_WINDOW) -> list[AlphaRo
         by_alpha = group_by(sweep, lambda r: r.alpha)
         if len(by_alpha) < 2:
             continue
-        for a in sorted(by_alpha):
-            rs = by_alpha[a]
+        for a, rs in sorted(by_alpha.items()):
             vals = {f: [getattr(r, f) for r in rs] for f in ALPHA_FIELDS[:3]}
             vals["dip"] = [d.value if isinstance(d := run_dip(r, window), Dip) else float("nan") for r in rs]
             rows.append(AlphaRow(task, label, a, len(rs), {f: mean_se(v)[:2] for f, v in vals.items()}))
