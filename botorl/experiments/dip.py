@@ -97,9 +97,7 @@ class DipCell:
     initial: float  # mean success at step 0 of these runs
     lowest: float  # mean lowest success in the window
     stats: dict[str, float]  # mean, se, n, lo, hi (CI of the mean), iqm, iqm_lo, iqm_hi
-    # a method without pre-training (rlpd): its step 0 is an untrained policy, so its "dip" is
-    # that policy's luck at step 0, not unlearning, and the report says so beside the number
-    from_scratch: bool = False
+    from_scratch: bool = False  # no pre-training (rlpd): its dip is an untrained policy's, as dip_markdown says
 
 
 def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int) -> list[DipCell]:
