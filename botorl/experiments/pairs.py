@@ -49,6 +49,11 @@ QUANTITIES = ("success_0", "lowest", "dip", "success_10k", "success_final")
 TABLE_QUANTITIES = ("dip", "success_10k", "success_final")  # shown in report.md
 
 
+def _noise_floor(self) -> bool:
+    """A pair's or cell's property: WSRL against WSRL (labels differ only in their variant)."""
+    return self.label.split(" ")[0] == self.reference.split(" ")[0]
+
+
 @dataclasses.dataclass
 class Pair:
     task: str
@@ -69,14 +74,7 @@ class Pair:
         """The group its statistics pool over, in the report's order (the noise floor last)."""
         return (self.task, self.noise_floor, self.label, -99 if self.alpha is None else self.alpha, self.reference)
 
-    @property
-    def noise_floor(self) -> bool:
-        return same_method(self.label, self.reference)
-
-
-def same_method(label: str, reference: str) -> bool:
-    """WSRL against WSRL (labels differ only in their variant): the noise floor."""
-    return label.split(" ")[0] == reference.split(" ")[0]
+    noise_floor = property(_noise_floor)
 
 
 def canonical_label(label: str) -> str:
@@ -181,10 +179,7 @@ class PairedCell:
     equal: int
     worse: int
     wilcoxon_p: float
-
-    @property
-    def noise_floor(self) -> bool:
-        return same_method(self.label, self.reference)
+    noise_floor = property(_noise_floor)
 
 
 def paired_table(pairs: Sequence[Pair], *, quantities: Sequence[str] = QUANTITIES, n_boot: int = 2000,
