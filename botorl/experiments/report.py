@@ -553,10 +553,10 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
                 f"{task} / {label}{'' if alpha is None else f' alpha {alpha:+.2f}'}: seed(s) "
                 f"{dupes} appear more than once ({where}); each run counts as one sample"
             )
-    atomic_write_text(out / "table1.csv", cells_csv(cells))
-    atomic_write_text(out / "aggregate_iqm.csv", aggregate_csv(aggs))
-    atomic_write_text(out / "dip_runs.csv", dip_runs_csv(dips, relative_to=out, metric=dip_what))
-    files += [out / "table1.csv", out / "aggregate_iqm.csv", out / "dip_runs.csv"]
+    for name, text in (("table1.csv", cells_csv(cells)), ("aggregate_iqm.csv", aggregate_csv(aggs)),
+                       ("dip_runs.csv", dip_runs_csv(dips, relative_to=out, metric=dip_what))):
+        atomic_write_text(out / name, text)
+        files.append(out / name)
     if runs:
         figure5(runs, out / "figure5.png", grid_points=grid_points)
         files.append(out / "figure5.png")
