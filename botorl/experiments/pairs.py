@@ -254,9 +254,7 @@ def paired_markdown(cells: Sequence[PairedCell], confidence: float, *,
         f"{pct} bootstrap CI | {pct} t-interval | better / equal / worse | Wilcoxon p |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for c in cells:
-        if c.quantity not in quantities:
-            continue
+    for c in [c for c in cells if c.quantity in quantities]:
         label = f"{c.label} − {c.reference}" + (" (noise floor)" if c.noise_floor else "")
         p = "-" if not math.isfinite(c.wilcoxon_p) else f"{c.wilcoxon_p:.3f}"
         lines.append(
