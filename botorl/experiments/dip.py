@@ -79,14 +79,6 @@ def dips_of(runs: Sequence[Run], window: float) -> tuple[list[Dip], list[Skipped
     return [d for _, d in found if isinstance(d, Dip)], [Skipped(r.path, d) for r, d in found if isinstance(d, str)]
 
 
-def dip_stats(values: Sequence[float], *, n_boot: int, confidence: float, seed: int) -> dict[str, float]:
-    st = seed_stats(values, n_boot=n_boot, confidence=confidence, seed=seed)
-    st["lo"], st["hi"] = bootstrap_mean_ci(values, n_boot=n_boot, confidence=confidence, seed=seed)
-    if st["n"] < 2:  # resampling one run gives a zero-width interval, which would read as certainty
-        st["iqm_lo"] = st["iqm_hi"] = math.nan
-    return st
-
-
 @dataclasses.dataclass
 class DipCell:
     task: str
@@ -106,10 +98,13 @@ def dip_table(dips: Sequence[Dip], *, n_boot: int, confidence: float, seed: int)
     for key in sorted(groups, key=key_order):
         group = groups[key]
         values = [d.value for d in group]
+        stats = seed_stats(values, n_boot=n_boot, confidence=confidence, seed=seed)
+        stats["lo"], stats["hi"] = bootstrap_mean_ci(values, n_boot=n_boot, confidence=confidence, seed=seed)
+        if stats["n"] < 2:  # resampling one run gives a zero-width interval, which would read as certainty
+            stats["iqm_lo"] = stats["iqm_hi"] = math.nan
         cells.append(DipCell(
             *key, [d.run.seed for d in group], values,
-            float(np.mean([d.initial for d in group])), float(np.mean([d.lowest for d in group])),
-            dip_stats(values, n_boot=n_boot, confidence=confidence, seed=seed),
+            float(np.mean([d.initial for d in group])), float(np.mean([d.lowest for d in group])), stats,
             from_scratch=all(from_scratch(d.run.method) for d in group),
         ))
     return cells

@@ -94,7 +94,7 @@ class Cell:
     alpha: float | None
     seeds: list[int | None]
     stats: dict[str, dict[str, float]]  # point -> mean, se, n, iqm, iqm_lo, iqm_hi
-    dip: dict[str, float] | None = None  # dip_stats of the runs that have a dip
+    dip: dict[str, float] | None = None  # DipCell.stats of the runs that have a dip
 
 
 def table1(
