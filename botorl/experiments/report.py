@@ -422,23 +422,20 @@ def select_alpha(runs: Sequence[Run], *, select_seeds: Sequence[int] | None = No
                     else "every other seed reports."))
     sweeps = group_by([r for r in runs if r.method == "boto" and r.alpha is not None
                        and math.isfinite(r.success_10k) and math.isfinite(r.success_final)], lambda r: (r.task, r.label))
-
-    def where(task: str, label: str, alpha: float) -> str:
-        return f"{task} / {label} alpha {alpha:+.2f}"
-
     choices = []
     for (task, label), sweep in sorted(sweeps.items()):
         sel_runs: dict[float, list[Run]] = {}
         rep_runs: dict[float, list[Run]] = {}
         for a, rs in sorted(group_by(sweep, lambda r: r.alpha).items()):
+            where = f"{task} / {label} alpha {a:+.2f}"
             if unseeded := [str(r.path) for r in rs if r.seed is None]:
                 raise DataFormatError(
-                    f"{where(task, label, a)}: run(s) {', '.join(unseeded)} name no seed in "
+                    f"{where}: run(s) {', '.join(unseeded)} name no seed in "
                     "summary.json or config.json, so they cannot be split into selection and report seeds.")
             seeds = sorted({r.seed for r in rs})
             if len(seeds) < 2:
                 raise ConfigError(
-                    f"{where(task, label, a)} has {len(seeds)} finished seed(s) "
+                    f"{where} has {len(seeds)} finished seed(s) "
                     f"({seeds_text(seeds)}); held-out alpha selection needs at least 2 per alpha (some seeds choose "
                     "alpha, others report its score). Run more seeds of every alpha (botorl sweep ... --seeds 0-7) "
                     "or leave the under-seeded alpha's runs out of the report directories.")
@@ -447,7 +444,7 @@ def select_alpha(runs: Sequence[Run], *, select_seeds: Sequence[int] | None = No
             for name, got in (("selection", chosen), ("report", held)):
                 if not got:
                     raise ConfigError(
-                        f"{where(task, label, a)} has seeds {seeds_text(seeds)}, none of them in the "
+                        f"{where} has seeds {seeds_text(seeds)}, none of them in the "
                         f"{name} set ({split}) Choose --select-seeds/--report-seeds so that every alpha has seeds "
                         "in both.")
             sel_runs[a] = [r for r in rs if r.seed in chosen]
