@@ -78,9 +78,8 @@ def metric_words(runs: Sequence[Run]) -> tuple[str, str]:
     return "the headline metric of each task", "headline metric"
 
 
-def metric_lines(runs: Sequence[Run]) -> list[str]:
-    """report.md's lines naming each task's metric; none when every task has success."""
-    metrics = task_metrics(runs)
+def metric_lines(metrics: dict[str, Metric]) -> list[str]:
+    """report.md's lines naming each task's metric (``task_metrics``); none when every task has success."""
     if all(m.name == "success" for m in metrics.values()):
         return []
     return ["Metric per task (success where the task defines it, else the return or its normalised score):", ""] + \
@@ -584,7 +583,7 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
         "",
         f"## Table 1: {table_what}, mean ± standard error over seeds",
         "",
-        *metric_lines(runs),
+        *metric_lines(metrics),
         "SE = sample standard deviation (ddof=1) / sqrt(n). `initial` is online step 0, `10k` "
         "the unlearning step, `final` the last evaluation (300k in the paper's budget).",
         "",
