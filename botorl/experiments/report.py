@@ -61,10 +61,7 @@ SELECT_ALPHA_CRITERION = (
 
 def task_metrics(runs: Sequence[Run]) -> dict[str, Metric]:
     """Each task's headline metric (its first run's: the task records it in every run's config)."""
-    out: dict[str, Metric] = {}
-    for r in runs:
-        out.setdefault(r.task, r.metric)
-    return out
+    return {task: rs[0].metric for task, rs in group_by(runs, lambda r: r.task).items()}
 
 
 def metric_words(runs: Sequence[Run]) -> tuple[str, str]:
