@@ -24,7 +24,7 @@ door-binary-local uses door-binary's alpha 0.0; a user's task: docs/own-task.md'
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 from botorl.agents.cql import CQLConfig
 from botorl.agents.iql import IQLConfig
@@ -107,7 +107,7 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     # A user's task reads the file it was registered with (None: data held in memory).
     data_path = (spec.dataset_source.ref or None) if spec.user is not None else None
     cfg = RunConfig(task=task, method=method, pretrain=pretrain, profile=profile, data=DataConfig(path=data_path),
-                    env=env_record(spec), metric=metric_record(spec), network=net, offline=offline, boto=boto, online=OnlineConfig(sac=sac))
+                    env=env_record(spec), metric=MetricConfig(**asdict(metric_of_task(spec))), network=net, offline=offline, boto=boto, online=OnlineConfig(sac=sac))
     if spec.domain == "adroit":
         # The 25 DAPG human demos (door2_sparse.npy / door_human_demos.npz) hold actions up to
         # |a| = 1.37; the env clips actions to the box, so the Dataset's clip to +-1 keeps what
@@ -126,12 +126,6 @@ def env_record(spec) -> EnvConfig:
                      success_off=u.success_off, domain=None if spec.domain == "custom" else spec.domain,
                      reward_scale=spec.reward_scale, reward_bias=spec.reward_bias, obs_keys=u.obs_keys,
                      obs_dim=u.obs_dim, action_dim=u.action_dim, action_low=u.action_low, action_high=u.action_high)
-
-
-def metric_record(spec) -> MetricConfig:
-    """What config.json records of the task's headline metric (botorl/envs/metric.py)."""
-    m = metric_of_task(spec)
-    return MetricConfig(name=m.name, ref_min_score=m.ref_min_score, ref_max_score=m.ref_max_score)
 
 
 # Cal-QL pre-training steps of the quick profile on pointmaze (see _quick).
