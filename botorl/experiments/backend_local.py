@@ -231,7 +231,6 @@ class LocalBackend:
         proc = spawn(cmd, log, run_dir, sweep.trial_env(len(block) if block else 1), str(sweep.out), block,
                      cpu=cpu, cpus=block)
         sweep.entry(trial).update(pid=proc.pid, cpu=cpu, cpus=block)
-        sweep.save()
         return proc
 
     def poll(self, running: dict) -> list[tuple[int, int]]:

@@ -122,8 +122,6 @@ class RayBackend:
     def launch(self, trial, slot: int | None) -> Any:
         sweep = self.sweep
         run_dir, cmd, log = sweep.prepare(trial)
-        sweep.entry(trial).update(pid=None, cpu=None)
-        sweep.save()
         # only the settings that concern botorl: the rest of this machine's environment (PATH,
         # HOME) may be wrong on another node of a cluster
         env = {k: v for k, v in sweep.trial_env().items() if k in SINGLE_THREAD_ENV or k.startswith(RAY_ENV_PREFIXES)}

@@ -227,7 +227,7 @@ class Sweep:
         log = run_dir / TRIAL_LOG
         entry = self.entry(trial)
         entry["launches"] += 1
-        entry.update(state="running", action=action, started=_now(), ended=None, command=cmd)
+        entry.update(state="running", action=action, started=_now(), ended=None, command=cmd, pid=None, cpu=None)
         append_text(log, f"\n===== botorl sweep: attempt {entry['launches']} ({action}) at {_now()}\n"
                          + "===== " + " ".join(cmd) + "\n")
         return run_dir, cmd, log
@@ -295,6 +295,7 @@ class Sweep:
                     trial = queue.popleft()
                     slot = free_slots.pop(0)
                     running[slot] = _Running(trial, self.backend.launch(trial, slot))
+                    self.save()
                     self._set_postfix()
                 finished_keys = self.backend.poll(running)
                 for key, code in finished_keys:
