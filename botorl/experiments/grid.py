@@ -33,17 +33,14 @@ class Trial:
     pretrain: str | None = None  # BOTO only; None = the pipeline's default pre-training
 
     @property
-    def method_label(self) -> str:
-        return method_label(self.method, self.pretrain)
-
-    @property
     def relpath(self) -> str:
         """`<task>/<method>[-<pretrain>]/[alpha<+0.50>/]seed<k>`."""
+        label = method_label(self.method, self.pretrain)
         if self.method != "boto":
-            return f"{self.task}/{self.method_label}/seed{self.seed}"
+            return f"{self.task}/{label}/seed{self.seed}"
         a = self.alpha
         alpha = "alpha_preset" if a is None else f"alpha{a:+.2f}" if round(a, 2) == round(a, 6) else f"alpha{a:+.6f}"
-        return f"{self.task}/{self.method_label}/{alpha}/seed{self.seed}"
+        return f"{self.task}/{label}/{alpha}/seed{self.seed}"
 
     @property
     def fields(self) -> dict[str, Any]:
@@ -172,8 +169,6 @@ def parse_methods(value: Any) -> list[tuple[str, str | None]]:
 
 def parse_overrides(value: Any) -> dict[str, str]:
     """`["online.steps=2000", ...]` or a YAML mapping -> `{dotted.path: value}`."""
-    if value is None:
-        return {}
     if isinstance(value, dict):
         items = list(flat_overrides(value).items())
     else:
