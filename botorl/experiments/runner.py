@@ -242,7 +242,7 @@ class Sweep:
         if status == "finished":
             entry["state"] = "finished"
             entry.pop("error", None)
-            self._tick(1)
+            self._tick()
             return
         entry["failures_this_invocation"] += 1
         reason = f"exited 0 but summary.json status is {status!r}" if returncode == 0 else \
@@ -258,14 +258,13 @@ class Sweep:
         if retry:
             queue.appendleft(trial)
         else:
-            self._tick(1)
+            self._tick()
         tqdm.write(f"botorl sweep: {trial.relpath} {reason} ({'retrying' if retry else 'gave up'}; log "
                    f"{run_dir / TRIAL_LOG})", file=sys.stderr)
 
-    def _tick(self, n: int) -> None:
-        if self._pbar is not None:
-            self._pbar.update(n)
-            self._set_postfix()
+    def _tick(self) -> None:
+        self._pbar.update(1)
+        self._set_postfix()
 
     def _set_postfix(self) -> None:
         states = [self.entry(t)["state"] for t in self.trials]
