@@ -3,19 +3,13 @@ table; the ``full`` profile's sources: docs/methods.md ("Reference settings"). G
 get the settings of the paper domain they stand in for (pointmaze -> antmaze, door-binary-local
 -> door-binary).
 
-The ``quick`` profile's reductions, each for speed (a 10-critic 2 x 128 SAC update at UTD 4
-cost ~100 ms of CPU: 20k online steps alone took over 30 minutes): 2 x 64 actor and critics;
-FOUR critics (pre-training and fine-tuning) instead of WSRL's 10; 5 CQL action samples per
-kind; fixed CQL weight 5 (no Lagrange) on the maze tasks; 10k pre-training steps; 5k BOTO
-steps; 20k online steps (the 5k warm-up included) with evaluations every 2.5k, and every 500
-from the warm-up's end to 10k (the dip window); checkpoints every 5k. On pointmaze: 200k-step
-datasets, no max-target backup, and 20k pre-training steps of any algorithm (Cal-QL with 2
-action samples per kind and 128-row batches, ~3x cheaper a step, solves the umaze by then:
-docs/results/pretraining.md). door-binary-local: 20k BC-rollout steps besides the 25 demos.
+The ``quick`` profile (``_quick``) cuts sizes and budgets for speed: a 10-critic 2 x 128 SAC update
+at UTD 4 cost ~100 ms of CPU, so 20k online steps alone took over 30 minutes. On pointmaze, Cal-QL
+with 2 action samples per kind and 128-row batches (~3x cheaper a step) solves the umaze in 20k
+pre-training steps, which every algorithm gets there (docs/results/pretraining.md).
 
-The ``mid`` profile, one size up (docs/results/one-size-up.md), is quick with WSRL's 10-critic
-ensemble and 10k BOTO steps; not wider networks, which pre-train worse on the medium maze
-(docs/results/pretraining.md).
+The ``mid`` profile (docs/results/one-size-up.md) grows quick's ensemble and BOTO steps, not its
+networks, which pre-train worse on the medium maze (docs/results/pretraining.md).
 
 Our choices for tasks outside the paper: pointmaze uses antmaze's alpha (-1.0, the
 "diverse" value: the maze2d-style data are diverse, goals re-drawn) and log sigma -20;
