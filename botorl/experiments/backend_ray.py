@@ -1,9 +1,8 @@
 """The sweep's Ray backend: one Ray task (num_cpus=1) per trial, on an existing cluster
 (``--ray-address``) or a local instance in ``/tmp/botorl-ray-XXXXXXXX``, whose dir and daemons
 (pid, start time and the sweep's token) sweep.json records so that the next invocation cleans up
-after a SIGKILL (``cleanup_previous``). sweep.json is data: only a process it records that still
-runs with the recorded start time and carries the recorded secret token in its environment (and
-its descendants that carry it too) is stopped, only a dir this module makes removed."""
+after a SIGKILL (``cleanup_previous``; sweep.json is data: it stops and removes only what
+``backend_local.stop_recorded`` and ``own_ray_temp_dir`` accept)."""
 
 from __future__ import annotations
 
