@@ -20,6 +20,7 @@ from botorl.configs.build import flat_overrides, make_config
 from botorl.configs.members import Member, parse_alphas
 from botorl.configs.methods import METHODS, PRETRAIN_ALGOS
 from botorl.errors import ConfigError
+from botorl.experiments.runs import group_by
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,11 +103,8 @@ def group_populations(trials: list[Trial], size: int) -> list[PopulationJob]:
     ``size`` seeds."""
     if size < 1:
         raise ConfigError(f"--population-size must be >= 1, got {size}.")
-    groups: dict[tuple, list[Trial]] = {}
-    for t in trials:
-        groups.setdefault((t.task, t.method, t.pretrain), []).append(t)
     jobs: list[PopulationJob] = []
-    for (task, method, pretrain), ts in groups.items():
+    for (task, method, pretrain), ts in group_by(trials, lambda t: (t.task, t.method, t.pretrain)).items():
         seeds = list(dict.fromkeys(t.seed for t in ts))
         alphas = list(dict.fromkeys(t.alpha for t in ts))
         if len(seeds) <= size:
