@@ -92,7 +92,6 @@ def read_eval_csv(path: Path, metric: Metric = Metric()) -> tuple[np.ndarray, np
             if col != "success":
                 succ = metric.of(math.nan, succ)
             if math.isfinite(step) and step >= 0 and math.isfinite(succ):
-                by_step.pop(step, None)
                 by_step[step] = succ
     steps = np.asarray(sorted(by_step), dtype=np.float64)
     return steps, np.asarray([by_step[s] for s in steps], dtype=np.float64)
