@@ -199,12 +199,11 @@ def validate(cfg: RunConfig) -> None:
         # NumPy's generators take only non-negative seeds; 2**31 keeps JAX keys in int32
         need(isinstance(v, int) and 0 <= v < 2**31, name, v, "a seed must be an integer in [0, 2**31)")
 
-    for name in BUDGETS:
-        v = _at(cfg, name)
-        need(isinstance(v, int) and v >= 0, name, v, "a step budget must be a non-negative integer (0 skips the work)")
-    for name in POSITIVE:
-        v = _at(cfg, name)
-        need(isinstance(v, int) and v >= 1, name, v, "must be a positive integer")
+    for names, least, what in ((BUDGETS, 0, "a step budget must be a non-negative integer (0 skips the work)"),
+                               (POSITIVE, 1, "must be a positive integer")):
+        for name in names:
+            v = _at(cfg, name)
+            need(isinstance(v, int) and v >= least, name, v, what)
     need(isinstance(cfg.eval.dense_interval, int) and cfg.eval.dense_interval >= 0, "eval.dense_interval",
          cfg.eval.dense_interval, "give the env steps between dense evaluations, or 0 for none")
     need(0.0 <= cfg.online.offline_ratio <= 1.0, "online.offline_ratio", cfg.online.offline_ratio, "must lie in [0, 1]")
