@@ -61,7 +61,6 @@ class RayBackend:
         self.ray = None
         self.fn = None
         self.tmp: str | None = None
-        self.processes: list[dict[str, int]] = []
 
     def start(self, pending: int) -> int:
         """Connect to (or start) Ray; the number of trials to run at once."""
@@ -109,9 +108,9 @@ class RayBackend:
                     os.environ[TOKEN_ENV] = before
             if self.tmp:  # the local instance's daemons: the processes ray.init started
                 token = sweep_token()
-                self.processes = [r for p in descendants([os.getpid()])
-                                  if carries_token(p, token) and (r := process_record(p, token)) is not None]
-                self.sweep.manifest["ray_local_processes"] = self.processes
+                self.sweep.manifest["ray_local_processes"] = [
+                    r for p in descendants([os.getpid()]) if carries_token(p, token)
+                    and (r := process_record(p, token)) is not None]
                 self.sweep.save()
         self.fn = ray.remote(num_cpus=1, max_retries=0)(_ray_trial)
         if opt.ray_address and not opt.workers:  # an existing cluster: as many trials at once as it has CPUs
@@ -150,10 +149,8 @@ class RayBackend:
         if self.ray is not None and self.ray.is_initialized():
             self.ray.shutdown()
         if self.tmp:
-            stop_recorded(self.processes)
-            shutil.rmtree(self.tmp, ignore_errors=True)
+            cleanup_previous(self.sweep.manifest)  # its daemons and temp dir, as recorded in start
             self.tmp = None
-            self.processes = []
             with contextlib.suppress(Exception):
                 self.sweep.manifest.pop("ray_local_temp_dir", None)
                 self.sweep.manifest.pop("ray_local_processes", None)
