@@ -101,7 +101,8 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     # A user's task reads the file it was registered with (None: data held in memory).
     data_path = (spec.dataset_source.ref or None) if spec.user is not None else None
     cfg = RunConfig(task=task, method=method, pretrain=pretrain, profile=profile, data=DataConfig(path=data_path),
-                    env=env_record(spec), metric=MetricConfig(**asdict(metric_of_task(spec))), network=net, offline=offline, boto=boto, online=OnlineConfig(sac=sac))
+                    env=env_record(spec), metric=MetricConfig(**asdict(metric_of_task(spec))), network=net,
+                    offline=offline, boto=boto, online=OnlineConfig(sac=sac))
     if spec.domain == "adroit":
         # The 25 DAPG human demos (door2_sparse.npy / door_human_demos.npz) hold actions up to
         # |a| = 1.37; the env clips actions to the box, so the Dataset's clip to +-1 keeps what
