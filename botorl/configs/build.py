@@ -17,7 +17,7 @@ from typing import Any
 import tyro
 
 from botorl.configs.custom import expand_argv, register_given
-from botorl.configs.methods import get_method, resolve_pretrain
+from botorl.configs.methods import resolve_pretrain
 from botorl.envs.registry import get_task
 from botorl.errors import ConfigError
 from botorl.io import read_json_bounded
@@ -97,9 +97,8 @@ def build_config(argv: list[str]):
     argv = expand_argv(argv)  # --env MODULE:FUNCTION: a task of one's own, registered here (configs/custom.py)
     _refuse_derived(argv)
     pre = _pre_parse(argv)
-    get_method(pre.method)  # clear errors before tyro's generic ones
+    resolve_pretrain(pre.method, pre.pretrain)  # the method too: clear errors before tyro's generic ones
     check_precision(pre.precision)
-    resolve_pretrain(pre.method, pre.pretrain)
     get_task(pre.task)
     default = presets.make_preset(pre.task, pre.profile, pre.method, pre.pretrain)
     cfg = tyro.cli(

@@ -1,8 +1,6 @@
-"""A task of the user's own in a run's config (docs/own-task.md): ``expand_argv`` registers the
-task of ``botorl run --env MODULE:FUNCTION ...`` and names it with ``--task``; ``register_given``
-registers a recorded one again when a run directory is read back, from the entry point the user
-gives again (``--env``), and ``ensure_task`` (called by ``validate``) checks that its env is still
-the one the run was trained on.
+"""A task of the user's own in a run's config (docs/own-task.md): registered from ``botorl run --env
+MODULE:FUNCTION ...`` (``expand_argv``), again when a run directory is read back (``register_given``),
+and checked by ``validate`` (``ensure_task``).
 
 A run directory is data (docs/reliability.md): the entry point and folder its config.json
 records are never imported, called or put on ``sys.path``; only an entry the user typed (checked
@@ -101,13 +99,13 @@ def register_entry(name: str, entry: str, data: str, max_steps: int, *, success_
                                        ref_min_score=ref_min_score, ref_max_score=ref_max_score))
 
 
-def how_to_give(cfg, command: str = "resume") -> str:
+def how_to_give(cfg) -> str:
     """How the user gives a run's own task again (for messages)."""
     e = cfg.env
     if e.entry is None:
         return (f"register it again in this process with botorl.register_task({cfg.task!r}, make_env, ...) (the "
                 f"script that trained it does), then call botorl from that process")
-    return (f"give its entry point again with --env {e.entry} (`botorl {command} DIR --env {e.entry}`; eval, export "
+    return (f"give its entry point again with --env {e.entry} (`botorl resume DIR --env {e.entry}`; eval, export "
             f"and run --config take it too; run from the folder holding its module, or with that folder on "
             f"PYTHONPATH), or register it in this process with botorl.register_task({cfg.task!r}, ...)")
 

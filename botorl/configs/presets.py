@@ -3,19 +3,13 @@ table; the ``full`` profile's sources: docs/methods.md ("Reference settings"). G
 get the settings of the paper domain they stand in for (pointmaze -> antmaze, door-binary-local
 -> door-binary).
 
-The ``quick`` profile's reductions, each for speed (a 10-critic 2 x 128 SAC update at UTD 4
-cost ~100 ms of CPU: 20k online steps alone took over 30 minutes): 2 x 64 actor and critics;
-FOUR critics (pre-training and fine-tuning) instead of WSRL's 10; 5 CQL action samples per
-kind; fixed CQL weight 5 (no Lagrange) on the maze tasks; 10k pre-training steps; 5k BOTO
-steps; 20k online steps (the 5k warm-up included) with evaluations every 2.5k, and every 500
-from the warm-up's end to 10k (the dip window); checkpoints every 5k. On pointmaze: 200k-step
-datasets, no max-target backup, and 20k pre-training steps of any algorithm (Cal-QL with 2
-action samples per kind and 128-row batches, ~3x cheaper a step, solves the umaze by then:
-docs/results/pretraining.md). door-binary-local: 20k BC-rollout steps besides the 25 demos.
+The ``quick`` profile (``_quick``) cuts sizes and budgets for speed: a 10-critic 2 x 128 SAC update
+at UTD 4 cost ~100 ms of CPU, so 20k online steps alone took over 30 minutes. On pointmaze, Cal-QL
+with 2 action samples per kind and 128-row batches (~3x cheaper a step) solves the umaze in 20k
+pre-training steps, which every algorithm gets there (docs/results/pretraining.md).
 
-The ``mid`` profile, one size up (docs/results/one-size-up.md), is quick with WSRL's 10-critic
-ensemble and 10k BOTO steps; not wider networks, which pre-train worse on the medium maze
-(docs/results/pretraining.md).
+The ``mid`` profile (docs/results/one-size-up.md) grows quick's ensemble and BOTO steps, not its
+networks, which pre-train worse on the medium maze (docs/results/pretraining.md).
 
 Our choices for tasks outside the paper: pointmaze uses antmaze's alpha (-1.0, the
 "diverse" value: the maze2d-style data are diverse, goals re-drawn) and log sigma -20;
@@ -24,7 +18,7 @@ door-binary-local uses door-binary's alpha 0.0; a user's task: docs/own-task.md'
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 from botorl.agents.cql import CQLConfig
 from botorl.agents.iql import IQLConfig
@@ -107,7 +101,8 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
     # A user's task reads the file it was registered with (None: data held in memory).
     data_path = (spec.dataset_source.ref or None) if spec.user is not None else None
     cfg = RunConfig(task=task, method=method, pretrain=pretrain, profile=profile, data=DataConfig(path=data_path),
-                    env=env_record(spec), metric=metric_record(spec), network=net, offline=offline, boto=boto, online=OnlineConfig(sac=sac))
+                    env=env_record(spec), metric=MetricConfig(**asdict(metric_of_task(spec))), network=net,
+                    offline=offline, boto=boto, online=OnlineConfig(sac=sac))
     if spec.domain == "adroit":
         # The 25 DAPG human demos (door2_sparse.npy / door_human_demos.npz) hold actions up to
         # |a| = 1.37; the env clips actions to the box, so the Dataset's clip to +-1 keeps what
@@ -126,12 +121,6 @@ def env_record(spec) -> EnvConfig:
                      success_off=u.success_off, domain=None if spec.domain == "custom" else spec.domain,
                      reward_scale=spec.reward_scale, reward_bias=spec.reward_bias, obs_keys=u.obs_keys,
                      obs_dim=u.obs_dim, action_dim=u.action_dim, action_low=u.action_low, action_high=u.action_high)
-
-
-def metric_record(spec) -> MetricConfig:
-    """What config.json records of the task's headline metric (botorl/envs/metric.py)."""
-    m = metric_of_task(spec)
-    return MetricConfig(name=m.name, ref_min_score=m.ref_min_score, ref_max_score=m.ref_max_score)
 
 
 # Cal-QL pre-training steps of the quick profile on pointmaze (see _quick).

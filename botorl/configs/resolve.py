@@ -19,10 +19,8 @@ from botorl.errors import ConfigError
 from botorl.jaxsetup import check_precision
 
 
-# The fields of the agents' configs that repeat a fact of the run config, and the run config's
-# field each is derived from: the network sizes (network.*), the UTD ratio (online.utd) and
-# Cal-QL's switch (pretrain). ``derive`` sets them, the one place they are set; the command
-# line refuses them (configs/build.py), so no fact can be given twice, or twice differently.
+# Agent-config fields that copy a run-config field (schema.py: one fact, one field), each with
+# that field: ``derive`` sets them; the command line refuses their flags (configs/build.py).
 DERIVED = {
     "actor_hidden_dims": "network.actor_hidden_dims",
     "critic_hidden_dims": "network.critic_hidden_dims",
@@ -92,10 +90,9 @@ POSITIVE = ("offline.batch_size", "offline.updates_per_call", "offline.log_every
 MAX_BATCH = 1 << 20  # rows of one batch: 4096x the paper's 256
 MAX_WIDTH = 1 << 16  # units of one hidden layer
 
-# Counts a config (a file in a run directory, or a typo) could make unbounded, each with its cap:
-# checked by ``check_bounds`` before the task is made, any data read or anything allocated. The
-# caps are far above any setting the papers use (256-unit layers, 10 critics, 10 sampled actions,
-# 1M steps); they stop a value that would only hang or exhaust memory.
+# Caps (``check_bounds``) on counts a config (a run directory's file, or a typo) could make unbounded: far
+# above any setting the papers use (256-unit layers, 10 critics, 10 sampled actions, 1M steps), they stop a
+# value that would only hang or exhaust memory.
 BOUNDS = {
     "network.num_critics": 1024,  # SAC-N's largest ensemble is 500
     "offline.cql.cql_n_actions": 1024,
@@ -202,12 +199,11 @@ def validate(cfg: RunConfig) -> None:
         # NumPy's generators take only non-negative seeds; 2**31 keeps JAX keys in int32
         need(isinstance(v, int) and 0 <= v < 2**31, name, v, "a seed must be an integer in [0, 2**31)")
 
-    for name in BUDGETS:
-        v = _at(cfg, name)
-        need(isinstance(v, int) and v >= 0, name, v, "a step budget must be a non-negative integer (0 skips the work)")
-    for name in POSITIVE:
-        v = _at(cfg, name)
-        need(isinstance(v, int) and v >= 1, name, v, "must be a positive integer")
+    for names, least, what in ((BUDGETS, 0, "a step budget must be a non-negative integer (0 skips the work)"),
+                               (POSITIVE, 1, "must be a positive integer")):
+        for name in names:
+            v = _at(cfg, name)
+            need(isinstance(v, int) and v >= least, name, v, what)
     need(isinstance(cfg.eval.dense_interval, int) and cfg.eval.dense_interval >= 0, "eval.dense_interval",
          cfg.eval.dense_interval, "give the env steps between dense evaluations, or 0 for none")
     need(0.0 <= cfg.online.offline_ratio <= 1.0, "online.offline_ratio", cfg.online.offline_ratio, "must lie in [0, 1]")
@@ -216,10 +212,8 @@ def validate(cfg: RunConfig) -> None:
     _check_sizes(cfg, method, need)  # the layer widths: check_bounds
     if method.uses_alpha:
         check_alpha(cfg.alpha)
-    if cfg.seeds is not None:
-        parse_seeds(cfg.seeds)
-    if cfg.alphas is not None:
-        parse_alphas(cfg.alphas)
+    parse_seeds(cfg.seeds)  # None: no population, nothing to check
+    parse_alphas(cfg.alphas)
     if "warmup" in method.stages and cfg.online.steps <= cfg.warmup.steps:
         raise ConfigError(f"--online.steps = {cfg.online.steps} leaves no fine-tuning after the "
                           f"{cfg.warmup.steps}-step warm-up: the warm-up's env steps count as online steps (WSRL's "

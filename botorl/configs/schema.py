@@ -1,8 +1,7 @@
 """The run configuration: typed nested dataclasses; tyro makes the CLI from them.
 
 Every field can be set as ``--<dotted.path> VALUE`` (``--online.steps 2000``,
-``--network.critic_hidden_dims 64 64``) over the preset of the task and profile (presets.py);
-``resolve`` makes the config consistent and ``validate`` rejects bad values before any work.
+``--network.critic_hidden_dims 64 64``) over the preset of the task and profile (presets.py, build.py).
 
 One fact, one field: the network sizes (``network.*``), the UTD ratio (``online.utd``) and the
 CQL/Cal-QL switch (``pretrain``) are set here only; ``resolve`` derives the agent configs' copies

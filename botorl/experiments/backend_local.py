@@ -1,8 +1,6 @@
 """The sweep's local backends, ``local`` (``--workers`` trial processes, each pinned to its own
 block of the cores) and ``sequential`` (one trial at a time, the machine's full thread pools),
-and the process bookkeeping every backend shares (pid files, stopping what a sweep recorded).
-A worker with one core has BLAS/OpenMP limited to one thread: a 1-core trial with many threads
-only adds context switches."""
+and the process bookkeeping every backend shares (pid files, stopping what a sweep recorded)."""
 
 from __future__ import annotations
 
@@ -50,10 +48,10 @@ def carries_token(pid: int, token: Any) -> bool:
         return False
     return f"{TOKEN_ENV}={token}".encode() in env.split(b"\0")
 
-# Thread settings for a trial pinned to one core: the usual BLAS/OpenMP knobs. XLA needs no
-# flag: its CPU thread pools are sized from the affinity mask, and any XLA_FLAGS value is part
-# of the persistent compile cache's key (pinned trials would recompile what unpinned runs
-# cached). Extra flags for pinned trials: $BOTORL_SWEEP_XLA_FLAGS.
+# BLAS/OpenMP limited to one thread for a trial pinned to one core, where more only add context
+# switches. XLA needs no flag: its CPU thread pools are sized from the affinity mask, and any
+# XLA_FLAGS value is part of the persistent compile cache's key (pinned trials would recompile
+# what unpinned runs cached). Extra flags for pinned trials: $BOTORL_SWEEP_XLA_FLAGS.
 SINGLE_THREAD_ENV = dict.fromkeys(("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
                                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS", "TF_NUM_INTRAOP_THREADS",
                                    "TF_NUM_INTEROP_THREADS"), "1")
@@ -231,7 +229,6 @@ class LocalBackend:
         proc = spawn(cmd, log, run_dir, sweep.trial_env(len(block) if block else 1), str(sweep.out), block,
                      cpu=cpu, cpus=block)
         sweep.entry(trial).update(pid=proc.pid, cpu=cpu, cpus=block)
-        sweep.save()
         return proc
 
     def poll(self, running: dict) -> list[tuple[int, int]]:

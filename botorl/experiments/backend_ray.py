@@ -1,9 +1,8 @@
 """The sweep's Ray backend: one Ray task (num_cpus=1) per trial, on an existing cluster
 (``--ray-address``) or a local instance in ``/tmp/botorl-ray-XXXXXXXX``, whose dir and daemons
 (pid, start time and the sweep's token) sweep.json records so that the next invocation cleans up
-after a SIGKILL (``cleanup_previous``). sweep.json is data: only a process it records that still
-runs with the recorded start time and carries the recorded secret token in its environment (and
-its descendants that carry it too) is stopped, only a dir this module makes removed."""
+after a SIGKILL (``cleanup_previous``; sweep.json is data: it stops and removes only what
+``backend_local.stop_recorded`` and ``own_ray_temp_dir`` accept)."""
 
 from __future__ import annotations
 
@@ -62,7 +61,6 @@ class RayBackend:
         self.ray = None
         self.fn = None
         self.tmp: str | None = None
-        self.processes: list[dict[str, int]] = []
 
     def start(self, pending: int) -> int:
         """Connect to (or start) Ray; the number of trials to run at once."""
@@ -110,9 +108,9 @@ class RayBackend:
                     os.environ[TOKEN_ENV] = before
             if self.tmp:  # the local instance's daemons: the processes ray.init started
                 token = sweep_token()
-                self.processes = [r for p in descendants([os.getpid()])
-                                  if carries_token(p, token) and (r := process_record(p, token)) is not None]
-                self.sweep.manifest["ray_local_processes"] = self.processes
+                self.sweep.manifest["ray_local_processes"] = [
+                    r for p in descendants([os.getpid()]) if carries_token(p, token)
+                    and (r := process_record(p, token)) is not None]
                 self.sweep.save()
         self.fn = ray.remote(num_cpus=1, max_retries=0)(_ray_trial)
         if opt.ray_address and not opt.workers:  # an existing cluster: as many trials at once as it has CPUs
@@ -122,8 +120,6 @@ class RayBackend:
     def launch(self, trial, slot: int | None) -> Any:
         sweep = self.sweep
         run_dir, cmd, log = sweep.prepare(trial)
-        sweep.entry(trial).update(pid=None, cpu=None)
-        sweep.save()
         # only the settings that concern botorl: the rest of this machine's environment (PATH,
         # HOME) may be wrong on another node of a cluster
         env = {k: v for k, v in sweep.trial_env().items() if k in SINGLE_THREAD_ENV or k.startswith(RAY_ENV_PREFIXES)}
@@ -153,10 +149,8 @@ class RayBackend:
         if self.ray is not None and self.ray.is_initialized():
             self.ray.shutdown()
         if self.tmp:
-            stop_recorded(self.processes)
-            shutil.rmtree(self.tmp, ignore_errors=True)
+            cleanup_previous(self.sweep.manifest)  # its daemons and temp dir, as recorded in start
             self.tmp = None
-            self.processes = []
             with contextlib.suppress(Exception):
                 self.sweep.manifest.pop("ray_local_temp_dir", None)
                 self.sweep.manifest.pop("ray_local_processes", None)

@@ -19,7 +19,7 @@ from botorl.experiments.grid import build_grid, load_grid_file, parse_seeds
 from botorl.experiments.pairs import read_pairs_csv, write_paired_report
 from botorl.experiments.report import make_report, select_alpha
 from botorl.experiments.runner import Sweep, SweepOptions, next_action
-from botorl.experiments.runs import find_runs
+from botorl.experiments.runs import find_runs, group_by
 from botorl.pipeline.tracking import require_wandb
 
 
@@ -115,10 +115,7 @@ def _check_trial_configs(sweep) -> None:
     """Build the config of each (task, method, pre-training)'s first trial, which the sweep keeps
     for it, so an unknown task, a typo in --set or a bad profile fails once, now, instead of in
     every trial."""
-    firsts: dict[tuple, object] = {}
-    for trial in sweep.trials:
-        firsts.setdefault((trial.task, trial.method, trial.pretrain), trial)
-    for trial in firsts.values():
+    for trial in [ts[0] for ts in group_by(sweep.trials, lambda t: (t.task, t.method, t.pretrain)).values()]:
         captured = io.StringIO()
         try:
             with contextlib.redirect_stderr(captured), contextlib.redirect_stdout(captured):

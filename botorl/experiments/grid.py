@@ -20,6 +20,7 @@ from botorl.configs.build import flat_overrides, make_config
 from botorl.configs.members import Member, parse_alphas
 from botorl.configs.methods import METHODS, PRETRAIN_ALGOS
 from botorl.errors import ConfigError
+from botorl.experiments.runs import group_by
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,17 +34,14 @@ class Trial:
     pretrain: str | None = None  # BOTO only; None = the pipeline's default pre-training
 
     @property
-    def method_label(self) -> str:
-        return method_label(self.method, self.pretrain)
-
-    @property
     def relpath(self) -> str:
         """`<task>/<method>[-<pretrain>]/[alpha<+0.50>/]seed<k>`."""
+        label = method_label(self.method, self.pretrain)
         if self.method != "boto":
-            return f"{self.task}/{self.method_label}/seed{self.seed}"
+            return f"{self.task}/{label}/seed{self.seed}"
         a = self.alpha
         alpha = "alpha_preset" if a is None else f"alpha{a:+.2f}" if round(a, 2) == round(a, 6) else f"alpha{a:+.6f}"
-        return f"{self.task}/{self.method_label}/{alpha}/seed{self.seed}"
+        return f"{self.task}/{label}/{alpha}/seed{self.seed}"
 
     @property
     def fields(self) -> dict[str, Any]:
@@ -105,11 +103,8 @@ def group_populations(trials: list[Trial], size: int) -> list[PopulationJob]:
     ``size`` seeds."""
     if size < 1:
         raise ConfigError(f"--population-size must be >= 1, got {size}.")
-    groups: dict[tuple, list[Trial]] = {}
-    for t in trials:
-        groups.setdefault((t.task, t.method, t.pretrain), []).append(t)
     jobs: list[PopulationJob] = []
-    for (task, method, pretrain), ts in groups.items():
+    for (task, method, pretrain), ts in group_by(trials, lambda t: (t.task, t.method, t.pretrain)).items():
         seeds = list(dict.fromkeys(t.seed for t in ts))
         alphas = list(dict.fromkeys(t.alpha for t in ts))
         if len(seeds) <= size:
@@ -172,8 +167,6 @@ def parse_methods(value: Any) -> list[tuple[str, str | None]]:
 
 def parse_overrides(value: Any) -> dict[str, str]:
     """`["online.steps=2000", ...]` or a YAML mapping -> `{dotted.path: value}`."""
-    if value is None:
-        return {}
     if isinstance(value, dict):
         items = list(flat_overrides(value).items())
     else:

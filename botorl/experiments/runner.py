@@ -46,8 +46,7 @@ USER_ERROR_EXIT = 2  # BotorlError: retrying cannot help
 
 BACKENDS = ("sequential", "local", "ray")
 
-def default_command() -> list[str]:
-    return [sys.executable, "-m", "botorl.cli"]
+DEFAULT_COMMAND = (sys.executable, "-m", "botorl.cli")
 
 
 def _now() -> str:
@@ -74,7 +73,7 @@ def trial_command(cfg, run_dir: Path, command: Sequence[str] | None = None,
                   share_in: Path | None = None) -> tuple[str, list[str]]:
     """(action, command) of the trial in ``run_dir`` (``cfg`` None: a stand-in command's own task);
     with ``share_in`` a new trial starts from pre-training finished there."""
-    prefix = list(command) if command else default_command()
+    prefix = list(command or DEFAULT_COMMAND)
     action = next_action(run_dir)
     # no progress bars: a trial's output goes to its log file, where tqdm's redraws pile up
     if action == "resume":
@@ -123,7 +122,6 @@ class SweepOptions:
 class _Running:
     trial: Trial
     handle: Any  # subprocess.Popen or a Ray ObjectRef
-    slot: int | None
 
 
 class Sweep:
@@ -183,7 +181,7 @@ class Sweep:
             "version": 1,
             "grid": grid,
             "backend": self.opt.backend,
-            "command": list(self.opt.command) if self.opt.command else default_command(),
+            "command": list(self.opt.command or DEFAULT_COMMAND),
             "max_retries": self.opt.max_retries,
             "invocations": history,
             "updated": _now(),
@@ -229,7 +227,7 @@ class Sweep:
         log = run_dir / TRIAL_LOG
         entry = self.entry(trial)
         entry["launches"] += 1
-        entry.update(state="running", action=action, started=_now(), ended=None, command=cmd)
+        entry.update(state="running", action=action, started=_now(), ended=None, command=cmd, pid=None, cpu=None)
         append_text(log, f"\n===== botorl sweep: attempt {entry['launches']} ({action}) at {_now()}\n"
                          + "===== " + " ".join(cmd) + "\n")
         return run_dir, cmd, log
@@ -244,7 +242,7 @@ class Sweep:
         if status == "finished":
             entry["state"] = "finished"
             entry.pop("error", None)
-            self._tick(1)
+            self._tick()
             return
         entry["failures_this_invocation"] += 1
         reason = f"exited 0 but summary.json status is {status!r}" if returncode == 0 else \
@@ -255,25 +253,18 @@ class Sweep:
             tail = ""
         entry["error"] = reason + "; log tail:\n" + tail
         # a BotorlError (USER_ERROR_EXIT: bad config, missing data) fails again
-        if returncode != USER_ERROR_EXIT and entry["failures_this_invocation"] <= self.opt.max_retries:
-            entry["state"] = "retrying"
+        retry = returncode != USER_ERROR_EXIT and entry["failures_this_invocation"] <= self.opt.max_retries
+        entry["state"] = "retrying" if retry else "failed"
+        if retry:
             queue.appendleft(trial)
         else:
-            entry["state"] = "failed"
-            self._tick(1)
-        what = "retrying" if entry["state"] == "retrying" else "gave up"
-        self._say(f"botorl sweep: {trial.relpath} {reason} ({what}; log {run_dir / TRIAL_LOG})")
+            self._tick()
+        tqdm.write(f"botorl sweep: {trial.relpath} {reason} ({'retrying' if retry else 'gave up'}; log "
+                   f"{run_dir / TRIAL_LOG})", file=sys.stderr)
 
-    def _say(self, line: str) -> None:
-        if self._pbar is not None and not self._pbar.disable:
-            self._pbar.write(line, file=sys.stderr)
-        else:
-            print(line, file=sys.stderr)
-
-    def _tick(self, n: int) -> None:
-        if self._pbar is not None:
-            self._pbar.update(n)
-            self._set_postfix()
+    def _tick(self) -> None:
+        self._pbar.update(1)
+        self._set_postfix()
 
     def _set_postfix(self) -> None:
         states = [self.entry(t)["state"] for t in self.trials]
@@ -286,7 +277,7 @@ class Sweep:
     @preempt.handling()
     def run(self) -> dict[str, Any]:
         self._lock.acquire()
-        running: dict[int, _Running] = {}
+        running: dict[int, _Running] = {}  # by worker slot
         try:
             self._load_manifest()
             self.save()
@@ -297,14 +288,13 @@ class Sweep:
                 total=len(self.trials), initial=done, desc="sweep", unit="trial",
                 disable=not self.opt.progress, dynamic_ncols=True,
             )
-            next_key = 0
             while queue or running:
-                free_slots = [s for s in range(n_workers) if s not in {r.slot for r in running.values()}]
+                free_slots = [s for s in range(n_workers) if s not in running]
                 while queue and free_slots:
                     trial = queue.popleft()
                     slot = free_slots.pop(0)
-                    running[next_key] = _Running(trial, self.backend.launch(trial, slot), slot)
-                    next_key += 1
+                    running[slot] = _Running(trial, self.backend.launch(trial, slot))
+                    self.save()
                     self._set_postfix()
                 finished_keys = self.backend.poll(running)
                 for key, code in finished_keys:

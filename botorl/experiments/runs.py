@@ -21,7 +21,8 @@ from botorl.configs.methods import METHODS
 from botorl.configs.schema import flatten
 from botorl.envs.metric import Metric
 from botorl.envs.metric import of_config as metric_of_config
-from botorl.io import CSV_LIMIT, JSON_LIMIT, read_bounded
+from botorl.experiments.backend_local import read_json
+from botorl.io import CSV_LIMIT, read_bounded, read_json_bounded
 
 
 @dataclasses.dataclass
@@ -91,7 +92,6 @@ def read_eval_csv(path: Path, metric: Metric = Metric()) -> tuple[np.ndarray, np
             if col != "success":
                 succ = metric.of(math.nan, succ)
             if math.isfinite(step) and step >= 0 and math.isfinite(succ):
-                by_step.pop(step, None)
                 by_step[step] = succ
     steps = np.asarray(sorted(by_step), dtype=np.float64)
     return steps, np.asarray([by_step[s] for s in steps], dtype=np.float64)
@@ -130,21 +130,16 @@ def label_variants(runs: list[Run]) -> None:
 
 def _load_run(run_dir: Path) -> Run | Skipped:
     try:
-        summary = json.loads(read_bounded(run_dir / "summary.json", JSON_LIMIT))
+        summary = read_json_bounded(run_dir / "summary.json")
         if not isinstance(summary, dict):
             raise ValueError("not a JSON object")
-    except (OSError, ValueError, RecursionError) as err:
-        return Skipped(run_dir, f"summary.json unreadable ({type(err).__name__ if isinstance(err, RecursionError) else err})")
+    except (OSError, ValueError) as err:
+        return Skipped(run_dir, f"summary.json unreadable ({err})")
     status = summary.get("status")
     if status != "finished":
         error = f" ({summary['error']})" if summary.get("error") else ""
         return Skipped(run_dir, f"status is {status!r}, not 'finished'{error}")
-    config: dict[str, Any] = {}
-    try:
-        loaded = json.loads(read_bounded(run_dir / "config.json", JSON_LIMIT))
-        config = loaded if isinstance(loaded, dict) else {}
-    except (OSError, ValueError, RecursionError):
-        pass
+    config = read_json(run_dir / "config.json") or {}
 
     def field(name: str) -> Any:
         return summary[name] if summary.get(name) is not None else config.get(name)
