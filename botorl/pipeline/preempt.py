@@ -3,7 +3,7 @@
 
 The commands that train install ``handling()``. A first signal outside training raises
 ``Interrupted`` at once; inside ``deferred()`` (the stage loop) it only sets the flag the
-stages read at their step boundaries (``stages.step_end``). A second signal exits at once;
+stages read at their step boundaries (``stages.stage_loop``). A second signal exits at once;
 copies within ``DUPLICATE_S`` of the first count as the first (SLURM signals every process of
 a job, and a sweep forwards it to its trial). Without ``handling()`` the flag is never set.
 """

@@ -159,19 +159,6 @@ class Rate:
         return rate
 
 
-def step_end(stage: str, step: int, total: int, due: Points, save: Callable[[bool], None]) -> None:
-    """What ends every step of a stage: the scheduled checkpoint (``save(False)``), the
-    fault-injection point, and after a SIGTERM / SIGINT the checkpoint of this very step
-    (``save(True)``: with the metrics window; never twice) and ``Interrupted``."""
-    if due.checkpoint:
-        save(False)
-    faults.step(stage, step)
-    if step < total and preempt.requested():
-        if not due.checkpoint:
-            save(True)
-        raise preempt.interrupted()
-
-
 def pretrain_groups(member_cfgs) -> tuple[list[int], list[int]]:
     """(the first member of each seed, each member's index into that list)."""
     first: dict[int, int] = {}
@@ -186,8 +173,10 @@ def stage_loop(agents, update: Callable, chunk: Callable[[int], int], step: int,
     (agents, metrics or None: the update added its own) runs k = ``chunk(step)`` updates in one
     jitted call (the offline stages) or one online step; at log and checkpoint points (at every
     call with ``check_every_call``) the window's means are checked (``check(step, ms)``, which may
-    raise) and at log points logged; at evaluation points ``evaluate(agents, step)``; then
-    ``step_end`` with ``save(step, agents, interrupted)``. Returns the agents."""
+    raise) and at log points logged; at evaluation points ``evaluate(agents, step)``; then the
+    scheduled checkpoint (``save(step, agents, False)``), the fault-injection point, and after a
+    SIGTERM / SIGINT the checkpoint of this very step (``interrupted`` True: with the metrics
+    window; never twice) and ``Interrupted``. Returns the agents."""
     while step < schedule.total:
         k = chunk(step)
         agents, metrics = update(agents, step, k)
@@ -203,7 +192,13 @@ def stage_loop(agents, update: Callable, chunk: Callable[[int], int], step: int,
                 log(step, ms)
         if due.evaluate:
             evaluate(agents, step)
-        step_end(stage, step, schedule.total, due, lambda interrupted: save(step, agents, interrupted))
+        if due.checkpoint:
+            save(step, agents, False)
+        faults.step(stage, step)
+        if step < schedule.total and preempt.requested():
+            if not due.checkpoint:
+                save(step, agents, True)
+            raise preempt.interrupted()
     return agents
 
 
