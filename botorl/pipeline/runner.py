@@ -237,12 +237,6 @@ class RunContext:
                 "agents": lambda like: self.load_agents(point["name"], like)}
 
     # -- evaluation
-    def envs(self):
-        """``eval.envs_per_member`` evaluation envs per member (the same seeds for every member)."""
-        if self._envs is None:
-            self._envs = [make_eval_envs(self.spec, self.cfg.eval) for _ in self.members]
-        return self._envs
-
     def q_stats(self, agents) -> list[tuple[float, float]]:
         """(q_data, q_uniform) per member on the probe's pairs (one call for all members)."""
         q_d = jax.device_get(population.q_mean(agents, self.probe.observations, self.probe.actions))
@@ -256,8 +250,10 @@ class RunContext:
     def evaluate(self, agents, env_step: int) -> list[dict[str, Any]]:
         """All members' evaluation episodes, one batched policy call per env step; a row per member."""
         cfg = self.cfg
+        if self._envs is None:  # each member's evaluation envs (the same seeds for every member), kept
+            self._envs = [make_eval_envs(self.spec, cfg.eval) for _ in self.members]
         stats = evaluation.run_episodes(
-            lambda o: jax.device_get(population.eval_actions(agents, o)), self.envs(), episodes=cfg.eval.episodes,
+            lambda o: jax.device_get(population.eval_actions(agents, o)), self._envs, episodes=cfg.eval.episodes,
             success_mode=self.spec.success_mode, seeds=[Streams.of(member.cfg).evaluation for member in self.members],
             max_steps=self.spec.max_episode_steps,
         )

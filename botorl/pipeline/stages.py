@@ -214,11 +214,12 @@ def pretrain(cfg, member_cfgs, d: Dataset, hooks: Hooks, resume: dict | None = N
     streams = [Streams.of(member_cfgs[r]) for r in reps]
     agents = population.stack([make_pretrain_agent(member_cfgs[r], d.obs_dim, d.action_dim, s.pretrain)
                                for r, s in zip(reps, streams)])
-    step, states = 0, [None] * len(reps)
+    step, states, window = 0, [None] * len(reps), Window(len(reps))
     if resume is not None:
         agents = resume["agents"](agents)
         step, states = int(resume["step"]), resume.get("np_rng")
         states = states if isinstance(states, list) else [states] * len(reps)
+        window.load(resume["arrays"].get("window"))
     rngs = [rng_from(st, s.pretrain_batches) for s, st in zip(streams, states)]
     on_device = jax.default_backend() != "cpu" if oc.sample_on_device is None else oc.sample_on_device
     if on_device:
@@ -233,9 +234,7 @@ def pretrain(cfg, member_cfgs, d: Dataset, hooks: Hooks, resume: dict | None = N
         def update(agents, step: int, k: int):
             return population.update_many(agents, d.sample_members(rngs, oc.batch_size, k))
 
-    window, rate = Window(len(reps)), Rate(step)
-    if resume is not None:
-        window.load(resume["arrays"].get("window"))
+    rate = Rate(step)
     shared = f" x {len(reps)} seeds for {n} members" if len(reps) < n else f" x {n} members"
 
     def log(step: int, per_seed: list[dict]) -> None:
@@ -371,16 +370,16 @@ def finetune(cfg, member_cfgs, method, agents, state: OnlineState, probe_observa
     Every method with a warm-up starts warm (configs/methods.py), so its buffer keeps D_warmup."""
     oc, n = cfg.online, len(member_cfgs)
     agents = start_finetuning(cfg, member_cfgs, method, agents, state.buffer.action_dim, probe_observations)
+    window = Window(n)
     if resume is not None:
         agents = resume["agents"](agents)
+        window.load(resume["arrays"].get("window"))
     # where the updates keep them (members split over the CPU devices) from the first step on: on one
     # device, a resumed run's loaded agents would compile another policy program (other last bits)
     agents = population.placed(agents, every_leaf=True)[0]
     if resume is None:  # a checkpoint comes after a step: a resumed fine-tuning is past its start
         hooks.evaluate(agents, state.step)
-    window, rate = Window(n), Rate(state.step)
-    if resume is not None:
-        window.load(resume["arrays"].get("window"))
+    rate = Rate(state.step)
 
     def evaluate(agents, step: int) -> None:
         bar.set_postfix(success=f"{hooks.evaluate(agents, step)[0]['success']:.2f}")
