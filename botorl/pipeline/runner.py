@@ -485,7 +485,6 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
             raise
         latest = ctx.ckpt.latest()
         err.checkpoint = latest["name"] if latest else None
-        err.how = err.how or f"botorl resume {root}"
         tracking.finish(wandb_runs, 128 + err.signum, seconds=min(tracking.timeout(), 10.0))
         raise
     ctx.write_summary("finished")
