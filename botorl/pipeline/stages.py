@@ -1,9 +1,5 @@
-"""The four stages of a run, each a function from explicit inputs to its outputs:
-
-    pretrain(cfg, member_cfgs, d, hooks)                -> agents     Cal-QL / CQL / IQL on D_offline
-    warmup(cfg, member_cfgs, agents, state, hooks)      -> D_warmups  the online loop, learning off
-    boto(cfg, member_cfgs, agents, d, d_warmups, hooks) -> agents     BOTO critic training on D_offline u D_warmup
-    finetune(cfg, member_cfgs, method, agents, state, ...) -> agents  the online loop, learning on
+"""The four stages of a run (``pretrain``, ``warmup``, ``boto``, ``finetune``; their inputs and
+outputs: docs/architecture.md), each a function from explicit inputs to its outputs.
 
 Every stage runs ``stage_loop``; the warm-up and fine-tuning run it over one online loop state
 (``OnlineState``). A stage reads no run context: it gets ``Hooks``, its callbacks into the
