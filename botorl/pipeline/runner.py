@@ -164,7 +164,6 @@ class RunContext:
     def begin_stage(self, stage: str) -> None:
         self._stage = stage
         self._stage_t0 = time.perf_counter()
-        self.state["stage_seconds"].setdefault(stage, 0.0)
 
     def stage_seconds(self) -> dict[str, float]:
         out = dict(self.state["stage_seconds"])
