@@ -32,7 +32,7 @@ from botorl.configs.methods import get_method
 from botorl.data.dataset import Dataset, RewardTransform
 from botorl.data.replay import ReplayBuffer
 from botorl.pipeline import faults, preempt
-from botorl.pipeline.online import OnlineState, rng_from
+from botorl.pipeline.online import OnlineState
 
 # A stage's callbacks into its run (runner.RunContext's): ``log`` and ``check`` (stage, step, one
 # item per member; check may raise), ``bar`` (a progress bar), ``evaluate(agents, step)`` -> rows,
@@ -210,13 +210,14 @@ def pretrain(cfg, member_cfgs, d: Dataset, hooks: Hooks, resume: dict | None = N
     streams = [Streams.of(member_cfgs[r]) for r in reps]
     agents = population.stack([make_pretrain_agent(member_cfgs[r], d.obs_dim, d.action_dim, s.pretrain)
                                for r, s in zip(reps, streams)])
-    step, states, window = 0, [None] * len(reps), Window(len(reps))
+    rngs, step, window = [np.random.default_rng(s.pretrain_batches) for s in streams], 0, Window(len(reps))
     if resume is not None:
         agents = resume["agents"](agents)
         step, states = int(resume["step"]), resume.get("np_rng")
-        states = states if isinstance(states, list) else [states] * len(reps)
+        for rng, st in zip(rngs, states if isinstance(states, list) else [states] * len(reps)):
+            if st is not None:  # as saved; else from its seed
+                rng.bit_generator.state = st
         window.load(resume["arrays"].get("window"))
-    rngs = [rng_from(st, s.pretrain_batches) for s, st in zip(streams, states)]
     on_device = jax.default_backend() != "cpu" if oc.sample_on_device is None else oc.sample_on_device
     if on_device:
         arrays = d.to_device()
@@ -263,7 +264,7 @@ def online_state(cfg, member_cfgs, method, spec, offline: Dataset | None, mc_ret
     oc, streams = cfg.online, [Streams.of(c) for c in member_cfgs]
     buffer = ReplayBuffer(oc.buffer_capacity or (oc.steps + 1), spec.obs_dim, spec.action_dim, members=len(streams))
     state = OnlineState([spec.make_env(seed=s.online_env) for s in streams], buffer,
-                        [rng_from(None, s.online_batches) for s in streams], oc, method, RewardTransform.of(spec),
+                        [np.random.default_rng(s.online_batches) for s in streams], oc, method, RewardTransform.of(spec),
                         mc_returns=mc_returns, success_mode=spec.success_mode, offline=offline)
     state.reset([s.online_env for s in streams])
     return state
