@@ -44,15 +44,13 @@ def _handler(signum: int, frame) -> None:
     if _requested is not None:
         if now - _first_at < DUPLICATE_S:
             return  # the same preemption, delivered twice (scheduler and sweep)
-        sys.stderr.write(f"\nbotorl: {signal.Signals(signum).name} again: exiting now; the last complete "
-                         f"checkpoint is kept (`botorl resume DIR` continues from it).\n")
-        sys.stderr.flush()
+        print(f"\nbotorl: {signal.Signals(signum).name} again: exiting now; the last complete checkpoint is "
+              f"kept (`botorl resume DIR` continues from it).", file=sys.stderr, flush=True)
         os._exit(128 + signum)
     _requested, _first_at = signum, now
     if _deferring:
-        sys.stderr.write(f"\nbotorl: {signal.Signals(signum).name}: stopping at the next step with a checkpoint "
-                         f"(a second signal exits at once).\n")
-        sys.stderr.flush()
+        print(f"\nbotorl: {signal.Signals(signum).name}: stopping at the next step with a checkpoint (a second "
+              f"signal exits at once).", file=sys.stderr, flush=True)
         return
     raise Interrupted(signum)
 
