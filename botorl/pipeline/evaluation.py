@@ -13,7 +13,7 @@ gap is the conservatism CQL-style pre-training leaves, which BOTO's alpha moves.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections import namedtuple
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -21,12 +21,7 @@ import numpy as np
 from botorl.configs.members import Streams
 from botorl.envs.metric import episode_success
 
-
-@dataclass
-class EpisodeStats:
-    success: float
-    episode_return: float
-    length: float
+EpisodeStats = namedtuple("EpisodeStats", "success episode_return length")  # means over a member's episodes
 
 
 def make_eval_envs(spec, eval_cfg) -> list[Any]:

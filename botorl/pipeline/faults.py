@@ -22,11 +22,10 @@ _hook: Callable[[str, str, object], None] | None = None
 _kill_at: tuple[str, int] | None = None
 _kill_ckpt: tuple[str, str] | None = None
 _pause_at: tuple[str, int, str] | None = None
-_active = False
 
 
 def _read_env() -> None:
-    global _kill_at, _kill_ckpt, _pause_at, _active
+    global _kill_at, _kill_ckpt, _pause_at
     if at := os.environ.get("BOTORL_KILL_AT"):
         stage, _, step = at.rpartition(":")
         _kill_at = (stage, int(step))
@@ -38,50 +37,36 @@ def _read_env() -> None:
     if pause := os.environ.get("BOTORL_PAUSE_AT"):
         stage, _, step = pause.rpartition(":")
         _pause_at = (stage, int(step), os.environ["BOTORL_PAUSE_FILE"])
-    _active = _hook is not None or _kill_at is not None or _kill_ckpt is not None or _pause_at is not None
 
 
 def set_hook(fn: Callable[[str, str, object], None] | None) -> None:
     """In-process callback at every step end and checkpoint phase (None: off)."""
     global _hook
     _hook = fn
-    _read_env()
-
-
-def _die() -> None:
-    os.kill(os.getpid(), signal.SIGKILL)
 
 
 def step(stage: str, step_: int) -> None:
     """Called by the stages at the end of each step (or chunk of steps)."""
-    if not _active:
-        return
+    global _pause_at
     if _hook is not None:
         _hook("step", stage, int(step_))
     if _kill_at is not None and _kill_at[0] == stage and step_ >= _kill_at[1]:
-        _die()
+        os.kill(os.getpid(), signal.SIGKILL)
     if _pause_at is not None and _pause_at[0] == stage and step_ >= _pause_at[1]:
-        _pause(_pause_at[2])
-
-
-def _pause(path: str) -> None:
-    global _pause_at
-    _pause_at = None  # once
-    with open(path, "w") as f:
-        f.write(str(os.getpid()))
-    deadline = time.monotonic() + 600
-    while os.path.exists(path) and time.monotonic() < deadline:
-        time.sleep(0.01)
+        path, _pause_at = _pause_at[2], None  # once
+        with open(path, "w") as f:
+            f.write(str(os.getpid()))
+        deadline = time.monotonic() + 600
+        while os.path.exists(path) and time.monotonic() < deadline:
+            time.sleep(0.01)
 
 
 def checkpoint(name: str, phase: str) -> None:
     """Called by the checkpoint writer at its phases (``files``, ``renamed``)."""
-    if not _active:
-        return
     if _hook is not None:
         _hook("checkpoint", name, phase)
-    if _kill_ckpt is not None and _kill_ckpt == (name, phase):
-        _die()
+    if _kill_ckpt == (name, phase):
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 _read_env()

@@ -24,14 +24,6 @@ from botorl.envs.state import get_env_state, set_env_state
 from botorl.pipeline.checkpoint import CheckpointCorrupt
 
 
-def rng_from(state: dict | None, seed_seq) -> np.random.Generator:
-    """A generator seeded by ``seed_seq``, at ``state`` if given (a checkpoint's)."""
-    rng = np.random.default_rng(seed_seq)
-    if state is not None:
-        rng.bit_generator.state = state
-    return rng
-
-
 class OnlineState:
     """The online loop's state beside the agents (the module docstring), with the MC-return rule
     ``mc_returns``, the ``success_mode`` and the ``offline`` data batches mix in at

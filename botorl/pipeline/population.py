@@ -109,13 +109,13 @@ def check_memory(parts: dict[str, int], num_members: int, *, available: tuple[in
         )
 
 
-def estimate(cfg, n: int, d_raw, spec=None) -> dict[str, int]:
-    """``estimate_memory`` of a population of ``n`` members of ``cfg``, from one template member;
-    with the task's ``spec``, its environments measured."""
+def estimate(cfg, n: int, d_raw, spec) -> dict[str, int]:
+    """``estimate_memory`` of a population of ``n`` members of ``cfg``, from one template member,
+    the task's (``spec``) environments measured."""
     # envs first: made after JAX has built its first arrays, the first ~16 pointmaze envs grow the
     # process by twice what each later one does (allocator arenas), which would double the estimate.
     # Measured only for populations: one member's envs are a few hundred MB at most.
-    per_env = 0 if spec is None or n < 2 else env_bytes(lambda i: spec.make_env(seed=i, evaluation=True))
+    per_env = 0 if n < 2 else env_bytes(lambda i: spec.make_env(seed=i, evaluation=True))
     method = get_method(cfg.method)
     O, A = d_raw.obs_dim, d_raw.action_dim
     agent_bytes = tree_bytes(agent_template(cfg, "finetune", O, A, 0))

@@ -3,7 +3,7 @@
 
 The commands that train install ``handling()``. A first signal outside training raises
 ``Interrupted`` at once; inside ``deferred()`` (the stage loop) it only sets the flag the
-stages read at their step boundaries (``stages.step_end``). A second signal exits at once;
+stages read at their step boundaries (``stages.stage_loop``). A second signal exits at once;
 copies within ``DUPLICATE_S`` of the first count as the first (SLURM signals every process of
 a job, and a sweep forwards it to its trial). Without ``handling()`` the flag is never set.
 """
@@ -44,15 +44,13 @@ def _handler(signum: int, frame) -> None:
     if _requested is not None:
         if now - _first_at < DUPLICATE_S:
             return  # the same preemption, delivered twice (scheduler and sweep)
-        sys.stderr.write(f"\nbotorl: {signal.Signals(signum).name} again: exiting now; the last complete "
-                         f"checkpoint is kept (`botorl resume DIR` continues from it).\n")
-        sys.stderr.flush()
+        print(f"\nbotorl: {signal.Signals(signum).name} again: exiting now; the last complete checkpoint is "
+              f"kept (`botorl resume DIR` continues from it).", file=sys.stderr, flush=True)
         os._exit(128 + signum)
     _requested, _first_at = signum, now
     if _deferring:
-        sys.stderr.write(f"\nbotorl: {signal.Signals(signum).name}: stopping at the next step with a checkpoint "
-                         f"(a second signal exits at once).\n")
-        sys.stderr.flush()
+        print(f"\nbotorl: {signal.Signals(signum).name}: stopping at the next step with a checkpoint (a second "
+              f"signal exits at once).", file=sys.stderr, flush=True)
         return
     raise Interrupted(signum)
 

@@ -92,14 +92,14 @@ def with_mc_returns(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
 class MemberRun:
     """One member of a population: its own config (seed, alpha), run directory and logs."""
 
-    def __init__(self, cfg: RunConfig, run: RunDir, wandb_run=None):
+    def __init__(self, cfg: RunConfig, run: RunDir, wandb_run=None, error: str | None = None):
         self.cfg = cfg
         self.run = run
         run.create()
         self.logger = MetricsLogger(run, tensorboard=cfg.tensorboard, wandb_run=wandb_run)
         self.eval_log = CsvLog(run.eval_csv, EVAL_COLUMNS)
         self.q_log = CsvLog(run.metrics / "q_probe.csv", ["stage", "step", "q_data", "q_uniform"])
-        self.error: str | None = None  # set when this member diverged (the others go on)
+        self.error = error  # set when this member diverged (the others go on)
 
 
 class RunContext:
@@ -164,7 +164,6 @@ class RunContext:
     def begin_stage(self, stage: str) -> None:
         self._stage = stage
         self._stage_t0 = time.perf_counter()
-        self.state["stage_seconds"].setdefault(stage, 0.0)
 
     def stage_seconds(self) -> dict[str, float]:
         out = dict(self.state["stage_seconds"])
@@ -236,17 +235,7 @@ class RunContext:
                               if p.stem not in ("state", "MANIFEST")},
                 "agents": lambda like: self.load_agents(point["name"], like)}
 
-    def hooks(self) -> stages.Hooks:
-        """The stages' callbacks into this run (stages.Hooks); their checkpoints are written here."""
-        return stages.Hooks(self.log, self.check, self.bar, self.evaluate, self.log_evaluation, self.save)
-
     # -- evaluation
-    def envs(self):
-        """``eval.envs_per_member`` evaluation envs per member (the same seeds for every member)."""
-        if self._envs is None:
-            self._envs = [make_eval_envs(self.spec, self.cfg.eval) for _ in self.members]
-        return self._envs
-
     def q_stats(self, agents) -> list[tuple[float, float]]:
         """(q_data, q_uniform) per member on the probe's pairs (one call for all members)."""
         q_d = jax.device_get(population.q_mean(agents, self.probe.observations, self.probe.actions))
@@ -260,8 +249,10 @@ class RunContext:
     def evaluate(self, agents, env_step: int) -> list[dict[str, Any]]:
         """All members' evaluation episodes, one batched policy call per env step; a row per member."""
         cfg = self.cfg
+        if self._envs is None:  # each member's evaluation envs (the same seeds for every member), kept
+            self._envs = [make_eval_envs(self.spec, cfg.eval) for _ in self.members]
         stats = evaluation.run_episodes(
-            lambda o: jax.device_get(population.eval_actions(agents, o)), self.envs(), episodes=cfg.eval.episodes,
+            lambda o: jax.device_get(population.eval_actions(agents, o)), self._envs, episodes=cfg.eval.episodes,
             success_mode=self.spec.success_mode, seeds=[Streams.of(member.cfg).evaluation for member in self.members],
             max_steps=self.spec.max_episode_steps,
         )
@@ -302,13 +293,12 @@ class RunContext:
         atomic_write_json(member.run.summary, summary)
         return summary
 
-    def write_summary(self, status: str, error: str | None = None) -> dict[str, Any]:
-        """Every member's summary.json (and a population's population.json); returns member 0's."""
+    def write_summary(self, status: str, error: str | None = None) -> None:
+        """Every member's summary.json (and a population's population.json)."""
         out = [self.write_member_summary(i, status, error) for i in range(self.n)]
         if not self.single:
             write_population_file(self.root, self.cfg, [member.cfg for member in self.members], status,
                                   [s["status"] for s in out], self.stage_seconds(), error)
-        return out[0]
 
 
 def write_population_file(root: Path, cfg: RunConfig, member_cfgs: list[RunConfig], status: str,
@@ -402,7 +392,8 @@ def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | No
     """One stage of the method, given its inputs (and any checkpoint it resumes from, read here):
     (agents, D_warmups, what its end-of-stage checkpoint keeps). The online loop's state
     (``ctx.loop``) is made at the warm-up's start and kept for fine-tuning."""
-    cfg, end, member_cfgs, d, hooks = ctx.cfg, None, [member.cfg for member in ctx.members], ctx.d_offline, ctx.hooks()
+    cfg, end, member_cfgs, d = ctx.cfg, None, [member.cfg for member in ctx.members], ctx.d_offline
+    hooks = stages.Hooks(ctx.log, ctx.check, ctx.bar, ctx.evaluate, ctx.log_evaluation, ctx.save)
     resume = None if resume is None else ctx.contents(resume)
     if stage == "pretrain":
         if cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
@@ -446,9 +437,8 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
     ckpt = CheckpointManager(RunDir(root).checkpoints)
     latest, state, failed, mid = _resume_point(ckpt, member_cfgs, resume)
     wandb_runs = tracking.start(member_cfgs, member_runs)  # one W&B run per member (None: no --wandb)
-    members = [MemberRun(c, r, w) for c, r, w in zip(member_cfgs, member_runs, wandb_runs)]
-    for i, err in failed.items():
-        members[int(i)].error = err
+    members = [MemberRun(c, r, w, failed.get(str(i)))
+               for i, (c, r, w) in enumerate(zip(member_cfgs, member_runs, wandb_runs))]
     ctx = RunContext(cfg, spec, root, members, d_offline, state)
     for member in members:
         _truncate_logs(member, method.stages, mid, state["done_stages"])
@@ -494,7 +484,6 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
             raise
         latest = ctx.ckpt.latest()
         err.checkpoint = latest["name"] if latest else None
-        err.how = err.how or f"botorl resume {root}"
         tracking.finish(wandb_runs, 128 + err.signum, seconds=min(tracking.timeout(), 10.0))
         raise
     ctx.write_summary("finished")

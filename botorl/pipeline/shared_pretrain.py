@@ -21,8 +21,6 @@ from botorl.pipeline.rundir import LOG_LIMIT, read_json
 from botorl.pipeline.stages import make_pretrain_agent
 
 PRETRAIN_FINAL = "pretrain-final"
-# settings that change what is logged, not what is learned
-_NOT_LEARNED = {("offline", "log_every")}
 
 
 def fingerprint(cfg) -> dict[str, Any]:
@@ -32,7 +30,7 @@ def fingerprint(cfg) -> dict[str, Any]:
 
 def fingerprint_of(d: dict[str, Any]) -> dict[str, Any]:
     """``fingerprint`` of a config as ``to_dict`` writes it (a run's config.json)."""
-    offline = {k: v for k, v in d["offline"].items() if ("offline", k) not in _NOT_LEARNED}
+    offline = {k: v for k, v in d["offline"].items() if k != "log_every"}  # changes what is logged, not learned
     return {"task": d["task"], "seed": d["seed"], "pretrain": d["pretrain"], "data": d["data"],
             "network": d["network"], "offline": offline, "checkpoint_every": d["checkpoint_every"]}
 

@@ -1,9 +1,5 @@
-"""The four stages of a run, each a function from explicit inputs to its outputs:
-
-    pretrain(cfg, member_cfgs, d, hooks)                -> agents     Cal-QL / CQL / IQL on D_offline
-    warmup(cfg, member_cfgs, agents, state, hooks)      -> D_warmups  the online loop, learning off
-    boto(cfg, member_cfgs, agents, d, d_warmups, hooks) -> agents     BOTO critic training on D_offline u D_warmup
-    finetune(cfg, member_cfgs, method, agents, state, ...) -> agents  the online loop, learning on
+"""The four stages of a run (``pretrain``, ``warmup``, ``boto``, ``finetune``; their inputs and
+outputs: docs/architecture.md), each a function from explicit inputs to its outputs.
 
 Every stage runs ``stage_loop``; the warm-up and fine-tuning run it over one online loop state
 (``OnlineState``). A stage reads no run context: it gets ``Hooks``, its callbacks into the
@@ -36,7 +32,7 @@ from botorl.configs.methods import get_method
 from botorl.data.dataset import Dataset, RewardTransform
 from botorl.data.replay import ReplayBuffer
 from botorl.pipeline import faults, preempt
-from botorl.pipeline.online import OnlineState, rng_from
+from botorl.pipeline.online import OnlineState
 
 # A stage's callbacks into its run (runner.RunContext's): ``log`` and ``check`` (stage, step, one
 # item per member; check may raise), ``bar`` (a progress bar), ``evaluate(agents, step)`` -> rows,
@@ -159,19 +155,6 @@ class Rate:
         return rate
 
 
-def step_end(stage: str, step: int, total: int, due: Points, save: Callable[[bool], None]) -> None:
-    """What ends every step of a stage: the scheduled checkpoint (``save(False)``), the
-    fault-injection point, and after a SIGTERM / SIGINT the checkpoint of this very step
-    (``save(True)``: with the metrics window; never twice) and ``Interrupted``."""
-    if due.checkpoint:
-        save(False)
-    faults.step(stage, step)
-    if step < total and preempt.requested():
-        if not due.checkpoint:
-            save(True)
-        raise preempt.interrupted()
-
-
 def pretrain_groups(member_cfgs) -> tuple[list[int], list[int]]:
     """(the first member of each seed, each member's index into that list)."""
     first: dict[int, int] = {}
@@ -186,8 +169,10 @@ def stage_loop(agents, update: Callable, chunk: Callable[[int], int], step: int,
     (agents, metrics or None: the update added its own) runs k = ``chunk(step)`` updates in one
     jitted call (the offline stages) or one online step; at log and checkpoint points (at every
     call with ``check_every_call``) the window's means are checked (``check(step, ms)``, which may
-    raise) and at log points logged; at evaluation points ``evaluate(agents, step)``; then
-    ``step_end`` with ``save(step, agents, interrupted)``. Returns the agents."""
+    raise) and at log points logged; at evaluation points ``evaluate(agents, step)``; then the
+    scheduled checkpoint (``save(step, agents, False)``), the fault-injection point, and after a
+    SIGTERM / SIGINT the checkpoint of this very step (``interrupted`` True: with the metrics
+    window; never twice) and ``Interrupted``. Returns the agents."""
     while step < schedule.total:
         k = chunk(step)
         agents, metrics = update(agents, step, k)
@@ -203,7 +188,13 @@ def stage_loop(agents, update: Callable, chunk: Callable[[int], int], step: int,
                 log(step, ms)
         if due.evaluate:
             evaluate(agents, step)
-        step_end(stage, step, schedule.total, due, lambda interrupted: save(step, agents, interrupted))
+        if due.checkpoint:
+            save(step, agents, False)
+        faults.step(stage, step)
+        if step < schedule.total and preempt.requested():
+            if not due.checkpoint:
+                save(step, agents, True)
+            raise preempt.interrupted()
     return agents
 
 
@@ -219,12 +210,14 @@ def pretrain(cfg, member_cfgs, d: Dataset, hooks: Hooks, resume: dict | None = N
     streams = [Streams.of(member_cfgs[r]) for r in reps]
     agents = population.stack([make_pretrain_agent(member_cfgs[r], d.obs_dim, d.action_dim, s.pretrain)
                                for r, s in zip(reps, streams)])
-    step, states = 0, [None] * len(reps)
+    rngs, step, window = [np.random.default_rng(s.pretrain_batches) for s in streams], 0, Window(len(reps))
     if resume is not None:
         agents = resume["agents"](agents)
         step, states = int(resume["step"]), resume.get("np_rng")
-        states = states if isinstance(states, list) else [states] * len(reps)
-    rngs = [rng_from(st, s.pretrain_batches) for s, st in zip(streams, states)]
+        for rng, st in zip(rngs, states if isinstance(states, list) else [states] * len(reps)):
+            if st is not None:  # as saved; else from its seed
+                rng.bit_generator.state = st
+        window.load(resume["arrays"].get("window"))
     on_device = jax.default_backend() != "cpu" if oc.sample_on_device is None else oc.sample_on_device
     if on_device:
         arrays = d.to_device()
@@ -238,9 +231,7 @@ def pretrain(cfg, member_cfgs, d: Dataset, hooks: Hooks, resume: dict | None = N
         def update(agents, step: int, k: int):
             return population.update_many(agents, d.sample_members(rngs, oc.batch_size, k))
 
-    window, rate = Window(len(reps)), Rate(step)
-    if resume is not None:
-        window.load(resume["arrays"].get("window"))
+    rate = Rate(step)
     shared = f" x {len(reps)} seeds for {n} members" if len(reps) < n else f" x {n} members"
 
     def log(step: int, per_seed: list[dict]) -> None:
@@ -273,7 +264,7 @@ def online_state(cfg, member_cfgs, method, spec, offline: Dataset | None, mc_ret
     oc, streams = cfg.online, [Streams.of(c) for c in member_cfgs]
     buffer = ReplayBuffer(oc.buffer_capacity or (oc.steps + 1), spec.obs_dim, spec.action_dim, members=len(streams))
     state = OnlineState([spec.make_env(seed=s.online_env) for s in streams], buffer,
-                        [rng_from(None, s.online_batches) for s in streams], oc, method, RewardTransform.of(spec),
+                        [np.random.default_rng(s.online_batches) for s in streams], oc, method, RewardTransform.of(spec),
                         mc_returns=mc_returns, success_mode=spec.success_mode, offline=offline)
     state.reset([s.online_env for s in streams])
     return state
@@ -376,16 +367,16 @@ def finetune(cfg, member_cfgs, method, agents, state: OnlineState, probe_observa
     Every method with a warm-up starts warm (configs/methods.py), so its buffer keeps D_warmup."""
     oc, n = cfg.online, len(member_cfgs)
     agents = start_finetuning(cfg, member_cfgs, method, agents, state.buffer.action_dim, probe_observations)
+    window = Window(n)
     if resume is not None:
         agents = resume["agents"](agents)
+        window.load(resume["arrays"].get("window"))
     # where the updates keep them (members split over the CPU devices) from the first step on: on one
     # device, a resumed run's loaded agents would compile another policy program (other last bits)
     agents = population.placed(agents, every_leaf=True)[0]
     if resume is None:  # a checkpoint comes after a step: a resumed fine-tuning is past its start
         hooks.evaluate(agents, state.step)
-    window, rate = Window(n), Rate(state.step)
-    if resume is not None:
-        window.load(resume["arrays"].get("window"))
+    rate = Rate(state.step)
 
     def evaluate(agents, step: int) -> None:
         bar.set_postfix(success=f"{hooks.evaluate(agents, step)[0]['success']:.2f}")
