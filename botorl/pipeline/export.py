@@ -31,9 +31,9 @@ from botorl.envs.registry import get_task
 from botorl.envs.user import action_from_env, is_unit_box
 from botorl.envs.wrappers import TaskEnv
 from botorl.errors import BotorlError, ConfigError
-from botorl.io import atomic_write_bytes, atomic_write_json
+from botorl.io import atomic_write_bytes, atomic_write_json, file_sha256
 from botorl.jaxsetup import setup_jax
-from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_step, file_sha256
+from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_step
 from botorl.pipeline.policy import check_checkpoint, load_policy, read_run, task_io
 from botorl.pipeline.provenance import package_version
 from botorl.pipeline.rundir import read_json
@@ -350,9 +350,6 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
         check_replaceable(p, force)
     check_writable_folder(out)
     run, cfg = read_run(run_dir, "export")
-    from botorl.configs.resolve import check_bounds  # lazy: JAX (through the configs' schema); botorl.api imports this module
-
-    check_bounds(cfg)
     name = pick_checkpoint(run, checkpoint)
     check_checkpoint(run, cfg, name)  # what `botorl eval` refuses: another run's checkpoint, an edited config
     mods = require("onnx", "onnxruntime", "jax2onnx")  # before any JAX work: a missing extra costs nothing

@@ -27,12 +27,12 @@ from botorl.pipeline.rundir import POPULATION_FILE, RunDir, read_json
 
 
 def read_run(run_dir, verb: str = "load", *, validate: bool = False, entry: str | None = None, before=None):
-    """(RunDir, RunConfig) of a single run directory; ConfigError naming what to give instead
-    for anything else (``verb``: what the caller does with it, for the message). ``validate``:
-    check the config as `botorl run` does (which needs the run's task here): first its sizes and
-    counts, then ``before(run, cfg)`` (the caller's checkpoint identity check), and only then a task
-    of one's own is registered from ``entry`` (the user's ``--env``), so nothing is imported or
-    read for a directory that fails a check."""
+    """(RunDir, RunConfig) of a single run directory, its sizes and counts checked (before any
+    template is built from them); ConfigError naming what to give instead for anything else
+    (``verb``: what the caller does with it, for the message). ``validate``: check the config as
+    `botorl run` does (which needs the run's task here): first ``before(run, cfg)`` (the caller's
+    checkpoint identity check), and only then a task of one's own is registered from ``entry``
+    (the user's ``--env``), so nothing is imported or read for a directory that fails a check."""
     from botorl.configs import resolve, schema  # lazy: JAX (the agents' configs); botorl.api imports this module
 
     root = Path(run_dir)
@@ -49,8 +49,8 @@ def read_run(run_dir, verb: str = "load", *, validate: bool = False, entry: str 
         cfg = schema.from_dict(schema.RunConfig, data)
     except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
         raise ConfigError(f"{run.config} cannot be read as a run config ({err}); was it edited by hand?") from None
+    resolve.check_bounds(cfg)
     if validate:
-        resolve.check_bounds(cfg)
         if before is not None:
             before(run, cfg)
         register_given(cfg, entry)
@@ -94,12 +94,10 @@ def load_agent(run_dir, checkpoint: str | None = None):
 def _load(run_dir, checkpoint):
     # lazy: JAX, as in read_run
     from botorl.agents import checkpoint as agent_ckpt
-    from botorl.configs.resolve import check_bounds
     from botorl.pipeline import stages
 
     setup_jax()
     run, cfg = read_run(run_dir)
-    check_bounds(cfg)  # before any template is built from the config's sizes
     name = check_checkpoint(run, cfg, checkpoint)
     ckpt = CheckpointManager(run.checkpoints)
     io = task_io(cfg)
