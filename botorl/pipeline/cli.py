@@ -35,7 +35,7 @@ from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, che
     full_identity
 from botorl.pipeline.evaluation import QProbe, evaluate_policy, metric_fields
 from botorl.pipeline.export import contract_path, evaluate_exported, export_policy
-from botorl.pipeline.policy import read_run
+from botorl.pipeline.policy import check_checkpoint, read_run
 from botorl.pipeline.population import check_fits
 from botorl.pipeline.provenance import environment_record
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_guard, read_json
@@ -363,10 +363,7 @@ def eval_main(argv: list[str]) -> int:
 def _eval(args, run, cfg) -> dict:
     if args.episodes is not None:
         cfg = replace(cfg, eval=replace(cfg.eval, episodes=args.episodes))
-    ckpt = CheckpointManager(run.checkpoints)
-    name = ckpt.chosen(args.checkpoint)
-    state = ckpt.state(name)
-    check_identity(state, [full_identity(cfg)], run.checkpoints, name)
+    ckpt, name, state = check_checkpoint(run, cfg, args.checkpoint, data=True)
     spec = get_task(cfg.task)
     d = transform_dataset(cfg, spec, load_run_data(cfg, run.config, args.allow_pickle))
     like = stages.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)

@@ -351,7 +351,7 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     check_writable_folder(out)
     run, cfg = read_run(run_dir, "export")
     name = pick_checkpoint(run, checkpoint)
-    check_checkpoint(run, cfg, name)  # what `botorl eval` refuses: another run's checkpoint, an edited config
+    _, _, state = check_checkpoint(run, cfg, name)  # what `botorl eval` refuses: another run's checkpoint, an edited config
     mods = require("onnx", "onnxruntime", "jax2onnx")  # before any JAX work: a missing extra costs nothing
     setup_jax()
 
@@ -364,7 +364,6 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     except BotorlError as err:  # a task registered from a script: standard normal observations
         here = str(err)
     policy = load_policy(run.root, checkpoint=name, deterministic=True)
-    state = CheckpointManager(run.checkpoints).state(name)
 
     if observations is None:
         obs, source = verification_observations(cfg, run, verify_rows, seed=cfg.seed, why=here)

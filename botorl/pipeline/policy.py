@@ -22,7 +22,7 @@ from botorl.envs.registry import get_task
 from botorl.envs.user import action_to_env, flatten_obs
 from botorl.errors import ConfigError
 from botorl.jaxsetup import matmul_precision, setup_jax
-from botorl.pipeline.checkpoint import CheckpointManager, check_identity
+from botorl.pipeline.checkpoint import CheckpointManager, check_identity, full_identity
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, read_json
 
 
@@ -58,16 +58,17 @@ def read_run(run_dir, verb: str = "load", *, validate: bool = False, entry: str 
     return run, cfg
 
 
-def check_checkpoint(run, cfg, checkpoint: str | None = None) -> str:
-    """The checkpoint ``checkpoint`` (default: the latest verified one) of a single run, checked
-    to be this run's (``check_identity``: what `botorl eval` refuses, export and load_policy refuse
-    too); returns its name."""
+def check_checkpoint(run, cfg, checkpoint: str | None = None, data: bool = False):
+    """(CheckpointManager, name, state) of the checkpoint ``checkpoint`` (default: the latest
+    verified one) of a single run, checked to be this run's (``check_identity``; ``data``: with the
+    data it was trained on, as `botorl eval` reads them; export and load_policy do not)."""
     from botorl.configs.schema import run_identity  # lazy: JAX, as in read_run
 
     ckpt = CheckpointManager(run.checkpoints)
     name = ckpt.chosen(checkpoint)
-    check_identity(ckpt.state(name), [run_identity(cfg)], run.checkpoints, name)
-    return name
+    state = ckpt.state(name)
+    check_identity(state, [full_identity(cfg) if data else run_identity(cfg)], run.checkpoints, name)
+    return ckpt, name, state
 
 
 def task_io(cfg) -> dict[str, Any]:
@@ -98,10 +99,9 @@ def _load(run_dir, checkpoint):
 
     setup_jax()
     run, cfg = read_run(run_dir)
-    name = check_checkpoint(run, cfg, checkpoint)
-    ckpt = CheckpointManager(run.checkpoints)
+    ckpt, name, state = check_checkpoint(run, cfg, checkpoint)
     io = task_io(cfg)
-    like = stages.agent_template(cfg, ckpt.state(name)["stage"], io["obs_dim"], io["action_dim"], cfg.seed)
+    like = stages.agent_template(cfg, state["stage"], io["obs_dim"], io["action_dim"], cfg.seed)
     return agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like), cfg, io, name
 
 
