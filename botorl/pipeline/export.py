@@ -109,8 +109,8 @@ def check_writable_folder(out: Path) -> None:
         raise ConfigError(f"--out {out}: its folder {parent} cannot be written; give a file in a folder you can write.")
 
 
-def pick_checkpoint(run, checkpoint: str | None) -> str:
-    """The named checkpoint (verified), else the latest; none before a stage has finished."""
+def check_exportable(run, checkpoint: str | None) -> None:
+    """ConfigError when no checkpoint is named and no stage has finished yet (only mid-stage ones)."""
     ckpt = CheckpointManager(run.checkpoints)
     if checkpoint is None and not any(_stage_done(ckpt, n) for n in ckpt.names()):
         there = [n for n in ckpt.names() if ckpt.exists(n)]
@@ -118,7 +118,6 @@ def pick_checkpoint(run, checkpoint: str | None) -> str:
                 f"anyway." if there else "")
         raise ConfigError(f"{run.root} has no finished stage yet, so no policy to export; wait for the first stage "
                           f"(pre-training) to finish.{more}")
-    return ckpt.chosen(checkpoint)  # the named one (ConfigError naming the ones there are), else the latest
 
 
 def _stage_done(ckpt, name: str) -> bool:
@@ -350,8 +349,8 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
         check_replaceable(p, force)
     check_writable_folder(out)
     run, cfg = read_run(run_dir, "export")
-    name = pick_checkpoint(run, checkpoint)
-    _, _, state = check_checkpoint(run, cfg, name)  # what `botorl eval` refuses: another run's checkpoint, an edited config
+    check_exportable(run, checkpoint)
+    _, name, state = check_checkpoint(run, cfg, checkpoint)  # what `botorl eval` refuses, export refuses too
     mods = require("onnx", "onnxruntime", "jax2onnx")  # before any JAX work: a missing extra costs nothing
     setup_jax()
 
