@@ -342,7 +342,7 @@ class CheckpointManager:
             if reason is None:
                 return _info(named, self.state(named))
             bad.append(reason)
-        for name in sorted((n for n in self.names() if n != named), key=self.order, reverse=True):  # named: above
+        for name in sorted((n for n in self.names() if n != named), key=self.order, reverse=True):
             reason = self.verify(name)
             if reason is not None:
                 bad.append(reason)
