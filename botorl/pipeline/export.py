@@ -396,7 +396,6 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     }
     for p in (out, meta):  # again: the minutes of conversion are time for a swap
         check_replaceable(p, force)
-    out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out, model)
     if file_sha256(out) != contract["sha256"]:  # what is on disk is what was verified
         raise BotorlError(f"{out} does not read back as written (sha256 differs); check the disk and export again.")
