@@ -146,7 +146,6 @@ class CheckpointManager:
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
 
-    # ------------------------------------------------------------------ writing
     def save(self, name: str, *, state: dict[str, Any], agent: Any = None,
              save_agent: Callable[[str, Any], None] | None = None, arrays: dict[str, dict[str, Any]] | None = None,
              documents: dict[str, Any] | None = None) -> Path:
@@ -214,7 +213,6 @@ class CheckpointManager:
             if p.is_dir() and "-step" in p.name and p.name not in keep:
                 shutil.rmtree(p, ignore_errors=True)
 
-    # ------------------------------------------------------------------ checking
     def names(self) -> list[str]:
         if not self.root.is_dir():
             return []
@@ -326,7 +324,6 @@ class CheckpointManager:
         except (OSError, ValueError, AttributeError, TypeError):
             return (-1.0, 0.0)
 
-    # ------------------------------------------------------------------ reading
     def latest(self) -> dict[str, Any] | None:
         """The checkpoint a resume starts from: latest.json's if verified, else the newest verified
         one (the failures named on stderr, latest.json pointed at it); None if none passes."""
