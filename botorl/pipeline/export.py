@@ -5,7 +5,7 @@ Dict observation in the contract's ``observation.layout`` order), traced by jax2
 agent's own ``eval_fn``; it is written only once onnxruntime's actions match ``load_policy``'s
 (docs/deploy.md). ``OnnxPolicy`` runs an exported model (``botorl eval RUN --policy FILE``).
 
-JAX (and the runner, the configs' schema, which import it) is imported inside the functions that
+JAX (and the runner and the evaluation, which import it) is imported inside the functions that
 need it: botorl.api imports this module, and the API's names stay free of it (tests/test_own_task.py).
 """
 
