@@ -22,7 +22,7 @@ from botorl.envs.user import entry_of, import_entry, make_spec, probe
 from botorl.errors import BotorlError, ConfigError
 from botorl.pipeline.export import export_policy
 from botorl.pipeline.policy import load_agent, load_policy
-from botorl.pipeline.rundir import read_json
+from botorl.pipeline.rundir import POPULATION_FILE, read_json
 
 
 def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_episode_steps: int,
@@ -94,12 +94,11 @@ def run(task: str | Any = "pointmaze-umaze", method: str = "boto", profile: str 
     if seeds is not None:
         if isinstance(seeds, int) and not isinstance(seeds, bool):
             argv += ["--seed", str(seeds)]
-            seeds = None
         else:
             argv += ["--seeds", seeds if isinstance(seeds, str) else ",".join(str(int(s)) for s in seeds)]
     argv += override_args(overrides)
     _call(run_main, argv)
-    return _summary(out, population=seeds is not None)
+    return _summary(out)
 
 
 def resume(run_dir: str | os.PathLike, *, checkpoint: str | None = None, progress: bool = True,
@@ -114,13 +113,13 @@ def resume(run_dir: str | os.PathLike, *, checkpoint: str | None = None, progres
     argv = [str(root)] + (["--from", checkpoint] if checkpoint else []) + ([] if progress else ["--no-progress"]) + \
         (["--allow-pickle"] if allow_pickle else []) + (["--env", str(env)] if env is not None else [])
     _call(resume_main, argv)
-    return _summary(root, population=(root / "population.json").exists())
+    return _summary(root)
 
 
-def _summary(root: Path, population: bool) -> dict[str, Any]:
-    if not population:
+def _summary(root: Path) -> dict[str, Any]:
+    if not (root / POPULATION_FILE).exists():
         return read_json(root / "summary.json")
-    data = read_json(root / "population.json")
+    data = read_json(root / POPULATION_FILE)
     members = [read_json(root / m["name"] / "summary.json") for m in data.get("members", [])]
     return {"status": data.get("status"), "run_dir": str(root), "members": members}
 

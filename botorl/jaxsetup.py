@@ -6,12 +6,11 @@ per usable core, over which a population's updates are split (docs/CONTRACTS.md,
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 from pathlib import Path
 
 from botorl.errors import BotorlError, ConfigError
-
-_done = False
 
 
 def cpu_device_count() -> int:
@@ -32,13 +31,10 @@ def cpu_device_count() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+@functools.cache
 def setup_jax() -> None:
     """Turn on the persistent compilation cache (``BOTORL_JAX_CACHE``: its folder, or ``off``)
     and one CPU device per usable core; idempotent."""
-    global _done
-    if _done:
-        return
-    _done = True
     import jax  # lazy: botorl.api imports this module (through pipeline/policy.py), which must not import JAX
 
     # only possible before the first array: afterwards the backend is fixed and this is skipped

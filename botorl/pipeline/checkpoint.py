@@ -146,7 +146,6 @@ class CheckpointManager:
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
 
-    # ------------------------------------------------------------------ writing
     def save(self, name: str, *, state: dict[str, Any], agent: Any = None,
              save_agent: Callable[[str, Any], None] | None = None, arrays: dict[str, dict[str, Any]] | None = None,
              documents: dict[str, Any] | None = None) -> Path:
@@ -214,7 +213,6 @@ class CheckpointManager:
             if p.is_dir() and "-step" in p.name and p.name not in keep:
                 shutil.rmtree(p, ignore_errors=True)
 
-    # ------------------------------------------------------------------ checking
     def names(self) -> list[str]:
         if not self.root.is_dir():
             return []
@@ -222,8 +220,9 @@ class CheckpointManager:
         return sorted(p.name for p in self.root.iterdir()
                       if p.is_dir() and not p.is_symlink() and not p.name.startswith("."))
 
-    def _check_file(self, name: str, fname: str) -> None:
-        """Raise CheckpointCorrupt unless ``name/fname`` matches the manifest (no manifest: accepted)."""
+    def file(self, name: str, fname: str) -> Path:
+        """The path of ``fname`` in checkpoint ``name``; CheckpointCorrupt unless it matches the
+        manifest (no manifest: accepted)."""
         m = self._manifest(name)
         if Path(fname).name != fname or fname in ("", ".", ".."):
             raise CheckpointCorrupt(f"checkpoint {name}: {MANIFEST} lists {fname!r}, which is not a file of the folder.")
@@ -231,7 +230,7 @@ class CheckpointManager:
         if os.path.lexists(path) and not stat.S_ISREG(os.lstat(path).st_mode):  # a link, FIFO or device: never opened
             raise CheckpointCorrupt(f"checkpoint {name}: {fname} is not a regular file.")
         if m is None:
-            return
+            return path
         want = m["files"].get(fname)
         if want is None:
             raise CheckpointCorrupt(f"checkpoint {name}: {fname} is not in its {MANIFEST}.")
@@ -243,11 +242,7 @@ class CheckpointManager:
         if file_sha256(path) != want.get("sha256"):
             raise CheckpointCorrupt(f"checkpoint {name}: {fname} does not match its sha256 checksum (the file changed "
                                     f"after it was written).")
-
-    def file(self, name: str, fname: str) -> Path:
-        """The path of ``fname`` in checkpoint ``name``, checked (``_check_file``)."""
-        self._check_file(name, fname)
-        return self.root / name / fname
+        return path
 
     def verify(self, name: str) -> str | None:
         """None if checkpoint ``name`` passes the check, else the reason it does not."""
@@ -257,7 +252,7 @@ class CheckpointManager:
         try:
             m = self._manifest(name)
             for fname in (m["files"] if m is not None else ["state.json"]):
-                self._check_file(name, fname)
+                self.file(name, fname)
             st = read_json(folder / "state.json")
             if not isinstance(st, dict) or "stage" not in st:
                 raise CheckpointCorrupt(f"checkpoint {name}: state.json has no stage.")
@@ -329,7 +324,6 @@ class CheckpointManager:
         except (OSError, ValueError, AttributeError, TypeError):
             return (-1.0, 0.0)
 
-    # ------------------------------------------------------------------ reading
     def latest(self) -> dict[str, Any] | None:
         """The checkpoint a resume starts from: latest.json's if verified, else the newest verified
         one (the failures named on stderr, latest.json pointed at it); None if none passes."""
@@ -345,9 +339,7 @@ class CheckpointManager:
             if reason is None:
                 return _info(named, self.state(named))
             bad.append(reason)
-        for name in sorted(self.names(), key=self.order, reverse=True):
-            if name == named:
-                continue  # checked above
+        for name in sorted((n for n in self.names() if n != named), key=self.order, reverse=True):
             reason = self.verify(name)
             if reason is not None:
                 bad.append(reason)

@@ -35,7 +35,7 @@ from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, che
     full_identity
 from botorl.pipeline.evaluation import QProbe, evaluate_policy, metric_fields
 from botorl.pipeline.export import contract_path, evaluate_exported, export_policy
-from botorl.pipeline.policy import read_run
+from botorl.pipeline.policy import check_checkpoint, read_run
 from botorl.pipeline.population import check_fits
 from botorl.pipeline.provenance import environment_record
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_guard, read_json
@@ -67,7 +67,6 @@ def _mark_failed(path: Path, reason: str, fresh=None) -> None:
         # (read-only, gone or not a regular file: the exit code and the message still say it)
         with contextlib.suppress(OSError, BotorlError):
             with os.fdopen(open_regular(path, os.O_RDWR | os.O_CREAT), "r+") as f:  # never through a link
-                f.seek(0)
                 f.truncate()
                 f.write(json.dumps(data, indent=2, default=str) + "\n")
 
@@ -88,21 +87,18 @@ def _execute(cfg, member_cfgs, root: Path, runs: list[RunDir], d_raw, *, resume:
                 # starts from ckpt.latest(), so the runner needs no argument for it.
                 CheckpointManager(RunDir(root).checkpoints).select(resume_from)
             return execute(cfg, member_cfgs, root, runs, d_raw, resume=resume)
-    except CheckpointCorrupt as err:
-        msg = f"{err} {_resume_hint(root, resume_from)}" if resume else str(err)
+    except (CheckpointCorrupt, ValueError, KeyError) as err:
+        corrupt = isinstance(err, CheckpointCorrupt)
+        if not (corrupt or resume):
+            raise
+        # else a damaged latest.json / state.json / buffer.npz read during the resume
+        msg = str(err) if corrupt else f"{root}: a checkpoint file could not be read on resume ({type(err).__name__}: {err})."
+        msg = f"{msg} {_resume_hint(root, resume_from)}" if resume else msg
         mark(msg)
         raise BotorlError(msg) from None
     except BotorlError as err:
         mark(str(err))
         raise
-    except (ValueError, KeyError) as err:
-        if not resume:
-            raise
-        # a damaged latest.json / state.json / buffer.npz read during the resume
-        msg = (f"{root}: a checkpoint file could not be read on resume ({type(err).__name__}: {err}). "
-               f"{_resume_hint(root, resume_from)}")
-        mark(msg)
-        raise BotorlError(msg) from None
 
 
 def _resume_hint(root: Path, resume_from: str | None) -> str:
@@ -363,10 +359,7 @@ def eval_main(argv: list[str]) -> int:
 def _eval(args, run, cfg) -> dict:
     if args.episodes is not None:
         cfg = replace(cfg, eval=replace(cfg.eval, episodes=args.episodes))
-    ckpt = CheckpointManager(run.checkpoints)
-    name = ckpt.chosen(args.checkpoint)
-    state = ckpt.state(name)
-    check_identity(state, [full_identity(cfg)], run.checkpoints, name)
+    ckpt, name, state = check_checkpoint(run, cfg, args.checkpoint, data=True)
     spec = get_task(cfg.task)
     d = transform_dataset(cfg, spec, load_run_data(cfg, run.config, args.allow_pickle))
     like = stages.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)

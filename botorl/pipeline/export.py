@@ -5,7 +5,7 @@ Dict observation in the contract's ``observation.layout`` order), traced by jax2
 agent's own ``eval_fn``; it is written only once onnxruntime's actions match ``load_policy``'s
 (docs/deploy.md). ``OnnxPolicy`` runs an exported model (``botorl eval RUN --policy FILE``).
 
-JAX (and the runner, the configs' schema, which import it) is imported inside the functions that
+JAX (and the runner and the evaluation, which import it) is imported inside the functions that
 need it: botorl.api imports this module, and the API's names stay free of it (tests/test_own_task.py).
 """
 
@@ -31,9 +31,9 @@ from botorl.envs.registry import get_task
 from botorl.envs.user import action_from_env, is_unit_box
 from botorl.envs.wrappers import TaskEnv
 from botorl.errors import BotorlError, ConfigError
-from botorl.io import atomic_write_bytes, atomic_write_json
+from botorl.io import atomic_write_bytes, atomic_write_json, file_sha256
 from botorl.jaxsetup import setup_jax
-from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_step, file_sha256
+from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_step
 from botorl.pipeline.policy import check_checkpoint, load_policy, read_run, task_io
 from botorl.pipeline.provenance import package_version
 from botorl.pipeline.rundir import read_json
@@ -109,8 +109,8 @@ def check_writable_folder(out: Path) -> None:
         raise ConfigError(f"--out {out}: its folder {parent} cannot be written; give a file in a folder you can write.")
 
 
-def pick_checkpoint(run, checkpoint: str | None) -> str:
-    """The named checkpoint (verified), else the latest; none before a stage has finished."""
+def check_exportable(run, checkpoint: str | None) -> None:
+    """ConfigError when no checkpoint is named and no stage has finished yet (only mid-stage ones)."""
     ckpt = CheckpointManager(run.checkpoints)
     if checkpoint is None and not any(_stage_done(ckpt, n) for n in ckpt.names()):
         there = [n for n in ckpt.names() if ckpt.exists(n)]
@@ -118,7 +118,6 @@ def pick_checkpoint(run, checkpoint: str | None) -> str:
                 f"anyway." if there else "")
         raise ConfigError(f"{run.root} has no finished stage yet, so no policy to export; wait for the first stage "
                           f"(pre-training) to finish.{more}")
-    return ckpt.chosen(checkpoint)  # the named one (ConfigError naming the ones there are), else the latest
 
 
 def _stage_done(ckpt, name: str) -> bool:
@@ -241,10 +240,9 @@ class OnnxPolicy:
             raise ConfigError(f"{self.path or 'the model'} takes {[i.name for i in ins]} and gives "
                               f"{[o.name for o in outs]}; a botorl policy takes '{INPUT_NAME}' and gives "
                               f"'{OUTPUT_NAME}'.")
-        shape = ins[0].shape
-        self.obs_dim = shape[-1] if len(shape) == 2 and isinstance(shape[-1], int) else None
-        out_shape = next(o.shape for o in outs if o.name == OUTPUT_NAME)
-        self.action_dim = out_shape[-1] if len(out_shape) == 2 and isinstance(out_shape[-1], int) else None
+        # the width of (batch, width) observations and actions; None where the model leaves it open
+        self.obs_dim, self.action_dim = (s[-1] if len(s) == 2 and isinstance(s[-1], int) else None
+                                         for s in (ins[0].shape, next(o.shape for o in outs if o.name == OUTPUT_NAME)))
 
     def __call__(self, observations) -> np.ndarray:
         obs = np.asarray(observations, np.float32)
@@ -350,11 +348,8 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
         check_replaceable(p, force)
     check_writable_folder(out)
     run, cfg = read_run(run_dir, "export")
-    from botorl.configs.resolve import check_bounds  # lazy: JAX (through the configs' schema); botorl.api imports this module
-
-    check_bounds(cfg)
-    name = pick_checkpoint(run, checkpoint)
-    check_checkpoint(run, cfg, name)  # what `botorl eval` refuses: another run's checkpoint, an edited config
+    check_exportable(run, checkpoint)
+    _, name, state = check_checkpoint(run, cfg, checkpoint)  # what `botorl eval` refuses, export refuses too
     mods = require("onnx", "onnxruntime", "jax2onnx")  # before any JAX work: a missing extra costs nothing
     setup_jax()
 
@@ -367,7 +362,6 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     except BotorlError as err:  # a task registered from a script: standard normal observations
         here = str(err)
     policy = load_policy(run.root, checkpoint=name, deterministic=True)
-    state = CheckpointManager(run.checkpoints).state(name)
 
     if observations is None:
         obs, source = verification_observations(cfg, run, verify_rows, seed=cfg.seed, why=here)
@@ -401,7 +395,6 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     }
     for p in (out, meta):  # again: the minutes of conversion are time for a swap
         check_replaceable(p, force)
-    out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out, model)
     if file_sha256(out) != contract["sha256"]:  # what is on disk is what was verified
         raise BotorlError(f"{out} does not read back as written (sha256 differs); check the disk and export again.")

@@ -22,17 +22,17 @@ from botorl.envs.registry import get_task
 from botorl.envs.user import action_to_env, flatten_obs
 from botorl.errors import ConfigError
 from botorl.jaxsetup import matmul_precision, setup_jax
-from botorl.pipeline.checkpoint import CheckpointManager, check_identity
+from botorl.pipeline.checkpoint import CheckpointManager, check_identity, full_identity
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, read_json
 
 
 def read_run(run_dir, verb: str = "load", *, validate: bool = False, entry: str | None = None, before=None):
-    """(RunDir, RunConfig) of a single run directory; ConfigError naming what to give instead
-    for anything else (``verb``: what the caller does with it, for the message). ``validate``:
-    check the config as `botorl run` does (which needs the run's task here): first its sizes and
-    counts, then ``before(run, cfg)`` (the caller's checkpoint identity check), and only then a task
-    of one's own is registered from ``entry`` (the user's ``--env``), so nothing is imported or
-    read for a directory that fails a check."""
+    """(RunDir, RunConfig) of a single run directory, its sizes and counts checked (before any
+    template is built from them); ConfigError naming what to give instead for anything else
+    (``verb``: what the caller does with it, for the message). ``validate``: check the config as
+    `botorl run` does (which needs the run's task here): first ``before(run, cfg)`` (the caller's
+    checkpoint identity check), and only then a task of one's own is registered from ``entry``
+    (the user's ``--env``), so nothing is imported or read for a directory that fails a check."""
     from botorl.configs import resolve, schema  # lazy: JAX (the agents' configs); botorl.api imports this module
 
     root = Path(run_dir)
@@ -49,8 +49,8 @@ def read_run(run_dir, verb: str = "load", *, validate: bool = False, entry: str 
         cfg = schema.from_dict(schema.RunConfig, data)
     except (OSError, TypeError, ValueError, KeyError, AttributeError) as err:
         raise ConfigError(f"{run.config} cannot be read as a run config ({err}); was it edited by hand?") from None
+    resolve.check_bounds(cfg)
     if validate:
-        resolve.check_bounds(cfg)
         if before is not None:
             before(run, cfg)
         register_given(cfg, entry)
@@ -58,16 +58,17 @@ def read_run(run_dir, verb: str = "load", *, validate: bool = False, entry: str 
     return run, cfg
 
 
-def check_checkpoint(run, cfg, checkpoint: str | None = None) -> str:
-    """The checkpoint ``checkpoint`` (default: the latest verified one) of a single run, checked
-    to be this run's (``check_identity``: what `botorl eval` refuses, export and load_policy refuse
-    too); returns its name."""
+def check_checkpoint(run, cfg, checkpoint: str | None = None, data: bool = False):
+    """(CheckpointManager, name, state) of the checkpoint ``checkpoint`` (default: the latest
+    verified one) of a single run, checked to be this run's (``check_identity``; ``data``: with the
+    data it was trained on, as `botorl eval` reads them; export and load_policy do not)."""
     from botorl.configs.schema import run_identity  # lazy: JAX, as in read_run
 
     ckpt = CheckpointManager(run.checkpoints)
     name = ckpt.chosen(checkpoint)
-    check_identity(ckpt.state(name), [run_identity(cfg)], run.checkpoints, name)
-    return name
+    state = ckpt.state(name)
+    check_identity(state, [full_identity(cfg) if data else run_identity(cfg)], run.checkpoints, name)
+    return ckpt, name, state
 
 
 def task_io(cfg) -> dict[str, Any]:
@@ -94,16 +95,13 @@ def load_agent(run_dir, checkpoint: str | None = None):
 def _load(run_dir, checkpoint):
     # lazy: JAX, as in read_run
     from botorl.agents import checkpoint as agent_ckpt
-    from botorl.configs.resolve import check_bounds
     from botorl.pipeline import stages
 
     setup_jax()
     run, cfg = read_run(run_dir)
-    check_bounds(cfg)  # before any template is built from the config's sizes
-    name = check_checkpoint(run, cfg, checkpoint)
-    ckpt = CheckpointManager(run.checkpoints)
+    ckpt, name, state = check_checkpoint(run, cfg, checkpoint)
     io = task_io(cfg)
-    like = stages.agent_template(cfg, ckpt.state(name)["stage"], io["obs_dim"], io["action_dim"], cfg.seed)
+    like = stages.agent_template(cfg, state["stage"], io["obs_dim"], io["action_dim"], cfg.seed)
     return agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like), cfg, io, name
 
 

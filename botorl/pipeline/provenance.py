@@ -22,7 +22,7 @@ import subprocess
 from importlib import metadata
 from pathlib import Path
 
-from botorl.pipeline.checkpoint import file_sha256 as checkpoint_file_sha256
+from botorl.io import file_sha256
 
 PACKAGES = ("botorl", "jax", "jaxlib", "flax", "optax", "numpy", "mujoco", "gymnasium")
 ENV_PREFIXES = ("XLA_", "JAX_", "BOTORL_CPU")  # settings of the environment that change numbers
@@ -94,8 +94,10 @@ def comparable(record: dict) -> str:
 _CACHE: dict[tuple, str] = {}
 
 
-def file_sha256(path: Path) -> str | None:
-    """SHA-256 of a regular file (cached by size and mtime: summaries are written often), or None."""
+def pretrain_sha256(checkpoints: Path) -> str | None:
+    """The digest of the pre-trained agent under a run's ``checkpoints`` folder (None: none yet,
+    or a method without pre-training); cached by size and mtime, as summaries are written often."""
+    path = Path(checkpoints) / PRETRAIN_AGENT
     try:
         st = os.stat(path)
     except OSError:
@@ -104,11 +106,5 @@ def file_sha256(path: Path) -> str | None:
         return None
     key = (str(path), st.st_size, st.st_mtime_ns)
     if key not in _CACHE:
-        _CACHE[key] = checkpoint_file_sha256(path)
+        _CACHE[key] = file_sha256(path)
     return _CACHE[key]
-
-
-def pretrain_sha256(checkpoints: Path) -> str | None:
-    """The digest of the pre-trained agent under a run's ``checkpoints`` folder (None: none yet,
-    or a method without pre-training)."""
-    return file_sha256(Path(checkpoints) / PRETRAIN_AGENT)

@@ -214,12 +214,8 @@ class CsvLog:
 
 
 def _fmt(v: Any) -> Any:
-    if hasattr(v, "item") and callable(v.item):
-        with contextlib.suppress(ValueError, TypeError):
-            v = v.item()
-    if isinstance(v, float):
-        return f"{v:.6g}"
-    return v
+    v = _scalar(v)
+    return f"{v:.6g}" if isinstance(v, float) else v
 
 
 class JsonlLog:
