@@ -24,7 +24,7 @@ _ALL_EMPTY = "sample_mixed: every source with a positive ratio is empty; nothing
 class ReplayBuffer:
     """Ring buffer(s) of float32 transitions; the oldest rows are overwritten once full.
     ``members=N``: fields (N, capacity, ...), ``size``, ``insert_index`` and ``total_inserted``
-    shared, ``open_rows`` per member."""
+    shared, the rows of the running episode per member."""
 
     def __init__(self, capacity: int, obs_dim: int, action_dim: int, members: int | None = None):
         if capacity <= 0:
@@ -44,10 +44,6 @@ class ReplayBuffer:
     @property
     def n(self) -> int:
         return self._open.shape[0]
-
-    @property
-    def open_rows(self):
-        return int(self._open[0]) if self.members is None else self._open
 
     def __len__(self) -> int:
         return self.size
@@ -204,7 +200,7 @@ class ReplayBuffer:
         state.update(capacity=np.asarray(self.capacity), obs_dim=np.asarray(self.obs_dim),
                      action_dim=np.asarray(self.action_dim), size=np.asarray(self.size),
                      insert_index=np.asarray(self.insert_index), total_inserted=np.asarray(self.total_inserted),
-                     open_rows=self._open.copy() if self.members is not None else np.asarray(self.open_rows))
+                     open_rows=np.array(self._open[lead]))
         return state
 
     @classmethod
