@@ -64,7 +64,7 @@ def ensure_dataset(task: str, steps: int | None = None, seed: int = 0, *, progre
         return load_minari(path, action_tolerance=float("inf"))
     generate = get_generator(task)
     ds = generate(steps, seed, progress=progress)
-    meta = {"task": task, "steps": steps, "seed": int(seed), "generator": get_generator_name(task)}
+    meta = {"task": task, "steps": steps, "seed": int(seed), "generator": GENERATORS[task]}
     try:
         minari_io.write_minari(ds, cache_id(task, steps, seed), root=data_dir(), overwrite=regenerate, metadata=meta,
                      description=f"botorl generated data for {task} ({steps} steps, seed {seed})",
@@ -74,7 +74,3 @@ def ensure_dataset(task: str, steps: int | None = None, seed: int = 0, *, progre
             raise
     ds.metadata.update(cache_path=str(path))
     return ds
-
-
-def get_generator_name(task: str) -> str:
-    return GENERATORS[task]
