@@ -171,19 +171,6 @@ def load_d4rl_hdf5(path: str | os.PathLike, *, max_episode_steps: int | None = N
 # ----------------------------------------------------------------------------- Minari
 
 
-def _minari_data_path(id_or_path: str | os.PathLike) -> tuple[Path, bool]:
-    """(folder holding main_data / metadata.json, given-as-path?)."""
-    p = Path(id_or_path).expanduser()
-    as_path = isinstance(id_or_path, os.PathLike) or p.is_absolute() or str(id_or_path).startswith((".", "~")) or p.exists()
-    if as_path:
-        if p.is_file():
-            p = p.parent
-        if (p / "data").is_dir():
-            p = p / "data"
-        return p, True
-    return minari_root() / str(id_or_path) / "data", False
-
-
 def _h5_tree(node):
     if isinstance(node, h5py.Dataset):
         return node[()]
@@ -263,13 +250,20 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
     T steps gives T transitions, the last an episode end, and the last T entries of
     ``infos[success_info_key]`` as ``infos["success"]``.
     """
-    data_path, as_path = _minari_data_path(id_or_path)
     given = Path(id_or_path).expanduser()
-    if as_path and given.is_file() and given.name != "main_data.hdf5":
+    as_path = (isinstance(id_or_path, os.PathLike) or given.is_absolute() or str(id_or_path).startswith((".", "~"))
+               or given.exists())
+    if not as_path:
+        data_path = minari_root() / str(id_or_path) / "data"
+    elif given.is_file() and given.name != "main_data.hdf5":
         raise DataFormatError(f"{given} exists, but it is a file and this task reads a Minari dataset: give the "
                               "dataset's folder (the one holding data/main_data.hdf5 and data/metadata.json) or its "
                               "main_data.hdf5. A D4RL .hdf5 file is read by `botorl data info FILE` / "
                               "botorl.data.loaders.load_d4rl_hdf5, not as a Minari dataset.")
+    else:
+        data_path = given.parent if given.is_file() else given
+        if (data_path / "data").is_dir():
+            data_path = data_path / "data"
     rebuild = False
     if obs_keys is None and data_path.name == "data" and actions_to_unit is None:
         try:
