@@ -25,27 +25,6 @@ MAX_STEPS_PER_GOAL = 1000
 VEL_CLIP = 5.0  # PointEnv._clip_velocity
 
 
-def _model(spec):
-    """The MuJoCo model the env builds for ``spec`` and fresh data for it (the env closed)."""
-    inner = make_inner(spec)
-    model = inner.point_env.model
-    data = mujoco.MjData(model)
-    inner.close()
-    return model, data
-
-
-def _place(model, data, rng: np.random.Generator, cells, centres):
-    """The point at rest near a random free cell's centre; returns that cell."""
-    start = cells[rng.integers(len(cells))]
-    sx, sy = centres[start]
-    mujoco.mj_resetData(model, data)
-    data.qpos[0] = sx + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
-    data.qpos[1] = sy + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
-    data.qvel[:] = 0.0
-    mujoco.mj_forward(model, data)
-    return start
-
-
 def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset:
     if maze not in MAZES:
         raise ValueError(f"unknown maze {maze!r}; one of {sorted(MAZES)}")
@@ -54,7 +33,10 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
     spec = MAZES[maze]
     maze_map = spec.maze_map
     rows, cols = len(maze_map), len(maze_map[0])
-    model, data = _model(spec)
+    inner = make_inner(spec)  # the env's MuJoCo model, stepped directly
+    model = inner.point_env.model
+    data = mujoco.MjData(model)
+    inner.close()
     table = next_cell_table(maze_map)
     cells = free_cells(maze_map)
     centres = {c: tuple(cell_to_xy(maze_map, c)) for c in cells}
@@ -71,7 +53,12 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
                 cx, cy = centres[c]
                 return c, cx + rng.uniform(-GOAL_NOISE, GOAL_NOISE), cy + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
 
-    goal_cell, gx, gy = draw_goal(_place(model, data, rng, cells, centres))
+    # the point at rest near a random free cell's centre, then a goal in another cell
+    start = cells[rng.integers(len(cells))]
+    data.qpos[0] = centres[start][0] + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
+    data.qpos[1] = centres[start][1] + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
+    mujoco.mj_forward(model, data)
+    goal_cell, gx, gy = draw_goal(start)
     steps_on_goal = 0
 
     states = np.empty((steps + 1, 4))
