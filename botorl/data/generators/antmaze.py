@@ -54,11 +54,8 @@ class WaypointController:
     """Follows the BFS planner's path of cells (``table``) to ``goal_xy`` with the goal-reaching
     ant ``policy`` (controller.py's rule), re-planning if the ant leaves the path."""
 
-    def __init__(self, maze_map, table, policy, rng: np.random.Generator | None = None,
-                 threshold: float = WAYPOINT_THRESHOLD, jitter: float = WAYPOINT_JITTER):
-        self.maze_map, self.table, self.policy = maze_map, table, policy
-        self.rng = rng if rng is not None else np.random.default_rng(0)
-        self.threshold, self.jitter = threshold, jitter
+    def __init__(self, maze_map, table, policy, rng: np.random.Generator):
+        self.maze_map, self.table, self.policy, self.rng = maze_map, table, policy, rng
         self.goal_cell = None
 
     def set_goal(self, goal_xy, xy) -> None:
@@ -87,21 +84,18 @@ class WaypointController:
         if self.path[self.index] == self.goal_cell:
             self.waypoint = self.goal_xy
         else:
-            self.waypoint = cell_xy(self.maze_map, self.path[self.index]) - self.rng.uniform(size=2) * self.jitter
+            self.waypoint = cell_xy(self.maze_map, self.path[self.index]) - self.rng.uniform(size=2) * WAYPOINT_JITTER
 
-    def waypoint_for(self, xy) -> np.ndarray:
+    def act(self, observation27, xy):
+        """The policy's action towards the current waypoint, re-planned or advanced first."""
         cell = xy_cell(self.maze_map, xy)
         lo = max(self.index - 1, 0)
         if cell not in self.path[lo: self.index + 1]:
             self._plan(cell)
-        if self.path[self.index] != self.goal_cell and np.sum((self.waypoint - xy) ** 2) <= self.threshold**2:
+        if self.path[self.index] != self.goal_cell and np.sum((self.waypoint - xy) ** 2) <= WAYPOINT_THRESHOLD**2:
             self._advance()
-        return self.waypoint
-
-    def act(self, observation27, xy, rng=None):
-        wp = self.waypoint_for(xy)
-        obs = np.concatenate([observation27, wp - xy]).astype(np.float32)
-        return self.policy(obs[None], rng)[0] if rng is not None else self.policy(obs[None])[0]
+        obs = np.concatenate([observation27, self.waypoint - xy]).astype(np.float32)
+        return self.policy(obs[None])[0]
 
 
 def make_maze_env(maze: str, *, continuing_task: bool = True):
@@ -134,7 +128,6 @@ class _Sim:
         mujoco.mj_resetData(self.model, d)
         d.qpos[:] = self.qpos0
         d.qpos[:2] = xy
-        d.qvel[:] = 0.0
         mujoco.mj_forward(self.model, d)
 
     def step(self, action) -> None:
@@ -282,27 +275,20 @@ def maze_of(ds) -> str | None:
     return meta["maze"] if antmaze else None
 
 
-def visited_cells(maze: str, xy: np.ndarray) -> np.ndarray:
-    """Steps per cell, (rows, cols)."""
-    spec = layout(maze)
-    rows, cols = len(spec.maze_map), len(spec.maze_map[0])
-    r = np.floor((rows * SCALE / 2 - xy[:, 1]) / SCALE).astype(int)
-    c = np.floor((xy[:, 0] + cols * SCALE / 2) / SCALE).astype(int)
-    ok = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
-    counts = np.zeros((rows, cols), np.int64)
-    np.add.at(counts, (r[ok], c[ok]), 1)
-    return counts
-
-
 def maze_stats(ds, maze: str | None = None) -> dict | None:
     """Coverage of the maze (free cells with at least 100 steps; our threshold, so a cell
     crossed once does not count) and the evaluation-goal rows of an antmaze dataset."""
     maze = maze or maze_of(ds)
     if maze is None:
         return None
-    spec = layout(maze)
-    free = np.array(spec.maze_map) == 0
-    counts = visited_cells(maze, np.asarray(ds.observations[:, :2]))
+    free = np.array(layout(maze).maze_map) == 0
+    rows, cols = free.shape
+    xy = np.asarray(ds.observations[:, :2])
+    r = np.floor((rows * SCALE / 2 - xy[:, 1]) / SCALE).astype(int)  # xy_cell of every row
+    c = np.floor((xy[:, 0] + cols * SCALE / 2) / SCALE).astype(int)
+    ok = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
+    counts = np.zeros((rows, cols), np.int64)
+    np.add.at(counts, (r[ok], c[ok]), 1)
     covered = int(((counts >= 100) & free).sum())
     return {"maze": maze, "cells_free": int(free.sum()), "cells_covered": covered,
             "coverage": covered / int(free.sum()), "eval_goal_rows": int((ds.rewards > 0).sum())}
