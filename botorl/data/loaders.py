@@ -62,10 +62,9 @@ def download_hint(name: str) -> str:
     return "Check the path, or generate the data with `botorl data generate TASK`."
 
 
-def dataset_not_found(name: str, looked: Sequence[str | os.PathLike] | str, hint: str | None = None) -> DatasetNotFoundError:
+def dataset_not_found(name: str, looked: Sequence[str | os.PathLike], hint: str | None = None) -> DatasetNotFoundError:
     """The error for ``name`` (task name, Minari id or file) not found in ``looked``."""
-    places = [looked] if isinstance(looked, (str, os.PathLike)) else list(looked)
-    where = ", ".join(str(p) for p in places) or "(nowhere)"
+    where = ", ".join(str(p) for p in looked) or "(nowhere)"
     return DatasetNotFoundError(
         f"dataset {name} was not found; botorl looked in: {where}. {hint or download_hint(name)}"
     )
@@ -504,8 +503,7 @@ def load_dapg_demos(path: str | os.PathLike, *, binary_reward: bool = False,
             if len(hit):
                 cut = int(hit[0]) + 1
                 o_, no_, a_, succ = o_[:cut], no_[:cut], a_[:cut], succ[:cut]
-                term = np.zeros(cut, bool)
-                term[-1] = True
+                term = succ  # cut at the first success: True at the last row only
             elif drop_unsuccessful:
                 continue
             r_ = succ.astype(np.float32) - 1.0
