@@ -97,6 +97,27 @@ class WaypointController:
         obs = np.concatenate([observation27, self.waypoint - xy]).astype(np.float32)
         return self.policy(obs[None])[0]
 
+    def start(self, sim, goal_cell, start_cell) -> np.ndarray:
+        """Reset ``sim`` near ``start_cell`` and aim at a point near ``goal_cell`` (the env's
+        position noise); returns that point."""
+        noise = POSITION_NOISE * SCALE
+        goal = cell_xy(self.maze_map, goal_cell) + self.rng.uniform(-noise, noise, 2)
+        xy = cell_xy(self.maze_map, start_cell) + self.rng.uniform(-noise, noise, 2)
+        sim.reset(xy)
+        self.set_goal(goal, xy)
+        return goal
+
+    def drive(self, sim, action_noise: float) -> np.ndarray:
+        """Step ``sim`` with the action towards the waypoint plus Gaussian ``action_noise``, clipped
+        to [-1, 1]; returns that action."""
+        d = sim.data
+        a = self.act(np.concatenate([d.qpos[2:], d.qvel]), d.qpos[:2].copy())
+        if action_noise > 0:
+            a = a + action_noise * self.rng.standard_normal(8)
+        a = np.clip(a, -1.0, 1.0)
+        sim.step(a)
+        return a
+
 
 def make_maze_env(maze: str, *, continuing_task: bool = True):
     """Gymnasium-Robotics' AntMazeEnv on the maze's wall map (no goal/reset marks)."""
@@ -154,19 +175,13 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
     spec, maze_map, sim, rng, ctl = _controller(maze, actor, seed)
     cells = free_cells(maze_map) if kind == "diverse" else list(spec.locations)
     eval_goal = cell_xy(maze_map, spec.eval_goal)
-    noise = POSITION_NOISE * SCALE
 
     def new_episode():
         while True:
             g = cells[rng.integers(len(cells))]
             s = cells[rng.integers(len(cells))]
             if np.linalg.norm(cell_xy(maze_map, g) - cell_xy(maze_map, s)) > 0.5 * SCALE:
-                break
-        gxy = cell_xy(maze_map, g) + rng.uniform(-noise, noise, 2)
-        sxy = cell_xy(maze_map, s) + rng.uniform(-noise, noise, 2)
-        sim.reset(sxy)
-        ctl.set_goal(gxy, sxy)
-        return gxy
+                return ctl.start(sim, g, s)
 
     obs_qpos, next_qpos = np.empty((steps, 15)), np.empty((steps, 15))
     obs_qvel, next_qvel = np.empty((steps, 14)), np.empty((steps, 14))
@@ -179,17 +194,10 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
     for t in range(steps):
         if t_ep == 0:
             goal = new_episode()
-            prev_qpos, prev_qvel = d.qpos.copy(), d.qvel.copy()
-        obs_qpos[t], obs_qvel[t] = prev_qpos, prev_qvel
-        a = ctl.act(np.concatenate([prev_qpos[2:], prev_qvel]), prev_qpos[:2])
-        if action_noise > 0:
-            a = a + action_noise * rng.standard_normal(8)
-        a = np.clip(a, -1.0, 1.0)
-        sim.step(a)
-        actions[t] = a
+        obs_qpos[t], obs_qvel[t] = d.qpos, d.qvel
+        actions[t] = ctl.drive(sim, action_noise)
         goals[t] = goal
-        prev_qpos, prev_qvel = d.qpos.copy(), d.qvel.copy()
-        next_qpos[t], next_qvel[t] = prev_qpos, prev_qvel
+        next_qpos[t], next_qvel[t] = d.qpos, d.qvel
         t_ep += 1
         if t_ep >= episode_steps:
             ends[t] = True
@@ -238,22 +246,14 @@ def evaluate_controller(maze: str = "large", episodes: int = 20, seed: int = 0, 
                         action_noise: float = 0.0, max_steps: int = EPISODE_STEPS, progress: bool = False) -> dict:
     """Success and steps to success of the waypoint controller from the evaluation start to the
     evaluation goal (with the evaluation env's noise), no action noise by default."""
-    spec, maze_map, sim, rng, ctl = _controller(maze, actor, seed)
-    noise = POSITION_NOISE * SCALE
+    spec, _, sim, _, ctl = _controller(maze, actor, seed)
     results = []
     for ep in range(episodes):
-        gxy = cell_xy(maze_map, spec.eval_goal) + rng.uniform(-noise, noise, 2)
-        sxy = cell_xy(maze_map, spec.eval_start) + rng.uniform(-noise, noise, 2)
-        sim.reset(sxy)
-        ctl.set_goal(gxy, sxy)
-        d = sim.data
+        gxy = ctl.start(sim, spec.eval_goal, spec.eval_start)
         steps = None
         for t in range(max_steps):
-            a = ctl.act(np.concatenate([d.qpos[2:], d.qvel]), d.qpos[:2].copy())
-            if action_noise > 0:
-                a = a + action_noise * rng.standard_normal(8)
-            sim.step(np.clip(a, -1, 1))
-            if np.sum((d.qpos[:2] - gxy) ** 2) <= SUCCESS_RADIUS**2:
+            ctl.drive(sim, action_noise)
+            if np.sum((sim.data.qpos[:2] - gxy) ** 2) <= SUCCESS_RADIUS**2:
                 steps = t + 1
                 break
         results.append(steps)
