@@ -98,8 +98,7 @@ class WaypointController:
         return self.policy(obs[None])[0]
 
     def start(self, sim, goal_cell, start_cell) -> np.ndarray:
-        """Reset ``sim`` near ``start_cell`` and aim at a point near ``goal_cell`` (the env's
-        position noise); returns that point."""
+        """Reset ``sim`` near ``start_cell``, aim near ``goal_cell`` (the env's noise); returns the goal."""
         noise = POSITION_NOISE * SCALE
         goal = cell_xy(self.maze_map, goal_cell) + self.rng.uniform(-noise, noise, 2)
         xy = cell_xy(self.maze_map, start_cell) + self.rng.uniform(-noise, noise, 2)
@@ -108,8 +107,7 @@ class WaypointController:
         return goal
 
     def drive(self, sim, action_noise: float) -> np.ndarray:
-        """Step ``sim`` with the action towards the waypoint plus Gaussian ``action_noise``, clipped
-        to [-1, 1]; returns that action."""
+        """Step ``sim`` with the waypoint action plus ``action_noise`` (Gaussian), clipped; returns it."""
         d = sim.data
         a = self.act(np.concatenate([d.qpos[2:], d.qvel]), d.qpos[:2].copy())
         if action_noise > 0:
