@@ -33,7 +33,7 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
     spec = MAZES[maze]
     maze_map = spec.maze_map
     rows, cols = len(maze_map), len(maze_map[0])
-    inner = make_inner(spec)  # the env's MuJoCo model, stepped directly
+    inner = make_inner(spec)
     model = inner.point_env.model
     data = mujoco.MjData(model)
     inner.close()
