@@ -79,7 +79,7 @@ def _require_file(path: str | os.PathLike, what: str) -> Path:
     return p
 
 
-def _join_episodes(episodes: list[dict], metadata: dict) -> Dataset:
+def join_episodes(episodes: list[dict], metadata: dict) -> Dataset:
     """One Dataset of per-episode rows: dicts of observations, next_observations, actions,
     rewards, terminals, optionally episode_ends (default: the last row) and success (an info
     kept only when every episode has it)."""
@@ -207,7 +207,7 @@ def _minari_episodes(mds, data_path: Path):
 
 
 def _minari_rows(mds, data_path: Path, obs_keys, actions_to_unit, success_info_key: str) -> list[dict]:
-    """Each episode of a Minari dataset as rows (``_join_episodes``'s input)."""
+    """Each episode of a Minari dataset as rows (``join_episodes``'s input)."""
     episodes = []
     for ep_id, ep in _minari_episodes(mds, data_path):
         obs = ep["observations"]
@@ -304,7 +304,7 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
             meta["botorl"] = json.loads(extra)
     except Exception:
         pass
-    ds = _join_episodes(episodes, meta)
+    ds = join_episodes(episodes, meta)
     if rebuild and "botorl" in meta:  # only botorl's own datasets carry a flat copy
         rebuild_flat(ds, data_path.parent)
     return validate(ds, obs_dim, action_dim, action_tolerance)
@@ -425,7 +425,7 @@ def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.P
                              "terminals": r == 0.0, "success": (r == 0.0).astype(np.float32)})
         if not episodes:
             raise DataFormatError(f"{p}: no trajectory reaches a success (reward 0); nothing to load.")
-        parts.append(_join_episodes(episodes, {"source": str(p), "format": f"calql-adroit-{kind}"}))
+        parts.append(join_episodes(episodes, {"source": str(p), "format": f"calql-adroit-{kind}"}))
     if not parts:
         raise dataset_not_found("door-binary-v0 / pen-binary-v0", ["(no path given)"], CALQL_DATA_INSTRUCTIONS)
     ds = parts[0] if len(parts) == 1 else parts[0].concat(parts[1])
@@ -511,7 +511,7 @@ def load_dapg_demos(path: str | os.PathLike, *, binary_reward: bool = False,
                          "terminals": term, "success": succ.astype(np.float32)})
     if not episodes:
         raise DataFormatError(f"{p}: no usable demo (all shorter than 2 steps or none succeeds).")
-    ds = _join_episodes(episodes, {"source": str(p), "format": "dapg-" + ("npz" if p.suffix == ".npz" else "pickle"),
+    ds = join_episodes(episodes, {"source": str(p), "format": "dapg-" + ("npz" if p.suffix == ".npz" else "pickle"),
                                    "binary_reward": binary_reward})
     return validate(ds, obs_dim, action_dim, action_tolerance)
 

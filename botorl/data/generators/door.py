@@ -20,7 +20,7 @@ from gymnasium.wrappers import TimeLimit
 from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
-from botorl.data.loaders import door_success
+from botorl.data.loaders import door_success, join_episodes
 from botorl.envs.adroit import make_door
 from botorl.errors import DatasetNotFoundError, DataFormatError
 
@@ -77,10 +77,9 @@ def _binary_trajectory(obs, act, next_obs, drop_unsuccessful: bool) -> dict | No
         end = len(success)
     else:
         end = int(np.nonzero(success)[0][-1]) + 1
-    ends = np.zeros(end, dtype=bool)
-    ends[-1] = True
     return {"observations": obs[:end], "actions": act[:end], "next_observations": next_obs[:end],
-            "rewards": success[:end].astype(np.float32) - 1.0, "terminals": success[:end], "episode_ends": ends}
+            "rewards": success[:end].astype(np.float32) - 1.0, "terminals": success[:end],
+            "success": success[:end].astype(np.float32)}
 
 
 # ---------------------------------------------------------------------------- behaviour cloning
@@ -188,14 +187,12 @@ def generate(steps: int, seed: int, progress: bool = True, demos_path: str | os.
         parts += [t for o, a, no in trajs if (t := _binary_trajectory(o, a, no, drop_unsuccessful))]
     if not parts:
         raise DataFormatError(f"{path}: no demonstration and no rollout succeeded; nothing to keep.")
-    arr = {k: np.concatenate([t[k] for t in parts]) for k in parts[0]}
-    is_demo = np.zeros(len(arr["rewards"]), dtype=np.float32)
-    is_demo[: sum(len(p["rewards"]) for p in parts[:n_demo_kept])] = 1.0
-    return Dataset(
-        **arr, infos={"success": arr["terminals"].astype(np.float32), "is_demo": is_demo},
-        metadata={"source": f"generated: door-binary-local (steps={steps}, seed={seed}, demos={path})",
-                  "task": "door-binary-local", "generator": "botorl.data.generators.door", "steps": int(steps),
-                  "seed": int(seed), "demos_kept": n_demo_kept, "demos_total": len(demos), "bc_steps": int(bc_steps),
-                  "noise_std": float(noise_std), "drop_unsuccessful": bool(drop_unsuccessful),
-                  "bc_episodes": int(n_eps), "bc_success_rate": bc_rate,
-                  "bc_trajectories_kept": len(parts) - n_demo_kept})
+    ds = join_episodes(parts, {
+        "source": f"generated: door-binary-local (steps={steps}, seed={seed}, demos={path})",
+        "task": "door-binary-local", "generator": "botorl.data.generators.door", "steps": int(steps),
+        "seed": int(seed), "demos_kept": n_demo_kept, "demos_total": len(demos), "bc_steps": int(bc_steps),
+        "noise_std": float(noise_std), "drop_unsuccessful": bool(drop_unsuccessful),
+        "bc_episodes": int(n_eps), "bc_success_rate": bc_rate, "bc_trajectories_kept": len(parts) - n_demo_kept})
+    ds.infos["is_demo"] = np.zeros(len(ds), dtype=np.float32)
+    ds.infos["is_demo"][: sum(len(p["rewards"]) for p in parts[:n_demo_kept])] = 1.0
+    return ds
