@@ -181,11 +181,12 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
         a = np.asarray(value, np.int64)  # what h5py's ``attrs[key] = int`` stores
         h5a.create(gid, key, tid_of(a.dtype), scalar).write(a)
 
-    bar = tqdm(total=n_eps, desc=f"writing {name}", unit="episode", mininterval=1.0, disable=not progress)
+    episodes = tqdm(_episodes(ds), total=n_eps, desc=f"writing {name}", unit="episode", mininterval=1.0,
+                    disable=not progress)
     # As Minari: the root group tracks the creation order of its episode groups.
     with h5py.File(file_path, "w", track_order=True, driver="core", backing_store=True) as f:
         root = f.id
-        for ep_id, (obs, act, rew, term, trunc, infos) in enumerate(_episodes(ds)):
+        for ep_id, (obs, act, rew, term, trunc, infos) in enumerate(episodes):
             g = h5g.create(root, f"episode_{ep_id}".encode())
             attr(g, b"id", ep_id)
             attr(g, b"total_steps", len(rew))
@@ -201,10 +202,6 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
                 ig = h5g.create(g, b"infos")
                 for k, v in infos.items():
                     write(ig, k.encode(), v)
-            if (ep_id + 1) % 500 == 0:
-                bar.update(500)
-    bar.update(n_eps - bar.n)
-    bar.close()
     return n_eps, len(ds)
 
 

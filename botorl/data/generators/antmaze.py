@@ -186,10 +186,9 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
     goals = np.empty((steps, 2))
     actions = np.empty((steps, 8))
     ends = np.zeros(steps, bool)
-    bar = tqdm(total=steps, desc=f"antmaze-{maze}-{kind}", unit="step", mininterval=1.0, disable=not progress)
     d = sim.data
     t_ep = 0
-    for t in range(steps):
+    for t in tqdm(range(steps), desc=f"antmaze-{maze}-{kind}", unit="step", mininterval=1.0, disable=not progress):
         if t_ep == 0:
             goal = new_episode()
         obs_qpos[t], obs_qvel[t] = d.qpos, d.qvel
@@ -200,10 +199,6 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
         if t_ep >= episode_steps:
             ends[t] = True
             t_ep = 0
-        if (t + 1) % 10000 == 0:
-            bar.update(10000)
-    bar.update(steps - bar.n)
-    bar.close()
 
     next_xy = next_qpos[:, :2]
     rewards = (np.sum((next_xy - eval_goal) ** 2, axis=1) <= SUCCESS_RADIUS**2).astype(np.float32)

@@ -69,9 +69,8 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
     states[0] = (qpos[0], qpos[1], qvel[0], qvel[1])
     half_r, half_c = rows / 2, cols / 2
 
-    bar = tqdm(total=steps, desc=f"pointmaze-{maze}", unit="step", mininterval=1.0, disable=not progress)
     nextc = table[goal_cell]
-    for t in range(steps):
+    for t in tqdm(range(steps), desc=f"pointmaze-{maze}", unit="step", mininterval=1.0, disable=not progress):
         x, y, vx, vy = qpos[0], qpos[1], qvel[0], qvel[1]
         cell = (math.floor(half_r - y), math.floor(x + half_c))
         if cell == goal_cell:
@@ -98,10 +97,6 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
             goal_cell, gx, gy = draw_goal(goal_cell)
             nextc = table[goal_cell]
             steps_on_goal = 0
-        if (t + 1) % 10000 == 0:
-            bar.update(10000)
-    bar.update(steps - bar.n)
-    bar.close()
 
     terminals = rewards > 0
     return Dataset(
