@@ -76,11 +76,7 @@ class WaypointController:
 
     def _advance(self) -> None:
         """Aim at path[index + 1] (or the goal once in the goal cell)."""
-        if self.index + 1 >= len(self.path):
-            self.index = len(self.path) - 1
-            self.waypoint = self.goal_xy
-            return
-        self.index += 1
+        self.index = min(self.index + 1, len(self.path) - 1)
         if self.path[self.index] == self.goal_cell:
             self.waypoint = self.goal_xy
         else:
