@@ -102,10 +102,8 @@ class ReplayBuffer:
             if d.obs_dim != self.obs_dim or d.action_dim != self.action_dim:
                 raise DataFormatError(f"cannot insert {d!r} into a buffer for obs_dim={self.obs_dim}, "
                                       f"action_dim={self.action_dim}.")
-        fields = ("observations", "actions", "rewards", "next_observations", "terminals")
-        cols = [np.stack([np.asarray(getattr(d, f), np.float32) for d in datasets]) for f in fields]
-        mc = np.stack([np.zeros(len(d), np.float32) if d.mc_returns is None else d.mc_returns for d in datasets])
-        self.insert_batch(*cols, mc)
+        batches = [d.batch_at(np.arange(len(d))) for d in datasets]  # dones as floats, mc_returns 0 if absent
+        self.insert_batch(*(np.stack([b[k] for b in batches]) for k in BATCH_KEYS))
 
     def set_mc_returns(self, rows: Sequence[int], mc_returns: Callable[[Dataset], np.ndarray], member: int = 0) -> None:
         """Fill the Monte-Carlo returns of one finished episode's ``rows`` (of ``member``) with
