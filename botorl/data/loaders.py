@@ -298,12 +298,10 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
         raise DataFormatError(f"{data_path}: the Minari dataset has no steps.")
     meta = {"source": str(data_path.parent if data_path.name == "data" else data_path), "format": "minari",
             "minari_id": mds.id}
-    try:
+    with contextlib.suppress(Exception):
         extra = mds.storage.metadata.get("botorl_metadata")
         if extra:
             meta["botorl"] = json.loads(extra)
-    except Exception:
-        pass
     ds = join_episodes(episodes, meta)
     if rebuild and "botorl" in meta:  # only botorl's own datasets carry a flat copy
         rebuild_flat(ds, data_path.parent)
