@@ -143,10 +143,10 @@ def bc_policy(params):
 
 def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = True):
     """Roll ``policy`` out in the door-binary env until ``steps`` env steps are collected
-    (whole episodes). Returns (trajectories, number of episodes, number of successes)."""
+    (whole episodes). Returns (one trajectory per episode, number of successes)."""
     env = TimeLimit(make_door(seed), HORIZON)
     rng = np.random.default_rng(seed)
-    trajs, n_eps, n_succ, collected = [], 0, 0, 0
+    trajs, n_succ, collected = [], 0, 0
     bar = tqdm(total=steps, desc="door BC rollouts", unit="step", disable=not progress)
     while collected < steps:
         obs, _ = env.reset()
@@ -158,14 +158,13 @@ def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = Tr
             obs = nobs
             if term or trunc:
                 break
-        n_eps += 1
         n_succ += int(info["success"] > 0)
         collected += len(o)
         bar.update(len(o))
         trajs.append((np.array(o, np.float64), np.array(a, np.float64), np.array(no, np.float64)))
     bar.close()
     env.close()
-    return trajs, n_eps, n_succ
+    return trajs, n_succ
 
 
 def generate(steps: int, seed: int, progress: bool = True, demos_path: str | os.PathLike | None = None,
@@ -179,11 +178,11 @@ def generate(steps: int, seed: int, progress: bool = True, demos_path: str | os.
                                                           d["observations"][1:], drop_unsuccessful))]
     n_demo_kept = len(parts)
 
-    bc_rate, n_eps = float("nan"), 0
+    bc_rate, trajs = float("nan"), []
     if steps > 0:
         params = train_bc(demos, bc_steps, seed, progress)
-        trajs, n_eps, n_succ = rollout(bc_policy(params), steps, seed, noise_std, progress)
-        bc_rate = n_succ / max(n_eps, 1)
+        trajs, n_succ = rollout(bc_policy(params), steps, seed, noise_std, progress)
+        bc_rate = n_succ / max(len(trajs), 1)
         parts += [t for o, a, no in trajs if (t := _binary_trajectory(o, a, no, drop_unsuccessful))]
     if not parts:
         raise DataFormatError(f"{path}: no demonstration and no rollout succeeded; nothing to keep.")
@@ -192,7 +191,7 @@ def generate(steps: int, seed: int, progress: bool = True, demos_path: str | os.
         "task": "door-binary-local", "generator": "botorl.data.generators.door", "steps": int(steps),
         "seed": int(seed), "demos_kept": n_demo_kept, "demos_total": len(demos), "bc_steps": int(bc_steps),
         "noise_std": float(noise_std), "drop_unsuccessful": bool(drop_unsuccessful),
-        "bc_episodes": int(n_eps), "bc_success_rate": bc_rate, "bc_trajectories_kept": len(parts) - n_demo_kept})
+        "bc_episodes": len(trajs), "bc_success_rate": bc_rate, "bc_trajectories_kept": len(parts) - n_demo_kept})
     ds.infos["is_demo"] = np.zeros(len(ds), dtype=np.float32)
     ds.infos["is_demo"][: sum(len(p["rewards"]) for p in parts[:n_demo_kept])] = 1.0
     return ds
