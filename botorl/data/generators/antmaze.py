@@ -181,20 +181,15 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
     obs_qvel, next_qvel = np.empty((steps, 14)), np.empty((steps, 14))
     goals = np.empty((steps, 2))
     actions = np.empty((steps, 8))
-    ends = np.zeros(steps, bool)
+    ends = np.arange(1, steps + 1) % episode_steps == 0
     d = sim.data
-    t_ep = 0
     for t in tqdm(range(steps), desc=f"antmaze-{maze}-{kind}", unit="step", mininterval=1.0, disable=not progress):
-        if t_ep == 0:
+        if t % episode_steps == 0:
             goal = new_episode()
         obs_qpos[t], obs_qvel[t] = d.qpos, d.qvel
         actions[t] = ctl.drive(sim, action_noise)
         goals[t] = goal
         next_qpos[t], next_qvel[t] = d.qpos, d.qvel
-        t_ep += 1
-        if t_ep >= episode_steps:
-            ends[t] = True
-            t_ep = 0
 
     next_xy = next_qpos[:, :2]
     rewards = (np.sum((next_xy - eval_goal) ** 2, axis=1) <= SUCCESS_RADIUS**2).astype(np.float32)
