@@ -116,14 +116,11 @@ def train_bc(demos, steps: int, seed: int, progress: bool = True) -> list[tuple[
 
     state = opt.init(params)
     key = keys[0]
-    chunk = 500
-    done = 0
     bar = tqdm(total=steps, desc="door BC", unit="step", disable=not progress)
-    while done < steps:
-        n = min(chunk, steps - done)
+    for done in range(0, steps, 500):
+        n = min(500, steps - done)
         key, sub = jax.random.split(key)
         params, state, loss = run(params, state, sub, n)  # compiled once per chunk length
-        done += n
         bar.update(n)
         if progress:
             bar.set_postfix(loss=float(loss))
