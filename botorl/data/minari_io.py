@@ -102,11 +102,9 @@ def minari_root() -> Path:
 
 def _cuts(ds: Dataset):
     """Episode (starts, ends) row ranges, and where a discontinuity forced a split."""
-    n = len(ds)
     # Discontinuities inside an episode force a split (see SPLIT_KEY).
-    jump = np.zeros(n, bool)
-    if n > 1:
-        jump[:-1] = ~ds.episode_ends[:-1] & np.any(ds.next_observations[:-1] != ds.observations[1:], axis=1)
+    jump = np.zeros(len(ds), bool)
+    jump[:-1] = ~ds.episode_ends[:-1] & np.any(ds.next_observations[:-1] != ds.observations[1:], axis=1)
     return *segments(ds.episode_ends | jump), jump
 
 
