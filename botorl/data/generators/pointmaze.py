@@ -32,7 +32,6 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
         raise ValueError("steps must be positive")
     spec = MAZES[maze]
     maze_map = spec.maze_map
-    rows, cols = len(maze_map), len(maze_map[0])
     inner = make_inner(spec)
     model = inner.point_env.model
     data = mujoco.MjData(model)
@@ -67,7 +66,7 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
     ends = np.zeros(steps, dtype=bool)
     qpos, qvel, ctrl = data.qpos, data.qvel, data.ctrl
     states[0] = (qpos[0], qpos[1], qvel[0], qvel[1])
-    half_r, half_c = rows / 2, cols / 2
+    half_r, half_c = len(maze_map) / 2, len(maze_map[0]) / 2
 
     nextc = table[goal_cell]
     for t in tqdm(range(steps), desc=f"pointmaze-{maze}", unit="step", mininterval=1.0, disable=not progress):
