@@ -427,7 +427,6 @@ def test_generated_data_with_wide_actions_reads_back_from_its_cache(monkeypatch,
 
     monkeypatch.setenv("BOTORL_DATA_DIR", str(tmp_path))
     monkeypatch.setattr(G, "get_generator", lambda task: fake)
-    monkeypatch.setattr(G, "get_generator_name", lambda task: "test")
     first = G.ensure_dataset("door-binary-local", 40, 0, progress=False)
     again = G.ensure_dataset("door-binary-local", 40, 0, progress=False)  # from the cache
     assert first.raw_action_max > 1.2 and np.isclose(again.raw_action_max, first.raw_action_max)

@@ -37,11 +37,8 @@ def _complete(path: Path) -> bool:
 def cached_datasets(task: str, steps: int | None = None, seed: int | None = None) -> list[Path]:
     """Folders of the cached datasets of ``task`` (largest first, then by seed), only those of
     ``steps`` / ``seed`` when given."""
-    folder = data_dir() / "botorl" / task
-    if not folder.is_dir():
-        return []
     found = []
-    for p in folder.iterdir():
+    for p in (data_dir() / "botorl" / task).glob("*"):  # nothing when the folder is missing
         m = re.fullmatch(r"steps(\d+)-seed(\d+)-v0", p.name)
         if m and _complete(p) and steps in (None, int(m.group(1))) and seed in (None, int(m.group(2))):
             found.append((-int(m.group(1)), int(m.group(2)), p))
@@ -62,9 +59,8 @@ def ensure_dataset(task: str, steps: int | None = None, seed: int = 0, *, progre
         # the action range is the caller's to judge (load_offline: the task's data.action_tolerance;
         # the door demos reach |a| = 1.37), as it is for freshly generated data
         return load_minari(path, action_tolerance=float("inf"))
-    generate = get_generator(task)
-    ds = generate(steps, seed, progress=progress)
-    meta = {"task": task, "steps": steps, "seed": int(seed), "generator": get_generator_name(task)}
+    ds = get_generator(task)(steps, seed, progress=progress)
+    meta = {"task": task, "steps": steps, "seed": int(seed), "generator": GENERATORS[task]}
     try:
         minari_io.write_minari(ds, cache_id(task, steps, seed), root=data_dir(), overwrite=regenerate, metadata=meta,
                      description=f"botorl generated data for {task} ({steps} steps, seed {seed})",
@@ -74,7 +70,3 @@ def ensure_dataset(task: str, steps: int | None = None, seed: int = 0, *, progre
             raise
     ds.metadata.update(cache_path=str(path))
     return ds
-
-
-def get_generator_name(task: str) -> str:
-    return GENERATORS[task]

@@ -62,10 +62,9 @@ def download_hint(name: str) -> str:
     return "Check the path, or generate the data with `botorl data generate TASK`."
 
 
-def dataset_not_found(name: str, looked: Sequence[str | os.PathLike] | str, hint: str | None = None) -> DatasetNotFoundError:
+def dataset_not_found(name: str, looked: Sequence[str | os.PathLike], hint: str | None = None) -> DatasetNotFoundError:
     """The error for ``name`` (task name, Minari id or file) not found in ``looked``."""
-    places = [looked] if isinstance(looked, (str, os.PathLike)) else list(looked)
-    where = ", ".join(str(p) for p in places) or "(nowhere)"
+    where = ", ".join(str(p) for p in looked) or "(nowhere)"
     return DatasetNotFoundError(
         f"dataset {name} was not found; botorl looked in: {where}. {hint or download_hint(name)}"
     )
@@ -80,7 +79,7 @@ def _require_file(path: str | os.PathLike, what: str) -> Path:
     return p
 
 
-def _join_episodes(episodes: list[dict], metadata: dict) -> Dataset:
+def join_episodes(episodes: list[dict], metadata: dict) -> Dataset:
     """One Dataset of per-episode rows: dicts of observations, next_observations, actions,
     rewards, terminals, optionally episode_ends (default: the last row) and success (an info
     kept only when every episode has it)."""
@@ -171,19 +170,6 @@ def load_d4rl_hdf5(path: str | os.PathLike, *, max_episode_steps: int | None = N
 # ----------------------------------------------------------------------------- Minari
 
 
-def _minari_data_path(id_or_path: str | os.PathLike) -> tuple[Path, bool]:
-    """(folder holding main_data / metadata.json, given-as-path?)."""
-    p = Path(id_or_path).expanduser()
-    as_path = isinstance(id_or_path, os.PathLike) or p.is_absolute() or str(id_or_path).startswith((".", "~")) or p.exists()
-    if as_path:
-        if p.is_file():
-            p = p.parent
-        if (p / "data").is_dir():
-            p = p / "data"
-        return p, True
-    return minari_root() / str(id_or_path) / "data", False
-
-
 def _h5_tree(node):
     if isinstance(node, h5py.Dataset):
         return node[()]
@@ -221,7 +207,7 @@ def _minari_episodes(mds, data_path: Path):
 
 
 def _minari_rows(mds, data_path: Path, obs_keys, actions_to_unit, success_info_key: str) -> list[dict]:
-    """Each episode of a Minari dataset as rows (``_join_episodes``'s input)."""
+    """Each episode of a Minari dataset as rows (``join_episodes``'s input)."""
     episodes = []
     for ep_id, ep in _minari_episodes(mds, data_path):
         obs = ep["observations"]
@@ -263,13 +249,20 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
     T steps gives T transitions, the last an episode end, and the last T entries of
     ``infos[success_info_key]`` as ``infos["success"]``.
     """
-    data_path, as_path = _minari_data_path(id_or_path)
     given = Path(id_or_path).expanduser()
-    if as_path and given.is_file() and given.name != "main_data.hdf5":
+    as_path = (isinstance(id_or_path, os.PathLike) or given.is_absolute() or str(id_or_path).startswith((".", "~"))
+               or given.exists())
+    if not as_path:
+        data_path = minari_root() / str(id_or_path) / "data"
+    elif given.is_file() and given.name != "main_data.hdf5":
         raise DataFormatError(f"{given} exists, but it is a file and this task reads a Minari dataset: give the "
                               "dataset's folder (the one holding data/main_data.hdf5 and data/metadata.json) or its "
                               "main_data.hdf5. A D4RL .hdf5 file is read by `botorl data info FILE` / "
                               "botorl.data.loaders.load_d4rl_hdf5, not as a Minari dataset.")
+    else:
+        data_path = given.parent if given.is_file() else given
+        if (data_path / "data").is_dir():
+            data_path = data_path / "data"
     rebuild = False
     if obs_keys is None and data_path.name == "data" and actions_to_unit is None:
         try:
@@ -305,13 +298,11 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
         raise DataFormatError(f"{data_path}: the Minari dataset has no steps.")
     meta = {"source": str(data_path.parent if data_path.name == "data" else data_path), "format": "minari",
             "minari_id": mds.id}
-    try:
+    with contextlib.suppress(Exception):
         extra = mds.storage.metadata.get("botorl_metadata")
         if extra:
             meta["botorl"] = json.loads(extra)
-    except Exception:
-        pass
-    ds = _join_episodes(episodes, meta)
+    ds = join_episodes(episodes, meta)
     if rebuild and "botorl" in meta:  # only botorl's own datasets carry a flat copy
         rebuild_flat(ds, data_path.parent)
     return validate(ds, obs_dim, action_dim, action_tolerance)
@@ -432,7 +423,7 @@ def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.P
                              "terminals": r == 0.0, "success": (r == 0.0).astype(np.float32)})
         if not episodes:
             raise DataFormatError(f"{p}: no trajectory reaches a success (reward 0); nothing to load.")
-        parts.append(_join_episodes(episodes, {"source": str(p), "format": f"calql-adroit-{kind}"}))
+        parts.append(join_episodes(episodes, {"source": str(p), "format": f"calql-adroit-{kind}"}))
     if not parts:
         raise dataset_not_found("door-binary-v0 / pen-binary-v0", ["(no path given)"], CALQL_DATA_INSTRUCTIONS)
     ds = parts[0] if len(parts) == 1 else parts[0].concat(parts[1])
@@ -510,8 +501,7 @@ def load_dapg_demos(path: str | os.PathLike, *, binary_reward: bool = False,
             if len(hit):
                 cut = int(hit[0]) + 1
                 o_, no_, a_, succ = o_[:cut], no_[:cut], a_[:cut], succ[:cut]
-                term = np.zeros(cut, bool)
-                term[-1] = True
+                term = succ  # cut at the first success: True at the last row only
             elif drop_unsuccessful:
                 continue
             r_ = succ.astype(np.float32) - 1.0
@@ -519,7 +509,7 @@ def load_dapg_demos(path: str | os.PathLike, *, binary_reward: bool = False,
                          "terminals": term, "success": succ.astype(np.float32)})
     if not episodes:
         raise DataFormatError(f"{p}: no usable demo (all shorter than 2 steps or none succeeds).")
-    ds = _join_episodes(episodes, {"source": str(p), "format": "dapg-" + ("npz" if p.suffix == ".npz" else "pickle"),
+    ds = join_episodes(episodes, {"source": str(p), "format": "dapg-" + ("npz" if p.suffix == ".npz" else "pickle"),
                                    "binary_reward": binary_reward})
     return validate(ds, obs_dim, action_dim, action_tolerance)
 

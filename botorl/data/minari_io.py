@@ -102,11 +102,9 @@ def minari_root() -> Path:
 
 def _cuts(ds: Dataset):
     """Episode (starts, ends) row ranges, and where a discontinuity forced a split."""
-    n = len(ds)
     # Discontinuities inside an episode force a split (see SPLIT_KEY).
-    jump = np.zeros(n, bool)
-    if n > 1:
-        jump[:-1] = ~ds.episode_ends[:-1] & np.any(ds.next_observations[:-1] != ds.observations[1:], axis=1)
+    jump = np.zeros(len(ds), bool)
+    jump[:-1] = ~ds.episode_ends[:-1] & np.any(ds.next_observations[:-1] != ds.observations[1:], axis=1)
     return *segments(ds.episode_ends | jump), jump
 
 
@@ -181,13 +179,12 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
         a = np.asarray(value, np.int64)  # what h5py's ``attrs[key] = int`` stores
         h5a.create(gid, key, tid_of(a.dtype), scalar).write(a)
 
-    bar = tqdm(total=n_eps, desc=f"writing {name}", unit="episode", mininterval=1.0, disable=not progress)
-    steps = eps = 0
+    episodes = tqdm(_episodes(ds), total=n_eps, desc=f"writing {name}", unit="episode", mininterval=1.0,
+                    disable=not progress)
     # As Minari: the root group tracks the creation order of its episode groups.
     with h5py.File(file_path, "w", track_order=True, driver="core", backing_store=True) as f:
         root = f.id
-        for eps, (obs, act, rew, term, trunc, infos) in enumerate(_episodes(ds), start=1):
-            ep_id = eps - 1
+        for ep_id, (obs, act, rew, term, trunc, infos) in enumerate(episodes):
             g = h5g.create(root, f"episode_{ep_id}".encode())
             attr(g, b"id", ep_id)
             attr(g, b"total_steps", len(rew))
@@ -203,28 +200,7 @@ def _write_episodes_h5(ds: Dataset, file_path: Path, progress: bool, name: str) 
                 ig = h5g.create(g, b"infos")
                 for k, v in infos.items():
                     write(ig, k.encode(), v)
-            steps += len(rew)
-            if eps % 500 == 0:
-                bar.update(500)
-    bar.update(eps - bar.n)
-    bar.close()
-    return eps, steps
-
-
-def _resolve(dataset_id: str | None, path: str | os.PathLike | None, root: str | os.PathLike | None):
-    if path is not None:
-        p = Path(path).expanduser().resolve()
-        root_p, dataset_id = p.parent, p.name
-    else:
-        if dataset_id is None:
-            raise ConfigError("write_minari needs a dataset_id or a path.")
-        root_p = Path(root).expanduser() if root is not None else minari_root()
-    try:
-        parse_dataset_id(dataset_id)
-    except Exception:
-        raise ConfigError(f"{dataset_id!r} is not a valid Minari dataset id: use (namespace/)name-v<N> with "
-                          "letters, digits, '-' and '_' (e.g. botorl/pointmaze-large/steps1000000-seed0-v0).") from None
-    return root_p, dataset_id
+    return n_eps, len(ds)
 
 
 def write_minari(dataset: Dataset, dataset_id: str | None = None, *, path: str | os.PathLike | None = None,
@@ -237,7 +213,17 @@ def write_minari(dataset: Dataset, dataset_id: str | None = None, *, path: str |
     whose name is the id. ``metadata`` is stored with botorl's dataset metadata; ``env_spec``
     (``TaskSpec.gym_spec()``) is recorded so that ``recover_environment()`` works.
     """
-    root_p, dataset_id = _resolve(dataset_id, path, root)
+    root_p = Path(root).expanduser() if root is not None else minari_root()
+    if path is not None:
+        p = Path(path).expanduser().resolve()
+        root_p, dataset_id = p.parent, p.name
+    elif dataset_id is None:
+        raise ConfigError("write_minari needs a dataset_id or a path.")
+    try:
+        parse_dataset_id(dataset_id)
+    except Exception:
+        raise ConfigError(f"{dataset_id!r} is not a valid Minari dataset id: use (namespace/)name-v<N> with "
+                          "letters, digits, '-' and '_' (e.g. botorl/pointmaze-large/steps1000000-seed0-v0).") from None
     final = root_p / dataset_id
     if final.exists() and not overwrite:
         raise BotorlError(f"a dataset already exists at {final}; pass overwrite=True (CLI: --overwrite) to "

@@ -24,7 +24,7 @@ _ALL_EMPTY = "sample_mixed: every source with a positive ratio is empty; nothing
 class ReplayBuffer:
     """Ring buffer(s) of float32 transitions; the oldest rows are overwritten once full.
     ``members=N``: fields (N, capacity, ...), ``size``, ``insert_index`` and ``total_inserted``
-    shared, ``open_rows`` per member."""
+    shared, the rows of the running episode per member."""
 
     def __init__(self, capacity: int, obs_dim: int, action_dim: int, members: int | None = None):
         if capacity <= 0:
@@ -44,10 +44,6 @@ class ReplayBuffer:
     @property
     def n(self) -> int:
         return self._open.shape[0]
-
-    @property
-    def open_rows(self):
-        return int(self._open[0]) if self.members is None else self._open
 
     def __len__(self) -> int:
         return self.size
@@ -106,10 +102,8 @@ class ReplayBuffer:
             if d.obs_dim != self.obs_dim or d.action_dim != self.action_dim:
                 raise DataFormatError(f"cannot insert {d!r} into a buffer for obs_dim={self.obs_dim}, "
                                       f"action_dim={self.action_dim}.")
-        fields = ("observations", "actions", "rewards", "next_observations", "terminals")
-        cols = [np.stack([np.asarray(getattr(d, f), np.float32) for d in datasets]) for f in fields]
-        mc = np.stack([np.zeros(len(d), np.float32) if d.mc_returns is None else d.mc_returns for d in datasets])
-        self.insert_batch(*cols, mc)
+        batches = [d.batch_at(np.arange(len(d))) for d in datasets]  # dones as floats, mc_returns 0 if absent
+        self.insert_batch(*(np.stack([b[k] for b in batches]) for k in BATCH_KEYS))
 
     def set_mc_returns(self, rows: Sequence[int], mc_returns: Callable[[Dataset], np.ndarray], member: int = 0) -> None:
         """Fill the Monte-Carlo returns of one finished episode's ``rows`` (of ``member``) with
@@ -204,7 +198,7 @@ class ReplayBuffer:
         state.update(capacity=np.asarray(self.capacity), obs_dim=np.asarray(self.obs_dim),
                      action_dim=np.asarray(self.action_dim), size=np.asarray(self.size),
                      insert_index=np.asarray(self.insert_index), total_inserted=np.asarray(self.total_inserted),
-                     open_rows=self._open.copy() if self.members is not None else np.asarray(self.open_rows))
+                     open_rows=np.array(self._open[lead]))
         return state
 
     @classmethod

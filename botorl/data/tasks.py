@@ -27,7 +27,15 @@ def load_task_data(spec, path: str | os.PathLike | None = None, *, action_tolera
             path or src.ref, obs_keys=src.obs_keys, obs_dim=spec.obs_dim, action_dim=spec.action_dim,
             action_tolerance=action_tolerance)
     if src.kind == "calql_npy":
-        expert, bc = _calql_paths(spec.name, src, path)
+        if path is None:
+            raise loaders.dataset_not_found(spec.name, [], None)
+        p = Path(path).expanduser()
+        if "," in str(path):
+            expert, bc = (Path(part).expanduser() for part in str(path).split(",", 1))
+        elif p.is_dir():
+            expert, bc = (p / name for name in src.ref.split(","))
+        else:
+            expert, bc = p, None
         return loaders.load_calql_adroit(expert, bc, obs_dim=spec.obs_dim, action_dim=spec.action_dim)
     if path is not None:
         return loaders.load_minari(Path(path), obs_dim=spec.obs_dim, action_dim=spec.action_dim,
@@ -51,17 +59,3 @@ def data_status(spec) -> tuple[str, str]:
     if cached:
         return "generated-cached", str(cached[0])
     return "generate", f"made on first use, or now with `botorl data generate {spec.name}`"
-
-
-def _calql_paths(name: str, src, path) -> tuple[Path, Path | None]:
-    expert_name, bc_name = src.ref.split(",")
-    if path is None:
-        raise loaders.dataset_not_found(name, [], None)
-    text = str(path)
-    if "," in text:
-        a, b = text.split(",", 1)
-        return Path(a).expanduser(), Path(b).expanduser()
-    p = Path(text).expanduser()
-    if p.is_dir():
-        return p / expert_name, p / bc_name
-    return p, None

@@ -1,7 +1,7 @@
 """The offline data of a user's own task (botorl/envs/user.py), in any of the forms of
 docs/own-task.md, "Your data". Logged actions are in the env's own units, mapped to [-1, 1] with
 ``action_from_env``; rewards stay raw. Data given in memory are held for the process
-(``hold``/``held``); a run whose data came from a file re-reads the file.
+(``hold``); a run whose data came from a file re-reads the file.
 """
 
 from __future__ import annotations
@@ -28,11 +28,6 @@ _HELD: dict[str, tuple[str, Dataset]] = {}
 
 def hold(name: str, ref: str, ds: Dataset) -> None:
     _HELD[name] = (ref, ds)
-
-
-def held(name: str, ref: str) -> Dataset | None:
-    got = _HELD.get(name)
-    return got[1] if got is not None and got[0] == ref else None
 
 
 def _unit(task: UserTask):
@@ -173,7 +168,8 @@ def load_task_data(spec, path: str | os.PathLike | None = None, *, action_tolera
     [-1, 1] units) are a DataFormatError."""
     task: UserTask = spec.user
     ref = str(path) if path is not None else spec.dataset_source.ref
-    ds = held(spec.name, ref)
+    got = _HELD.get(spec.name)
+    ds = got[1] if got is not None and got[0] == ref else None
     if ds is None:
         if not ref:
             raise DatasetNotFoundError(f"task {spec.name!r}: its data were given in memory to botorl.register_task in "

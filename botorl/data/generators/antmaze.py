@@ -54,11 +54,8 @@ class WaypointController:
     """Follows the BFS planner's path of cells (``table``) to ``goal_xy`` with the goal-reaching
     ant ``policy`` (controller.py's rule), re-planning if the ant leaves the path."""
 
-    def __init__(self, maze_map, table, policy, rng: np.random.Generator | None = None,
-                 threshold: float = WAYPOINT_THRESHOLD, jitter: float = WAYPOINT_JITTER):
-        self.maze_map, self.table, self.policy = maze_map, table, policy
-        self.rng = rng if rng is not None else np.random.default_rng(0)
-        self.threshold, self.jitter = threshold, jitter
+    def __init__(self, maze_map, table, policy, rng: np.random.Generator):
+        self.maze_map, self.table, self.policy, self.rng = maze_map, table, policy, rng
         self.goal_cell = None
 
     def set_goal(self, goal_xy, xy) -> None:
@@ -79,29 +76,41 @@ class WaypointController:
 
     def _advance(self) -> None:
         """Aim at path[index + 1] (or the goal once in the goal cell)."""
-        if self.index + 1 >= len(self.path):
-            self.index = len(self.path) - 1
-            self.waypoint = self.goal_xy
-            return
-        self.index += 1
+        self.index = min(self.index + 1, len(self.path) - 1)
         if self.path[self.index] == self.goal_cell:
             self.waypoint = self.goal_xy
         else:
-            self.waypoint = cell_xy(self.maze_map, self.path[self.index]) - self.rng.uniform(size=2) * self.jitter
+            self.waypoint = cell_xy(self.maze_map, self.path[self.index]) - self.rng.uniform(size=2) * WAYPOINT_JITTER
 
-    def waypoint_for(self, xy) -> np.ndarray:
+    def act(self, observation27, xy):
+        """The policy's action towards the current waypoint, re-planned or advanced first."""
         cell = xy_cell(self.maze_map, xy)
         lo = max(self.index - 1, 0)
         if cell not in self.path[lo: self.index + 1]:
             self._plan(cell)
-        if self.path[self.index] != self.goal_cell and np.sum((self.waypoint - xy) ** 2) <= self.threshold**2:
+        if self.path[self.index] != self.goal_cell and np.sum((self.waypoint - xy) ** 2) <= WAYPOINT_THRESHOLD**2:
             self._advance()
-        return self.waypoint
+        obs = np.concatenate([observation27, self.waypoint - xy]).astype(np.float32)
+        return self.policy(obs[None])[0]
 
-    def act(self, observation27, xy, rng=None):
-        wp = self.waypoint_for(xy)
-        obs = np.concatenate([observation27, wp - xy]).astype(np.float32)
-        return self.policy(obs[None], rng)[0] if rng is not None else self.policy(obs[None])[0]
+    def start(self, sim, goal_cell, start_cell) -> np.ndarray:
+        """Reset ``sim`` near ``start_cell``, aim near ``goal_cell`` (the env's noise); returns the goal."""
+        noise = POSITION_NOISE * SCALE
+        goal = cell_xy(self.maze_map, goal_cell) + self.rng.uniform(-noise, noise, 2)
+        xy = cell_xy(self.maze_map, start_cell) + self.rng.uniform(-noise, noise, 2)
+        sim.reset(xy)
+        self.set_goal(goal, xy)
+        return goal
+
+    def drive(self, sim, action_noise: float) -> np.ndarray:
+        """Step ``sim`` with the waypoint action plus ``action_noise`` (Gaussian), clipped; returns it."""
+        d = sim.data
+        a = self.act(np.concatenate([d.qpos[2:], d.qvel]), d.qpos[:2].copy())
+        if action_noise > 0:
+            a = a + action_noise * self.rng.standard_normal(8)
+        a = np.clip(a, -1.0, 1.0)
+        sim.step(a)
+        return a
 
 
 def make_maze_env(maze: str, *, continuing_task: bool = True):
@@ -134,7 +143,6 @@ class _Sim:
         mujoco.mj_resetData(self.model, d)
         d.qpos[:] = self.qpos0
         d.qpos[:2] = xy
-        d.qvel[:] = 0.0
         mujoco.mj_forward(self.model, d)
 
     def step(self, action) -> None:
@@ -161,50 +169,27 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
     spec, maze_map, sim, rng, ctl = _controller(maze, actor, seed)
     cells = free_cells(maze_map) if kind == "diverse" else list(spec.locations)
     eval_goal = cell_xy(maze_map, spec.eval_goal)
-    noise = POSITION_NOISE * SCALE
 
     def new_episode():
         while True:
             g = cells[rng.integers(len(cells))]
             s = cells[rng.integers(len(cells))]
             if np.linalg.norm(cell_xy(maze_map, g) - cell_xy(maze_map, s)) > 0.5 * SCALE:
-                break
-        gxy = cell_xy(maze_map, g) + rng.uniform(-noise, noise, 2)
-        sxy = cell_xy(maze_map, s) + rng.uniform(-noise, noise, 2)
-        sim.reset(sxy)
-        ctl.set_goal(gxy, sxy)
-        return gxy
+                return ctl.start(sim, g, s)
 
     obs_qpos, next_qpos = np.empty((steps, 15)), np.empty((steps, 15))
     obs_qvel, next_qvel = np.empty((steps, 14)), np.empty((steps, 14))
     goals = np.empty((steps, 2))
     actions = np.empty((steps, 8))
-    ends = np.zeros(steps, bool)
-    bar = tqdm(total=steps, desc=f"antmaze-{maze}-{kind}", unit="step", mininterval=1.0, disable=not progress)
+    ends = np.arange(1, steps + 1) % episode_steps == 0
     d = sim.data
-    t_ep = 0
-    for t in range(steps):
-        if t_ep == 0:
+    for t in tqdm(range(steps), desc=f"antmaze-{maze}-{kind}", unit="step", mininterval=1.0, disable=not progress):
+        if t % episode_steps == 0:
             goal = new_episode()
-            prev_qpos, prev_qvel = d.qpos.copy(), d.qvel.copy()
-        obs_qpos[t], obs_qvel[t] = prev_qpos, prev_qvel
-        a = ctl.act(np.concatenate([prev_qpos[2:], prev_qvel]), prev_qpos[:2])
-        if action_noise > 0:
-            a = a + action_noise * rng.standard_normal(8)
-        a = np.clip(a, -1.0, 1.0)
-        sim.step(a)
-        actions[t] = a
+        obs_qpos[t], obs_qvel[t] = d.qpos, d.qvel
+        actions[t] = ctl.drive(sim, action_noise)
         goals[t] = goal
-        prev_qpos, prev_qvel = d.qpos.copy(), d.qvel.copy()
-        next_qpos[t], next_qvel[t] = prev_qpos, prev_qvel
-        t_ep += 1
-        if t_ep >= episode_steps:
-            ends[t] = True
-            t_ep = 0
-        if (t + 1) % 10000 == 0:
-            bar.update(10000)
-    bar.update(steps - bar.n)
-    bar.close()
+        next_qpos[t], next_qvel[t] = d.qpos, d.qvel
 
     next_xy = next_qpos[:, :2]
     rewards = (np.sum((next_xy - eval_goal) ** 2, axis=1) <= SUCCESS_RADIUS**2).astype(np.float32)
@@ -245,22 +230,14 @@ def evaluate_controller(maze: str = "large", episodes: int = 20, seed: int = 0, 
                         action_noise: float = 0.0, max_steps: int = EPISODE_STEPS, progress: bool = False) -> dict:
     """Success and steps to success of the waypoint controller from the evaluation start to the
     evaluation goal (with the evaluation env's noise), no action noise by default."""
-    spec, maze_map, sim, rng, ctl = _controller(maze, actor, seed)
-    noise = POSITION_NOISE * SCALE
+    spec, _, sim, _, ctl = _controller(maze, actor, seed)
     results = []
     for ep in range(episodes):
-        gxy = cell_xy(maze_map, spec.eval_goal) + rng.uniform(-noise, noise, 2)
-        sxy = cell_xy(maze_map, spec.eval_start) + rng.uniform(-noise, noise, 2)
-        sim.reset(sxy)
-        ctl.set_goal(gxy, sxy)
-        d = sim.data
+        gxy = ctl.start(sim, spec.eval_goal, spec.eval_start)
         steps = None
         for t in range(max_steps):
-            a = ctl.act(np.concatenate([d.qpos[2:], d.qvel]), d.qpos[:2].copy())
-            if action_noise > 0:
-                a = a + action_noise * rng.standard_normal(8)
-            sim.step(np.clip(a, -1, 1))
-            if np.sum((d.qpos[:2] - gxy) ** 2) <= SUCCESS_RADIUS**2:
+            ctl.drive(sim, action_noise)
+            if np.sum((sim.data.qpos[:2] - gxy) ** 2) <= SUCCESS_RADIUS**2:
                 steps = t + 1
                 break
         results.append(steps)
@@ -282,27 +259,20 @@ def maze_of(ds) -> str | None:
     return meta["maze"] if antmaze else None
 
 
-def visited_cells(maze: str, xy: np.ndarray) -> np.ndarray:
-    """Steps per cell, (rows, cols)."""
-    spec = layout(maze)
-    rows, cols = len(spec.maze_map), len(spec.maze_map[0])
-    r = np.floor((rows * SCALE / 2 - xy[:, 1]) / SCALE).astype(int)
-    c = np.floor((xy[:, 0] + cols * SCALE / 2) / SCALE).astype(int)
-    ok = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
-    counts = np.zeros((rows, cols), np.int64)
-    np.add.at(counts, (r[ok], c[ok]), 1)
-    return counts
-
-
 def maze_stats(ds, maze: str | None = None) -> dict | None:
     """Coverage of the maze (free cells with at least 100 steps; our threshold, so a cell
     crossed once does not count) and the evaluation-goal rows of an antmaze dataset."""
     maze = maze or maze_of(ds)
     if maze is None:
         return None
-    spec = layout(maze)
-    free = np.array(spec.maze_map) == 0
-    counts = visited_cells(maze, np.asarray(ds.observations[:, :2]))
+    free = np.array(layout(maze).maze_map) == 0
+    rows, cols = free.shape
+    xy = np.asarray(ds.observations[:, :2])
+    r = np.floor((rows * SCALE / 2 - xy[:, 1]) / SCALE).astype(int)  # xy_cell of every row
+    c = np.floor((xy[:, 0] + cols * SCALE / 2) / SCALE).astype(int)
+    ok = (r >= 0) & (r < rows) & (c >= 0) & (c < cols)
+    counts = np.zeros((rows, cols), np.int64)
+    np.add.at(counts, (r[ok], c[ok]), 1)
     covered = int(((counts >= 100) & free).sum())
     return {"maze": maze, "cells_free": int(free.sum()), "cells_covered": covered,
             "coverage": covered / int(free.sum()), "eval_goal_rows": int((ds.rewards > 0).sum())}

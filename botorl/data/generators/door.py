@@ -20,7 +20,7 @@ from gymnasium.wrappers import TimeLimit
 from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
-from botorl.data.loaders import door_success
+from botorl.data.loaders import door_success, join_episodes
 from botorl.envs.adroit import make_door
 from botorl.errors import DatasetNotFoundError, DataFormatError
 
@@ -77,10 +77,9 @@ def _binary_trajectory(obs, act, next_obs, drop_unsuccessful: bool) -> dict | No
         end = len(success)
     else:
         end = int(np.nonzero(success)[0][-1]) + 1
-    ends = np.zeros(end, dtype=bool)
-    ends[-1] = True
     return {"observations": obs[:end], "actions": act[:end], "next_observations": next_obs[:end],
-            "rewards": success[:end].astype(np.float32) - 1.0, "terminals": success[:end], "episode_ends": ends}
+            "rewards": success[:end].astype(np.float32) - 1.0, "terminals": success[:end],
+            "success": success[:end].astype(np.float32)}
 
 
 # ---------------------------------------------------------------------------- behaviour cloning
@@ -117,14 +116,11 @@ def train_bc(demos, steps: int, seed: int, progress: bool = True) -> list[tuple[
 
     state = opt.init(params)
     key = keys[0]
-    chunk = 500
-    done = 0
     bar = tqdm(total=steps, desc="door BC", unit="step", disable=not progress)
-    while done < steps:
-        n = min(chunk, steps - done)
+    for done in range(0, steps, 500):
+        n = min(500, steps - done)
         key, sub = jax.random.split(key)
         params, state, loss = run(params, state, sub, n)  # compiled once per chunk length
-        done += n
         bar.update(n)
         if progress:
             bar.set_postfix(loss=float(loss))
@@ -144,10 +140,10 @@ def bc_policy(params):
 
 def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = True):
     """Roll ``policy`` out in the door-binary env until ``steps`` env steps are collected
-    (whole episodes). Returns (trajectories, number of episodes, number of successes)."""
+    (whole episodes). Returns (one trajectory per episode, number of successes)."""
     env = TimeLimit(make_door(seed), HORIZON)
     rng = np.random.default_rng(seed)
-    trajs, n_eps, n_succ, collected = [], 0, 0, 0
+    trajs, n_succ, collected = [], 0, 0
     bar = tqdm(total=steps, desc="door BC rollouts", unit="step", disable=not progress)
     while collected < steps:
         obs, _ = env.reset()
@@ -159,14 +155,13 @@ def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = Tr
             obs = nobs
             if term or trunc:
                 break
-        n_eps += 1
         n_succ += int(info["success"] > 0)
         collected += len(o)
         bar.update(len(o))
         trajs.append((np.array(o, np.float64), np.array(a, np.float64), np.array(no, np.float64)))
     bar.close()
     env.close()
-    return trajs, n_eps, n_succ
+    return trajs, n_succ
 
 
 def generate(steps: int, seed: int, progress: bool = True, demos_path: str | os.PathLike | None = None,
@@ -180,22 +175,20 @@ def generate(steps: int, seed: int, progress: bool = True, demos_path: str | os.
                                                           d["observations"][1:], drop_unsuccessful))]
     n_demo_kept = len(parts)
 
-    bc_rate, n_eps = float("nan"), 0
+    bc_rate, trajs = float("nan"), []
     if steps > 0:
         params = train_bc(demos, bc_steps, seed, progress)
-        trajs, n_eps, n_succ = rollout(bc_policy(params), steps, seed, noise_std, progress)
-        bc_rate = n_succ / max(n_eps, 1)
+        trajs, n_succ = rollout(bc_policy(params), steps, seed, noise_std, progress)
+        bc_rate = n_succ / max(len(trajs), 1)
         parts += [t for o, a, no in trajs if (t := _binary_trajectory(o, a, no, drop_unsuccessful))]
     if not parts:
         raise DataFormatError(f"{path}: no demonstration and no rollout succeeded; nothing to keep.")
-    arr = {k: np.concatenate([t[k] for t in parts]) for k in parts[0]}
-    is_demo = np.zeros(len(arr["rewards"]), dtype=np.float32)
-    is_demo[: sum(len(p["rewards"]) for p in parts[:n_demo_kept])] = 1.0
-    return Dataset(
-        **arr, infos={"success": arr["terminals"].astype(np.float32), "is_demo": is_demo},
-        metadata={"source": f"generated: door-binary-local (steps={steps}, seed={seed}, demos={path})",
-                  "task": "door-binary-local", "generator": "botorl.data.generators.door", "steps": int(steps),
-                  "seed": int(seed), "demos_kept": n_demo_kept, "demos_total": len(demos), "bc_steps": int(bc_steps),
-                  "noise_std": float(noise_std), "drop_unsuccessful": bool(drop_unsuccessful),
-                  "bc_episodes": int(n_eps), "bc_success_rate": bc_rate,
-                  "bc_trajectories_kept": len(parts) - n_demo_kept})
+    ds = join_episodes(parts, {
+        "source": f"generated: door-binary-local (steps={steps}, seed={seed}, demos={path})",
+        "task": "door-binary-local", "generator": "botorl.data.generators.door", "steps": int(steps),
+        "seed": int(seed), "demos_kept": n_demo_kept, "demos_total": len(demos), "bc_steps": int(bc_steps),
+        "noise_std": float(noise_std), "drop_unsuccessful": bool(drop_unsuccessful),
+        "bc_episodes": len(trajs), "bc_success_rate": bc_rate, "bc_trajectories_kept": len(parts) - n_demo_kept})
+    ds.infos["is_demo"] = np.zeros(len(ds), dtype=np.float32)
+    ds.infos["is_demo"][: sum(len(p["rewards"]) for p in parts[:n_demo_kept])] = 1.0
+    return ds

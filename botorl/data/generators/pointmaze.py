@@ -25,27 +25,6 @@ MAX_STEPS_PER_GOAL = 1000
 VEL_CLIP = 5.0  # PointEnv._clip_velocity
 
 
-def _model(spec):
-    """The MuJoCo model the env builds for ``spec`` and fresh data for it (the env closed)."""
-    inner = make_inner(spec)
-    model = inner.point_env.model
-    data = mujoco.MjData(model)
-    inner.close()
-    return model, data
-
-
-def _place(model, data, rng: np.random.Generator, cells, centres):
-    """The point at rest near a random free cell's centre; returns that cell."""
-    start = cells[rng.integers(len(cells))]
-    sx, sy = centres[start]
-    mujoco.mj_resetData(model, data)
-    data.qpos[0] = sx + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
-    data.qpos[1] = sy + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
-    data.qvel[:] = 0.0
-    mujoco.mj_forward(model, data)
-    return start
-
-
 def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset:
     if maze not in MAZES:
         raise ValueError(f"unknown maze {maze!r}; one of {sorted(MAZES)}")
@@ -53,8 +32,10 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
         raise ValueError("steps must be positive")
     spec = MAZES[maze]
     maze_map = spec.maze_map
-    rows, cols = len(maze_map), len(maze_map[0])
-    model, data = _model(spec)
+    inner = make_inner(spec)
+    model = inner.point_env.model
+    data = mujoco.MjData(model)
+    inner.close()
     table = next_cell_table(maze_map)
     cells = free_cells(maze_map)
     centres = {c: tuple(cell_to_xy(maze_map, c)) for c in cells}
@@ -71,7 +52,12 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
                 cx, cy = centres[c]
                 return c, cx + rng.uniform(-GOAL_NOISE, GOAL_NOISE), cy + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
 
-    goal_cell, gx, gy = draw_goal(_place(model, data, rng, cells, centres))
+    # the point at rest near a random free cell's centre, then a goal in another cell
+    start = cells[rng.integers(len(cells))]
+    data.qpos[0] = centres[start][0] + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
+    data.qpos[1] = centres[start][1] + rng.uniform(-GOAL_NOISE, GOAL_NOISE)
+    mujoco.mj_forward(model, data)
+    goal_cell, gx, gy = draw_goal(start)
     steps_on_goal = 0
 
     states = np.empty((steps + 1, 4))
@@ -80,11 +66,10 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
     ends = np.zeros(steps, dtype=bool)
     qpos, qvel, ctrl = data.qpos, data.qvel, data.ctrl
     states[0] = (qpos[0], qpos[1], qvel[0], qvel[1])
-    half_r, half_c = rows / 2, cols / 2
+    half_r, half_c = len(maze_map) / 2, len(maze_map[0]) / 2
 
-    bar = tqdm(total=steps, desc=f"pointmaze-{maze}", unit="step", mininterval=1.0, disable=not progress)
     nextc = table[goal_cell]
-    for t in range(steps):
+    for t in tqdm(range(steps), desc=f"pointmaze-{maze}", unit="step", mininterval=1.0, disable=not progress):
         x, y, vx, vy = qpos[0], qpos[1], qvel[0], qvel[1]
         cell = (math.floor(half_r - y), math.floor(x + half_c))
         if cell == goal_cell:
@@ -111,10 +96,6 @@ def generate(maze: str, steps: int, seed: int, progress: bool = True) -> Dataset
             goal_cell, gx, gy = draw_goal(goal_cell)
             nextc = table[goal_cell]
             steps_on_goal = 0
-        if (t + 1) % 10000 == 0:
-            bar.update(10000)
-    bar.update(steps - bar.n)
-    bar.close()
 
     terminals = rewards > 0
     return Dataset(
