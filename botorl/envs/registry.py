@@ -112,7 +112,9 @@ def _make(entry: str, *args) -> gym.Env:
     return getattr(importlib.import_module(f"botorl.envs.{module}"), func)(*args)
 
 
-def _build() -> dict[str, TaskSpec]:
+@cache
+def _tasks() -> dict[str, TaskSpec]:
+    """The registry of this process (built on first use; ``register`` adds to it)."""
     # lazy: kitchen imports mujoco (through compat); a task's module loads when first used (``_make``)
     from botorl.envs.kitchen import MIXED_TASKS, PARTIAL_TASKS
 
@@ -151,7 +153,7 @@ def _build() -> dict[str, TaskSpec]:
         TaskSpec(name="door-binary-local", dataset_source=DatasetSource("generated", "door-binary-local"),
                  description="door-binary with data made here: the 25 DAPG demos + BC rollouts", **door),
     ]
-    # antmaze with data made here (botorl.data.generators.antmaze, issue 16); D4RL's horizons.
+    # antmaze with data made here (botorl.data.generators.antmaze); D4RL's horizons.
     for maze, kind, horizon in (("large", "diverse", 1000), ("large", "play", 1000), ("medium", "diverse", 1000),
                                 ("medium", "play", 1000), ("umaze", "diverse", 700)):
         specs.append(TaskSpec(
@@ -175,12 +177,6 @@ def _build() -> dict[str, TaskSpec]:
     return {s.name: s for s in specs}
 
 
-@cache
-def _tasks() -> dict[str, TaskSpec]:
-    """The registry of this process (built on first use; ``register`` adds to it)."""
-    return _build()
-
-
 def list_tasks() -> list[TaskSpec]:
     return list(_tasks().values())
 
@@ -189,8 +185,7 @@ def register(spec: TaskSpec) -> TaskSpec:
     """Add a user's task to the registry of this process (again under the same name replaces it);
     botorl's own task names are refused."""
     tasks = _tasks()
-    old = tasks.get(spec.name)
-    if old is not None and old.user is None:
+    if spec.name in tasks and tasks[spec.name].user is None:
         raise ConfigError(f"task name {spec.name!r} is one of botorl's tasks; register yours under another name.")
     if spec.user is None:
         raise ConfigError(f"task {spec.name!r}: only user tasks (TaskSpec.user set) can be registered.")
