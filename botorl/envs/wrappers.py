@@ -1,6 +1,6 @@
 """The one wrapper shape every botorl task has (docs/CONTRACTS.md, "Tasks"): ``TaskEnv`` gives a
 flat float32 observation, actions in [-1, 1]^A, the task's reward / termination and
-``info["success"]`` in [0, 1]; domains implement ``_observe`` and ``_task_step``.
+``info["success"]`` in [0, 1]; domains override ``_observe`` and ``_task_step``.
 """
 
 from __future__ import annotations
@@ -46,12 +46,16 @@ class TaskEnv(gym.Wrapper):
         if seed is not None:
             self.action_space.seed(seed)
 
+    reward_offset = 0.0
+
     def _observe(self, obs: Any) -> np.ndarray:
-        raise NotImplementedError
+        return obs
 
     def _task_step(self, obs: Any, reward: float, terminated: bool, info: dict) -> tuple[float, bool, float]:
-        """Return (reward, terminated, success) for one inner step."""
-        raise NotImplementedError
+        """Return (reward, terminated, success) for one inner step; by default the inner env's
+        ``info["success"]`` ends the episode, rewarded ``success + reward_offset``."""
+        success = bool(info.get("success", False))
+        return float(success) + self.reward_offset, success, float(success)
 
     def _reset_options(self) -> dict | None:
         return None
