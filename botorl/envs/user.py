@@ -130,8 +130,6 @@ class UserTaskEnv(TaskEnv):
         return flatten_obs(obs, self._keys)
 
     def _task_step(self, obs, reward, terminated, info):
-        if self._success_key is None:
-            return reward, terminated, 0.0
         s = np.asarray(info.get(self._success_key, 0.0), dtype=np.float64)
         return reward, terminated, float(s.max()) if s.size else 0.0
 
