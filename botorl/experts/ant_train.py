@@ -15,6 +15,7 @@ Files under ``out``: ``agent.ckpt``, ``state.json``, ``curve.csv`` (one row per 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import io
@@ -169,10 +170,8 @@ class Collector:
 
     def close(self):
         for c in self.conns:
-            try:
+            with contextlib.suppress(OSError):  # a worker that is gone (BrokenPipeError)
                 c.send(("stop",))
-            except (BrokenPipeError, OSError):
-                pass
         for p in self.procs:
             p.join(timeout=5)
 
