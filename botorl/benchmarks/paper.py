@@ -87,10 +87,8 @@ def _synthetic_data(spec, work: Path, rows: int) -> tuple[list[str], list[str]]:
             rew[-1] = 0.0  # every trajectory ends in a success, so none is dropped
             trajs.append({"observations": r["observations"][s:e], "next_observations": r["next_observations"][s:e],
                           "actions": r["actions"][s:e], "rewards": rew, "terminals": rew == 0.0})
-        arr = np.empty(len(trajs), dtype=object)
-        arr[:] = trajs
         path = work / f"{spec.name}-synthetic-expert.npy"
-        np.save(path, arr, allow_pickle=True)
+        np.save(path, np.array(trajs, dtype=object), allow_pickle=True)
         return ["--data.path", str(path)], ["--allow-pickle"]
     raise ValueError(f"{spec.name}: no synthetic writer for data of kind {kind!r}")
 
