@@ -162,7 +162,7 @@ def import_entry(entry: str) -> tuple[Callable[[int], gym.Env], str | None]:
         raise ConfigError(f"--env {entry}: importing module {module_name!r} failed: {type(err).__name__}: {err}. "
                           f"Fix the module (`python -c \"import {module_name}\"` shows the traceback).") from None
     func = getattr(module, func_name, None)
-    if func is None or not callable(func):
+    if not callable(func):
         names = [n for n in dir(module) if not n.startswith("_") and callable(getattr(module, n))]
         raise ConfigError(f"--env {entry}: module {module_name!r} ({getattr(module, '__file__', '?')}) has no "
                           f"function {func_name!r}; its callables: {', '.join(names) or 'none'}.")
