@@ -64,7 +64,7 @@ class TaskEnv(gym.Wrapper):
         return obs
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        if seed is None and self._pending_seed is not None:
+        if seed is None:
             seed = self._pending_seed
         self._pending_seed = None
         if options is None:
