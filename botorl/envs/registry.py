@@ -154,26 +154,26 @@ def _tasks() -> dict[str, TaskSpec]:
                  description="door-binary with data made here: the 25 DAPG demos + BC rollouts", **door),
     ]
     # antmaze with data made here (botorl.data.generators.antmaze); D4RL's horizons.
-    for maze, kind, horizon in (("large", "diverse", 1000), ("large", "play", 1000), ("medium", "diverse", 1000),
-                                ("medium", "play", 1000), ("umaze", "diverse", 700)):
-        specs.append(TaskSpec(
-            name=f"antmaze-{maze}-{kind}-local", env_factory=partial(_make, "antmaze:make_antmaze_task", maze),
-            dataset_source=DatasetSource("generated", f"antmaze-{maze}-{kind}-local"),
-            description=f"ant, {maze} maze, D4RL evaluation start/goal; {kind} data made here (waypoint ant)",
-            **dict(ant, max_episode_steps=horizon)))
+    specs += [TaskSpec(
+        name=f"antmaze-{maze}-{kind}-local", env_factory=partial(_make, "antmaze:make_antmaze_task", maze),
+        dataset_source=DatasetSource("generated", f"antmaze-{maze}-{kind}-local"),
+        description=f"ant, {maze} maze, D4RL evaluation start/goal; {kind} data made here (waypoint ant)",
+        **dict(ant, max_episode_steps=horizon)) for maze, kind, horizon in (
+            ("large", "diverse", 1000), ("large", "play", 1000), ("medium", "diverse", 1000), ("medium", "play", 1000),
+            ("umaze", "diverse", 700))]
     # pointmaze: reward transform like antmaze (sparse goal reward, termination at the goal).
-    for maze, horizon in (("umaze", 300), ("medium", 600), ("large", 800)):
-        specs.append(TaskSpec(
-            name=f"pointmaze-{maze}", domain="pointmaze", env_factory=partial(_make, "pointmaze:make_pointmaze", maze),
-            max_episode_steps=horizon, success_mode="any", reward_scale=10.0, reward_bias=-5.0,
-            dataset_source=DatasetSource("generated", f"pointmaze-{maze}"), obs_dim=4, action_dim=2,
-            networks=ANTMAZE_NET, description=f"point mass, D4RL maze2d {maze} map, fixed start and goal; maze2d-style data"))
-    for kind, desc in (("pinwheel", "2-D pinwheel action data (paper Fig. 2)"), ("1d", "1-D bandit (paper Fig. 3)")):
-        specs.append(TaskSpec(
-            name=f"bandit-{kind}", domain="bandit", env_factory=partial(_make, "bandit:BanditEnv", kind),
-            max_episode_steps=1, success_mode="last", reward_scale=1.0, reward_bias=0.0,
-            dataset_source=DatasetSource("generated", f"bandit-{kind}"), obs_dim=1, action_dim=BANDIT_ACTION_DIM[kind],
-            networks=SMALL_NET, description=f"one-step bandit: {desc}"))
+    specs += [TaskSpec(
+        name=f"pointmaze-{maze}", domain="pointmaze", env_factory=partial(_make, "pointmaze:make_pointmaze", maze),
+        max_episode_steps=horizon, success_mode="any", reward_scale=10.0, reward_bias=-5.0,
+        dataset_source=DatasetSource("generated", f"pointmaze-{maze}"), obs_dim=4, action_dim=2,
+        networks=ANTMAZE_NET, description=f"point mass, D4RL maze2d {maze} map, fixed start and goal; maze2d-style data")
+        for maze, horizon in (("umaze", 300), ("medium", 600), ("large", 800))]
+    specs += [TaskSpec(
+        name=f"bandit-{kind}", domain="bandit", env_factory=partial(_make, "bandit:BanditEnv", kind),
+        max_episode_steps=1, success_mode="last", reward_scale=1.0, reward_bias=0.0,
+        dataset_source=DatasetSource("generated", f"bandit-{kind}"), obs_dim=1, action_dim=BANDIT_ACTION_DIM[kind],
+        networks=SMALL_NET, description=f"one-step bandit: {desc}")
+        for kind, desc in (("pinwheel", "2-D pinwheel action data (paper Fig. 2)"), ("1d", "1-D bandit (paper Fig. 3)"))]
     return {s.name: s for s in specs}
 
 
