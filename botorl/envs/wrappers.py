@@ -35,6 +35,8 @@ class TaskEnv(gym.Wrapper):
     """Flat float32 observations, [-1, 1] actions and ``info["success"]`` for one task; ``seed``
     seeds the first ``reset`` that names none, so an env made with a seed is reproducible."""
 
+    reward_offset = 0.0
+
     def __init__(self, env: gym.Env, obs_dim: int, seed: int | None = None):
         super().__init__(env)
         act = env.action_space
@@ -45,8 +47,6 @@ class TaskEnv(gym.Wrapper):
         self._pending_seed = seed
         if seed is not None:
             self.action_space.seed(seed)
-
-    reward_offset = 0.0
 
     def _observe(self, obs: Any) -> np.ndarray:
         return obs
