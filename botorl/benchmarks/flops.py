@@ -16,6 +16,7 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 # Elementwise arithmetic (one FLOP per output element).
 _ELEMENTWISE = {
@@ -32,14 +33,6 @@ class FlopCount:
     flops: float = 0.0  # matmul + elementwise + reductions
     matmul_flops: float = 0.0
 
-    def scaled(self, k: float) -> "FlopCount":
-        return FlopCount(self.flops * k, self.matmul_flops * k)
-
-    def __iadd__(self, other: "FlopCount") -> "FlopCount":
-        self.flops += other.flops
-        self.matmul_flops += other.matmul_flops
-        return self
-
 
 def _size(aval: Any) -> int:
     return math.prod(getattr(aval, "shape", None) or ())
@@ -55,26 +48,25 @@ def _dot_flops(eqn: Any) -> float:
     return 2.0 * batch * m * n * contract
 
 
-def _count_jaxpr(jaxpr: Any) -> FlopCount:
-    total = FlopCount()
+def _count_jaxpr(jaxpr: Any) -> np.ndarray:
+    """(FLOPs, matmul FLOPs) of a traced program."""
+    total = np.zeros(2)
     for eqn in jaxpr.eqns:
         name = eqn.primitive.name
         if name == "dot_general":
-            f = _dot_flops(eqn)
-            total += FlopCount(f, f)
+            total += _dot_flops(eqn)
         elif name == "scan":
-            total += _count_jaxpr(eqn.params["jaxpr"].jaxpr).scaled(eqn.params["length"])
+            total += _count_jaxpr(eqn.params["jaxpr"].jaxpr) * eqn.params["length"]
         elif name == "cond":
-            branches = [_count_jaxpr(b.jaxpr) for b in eqn.params["branches"]]
-            total += max(branches, key=lambda c: c.flops)
+            total += max((_count_jaxpr(b.jaxpr) for b in eqn.params["branches"]), key=lambda c: c[0])
         elif name == "while":
             # Trip count unknown when tracing: count the body once (as XLA does).
             total += _count_jaxpr(eqn.params["body_jaxpr"].jaxpr)
             total += _count_jaxpr(eqn.params["cond_jaxpr"].jaxpr)
         elif name in _ELEMENTWISE:
-            total += FlopCount(float(_size(eqn.outvars[0].aval)))
+            total[0] += _size(eqn.outvars[0].aval)
         elif name in _REDUCE:
-            total += FlopCount(float(_size(eqn.invars[0].aval)))
+            total[0] += _size(eqn.invars[0].aval)
         else:  # a call (pjit, custom_jvp, remat, ...) counts its body; any other primitive is free
             for value in eqn.params.values():
                 for item in value if isinstance(value, (tuple, list)) else (value,):
@@ -86,7 +78,7 @@ def _count_jaxpr(jaxpr: Any) -> FlopCount:
 
 def jaxpr_flops(fn: Callable, *args: Any, **kwargs: Any) -> FlopCount:
     """FLOPs of one call of ``fn(*args)`` counted on its traced program (see module doc)."""
-    return _count_jaxpr(jax.make_jaxpr(fn)(*args, **kwargs).jaxpr)
+    return FlopCount(*map(float, _count_jaxpr(jax.make_jaxpr(fn)(*args, **kwargs).jaxpr)))
 
 
 def xla_flops(fn: Callable, *args: Any, **kwargs: Any) -> float:

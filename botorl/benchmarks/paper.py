@@ -13,6 +13,7 @@ reads (a Minari dataset for kitchen, a Cal-QL expert ``.npy`` for pen), marked `
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import os
@@ -86,10 +87,8 @@ def _synthetic_data(spec, work: Path, rows: int) -> tuple[list[str], list[str]]:
             rew[-1] = 0.0  # every trajectory ends in a success, so none is dropped
             trajs.append({"observations": r["observations"][s:e], "next_observations": r["next_observations"][s:e],
                           "actions": r["actions"][s:e], "rewards": rew, "terminals": rew == 0.0})
-        arr = np.empty(len(trajs), dtype=object)
-        arr[:] = trajs
         path = work / f"{spec.name}-synthetic-expert.npy"
-        np.save(path, arr, allow_pickle=True)
+        np.save(path, np.array(trajs, dtype=object), allow_pickle=True)
         return ["--data.path", str(path)], ["--allow-pickle"]
     raise ValueError(f"{spec.name}: no synthetic writer for data of kind {kind!r}")
 
@@ -113,12 +112,11 @@ def _run(cmd: list[str], log: Path, what: str) -> tuple[float, float, dict]:
 def device_memory() -> dict[str, float | None]:
     """Peak and limit of the first device's memory in MB (None on a CPU, whose arrays are host
     memory, counted in the resident size)."""
-    try:
+    st = {}
+    with contextlib.suppress(Exception):  # a backend without memory statistics
         st = jax.devices()[0].memory_stats() or {}
-    except Exception:  # noqa: BLE001 - a backend without memory statistics
-        st = {}
-    mb = {k: (st[k] / 2**20 if k in st else None) for k in ("peak_bytes_in_use", "bytes_limit")}
-    return {"device_peak_mb": mb["peak_bytes_in_use"], "device_limit_mb": mb["bytes_limit"]}
+    return {name: st[k] / 2**20 if k in st else None
+            for name, k in (("device_peak_mb", "peak_bytes_in_use"), ("device_limit_mb", "bytes_limit"))}
 
 
 def time_evaluation(out: Path, members: int, episodes: int) -> dict:
@@ -273,14 +271,12 @@ def table(results: list[dict]) -> str:
 def machine() -> dict:
     """The machine: host, and the device JAX runs on (its name, platform, count, memory)."""
     out = {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count()}
-    try:
+    with contextlib.suppress(Exception):  # the machine description is best effort
         setup_jax()
         d = jax.devices()[0]
         out.update({"device": str(d), "device_kind": d.device_kind, "backend": jax.default_backend(),
                     "device_count": jax.device_count(), "jax": jax.__version__,
                     "device_memory_limit_mb": device_memory()["device_limit_mb"]})
-    except Exception:  # noqa: BLE001 - the machine description is best effort
-        pass
     return out
 
 

@@ -160,21 +160,19 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
     load_start = _load()
     _log(f"bench: {len(chosen)} workloads x {repeats} rounds of {min_time:.1f} s; load {load_start}")
     rows: dict[str, dict[str, Any]] = {}
-    bound: dict[str, wl.Bound] = {}
-    calls: dict[str, int] = {}
+    timed: dict[str, tuple[wl.Bound, int]] = {}  # the bound update and its calls per timed block
     for w in chosen:
-        rows[w.name], bound[w.name] = _prepare(w)
-        calls[w.name] = _calibrate(bound[w.name].step, min_time)
-        if worker is not None and w.d3rlpy_algo is not None:
-            if err := worker.setup(w):
-                rows[w.name]["d3rlpy_error"] = err
+        rows[w.name], b = _prepare(w)
+        timed[w.name] = b, _calibrate(b.step, min_time)
+        if worker is not None and w.d3rlpy_algo is not None and (err := worker.setup(w)):
+            rows[w.name]["d3rlpy_error"] = err
 
     peaks: list[float] = []
     for r in range(repeats):
         peaks.append(flopmod.matmul_peak_gflops())
         for w in chosen:
-            row, b = rows[w.name], bound[w.name]
-            wall, cpu = _time_block(b.step, calls[w.name])
+            row, (b, calls) = rows[w.name], timed[w.name]
+            wall, cpu = _time_block(b.step, calls)
             row["botorl_samples"].append(wall * b.updates_per_call)
             row["botorl_cpu_samples"].append(cpu * b.updates_per_call)
             if worker is not None and w.d3rlpy_algo is not None and "d3rlpy_error" not in row:

@@ -9,17 +9,11 @@ from __future__ import annotations
 from botorl.envs.wrappers import TaskEnv, import_robotics
 
 DOOR_OBS_DIM, PEN_OBS_DIM = 39, 45
-DOOR_ACTION_DIM, PEN_ACTION_DIM = 28, 24
 DOOR_SUCCESS_ANGLE = 1.35
 
 
 class AdroitBinaryTask(TaskEnv):
-    def _observe(self, obs):
-        return obs
-
-    def _task_step(self, obs, reward, terminated, info):
-        success = bool(info.get("success", False))
-        return float(success) - 1.0, success, float(success)
+    reward_offset = -1.0
 
 
 def make_door(seed: int | None = None) -> AdroitBinaryTask:

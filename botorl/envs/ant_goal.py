@@ -143,7 +143,8 @@ class NumpyActor:
         with np.load(path) as z:
             return cls({k: z[k] for k in z.files})
 
-    def _hidden(self, obs):
+    def __call__(self, obs, rng: np.random.Generator | None = None):
+        """tanh(mean) (``rng`` None) or a sample tanh(mean + std * eps)."""
         x = np.asarray(obs, np.float32)
         for w, b, ln in self.layers:
             x = x @ w + b
@@ -151,11 +152,6 @@ class NumpyActor:
                 xc = x - x.mean(-1, keepdims=True)
                 x = xc / np.sqrt((xc * xc).mean(-1, keepdims=True) + 1e-6) * ln[0] + ln[1]
             x = np.maximum(x, 0.0)
-        return x
-
-    def __call__(self, obs, rng: np.random.Generator | None = None):
-        """tanh(mean) (``rng`` None) or a sample tanh(mean + std * eps)."""
-        x = self._hidden(obs)
         mean = x @ self.mean[0] + self.mean[1]
         if rng is None:
             return np.tanh(mean)

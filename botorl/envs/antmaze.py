@@ -17,7 +17,6 @@ from botorl.envs.pointmaze import MAZES
 from botorl.envs.wrappers import TaskEnv, import_robotics
 
 OBS_DIM = 29
-ACTION_DIM = 8
 SUCCESS_RADIUS = 0.45
 
 
@@ -30,14 +29,9 @@ class AntMazeTask(TaskEnv):
     def _observe(self, obs):
         return np.concatenate([obs["achieved_goal"], obs["observation"]])
 
-    def _task_step(self, obs, reward, terminated, info):
-        success = bool(info.get("success", False))
-        return (1.0 if success else 0.0), success, float(success)
-
 
 @dataclass(frozen=True)
 class AntMazeLayout:
-    name: str
     maze_map: tuple[tuple[int, ...], ...]  # 1 = wall, 0 = free
     locations: tuple[tuple[int, int], ...]  # "play": hand-picked goal/start cells
     eval_start: tuple[int, int]
@@ -54,7 +48,7 @@ def layout(maze: str) -> AntMazeLayout:
     picked_grid = {"medium": maps.MEDIUM_MAZE_DIVERSE_GR, "large": maps.LARGE_MAZE_DIVERSE_GR}.get(maze)
     picked = (spec.start_cell, spec.goal_cell) if picked_grid is None else tuple(
         (r, c) for r, row in enumerate(picked_grid) for c, v in enumerate(row) if v in ("c", "g", "r"))
-    return AntMazeLayout(maze, tuple(map(tuple, spec.maze_map)), picked, spec.start_cell, spec.goal_cell)
+    return AntMazeLayout(tuple(map(tuple, spec.maze_map)), picked, spec.start_cell, spec.goal_cell)
 
 
 def make_antmaze_task(maze: str, seed: int | None = None) -> AntMazeTask:

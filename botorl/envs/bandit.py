@@ -78,9 +78,8 @@ def pinwheel_arm(actions: np.ndarray) -> np.ndarray:
 
 def pinwheel_reward(actions: np.ndarray) -> np.ndarray:
     """R(a) = (k(a) + rho) / K: arm k's rewards lie in [k/K, (k+1)/K)."""
-    a = np.asarray(actions, np.float64)
-    rho = np.clip(np.hypot(a[..., 0], a[..., 1]), 0.0, 1.0 - 1e-9)
-    return ((pinwheel_arm(a) + rho) / PINWHEEL_ARMS).astype(np.float32)
+    rho = np.clip(_polar(actions)[0], 0.0, 1.0 - 1e-9)
+    return ((pinwheel_arm(actions) + rho) / PINWHEEL_ARMS).astype(np.float32)
 
 
 def bandit_1d_support() -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -114,7 +114,6 @@ def check_main(cfg: CheckConfig) -> int:
 
 
 def main(argv: list[str]) -> int:
-    argv = list(argv)
     if argv and argv[0] == "check":
         return check_main(tyro.cli(CheckConfig, args=argv[1:], prog="botorl tasks check"))
     return list_main(tyro.cli(ListConfig, args=argv, prog="botorl tasks"))

@@ -12,7 +12,7 @@ from botorl.envs.wrappers import TaskEnv, import_robotics
 
 PARTIAL_TASKS = ("microwave", "kettle", "light switch", "slide cabinet")
 MIXED_TASKS = ("microwave", "kettle", "bottom burner", "light switch")
-OBS_DIM, ACTION_DIM = 59, 9
+OBS_DIM = 59
 
 
 class KitchenTask(TaskEnv):

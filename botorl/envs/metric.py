@@ -95,7 +95,7 @@ def of_config(config: Mapping[str, Any] | Any) -> Metric:
     config from before the record is success, or return where it says success was off."""
     get = (lambda d, k: d.get(k) if isinstance(d, Mapping) else getattr(d, k, None))
     rec = get(config, "metric")
-    name = get(rec, "name") if rec is not None else None
+    name = get(rec, "name")
     if name in NAMES:
         lo, hi = get(rec, "ref_min_score"), get(rec, "ref_max_score")
         if name == "score":

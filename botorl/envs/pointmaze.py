@@ -17,7 +17,7 @@ import numpy as np
 from botorl.envs.wrappers import TaskEnv, import_robotics
 
 SUCCESS_RADIUS = 0.45
-OBS_DIM, ACTION_DIM = 4, 2
+OBS_DIM = 4
 
 
 @dataclass(frozen=True)

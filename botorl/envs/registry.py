@@ -112,7 +112,9 @@ def _make(entry: str, *args) -> gym.Env:
     return getattr(importlib.import_module(f"botorl.envs.{module}"), func)(*args)
 
 
-def _build() -> dict[str, TaskSpec]:
+@cache
+def _tasks() -> dict[str, TaskSpec]:
+    """The registry of this process (built on first use; ``register`` adds to it)."""
     # lazy: kitchen imports mujoco (through compat); a task's module loads when first used (``_make``)
     from botorl.envs.kitchen import MIXED_TASKS, PARTIAL_TASKS
 
@@ -151,34 +153,28 @@ def _build() -> dict[str, TaskSpec]:
         TaskSpec(name="door-binary-local", dataset_source=DatasetSource("generated", "door-binary-local"),
                  description="door-binary with data made here: the 25 DAPG demos + BC rollouts", **door),
     ]
-    # antmaze with data made here (botorl.data.generators.antmaze, issue 16); D4RL's horizons.
-    for maze, kind, horizon in (("large", "diverse", 1000), ("large", "play", 1000), ("medium", "diverse", 1000),
-                                ("medium", "play", 1000), ("umaze", "diverse", 700)):
-        specs.append(TaskSpec(
-            name=f"antmaze-{maze}-{kind}-local", env_factory=partial(_make, "antmaze:make_antmaze_task", maze),
-            dataset_source=DatasetSource("generated", f"antmaze-{maze}-{kind}-local"),
-            description=f"ant, {maze} maze, D4RL evaluation start/goal; {kind} data made here (waypoint ant)",
-            **dict(ant, max_episode_steps=horizon)))
+    # antmaze with data made here (botorl.data.generators.antmaze); D4RL's horizons.
+    specs += [TaskSpec(
+        name=f"antmaze-{maze}-{kind}-local", env_factory=partial(_make, "antmaze:make_antmaze_task", maze),
+        dataset_source=DatasetSource("generated", f"antmaze-{maze}-{kind}-local"),
+        description=f"ant, {maze} maze, D4RL evaluation start/goal; {kind} data made here (waypoint ant)",
+        **dict(ant, max_episode_steps=horizon)) for maze, kind, horizon in (
+            ("large", "diverse", 1000), ("large", "play", 1000), ("medium", "diverse", 1000), ("medium", "play", 1000),
+            ("umaze", "diverse", 700))]
     # pointmaze: reward transform like antmaze (sparse goal reward, termination at the goal).
-    for maze, horizon in (("umaze", 300), ("medium", 600), ("large", 800)):
-        specs.append(TaskSpec(
-            name=f"pointmaze-{maze}", domain="pointmaze", env_factory=partial(_make, "pointmaze:make_pointmaze", maze),
-            max_episode_steps=horizon, success_mode="any", reward_scale=10.0, reward_bias=-5.0,
-            dataset_source=DatasetSource("generated", f"pointmaze-{maze}"), obs_dim=4, action_dim=2,
-            networks=ANTMAZE_NET, description=f"point mass, D4RL maze2d {maze} map, fixed start and goal; maze2d-style data"))
-    for kind, desc in (("pinwheel", "2-D pinwheel action data (paper Fig. 2)"), ("1d", "1-D bandit (paper Fig. 3)")):
-        specs.append(TaskSpec(
-            name=f"bandit-{kind}", domain="bandit", env_factory=partial(_make, "bandit:BanditEnv", kind),
-            max_episode_steps=1, success_mode="last", reward_scale=1.0, reward_bias=0.0,
-            dataset_source=DatasetSource("generated", f"bandit-{kind}"), obs_dim=1, action_dim=BANDIT_ACTION_DIM[kind],
-            networks=SMALL_NET, description=f"one-step bandit: {desc}"))
+    specs += [TaskSpec(
+        name=f"pointmaze-{maze}", domain="pointmaze", env_factory=partial(_make, "pointmaze:make_pointmaze", maze),
+        max_episode_steps=horizon, success_mode="any", reward_scale=10.0, reward_bias=-5.0,
+        dataset_source=DatasetSource("generated", f"pointmaze-{maze}"), obs_dim=4, action_dim=2,
+        networks=ANTMAZE_NET, description=f"point mass, D4RL maze2d {maze} map, fixed start and goal; maze2d-style data")
+        for maze, horizon in (("umaze", 300), ("medium", 600), ("large", 800))]
+    specs += [TaskSpec(
+        name=f"bandit-{kind}", domain="bandit", env_factory=partial(_make, "bandit:BanditEnv", kind),
+        max_episode_steps=1, success_mode="last", reward_scale=1.0, reward_bias=0.0,
+        dataset_source=DatasetSource("generated", f"bandit-{kind}"), obs_dim=1, action_dim=BANDIT_ACTION_DIM[kind],
+        networks=SMALL_NET, description=f"one-step bandit: {desc}")
+        for kind, desc in (("pinwheel", "2-D pinwheel action data (paper Fig. 2)"), ("1d", "1-D bandit (paper Fig. 3)"))]
     return {s.name: s for s in specs}
-
-
-@cache
-def _tasks() -> dict[str, TaskSpec]:
-    """The registry of this process (built on first use; ``register`` adds to it)."""
-    return _build()
 
 
 def list_tasks() -> list[TaskSpec]:
@@ -189,8 +185,7 @@ def register(spec: TaskSpec) -> TaskSpec:
     """Add a user's task to the registry of this process (again under the same name replaces it);
     botorl's own task names are refused."""
     tasks = _tasks()
-    old = tasks.get(spec.name)
-    if old is not None and old.user is None:
+    if spec.name in tasks and tasks[spec.name].user is None:
         raise ConfigError(f"task name {spec.name!r} is one of botorl's tasks; register yours under another name.")
     if spec.user is None:
         raise ConfigError(f"task {spec.name!r}: only user tasks (TaskSpec.user set) can be registered.")

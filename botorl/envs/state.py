@@ -16,6 +16,7 @@ import mujoco
 import numpy as np
 
 FORMAT = "botorl-env-state-v1"
+_INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION  # everything mj_step reads
 _MODEL_FIELDS = ("body_pos", "body_quat", "site_pos", "site_quat")
 # Attributes that are configuration of this process, not of the episode.
 _SKIP = {"render_mode", "tmp_xml_file_path", "fullpath", "camera_name", "camera_id", "width", "height",
@@ -117,9 +118,8 @@ def get_env_state(env: gym.Env) -> dict[str, Any]:
         if sim is not None and id(sim[1]) not in seen:
             seen.add(id(sim[1]))
             model, data = sim
-            spec = mujoco.mjtState.mjSTATE_INTEGRATION
-            buf = np.empty(mujoco.mj_stateSize(model, spec), np.float64)
-            mujoco.mj_getState(model, data, buf, spec)
+            buf = np.empty(mujoco.mj_stateSize(model, _INTEGRATION), np.float64)
+            mujoco.mj_getState(model, data, buf, _INTEGRATION)
             sims[path] = {"integration": _encode(buf),
                           **{f: _encode(np.array(getattr(model, f))) for f in _MODEL_FIELDS}}
     return {"format": FORMAT, "layers": layers, "mujoco": sims}
@@ -146,9 +146,8 @@ def set_env_state(env: gym.Env, state: dict[str, Any]) -> None:
                 obj.__dict__[name] = val
         if saved["np_random"] is not None:
             obj._np_random = _decode_rng(saved["np_random"])
-        space = getattr(obj, "action_space", None)
-        if saved["action_space_rng"] is not None and space is not None:
-            space._np_random = _decode_rng(saved["action_space_rng"])
+        if saved["action_space_rng"] is not None:
+            obj.action_space._np_random = _decode_rng(saved["action_space_rng"])
     for path, sim_state in state["mujoco"].items():
         sim = _mujoco(layers[path])
         if sim is None:
@@ -156,11 +155,10 @@ def set_env_state(env: gym.Env, state: dict[str, Any]) -> None:
         model, data = sim
         for f in _MODEL_FIELDS:
             getattr(model, f)[...] = _decode(sim_state[f])
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
         buf = _decode(sim_state["integration"])
-        if buf.size != mujoco.mj_stateSize(model, spec):
+        if buf.size != mujoco.mj_stateSize(model, _INTEGRATION):
             raise ValueError(f"env state: {path}'s MuJoCo state has {buf.size} numbers, this model needs "
-                             f"{mujoco.mj_stateSize(model, spec)}")
-        mujoco.mj_setState(model, data, buf, spec)
+                             f"{mujoco.mj_stateSize(model, _INTEGRATION)}")
+        mujoco.mj_setState(model, data, buf, _INTEGRATION)
         # derived quantities (positions, sensors) for code that reads them before the next step
         mujoco.mj_forward(model, data)

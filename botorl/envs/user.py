@@ -130,8 +130,6 @@ class UserTaskEnv(TaskEnv):
         return flatten_obs(obs, self._keys)
 
     def _task_step(self, obs, reward, terminated, info):
-        if self._success_key is None:
-            return reward, terminated, 0.0
         s = np.asarray(info.get(self._success_key, 0.0), dtype=np.float64)
         return reward, terminated, float(s.max()) if s.size else 0.0
 
@@ -164,7 +162,7 @@ def import_entry(entry: str) -> tuple[Callable[[int], gym.Env], str | None]:
         raise ConfigError(f"--env {entry}: importing module {module_name!r} failed: {type(err).__name__}: {err}. "
                           f"Fix the module (`python -c \"import {module_name}\"` shows the traceback).") from None
     func = getattr(module, func_name, None)
-    if func is None or not callable(func):
+    if not callable(func):
         names = [n for n in dir(module) if not n.startswith("_") and callable(getattr(module, n))]
         raise ConfigError(f"--env {entry}: module {module_name!r} ({getattr(module, '__file__', '?')}) has no "
                           f"function {func_name!r}; its callables: {', '.join(names) or 'none'}.")

@@ -1,6 +1,6 @@
 """The one wrapper shape every botorl task has (docs/CONTRACTS.md, "Tasks"): ``TaskEnv`` gives a
 flat float32 observation, actions in [-1, 1]^A, the task's reward / termination and
-``info["success"]`` in [0, 1]; domains implement ``_observe`` and ``_task_step``.
+``info["success"]`` in [0, 1]; domains override ``_observe`` and ``_task_step``.
 """
 
 from __future__ import annotations
@@ -35,6 +35,8 @@ class TaskEnv(gym.Wrapper):
     """Flat float32 observations, [-1, 1] actions and ``info["success"]`` for one task; ``seed``
     seeds the first ``reset`` that names none, so an env made with a seed is reproducible."""
 
+    reward_offset = 0.0
+
     def __init__(self, env: gym.Env, obs_dim: int, seed: int | None = None):
         super().__init__(env)
         act = env.action_space
@@ -47,11 +49,13 @@ class TaskEnv(gym.Wrapper):
             self.action_space.seed(seed)
 
     def _observe(self, obs: Any) -> np.ndarray:
-        raise NotImplementedError
+        return obs
 
     def _task_step(self, obs: Any, reward: float, terminated: bool, info: dict) -> tuple[float, bool, float]:
-        """Return (reward, terminated, success) for one inner step."""
-        raise NotImplementedError
+        """Return (reward, terminated, success) for one inner step; by default the inner env's
+        ``info["success"]`` ends the episode, rewarded ``success + reward_offset``."""
+        success = bool(info.get("success", False))
+        return float(success) + self.reward_offset, success, float(success)
 
     def _reset_options(self) -> dict | None:
         return None
@@ -60,7 +64,7 @@ class TaskEnv(gym.Wrapper):
         return obs
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        if seed is None and self._pending_seed is not None:
+        if seed is None:
             seed = self._pending_seed
         self._pending_seed = None
         if options is None:

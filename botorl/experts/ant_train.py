@@ -15,6 +15,7 @@ Files under ``out``: ``agent.ckpt``, ``state.json``, ``curve.csv`` (one row per 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import io
@@ -101,12 +102,12 @@ class _Ants:
         self.sim = AntGoalSim(n, seed)
         self.rng = np.random.default_rng(seed + 7919)
         self.ep_return = np.zeros(n)
-        self.finished: list[float] = []
 
     def collect(self, params, steps: int, random: bool):
         sim, n = self.sim, self.sim.n
         actor = None if random else NumpyActor(params)
         out = {k: np.empty((steps, n) + s, np.float32) for k, s in FIELDS}
+        finished: list[float] = []  # returns of the episodes that ended
         for t in range(steps):
             obs = sim.obs.copy()
             act = self.rng.uniform(-1, 1, (n, ACTION_DIM)) if actor is None else actor(obs, self.rng)
@@ -115,11 +116,9 @@ class _Ants:
             out["next_observations"][t], out["dones"][t] = nobs, term
             self.ep_return += rew
             for i in np.flatnonzero(term | trunc):
-                self.finished.append(float(self.ep_return[i]))
+                finished.append(float(self.ep_return[i]))
                 self.ep_return[i] = 0.0
-        flat = {k: v.reshape((steps * n,) + v.shape[2:]) for k, v in out.items()}
-        done_returns, self.finished = self.finished, []
-        return flat, done_returns
+        return {k: v.reshape((steps * n,) + v.shape[2:]) for k, v in out.items()}, finished
 
     def evaluate(self, params, episodes_steps: int, seed: int):
         """Deterministic actor on fresh ants for ``episodes_steps`` steps: goals reached per
@@ -169,10 +168,8 @@ class Collector:
 
     def close(self):
         for c in self.conns:
-            try:
+            with contextlib.suppress(OSError):  # a worker that is gone (BrokenPipeError)
                 c.send(("stop",))
-            except (BrokenPipeError, OSError):
-                pass
         for p in self.procs:
             p.join(timeout=5)
 
