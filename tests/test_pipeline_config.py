@@ -227,6 +227,8 @@ def test_missing_dataset_exit_2(capsys, tmp_path, monkeypatch):
 
 def test_missing_door_demos_exit_2(capsys, tmp_path, monkeypatch):
     monkeypatch.delenv("BOTORL_DOOR_DEMOS", raising=False)
+    # an empty dataset cache: a door dataset another test generated needs no demos, and the run would go on
+    monkeypatch.setenv("BOTORL_DATA_DIR", str(tmp_path / "datasets"))
     code, err = _run(capsys, tmp_path, "--task", "door-binary-local", "--profile", "smoke",
                      "--demos", str(tmp_path / "no-demos.npz"))
     assert code == 2 and "no-demos.npz" in err and "door_human_demos.npz" in err, err
