@@ -25,7 +25,6 @@ from botorl.configs.custom import register_given
 from botorl.configs.members import MEMBER_NAME, Streams, is_population, member_config, population
 from botorl.configs.resolve import BOUNDS, check_bounds, validate
 from botorl.configs.schema import RunConfig, from_dict, to_dict
-from botorl.envs.metric import of_config as metric_of_config
 from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import atomic_write_json, open_regular
@@ -33,7 +32,7 @@ from botorl.jaxsetup import matmul_precision, setup_jax
 from botorl.pipeline import preempt, shared_pretrain, stages
 from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step, \
     full_identity
-from botorl.pipeline.evaluation import QProbe, evaluate_policy, metric_fields
+from botorl.pipeline.evaluation import QProbe, evaluate_command
 from botorl.pipeline.export import contract_path, evaluate_exported, export_policy
 from botorl.pipeline.policy import check_checkpoint, read_run
 from botorl.pipeline.population import check_fits
@@ -364,16 +363,11 @@ def _eval(args, run, cfg) -> dict:
     d = transform_dataset(cfg, spec, load_run_data(cfg, run.config, args.allow_pickle))
     like = stages.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)
     agent = agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like)
-    t0 = time.perf_counter()
+    probe = QProbe(d.observations, d.actions, seed=Streams.PROBE, size=cfg.eval.q_pairs)
     with matmul_precision(cfg.precision):  # the run's own
-        stats = evaluate_policy(lambda o: agent.eval_actions(o[0])[None], spec, cfg, cfg.eval.episodes)
-        q_data, q_uniform = QProbe(d.observations, d.actions, seed=Streams.PROBE, size=cfg.eval.q_pairs)(stages.q_fn(agent))
-    result = {"checkpoint": name, "stage": state["stage"], "step": checkpoint_step(cfg, state),
-              "episodes": cfg.eval.episodes, **metric_fields(metric_of_config(cfg), stats),
-              "episode_length": stats.length, "q_data": q_data, "q_uniform": q_uniform,
-              "seconds": round(time.perf_counter() - t0, 2)}
-    atomic_write_json(run.root / f"eval-{name}.json", result)
-    return result
+        return evaluate_command(lambda o: agent.eval_actions(o[0])[None], cfg, cfg.eval.episodes,
+                                {"checkpoint": name, "stage": state["stage"], "step": checkpoint_step(cfg, state)},
+                                run.root / f"eval-{name}.json", q=lambda: probe(stages.q_fn(agent)))
 
 
 def export_main(argv: list[str]) -> int:
