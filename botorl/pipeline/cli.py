@@ -71,8 +71,8 @@ def _mark_failed(path: Path, reason: str, fresh=None) -> None:
 
 
 def _execute(cfg, member_cfgs, root: Path, runs: list[RunDir], d_raw, *, resume: bool, resume_from: str | None = None):
-    """``runner.execute`` with I/O faults and corrupt checkpoints turned into exit 2 and a
-    truthful status (the run's summary.json, a population's population.json)."""
+    """``runner.execute`` with I/O faults and corrupt checkpoints turned into exit 2 and a truthful
+    status (the run's summary.json, a population's population.json), an interrupt into ``botorl resume ROOT``."""
     def mark(reason: str) -> None:
         if runs[0].root == root:  # a single run
             _mark_failed(runs[0].summary, reason, lambda: build_summary(cfg, runs[0], "failed", {}, reason))
@@ -80,7 +80,7 @@ def _execute(cfg, member_cfgs, root: Path, runs: list[RunDir], d_raw, *, resume:
             _mark_failed(root / POPULATION_FILE, reason)
 
     try:
-        with io_guard(root):
+        with preempt.resumable(f"botorl resume {root}"), io_guard(root):
             if resume_from is not None:
                 # latest.json is pointed at the chosen (verified) checkpoint; execute(resume=True)
                 # starts from ckpt.latest(), so the runner needs no argument for it.
@@ -160,8 +160,7 @@ def run_main(argv: list[str]) -> int:
         what = (f"(profile {cfg.profile}, seed {cfg.seed})" if single else
                 f"(profile {cfg.profile}), a population of {len(members)}: {', '.join(m.name for m in members)}")
         print(f"botorl: {cfg.method} on {cfg.task} {what} -> {out}", file=sys.stderr)
-        with preempt.resumable(f"botorl resume {out}"):
-            summaries = _execute(cfg, member_cfgs, out, runs, d_raw, resume=False)
+        summaries = _execute(cfg, member_cfgs, out, runs, d_raw, resume=False)
     _print_summaries(summaries, single)
     return 0
 
@@ -325,8 +324,7 @@ def resume_main(argv: list[str]) -> int:
                     print("\n".join(f"{r.root.name}: status {s.get('status')!r}" for r, s in zip(runs, summaries)))
                 return 0
         d_raw = load_run_data(cfg, origin, args.allow_pickle)
-        with preempt.resumable(f"botorl resume {root}"):
-            summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True, resume_from=args.from_)
+        summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True, resume_from=args.from_)
     _print_summaries(summaries, single)
     return 0
 
