@@ -70,9 +70,8 @@ def evaluate_command(policy: Callable[[np.ndarray], np.ndarray], cfg, episodes: 
                      q: Callable[[], dict[str, float]] | None = None) -> dict[str, Any]:
     """``botorl eval``'s ``episodes`` of one policy ((1, E, O) -> (1, E, A)) on its own evaluation
     envs, reset seeds from ``Streams.eval_command`` (not those of the run's evaluations); its
-    result, written to ``path``: ``head``, the episodes, the success rate only where the task's
-    headline metric is success (botorl/envs/metric.py), the return always, the normalised score
-    where the task has reference scores, the episode length, ``q()`` (Q statistics), the seconds."""
+    result (``head``, then the task's metric fields: success only where the task defines it,
+    botorl/envs/metric.py; ``q()``: Q statistics) written to ``path``."""
     t0 = time.perf_counter()
     spec, metric = get_task(cfg.task), metric_of_config(cfg)
     envs = make_eval_envs(spec, cfg.eval)
