@@ -29,7 +29,7 @@ from botorl.envs.registry import get_task
 from botorl.envs.user import action_from_env, is_unit_box
 from botorl.envs.wrappers import TaskEnv
 from botorl.errors import BotorlError, ConfigError
-from botorl.io import atomic_write_bytes, atomic_write_json, file_sha256
+from botorl.io import atomic_write_bytes, atomic_write_json, file_sha256, read_bounded_bytes
 from botorl.jaxsetup import setup_jax
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_step
 from botorl.pipeline.policy import check_checkpoint, load_policy, read_run, task_io
@@ -256,17 +256,13 @@ MAX_MODEL_BYTES = 1 << 30  # a policy of 256x256 layers is under 1 MB
 
 
 def _model_bytes(path: Path) -> bytes:
-    """The model file's bytes: a regular file (a FIFO would hang) of at most ``MAX_MODEL_BYTES``."""
+    """The model file's bytes, a link followed: a regular file (a FIFO would hang) of at most ``MAX_MODEL_BYTES``."""
     try:
-        st = os.stat(path)
-        if not stat.S_ISREG(st.st_mode):
-            raise ConfigError(f"{path}: not a regular file; give the FILE.onnx that `botorl export` wrote.")
-        if st.st_size > MAX_MODEL_BYTES:
-            raise ConfigError(f"{path}: {st.st_size:,} bytes, more than a policy model's {MAX_MODEL_BYTES:,}.")
-        with open(path, "rb") as f:
-            return f.read(MAX_MODEL_BYTES + 1)
+        return read_bounded_bytes(os.path.realpath(path), MAX_MODEL_BYTES)
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such model file; give the FILE.onnx that `botorl export` wrote.") from None
+    except ValueError as err:  # not a regular file, or too large for a policy model
+        raise ConfigError(f"{path}: {err}; give the FILE.onnx that `botorl export` wrote.") from None
     except OSError as err:
         raise ConfigError(f"{path}: cannot be read ({err.strerror}).") from None
 
