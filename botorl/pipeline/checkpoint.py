@@ -328,18 +328,14 @@ class CheckpointManager:
         """The checkpoint a resume starts from: latest.json's if verified, else the newest verified
         one (the failures named on stderr, latest.json pointed at it); None if none passes."""
         p = self.root / LATEST
-        named = self._latest_name()
+        named, names = self._latest_name(), self.names()
         bad: list[str] = []
         if named is None and p.exists():
             bad.append(f"{p} cannot be read")
-        elif named is not None and named not in self.names():  # also refuses "../elsewhere": only this run's
+        elif named is not None and named not in names:  # also refuses "../elsewhere": only this run's
             bad.append(f"{p} names {named}, which does not exist")
-        elif named is not None:
-            reason = self.verify(named)
-            if reason is None:
-                return _info(named, self.state(named))
-            bad.append(reason)
-        for name in sorted((n for n in self.names() if n != named), key=self.order, reverse=True):
+        others = sorted((n for n in names if n != named), key=self.order, reverse=True)
+        for name in ([named] if named in names else []) + others:
             reason = self.verify(name)
             if reason is not None:
                 bad.append(reason)

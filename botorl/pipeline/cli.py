@@ -25,7 +25,6 @@ from botorl.configs.custom import register_given
 from botorl.configs.members import MEMBER_NAME, Streams, is_population, member_config, population
 from botorl.configs.resolve import BOUNDS, check_bounds, validate
 from botorl.configs.schema import RunConfig, from_dict, to_dict
-from botorl.envs.metric import of_config as metric_of_config
 from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import atomic_write_json, open_regular
@@ -33,7 +32,7 @@ from botorl.jaxsetup import matmul_precision, setup_jax
 from botorl.pipeline import preempt, shared_pretrain, stages
 from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step, \
     full_identity
-from botorl.pipeline.evaluation import QProbe, evaluate_policy, metric_fields
+from botorl.pipeline.evaluation import QProbe, evaluate_command
 from botorl.pipeline.export import contract_path, evaluate_exported, export_policy
 from botorl.pipeline.policy import check_checkpoint, read_run
 from botorl.pipeline.population import check_fits
@@ -72,8 +71,8 @@ def _mark_failed(path: Path, reason: str, fresh=None) -> None:
 
 
 def _execute(cfg, member_cfgs, root: Path, runs: list[RunDir], d_raw, *, resume: bool, resume_from: str | None = None):
-    """``runner.execute`` with I/O faults and corrupt checkpoints turned into exit 2 and a
-    truthful status (the run's summary.json, a population's population.json)."""
+    """``runner.execute`` with I/O faults and corrupt checkpoints turned into exit 2 and a truthful
+    status (the run's summary.json, a population's population.json), an interrupt into ``botorl resume ROOT``."""
     def mark(reason: str) -> None:
         if runs[0].root == root:  # a single run
             _mark_failed(runs[0].summary, reason, lambda: build_summary(cfg, runs[0], "failed", {}, reason))
@@ -81,7 +80,7 @@ def _execute(cfg, member_cfgs, root: Path, runs: list[RunDir], d_raw, *, resume:
             _mark_failed(root / POPULATION_FILE, reason)
 
     try:
-        with io_guard(root):
+        with preempt.resumable(f"botorl resume {root}"), io_guard(root):
             if resume_from is not None:
                 # latest.json is pointed at the chosen (verified) checkpoint; execute(resume=True)
                 # starts from ckpt.latest(), so the runner needs no argument for it.
@@ -161,8 +160,7 @@ def run_main(argv: list[str]) -> int:
         what = (f"(profile {cfg.profile}, seed {cfg.seed})" if single else
                 f"(profile {cfg.profile}), a population of {len(members)}: {', '.join(m.name for m in members)}")
         print(f"botorl: {cfg.method} on {cfg.task} {what} -> {out}", file=sys.stderr)
-        with preempt.resumable(f"botorl resume {out}"):
-            summaries = _execute(cfg, member_cfgs, out, runs, d_raw, resume=False)
+        summaries = _execute(cfg, member_cfgs, out, runs, d_raw, resume=False)
     _print_summaries(summaries, single)
     return 0
 
@@ -326,8 +324,7 @@ def resume_main(argv: list[str]) -> int:
                     print("\n".join(f"{r.root.name}: status {s.get('status')!r}" for r, s in zip(runs, summaries)))
                 return 0
         d_raw = load_run_data(cfg, origin, args.allow_pickle)
-        with preempt.resumable(f"botorl resume {root}"):
-            summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True, resume_from=args.from_)
+        summaries = _execute(cfg, member_cfgs, root, runs, d_raw, resume=True, resume_from=args.from_)
     _print_summaries(summaries, single)
     return 0
 
@@ -364,16 +361,11 @@ def _eval(args, run, cfg) -> dict:
     d = transform_dataset(cfg, spec, load_run_data(cfg, run.config, args.allow_pickle))
     like = stages.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)
     agent = agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like)
-    t0 = time.perf_counter()
+    probe = QProbe(d.observations, d.actions, seed=Streams.PROBE, size=cfg.eval.q_pairs)
     with matmul_precision(cfg.precision):  # the run's own
-        stats = evaluate_policy(lambda o: agent.eval_actions(o[0])[None], spec, cfg, cfg.eval.episodes)
-        q_data, q_uniform = QProbe(d.observations, d.actions, seed=Streams.PROBE, size=cfg.eval.q_pairs)(stages.q_fn(agent))
-    result = {"checkpoint": name, "stage": state["stage"], "step": checkpoint_step(cfg, state),
-              "episodes": cfg.eval.episodes, **metric_fields(metric_of_config(cfg), stats),
-              "episode_length": stats.length, "q_data": q_data, "q_uniform": q_uniform,
-              "seconds": round(time.perf_counter() - t0, 2)}
-    atomic_write_json(run.root / f"eval-{name}.json", result)
-    return result
+        return evaluate_command(lambda o: agent.eval_actions(o[0])[None], cfg, cfg.eval.episodes,
+                                {"checkpoint": name, "stage": state["stage"], "step": checkpoint_step(cfg, state)},
+                                run.root / f"eval-{name}.json", q=lambda: probe(stages.q_fn(agent)))
 
 
 def export_main(argv: list[str]) -> int:

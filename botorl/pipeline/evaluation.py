@@ -13,6 +13,7 @@ gap is the conservatism CQL-style pre-training leaves, which BOTO's alpha moves.
 
 from __future__ import annotations
 
+import time
 from collections import namedtuple
 from typing import Any, Callable, Sequence
 
@@ -20,6 +21,9 @@ import numpy as np
 
 from botorl.configs.members import Streams
 from botorl.envs.metric import episode_success
+from botorl.envs.metric import of_config as metric_of_config
+from botorl.envs.registry import get_task
+from botorl.io import atomic_write_json
 
 EpisodeStats = namedtuple("EpisodeStats", "success episode_return length")  # means over a member's episodes
 
@@ -62,27 +66,30 @@ def run_episodes(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Sequ
                          length=float(np.mean(length[m]))) for m in range(n_mem)]
 
 
-def evaluate_policy(policy: Callable[[np.ndarray], np.ndarray], spec, cfg, episodes: int) -> EpisodeStats:
+def evaluate_command(policy: Callable[[np.ndarray], np.ndarray], cfg, episodes: int, head: dict[str, Any], path,
+                     q: Callable[[], dict[str, float]] | None = None) -> dict[str, Any]:
     """``botorl eval``'s ``episodes`` of one policy ((1, E, O) -> (1, E, A)) on its own evaluation
-    envs, reset seeds from ``Streams.eval_command`` (not those of the run's evaluations)."""
+    envs, reset seeds from ``Streams.eval_command`` (not those of the run's evaluations); its
+    result (``head``, then the task's metric fields: success only where the task defines it,
+    botorl/envs/metric.py; ``q()``: Q statistics) written to ``path``."""
+    t0 = time.perf_counter()
+    spec, metric = get_task(cfg.task), metric_of_config(cfg)
     envs = make_eval_envs(spec, cfg.eval)
     try:
-        return run_episodes(policy, [envs], episodes=episodes, success_mode=spec.success_mode,
-                            seeds=[Streams.of(cfg).eval_command], max_steps=spec.max_episode_steps)[0]
+        stats = run_episodes(policy, [envs], episodes=episodes, success_mode=spec.success_mode,
+                             seeds=[Streams.of(cfg).eval_command], max_steps=spec.max_episode_steps)[0]
     finally:
         for e in envs:
             e.close()
-
-
-def metric_fields(metric, stats: EpisodeStats) -> dict[str, float]:
-    """What ``botorl eval`` reports of ``stats`` for the task's headline ``metric``
-    (botorl/envs/metric.py): the success rate only where the task defines it, the return always,
-    the normalised score where the task has reference scores."""
-    out = {"success": stats.success} if metric.name == "success" else {}
-    out["return"] = stats.episode_return
+    result = {**head, "episodes": episodes}
+    if metric.name == "success":
+        result["success"] = stats.success
+    result["return"] = stats.episode_return
     if metric.name == "score":
-        out["score"] = metric.of(stats.success, stats.episode_return)
-    return out
+        result["score"] = metric.of(stats.success, stats.episode_return)
+    result.update(episode_length=stats.length, **(q() if q else {}), seconds=round(time.perf_counter() - t0, 2))
+    atomic_write_json(path, result)
+    return result
 
 
 class QProbe:
@@ -96,7 +103,6 @@ class QProbe:
         self.actions = np.asarray(actions[idx], dtype=np.float32)
         self.uniform = rng.uniform(-1.0, 1.0, size=self.actions.shape).astype(np.float32)
 
-    def __call__(self, q_fn: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> tuple[float, float]:
-        q_data = float(np.mean(np.asarray(q_fn(self.observations, self.actions))))
-        q_uniform = float(np.mean(np.asarray(q_fn(self.observations, self.uniform))))
-        return q_data, q_uniform
+    def __call__(self, q_fn: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> dict[str, float]:
+        return {"q_data": float(np.mean(np.asarray(q_fn(self.observations, self.actions)))),
+                "q_uniform": float(np.mean(np.asarray(q_fn(self.observations, self.uniform))))}

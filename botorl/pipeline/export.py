@@ -18,7 +18,6 @@ import logging
 import os
 import stat
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -26,12 +25,11 @@ import numpy as np
 
 from botorl import __version__ as botorl_version
 from botorl.configs.custom import ensure_task, register_given
-from botorl.envs.metric import of_config as metric_of_config
 from botorl.envs.registry import get_task
 from botorl.envs.user import action_from_env, is_unit_box
 from botorl.envs.wrappers import TaskEnv
 from botorl.errors import BotorlError, ConfigError
-from botorl.io import atomic_write_bytes, atomic_write_json, file_sha256
+from botorl.io import atomic_write_bytes, atomic_write_json, file_sha256, read_bounded_bytes
 from botorl.jaxsetup import setup_jax
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_step
 from botorl.pipeline.policy import check_checkpoint, load_policy, read_run, task_io
@@ -258,17 +256,13 @@ MAX_MODEL_BYTES = 1 << 30  # a policy of 256x256 layers is under 1 MB
 
 
 def _model_bytes(path: Path) -> bytes:
-    """The model file's bytes: a regular file (a FIFO would hang) of at most ``MAX_MODEL_BYTES``."""
+    """The model file's bytes, a link followed: a regular file (a FIFO would hang) of at most ``MAX_MODEL_BYTES``."""
     try:
-        st = os.stat(path)
-        if not stat.S_ISREG(st.st_mode):
-            raise ConfigError(f"{path}: not a regular file; give the FILE.onnx that `botorl export` wrote.")
-        if st.st_size > MAX_MODEL_BYTES:
-            raise ConfigError(f"{path}: {st.st_size:,} bytes, more than a policy model's {MAX_MODEL_BYTES:,}.")
-        with open(path, "rb") as f:
-            return f.read(MAX_MODEL_BYTES + 1)
+        return read_bounded_bytes(os.path.realpath(path), MAX_MODEL_BYTES)
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such model file; give the FILE.onnx that `botorl export` wrote.") from None
+    except ValueError as err:  # not a regular file, or too large for a policy model
+        raise ConfigError(f"{path}: {err}; give the FILE.onnx that `botorl export` wrote.") from None
     except OSError as err:
         raise ConfigError(f"{path}: cannot be read ({err.strerror}).") from None
 
@@ -453,7 +447,7 @@ def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path)
 def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, Any]:
     """``botorl eval RUN --policy FILE``: ``botorl eval``'s episodes with the exported model
     acting through onnxruntime; written to ``RUN/eval-<FILE stem>-onnx.json``."""
-    from botorl.pipeline.evaluation import evaluate_policy, metric_fields  # lazy: JAX; botorl.api imports this module
+    from botorl.pipeline.evaluation import evaluate_command  # lazy: JAX; botorl.api imports this module
 
     path = Path(path)
     model = OnnxPolicy(path)  # exit 2 when onnxruntime is missing or the file is not a model
@@ -471,10 +465,5 @@ def evaluate_exported(run, cfg, path, episodes: int | None = None) -> dict[str, 
                               f"{io['action_dim']}) finite actions. Export the policy again.")
         return (a if unit_box else action_from_env(a, io["action_low"], io["action_high"]).astype(np.float32))[None]
 
-    t0 = time.perf_counter()
-    stats = evaluate_policy(act, get_task(cfg.task), cfg, n)
-    result = {"policy": str(path), **{k: (contract or {}).get(k) for k in ("checkpoint", "stage", "step")},
-              "episodes": n, **metric_fields(metric_of_config(cfg), stats), "episode_length": stats.length,
-              "seconds": round(time.perf_counter() - t0, 2)}
-    atomic_write_json(run.root / f"eval-{path.stem}-onnx.json", result)
-    return result
+    head = {"policy": str(path), **{k: (contract or {}).get(k) for k in ("checkpoint", "stage", "step")}}
+    return evaluate_command(act, cfg, n, head, run.root / f"eval-{path.stem}-onnx.json")

@@ -338,12 +338,11 @@ def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict,
     after_10k = [r for r in rows if r["env_step"] >= 10_000]
     final = rows[-1] if rows else None
     metric = metric_of_config(cfg)
-    values = {"success": lambda r: r["success"], "return": lambda r: r["return"],
-              "score": lambda r: metric.of(r["success"], r["return"])}
     at = {"initial": initial, "10k": after_10k[0] if after_10k else None, "final": final}
-    # success only where the task defines it (absent, not 0, where it does not); the return always
-    points = {f"{name}_{when}": of(row) if row else None for name, of in values.items()
-              if name == "return" or name == metric.name for when, row in at.items()}
+    # the return always; success or the normalised score where it is the task's metric (absent, not 0, elsewhere)
+    points = {f"{name}_{when}": (row["return"] if name == "return" else metric.of(row["success"], row["return"]))
+              if row else None for name in ("success", "return", "score") if name in ("return", metric.name)
+              for when, row in at.items()}
     out = {
         "task": cfg.task,
         "method": cfg.method,

@@ -23,13 +23,8 @@ from botorl.pipeline.stages import make_pretrain_agent
 PRETRAIN_FINAL = "pretrain-final"
 
 
-def fingerprint(cfg) -> dict[str, Any]:
-    """The settings that decide a member's pre-trained agent."""
-    return fingerprint_of(to_dict(cfg))
-
-
 def fingerprint_of(d: dict[str, Any]) -> dict[str, Any]:
-    """``fingerprint`` of a config as ``to_dict`` writes it (a run's config.json)."""
+    """The settings that decide a member's pre-trained agent, of a config as ``to_dict`` writes it."""
     offline = {k: v for k, v in d["offline"].items() if k != "log_every"}  # changes what is logged, not learned
     return {"task": d["task"], "seed": d["seed"], "pretrain": d["pretrain"], "data": d["data"],
             "network": d["network"], "offline": offline, "checkpoint_every": d["checkpoint_every"]}
@@ -65,7 +60,7 @@ def candidates(directory: str | Path) -> list[tuple[Path, dict]]:
             cfg = from_dict(RunConfig, read_json(config))
         except (OSError, ValueError, TypeError):
             continue
-        found.append((run, fingerprint(cfg)))
+        found.append((run, fingerprint_of(to_dict(cfg))))
     return found
 
 
@@ -77,7 +72,7 @@ def match(member_cfgs, directory: str | Path, *, strict: bool = True) -> list[Pa
     index = {_key(fp): run for run, fp in found}
     out = []
     for cfg in member_cfgs:
-        fp = fingerprint(cfg)
+        fp = fingerprint_of(to_dict(cfg))
         run = index.get(_key(fp))
         if run is None:
             if not strict:

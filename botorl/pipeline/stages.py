@@ -167,12 +167,10 @@ def stage_loop(agents, update: Callable, chunk: Callable[[int], int], step: int,
                evaluate: Callable | None = None, check_every_call: bool = False):
     """Every stage's loop, from ``step`` to ``schedule.total``: ``update(agents, step, k)`` ->
     (agents, metrics or None: the update added its own) runs k = ``chunk(step)`` updates in one
-    jitted call (the offline stages) or one online step; at log and checkpoint points (at every
-    call with ``check_every_call``) the window's means are checked (``check(step, ms)``, which may
-    raise) and at log points logged; at evaluation points ``evaluate(agents, step)``; then the
-    scheduled checkpoint (``save(step, agents, False)``), the fault-injection point, and after a
-    SIGTERM / SIGINT the checkpoint of this very step (``interrupted`` True: with the metrics
-    window; never twice) and ``Interrupted``. Returns the agents."""
+    jitted call (the offline stages) or one online step; the window's means are checked (``check``
+    may raise; at every call with ``check_every_call``) and logged at the schedule's points. After
+    a SIGTERM / SIGINT: the checkpoint of this very step (``save(step, agents, interrupted=True)``:
+    with the metrics window), then ``Interrupted``. Returns the agents."""
     while step < schedule.total:
         k = chunk(step)
         agents, metrics = update(agents, step, k)

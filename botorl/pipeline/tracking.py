@@ -104,8 +104,7 @@ def start(cfgs: list, runs: list) -> list:
     ``--wandb``, or when W&B fails or does not answer (then once, with a warning, for all)."""
     if not cfgs or not cfgs[0].wandb:
         return [None] * len(cfgs)
-    require_wandb()
-    import wandb  # lazy: optional dependency (the wandb extra)
+    import wandb  # lazy: optional dependency (the wandb extra; run and resume call require_wandb before any work)
 
     limit = timeout()
     out = []
