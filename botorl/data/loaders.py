@@ -435,36 +435,35 @@ def door_success(observations: np.ndarray) -> np.ndarray:
     return np.asarray(observations)[..., 28] >= DOOR_SUCCESS_ANGLE
 
 
-def _dapg_trajectories(p: Path) -> list[dict]:
+def dapg_trajectories(p: Path, keys: Sequence[str] = ("observations", "actions", "rewards")) -> list[dict]:
+    """The demos of a DAPG demo file (pickle or botorl's ``.npz``), one dict of ``keys`` each."""
     if p.suffix == ".npz":
         check_npz(p)
         try:
             with np.load(p, allow_pickle=False) as z:
-                missing = [k for k in ("observations", "actions", "rewards", "episode_lengths") if k not in z.files]
+                missing = [k for k in (*keys, "episode_lengths") if k not in z.files]
                 if missing:
                     raise DataFormatError(f"{p}: .npz lacks key(s) {missing} (has {sorted(z.files)}); botorl's DAPG "
                                           "demo file has observations, actions, rewards, episode_lengths.")
-                obs, act, rew, lens = (np.asarray(z[k]) for k in ("observations", "actions", "rewards", "episode_lengths"))
+                arrays = {k: np.asarray(z[k]) for k in keys}
+                lens = np.asarray(z["episode_lengths"]).astype(np.int64).reshape(-1)
+                rows = {k: v.shape[0] for k, v in arrays.items()}
         except DataFormatError:
             raise
         except Exception as err:
             raise DataFormatError(f"{p}: not a readable .npz file ({type(err).__name__}: {err}).") from None
-        lens = lens.astype(np.int64).reshape(-1)
-        if (lens <= 0).any() or lens.sum() != obs.shape[0] or not (obs.shape[0] == act.shape[0] == rew.shape[0]):
-            raise DataFormatError(f"{p}: lengths do not fit: episode_lengths sum to {int(lens.sum())}, observations "
-                                  f"{obs.shape[0]}, actions {act.shape[0]}, rewards {rew.shape[0]}.")
+        if (lens <= 0).any() or any(n != lens.sum() for n in rows.values()):
+            raise DataFormatError(f"{p}: lengths do not fit: episode_lengths sum to {int(lens.sum())}, "
+                                  + ", ".join(f"{k} {n}" for k, n in rows.items()) + ".")
         bounds = np.concatenate([[0], np.cumsum(lens)])
-        return [
-            {"observations": obs[s:e], "actions": act[s:e], "rewards": rew[s:e]}
-            for s, e in zip(bounds[:-1], bounds[1:])
-        ]
+        return [{k: v[s:e] for k, v in arrays.items()} for s, e in zip(bounds[:-1], bounds[1:])]
     trajs = _as_list_of_dicts(_load_pickle_array(p, "DAPG demo pickle"), p, "DAPG demo pickle")
     out = []
     for i, tr in enumerate(trajs):
-        _need(tr, ("observations", "actions", "rewards"), p, i)
+        _need(tr, keys, p, i)
         o = np.asarray(tr["observations"], np.float32)
         a = np.asarray(tr["actions"], np.float32)
-        r = np.asarray(tr["rewards"], np.float32).reshape(-1)
+        r = np.asarray(tr.get("rewards", np.zeros(len(o))), np.float32).reshape(-1)  # present unless not in keys
         if not (len(o) == len(a) == len(r)) or o.ndim != 2 or a.ndim != 2:
             raise DataFormatError(f"{p}: demo {i} has observations {o.shape}, actions {a.shape}, rewards {r.shape}; "
                                   "expected (T, O), (T, A), (T,).")
@@ -487,7 +486,7 @@ def load_dapg_demos(path: str | os.PathLike, *, binary_reward: bool = False,
     if binary_reward and success_fn is None:
         raise ValueError("binary_reward=True needs a success_fn")
     p = _require_file(path, "DAPG demo")
-    trajs = _dapg_trajectories(p)
+    trajs = dapg_trajectories(p)
     episodes = []
     for tr in trajs:
         o, a, r = tr["observations"], tr["actions"], tr["rewards"]

@@ -20,7 +20,7 @@ from gymnasium.wrappers import TimeLimit
 from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
-from botorl.data.loaders import door_success, join_episodes
+from botorl.data.loaders import dapg_trajectories, door_success, join_episodes
 from botorl.envs.adroit import make_door
 from botorl.errors import DatasetNotFoundError, DataFormatError
 
@@ -53,18 +53,13 @@ def find_demos(demos_path: str | os.PathLike | None = None) -> Path:
 
 
 def load_demos(path: Path) -> list[dict[str, np.ndarray]]:
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            obs, act, lengths = f["observations"], f["actions"], f["episode_lengths"]
-    except (KeyError, ValueError, OSError) as err:
-        raise DataFormatError(f"{path}: not a door demos .npz with observations, actions and episode_lengths "
-                              f"({err}).") from None
-    if obs.ndim != 2 or obs.shape[1] != 39 or act.shape != (obs.shape[0], 28) or lengths.sum() != obs.shape[0]:
-        raise DataFormatError(f"{path}: expected observations (N, 39), actions (N, 28) and episode_lengths summing to "
-                              f"N; got {obs.shape}, {act.shape}, sum {int(lengths.sum())}.")
-    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-    return [{"observations": obs[s : s + n].astype(np.float64), "actions": act[s : s + n].astype(np.float64)}
-            for s, n in zip(starts, lengths)]
+    demos = dapg_trajectories(path, ("observations", "actions"))
+    for d in demos:
+        obs, act = d["observations"], d["actions"]
+        if obs.ndim != 2 or obs.shape[1] != 39 or act.shape != (obs.shape[0], 28):
+            raise DataFormatError(f"{path}: expected observations (N, 39) and actions (N, 28); got a demo with "
+                                  f"{obs.shape}, {act.shape}.")
+    return [{k: d[k].astype(np.float64) for k in ("observations", "actions")} for d in demos]
 
 
 def _binary_trajectory(obs, act, next_obs, drop_unsuccessful: bool) -> dict | None:
