@@ -164,8 +164,8 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
     """``steps`` transitions of the waypoint-following ant; see the module docstring."""
     if kind not in ("diverse", "play"):
         raise ValueError(f"kind must be 'diverse' or 'play', not {kind!r}")
-    if steps <= 0:
-        raise ValueError("steps must be positive")
+    if steps <= 0 or episode_steps <= 0:
+        raise ValueError(f"steps and episode_steps must be positive, got {steps} and {episode_steps}")
     spec, maze_map, sim, rng, ctl = _controller(maze, actor, seed)
     cells = free_cells(maze_map) if kind == "diverse" else list(spec.locations)
     eval_goal = cell_xy(maze_map, spec.eval_goal)
