@@ -22,9 +22,8 @@ from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
 from botorl.envs.ant_goal import NumpyActor
-from botorl.envs.antmaze import SUCCESS_RADIUS, layout  # the mazes: botorl/envs/antmaze.py
+from botorl.envs.antmaze import SUCCESS_RADIUS, layout, make_maze_env  # the mazes: botorl/envs/antmaze.py
 from botorl.envs.pointmaze import cell_to_xy, free_cells, next_cell_table
-from botorl.envs.wrappers import import_robotics
 from botorl.errors import BotorlError
 from botorl.io import pyplot
 
@@ -111,13 +110,6 @@ class WaypointController:
         a = np.clip(a, -1.0, 1.0)
         sim.step(a)
         return a
-
-
-def make_maze_env(maze: str, *, continuing_task: bool = True):
-    """Gymnasium-Robotics' AntMazeEnv on the maze's wall map (no goal/reset marks)."""
-    return import_robotics("gymnasium_robotics.envs.maze.ant_maze_v4").AntMazeEnv(
-        maze_map=[list(r) for r in layout(maze).maze_map], reward_type="sparse", continuing_task=continuing_task,
-        reset_target=False)
 
 
 def load_actor(path=None):
