@@ -16,16 +16,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from gymnasium.wrappers import TimeLimit
 from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
 from botorl.data.loaders import dapg_trajectories, door_success, join_episodes
-from botorl.envs.adroit import make_door
+from botorl.envs.registry import get_task
 from botorl.errors import DatasetNotFoundError, DataFormatError
 
 ENV_VAR = "BOTORL_DOOR_DEMOS"
-HORIZON = 200
 HIDDEN = (256, 256)
 
 
@@ -136,7 +134,7 @@ def bc_policy(params):
 def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = True):
     """Roll ``policy`` out in the door-binary env until ``steps`` env steps are collected
     (whole episodes). Returns (one trajectory per episode, number of successes)."""
-    env = TimeLimit(make_door(seed), HORIZON)
+    env = get_task("door-binary-local").make_env(seed)  # with the task's horizon
     rng = np.random.default_rng(seed)
     trajs, n_succ, collected = [], 0, 0
     bar = tqdm(total=steps, desc="door BC rollouts", unit="step", disable=not progress)
