@@ -188,7 +188,6 @@ def _minari_episodes(mds, data_path: Path):
                 yield ep.id, {"observations": ep.observations, "actions": ep.actions, "rewards": ep.rewards,
                               "terminations": ep.terminations, "infos": ep.infos}
             return
-        regular_file(main, "Minari data file")
         with h5py.File(main, "r") as f:
             check_hdf5(f, main)
             names = sorted((k for k in f.keys() if k.startswith("episode_")), key=lambda k: int(k.split("_")[1]))
