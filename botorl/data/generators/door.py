@@ -134,7 +134,7 @@ def bc_policy(params):
 def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = True):
     """Roll ``policy`` out in the door-binary env until ``steps`` env steps are collected
     (whole episodes). Returns (one trajectory per episode, number of successes)."""
-    env = get_task("door-binary-local").make_env(seed)  # with the task's horizon
+    env = get_task("door-binary-local").make_env(seed)
     rng = np.random.default_rng(seed)
     trajs, n_succ, collected = [], 0, 0
     bar = tqdm(total=steps, desc="door BC rollouts", unit="step", disable=not progress)
