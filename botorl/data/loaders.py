@@ -382,6 +382,17 @@ def _stack_obs(seq, key: str | None, path: Path, i: int) -> np.ndarray:
                               f"{'dicts with ' + repr(key) if key else 'numeric arrays'} ({err}).") from None
 
 
+def calql_cut(rows: dict, success: np.ndarray, drop_unsuccessful: bool = True) -> dict | None:
+    """Cal-QL's rule for a binary-reward trajectory: ``rows`` cut after the last ``success`` step,
+    every success step terminal; one that never succeeds is None if ``drop_unsuccessful``, else kept whole."""
+    hits = np.flatnonzero(success)
+    if not len(hits) and drop_unsuccessful:
+        return None
+    end = int(hits[-1]) + 1 if len(hits) else len(success)
+    return {**{k: v[:end] for k, v in rows.items()}, "terminals": success[:end],
+            "success": success[:end].astype(np.float32)}
+
+
 def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.PathLike | None = None, *,
                       obs_dim: int | None = None, action_dim: int | None = None,
                       action_tolerance: float = ADROIT_ACTION_TOLERANCE) -> Dataset:
@@ -413,13 +424,9 @@ def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.P
             if not (len(o) == len(no) == len(a) == len(r)):
                 raise DataFormatError(f"{p}: trajectory {i} has mismatched lengths: {len(o)} observations, "
                                       f"{len(no)} next_observations, {len(a)} actions, {len(r)} rewards.")
-            succ = np.flatnonzero(r == 0.0)
-            if len(succ) == 0:
-                continue  # never succeeds: Cal-QL drops it
-            cut = int(succ[-1]) + 1
-            r = r[:cut]
-            episodes.append({"observations": o[:cut], "next_observations": no[:cut], "actions": a[:cut], "rewards": r,
-                             "terminals": r == 0.0, "success": (r == 0.0).astype(np.float32)})
+            ep = calql_cut({"observations": o, "next_observations": no, "actions": a, "rewards": r}, r == 0.0)
+            if ep is not None:  # never succeeds: Cal-QL drops it
+                episodes.append(ep)
         if not episodes:
             raise DataFormatError(f"{p}: no trajectory reaches a success (reward 0); nothing to load.")
         parts.append(join_episodes(episodes, {"source": str(p), "format": f"calql-adroit-{kind}"}))

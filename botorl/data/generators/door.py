@@ -19,7 +19,7 @@ import optax
 from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
-from botorl.data.loaders import dapg_trajectories, door_success, join_episodes
+from botorl.data.loaders import calql_cut, dapg_trajectories, door_success, join_episodes
 from botorl.envs.registry import get_task
 from botorl.errors import DatasetNotFoundError, DataFormatError
 
@@ -61,18 +61,10 @@ def load_demos(path: Path) -> list[dict[str, np.ndarray]]:
 
 
 def _binary_trajectory(obs, act, next_obs, drop_unsuccessful: bool) -> dict | None:
-    """Reward success-1, success steps terminal, cut after the last success (Cal-QL); a
-    trajectory that never succeeds is None if ``drop_unsuccessful``, else kept whole."""
+    """Reward success - 1 (door opened), cut by Cal-QL's rule (``calql_cut``)."""
     success = door_success(next_obs)
-    if not success.any():
-        if drop_unsuccessful:
-            return None
-        end = len(success)
-    else:
-        end = int(np.nonzero(success)[0][-1]) + 1
-    return {"observations": obs[:end], "actions": act[:end], "next_observations": next_obs[:end],
-            "rewards": success[:end].astype(np.float32) - 1.0, "terminals": success[:end],
-            "success": success[:end].astype(np.float32)}
+    return calql_cut({"observations": obs, "actions": act, "next_observations": next_obs,
+                      "rewards": success.astype(np.float32) - 1.0}, success, drop_unsuccessful)
 
 
 # ---------------------------------------------------------------------------- behaviour cloning
