@@ -281,6 +281,11 @@ def test_maze_stats_count_cells():
     assert st["cells_covered"] == 1 and st["cells_free"] == 46
 
 
+def test_generate_refuses_a_zero_episode_length():
+    with pytest.raises(ValueError, match="episode_steps must be positive"):
+        am.generate("umaze", "diverse", 10, seed=0, progress=False, episode_steps=0)
+
+
 # ------------------------------------------------------------------ training (tiny) and quality (slow)
 
 

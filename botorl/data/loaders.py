@@ -188,7 +188,6 @@ def _minari_episodes(mds, data_path: Path):
                 yield ep.id, {"observations": ep.observations, "actions": ep.actions, "rewards": ep.rewards,
                               "terminations": ep.terminations, "infos": ep.infos}
             return
-        regular_file(main, "Minari data file")
         with h5py.File(main, "r") as f:
             check_hdf5(f, main)
             names = sorted((k for k in f.keys() if k.startswith("episode_")), key=lambda k: int(k.split("_")[1]))
@@ -383,6 +382,17 @@ def _stack_obs(seq, key: str | None, path: Path, i: int) -> np.ndarray:
                               f"{'dicts with ' + repr(key) if key else 'numeric arrays'} ({err}).") from None
 
 
+def calql_cut(rows: dict, success: np.ndarray, drop_unsuccessful: bool = True) -> dict | None:
+    """Cal-QL's rule for a binary-reward trajectory: ``rows`` cut after the last ``success`` step,
+    every success step terminal; one that never succeeds is None if ``drop_unsuccessful``, else kept whole."""
+    hits = np.flatnonzero(success)
+    if not len(hits) and drop_unsuccessful:
+        return None
+    end = int(hits[-1]) + 1 if len(hits) else len(success)
+    return {**{k: v[:end] for k, v in rows.items()}, "terminals": success[:end],
+            "success": success[:end].astype(np.float32)}
+
+
 def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.PathLike | None = None, *,
                       obs_dim: int | None = None, action_dim: int | None = None,
                       action_tolerance: float = ADROIT_ACTION_TOLERANCE) -> Dataset:
@@ -414,13 +424,9 @@ def load_calql_adroit(expert_path: str | os.PathLike | None, bc_path: str | os.P
             if not (len(o) == len(no) == len(a) == len(r)):
                 raise DataFormatError(f"{p}: trajectory {i} has mismatched lengths: {len(o)} observations, "
                                       f"{len(no)} next_observations, {len(a)} actions, {len(r)} rewards.")
-            succ = np.flatnonzero(r == 0.0)
-            if len(succ) == 0:
-                continue  # never succeeds: Cal-QL drops it
-            cut = int(succ[-1]) + 1
-            r = r[:cut]
-            episodes.append({"observations": o[:cut], "next_observations": no[:cut], "actions": a[:cut], "rewards": r,
-                             "terminals": r == 0.0, "success": (r == 0.0).astype(np.float32)})
+            ep = calql_cut({"observations": o, "next_observations": no, "actions": a, "rewards": r}, r == 0.0)
+            if ep is not None:  # never succeeds: Cal-QL drops it
+                episodes.append(ep)
         if not episodes:
             raise DataFormatError(f"{p}: no trajectory reaches a success (reward 0); nothing to load.")
         parts.append(join_episodes(episodes, {"source": str(p), "format": f"calql-adroit-{kind}"}))
@@ -435,36 +441,35 @@ def door_success(observations: np.ndarray) -> np.ndarray:
     return np.asarray(observations)[..., 28] >= DOOR_SUCCESS_ANGLE
 
 
-def _dapg_trajectories(p: Path) -> list[dict]:
+def dapg_trajectories(p: Path, keys: Sequence[str] = ("observations", "actions", "rewards")) -> list[dict]:
+    """The demos of a DAPG demo file (pickle or botorl's ``.npz``), one dict of ``keys`` each."""
     if p.suffix == ".npz":
         check_npz(p)
         try:
             with np.load(p, allow_pickle=False) as z:
-                missing = [k for k in ("observations", "actions", "rewards", "episode_lengths") if k not in z.files]
+                missing = [k for k in (*keys, "episode_lengths") if k not in z.files]
                 if missing:
                     raise DataFormatError(f"{p}: .npz lacks key(s) {missing} (has {sorted(z.files)}); botorl's DAPG "
                                           "demo file has observations, actions, rewards, episode_lengths.")
-                obs, act, rew, lens = (np.asarray(z[k]) for k in ("observations", "actions", "rewards", "episode_lengths"))
+                arrays = {k: np.asarray(z[k]) for k in keys}
+                lens = np.asarray(z["episode_lengths"]).astype(np.int64).reshape(-1)
+                rows = {k: v.shape[0] for k, v in arrays.items()}
         except DataFormatError:
             raise
         except Exception as err:
             raise DataFormatError(f"{p}: not a readable .npz file ({type(err).__name__}: {err}).") from None
-        lens = lens.astype(np.int64).reshape(-1)
-        if (lens <= 0).any() or lens.sum() != obs.shape[0] or not (obs.shape[0] == act.shape[0] == rew.shape[0]):
-            raise DataFormatError(f"{p}: lengths do not fit: episode_lengths sum to {int(lens.sum())}, observations "
-                                  f"{obs.shape[0]}, actions {act.shape[0]}, rewards {rew.shape[0]}.")
+        if (lens <= 0).any() or any(n != lens.sum() for n in rows.values()):
+            raise DataFormatError(f"{p}: lengths do not fit: episode_lengths sum to {int(lens.sum())}, "
+                                  + ", ".join(f"{k} {n}" for k, n in rows.items()) + ".")
         bounds = np.concatenate([[0], np.cumsum(lens)])
-        return [
-            {"observations": obs[s:e], "actions": act[s:e], "rewards": rew[s:e]}
-            for s, e in zip(bounds[:-1], bounds[1:])
-        ]
+        return [{k: v[s:e] for k, v in arrays.items()} for s, e in zip(bounds[:-1], bounds[1:])]
     trajs = _as_list_of_dicts(_load_pickle_array(p, "DAPG demo pickle"), p, "DAPG demo pickle")
     out = []
     for i, tr in enumerate(trajs):
-        _need(tr, ("observations", "actions", "rewards"), p, i)
+        _need(tr, keys, p, i)
         o = np.asarray(tr["observations"], np.float32)
         a = np.asarray(tr["actions"], np.float32)
-        r = np.asarray(tr["rewards"], np.float32).reshape(-1)
+        r = np.asarray(tr.get("rewards", np.zeros(len(o))), np.float32).reshape(-1)  # present unless not in keys
         if not (len(o) == len(a) == len(r)) or o.ndim != 2 or a.ndim != 2:
             raise DataFormatError(f"{p}: demo {i} has observations {o.shape}, actions {a.shape}, rewards {r.shape}; "
                                   "expected (T, O), (T, A), (T,).")
@@ -487,7 +492,7 @@ def load_dapg_demos(path: str | os.PathLike, *, binary_reward: bool = False,
     if binary_reward and success_fn is None:
         raise ValueError("binary_reward=True needs a success_fn")
     p = _require_file(path, "DAPG demo")
-    trajs = _dapg_trajectories(p)
+    trajs = dapg_trajectories(p)
     episodes = []
     for tr in trajs:
         o, a, r = tr["observations"], tr["actions"], tr["rewards"]

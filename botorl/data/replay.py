@@ -18,7 +18,6 @@ from botorl.data.dataset import Dataset
 from botorl.errors import BotorlError, DataFormatError
 
 _EMPTY = "cannot sample from an empty replay buffer; insert transitions first."
-_ALL_EMPTY = "sample_mixed: every source with a positive ratio is empty; nothing to sample."
 
 
 class ReplayBuffer:
@@ -161,7 +160,8 @@ class ReplayBuffer:
             if offline is not None:
                 ratios = [offline_ratio if len(offline) > 0 else 0.0, (1.0 - offline_ratio) if n_rows > 0 else 0.0]
                 if sum(ratios) <= 0:
-                    raise BotorlError(_ALL_EMPTY)
+                    raise BotorlError("ReplayBuffer.sample_members: every source with a positive ratio (the "
+                                      "offline data, the buffer) is empty; nothing to sample.")
                 c_off, c_on = split_counts(ratios, batch_size)
             else:
                 if n_rows == 0:

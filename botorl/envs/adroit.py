@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from botorl.envs.wrappers import TaskEnv, import_robotics
 
-DOOR_OBS_DIM, PEN_OBS_DIM = 39, 45
+OBS_DIM = {"door": 39, "pen": 45}
 DOOR_SUCCESS_ANGLE = 1.35
 
 
@@ -16,11 +16,7 @@ class AdroitBinaryTask(TaskEnv):
     reward_offset = -1.0
 
 
-def make_door(seed: int | None = None) -> AdroitBinaryTask:
-    door = import_robotics("gymnasium_robotics.envs.adroit_hand.adroit_door").AdroitHandDoorEnv
-    return AdroitBinaryTask(door(reward_type="dense"), DOOR_OBS_DIM, seed)
-
-
-def make_pen(seed: int | None = None) -> AdroitBinaryTask:
-    pen = import_robotics("gymnasium_robotics.envs.adroit_hand.adroit_pen").AdroitHandPenEnv
-    return AdroitBinaryTask(pen(reward_type="dense"), PEN_OBS_DIM, seed)
+def make_adroit(hand: str, seed: int | None = None) -> AdroitBinaryTask:
+    """The binary task on ``AdroitHand<Door|Pen>Env``: ``hand`` "door" or "pen"."""
+    module = import_robotics(f"gymnasium_robotics.envs.adroit_hand.adroit_{hand}")
+    return AdroitBinaryTask(getattr(module, f"AdroitHand{hand.title()}Env")(reward_type="dense"), OBS_DIM[hand], seed)

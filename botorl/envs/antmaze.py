@@ -51,12 +51,17 @@ def layout(maze: str) -> AntMazeLayout:
     return AntMazeLayout(tuple(map(tuple, spec.maze_map)), picked, spec.start_cell, spec.goal_cell)
 
 
+def make_maze_env(maze: str, *, continuing_task: bool = True):
+    """Gymnasium-Robotics' AntMazeEnv on the maze's wall map (no goal/reset marks)."""
+    return import_robotics("gymnasium_robotics.envs.maze.ant_maze_v4").AntMazeEnv(
+        maze_map=[list(r) for r in layout(maze).maze_map], reward_type="sparse", continuing_task=continuing_task,
+        reset_target=False)
+
+
 def make_antmaze_task(maze: str, seed: int | None = None) -> AntMazeTask:
     """The D4RL-style evaluation env on a map: the same wrapper, this maze's start and goal."""
     spec = layout(maze)
     # The class name is recorded in a mid-episode env state (botorl.envs.state): "_Task" off the large map.
     cls = AntMazeTask if maze == "large" else type(
         "_Task", (AntMazeTask,), {"start_cell": spec.eval_start, "goal_cell": spec.eval_goal})
-    inner = import_robotics("gymnasium_robotics.envs.maze.ant_maze_v4").AntMazeEnv(
-        maze_map=[list(r) for r in spec.maze_map], reward_type="sparse", continuing_task=False, reset_target=False)
-    return cls(inner, OBS_DIM, seed)
+    return cls(make_maze_env(maze, continuing_task=False), OBS_DIM, seed)

@@ -122,7 +122,7 @@ def _tasks() -> dict[str, TaskSpec]:
                obs_dim=29, action_dim=8, networks=ANTMAZE_NET)
     kitchen = dict(domain="kitchen", max_episode_steps=280, success_mode="last", reward_scale=1.0, reward_bias=-4.0,
                    obs_dim=59, action_dim=9, networks=KITCHEN_NET)
-    door = dict(domain="adroit", env_factory=partial(_make, "adroit:make_door"), max_episode_steps=200,
+    door = dict(domain="adroit", env_factory=partial(_make, "adroit:make_adroit", "door"), max_episode_steps=200,
                 success_mode="any", reward_scale=10.0, reward_bias=5.0, obs_dim=39, action_dim=28, networks=ADROIT_NET)
     ant_keys = ("achieved_goal", "observation")
     specs = [
@@ -148,8 +148,8 @@ def _tasks() -> dict[str, TaskSpec]:
         TaskSpec(name="pen-binary-v0", dataset_source=DatasetSource("calql_npy", "pen2_sparse.npy,pen_bc_sparse4.npy"),
                  paper=PaperSettings(alpha=-0.9, boto_steps=100_000, log_sigma=-20.0),
                  description="Adroit pen, binary reward (Cal-QL); human demos + BC rollouts",
-                 **dict(door, env_factory=partial(_make, "adroit:make_pen"), max_episode_steps=100, obs_dim=45,
-                        action_dim=24)),
+                 **dict(door, env_factory=partial(_make, "adroit:make_adroit", "pen"), max_episode_steps=100,
+                        obs_dim=45, action_dim=24)),
         TaskSpec(name="door-binary-local", dataset_source=DatasetSource("generated", "door-binary-local"),
                  description="door-binary with data made here: the 25 DAPG demos + BC rollouts", **door),
     ]

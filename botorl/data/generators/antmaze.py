@@ -22,9 +22,8 @@ from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
 from botorl.envs.ant_goal import NumpyActor
-from botorl.envs.antmaze import SUCCESS_RADIUS, layout  # the mazes: botorl/envs/antmaze.py
+from botorl.envs.antmaze import SUCCESS_RADIUS, layout, make_maze_env  # the mazes: botorl/envs/antmaze.py
 from botorl.envs.pointmaze import cell_to_xy, free_cells, next_cell_table
-from botorl.envs.wrappers import import_robotics
 from botorl.errors import BotorlError
 from botorl.io import pyplot
 
@@ -113,13 +112,6 @@ class WaypointController:
         return a
 
 
-def make_maze_env(maze: str, *, continuing_task: bool = True):
-    """Gymnasium-Robotics' AntMazeEnv on the maze's wall map (no goal/reset marks)."""
-    return import_robotics("gymnasium_robotics.envs.maze.ant_maze_v4").AntMazeEnv(
-        maze_map=[list(r) for r in layout(maze).maze_map], reward_type="sparse", continuing_task=continuing_task,
-        reset_target=False)
-
-
 def load_actor(path=None):
     path = Path(path or os.environ.get("BOTORL_ANT_ACTOR") or ASSET)
     if not path.exists():
@@ -164,8 +156,8 @@ def generate(maze: str, kind: str, steps: int, seed: int, progress: bool = True,
     """``steps`` transitions of the waypoint-following ant; see the module docstring."""
     if kind not in ("diverse", "play"):
         raise ValueError(f"kind must be 'diverse' or 'play', not {kind!r}")
-    if steps <= 0:
-        raise ValueError("steps must be positive")
+    if steps <= 0 or episode_steps <= 0:
+        raise ValueError(f"steps and episode_steps must be positive, got {steps} and {episode_steps}")
     spec, maze_map, sim, rng, ctl = _controller(maze, actor, seed)
     cells = free_cells(maze_map) if kind == "diverse" else list(spec.locations)
     eval_goal = cell_xy(maze_map, spec.eval_goal)

@@ -16,16 +16,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from gymnasium.wrappers import TimeLimit
 from tqdm import tqdm
 
 from botorl.data.dataset import Dataset
-from botorl.data.loaders import door_success, join_episodes
-from botorl.envs.adroit import make_door
+from botorl.data.loaders import calql_cut, dapg_trajectories, door_success, join_episodes
+from botorl.envs.registry import get_task
 from botorl.errors import DatasetNotFoundError, DataFormatError
 
 ENV_VAR = "BOTORL_DOOR_DEMOS"
-HORIZON = 200
 HIDDEN = (256, 256)
 
 
@@ -53,33 +51,20 @@ def find_demos(demos_path: str | os.PathLike | None = None) -> Path:
 
 
 def load_demos(path: Path) -> list[dict[str, np.ndarray]]:
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            obs, act, lengths = f["observations"], f["actions"], f["episode_lengths"]
-    except (KeyError, ValueError, OSError) as err:
-        raise DataFormatError(f"{path}: not a door demos .npz with observations, actions and episode_lengths "
-                              f"({err}).") from None
-    if obs.ndim != 2 or obs.shape[1] != 39 or act.shape != (obs.shape[0], 28) or lengths.sum() != obs.shape[0]:
-        raise DataFormatError(f"{path}: expected observations (N, 39), actions (N, 28) and episode_lengths summing to "
-                              f"N; got {obs.shape}, {act.shape}, sum {int(lengths.sum())}.")
-    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
-    return [{"observations": obs[s : s + n].astype(np.float64), "actions": act[s : s + n].astype(np.float64)}
-            for s, n in zip(starts, lengths)]
+    demos = dapg_trajectories(path, ("observations", "actions"))
+    for d in demos:
+        obs, act = d["observations"], d["actions"]
+        if obs.ndim != 2 or obs.shape[1] != 39 or act.shape != (obs.shape[0], 28):
+            raise DataFormatError(f"{path}: expected observations (N, 39) and actions (N, 28); got a demo with "
+                                  f"{obs.shape}, {act.shape}.")
+    return [{k: d[k].astype(np.float64) for k in ("observations", "actions")} for d in demos]
 
 
 def _binary_trajectory(obs, act, next_obs, drop_unsuccessful: bool) -> dict | None:
-    """Reward success-1, success steps terminal, cut after the last success (Cal-QL); a
-    trajectory that never succeeds is None if ``drop_unsuccessful``, else kept whole."""
+    """Reward success - 1 (door opened), cut by Cal-QL's rule (``calql_cut``)."""
     success = door_success(next_obs)
-    if not success.any():
-        if drop_unsuccessful:
-            return None
-        end = len(success)
-    else:
-        end = int(np.nonzero(success)[0][-1]) + 1
-    return {"observations": obs[:end], "actions": act[:end], "next_observations": next_obs[:end],
-            "rewards": success[:end].astype(np.float32) - 1.0, "terminals": success[:end],
-            "success": success[:end].astype(np.float32)}
+    return calql_cut({"observations": obs, "actions": act, "next_observations": next_obs,
+                      "rewards": success.astype(np.float32) - 1.0}, success, drop_unsuccessful)
 
 
 # ---------------------------------------------------------------------------- behaviour cloning
@@ -141,7 +126,7 @@ def bc_policy(params):
 def rollout(policy, steps: int, seed: int, noise_std: float, progress: bool = True):
     """Roll ``policy`` out in the door-binary env until ``steps`` env steps are collected
     (whole episodes). Returns (one trajectory per episode, number of successes)."""
-    env = TimeLimit(make_door(seed), HORIZON)
+    env = get_task("door-binary-local").make_env(seed)
     rng = np.random.default_rng(seed)
     trajs, n_succ, collected = [], 0, 0
     bar = tqdm(total=steps, desc="door BC rollouts", unit="step", disable=not progress)
