@@ -24,6 +24,7 @@ from typing import Any, Callable, Optional
 
 import jax
 import tyro
+from jax._src import xla_bridge
 
 from botorl.agents.sac import SACAgent, SACConfig
 from botorl.benchmarks import flops as flopmod
@@ -149,7 +150,9 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
     """``twin``: starts the d3rlpy worker (benchmarks/against_d3rlpy.py) whose same updates are
     timed in the same rounds, once the options are checked."""
     if cfg.threads == 1:
-        if "jax" in sys.modules and sys.modules["jax"].__dict__.get("_src") is not None:
+        # XLA reads XLA_FLAGS when its backend starts, not when jax is imported (this module
+        # imports it): the flag is too late only once a backend exists (bench called in-process)
+        if xla_bridge.backends_are_initialized():
             _log("bench: --threads 1 must be set before JAX starts; XLA keeps its threads")
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
                                    " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1").strip()
