@@ -80,8 +80,7 @@ def jaxpr_flops(fn: Callable, *args: Any, **kwargs: Any) -> FlopCount:
 
 def xla_flops(fn: Callable, *args: Any, **kwargs: Any) -> float:
     """FLOPs of one call as XLA's cost analysis of the compiled program gives them."""
-    jitted = fn if hasattr(fn, "lower") else jax.jit(fn)
-    cost = jitted.lower(*args, **kwargs).compile().cost_analysis()
+    cost = jax.jit(fn).lower(*args, **kwargs).compile().cost_analysis()
     return float((cost or {}).get("flops", float("nan")))
 
 
