@@ -30,6 +30,7 @@ import jax
 import numpy as np
 
 from botorl.agents import population
+from botorl.configs.members import Streams
 from botorl.configs.presets import make_preset
 from botorl.configs.resolve import resolve
 from botorl.data.dataset import Dataset
@@ -144,7 +145,7 @@ def time_evaluation(out: Path, members: int, episodes: int) -> dict:
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
             stats = run_episodes(policy, envs, episodes=episodes, success_mode=spec.success_mode,
-                                 seeds=[200_000 + c.seed for c in cfgs], max_steps=spec.max_episode_steps)
+                                 seeds=[Streams.of(c).eval_command for c in cfgs], max_steps=spec.max_episode_steps)
             seconds = time.perf_counter() - t0
     finally:
         for es in envs:
