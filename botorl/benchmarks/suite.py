@@ -229,13 +229,13 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
     # The update alone on the env's shapes (the same jit cache entry as the table's row
     # when those are the same).
     alone = wl.build(replace(w, obs_dim=obs_dim, action_dim=action_dim))
-    n_loop = _calibrate(loop.run, min_time)
-    n_alone = _calibrate(alone.step, min_time)
-    loop_rates, alone_rates = [], []
-    for _ in range(repeats):
-        loop_rates.append(_time_block(loop.run, n_loop)[0])
-        alone_rates.append(_time_block(alone.step, n_alone)[0])
-    loop.close()
+    with loop.state:  # closes the loop's envs
+        n_loop = _calibrate(loop.run, min_time)
+        n_alone = _calibrate(alone.step, min_time)
+        loop_rates, alone_rates = [], []
+        for _ in range(repeats):
+            loop_rates.append(_time_block(loop.run, n_loop)[0])
+            alone_rates.append(_time_block(alone.step, n_alone)[0])
     return {"env": spec.name, "obs_dim": obs_dim, "action_dim": action_dim,
             "env_steps_per_s": _median(loop_rates), "samples": loop_rates,
             "update_alone_per_s": _median(alone_rates), "update_alone_samples": alone_rates,
