@@ -306,9 +306,7 @@ def main(argv: list[str]) -> int:
     tasks = [t for t in args.tasks.split(",") if t]
     windows = {"pretrain": args.pretrain_steps, "warmup": args.warmup_steps, "boto": args.boto_steps,
                "finetune": args.finetune_steps, "eval_episodes": args.eval_episodes, "precision": args.precision}
-    flags = {"--pretrain-steps": args.pretrain_steps, "--boto-steps": args.boto_steps,
-             "--finetune-steps": args.finetune_steps, "--warmup-steps": args.warmup_steps,
-             "--eval-episodes": args.eval_episodes, "--data-steps": args.data_steps,
+    flags = {**{f"--{k.replace('_', '-')}": v for k, v in vars(args).items() if k.endswith(("_steps", "_episodes"))},
              **{"--members": m for m in members if m < 1}}
     for flag, v in flags.items():
         if v < 1 or (flag in ("--pretrain-steps", "--boto-steps", "--finetune-steps") and v < 8):
