@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import csv
 import json
 import os
 import platform
@@ -41,6 +40,7 @@ from botorl.io import atomic_write_bytes
 from botorl.jaxsetup import check_precision, matmul_precision, setup_jax
 from botorl.pipeline.evaluation import make_eval_envs, run_episodes
 from botorl.pipeline.policy import load_agent, read_run
+from botorl.pipeline.rundir import CsvLog
 
 # the paper's tasks as they can be run here: task -> where its data comes from
 PAPER_TASKS = {
@@ -207,8 +207,7 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
     for stage, rate_key, seconds_key, unit, start in (("pretrain", "steps_per_s", None, "updates/s", 0),
                                                       ("boto", None, "seconds", "updates/s", 0),
                                                       ("finetune", "env_steps_per_s", None, "env steps/s (UTD 4)", w)):
-        with open(member / "metrics" / f"{stage}.csv", newline="") as fh:
-            rate, comp = _steady(list(csv.DictReader(fh)), "step", rate_key, seconds_key, start)
+        rate, comp = _steady(CsvLog(member / "metrics" / f"{stage}.csv").rows(), "step", rate_key, seconds_key, start)
         stages[stage] = {"rate": rate, "unit": unit, "compile_s": comp}
     # evaluation: every member's last checkpoint, all members' envs in one lockstep (as the run)
     _, ers, ev = _run(["--time-eval", str(out), str(members), str(windows["eval_episodes"])],
