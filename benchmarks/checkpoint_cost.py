@@ -11,8 +11,8 @@ deterministic (same seed), so A and B do the same work apart from the checkpoint
 
 Printed:
 * ``step_s``: B's online loop time per env step (fine-tuning stage time minus evaluations);
-* ``ckpt_s``: the mean wall time of one mid-stage checkpoint in A (``RunContext.save_mid``:
-  agent file, replay buffer, env states, manifest with sha256, fsyncs, summary);
+* ``ckpt_s``: the mean wall time of one mid-stage checkpoint in A (``RunContext.save`` at a
+  fine-tuning step: agent file, replay buffer, env states, manifest with sha256, fsyncs, summary);
 * ``ratio``: ckpt_s / (checkpoint_every x step_s), the share of the online loop checkpoints
   take at the profile's interval (quick: every 5,000 steps); the goal is <= 5 %;
 * ``ratio_ab``: the same from the difference of A's and B's loop times (noisier: it carries
@@ -43,14 +43,14 @@ def _run(argv: list[str], out: Path) -> dict:
     cfg = build_config([*argv, "--out", str(out)])
     d_raw = runner.load_offline(cfg, get_task(cfg.task))
     timers = {"save_mid": [], "evaluate": []}
-    orig_save, orig_eval = runner.RunContext.save_mid, runner.RunContext.evaluate
+    orig_save, orig_eval = runner.RunContext.save, runner.RunContext.evaluate
 
-    def save_mid(self, stage, *a, **kw):
+    def save(self, stage, step, *a, **kw):
         t = time.perf_counter()
         try:
-            return orig_save(self, stage, *a, **kw)
+            return orig_save(self, stage, step, *a, **kw)
         finally:
-            if stage == "finetune":
+            if stage == "finetune" and step is not None:  # mid-stage (step None: the stage's end)
                 timers["save_mid"].append(time.perf_counter() - t)
 
     def evaluate(self, *a, **kw):
@@ -61,12 +61,12 @@ def _run(argv: list[str], out: Path) -> dict:
             if self._stage == "finetune":
                 timers["evaluate"].append(time.perf_counter() - t)
 
-    runner.RunContext.save_mid, runner.RunContext.evaluate = save_mid, evaluate
+    runner.RunContext.save, runner.RunContext.evaluate = save, evaluate
     try:
         out.mkdir(parents=True)
         (summary,) = runner.execute(cfg, [cfg], out, [RunDir(out)], d_raw)
     finally:
-        runner.RunContext.save_mid, runner.RunContext.evaluate = orig_save, orig_eval
+        runner.RunContext.save, runner.RunContext.evaluate = orig_save, orig_eval
     ft = summary["stage_seconds"]["finetune"]
     buf = [p.stat().st_size for p in (out / "checkpoints").glob("finetune-step*/buffer.npz")]
     ck = [sum(f.stat().st_size for f in p.iterdir()) for p in (out / "checkpoints").glob("finetune-step*")]

@@ -54,8 +54,8 @@ def test_online_loop_times_the_fine_tuning_loop():
     agent = SACAgent.create(SACConfig(actor_hidden_dims=(8,), critic_hidden_dims=(8,), num_critics=2, utd_ratio=2),
                             spec.obs_dim, spec.action_dim, 0)
     loop = OnlineLoop(agent, spec, batch=4, utd=2, prefill=10)
-    loop.run(3)
+    with loop.state:
+        loop.run(3)
     assert loop.state.step == 3 and len(loop.state.buffer) == 13
     before, after = jax.tree_util.tree_leaves(agent.critic.params), jax.tree_util.tree_leaves(loop.agents.critic.params)
     assert any(not np.allclose(np.asarray(b), np.asarray(a)[0]) for b, a in zip(before, after))
-    loop.close()

@@ -59,15 +59,12 @@ def _count_jaxpr(jaxpr: Any) -> np.ndarray:
             total += _count_jaxpr(eqn.params["jaxpr"].jaxpr) * eqn.params["length"]
         elif name == "cond":
             total += max((_count_jaxpr(b.jaxpr) for b in eqn.params["branches"]), key=lambda c: c[0])
-        elif name == "while":
-            # Trip count unknown when tracing: count the body once (as XLA does).
-            total += _count_jaxpr(eqn.params["body_jaxpr"].jaxpr)
-            total += _count_jaxpr(eqn.params["cond_jaxpr"].jaxpr)
         elif name in _ELEMENTWISE:
             total[0] += _size(eqn.outvars[0].aval)
         elif name in _REDUCE:
             total[0] += _size(eqn.invars[0].aval)
-        else:  # a call (pjit, custom_jvp, remat, ...) counts its body; any other primitive is free
+        else:  # a call (pjit, custom_jvp, remat, ...) counts its body, a while its body and cond
+            # once (as XLA does: the trip count is unknown when tracing); any other primitive is free
             for value in eqn.params.values():
                 for item in value if isinstance(value, (tuple, list)) else (value,):
                     sub = item if hasattr(item, "eqns") else getattr(item, "jaxpr", None)  # open or closed jaxpr
@@ -83,8 +80,7 @@ def jaxpr_flops(fn: Callable, *args: Any, **kwargs: Any) -> FlopCount:
 
 def xla_flops(fn: Callable, *args: Any, **kwargs: Any) -> float:
     """FLOPs of one call as XLA's cost analysis of the compiled program gives them."""
-    jitted = fn if hasattr(fn, "lower") else jax.jit(fn)
-    cost = jitted.lower(*args, **kwargs).compile().cost_analysis()
+    cost = jax.jit(fn).lower(*args, **kwargs).compile().cost_analysis()
     return float((cost or {}).get("flops", float("nan")))
 
 

@@ -37,6 +37,3 @@ class OnlineLoop:
             self.agents = self.state.advance(self.agents, self.window)
         self.window.rows.clear()  # the metrics stay on the device: the loop logs none here
         jax.block_until_ready(self.agents)
-
-    def close(self) -> None:
-        self.state.__exit__()

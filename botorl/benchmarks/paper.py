@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import csv
 import json
 import os
 import platform
@@ -30,6 +29,7 @@ import jax
 import numpy as np
 
 from botorl.agents import population
+from botorl.configs.members import Streams
 from botorl.configs.presets import make_preset
 from botorl.configs.resolve import resolve
 from botorl.data.dataset import Dataset
@@ -40,6 +40,7 @@ from botorl.io import atomic_write_bytes
 from botorl.jaxsetup import check_precision, matmul_precision, setup_jax
 from botorl.pipeline.evaluation import make_eval_envs, run_episodes
 from botorl.pipeline.policy import load_agent, read_run
+from botorl.pipeline.rundir import CsvLog
 
 # the paper's tasks as they can be run here: task -> where its data comes from
 PAPER_TASKS = {
@@ -144,7 +145,7 @@ def time_evaluation(out: Path, members: int, episodes: int) -> dict:
             compile_s = time.perf_counter() - t0
             t0 = time.perf_counter()
             stats = run_episodes(policy, envs, episodes=episodes, success_mode=spec.success_mode,
-                                 seeds=[200_000 + c.seed for c in cfgs], max_steps=spec.max_episode_steps)
+                                 seeds=[Streams.of(c).eval_command for c in cfgs], max_steps=spec.max_episode_steps)
             seconds = time.perf_counter() - t0
     finally:
         for es in envs:
@@ -206,8 +207,7 @@ def measure(task: str, members: int, work: Path, windows: dict, data_steps: int)
     for stage, rate_key, seconds_key, unit, start in (("pretrain", "steps_per_s", None, "updates/s", 0),
                                                       ("boto", None, "seconds", "updates/s", 0),
                                                       ("finetune", "env_steps_per_s", None, "env steps/s (UTD 4)", w)):
-        with open(member / "metrics" / f"{stage}.csv", newline="") as fh:
-            rate, comp = _steady(list(csv.DictReader(fh)), "step", rate_key, seconds_key, start)
+        rate, comp = _steady(CsvLog(member / "metrics" / f"{stage}.csv").rows(), "step", rate_key, seconds_key, start)
         stages[stage] = {"rate": rate, "unit": unit, "compile_s": comp}
     # evaluation: every member's last checkpoint, all members' envs in one lockstep (as the run)
     _, ers, ev = _run(["--time-eval", str(out), str(members), str(windows["eval_episodes"])],
@@ -305,9 +305,7 @@ def main(argv: list[str]) -> int:
     tasks = [t for t in args.tasks.split(",") if t]
     windows = {"pretrain": args.pretrain_steps, "warmup": args.warmup_steps, "boto": args.boto_steps,
                "finetune": args.finetune_steps, "eval_episodes": args.eval_episodes, "precision": args.precision}
-    flags = {"--pretrain-steps": args.pretrain_steps, "--boto-steps": args.boto_steps,
-             "--finetune-steps": args.finetune_steps, "--warmup-steps": args.warmup_steps,
-             "--eval-episodes": args.eval_episodes, "--data-steps": args.data_steps,
+    flags = {**{f"--{k.replace('_', '-')}": v for k, v in vars(args).items() if k.endswith(("_steps", "_episodes"))},
              **{"--members": m for m in members if m < 1}}
     for flag, v in flags.items():
         if v < 1 or (flag in ("--pretrain-steps", "--boto-steps", "--finetune-steps") and v < 8):

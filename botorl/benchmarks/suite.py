@@ -24,6 +24,7 @@ from typing import Any, Callable, Optional
 
 import jax
 import tyro
+from jax._src import xla_bridge
 
 from botorl.agents.sac import SACAgent, SACConfig
 from botorl.benchmarks import flops as flopmod
@@ -122,7 +123,7 @@ def _prepare(w: wl.Workload) -> tuple[dict[str, Any], wl.Bound]:
            "botorl_cpu_samples": [], "d3rlpy_cpu_samples": [],
            "matmul_flops_per_update": count.matmul_flops / k, "updates_per_call": k}
     try:
-        row["flops_per_update_xla"] = flopmod.xla_flops(jax.jit(b.flop_fn), *b.flop_args) / k
+        row["flops_per_update_xla"] = flopmod.xla_flops(b.flop_fn, *b.flop_args) / k
     except Exception as err:  # the cross-check must not sink the run
         row["flops_per_update_xla_error"] = str(err)
     return row, b
@@ -149,7 +150,9 @@ def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> d
     """``twin``: starts the d3rlpy worker (benchmarks/against_d3rlpy.py) whose same updates are
     timed in the same rounds, once the options are checked."""
     if cfg.threads == 1:
-        if "jax" in sys.modules and sys.modules["jax"].__dict__.get("_src") is not None:
+        # XLA reads XLA_FLAGS when its backend starts, not when jax is imported (this module
+        # imports it): the flag is too late only once a backend exists (bench called in-process)
+        if xla_bridge.backends_are_initialized():
             _log("bench: --threads 1 must be set before JAX starts; XLA keeps its threads")
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
                                    " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1").strip()
@@ -226,13 +229,13 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
     # The update alone on the env's shapes (the same jit cache entry as the table's row
     # when those are the same).
     alone = wl.build(replace(w, obs_dim=obs_dim, action_dim=action_dim))
-    n_loop = _calibrate(loop.run, min_time)
-    n_alone = _calibrate(alone.step, min_time)
-    loop_rates, alone_rates = [], []
-    for _ in range(repeats):
-        loop_rates.append(_time_block(loop.run, n_loop)[0])
-        alone_rates.append(_time_block(alone.step, n_alone)[0])
-    loop.close()
+    with loop.state:  # closes the loop's envs
+        n_loop = _calibrate(loop.run, min_time)
+        n_alone = _calibrate(alone.step, min_time)
+        loop_rates, alone_rates = [], []
+        for _ in range(repeats):
+            loop_rates.append(_time_block(loop.run, n_loop)[0])
+            alone_rates.append(_time_block(alone.step, n_alone)[0])
     return {"env": spec.name, "obs_dim": obs_dim, "action_dim": action_dim,
             "env_steps_per_s": _median(loop_rates), "samples": loop_rates,
             "update_alone_per_s": _median(alone_rates), "update_alone_samples": alone_rates,

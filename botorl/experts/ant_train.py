@@ -177,27 +177,6 @@ class Collector:
 # ------------------------------------------------------------------ the device side
 
 
-def _make_train_step(batch_size: int, updates: int):
-    import jax  # lazy: the spawned simulation workers import this module; they need no JAX
-
-    @partial(jax.jit, donate_argnums=0)  # the buffer is updated in place, not copied
-    def insert(buf, new, ptr):
-        return {k: jax.lax.dynamic_update_slice_in_dim(buf[k], new[k], ptr, 0) for k in buf}
-
-    @jax.jit
-    def train(agent, buf, size, key):
-        def body(a, k):
-            idx = jax.random.randint(k, (batch_size,), 0, size)
-            batch = {n: v[idx] for n, v in buf.items()}
-            batch["mc_returns"] = jax.numpy.zeros_like(batch["rewards"])
-            return a.train_step(batch)
-
-        agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, updates))
-        return agent, {k: v[-1] for k, v in metrics.items()}
-
-    return insert, train
-
-
 def export_actor(params: dict, path: str | os.PathLike, meta: dict | None = None) -> Path:
     out = io.BytesIO()
     np.savez_compressed(out, **params, meta_json=np.asarray(json.dumps(meta or {})))
@@ -218,6 +197,21 @@ def train(cfg: AntTrainConfig) -> dict:
     def host_actor(agent) -> dict:
         return actor_arrays(jax.device_get(agent.actor.params), agent.config.log_std_min, agent.config.log_std_max)
 
+    @partial(jax.jit, donate_argnums=0)  # the buffer is updated in place, not copied
+    def insert(buf, new, ptr):
+        return {k: jax.lax.dynamic_update_slice_in_dim(buf[k], new[k], ptr, 0) for k in buf}
+
+    @jax.jit
+    def train_step(agent, buf, size, key):
+        def body(a, k):
+            idx = jax.random.randint(k, (cfg.batch_size,), 0, size)
+            batch = {n: v[idx] for n, v in buf.items()}
+            batch["mc_returns"] = jax.numpy.zeros_like(batch["rewards"])
+            return a.train_step(batch)
+
+        agent, metrics = jax.lax.scan(body, agent, jax.random.split(key, cfg.updates_per_iter))
+        return agent, {k: v[-1] for k, v in metrics.items()}
+
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     agent = sac.SACAgent.create(sac_config(cfg), OBS_DIM, ACTION_DIM, seed=cfg.seed)
@@ -236,7 +230,6 @@ def train(cfg: AntTrainConfig) -> dict:
     chunk = max(cfg.num_workers, 1) * cfg.envs_per_worker * cfg.rollout_len  # env steps per iteration
     capacity = max(chunk, (cfg.buffer_size // chunk) * chunk)
     buf = {k: jax.numpy.zeros((capacity,) + s, jax.numpy.float32) for k, s in FIELDS}
-    insert, train_step = _make_train_step(cfg.batch_size, cfg.updates_per_iter)
     collector = Collector(cfg.num_workers, cfg.envs_per_worker, cfg.seed * 7_919 + state["calls"])
     key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state["calls"])
     ptr = size = 0
