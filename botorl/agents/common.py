@@ -1,4 +1,4 @@
-"""Pieces every agent shares: jitted entry points, the actor-critic base, Polyak averaging, checks.
+"""Pieces every agent shares: jitted entry points, the actor-critic base, chunked gradients, checks.
 
 Agents are ``flax.struct.PyTreeNode``s whose config is a static field, so one module-level
 ``jax.jit`` serves every agent class (class and config are in the jit cache key): an update
@@ -18,18 +18,14 @@ from flax.training.train_state import TrainState
 
 from botorl.batch import BATCH_KEYS, TRANSITION_KEYS, Batch
 from botorl.errors import ConfigError
-from botorl.networks import CriticEnsemble, TanhGaussianActor, sample_tanh_gaussian, subsample_ensemble
+from botorl.networks import CriticEnsemble, TanhGaussianActor, sample_tanh_gaussian
 
 __all__ = [
-    "TrainState", "polyak", "acting_view", "update_fn", "update_many_fn", "sample_fn", "eval_fn", "q_mean_fn",
+    "TrainState", "acting_view", "update_fn", "update_many_fn", "sample_fn", "eval_fn", "q_mean_fn",
     "update_many_on_device_fn", "jit_update", "jit_update_many", "jit_sample", "jit_eval", "jit_q_mean", "adam",
     "train_state", "checked_batch", "chunk_size", "summed_value_and_grad", "update_many_on_device", "sample_batches",
     "actor_def", "critic_def", "ActorCriticAgent", "check_fields",
 ]
-
-
-def polyak(params, target_params, tau: float):
-    return jax.tree_util.tree_map(lambda p, t: tau * p + (1.0 - tau) * t, params, target_params)
 
 
 @functools.lru_cache(maxsize=None)
@@ -189,7 +185,6 @@ def is_rate(v) -> bool:
 
 
 RATE_WHY = "a learning rate must be a finite number >= 0, e.g. 3e-4"
-# The checks SAC, CQL and IQL share.
 ACTOR_CRITIC_CHECKS = (
     ("num_critics", lambda c: c.num_critics >= 1, "need at least one critic"),
     *((f, lambda c, f=f: is_rate(getattr(c, f)), RATE_WHY) for f in ("actor_lr", "critic_lr")),
@@ -264,12 +259,17 @@ class ActorCriticAgent:
     def critic_stepped(self, grads, tau: float):
         """The agent after one gradient step of its critic and the Polyak update of its targets."""
         critic = self.critic.apply_gradients(grads=grads)
-        return self.replace(critic=critic, target_critic_params=polyak(critic.params, self.target_critic_params, tau))
+        return self.replace(critic=critic, target_critic_params=jax.tree_util.tree_map(
+            lambda p, t: tau * p + (1.0 - tau) * t, critic.params, self.target_critic_params))
 
     def target_min(self, key, observations, actions, num: int, replace: bool) -> jax.Array:
-        """min over a random subset of ``num`` target critics of Q'(s, a), drawn with or without
-        replacement: (B,)."""
+        """min over ``num`` target critics of Q'(s, a): (B,); the members drawn independently
+        (``replace``, WSRL) or a random subset of distinct ones (RLPD)."""
         cfg = self.config
-        sub = subsample_ensemble(key, self.target_critic_params, num, cfg.num_critics, replace)
+        sub = self.target_critic_params
+        if replace or num != cfg.num_critics:
+            idx = (jax.random.randint(key, (num,), 0, cfg.num_critics) if replace
+                   else jax.random.permutation(key, cfg.num_critics)[:num])
+            sub = jax.tree_util.tree_map(lambda p: p[idx], sub)
         sub_def = critic_def(cfg.critic_hidden_dims, num, cfg.critic_layer_norm)
         return sub_def.apply({"params": sub}, observations, actions).min(axis=0)

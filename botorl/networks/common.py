@@ -129,14 +129,3 @@ class Temperature(nn.Module):
         log_temp = self.param("log_temp", lambda _: jnp.full((), jnp.log(self.init_value), jnp.float32))
         return jnp.exp(log_temp)
 
-
-def subsample_ensemble(key: jax.Array, params, num_sample: int, num_total: int, replace: bool):
-    """The parameters of ``num_sample`` of ``num_total`` ensemble members, drawn independently
-    (``replace``, WSRL) or a random subset of distinct members (RLPD)."""
-    if num_sample == num_total and not replace:
-        return params
-    if replace:
-        idx = jax.random.randint(key, (num_sample,), 0, num_total)
-    else:
-        idx = jax.random.permutation(key, num_total)[:num_sample]
-    return jax.tree_util.tree_map(lambda p: p[idx], params)
