@@ -180,10 +180,8 @@ def plot_fig3(res: dict, path: Path) -> None:
         ax.plot(grid, r["q_exact"], color="k", lw=0.8, ls=":")
     ax.plot([], [], color="k", lw=0.8, ls=":", label="exact Q* (alpha-NAMDP)")
     ax.scatter(ua, ur, color="red", s=22, zorder=5, label="dataset (a, r)")
-    ax.set_xlim(-1, 1)
-    ax.set_xlabel("action a")
-    ax.set_ylabel("Q(a)")
-    ax.set_title(f"bandit-1d: BOTO critics, q = N(a, {res['noise']['sigma']}^2), {res['steps']} steps")
+    ax.set(xlim=(-1, 1), xlabel="action a", ylabel="Q(a)",
+           title=f"bandit-1d: BOTO critics, q = N(a, {res['noise']['sigma']}^2), {res['steps']} steps")
     ax.legend(ncol=4, fontsize=8, loc="lower center")
     ax.grid(alpha=0.3)
     lo = min(min(r["lower"]) for r in res["alphas"]) - 0.05
@@ -196,8 +194,7 @@ def plot_fig3(res: dict, path: Path) -> None:
         a.plot(grid, r["q_exact"], color="k", lw=1.0, ls=":", label="exact Q*")
         a.plot(grid, r["q_learned"], color=c, lw=2.0, label="learned")
         a.scatter(ua, ur, color="red", s=10, zorder=5)
-        a.set_ylim(lo, hi)
-        a.set_xlim(-1, 1)
+        a.set(ylim=(lo, hi), xlim=(-1, 1), xlabel="action a")
         a.set_xticks([-1, -0.5, 0, 0.5, 1], ["-1", "", "0", "", "1"])
         a.set_title(f"alpha = {r['alpha']:+.1f}  (max |err| {r['max_abs_error_vs_exact']:.3f})", fontsize=9)
         a.grid(alpha=0.3)
@@ -205,7 +202,6 @@ def plot_fig3(res: dict, path: Path) -> None:
             a.set_yticklabels([])
         else:
             a.legend(fontsize=7, loc="lower left")
-        a.set_xlabel("action a")
     atomic_save_figure(fig, path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
@@ -301,8 +297,7 @@ def plot_fig2(res: dict, path: Path) -> None:
         ax.scatter(data[show, 0], data[show, 1], c=rew[show], cmap="viridis", vmin=vlo, vmax=vhi, s=9,
                    edgecolors="k", linewidths=0.4)
         ax.set_title(name, fontsize=10)
-        ax.set_xticks([-1, 0, 1])
-        ax.set_yticks([-1, 0, 1] if j == 0 else [])
+        ax.set(xticks=[-1, 0, 1], yticks=[-1, 0, 1] if j == 0 else [])
         k = axes[1, j]
         lo, hi = min(qu.min(), qd.min()), max(qu.max(), qd.max())
         span = max(hi - lo, 1e-3)
@@ -311,8 +306,7 @@ def plot_fig2(res: dict, path: Path) -> None:
             if np.std(vals) > 1e-6:
                 k.fill_between(xs, gaussian_kde(vals)(xs), color=col, alpha=0.35, label=lab)
         k.axvspan(r_lo, r_hi, color="grey", alpha=0.12, label="reward range")
-        k.set_xlabel("Q value")
-        k.set_yticks([])
+        k.set(xlabel="Q value", yticks=[])
         if j == 0:
             k.legend(fontsize=7)
     fig.colorbar(im, ax=axes[0, :].tolist(), shrink=0.85, label="Q(a) (dots: reward r)", extend="both")
