@@ -24,7 +24,7 @@ __all__ = [
     "TrainState", "acting_view", "update_fn", "update_many_fn", "sample_fn", "eval_fn", "q_mean_fn",
     "update_many_on_device_fn", "jit_update", "jit_update_many", "jit_sample", "jit_eval", "jit_q_mean", "adam",
     "train_state", "checked_batch", "chunk_size", "summed_value_and_grad", "update_many_on_device", "sample_batches",
-    "actor_def", "critic_def", "ActorCriticAgent", "check_fields",
+    "module_def", "ActorCriticAgent", "check_fields",
 ]
 
 
@@ -194,18 +194,10 @@ ACTOR_CRITIC_CHECKS = (
 
 
 @functools.lru_cache(maxsize=None)
-def actor_def(config, action_dim: int) -> TanhGaussianActor:
-    """Actor module for a config (cached: equal configs give the same object -> one jit)."""
-    return TanhGaussianActor(
-        hidden_dims=config.actor_hidden_dims, action_dim=action_dim, use_layer_norm=config.actor_layer_norm,
-        dropout_rate=getattr(config, "actor_dropout", None), state_dependent_std=config.state_dependent_std,
-        log_std_min=config.log_std_min, log_std_max=config.log_std_max,
-    )
-
-
-@functools.lru_cache(maxsize=None)
-def critic_def(hidden_dims: tuple[int, ...], num: int, layer_norm: bool) -> CriticEnsemble:
-    return CriticEnsemble(hidden_dims=hidden_dims, num=num, use_layer_norm=layer_norm)
+def module_def(cls, **fields):
+    """``cls(**fields)``, cached: equal settings give the same module object, so agents built from
+    equal configs share their jit cache entries."""
+    return cls(**fields)
 
 
 class ActorCriticAgent:
@@ -236,8 +228,14 @@ class ActorCriticAgent:
         rng, k_actor, k_critic, k_third = jax.random.split(jax.random.PRNGKey(seed), 4)
         obs = jnp.zeros((1, obs_dim), jnp.float32)
         act = jnp.zeros((1, action_dim), jnp.float32)
-        actor = train_state(actor_def(config, action_dim), k_actor, config.actor_lr, obs)
-        c_def = critic_def(config.critic_hidden_dims, config.num_critics, config.critic_layer_norm)
+        a_def = module_def(
+            TanhGaussianActor, hidden_dims=config.actor_hidden_dims, action_dim=action_dim,
+            use_layer_norm=config.actor_layer_norm, dropout_rate=getattr(config, "actor_dropout", None),
+            state_dependent_std=config.state_dependent_std, log_std_min=config.log_std_min, log_std_max=config.log_std_max,
+        )
+        actor = train_state(a_def, k_actor, config.actor_lr, obs)
+        c_def = module_def(CriticEnsemble, hidden_dims=config.critic_hidden_dims, num=config.num_critics,
+                           use_layer_norm=config.critic_layer_norm)
         critic = train_state(c_def, k_critic, config.critic_lr, obs, act)
         return rng, actor, critic, k_third, obs
 
@@ -271,5 +269,6 @@ class ActorCriticAgent:
             idx = (jax.random.randint(key, (num,), 0, cfg.num_critics) if replace
                    else jax.random.permutation(key, cfg.num_critics)[:num])
             sub = jax.tree_util.tree_map(lambda p: p[idx], sub)
-        sub_def = critic_def(cfg.critic_hidden_dims, num, cfg.critic_layer_norm)
+        sub_def = module_def(CriticEnsemble, hidden_dims=cfg.critic_hidden_dims, num=num,
+                             use_layer_norm=cfg.critic_layer_norm)
         return sub_def.apply({"params": sub}, observations, actions).min(axis=0)

@@ -15,7 +15,6 @@ is ``temperature``/``temp`` here; BOTO's ``alpha`` is something else.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -26,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from botorl.agents.common import (
-    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, check_fields, chunk_size, is_rate,
+    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, check_fields, chunk_size, is_rate, module_def,
     summed_value_and_grad, train_state,
 )
 from botorl.agents.temperature import INIT_TEMP_RULES, log_temp_params, stationary_temperature
@@ -95,11 +94,6 @@ SAC_CHECKS = ACTOR_CRITIC_CHECKS + (
 )
 
 
-@functools.lru_cache(maxsize=None)
-def temp_def(init_temp: float) -> Temperature:
-    return Temperature(init_temp)
-
-
 class SACAgent(ActorCriticAgent, struct.PyTreeNode):
     """SAC-family agent. Fields shared with CQL/Cal-QL (CONTRACTS.md)."""
 
@@ -117,7 +111,7 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
         if config.target_entropy is None:
             config = dataclasses.replace(config, target_entropy=-float(action_dim))
         rng, actor, critic, k_temp, _ = cls._init(config, obs_dim, action_dim, seed)
-        temp = train_state(temp_def(config.init_temp), k_temp, config.temp_lr)
+        temp = train_state(module_def(Temperature, init_value=config.init_temp), k_temp, config.temp_lr)
         return cls(actor=actor, critic=critic, target_critic_params=critic.params, temp=temp, rng=rng, config=config)
 
     @classmethod
