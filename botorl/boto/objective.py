@@ -136,8 +136,7 @@ _jit_population_update_many = jax.jit(over_members(boto_update_many_fn, (0, 0, 0
 
 def _check_batches(batches, many: bool) -> None:
     checked_batch(batches)
-    want = 3 if many else 2
-    if jnp.ndim(batches["actions"]) != want:
+    if jnp.ndim(batches["actions"]) != (3 if many else 2):
         raise ConfigError(
             f"BOTO {'update_many' if many else 'update'}: actions have shape {jnp.shape(batches['actions'])}; "
             f"expected {'(K, B, A)' if many else '(B, A)'}."
