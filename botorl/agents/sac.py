@@ -15,6 +15,7 @@ is ``temperature``/``temp`` here; BOTO's ``alpha`` is something else.
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -28,7 +29,7 @@ from botorl.agents.common import (
     ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, check_fields, chunk_size, is_rate, module_def,
     summed_value_and_grad, train_state,
 )
-from botorl.agents.temperature import INIT_TEMP_RULES, log_temp_params, stationary_temperature
+from botorl.agents.temperature import INIT_TEMP_RULES, stationary_temperature
 from botorl.errors import ConfigError
 from botorl.networks import Temperature, sample_tanh_gaussian, tanh_gaussian_from_noise
 
@@ -141,7 +142,7 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
             tau0, info = stationary_temperature(agent, observations, init_temp=config.init_temp)
             if info["rule"] == "fallback":
                 warnings.warn(f"SACAgent.from_pretrained: {info['reason']}.", stacklevel=2)
-            temp = fresh.temp.replace(params=log_temp_params(tau0))
+            temp = fresh.temp.replace(params={"log_temp": jnp.asarray(math.log(tau0), jnp.float32)})
         else:
             temp = fresh.temp
         rng = jax.random.fold_in(agent.rng if seed is None else jax.random.PRNGKey(seed), 0x5AC)
