@@ -240,10 +240,9 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
         return self.replace(temp=self.temp.apply_gradients(grads=grads)), info
 
     def train_step(self, batch):
-        cfg = self.config
         rng, k_critic, k_actor = jax.random.split(self.rng, 3)
         agent = self.replace(rng=rng)
-        u = cfg.utd_ratio
+        u = self.config.utd_ratio
         bsz = batch["rewards"].shape[0]
         if bsz % u != 0:
             raise ConfigError(
