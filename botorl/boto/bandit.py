@@ -73,14 +73,13 @@ SMALL_SAC = dict(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), actor_lay
 
 def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):
     """``state, loss = step(state, k)`` on chunks of at most ``chunk`` of ``steps`` steps, with a progress bar."""
-    bar = tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True, disable=not progress)
-    for done in range(0, steps, chunk):
-        k = min(chunk, steps - done)
-        state, loss = step(state, k)
-        bar.update(k)
-        if progress and loss is not None:
-            bar.set_postfix(loss=f"{float(loss):.3g}")
-    bar.close()
+    with tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True, disable=not progress) as bar:
+        for done in range(0, steps, chunk):
+            k = min(chunk, steps - done)
+            state, loss = step(state, k)
+            bar.update(k)
+            if progress and loss is not None:
+                bar.set_postfix(loss=f"{float(loss):.3g}")
     return state
 
 
@@ -244,8 +243,7 @@ def run_fig2(cfg: BanditConfig) -> dict:
     train_s = time.perf_counter() - t0
     side = 101
     xs = np.linspace(-1.0, 1.0, side)
-    gx, gy = np.meshgrid(xs, xs)
-    grid = np.stack([gx.ravel(), gy.ravel()], axis=-1).astype(np.float32)
+    grid = np.stack(np.meshgrid(xs, xs), axis=-1).reshape(-1, 2).astype(np.float32)
     uniform = np.random.default_rng(cfg.seed + 2).uniform(-1, 1, (4000, 2)).astype(np.float32)
     data_acts = ds.actions.astype(np.float32)
     q_grid_b, q_uni_b, q_data_b = q_boto(grid), q_boto(uniform), q_boto(data_acts)
