@@ -9,11 +9,6 @@ import jax
 import jax.numpy as jnp
 
 
-def default_init(scale: float = 1.0):
-    # Xavier-uniform as in jaxrl/rlpd; keeps LayerNorm-free nets well scaled too.
-    return nn.initializers.variance_scaling(scale, "fan_avg", "uniform")
-
-
 # ------------------------------------------------------------------------------ LayerNorm
 # XLA on the CPU runs LayerNorm's row reductions far slower than PyTorch's fused kernel; as
 # matmuls with a 1/n column and a hand-written backward they run ~3x faster
@@ -78,7 +73,7 @@ class MLP(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array, training: bool = False) -> jax.Array:
         for i, size in enumerate(self.hidden_dims):
-            x = nn.Dense(size, kernel_init=default_init())(x)
+            x = nn.Dense(size, kernel_init=nn.initializers.xavier_uniform())(x)  # as jaxrl/rlpd
             if i + 1 < len(self.hidden_dims) or self.activate_final:
                 if self.dropout_rate is not None and self.dropout_rate > 0:
                     x = nn.Dropout(rate=self.dropout_rate)(x, deterministic=not training)
@@ -98,7 +93,7 @@ class QNetwork(nn.Module):
     def __call__(self, *inputs: jax.Array) -> jax.Array:
         x = inputs[0] if len(inputs) == 1 else jnp.concatenate(inputs, axis=-1)
         x = MLP(self.hidden_dims, activate_final=True, use_layer_norm=self.use_layer_norm)(x)
-        return nn.Dense(1, kernel_init=default_init())(x)[..., 0]
+        return nn.Dense(1, kernel_init=nn.initializers.xavier_uniform())(x)[..., 0]
 
 
 ValueNetwork = QNetwork
