@@ -257,8 +257,8 @@ class ActorCriticAgent:
     def critic_stepped(self, grads, tau: float):
         """The agent after one gradient step of its critic and the Polyak update of its targets."""
         critic = self.critic.apply_gradients(grads=grads)
-        return self.replace(critic=critic, target_critic_params=jax.tree_util.tree_map(
-            lambda p, t: tau * p + (1.0 - tau) * t, critic.params, self.target_critic_params))
+        return self.replace(critic=critic, target_critic_params=optax.incremental_update(
+            critic.params, self.target_critic_params, tau))
 
     def target_min(self, key, observations, actions, num: int, replace: bool) -> jax.Array:
         """min over ``num`` target critics of Q'(s, a): (B,); the members drawn independently
