@@ -71,20 +71,18 @@ def summed_value_and_grad(loss_fn, params, rows, per_chunk: int):
     """``value_and_grad(loss_fn, has_aux=True)(params, rows)`` for a ``loss_fn`` whose value
     and aux are sums over the leading axis of every leaf of ``rows``, computed over chunks of
     ``per_chunk`` rows under a ``lax.scan`` and summed. Same result up to float rounding."""
+    value_and_grad = jax.value_and_grad(loss_fn, has_aux=True)
     num = jax.tree_util.tree_leaves(rows)[0].shape[0]
     if per_chunk >= num:
-        return jax.value_and_grad(loss_fn, has_aux=True)(params, rows)
+        return value_and_grad(params, rows)
     chunks = jax.tree_util.tree_map(lambda x: x.reshape((num // per_chunk, per_chunk) + x.shape[1:]), rows)
 
     def body(acc, chunk):
-        out = jax.value_and_grad(loss_fn, has_aux=True)(params, chunk)
-        return jax.tree_util.tree_map(jnp.add, acc, out), None
+        return jax.tree_util.tree_map(jnp.add, acc, value_and_grad(params, chunk)), None
 
-    first = jax.tree_util.tree_map(lambda x: x[0], chunks)
-    shapes = jax.eval_shape(lambda: (loss_fn(params, first), params))
+    shapes = jax.eval_shape(value_and_grad, params, jax.tree_util.tree_map(lambda x: x[0], chunks))
     zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-    out, _ = jax.lax.scan(body, zeros, chunks)
-    return out
+    return jax.lax.scan(body, zeros, chunks)[0]
 
 
 # ------------------------------------------------------------------ the traced bodies
