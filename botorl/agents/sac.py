@@ -125,9 +125,16 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
         else at ``config.init_temp``, with a fresh Adam state. The networks in ``config`` must be
         the pre-trained ones: N critics are never copies of fewer (copies stay identical forever).
         """
-        obs_dim, action_dim = _dims_of(agent)
-        fresh = cls.create(config, obs_dim, action_dim, seed=0)
-        m = jax.tree_util.tree_leaves(agent.critic.params)[0].shape[0]
+        try:
+            first = agent.critic.params["members"]["MLP_0"]["Dense_0"]["kernel"]  # (N, O + A, H)
+            action_dim = int(agent.actor.params["mean"]["kernel"].shape[-1])
+        except (AttributeError, KeyError, TypeError) as err:
+            raise ConfigError(
+                f"from_pretrained: {type(agent).__name__} has no botorl actor/critic ensemble ({err}); "
+                f"pass a SACAgent, CQLAgent or IQLAgent."
+            ) from None
+        fresh = cls.create(config, int(first.shape[1]) - action_dim, action_dim, seed=0)
+        m = first.shape[0]
         if m != config.num_critics:
             raise ConfigError(
                 f"from_pretrained: the pre-trained agent has {m} critics and SACConfig.num_critics is "
@@ -256,19 +263,6 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
         agent, a_info = agent.actor_step(batch, k_actor)
         agent, t_info = agent.temp_step(a_info["entropy"])
         return agent, {**info, **a_info, **t_info}
-
-
-def _dims_of(agent) -> tuple[int, int]:
-    """(obs_dim, action_dim) from the critic ensemble's first kernel and the actor's head."""
-    try:
-        first = agent.critic.params["members"]["MLP_0"]["Dense_0"]["kernel"]  # (N, O + A, H)
-        action_dim = int(agent.actor.params["mean"]["kernel"].shape[-1])
-    except (AttributeError, KeyError, TypeError) as err:
-        raise ConfigError(
-            f"from_pretrained: {type(agent).__name__} has no botorl actor/critic ensemble ({err}); "
-            f"pass a SACAgent, CQLAgent or IQLAgent."
-        ) from None
-    return int(first.shape[1]) - action_dim, action_dim
 
 
 def _carry(fresh: TrainState, pre: TrainState) -> TrainState:
