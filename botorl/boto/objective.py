@@ -38,8 +38,7 @@ class ObjectiveSettings(BOTOConfig):
         acfg = agent.config
         n = int(jax.tree_util.tree_leaves(agent.critic.params)[0].shape[0])
         k = config.num_min_critics or getattr(acfg, "num_min_critics", n)
-        replace = config.subsample_replace
-        replace = bool(getattr(acfg, "subsample_replace", False)) if replace is None else replace
+        replace = getattr(acfg, "subsample_replace", False) if config.subsample_replace is None else config.subsample_replace
         if not replace and k > n:
             raise ConfigError(
                 f"BOTOConfig.num_min_critics = {k} exceeds the agent's {n} critics; without "
