@@ -103,8 +103,7 @@ class IQLAgent(ActorCriticAgent, struct.PyTreeNode):
         obs = batch["observations"]
         v = self.value.apply_fn({"params": self.value.params}, obs)
         weights = jax.lax.stop_gradient(jnp.minimum(jnp.exp((q - v) * cfg.awr_beta), cfg.exp_adv_max))
-        use_dropout = cfg.actor_dropout is not None and cfg.actor_dropout > 0
-        mean, log_std = self.policy(obs, actor_params, dropout_key=key if use_dropout else None)
+        mean, log_std = self.policy(obs, actor_params, dropout_key=key if cfg.actor_dropout else None)
         log_prob = tanh_gaussian_log_prob(mean, log_std, batch["actions"])
         loss = -jnp.mean(weights * log_prob)
         return loss, {"actor_loss": loss, "adv_weight": weights.mean(), "log_prob_data": log_prob.mean()}
