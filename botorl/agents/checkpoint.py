@@ -41,7 +41,9 @@ def save(path: str | os.PathLike, agent) -> Path:
     return atomic_write_bytes(path, serialization.msgpack_serialize(payload))  # makes the parent folders too
 
 
-def _read(path: Path) -> dict:
+def load(path: str | os.PathLike, like):
+    """Restore the agent saved at ``path`` into the structure of the template ``like``."""
+    path = Path(path)
     if not path.is_file():
         raise DataFormatError(f"checkpoint {path} does not exist; give the path of a file written by botorl.agents.checkpoint.save.")
     try:
@@ -67,13 +69,6 @@ def _read(path: Path) -> dict:
             raise DataFormatError(f"checkpoint {path}: state cannot be decoded ({type(err).__name__}).") from None
     elif "state" not in payload:
         raise DataFormatError(f"{path} is not a botorl agent checkpoint (no state).")
-    return payload
-
-
-def load(path: str | os.PathLike, like):
-    """Restore the agent saved at ``path`` into the structure of the template ``like``."""
-    path = Path(path)
-    payload = _read(path)
     if payload["agent_class"] != type(like).__name__:
         raise DataFormatError(
             f"checkpoint {path} holds a {payload['agent_class']}, but the template is a {type(like).__name__}; "

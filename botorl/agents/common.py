@@ -1,4 +1,4 @@
-"""Pieces every agent shares: jitted entry points, the actor-critic base, Polyak averaging, checks.
+"""Pieces every agent shares: jitted entry points, the actor-critic base, chunked gradients, checks.
 
 Agents are ``flax.struct.PyTreeNode``s whose config is a static field, so one module-level
 ``jax.jit`` serves every agent class (class and config are in the jit cache key): an update
@@ -18,18 +18,14 @@ from flax.training.train_state import TrainState
 
 from botorl.batch import BATCH_KEYS, TRANSITION_KEYS, Batch
 from botorl.errors import ConfigError
-from botorl.networks import CriticEnsemble, TanhGaussianActor, sample_tanh_gaussian, subsample_ensemble
+from botorl.networks import CriticEnsemble, TanhGaussianActor, sample_tanh_gaussian
 
 __all__ = [
-    "TrainState", "polyak", "acting_view", "update_fn", "update_many_fn", "sample_fn", "eval_fn", "q_mean_fn",
+    "TrainState", "acting_view", "update_fn", "update_many_fn", "sample_fn", "eval_fn", "q_mean_fn",
     "update_many_on_device_fn", "jit_update", "jit_update_many", "jit_sample", "jit_eval", "jit_q_mean", "adam",
     "train_state", "checked_batch", "chunk_size", "summed_value_and_grad", "update_many_on_device", "sample_batches",
-    "actor_def", "critic_def", "ActorCriticAgent", "check_fields",
+    "module_def", "ActorCriticAgent", "check_fields",
 ]
-
-
-def polyak(params, target_params, tau: float):
-    return jax.tree_util.tree_map(lambda p, t: tau * p + (1.0 - tau) * t, params, target_params)
 
 
 @functools.lru_cache(maxsize=None)
@@ -75,20 +71,18 @@ def summed_value_and_grad(loss_fn, params, rows, per_chunk: int):
     """``value_and_grad(loss_fn, has_aux=True)(params, rows)`` for a ``loss_fn`` whose value
     and aux are sums over the leading axis of every leaf of ``rows``, computed over chunks of
     ``per_chunk`` rows under a ``lax.scan`` and summed. Same result up to float rounding."""
+    value_and_grad = jax.value_and_grad(loss_fn, has_aux=True)
     num = jax.tree_util.tree_leaves(rows)[0].shape[0]
     if per_chunk >= num:
-        return jax.value_and_grad(loss_fn, has_aux=True)(params, rows)
+        return value_and_grad(params, rows)
     chunks = jax.tree_util.tree_map(lambda x: x.reshape((num // per_chunk, per_chunk) + x.shape[1:]), rows)
 
     def body(acc, chunk):
-        out = jax.value_and_grad(loss_fn, has_aux=True)(params, chunk)
-        return jax.tree_util.tree_map(jnp.add, acc, out), None
+        return jax.tree_util.tree_map(jnp.add, acc, value_and_grad(params, chunk)), None
 
-    first = jax.tree_util.tree_map(lambda x: x[0], chunks)
-    shapes = jax.eval_shape(lambda: (loss_fn(params, first), params))
+    shapes = jax.eval_shape(value_and_grad, params, jax.tree_util.tree_map(lambda x: x[0], chunks))
     zeros = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-    out, _ = jax.lax.scan(body, zeros, chunks)
-    return out
+    return jax.lax.scan(body, zeros, chunks)[0]
 
 
 # ------------------------------------------------------------------ the traced bodies
@@ -189,7 +183,6 @@ def is_rate(v) -> bool:
 
 
 RATE_WHY = "a learning rate must be a finite number >= 0, e.g. 3e-4"
-# The checks SAC, CQL and IQL share.
 ACTOR_CRITIC_CHECKS = (
     ("num_critics", lambda c: c.num_critics >= 1, "need at least one critic"),
     *((f, lambda c, f=f: is_rate(getattr(c, f)), RATE_WHY) for f in ("actor_lr", "critic_lr")),
@@ -199,18 +192,10 @@ ACTOR_CRITIC_CHECKS = (
 
 
 @functools.lru_cache(maxsize=None)
-def actor_def(config, action_dim: int) -> TanhGaussianActor:
-    """Actor module for a config (cached: equal configs give the same object -> one jit)."""
-    return TanhGaussianActor(
-        hidden_dims=config.actor_hidden_dims, action_dim=action_dim, use_layer_norm=config.actor_layer_norm,
-        dropout_rate=getattr(config, "actor_dropout", None), state_dependent_std=config.state_dependent_std,
-        log_std_min=config.log_std_min, log_std_max=config.log_std_max,
-    )
-
-
-@functools.lru_cache(maxsize=None)
-def critic_def(hidden_dims: tuple[int, ...], num: int, layer_norm: bool) -> CriticEnsemble:
-    return CriticEnsemble(hidden_dims=hidden_dims, num=num, use_layer_norm=layer_norm)
+def module_def(cls, **fields):
+    """``cls(**fields)``, cached: equal settings give the same module object, so agents built from
+    equal configs share their jit cache entries."""
+    return cls(**fields)
 
 
 class ActorCriticAgent:
@@ -241,8 +226,14 @@ class ActorCriticAgent:
         rng, k_actor, k_critic, k_third = jax.random.split(jax.random.PRNGKey(seed), 4)
         obs = jnp.zeros((1, obs_dim), jnp.float32)
         act = jnp.zeros((1, action_dim), jnp.float32)
-        actor = train_state(actor_def(config, action_dim), k_actor, config.actor_lr, obs)
-        c_def = critic_def(config.critic_hidden_dims, config.num_critics, config.critic_layer_norm)
+        a_def = module_def(
+            TanhGaussianActor, hidden_dims=config.actor_hidden_dims, action_dim=action_dim,
+            use_layer_norm=config.actor_layer_norm, dropout_rate=getattr(config, "actor_dropout", None),
+            state_dependent_std=config.state_dependent_std, log_std_min=config.log_std_min, log_std_max=config.log_std_max,
+        )
+        actor = train_state(a_def, k_actor, config.actor_lr, obs)
+        c_def = module_def(CriticEnsemble, hidden_dims=config.critic_hidden_dims, num=config.num_critics,
+                           use_layer_norm=config.critic_layer_norm)
         critic = train_state(c_def, k_critic, config.critic_lr, obs, act)
         return rng, actor, critic, k_third, obs
 
@@ -264,12 +255,18 @@ class ActorCriticAgent:
     def critic_stepped(self, grads, tau: float):
         """The agent after one gradient step of its critic and the Polyak update of its targets."""
         critic = self.critic.apply_gradients(grads=grads)
-        return self.replace(critic=critic, target_critic_params=polyak(critic.params, self.target_critic_params, tau))
+        return self.replace(critic=critic, target_critic_params=optax.incremental_update(
+            critic.params, self.target_critic_params, tau))
 
     def target_min(self, key, observations, actions, num: int, replace: bool) -> jax.Array:
-        """min over a random subset of ``num`` target critics of Q'(s, a), drawn with or without
-        replacement: (B,)."""
+        """min over ``num`` target critics of Q'(s, a): (B,); the members drawn independently
+        (``replace``, WSRL) or a random subset of distinct ones (RLPD)."""
         cfg = self.config
-        sub = subsample_ensemble(key, self.target_critic_params, num, cfg.num_critics, replace)
-        sub_def = critic_def(cfg.critic_hidden_dims, num, cfg.critic_layer_norm)
+        sub = self.target_critic_params
+        if replace or num != cfg.num_critics:
+            idx = (jax.random.randint(key, (num,), 0, cfg.num_critics) if replace
+                   else jax.random.permutation(key, cfg.num_critics)[:num])
+            sub = jax.tree_util.tree_map(lambda p: p[idx], sub)
+        sub_def = module_def(CriticEnsemble, hidden_dims=cfg.critic_hidden_dims, num=num,
+                             use_layer_norm=cfg.critic_layer_norm)
         return sub_def.apply({"params": sub}, observations, actions).min(axis=0)

@@ -35,10 +35,10 @@ import jax
 import jax.numpy as jnp
 
 from botorl.agents.common import (
-    RATE_WHY, TrainState, check_fields, chunk_size, critic_def, is_rate, summed_value_and_grad, train_state,
+    RATE_WHY, TrainState, check_fields, chunk_size, is_rate, module_def, summed_value_and_grad, train_state,
 )
-from botorl.agents.sac import SAC_CHECKS, SACAgent, SACConfig, temp_def
-from botorl.networks import sample_tanh_gaussian
+from botorl.agents.sac import SAC_CHECKS, SACAgent, SACConfig
+from botorl.networks import CriticEnsemble, Temperature, sample_tanh_gaussian
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,7 @@ class CQLAgent(SACAgent):
     @classmethod
     def create(cls, config: CQLConfig | None = None, obs_dim: int = 0, action_dim: int = 0, seed: int = 0):
         agent = super().create(CQLConfig() if config is None else config, obs_dim, action_dim, seed)
-        l_def = temp_def(math.exp(agent.config.cql_lagrange_init_log))
+        l_def = module_def(Temperature, init_value=math.exp(agent.config.cql_lagrange_init_log))
         lagrange = train_state(l_def, jax.random.PRNGKey(0), agent.config.cql_lagrange_lr)
         return agent.replace(lagrange=lagrange)
 
@@ -128,7 +128,8 @@ class CQLAgent(SACAgent):
             # every member on the data actions (Bellman error), the picked ones on all 3n + 1
             q_data_all = self.critic_values(params, obs, acts[:, 0])
             sub = jax.tree_util.tree_map(lambda p: p[members], params)
-            sub_def = critic_def(cfg.critic_hidden_dims, members.shape[0], cfg.critic_layer_norm)
+            sub_def = module_def(CriticEnsemble, hidden_dims=cfg.critic_hidden_dims, num=members.shape[0],
+                                 use_layer_norm=cfg.critic_layer_norm)
             q_all = sub_def.apply({"params": sub}, jnp.repeat(obs, m, axis=0), acts.reshape(bsz * m, adim))
         q_all = q_all.reshape(q_all.shape[0], bsz, m)  # (N or K, b, m)
         q_data = q_all[:, :, 0]

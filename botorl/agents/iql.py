@@ -17,7 +17,6 @@ range [-5, 2] but squash, and use a constant actor learning rate (IQL's decays w
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,7 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from botorl.agents.common import (
-    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, check_fields, is_rate, train_state,
+    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, check_fields, is_rate, module_def, train_state,
 )
 from botorl.networks import ValueNetwork, tanh_gaussian_log_prob
 
@@ -71,11 +70,6 @@ IQL_CHECKS = ACTOR_CRITIC_CHECKS + (
 )
 
 
-@functools.lru_cache(maxsize=None)
-def value_def(hidden_dims: tuple[int, ...], layer_norm: bool) -> ValueNetwork:
-    return ValueNetwork(hidden_dims=hidden_dims, use_layer_norm=layer_norm)
-
-
 class IQLAgent(ActorCriticAgent, struct.PyTreeNode):
     actor: TrainState
     critic: TrainState  # Q ensemble, leading axis num_critics
@@ -88,7 +82,7 @@ class IQLAgent(ActorCriticAgent, struct.PyTreeNode):
     def create(cls, config: IQLConfig | None = None, obs_dim: int = 0, action_dim: int = 0, seed: int = 0):
         config = IQLConfig() if config is None else config
         rng, actor, critic, k_value, obs = cls._init(config, obs_dim, action_dim, seed)
-        v_def = value_def(config.value_hidden_dims, config.critic_layer_norm)
+        v_def = module_def(ValueNetwork, hidden_dims=config.value_hidden_dims, use_layer_norm=config.critic_layer_norm)
         value = train_state(v_def, k_value, config.value_lr, obs)
         return cls(actor=actor, critic=critic, target_critic_params=critic.params, value=value, rng=rng, config=config)
 
@@ -109,8 +103,7 @@ class IQLAgent(ActorCriticAgent, struct.PyTreeNode):
         obs = batch["observations"]
         v = self.value.apply_fn({"params": self.value.params}, obs)
         weights = jax.lax.stop_gradient(jnp.minimum(jnp.exp((q - v) * cfg.awr_beta), cfg.exp_adv_max))
-        use_dropout = cfg.actor_dropout is not None and cfg.actor_dropout > 0
-        mean, log_std = self.policy(obs, actor_params, dropout_key=key if use_dropout else None)
+        mean, log_std = self.policy(obs, actor_params, dropout_key=key if cfg.actor_dropout else None)
         log_prob = tanh_gaussian_log_prob(mean, log_std, batch["actions"])
         loss = -jnp.mean(weights * log_prob)
         return loss, {"actor_loss": loss, "adv_weight": weights.mean(), "log_prob_data": log_prob.mean()}

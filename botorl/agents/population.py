@@ -56,8 +56,7 @@ def unstack(agents) -> list:
 def member_metrics(metrics) -> list[dict[str, float]]:
     """Stacked metrics {name: (N,)} -> one dict of floats per member (one host transfer)."""
     host = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
-    n = len(next(iter(host.values())))
-    return [{k: float(v[i]) for k, v in host.items() if v[i].size == 1} for i in range(n)]
+    return [{k: float(v[i]) for k, v in host.items() if v[i].size == 1} for i in range(population_size(host))]
 
 
 # ============================================================================ mapping over the members

@@ -15,7 +15,7 @@ is ``temperature``/``temp`` here; BOTO's ``alpha`` is something else.
 from __future__ import annotations
 
 import dataclasses
-import functools
+import math
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -26,10 +26,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from botorl.agents.common import (
-    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, check_fields, chunk_size, is_rate,
+    ACTOR_CRITIC_CHECKS, RATE_WHY, ActorCriticAgent, TrainState, check_fields, chunk_size, is_rate, module_def,
     summed_value_and_grad, train_state,
 )
-from botorl.agents.temperature import INIT_TEMP_RULES, log_temp_params, stationary_temperature
+from botorl.agents.temperature import INIT_TEMP_RULES, stationary_temperature
 from botorl.errors import ConfigError
 from botorl.networks import Temperature, sample_tanh_gaussian, tanh_gaussian_from_noise
 
@@ -95,11 +95,6 @@ SAC_CHECKS = ACTOR_CRITIC_CHECKS + (
 )
 
 
-@functools.lru_cache(maxsize=None)
-def temp_def(init_temp: float) -> Temperature:
-    return Temperature(init_temp)
-
-
 class SACAgent(ActorCriticAgent, struct.PyTreeNode):
     """SAC-family agent. Fields shared with CQL/Cal-QL (CONTRACTS.md)."""
 
@@ -117,7 +112,7 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
         if config.target_entropy is None:
             config = dataclasses.replace(config, target_entropy=-float(action_dim))
         rng, actor, critic, k_temp, _ = cls._init(config, obs_dim, action_dim, seed)
-        temp = train_state(temp_def(config.init_temp), k_temp, config.temp_lr)
+        temp = train_state(module_def(Temperature, init_value=config.init_temp), k_temp, config.temp_lr)
         return cls(actor=actor, critic=critic, target_critic_params=critic.params, temp=temp, rng=rng, config=config)
 
     @classmethod
@@ -130,9 +125,16 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
         else at ``config.init_temp``, with a fresh Adam state. The networks in ``config`` must be
         the pre-trained ones: N critics are never copies of fewer (copies stay identical forever).
         """
-        obs_dim, action_dim = _dims_of(agent)
-        fresh = cls.create(config, obs_dim, action_dim, seed=0)
-        m = jax.tree_util.tree_leaves(agent.critic.params)[0].shape[0]
+        try:
+            first = agent.critic.params["members"]["MLP_0"]["Dense_0"]["kernel"]  # (N, O + A, H)
+            action_dim = int(agent.actor.params["mean"]["kernel"].shape[-1])
+        except (AttributeError, KeyError, TypeError) as err:
+            raise ConfigError(
+                f"from_pretrained: {type(agent).__name__} has no botorl actor/critic ensemble ({err}); "
+                f"pass a SACAgent, CQLAgent or IQLAgent."
+            ) from None
+        fresh = cls.create(config, int(first.shape[1]) - action_dim, action_dim, seed=0)
+        m = first.shape[0]
         if m != config.num_critics:
             raise ConfigError(
                 f"from_pretrained: the pre-trained agent has {m} critics and SACConfig.num_critics is "
@@ -147,7 +149,7 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
             tau0, info = stationary_temperature(agent, observations, init_temp=config.init_temp)
             if info["rule"] == "fallback":
                 warnings.warn(f"SACAgent.from_pretrained: {info['reason']}.", stacklevel=2)
-            temp = fresh.temp.replace(params=log_temp_params(tau0))
+            temp = fresh.temp.replace(params={"log_temp": jnp.asarray(math.log(tau0), jnp.float32)})
         else:
             temp = fresh.temp
         rng = jax.random.fold_in(agent.rng if seed is None else jax.random.PRNGKey(seed), 0x5AC)
@@ -245,10 +247,9 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
         return self.replace(temp=self.temp.apply_gradients(grads=grads)), info
 
     def train_step(self, batch):
-        cfg = self.config
         rng, k_critic, k_actor = jax.random.split(self.rng, 3)
         agent = self.replace(rng=rng)
-        u = cfg.utd_ratio
+        u = self.config.utd_ratio
         bsz = batch["rewards"].shape[0]
         if bsz % u != 0:
             raise ConfigError(
@@ -262,19 +263,6 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
         agent, a_info = agent.actor_step(batch, k_actor)
         agent, t_info = agent.temp_step(a_info["entropy"])
         return agent, {**info, **a_info, **t_info}
-
-
-def _dims_of(agent) -> tuple[int, int]:
-    """(obs_dim, action_dim) from the critic ensemble's first kernel and the actor's head."""
-    try:
-        first = agent.critic.params["members"]["MLP_0"]["Dense_0"]["kernel"]  # (N, O + A, H)
-        action_dim = int(agent.actor.params["mean"]["kernel"].shape[-1])
-    except (AttributeError, KeyError, TypeError) as err:
-        raise ConfigError(
-            f"from_pretrained: {type(agent).__name__} has no botorl actor/critic ensemble ({err}); "
-            f"pass a SACAgent, CQLAgent or IQLAgent."
-        ) from None
-    return int(first.shape[1]) - action_dim, action_dim
 
 
 def _carry(fresh: TrainState, pre: TrainState) -> TrainState:

@@ -12,15 +12,13 @@ first order).
 
 from __future__ import annotations
 
-import math
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from botorl.errors import ConfigError
 
-__all__ = ["stationary_temperature", "curvature_and_spread", "log_temp_params", "MIN_TEMP", "INIT_TEMP_RULES"]
+__all__ = ["stationary_temperature", "curvature_and_spread", "MIN_TEMP", "INIT_TEMP_RULES"]
 
 # SACConfig.init_temp_rule: how a warm start without a temperature (from IQL) sets it.
 INIT_TEMP_RULES = ("stationary", "fixed")
@@ -89,8 +87,3 @@ def stationary_temperature(agent, observations, init_temp: float = 1.0, min_temp
         "reason": f"mean of k * sigma_eff^2 over {int(ok.sum())} of {ok.size} (state, dim) pairs"
                   + (f", clipped to [{min_temp}, {init_temp}]" if tau0 != raw else ""),
     }
-
-
-def log_temp_params(tau: float) -> dict:
-    """The ``Temperature`` module's parameters for a temperature ``tau``."""
-    return {"log_temp": jnp.asarray(math.log(tau), jnp.float32)}

@@ -73,14 +73,13 @@ SMALL_SAC = dict(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), actor_lay
 
 def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):
     """``state, loss = step(state, k)`` on chunks of at most ``chunk`` of ``steps`` steps, with a progress bar."""
-    bar = tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True, disable=not progress)
-    for done in range(0, steps, chunk):
-        k = min(chunk, steps - done)
-        state, loss = step(state, k)
-        bar.update(k)
-        if progress and loss is not None:
-            bar.set_postfix(loss=f"{float(loss):.3g}")
-    bar.close()
+    with tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True, disable=not progress) as bar:
+        for done in range(0, steps, chunk):
+            k = min(chunk, steps - done)
+            state, loss = step(state, k)
+            bar.update(k)
+            if progress and loss is not None:
+                bar.set_postfix(loss=f"{float(loss):.3g}")
     return state
 
 
@@ -180,10 +179,8 @@ def plot_fig3(res: dict, path: Path) -> None:
         ax.plot(grid, r["q_exact"], color="k", lw=0.8, ls=":")
     ax.plot([], [], color="k", lw=0.8, ls=":", label="exact Q* (alpha-NAMDP)")
     ax.scatter(ua, ur, color="red", s=22, zorder=5, label="dataset (a, r)")
-    ax.set_xlim(-1, 1)
-    ax.set_xlabel("action a")
-    ax.set_ylabel("Q(a)")
-    ax.set_title(f"bandit-1d: BOTO critics, q = N(a, {res['noise']['sigma']}^2), {res['steps']} steps")
+    ax.set(xlim=(-1, 1), xlabel="action a", ylabel="Q(a)",
+           title=f"bandit-1d: BOTO critics, q = N(a, {res['noise']['sigma']}^2), {res['steps']} steps")
     ax.legend(ncol=4, fontsize=8, loc="lower center")
     ax.grid(alpha=0.3)
     lo = min(min(r["lower"]) for r in res["alphas"]) - 0.05
@@ -196,8 +193,7 @@ def plot_fig3(res: dict, path: Path) -> None:
         a.plot(grid, r["q_exact"], color="k", lw=1.0, ls=":", label="exact Q*")
         a.plot(grid, r["q_learned"], color=c, lw=2.0, label="learned")
         a.scatter(ua, ur, color="red", s=10, zorder=5)
-        a.set_ylim(lo, hi)
-        a.set_xlim(-1, 1)
+        a.set(ylim=(lo, hi), xlim=(-1, 1), xlabel="action a")
         a.set_xticks([-1, -0.5, 0, 0.5, 1], ["-1", "", "0", "", "1"])
         a.set_title(f"alpha = {r['alpha']:+.1f}  (max |err| {r['max_abs_error_vs_exact']:.3f})", fontsize=9)
         a.grid(alpha=0.3)
@@ -205,7 +201,6 @@ def plot_fig3(res: dict, path: Path) -> None:
             a.set_yticklabels([])
         else:
             a.legend(fontsize=7, loc="lower left")
-        a.set_xlabel("action a")
     atomic_save_figure(fig, path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
@@ -248,8 +243,7 @@ def run_fig2(cfg: BanditConfig) -> dict:
     train_s = time.perf_counter() - t0
     side = 101
     xs = np.linspace(-1.0, 1.0, side)
-    gx, gy = np.meshgrid(xs, xs)
-    grid = np.stack([gx.ravel(), gy.ravel()], axis=-1).astype(np.float32)
+    grid = np.stack(np.meshgrid(xs, xs), axis=-1).reshape(-1, 2).astype(np.float32)
     uniform = np.random.default_rng(cfg.seed + 2).uniform(-1, 1, (4000, 2)).astype(np.float32)
     data_acts = ds.actions.astype(np.float32)
     q_grid_b, q_uni_b, q_data_b = q_boto(grid), q_boto(uniform), q_boto(data_acts)
@@ -301,8 +295,7 @@ def plot_fig2(res: dict, path: Path) -> None:
         ax.scatter(data[show, 0], data[show, 1], c=rew[show], cmap="viridis", vmin=vlo, vmax=vhi, s=9,
                    edgecolors="k", linewidths=0.4)
         ax.set_title(name, fontsize=10)
-        ax.set_xticks([-1, 0, 1])
-        ax.set_yticks([-1, 0, 1] if j == 0 else [])
+        ax.set(xticks=[-1, 0, 1], yticks=[-1, 0, 1] if j == 0 else [])
         k = axes[1, j]
         lo, hi = min(qu.min(), qd.min()), max(qu.max(), qd.max())
         span = max(hi - lo, 1e-3)
@@ -311,8 +304,7 @@ def plot_fig2(res: dict, path: Path) -> None:
             if np.std(vals) > 1e-6:
                 k.fill_between(xs, gaussian_kde(vals)(xs), color=col, alpha=0.35, label=lab)
         k.axvspan(r_lo, r_hi, color="grey", alpha=0.12, label="reward range")
-        k.set_xlabel("Q value")
-        k.set_yticks([])
+        k.set(xlabel="Q value", yticks=[])
         if j == 0:
             k.legend(fontsize=7)
     fig.colorbar(im, ax=axes[0, :].tolist(), shrink=0.85, label="Q(a) (dots: reward r)", extend="both")

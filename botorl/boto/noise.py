@@ -98,13 +98,6 @@ def gaussian_noise(key: jax.Array, actions: jax.Array, sigma: float, *,
     return a_bar, {"uniform": jnp.zeros(batch_shape, bool), "t": jnp.full(batch_shape, sigma, actions.dtype)}
 
 
-def no_noise(key: jax.Array, actions: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """a_bar = a (the re-fit control: no action is perturbed, so nothing is bounded)."""
-    del key
-    batch_shape = actions.shape[:-1]
-    return actions, {"uniform": jnp.zeros(batch_shape, bool), "t": jnp.zeros(batch_shape, actions.dtype)}
-
-
 NOISE_KINDS = ("hybrid", "gaussian", "none")
 
 
@@ -120,6 +113,6 @@ def make_noise_fn(kind: str, *, log_sigma: float = -20.0, sigma: float = 0.25, w
         if not sigma > 0.0:
             raise ConfigError(f"boto gaussian noise sigma={sigma!r} must be positive (e.g. 0.25).")
         return lambda key, a: gaussian_noise(key, a, sigma, clip=clip)
-    if kind == "none":
-        return no_noise
+    if kind == "none":  # a_bar = a, the re-fit control: no action is perturbed, so nothing is bounded
+        return lambda key, a: (a, {"uniform": jnp.zeros(a.shape[:-1], bool), "t": jnp.zeros(a.shape[:-1], a.dtype)})
     raise ConfigError(f"boto noise kind={kind!r} is not known; use one of {', '.join(NOISE_KINDS)}.")

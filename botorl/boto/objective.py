@@ -14,9 +14,6 @@ over alpha trains several critics in one program.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import jax
 import jax.numpy as jnp
 
@@ -29,33 +26,19 @@ from botorl.errors import ConfigError
 from botorl.networks import sample_tanh_gaussian
 
 
-@dataclass(frozen=True)
-class ObjectiveSettings:
-    """Static (hashable) settings of the BOTO step, resolved against one agent."""
-
-    noise: str
-    log_sigma: float
-    sigma: float
-    weight_fn: Any
-    clip: bool
-    num_min_critics: int
-    subsample_replace: bool
-    backup_entropy: bool
-    discount: float
-    tau: float
-    train_actor: bool
+class ObjectiveSettings(BOTOConfig):
+    """A ``BOTOConfig`` resolved against one agent: the static (hashable) settings of the BOTO step."""
 
     @classmethod
     def resolve(cls, config: BOTOConfig, agent) -> "ObjectiveSettings":
         config.validate()
-        acfg = agent.config
         if not isinstance(agent, ActorCriticAgent):
             raise ConfigError(f"BOTO needs an agent with a critic ensemble and a policy; {type(agent).__name__} is "
                               f"none. Pass a SACAgent, CQLAgent (Cal-QL) or IQLAgent.")
+        acfg = agent.config
         n = int(jax.tree_util.tree_leaves(agent.critic.params)[0].shape[0])
         k = config.num_min_critics or getattr(acfg, "num_min_critics", n)
-        replace = config.subsample_replace
-        replace = bool(getattr(acfg, "subsample_replace", False)) if replace is None else replace
+        replace = getattr(acfg, "subsample_replace", False) if config.subsample_replace is None else config.subsample_replace
         if not replace and k > n:
             raise ConfigError(
                 f"BOTOConfig.num_min_critics = {k} exceeds the agent's {n} critics; without "
@@ -67,19 +50,18 @@ class ObjectiveSettings:
                 f"temperature; {type(agent).__name__} has none. Convert it first with "
                 f"SACAgent.from_pretrained(agent), or keep the actor frozen (train_actor=False)."
             )
-        return cls(
-            noise=config.noise,
-            log_sigma=float(config.log_sigma),
-            sigma=float(config.sigma),
-            weight_fn=config.weight_fn,
-            clip=bool(config.clip),
-            num_min_critics=int(k),
-            subsample_replace=bool(replace),
-            backup_entropy=bool(config.backup_entropy and hasattr(agent, "temp")),
-            discount=float(acfg.discount if config.discount is None else config.discount),
-            tau=float(acfg.tau if config.tau is None else config.tau),
-            train_actor=bool(config.train_actor),
-        )
+        return cls(**{
+            **vars(config),
+            "log_sigma": float(config.log_sigma),
+            "sigma": float(config.sigma),
+            "clip": bool(config.clip),
+            "num_min_critics": int(k),
+            "subsample_replace": bool(replace),
+            "backup_entropy": bool(config.backup_entropy and hasattr(agent, "temp")),
+            "discount": float(acfg.discount if config.discount is None else config.discount),
+            "tau": float(acfg.tau if config.tau is None else config.tau),
+            "train_actor": bool(config.train_actor),
+        })
 
     def noise_fn(self):
         return make_noise_fn(self.noise, log_sigma=self.log_sigma, sigma=self.sigma, weight_fn=self.weight_fn,
@@ -153,8 +135,7 @@ _jit_population_update_many = jax.jit(over_members(boto_update_many_fn, (0, 0, 0
 
 def _check_batches(batches, many: bool) -> None:
     checked_batch(batches)
-    want = 3 if many else 2
-    if jnp.ndim(batches["actions"]) != want:
+    if jnp.ndim(batches["actions"]) != (3 if many else 2):
         raise ConfigError(
             f"BOTO {'update_many' if many else 'update'}: actions have shape {jnp.shape(batches['actions'])}; "
             f"expected {'(K, B, A)' if many else '(B, A)'}."

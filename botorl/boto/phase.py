@@ -84,9 +84,8 @@ def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alpha
     end = config.boto_steps if end_step is None else end_step
     step = start_step
     label = f"BOTO alpha={alphas[0]:+.2f}" if len(alphas) == 1 else f"BOTO x {len(alphas)} members"
-    bar = tqdm(total=end, initial=start_step, desc=label, unit="step", dynamic_ncols=True, disable=not progress,
-               mininterval=1.0, smoothing=0.05)
-    try:
+    with tqdm(total=end, initial=start_step, desc=label, unit="step", dynamic_ncols=True, disable=not progress,
+              mininterval=1.0, smoothing=0.05) as bar:
         while step < end:
             k = min(config.steps_per_call, end - step)
             new, metrics = update(agents, step, k)
@@ -97,8 +96,6 @@ def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alpha
             bar.update(k)
             bar.set_postfix(loss=f"{ms[0]['critic_loss']:.3g}", q_data=f"{ms[0]['q_data']:.3g}",
                             q_unif=f"{ms[0]['q_uniform']:.3g}")
-    finally:
-        bar.close()
     return agents
 
 

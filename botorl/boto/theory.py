@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+from scipy.special import softmax
 
 
 def gaussian_log_density(sigma: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
@@ -52,10 +53,7 @@ def namdp_exact(query: np.ndarray, actions: np.ndarray, rewards: np.ndarray, alp
     rbar, rmean = [], []
     for start in range(0, len(query), chunk):
         qb = query[start : start + chunk]
-        logw = log_density(qb, actions)  # (m, N) = log p_D(a_i) q(a_bar|a_i) + const
-        logw = logw - logw.max(-1, keepdims=True)
-        post = np.exp(logw)
-        post /= post.sum(-1, keepdims=True)
+        post = softmax(log_density(qb, actions), axis=-1)  # (m, N): log p_D(a_i) q(a_bar|a_i) + const, normalised
         d2 = ((qb[:, None, :] - actions[None, :, :]) ** 2).sum(-1)
         rbar.append((post * d2).sum(-1))
         rmean.append(post @ rewards)

@@ -4,12 +4,12 @@
 
 from __future__ import annotations
 
-from botorl.networks.common import CriticEnsemble, Temperature, ValueNetwork, subsample_ensemble
+from botorl.networks.common import CriticEnsemble, Temperature, ValueNetwork
 from botorl.networks.actor import (
     TanhGaussianActor, sample_tanh_gaussian, tanh_gaussian_from_noise, tanh_gaussian_log_prob,
 )
 
 __all__ = [
     "CriticEnsemble", "ValueNetwork", "Temperature", "TanhGaussianActor", "sample_tanh_gaussian",
-    "tanh_gaussian_from_noise", "tanh_gaussian_log_prob", "subsample_ensemble",
+    "tanh_gaussian_from_noise", "tanh_gaussian_log_prob",
 ]

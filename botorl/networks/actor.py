@@ -14,7 +14,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from botorl.networks.common import MLP, default_init
+from botorl.networks.common import MLP
 
 _LOG_2PI = math.log(2.0 * math.pi)
 # Dataset actions are clipped to +-(1 - 1e-5) on construction (CONTRACTS.md); this keeps
@@ -38,9 +38,9 @@ class TanhGaussianActor(nn.Module):
     def __call__(self, observations: jax.Array, training: bool = False):
         x = MLP(self.hidden_dims, activate_final=True, use_layer_norm=self.use_layer_norm,
                 dropout_rate=self.dropout_rate)(observations, training=training)
-        mean = nn.Dense(self.action_dim, kernel_init=default_init(), name="mean")(x)
+        mean = nn.Dense(self.action_dim, kernel_init=nn.initializers.xavier_uniform(), name="mean")(x)
         if self.state_dependent_std:
-            log_std = nn.Dense(self.action_dim, kernel_init=default_init(), name="log_std")(x)
+            log_std = nn.Dense(self.action_dim, kernel_init=nn.initializers.xavier_uniform(), name="log_std")(x)
         else:
             log_std = self.param("log_std", nn.initializers.zeros, (self.action_dim,))
             log_std = jnp.broadcast_to(log_std, mean.shape)

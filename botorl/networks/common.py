@@ -9,11 +9,6 @@ import jax
 import jax.numpy as jnp
 
 
-def default_init(scale: float = 1.0):
-    # Xavier-uniform as in jaxrl/rlpd; keeps LayerNorm-free nets well scaled too.
-    return nn.initializers.variance_scaling(scale, "fan_avg", "uniform")
-
-
 # ------------------------------------------------------------------------------ LayerNorm
 # XLA on the CPU runs LayerNorm's row reductions far slower than PyTorch's fused kernel; as
 # matmuls with a 1/n column and a hand-written backward they run ~3x faster
@@ -78,7 +73,7 @@ class MLP(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array, training: bool = False) -> jax.Array:
         for i, size in enumerate(self.hidden_dims):
-            x = nn.Dense(size, kernel_init=default_init())(x)
+            x = nn.Dense(size, kernel_init=nn.initializers.xavier_uniform())(x)  # as jaxrl/rlpd
             if i + 1 < len(self.hidden_dims) or self.activate_final:
                 if self.dropout_rate is not None and self.dropout_rate > 0:
                     x = nn.Dropout(rate=self.dropout_rate)(x, deterministic=not training)
@@ -98,7 +93,7 @@ class QNetwork(nn.Module):
     def __call__(self, *inputs: jax.Array) -> jax.Array:
         x = inputs[0] if len(inputs) == 1 else jnp.concatenate(inputs, axis=-1)
         x = MLP(self.hidden_dims, activate_final=True, use_layer_norm=self.use_layer_norm)(x)
-        return nn.Dense(1, kernel_init=default_init())(x)[..., 0]
+        return nn.Dense(1, kernel_init=nn.initializers.xavier_uniform())(x)[..., 0]
 
 
 ValueNetwork = QNetwork
@@ -129,14 +124,3 @@ class Temperature(nn.Module):
         log_temp = self.param("log_temp", lambda _: jnp.full((), jnp.log(self.init_value), jnp.float32))
         return jnp.exp(log_temp)
 
-
-def subsample_ensemble(key: jax.Array, params, num_sample: int, num_total: int, replace: bool):
-    """The parameters of ``num_sample`` of ``num_total`` ensemble members, drawn independently
-    (``replace``, WSRL) or a random subset of distinct members (RLPD)."""
-    if num_sample == num_total and not replace:
-        return params
-    if replace:
-        idx = jax.random.randint(key, (num_sample,), 0, num_total)
-    else:
-        idx = jax.random.permutation(key, num_total)[:num_sample]
-    return jax.tree_util.tree_map(lambda p: p[idx], params)
