@@ -159,9 +159,7 @@ def save_figure(fig, path, title: str, **savefig: Any) -> None:
 
 
 def line_label(label: str, alpha: float | None, multi_alpha: bool) -> str:
-    if not multi_alpha:
-        return label
-    return f"{label} α=preset" if alpha is None else f"{label} α={alpha:+.2f}"
+    return f"{label} α={alpha_text(alpha) or 'preset'}" if multi_alpha else label
 
 
 MAX_RESAMPLES = 1_000_000  # 2,000 is the default; more than a million says nothing new and takes hours
