@@ -27,6 +27,7 @@ from botorl.experiments.stats import (
     fmt_mean_se,
     label_colors,
     line_label,
+    md_table,
     panels,
     pyplot,
     save_figure,
@@ -123,17 +124,11 @@ def dip_runs_csv(dips: Sequence[Dip], relative_to: Path | None = None, metric: s
 
 def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float, metric: str = "success") -> str:
     pct = f"{100 * confidence:g}%"
-    lines = [
-        f"| task | method | alpha | runs | {metric} at 0 | lowest (0..{window:g}) | dip mean ± s.e. | "
-        f"{pct} CI of the mean | IQM [{pct} CI] |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for c in cells:
-        st = c.stats
-        lines.append(
-            f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {int(st['n'])} | {c.initial:.2f} | {c.lowest:.2f} | "
-            f"{fmt_mean_se(st, '+')} | {fmt_ci(st['lo'], st['hi'])} | {fmt_iqm(st, '+')} |"
-        )
+    lines = [md_table(
+        ["task", "method", "alpha", "runs", f"{metric} at 0", f"lowest (0..{window:g})", "dip mean ± s.e.",
+         f"{pct} CI of the mean", f"IQM [{pct} CI]"],
+        ([c.task, c.label, alpha_text(c.alpha), int(c.stats["n"]), f"{c.initial:.2f}", f"{c.lowest:.2f}",
+          fmt_mean_se(c.stats, "+"), fmt_ci(c.stats["lo"], c.stats["hi"]), fmt_iqm(c.stats, "+")] for c in cells))]
     scratch = sorted({(c.task, c.label) for c in cells if c.from_scratch})
     if scratch:
         lines.append("")

@@ -42,6 +42,7 @@ from botorl.experiments.stats import (
     fmt_mean_se,
     label_colors,
     line_label,
+    md_table,
     mean_se,
     panels,
     pyplot,
@@ -169,26 +170,16 @@ def aggregate_csv(aggs: Sequence[Aggregate]) -> str:
 
 
 def cells_markdown(cells: Sequence[Cell]) -> str:
-    lines = [
-        "| task | method | alpha | seeds | initial (t=0) | unlearning (t=10k) | final |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    lines += [f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {len(c.seeds)} | "
-              + " | ".join(fmt_mean_se(c.stats[p]) for p, _ in POINTS) + " |" for c in cells]
-    return "\n".join(lines)
+    return md_table(["task", "method", "alpha", "seeds", "initial (t=0)", "unlearning (t=10k)", "final"],
+                    ([c.task, c.label, alpha_text(c.alpha), len(c.seeds), *(fmt_mean_se(c.stats[p]) for p, _ in POINTS)]
+                     for c in cells))
 
 
 def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: float) -> str:
-    pct = f"{100 * confidence:g}%"
-    lines = [
-        f"| task | method | alpha | IQM initial [{pct} CI] | IQM 10k | IQM final |",
-        "|---|---|---|---|---|---|",
-    ]
-    lines += [f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | " + " | ".join(fmt_iqm(c.stats[p]) for p, _ in POINTS)
-              + " |" for c in cells]
-    lines += [f"| **all ({len(a.tasks)} task{'s' if len(a.tasks) != 1 else ''})** | {a.label} | | "
-              + " | ".join(fmt_iqm(a.stats[p]) for p, _ in POINTS) + " |" for a in aggs]
-    return "\n".join(lines)
+    table = md_table(["task", "method", "alpha", f"IQM initial [{100 * confidence:g}% CI]", "IQM 10k", "IQM final"],
+                     ([c.task, c.label, alpha_text(c.alpha), *(fmt_iqm(c.stats[p]) for p, _ in POINTS)] for c in cells))
+    return "\n".join([table] + [f"| **all ({len(a.tasks)} task{'s' if len(a.tasks) != 1 else ''})** | {a.label} | | "
+                                + " | ".join(fmt_iqm(a.stats[p]) for p, _ in POINTS) + " |" for a in aggs])
 
 
 def curve_on_grid(run: Run, grid: np.ndarray) -> np.ndarray:
