@@ -203,20 +203,17 @@ class LocalBackend:
         self.sweep = sweep
         self.pinned = sweep.opt.backend == "local"
 
-    def workers(self) -> int:
-        if not self.pinned:
-            return 1
-        return max(1, int(self.sweep.opt.workers)) if self.sweep.opt.workers else len(usable_cores())
-
     def start(self, pending: int) -> int:
         """The number of trials to run at once."""
-        return min(self.workers(), max(1, pending))
+        opt = self.sweep.opt
+        self.workers = 1 if not self.pinned else max(1, int(opt.workers)) if opt.workers else len(usable_cores())
+        return min(self.workers, max(1, pending))
 
     def core_block(self, slot: int) -> list[int]:
         """The cores of worker slot ``slot``: the sweep's cores split into one contiguous block
         per worker, so W workers on C cores get C // W cores each (one when W >= C)."""
         cores = usable_cores()
-        w = min(self.workers(), len(cores))
+        w = min(self.workers, len(cores))
         k = slot % w
         return cores[k * len(cores) // w:(k + 1) * len(cores) // w]
 
