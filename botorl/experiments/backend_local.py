@@ -230,21 +230,21 @@ class LocalBackend:
 
     def poll(self, running: dict) -> list[tuple[int, int]]:
         """(key, exit code) of every finished trial."""
-        return [(key, code) for key, r in running.items() if (code := r.handle.poll()) is not None]
+        return [(key, code) for key, (_, proc) in running.items() if (code := proc.poll()) is not None]
 
     def abort(self, running: dict, signum: int = signal.SIGTERM) -> None:
         """Forward ``signum`` (the signal that stopped the sweep): each trial checkpoints and exits
         (pipeline/preempt.py); one still running after ``ABORT_WAIT_S`` is killed."""
-        for r in running.values():
+        for _, proc in running.values():
             with contextlib.suppress(ProcessLookupError):
-                r.handle.send_signal(signum)
+                proc.send_signal(signum)
         deadline = time.monotonic() + ABORT_WAIT_S
-        for r in running.values():
+        for _, proc in running.values():
             try:
-                r.handle.wait(timeout=max(0.1, deadline - time.monotonic()))
+                proc.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                r.handle.kill()
-                r.handle.wait()
+                proc.kill()
+                proc.wait()
 
     def close(self) -> Any:
         return None

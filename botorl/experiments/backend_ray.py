@@ -126,7 +126,7 @@ class RayBackend:
         return self.fn.remote(cmd, env, str(log), str(run_dir), str(sweep.out))
 
     def poll(self, running: dict) -> list[tuple[int, int]]:
-        refs = {r.handle: k for k, r in running.items()}
+        refs = {ref: k for k, (_, ref) in running.items()}
         if not refs:
             return []
         out = []
@@ -141,9 +141,9 @@ class RayBackend:
         return out
 
     def abort(self, running: dict, signum: int = 15) -> None:
-        for r in running.values():
+        for _, ref in running.values():
             with contextlib.suppress(Exception):
-                self.ray.cancel(r.handle, force=True)
+                self.ray.cancel(ref, force=True)
 
     def close(self) -> None:
         if self.ray is not None and self.ray.is_initialized():

@@ -118,12 +118,6 @@ class SweepOptions:
     share_pretraining: bool = True  # a new trial starts from pre-training finished in `out` (shared_pretrain.py)
 
 
-@dataclasses.dataclass
-class _Running:
-    trial: Trial
-    handle: Any  # subprocess.Popen or a Ray ObjectRef
-
-
 class Sweep:
     """One invocation of `botorl sweep` over a grid, in `options.out`."""
 
@@ -277,7 +271,7 @@ class Sweep:
     @preempt.handling()
     def run(self) -> dict[str, Any]:
         self._lock.acquire()
-        running: dict[int, _Running] = {}  # by worker slot
+        running: dict[int, tuple[Trial, Any]] = {}  # by worker slot: the trial, its Popen or Ray ObjectRef
         try:
             self._load_manifest()
             self.save()
@@ -293,12 +287,12 @@ class Sweep:
                 while queue and free_slots:
                     trial = queue.popleft()
                     slot = free_slots.pop(0)
-                    running[slot] = _Running(trial, self.backend.launch(trial, slot))
+                    running[slot] = (trial, self.backend.launch(trial, slot))
                     self.save()
                     self._set_postfix()
                 finished_keys = self.backend.poll(running)
                 for key, code in finished_keys:
-                    self._finish(running.pop(key).trial, code, queue)
+                    self._finish(running.pop(key)[0], code, queue)
                 if finished_keys:
                     self.save()
                 else:
@@ -308,9 +302,9 @@ class Sweep:
             if isinstance(err, Interrupted):
                 err.how = err.how or "the same `botorl sweep` command (finished trials are kept, the rest resume)"
             self.backend.abort(running, signum)
-            for r in running.values():
+            for trial, _ in running.values():
                 with contextlib.suppress(Exception):
-                    self.entry(r.trial).update(state="interrupted", ended=_now(), pid=None)
+                    self.entry(trial).update(state="interrupted", ended=_now(), pid=None)
             with contextlib.suppress(Exception):
                 if self.manifest:
                     self.save()
