@@ -79,7 +79,8 @@ def trial_command(cfg, run_dir: Path, command: Sequence[str] | None = None,
     if action == "resume":
         consent = ["--allow-pickle"] if cfg is not None and same_data(cfg, run_dir) else []
         return action, prefix + ["resume", str(run_dir), "--no-progress", *consent]
-    shared = shared_pretraining_args(cfg, share_in) if cfg is not None and share_in is not None else []
+    shared = (["--pretrained", str(share_in)] if cfg is not None and share_in is not None
+              and shares_pretraining(cfg, share_in) else [])
     return action, prefix + ["run", "--config", str(run_dir / TRIAL_CONFIG), *shared, "--out", str(run_dir),
                              "--no-progress"]
 
@@ -94,14 +95,11 @@ def same_data(cfg, run_dir: Path) -> bool:
     return isinstance(data, dict) and data.get("path") == cfg.data.path and data.get("demos") == cfg.data.demos
 
 
-def shared_pretraining_args(cfg, directory: Path) -> list[str]:
-    """``["--pretrained", directory]`` when every member of ``cfg`` has a finished pre-training with
-    its settings under ``directory`` (BOTO's, for WSRL at the same seeds), else ``[]``."""
-    if cfg.pretrained is not None or "pretrain" not in get_method(cfg.method).stages:
-        return []
-    if shared_pretrain.match(population(cfg)[1], directory, strict=False) is None:
-        return []
-    return ["--pretrained", str(directory)]
+def shares_pretraining(cfg, directory: Path) -> bool:
+    """Whether every member of ``cfg`` has a finished pre-training with its settings under
+    ``directory`` (BOTO's, for WSRL at the same seeds), so that it can start from it."""
+    return (cfg.pretrained is None and "pretrain" in get_method(cfg.method).stages
+            and shared_pretrain.match(population(cfg)[1], directory, strict=False) is not None)
 
 
 @dataclasses.dataclass
