@@ -88,11 +88,9 @@ def read_eval_csv(path: Path, metric: Metric = Metric()) -> tuple[np.ndarray, np
             raise ValueError(f"{path.name} has no env_step/{col} columns (header {reader.fieldnames})")
         by_step: dict[float, float] = {}
         for row in reader:
-            step, succ = _num(row.get("env_step")), _num(row.get(col))
-            if col != "success":
-                succ = metric.of(math.nan, succ)
-            if math.isfinite(step) and step >= 0 and math.isfinite(succ):
-                by_step[step] = succ
+            step, value = _num(row.get("env_step")), metric.of(_num(row.get("success")), _num(row.get("return")))
+            if math.isfinite(step) and step >= 0 and math.isfinite(value):
+                by_step[step] = value
     steps = np.asarray(sorted(by_step), dtype=np.float64)
     return steps, np.asarray([by_step[s] for s in steps], dtype=np.float64)
 
