@@ -159,10 +159,10 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
             ax.errorbar([x], [st["mean"]], yerr=yerr, fmt="o", color=color, ms=6, mec="0.2", capsize=4, lw=1.6,
                         ecolor="0.2" if multi[c.label] else color, zorder=3)
         ax.axhline(0.0, color="0.3", lw=0.8)
-        ax.set_xticks(range(len(row)))
-        ax.set_xticklabels([line_label(c.label, c.alpha, multi[c.label]) + ("\n(no pre-training)" if c.from_scratch else "")
-                            + f"\n(n={int(c.stats['n'])})" for c in row],
-                           rotation=45 if len(row) > 4 else 0, ha="right" if len(row) > 4 else "center", fontsize=7)
+        ax.set_xticks(range(len(row)), [line_label(c.label, c.alpha, multi[c.label])
+                                        + ("\n(no pre-training)" if c.from_scratch else "")
+                                        + f"\n(n={int(c.stats['n'])})" for c in row],
+                      rotation=45 if len(row) > 4 else 0, ha="right" if len(row) > 4 else "center", fontsize=7)
         ax.set_xlim(-0.6, len(row) - 0.4)
         metric = (metrics or {}).get(task, Metric())
         if metric.bounded:  # a return's dip has no fixed scale
