@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
-from matplotlib.ticker import FuncFormatter
 
 from botorl.configs.schema import flatten
 from botorl.envs.metric import Metric
@@ -230,7 +229,7 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
             ax.fill_between(grid[ok], (mean - se)[ok], (mean + se)[ok], color=color, alpha=0.2, lw=0)
         ax.set_title(task)
         ax.set_xlabel("online env steps")
-        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
+        ax.xaxis.set_major_formatter(lambda x, _: f"{x / 1000:g}k" if x else "0")
         ax.set_ylabel("success rate" if metrics[task].bounded else metrics[task].label)
         if metrics[task].bounded:
             ax.set_ylim(-0.03, 1.03)
