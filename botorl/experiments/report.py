@@ -528,8 +528,7 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
     aggs, agg_notes = aggregate_iqm(runs, **boot)
     notes += agg_notes
     for (task, label, alpha), group in sorted(group_by(runs, lambda r: r.key).items(), key=lambda kv: str(kv[0])):
-        seeds = [r.seed for r in group]
-        dupes = sorted({s for s in seeds if seeds.count(s) > 1}, key=str)
+        dupes = sorted((s for s, k in Counter(r.seed for r in group).items() if k > 1), key=str)
         if dupes:
             where = ", ".join(rel(r.path) for r in group if r.seed in dupes)
             notes.append(
