@@ -555,11 +555,10 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
             notes.append("no alpha sweep among the runs (boto with >= 2 alphas on a task): no alpha figure")
     else:
         notes.append("no finished runs: no figures")
-    selection: AlphaSelection | None
+    selection = None
     try:
         selection = select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **boot)
     except BotorlError as err:
-        selection = None
         notes.append(f"no held-out alpha selection: {err}")
     pct = f"{100 * confidence:g}%"
     md = [
