@@ -57,10 +57,15 @@ SINGLE_THREAD_ENV = dict.fromkeys(("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "M
                                    "TF_NUM_INTEROP_THREADS"), "1")
 
 
-def single_thread_env(base: dict[str, str]) -> dict[str, str]:
-    env = {**base, **SINGLE_THREAD_ENV}
-    if extra := env.get("BOTORL_SWEEP_XLA_FLAGS", "").strip():
-        env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {extra}".strip()
+def trial_env(single_thread: bool) -> dict[str, str]:
+    """A trial's environment: this process's with the sweep's token (which lets a later sweep stop
+    the trial if orphaned) and, for a trial on one core, SINGLE_THREAD_ENV."""
+    env = {**os.environ, TOKEN_ENV: sweep_token()}
+    if single_thread:
+        env.update(SINGLE_THREAD_ENV)
+        if extra := env.get("BOTORL_SWEEP_XLA_FLAGS", "").strip():
+            env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {extra}".strip()
+    env.setdefault("PYTHONUNBUFFERED", "1")
     return env
 
 
@@ -223,8 +228,7 @@ class LocalBackend:
         block = self.core_block(slot) if (slot is not None and self.pinned) else None
         # "cpu": the one core of a single-core block (the manifest's field before blocks), else None
         cpu = block[0] if block and len(block) == 1 else None
-        proc = spawn(cmd, log, run_dir, sweep.trial_env(len(block) if block else 1), str(sweep.out), block,
-                     cpu=cpu, cpus=block)
+        proc = spawn(cmd, log, run_dir, trial_env(cpu is not None), str(sweep.out), block, cpu=cpu, cpus=block)
         sweep.entry(trial).update(pid=proc.pid, cpu=cpu, cpus=block)
         return proc
 

@@ -29,8 +29,7 @@ from botorl.configs.members import population
 from botorl.configs.methods import get_method
 from botorl.configs.schema import to_dict
 from botorl.errors import BotorlError, ConfigError, Interrupted
-from botorl.experiments.backend_local import TOKEN_ENV, TRIAL_PID, LocalBackend, read_json, single_thread_env, \
-    stop_orphan, sweep_token
+from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, read_json, stop_orphan
 from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial, group_populations
@@ -199,13 +198,6 @@ class Sweep:
 
     def entry(self, trial: Trial) -> dict[str, Any]:
         return self.manifest["trials"][trial.relpath]
-
-    def trial_env(self, threads: int = 1) -> dict[str, str]:
-        env = {**os.environ, TOKEN_ENV: sweep_token()}  # the token lets a later sweep stop this trial if orphaned
-        if self.opt.backend != "sequential" and threads == 1:
-            env = single_thread_env(env)
-        env.setdefault("PYTHONUNBUFFERED", "1")
-        return env
 
     def prepare(self, trial: Trial) -> tuple[Path, list[str], Path]:
         run_dir = self.run_dir(trial)
