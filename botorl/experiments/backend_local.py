@@ -1,6 +1,6 @@
 """The sweep's local backends, ``local`` (``--workers`` trial processes, each pinned to its own
 block of the cores) and ``sequential`` (one trial at a time, the machine's full thread pools),
-and the process bookkeeping every backend shares (pid files, stopping what a sweep recorded)."""
+and what every backend shares (a trial's environment, pid files, stopping what a sweep recorded)."""
 
 from __future__ import annotations
 
@@ -211,7 +211,7 @@ class LocalBackend:
     def start(self, pending: int) -> int:
         """The number of trials to run at once."""
         opt = self.sweep.opt
-        self.workers = 1 if not self.pinned else max(1, int(opt.workers)) if opt.workers else len(usable_cores())
+        self.workers = 1 if not self.pinned else (max(1, int(opt.workers)) if opt.workers else len(usable_cores()))
         return min(self.workers, max(1, pending))
 
     def core_block(self, slot: int) -> list[int]:
