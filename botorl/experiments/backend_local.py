@@ -1,6 +1,6 @@
 """The sweep's local backends, ``local`` (``--workers`` trial processes, each pinned to its own
 block of the cores) and ``sequential`` (one trial at a time, the machine's full thread pools),
-and the process bookkeeping every backend shares (pid files, stopping what a sweep recorded)."""
+and what every backend shares (a trial's environment, pid files, stopping what a sweep recorded)."""
 
 from __future__ import annotations
 
@@ -57,10 +57,15 @@ SINGLE_THREAD_ENV = dict.fromkeys(("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "M
                                    "TF_NUM_INTEROP_THREADS"), "1")
 
 
-def single_thread_env(base: dict[str, str]) -> dict[str, str]:
-    env = {**base, **SINGLE_THREAD_ENV}
-    if extra := env.get("BOTORL_SWEEP_XLA_FLAGS", "").strip():
-        env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {extra}".strip()
+def trial_env(single_thread: bool) -> dict[str, str]:
+    """A trial's environment: this process's with the sweep's token (which lets a later sweep stop
+    the trial if orphaned) and, for a trial on one core, SINGLE_THREAD_ENV."""
+    env = {**os.environ, TOKEN_ENV: sweep_token()}
+    if single_thread:
+        env.update(SINGLE_THREAD_ENV)
+        if extra := env.get("BOTORL_SWEEP_XLA_FLAGS", "").strip():
+            env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {extra}".strip()
+    env.setdefault("PYTHONUNBUFFERED", "1")
     return env
 
 
@@ -203,20 +208,17 @@ class LocalBackend:
         self.sweep = sweep
         self.pinned = sweep.opt.backend == "local"
 
-    def workers(self) -> int:
-        if not self.pinned:
-            return 1
-        return max(1, int(self.sweep.opt.workers)) if self.sweep.opt.workers else len(usable_cores())
-
     def start(self, pending: int) -> int:
         """The number of trials to run at once."""
-        return min(self.workers(), max(1, pending))
+        opt = self.sweep.opt
+        self.workers = 1 if not self.pinned else (max(1, int(opt.workers)) if opt.workers else len(usable_cores()))
+        return min(self.workers, max(1, pending))
 
     def core_block(self, slot: int) -> list[int]:
         """The cores of worker slot ``slot``: the sweep's cores split into one contiguous block
         per worker, so W workers on C cores get C // W cores each (one when W >= C)."""
         cores = usable_cores()
-        w = min(self.workers(), len(cores))
+        w = min(self.workers, len(cores))
         k = slot % w
         return cores[k * len(cores) // w:(k + 1) * len(cores) // w]
 
@@ -226,28 +228,27 @@ class LocalBackend:
         block = self.core_block(slot) if (slot is not None and self.pinned) else None
         # "cpu": the one core of a single-core block (the manifest's field before blocks), else None
         cpu = block[0] if block and len(block) == 1 else None
-        proc = spawn(cmd, log, run_dir, sweep.trial_env(len(block) if block else 1), str(sweep.out), block,
-                     cpu=cpu, cpus=block)
+        proc = spawn(cmd, log, run_dir, trial_env(cpu is not None), str(sweep.out), block, cpu=cpu, cpus=block)
         sweep.entry(trial).update(pid=proc.pid, cpu=cpu, cpus=block)
         return proc
 
     def poll(self, running: dict) -> list[tuple[int, int]]:
         """(key, exit code) of every finished trial."""
-        return [(key, code) for key, r in running.items() if (code := r.handle.poll()) is not None]
+        return [(key, code) for key, (_, proc) in running.items() if (code := proc.poll()) is not None]
 
     def abort(self, running: dict, signum: int = signal.SIGTERM) -> None:
         """Forward ``signum`` (the signal that stopped the sweep): each trial checkpoints and exits
         (pipeline/preempt.py); one still running after ``ABORT_WAIT_S`` is killed."""
-        for r in running.values():
+        for _, proc in running.values():
             with contextlib.suppress(ProcessLookupError):
-                r.handle.send_signal(signum)
+                proc.send_signal(signum)
         deadline = time.monotonic() + ABORT_WAIT_S
-        for r in running.values():
+        for _, proc in running.values():
             try:
-                r.handle.wait(timeout=max(0.1, deadline - time.monotonic()))
+                proc.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                r.handle.kill()
-                r.handle.wait()
+                proc.kill()
+                proc.wait()
 
     def close(self) -> Any:
         return None

@@ -18,7 +18,7 @@ from typing import Any
 
 from botorl.errors import BotorlError
 from botorl.experiments.backend_local import SINGLE_THREAD_ENV, TOKEN_ENV, carries_token, descendants, process_record, \
-    spawn, stop_recorded, sweep_token, usable_cores
+    spawn, stop_recorded, sweep_token, trial_env, usable_cores
 
 RAY_ENV_PREFIXES = ("BOTORL_", "XLA_", "JAX_", "MINARI_", "MUJOCO_", "PYTHONUNBUFFERED")
 
@@ -122,11 +122,11 @@ class RayBackend:
         run_dir, cmd, log = sweep.prepare(trial)
         # only the settings that concern botorl: the rest of this machine's environment (PATH,
         # HOME) may be wrong on another node of a cluster
-        env = {k: v for k, v in sweep.trial_env().items() if k in SINGLE_THREAD_ENV or k.startswith(RAY_ENV_PREFIXES)}
+        env = {k: v for k, v in trial_env(True).items() if k in SINGLE_THREAD_ENV or k.startswith(RAY_ENV_PREFIXES)}
         return self.fn.remote(cmd, env, str(log), str(run_dir), str(sweep.out))
 
     def poll(self, running: dict) -> list[tuple[int, int]]:
-        refs = {r.handle: k for k, r in running.items()}
+        refs = {ref: k for k, (_, ref) in running.items()}
         if not refs:
             return []
         out = []
@@ -141,9 +141,9 @@ class RayBackend:
         return out
 
     def abort(self, running: dict, signum: int = 15) -> None:
-        for r in running.values():
+        for _, ref in running.values():
             with contextlib.suppress(Exception):
-                self.ray.cancel(r.handle, force=True)
+                self.ray.cancel(ref, force=True)
 
     def close(self) -> None:
         if self.ray is not None and self.ray.is_initialized():

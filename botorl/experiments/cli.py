@@ -164,7 +164,12 @@ class ReportArgs:
 
 def report_main(argv: list[str]) -> int:
     args = tyro.cli(ReportArgs, args=list(argv), prog="botorl report")
-    extra_pairs = _read_pairs(args.pairs_from)
+    extra_pairs = []
+    for p in args.pairs_from:
+        try:
+            extra_pairs += read_pairs_csv(Path(p))
+        except (OSError, KeyError, ValueError, TypeError) as err:
+            raise ConfigError(f"--pairs-from {p}: not a paired.csv that `botorl report` wrote ({err}).") from None
     if not args.dirs and not extra_pairs:
         raise ConfigError("botorl report needs at least one run or sweep directory (or --pairs-from paired.csv files).")
     stats = dict(n_boot=args.bootstrap, confidence=args.confidence, seed=args.seed)
@@ -191,16 +196,6 @@ def report_main(argv: list[str]) -> int:
     if args.select_alpha and result.selection is not None:
         print(result.selection.text())
     return 0
-
-
-def _read_pairs(paths: tuple[str, ...]) -> list:
-    pairs = []
-    for p in paths:
-        try:
-            pairs += read_pairs_csv(Path(p))
-        except (OSError, KeyError, ValueError, TypeError) as err:
-            raise ConfigError(f"--pairs-from {p}: not a paired.csv that `botorl report` wrote ({err}).") from None
-    return pairs
 
 
 def _seed_flag(flag: str, value: Optional[str]) -> Optional[list[int]]:

@@ -27,6 +27,7 @@ from botorl.experiments.stats import (
     fmt_mean_se,
     label_colors,
     line_label,
+    md_table,
     panels,
     pyplot,
     save_figure,
@@ -123,17 +124,11 @@ def dip_runs_csv(dips: Sequence[Dip], relative_to: Path | None = None, metric: s
 
 def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float, metric: str = "success") -> str:
     pct = f"{100 * confidence:g}%"
-    lines = [
-        f"| task | method | alpha | runs | {metric} at 0 | lowest (0..{window:g}) | dip mean ± s.e. | "
-        f"{pct} CI of the mean | IQM [{pct} CI] |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for c in cells:
-        st = c.stats
-        lines.append(
-            f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {int(st['n'])} | {c.initial:.2f} | {c.lowest:.2f} | "
-            f"{fmt_mean_se(st, '+')} | {fmt_ci(st['lo'], st['hi'])} | {fmt_iqm(st, '+')} |"
-        )
+    lines = [md_table(
+        ["task", "method", "alpha", "runs", f"{metric} at 0", f"lowest (0..{window:g})", "dip mean ± s.e.",
+         f"{pct} CI of the mean", f"IQM [{pct} CI]"],
+        ([c.task, c.label, alpha_text(c.alpha), int(c.stats["n"]), f"{c.initial:.2f}", f"{c.lowest:.2f}",
+          fmt_mean_se(c.stats, "+"), fmt_ci(c.stats["lo"], c.stats["hi"]), fmt_iqm(c.stats, "+")] for c in cells))]
     scratch = sorted({(c.task, c.label) for c in cells if c.from_scratch})
     if scratch:
         lines.append("")
@@ -164,10 +159,10 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
             ax.errorbar([x], [st["mean"]], yerr=yerr, fmt="o", color=color, ms=6, mec="0.2", capsize=4, lw=1.6,
                         ecolor="0.2" if multi[c.label] else color, zorder=3)
         ax.axhline(0.0, color="0.3", lw=0.8)
-        ax.set_xticks(range(len(row)))
-        ax.set_xticklabels([line_label(c.label, c.alpha, multi[c.label]) + ("\n(no pre-training)" if c.from_scratch else "")
-                            + f"\n(n={int(c.stats['n'])})" for c in row],
-                           rotation=45 if len(row) > 4 else 0, ha="right" if len(row) > 4 else "center", fontsize=7)
+        ax.set_xticks(range(len(row)), [line_label(c.label, c.alpha, multi[c.label])
+                                        + ("\n(no pre-training)" if c.from_scratch else "")
+                                        + f"\n(n={int(c.stats['n'])})" for c in row],
+                      rotation=45 if len(row) > 4 else 0, ha="right" if len(row) > 4 else "center", fontsize=7)
         ax.set_xlim(-0.6, len(row) - 0.4)
         metric = (metrics or {}).get(task, Metric())
         if metric.bounded:  # a return's dip has no fixed scale

@@ -236,7 +236,7 @@ class Grid:
             "profile": self.profile,
         }
 
-    def validate(self) -> None:
+    def __post_init__(self) -> None:
         for field in ("tasks", "methods", "seeds"):
             if not getattr(self, field):
                 raise ConfigError(
@@ -295,7 +295,7 @@ def build_grid(file_fields: dict[str, Any] | None = None, *, tasks: Any = None, 
                alphas: Any = None, overrides: Any = None, profile: str | None = None) -> Grid:
     """Command-line values win over the file's; overrides from both are merged."""
     f = file_fields or {}
-    grid = Grid(
+    return Grid(
         tasks=list(dict.fromkeys(str(t) for t in _as_list(tasks if tasks is not None else f.get("tasks"), "tasks"))),
         methods=parse_methods(methods if methods is not None else f.get("methods")),
         seeds=parse_seeds(seeds if seeds is not None else f.get("seeds")),
@@ -303,6 +303,4 @@ def build_grid(file_fields: dict[str, Any] | None = None, *, tasks: Any = None, 
         overrides=absolute_paths({**parse_overrides(f.get("overrides")), **parse_overrides(overrides)}),
         profile=profile if profile is not None else f.get("profile"),
     )
-    grid.validate()
-    return grid
 

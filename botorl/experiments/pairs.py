@@ -33,6 +33,7 @@ from botorl.experiments.stats import (
     csv_text,
     fmt_ci,
     fmt_float,
+    md_table,
     mean_se,
     panels,
     pyplot,
@@ -249,20 +250,14 @@ def _name(quantity: str, metric: Metric | None = None) -> str:
 def paired_markdown(cells: Sequence[PairedCell], confidence: float, *,
                     quantities: Sequence[str] = TABLE_QUANTITIES, metrics: dict[str, Metric] | None = None) -> str:
     pct = f"{100 * confidence:g}%"
-    lines = [
-        f"| task | method − reference | alpha | quantity | pairs | reference | method | mean difference | "
-        f"{pct} bootstrap CI | {pct} t-interval | better / equal / worse | Wilcoxon p |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for c in [c for c in cells if c.quantity in quantities]:
-        label = f"{c.label} − {c.reference}" + (" (noise floor)" if c.noise_floor else "")
-        p = "-" if not math.isfinite(c.wilcoxon_p) else f"{c.wilcoxon_p:.3f}"
-        lines.append(
-            f"| {c.task} | {label} | {alpha_text(c.alpha)} | {_name(c.quantity, (metrics or {}).get(c.task))} | {c.n} | {c.ref_mean:.2f} | "
-            f"{c.other_mean:.2f} | {c.mean:+.3f} | {fmt_ci(c.boot_lo, c.boot_hi, 3)} | {fmt_ci(c.t_lo, c.t_hi, 3)} | "
-            f"{c.better} / {c.equal} / {c.worse} | {p} |"
-        )
-    return "\n".join(lines)
+    return md_table(
+        ["task", "method − reference", "alpha", "quantity", "pairs", "reference", "method", "mean difference",
+         f"{pct} bootstrap CI", f"{pct} t-interval", "better / equal / worse", "Wilcoxon p"],
+        ([c.task, f"{c.label} − {c.reference}" + (" (noise floor)" if c.noise_floor else ""), alpha_text(c.alpha),
+          _name(c.quantity, (metrics or {}).get(c.task)), c.n, f"{c.ref_mean:.2f}", f"{c.other_mean:.2f}",
+          f"{c.mean:+.3f}", fmt_ci(c.boot_lo, c.boot_hi, 3), fmt_ci(c.t_lo, c.t_hi, 3),
+          f"{c.better} / {c.equal} / {c.worse}", "-" if not math.isfinite(c.wilcoxon_p) else f"{c.wilcoxon_p:.3f}"]
+         for c in cells if c.quantity in quantities))
 
 
 def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") -> None:

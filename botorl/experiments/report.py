@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
-from matplotlib.ticker import FuncFormatter
 
 from botorl.configs.schema import flatten
 from botorl.envs.metric import Metric
@@ -42,6 +41,7 @@ from botorl.experiments.stats import (
     fmt_mean_se,
     label_colors,
     line_label,
+    md_table,
     mean_se,
     panels,
     pyplot,
@@ -169,26 +169,16 @@ def aggregate_csv(aggs: Sequence[Aggregate]) -> str:
 
 
 def cells_markdown(cells: Sequence[Cell]) -> str:
-    lines = [
-        "| task | method | alpha | seeds | initial (t=0) | unlearning (t=10k) | final |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    lines += [f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | {len(c.seeds)} | "
-              + " | ".join(fmt_mean_se(c.stats[p]) for p, _ in POINTS) + " |" for c in cells]
-    return "\n".join(lines)
+    return md_table(["task", "method", "alpha", "seeds", "initial (t=0)", "unlearning (t=10k)", "final"],
+                    ([c.task, c.label, alpha_text(c.alpha), len(c.seeds), *(fmt_mean_se(c.stats[p]) for p, _ in POINTS)]
+                     for c in cells))
 
 
 def iqm_markdown(cells: Sequence[Cell], aggs: Sequence[Aggregate], confidence: float) -> str:
-    pct = f"{100 * confidence:g}%"
-    lines = [
-        f"| task | method | alpha | IQM initial [{pct} CI] | IQM 10k | IQM final |",
-        "|---|---|---|---|---|---|",
-    ]
-    lines += [f"| {c.task} | {c.label} | {alpha_text(c.alpha)} | " + " | ".join(fmt_iqm(c.stats[p]) for p, _ in POINTS)
-              + " |" for c in cells]
-    lines += [f"| **all ({len(a.tasks)} task{'s' if len(a.tasks) != 1 else ''})** | {a.label} | | "
-              + " | ".join(fmt_iqm(a.stats[p]) for p, _ in POINTS) + " |" for a in aggs]
-    return "\n".join(lines)
+    table = md_table(["task", "method", "alpha", f"IQM initial [{100 * confidence:g}% CI]", "IQM 10k", "IQM final"],
+                     ([c.task, c.label, alpha_text(c.alpha), *(fmt_iqm(c.stats[p]) for p, _ in POINTS)] for c in cells))
+    return "\n".join([table] + [f"| **all ({len(a.tasks)} task{'s' if len(a.tasks) != 1 else ''})** | {a.label} | | "
+                                + " | ".join(fmt_iqm(a.stats[p]) for p, _ in POINTS) + " |" for a in aggs])
 
 
 def curve_on_grid(run: Run, grid: np.ndarray) -> np.ndarray:
@@ -239,7 +229,7 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
             ax.fill_between(grid[ok], (mean - se)[ok], (mean + se)[ok], color=color, alpha=0.2, lw=0)
         ax.set_title(task)
         ax.set_xlabel("online env steps")
-        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
+        ax.xaxis.set_major_formatter(lambda x, _: f"{x / 1000:g}k" if x else "0")
         ax.set_ylabel("success rate" if metrics[task].bounded else metrics[task].label)
         if metrics[task].bounded:
             ax.set_ylim(-0.03, 1.03)
@@ -538,8 +528,7 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
     aggs, agg_notes = aggregate_iqm(runs, **boot)
     notes += agg_notes
     for (task, label, alpha), group in sorted(group_by(runs, lambda r: r.key).items(), key=lambda kv: str(kv[0])):
-        seeds = [r.seed for r in group]
-        dupes = sorted({s for s in seeds if seeds.count(s) > 1}, key=str)
+        dupes = sorted((s for s, k in Counter(r.seed for r in group).items() if k > 1), key=str)
         if dupes:
             where = ", ".join(rel(r.path) for r in group if r.seed in dupes)
             notes.append(
@@ -566,11 +555,10 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
             notes.append("no alpha sweep among the runs (boto with >= 2 alphas on a task): no alpha figure")
     else:
         notes.append("no finished runs: no figures")
-    selection: AlphaSelection | None
+    selection = None
     try:
         selection = select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **boot)
     except BotorlError as err:
-        selection = None
         notes.append(f"no held-out alpha selection: {err}")
     pct = f"{100 * confidence:g}%"
     md = [

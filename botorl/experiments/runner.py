@@ -29,8 +29,7 @@ from botorl.configs.members import population
 from botorl.configs.methods import get_method
 from botorl.configs.schema import to_dict
 from botorl.errors import BotorlError, ConfigError, Interrupted
-from botorl.experiments.backend_local import TOKEN_ENV, TRIAL_PID, LocalBackend, read_json, single_thread_env, \
-    stop_orphan, sweep_token
+from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, read_json, stop_orphan
 from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial, group_populations
@@ -79,7 +78,8 @@ def trial_command(cfg, run_dir: Path, command: Sequence[str] | None = None,
     if action == "resume":
         consent = ["--allow-pickle"] if cfg is not None and same_data(cfg, run_dir) else []
         return action, prefix + ["resume", str(run_dir), "--no-progress", *consent]
-    shared = shared_pretraining_args(cfg, share_in) if cfg is not None and share_in is not None else []
+    shared = (["--pretrained", str(share_in)] if cfg is not None and share_in is not None
+              and shares_pretraining(cfg, share_in) else [])
     return action, prefix + ["run", "--config", str(run_dir / TRIAL_CONFIG), *shared, "--out", str(run_dir),
                              "--no-progress"]
 
@@ -94,14 +94,11 @@ def same_data(cfg, run_dir: Path) -> bool:
     return isinstance(data, dict) and data.get("path") == cfg.data.path and data.get("demos") == cfg.data.demos
 
 
-def shared_pretraining_args(cfg, directory: Path) -> list[str]:
-    """``["--pretrained", directory]`` when every member of ``cfg`` has a finished pre-training with
-    its settings under ``directory`` (BOTO's, for WSRL at the same seeds), else ``[]``."""
-    if cfg.pretrained is not None or "pretrain" not in get_method(cfg.method).stages:
-        return []
-    if shared_pretrain.match(population(cfg)[1], directory, strict=False) is None:
-        return []
-    return ["--pretrained", str(directory)]
+def shares_pretraining(cfg, directory: Path) -> bool:
+    """Whether every member of ``cfg`` has a finished pre-training with its settings under
+    ``directory`` (BOTO's, for WSRL at the same seeds), so that it can start from it."""
+    return (cfg.pretrained is None and "pretrain" in get_method(cfg.method).stages
+            and shared_pretrain.match(population(cfg)[1], directory, strict=False) is not None)
 
 
 @dataclasses.dataclass
@@ -116,12 +113,6 @@ class SweepOptions:
     poll_interval: float = 0.25
     population_size: int = 1  # > 1: trials grouped into populations, one `botorl run --seeds` each
     share_pretraining: bool = True  # a new trial starts from pre-training finished in `out` (shared_pretrain.py)
-
-
-@dataclasses.dataclass
-class _Running:
-    trial: Trial
-    handle: Any  # subprocess.Popen or a Ray ObjectRef
 
 
 class Sweep:
@@ -208,13 +199,6 @@ class Sweep:
     def entry(self, trial: Trial) -> dict[str, Any]:
         return self.manifest["trials"][trial.relpath]
 
-    def trial_env(self, threads: int = 1) -> dict[str, str]:
-        env = {**os.environ, TOKEN_ENV: sweep_token()}  # the token lets a later sweep stop this trial if orphaned
-        if self.opt.backend != "sequential" and threads == 1:
-            env = single_thread_env(env)
-        env.setdefault("PYTHONUNBUFFERED", "1")
-        return env
-
     def prepare(self, trial: Trial) -> tuple[Path, list[str], Path]:
         run_dir = self.run_dir(trial)
         stop_orphan(run_dir)
@@ -277,7 +261,7 @@ class Sweep:
     @preempt.handling()
     def run(self) -> dict[str, Any]:
         self._lock.acquire()
-        running: dict[int, _Running] = {}  # by worker slot
+        running: dict[int, tuple[Trial, Any]] = {}  # by worker slot: the trial, its Popen or Ray ObjectRef
         try:
             self._load_manifest()
             self.save()
@@ -293,12 +277,12 @@ class Sweep:
                 while queue and free_slots:
                     trial = queue.popleft()
                     slot = free_slots.pop(0)
-                    running[slot] = _Running(trial, self.backend.launch(trial, slot))
+                    running[slot] = (trial, self.backend.launch(trial, slot))
                     self.save()
                     self._set_postfix()
                 finished_keys = self.backend.poll(running)
                 for key, code in finished_keys:
-                    self._finish(running.pop(key).trial, code, queue)
+                    self._finish(running.pop(key)[0], code, queue)
                 if finished_keys:
                     self.save()
                 else:
@@ -308,9 +292,9 @@ class Sweep:
             if isinstance(err, Interrupted):
                 err.how = err.how or "the same `botorl sweep` command (finished trials are kept, the rest resume)"
             self.backend.abort(running, signum)
-            for r in running.values():
+            for trial, _ in running.values():
                 with contextlib.suppress(Exception):
-                    self.entry(r.trial).update(state="interrupted", ended=_now(), pid=None)
+                    self.entry(trial).update(state="interrupted", ended=_now(), pid=None)
             with contextlib.suppress(Exception):
                 if self.manifest:
                     self.save()

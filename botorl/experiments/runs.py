@@ -88,11 +88,9 @@ def read_eval_csv(path: Path, metric: Metric = Metric()) -> tuple[np.ndarray, np
             raise ValueError(f"{path.name} has no env_step/{col} columns (header {reader.fieldnames})")
         by_step: dict[float, float] = {}
         for row in reader:
-            step, succ = _num(row.get("env_step")), _num(row.get(col))
-            if col != "success":
-                succ = metric.of(math.nan, succ)
-            if math.isfinite(step) and step >= 0 and math.isfinite(succ):
-                by_step[step] = succ
+            step, value = _num(row.get("env_step")), metric.of(_num(row.get("success")), _num(row.get("return")))
+            if math.isfinite(step) and step >= 0 and math.isfinite(value):
+                by_step[step] = value
     steps = np.asarray(sorted(by_step), dtype=np.float64)
     return steps, np.asarray([by_step[s] for s in steps], dtype=np.float64)
 
@@ -218,25 +216,22 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
         if not top.is_dir():
             raise BotorlError(f"{top} is not a directory; give run or sweep directories.")
         for root, subdirs, files in os.walk(top):
-            root_p = Path(root).resolve()
             if "summary.json" in files or ("config.json" in files and ("eval.csv" in files or "checkpoints" in subdirs)):
-                subdirs[:] = []
-                if root_p in seen:
-                    continue
-                seen.add(root_p)
                 loaded = (_load_run(Path(root)) if "summary.json" in files
                           else Skipped(Path(root), "no summary.json (the run never got far enough to write one)"))
-                (runs if isinstance(loaded, Run) else skipped).append(loaded)
             elif "population.json" in files:  # a population: its members are run directories
                 subdirs[:] = sorted(d for d in subdirs if not d.startswith(".") and d != "checkpoints")
+                continue
             elif "sweep-trial.log" in files:  # a sweep trial whose `botorl run` failed before starting
-                subdirs[:] = []
-                if root_p not in seen:
-                    seen.add(root_p)
-                    last = _last_line(Path(root) / "sweep-trial.log")
-                    skipped.append(Skipped(Path(root), f"the run never started; sweep-trial.log ends: {last}"))
+                last = _last_line(Path(root) / "sweep-trial.log")
+                loaded = Skipped(Path(root), f"the run never started; sweep-trial.log ends: {last}")
             else:
                 subdirs[:] = sorted(d for d in subdirs if not d.startswith("."))
+                continue
+            subdirs[:] = []
+            if (resolved := Path(root).resolve()) not in seen:
+                seen.add(resolved)
+                (runs if isinstance(loaded, Run) else skipped).append(loaded)
     label_variants(runs)
     runs.sort(key=lambda r: (r.task, r.label, -99 if r.alpha is None else r.alpha, r.seed or 0))
     return runs, skipped

@@ -108,6 +108,12 @@ def csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
     return buf.getvalue()
 
 
+def md_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
+    """A markdown table: the header, its rule, one line a row."""
+    lines = ["| " + " | ".join(map(str, cells)) + " |" for cells in [header, *rows]]
+    return "\n".join([lines[0], "|" + "---|" * len(header), *lines[1:]])
+
+
 def fmt_float(x: float) -> str:
     return "" if x is None or (isinstance(x, float) and not math.isfinite(x)) else repr(float(x))
 
@@ -159,9 +165,7 @@ def save_figure(fig, path, title: str, **savefig: Any) -> None:
 
 
 def line_label(label: str, alpha: float | None, multi_alpha: bool) -> str:
-    if not multi_alpha:
-        return label
-    return f"{label} α=preset" if alpha is None else f"{label} α={alpha:+.2f}"
+    return f"{label} α={alpha_text(alpha) or 'preset'}" if multi_alpha else label
 
 
 MAX_RESAMPLES = 1_000_000  # 2,000 is the default; more than a million says nothing new and takes hours
