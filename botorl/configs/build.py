@@ -18,7 +18,6 @@ import tyro
 
 from botorl.configs.custom import expand_argv, register_given
 from botorl.configs.methods import resolve_pretrain
-from botorl.envs.registry import get_task
 from botorl.errors import ConfigError
 from botorl.io import read_json_bounded
 from botorl.jaxsetup import check_precision
@@ -99,7 +98,6 @@ def build_config(argv: list[str]):
     pre = _pre_parse(argv)
     resolve_pretrain(pre.method, pre.pretrain)  # the method too: clear errors before tyro's generic ones
     check_precision(pre.precision)
-    get_task(pre.task)
     default = presets.make_preset(pre.task, pre.profile, pre.method, pre.pretrain)
     cfg = tyro.cli(
         schema.RunConfig,
