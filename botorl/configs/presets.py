@@ -109,7 +109,7 @@ def make_preset(task: str, profile: str = "quick", method: str = "boto", pretrai
         # the env executed. Accept them instead of rejecting the file.
         cfg = replace(cfg, data=replace(cfg.data, action_tolerance=0.5))
     reduce = {"quick": _quick, "mid": _mid, "smoke": _smoke}.get(profile)  # full: the preset as it is
-    return _method_defaults(cfg if reduce is None else reduce(cfg, spec), spec)
+    return _method_defaults(cfg if reduce is None else reduce(cfg, spec), dom)
 
 
 def env_record(spec) -> EnvConfig:
@@ -184,13 +184,12 @@ def _smoke(cfg: RunConfig, spec) -> RunConfig:
     )
 
 
-def _method_defaults(cfg: RunConfig, spec) -> RunConfig:
-    """Settings that depend on the method, as WSRL's code runs each (WSRL's launch scripts and
-    configs, zhouzypaul/wsrl; docs/methods.md)."""
+def _method_defaults(cfg: RunConfig, dom: str) -> RunConfig:
+    """Settings that depend on the method on the paper domain ``dom``, as WSRL's code runs each
+    (WSRL's launch scripts and configs, zhouzypaul/wsrl; docs/methods.md)."""
     m = cfg.method
     online = cfg.online
     network = cfg.network
-    dom = _STANDS_IN.get(spec.domain, spec.domain)
     if m in ("calql", "cql", "iql"):
         # Their own loss continued online, UTD 1, batch 256, with the networks of their own
         # papers as WSRL ran its Cal-QL/CQL baselines: 2 critics, no LayerNorm. Offline data
