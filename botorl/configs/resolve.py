@@ -59,9 +59,8 @@ def resolve(cfg: RunConfig) -> RunConfig:
     # a population's shared config holds its first member's seed and alpha
     seed = cfg.seed if cfg.seeds is None else parse_seeds(cfg.seeds)[0]
     given = cfg.alpha if cfg.alphas is None else parse_alphas(cfg.alphas)[0]
-    alpha = None
-    if method.uses_alpha:  # None: the task's (the paper's per-task value)
-        alpha = float(paper_settings(spec)[0] if given is None else given)
+    # given None: the task's (the paper's per-task value)
+    alpha = float(paper_settings(spec)[0] if given is None else given) if method.uses_alpha else None
 
     # Pre-training takes one batch per critic step whatever the online UTD (WSRL's and Cal-QL's
     # offline loops call the plain update); calql/cql continued online get online.utd when
