@@ -26,10 +26,8 @@ class Method:
     finished_episodes_only: bool = False  # fine-tuning batches hold rows of finished episodes only
     batch_layout: str = "utd_rows"  # "utd_rows": one update on utd x B rows | "per_update": utd updates of B
     # Fine-tuning SAC's target entropy per action dimension (None: the agent's rule, -|A|), the
-    # one place it is set (configs/resolve.py fills it). RLPD's -|A|/2 as WSRL ran it. boto and
-    # wsrl -|A|: WSRL's sac_config passes 0.0 and, since its commit f73d11e ("fix target entropy
-    # in SAC, align with CQL"), its SAC agent turns any value >= 0 into -|A| (zhouzypaul/wsrl,
-    # wsrl/agents/sac.py, create; docs/methods.md).
+    # one place it is set (configs/resolve.py fills it). RLPD's -|A|/2 as WSRL ran it; boto and
+    # wsrl -|A|, what WSRL's SAC makes of the 0.0 its config passes (docs/methods.md, its source).
     target_entropy_per_dim: float | None = None
     description: str = ""
 
