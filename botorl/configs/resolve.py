@@ -62,10 +62,9 @@ def resolve(cfg: RunConfig) -> RunConfig:
     # given None: the task's (the paper's per-task value)
     alpha = float(paper_settings(spec)[0] if given is None else given) if method.uses_alpha else None
 
-    # Pre-training takes one batch per critic step whatever the online UTD (WSRL's and Cal-QL's
-    # offline loops call the plain update); calql/cql continued online get online.utd when
-    # fine-tuning starts (pipeline/stages.py, continued_learner), not here, since the same agent
-    # pre-trains.
+    # Pre-training takes one batch per critic step whatever the online UTD, as WSRL's and Cal-QL's
+    # offline loops do; calql/cql continued online get online.utd when fine-tuning starts
+    # (pipeline/stages.py, continued_learner), not here, as the same agent pre-trains first.
     cql = derive(cfg.offline.cql, cfg, calql=(pretrain == "calql"), utd_ratio=1)
     sac = derive(cfg.online.sac, cfg)
     # IQL pre-trains the networks fine-tuning takes over (the paper's: sizes, LayerNorm,
@@ -81,7 +80,6 @@ def resolve(cfg: RunConfig) -> RunConfig:
                    online=replace(cfg.online, sac=sac))
 
 
-# The fields ``validate`` checks are step budgets (0 skips the work) and positive integers.
 BUDGETS = ("offline.steps", "warmup.steps", "boto.boto_steps", "online.steps", "online.random_steps")
 POSITIVE = ("offline.batch_size", "offline.updates_per_call", "offline.log_every", "online.batch_size", "online.utd",
             "online.log_every", "eval.episodes", "eval.interval", "eval.num_envs", "eval.q_pairs", "eval.dense_until",
