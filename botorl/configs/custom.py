@@ -99,17 +99,6 @@ def register_entry(name: str, entry: str, data: str, max_steps: int, *, success_
                                        ref_min_score=ref_min_score, ref_max_score=ref_max_score))
 
 
-def how_to_give(cfg) -> str:
-    """How the user gives a run's own task again (for messages)."""
-    e = cfg.env
-    if e.entry is None:
-        return (f"register it again in this process with botorl.register_task({cfg.task!r}, make_env, ...) (the "
-                f"script that trained it does), then call botorl from that process")
-    return (f"give its entry point again with --env {e.entry} (`botorl resume DIR --env {e.entry}`; eval, export "
-            f"and run --config take it too; run from the folder holding its module, or with that folder on "
-            f"PYTHONPATH), or register it in this process with botorl.register_task({cfg.task!r}, ...)")
-
-
 def register_given(cfg, entry: str | None) -> None:
     """Register a run's own task from ``entry``, the ``--env MODULE:FUNCTION`` the user gave again
     (None: nothing to do). It must be the entry the run recorded: the user says which code runs,
@@ -141,8 +130,15 @@ def ensure_task(cfg) -> None:
     if e.max_steps is None:
         return  # one of botorl's tasks
     if not registry.is_registered(cfg.task):
+        if e.entry is None:
+            how = (f"register it again in this process with botorl.register_task({cfg.task!r}, make_env, ...) (the "
+                   f"script that trained it does), then call botorl from that process")
+        else:
+            how = (f"give its entry point again with --env {e.entry} (`botorl resume DIR --env {e.entry}`; eval, "
+                   f"export and run --config take it too; run from the folder holding its module, or with that "
+                   f"folder on PYTHONPATH), or register it in this process with botorl.register_task({cfg.task!r}, ...)")
         raise ConfigError(f"task {cfg.task!r} is a task of your own, and botorl does not import or call code a run "
-                          f"directory names (its config.json is data); {how_to_give(cfg)}.")
+                          f"directory names (its config.json is data); {how}.")
     u = registry.get_task(cfg.task).user
     if u is None:
         return
