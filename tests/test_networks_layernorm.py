@@ -56,7 +56,7 @@ def test_large_mean_stays_accurate():
 def test_parameter_tree_is_flaxs():
     # Checkpoints written with flax's LayerNorm load into the same tree.
     x = jnp.ones((2, 5))
-    ours = MLP((8, 8), activate_final=True, use_layer_norm=True).init(jax.random.PRNGKey(0), x)
+    ours = MLP((8, 8), use_layer_norm=True).init(jax.random.PRNGKey(0), x)
     ref = jax.tree_util.tree_structure({"params": {"Dense_0": {"kernel": 0, "bias": 0}, "LayerNorm_0": {"scale": 0, "bias": 0},
                                                    "Dense_1": {"kernel": 0, "bias": 0}, "LayerNorm_1": {"scale": 0, "bias": 0}}})
     assert jax.tree_util.tree_structure(ours) == ref

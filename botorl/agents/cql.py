@@ -48,8 +48,6 @@ class CQLConfig(SACConfig):
     num_critics: int = 10  # WSRL pre-trains with the fine-tuning ensemble size
     utd_ratio: int = 1
     max_target_backup: bool = True
-    num_backup_actions: int = 10
-    backup_entropy: bool = False
     cql_n_actions: int = 10
     cql_importance_sample: bool = True
     cql_temp: float = 1.0

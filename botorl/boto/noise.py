@@ -37,10 +37,8 @@ def resolve_weight_fn(weight_fn: WeightSpec) -> Callable[[jax.Array], jax.Array]
         name = weight_fn.strip().lower()
         if name == "linear":
             return lambda t: t
-        if name == "zero":
-            return lambda t: jnp.zeros_like(t)
         try:
-            weight_fn = float(name)
+            weight_fn = 0.0 if name == "zero" else float(name)
         except ValueError:
             raise ConfigError(
                 f"boto noise weight_fn={weight_fn!r} is not known. Use 'linear' (w(t) = t, the "

@@ -63,17 +63,14 @@ class ObjectiveSettings(BOTOConfig):
             "train_actor": bool(config.train_actor),
         })
 
-    def noise_fn(self):
-        return make_noise_fn(self.noise, log_sigma=self.log_sigma, sigma=self.sigma, weight_fn=self.weight_fn,
-                             clip=self.clip)
-
 
 # ----------------------------------------------------------------------------- pure pieces
 
 
 def compute_target(agent, batch, alpha, settings: ObjectiveSettings, k_noise, k_next):
     """The BOTO target of every row: ``(y_bar (B,), a_bar (B, A), ||a - a_bar||^2 (B,), noise info)``."""
-    a_bar, ninfo = settings.noise_fn()(k_noise, batch["actions"])
+    a_bar, ninfo = make_noise_fn(settings.noise, log_sigma=settings.log_sigma, sigma=settings.sigma,
+                                 weight_fn=settings.weight_fn, clip=settings.clip)(k_noise, batch["actions"])
     next_obs = batch["next_observations"]
     k_act, k_sub = jax.random.split(k_next)
     mean, log_std = agent.policy(next_obs)

@@ -36,7 +36,7 @@ class TanhGaussianActor(nn.Module):
 
     @nn.compact
     def __call__(self, observations: jax.Array, training: bool = False):
-        x = MLP(self.hidden_dims, activate_final=True, use_layer_norm=self.use_layer_norm,
+        x = MLP(self.hidden_dims, use_layer_norm=self.use_layer_norm,
                 dropout_rate=self.dropout_rate)(observations, training=training)
         mean = nn.Dense(self.action_dim, kernel_init=nn.initializers.xavier_uniform(), name="mean")(x)
         if self.state_dependent_std:

@@ -63,23 +63,21 @@ class LayerNorm(nn.Module):
 
 
 class MLP(nn.Module):
-    """Dense -> (dropout) -> (LayerNorm) -> relu per hidden layer (the RLPD order)."""
+    """Dense -> (dropout) -> (LayerNorm) -> relu per layer (the RLPD order), the last included."""
 
     hidden_dims: Sequence[int]
-    activate_final: bool = False
     use_layer_norm: bool = False
     dropout_rate: float | None = None
 
     @nn.compact
     def __call__(self, x: jax.Array, training: bool = False) -> jax.Array:
-        for i, size in enumerate(self.hidden_dims):
+        for size in self.hidden_dims:
             x = nn.Dense(size, kernel_init=nn.initializers.xavier_uniform())(x)  # as jaxrl/rlpd
-            if i + 1 < len(self.hidden_dims) or self.activate_final:
-                if self.dropout_rate is not None and self.dropout_rate > 0:
-                    x = nn.Dropout(rate=self.dropout_rate)(x, deterministic=not training)
-                if self.use_layer_norm:
-                    x = LayerNorm()(x)
-                x = nn.relu(x)
+            if self.dropout_rate is not None and self.dropout_rate > 0:
+                x = nn.Dropout(rate=self.dropout_rate)(x, deterministic=not training)
+            if self.use_layer_norm:
+                x = LayerNorm()(x)
+            x = nn.relu(x)
         return x
 
 
@@ -92,7 +90,7 @@ class QNetwork(nn.Module):
     @nn.compact
     def __call__(self, *inputs: jax.Array) -> jax.Array:
         x = inputs[0] if len(inputs) == 1 else jnp.concatenate(inputs, axis=-1)
-        x = MLP(self.hidden_dims, activate_final=True, use_layer_norm=self.use_layer_norm)(x)
+        x = MLP(self.hidden_dims, use_layer_norm=self.use_layer_norm)(x)
         return nn.Dense(1, kernel_init=nn.initializers.xavier_uniform())(x)[..., 0]
 
 
