@@ -211,3 +211,13 @@ def read_json_bounded(path: str | os.PathLike, limit: int = JSON_LIMIT) -> Any:
         return json.loads(text)
     except RecursionError:
         raise ValueError(f"{Path(path).name} is nested too deeply to be a botorl file") from None
+
+
+def read_json_object(path: str | os.PathLike, limit: int = JSON_LIMIT) -> dict[str, Any] | None:
+    """The JSON object in ``path`` (a regular file of at most ``limit`` bytes), else None: for
+    files botorl may find missing, cut short or not its own (a sweep's, a run's being written)."""
+    try:
+        data = read_json_bounded(path, limit)
+        return data if isinstance(data, dict) else None
+    except (OSError, ValueError):
+        return None

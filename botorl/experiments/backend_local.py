@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from botorl.experiments.child import launcher
-from botorl.io import JSON_LIMIT, atomic_write_json, open_regular, read_json_bounded
+from botorl.io import atomic_write_json, open_regular, read_json_object
 
 ABORT_WAIT_S = 60.0  # a stopped trial's last update chunk and checkpoint; SLURM's default KillWait is 30 s
 TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan detection)
@@ -159,20 +159,11 @@ def stop_recorded(records: Any, timeout: float = 10.0) -> int:
     return len(victims)
 
 
-def read_json(path: Path, limit: int = JSON_LIMIT) -> dict[str, Any] | None:
-    """The JSON object in ``path`` (a regular file of at most ``limit`` bytes), else None."""
-    try:
-        data = read_json_bounded(path, limit)
-        return data if isinstance(data, dict) else None
-    except (OSError, ValueError):
-        return None
-
-
 def stop_orphan(run_dir: Path, timeout: float = 15.0) -> bool:
     """Stop a trial process left from an earlier sweep of this directory (same host only): the
     process the trial's pid file records (pid and start time), if it still runs and still works
     on this directory."""
-    info = read_json(Path(run_dir) / TRIAL_PID)
+    info = read_json_object(Path(run_dir) / TRIAL_PID)
     if info is None or info.get("host") != socket.gethostname():
         return False
     pid = recorded_alive(info)

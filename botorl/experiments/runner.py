@@ -29,11 +29,11 @@ from botorl.configs.members import population
 from botorl.configs.methods import get_method
 from botorl.configs.schema import to_dict
 from botorl.errors import BotorlError, ConfigError, Interrupted
-from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, read_json, stop_orphan
+from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, stop_orphan
 from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial, group_populations
-from botorl.io import SWEEP_JSON_LIMIT, append_text, atomic_write_json, read_bounded
+from botorl.io import SWEEP_JSON_LIMIT, append_text, atomic_write_json, read_bounded, read_json_object
 from botorl.pipeline import preempt, shared_pretrain
 from botorl.pipeline.rundir import POPULATION_FILE, RunLock
 
@@ -54,7 +54,7 @@ def _now() -> str:
 
 def run_status(run_dir: Path) -> str | None:
     """A run's summary.json status, or a population directory's population.json status."""
-    summary = read_json(Path(run_dir) / "summary.json") or read_json(Path(run_dir) / POPULATION_FILE)
+    summary = read_json_object(Path(run_dir) / "summary.json") or read_json_object(Path(run_dir) / POPULATION_FILE)
     return None if summary is None else str(summary.get("status"))
 
 
@@ -88,8 +88,8 @@ def same_data(cfg, run_dir: Path) -> bool:
     """Whether the trial's run directory reads its offline data (data.path, data.demos) from where
     ``cfg`` says: then its `botorl resume` gets --allow-pickle, as the user named that data when
     starting the sweep (a pickle-format task resumes); a path only the directory names stays refused."""
-    pop = read_json(Path(run_dir) / POPULATION_FILE)
-    saved = pop.get("config") if pop is not None else read_json(Path(run_dir) / "config.json")
+    pop = read_json_object(Path(run_dir) / POPULATION_FILE)
+    saved = pop.get("config") if pop is not None else read_json_object(Path(run_dir) / "config.json")
     data = saved.get("data") if isinstance(saved, dict) else None
     return isinstance(data, dict) and data.get("path") == cfg.data.path and data.get("demos") == cfg.data.demos
 
@@ -155,7 +155,7 @@ class Sweep:
         return self.configs[trial.relpath]
 
     def _load_manifest(self) -> None:
-        old = read_json(self.out / MANIFEST, SWEEP_JSON_LIMIT) or {}
+        old = read_json_object(self.out / MANIFEST, SWEEP_JSON_LIMIT) or {}
         cleanup_previous_ray(old)
         old_grid, grid = old.get("grid") or {}, self.grid.to_json()
         for field in ("profile", "overrides"):

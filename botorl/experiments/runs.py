@@ -21,8 +21,7 @@ from botorl.configs.methods import METHODS
 from botorl.configs.schema import flatten
 from botorl.envs.metric import Metric
 from botorl.envs.metric import of_config as metric_of_config
-from botorl.experiments.backend_local import read_json
-from botorl.io import CSV_LIMIT, read_bounded, read_json_bounded
+from botorl.io import CSV_LIMIT, read_bounded, read_json_bounded, read_json_object
 
 
 @dataclasses.dataclass
@@ -137,7 +136,7 @@ def _load_run(run_dir: Path) -> Run | Skipped:
     if status != "finished":
         error = f" ({summary['error']})" if summary.get("error") else ""
         return Skipped(run_dir, f"status is {status!r}, not 'finished'{error}")
-    config = read_json(run_dir / "config.json") or {}
+    config = read_json_object(run_dir / "config.json") or {}
 
     def field(name: str) -> Any:
         return summary[name] if summary.get(name) is not None else config.get(name)
