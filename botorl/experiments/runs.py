@@ -215,22 +215,25 @@ def find_runs(dirs: Iterable[Path]) -> tuple[list[Run], list[Skipped]]:
         if not top.is_dir():
             raise BotorlError(f"{top} is not a directory; give run or sweep directories.")
         for root, subdirs, files in os.walk(top):
-            if "summary.json" in files or ("config.json" in files and ("eval.csv" in files or "checkpoints" in subdirs)):
-                loaded = (_load_run(Path(root)) if "summary.json" in files
-                          else Skipped(Path(root), "no summary.json (the run never got far enough to write one)"))
-            elif "population.json" in files:  # a population: its members are run directories
+            is_run = "summary.json" in files or ("config.json" in files and ("eval.csv" in files or "checkpoints" in subdirs))
+            if not is_run and "population.json" in files:  # a population: its members are run directories
                 subdirs[:] = sorted(d for d in subdirs if not d.startswith(".") and d != "checkpoints")
                 continue
-            elif "sweep-trial.log" in files:  # a sweep trial whose `botorl run` failed before starting
-                last = _last_line(Path(root) / "sweep-trial.log")
-                loaded = Skipped(Path(root), f"the run never started; sweep-trial.log ends: {last}")
-            else:
+            if not is_run and "sweep-trial.log" not in files:  # a folder of runs: searched further down
                 subdirs[:] = sorted(d for d in subdirs if not d.startswith("."))
                 continue
-            subdirs[:] = []
-            if (resolved := Path(root).resolve()) not in seen:
-                seen.add(resolved)
-                (runs if isinstance(loaded, Run) else skipped).append(loaded)
+            subdirs[:] = []  # a run, or a sweep trial whose `botorl run` failed before starting
+            here = Path(root)
+            if (resolved := here.resolve()) in seen:  # reached again through overlapping folders: read once
+                continue
+            seen.add(resolved)
+            if "summary.json" in files:
+                loaded = _load_run(here)
+            elif is_run:
+                loaded = Skipped(here, "no summary.json (the run never got far enough to write one)")
+            else:
+                loaded = Skipped(here, f"the run never started; sweep-trial.log ends: {_last_line(here / 'sweep-trial.log')}")
+            (runs if isinstance(loaded, Run) else skipped).append(loaded)
     label_variants(runs)
     runs.sort(key=lambda r: (r.task, r.label, -99 if r.alpha is None else r.alpha, r.seed or 0))
     return runs, skipped
