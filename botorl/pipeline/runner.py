@@ -338,11 +338,12 @@ def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict,
     after_10k = [r for r in rows if r["env_step"] >= 10_000]
     final = rows[-1] if rows else None
     metric = metric_of_config(cfg)
-    at = {"initial": initial, "10k": after_10k[0] if after_10k else None, "final": final}
     # the return always; success or the normalised score where it is the task's metric (absent, not 0, elsewhere)
-    points = {f"{name}_{when}": (row["return"] if name == "return" else metric.of(row["success"], row["return"]))
-              if row else None for name in ("success", "return", "score") if name in ("return", metric.name)
-              for when, row in at.items()}
+    points = {}
+    for name in (n for n in ("success", "return", "score") if n in ("return", metric.name)):
+        for when, row in (("initial", initial), ("10k", after_10k[0] if after_10k else None), ("final", final)):
+            points[f"{name}_{when}"] = None if row is None else \
+                row["return"] if name == "return" else metric.of(row["success"], row["return"])
     out = {
         "task": cfg.task,
         "method": cfg.method,
