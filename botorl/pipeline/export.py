@@ -238,9 +238,11 @@ class OnnxPolicy:
             raise ConfigError(f"{self.path or 'the model'} takes {[i.name for i in ins]} and gives "
                               f"{[o.name for o in outs]}; a botorl policy takes '{INPUT_NAME}' and gives "
                               f"'{OUTPUT_NAME}'.")
-        # the width of (batch, width) observations and actions; None where the model leaves it open
-        self.obs_dim, self.action_dim = (s[-1] if len(s) == 2 and isinstance(s[-1], int) else None
-                                         for s in (ins[0].shape, next(o.shape for o in outs if o.name == OUTPUT_NAME)))
+        def width(shape):  # of (batch, width) observations or actions; None where the model leaves it open
+            return shape[-1] if len(shape) == 2 and isinstance(shape[-1], int) else None
+
+        self.obs_dim = width(ins[0].shape)
+        self.action_dim = width(next(o.shape for o in outs if o.name == OUTPUT_NAME))
 
     def __call__(self, observations) -> np.ndarray:
         obs = np.asarray(observations, np.float32)
