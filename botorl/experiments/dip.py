@@ -116,10 +116,10 @@ def dip_runs_csv(dips: Sequence[Dip], relative_to: Path | None = None, metric: s
     ``metric`` names the step-0 column (``<metric>_0``)."""
     header = ["task", "method", "alpha", "seed", f"{metric.replace(' ', '_')}_0", "lowest", "lowest_step", "evals_in_window",
               "last_step_in_window", "dip", "path"]
-    return csv_text(header, ([r.task, r.label, "" if r.alpha is None else repr(r.alpha), "" if r.seed is None else r.seed,
-                              fmt_float(d.initial), fmt_float(d.lowest), f"{d.lowest_step:g}", d.evals,
-                              f"{d.last_step:g}", fmt_float(d.value), relative(r.path, relative_to)]
-                             for d in dips for r in [d.run]))
+    return csv_text(header, ([d.run.task, d.run.label, "" if d.run.alpha is None else repr(d.run.alpha),
+                              "" if d.run.seed is None else d.run.seed, fmt_float(d.initial), fmt_float(d.lowest),
+                              f"{d.lowest_step:g}", d.evals, f"{d.last_step:g}", fmt_float(d.value),
+                              relative(d.run.path, relative_to)] for d in dips))
 
 
 def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float, metric: str = "success") -> str:

@@ -367,8 +367,10 @@ class AlphaSelection:
         ]
         labels_per_task = Counter(c.task for c in self.choices)  # one choice per (task, label)
         for c in self.choices:
-            runner_up = (f"; next alpha = {c.ranking[1][0]:g} ({c.ranking[1][1]:.3f} in selection)"
-                         if len(c.ranking) > 1 else "")
+            runner_up = ""
+            if len(c.ranking) > 1:
+                a2, s2, _ = c.ranking[1]
+                runner_up = f"; next alpha = {a2:g} ({s2:.3f} in selection)"
             which = f"{c.label}: " if labels_per_task[c.task] > 1 else ""
             se = f" ± {c.se:.3f}" if math.isfinite(c.se) else ""
             ci = f", {pct} CI [{c.lo:.3f}, {c.hi:.3f}]" if math.isfinite(c.lo) else f", no CI from {c.n} seed"
