@@ -24,7 +24,6 @@ from typing import Any, Callable, Optional
 
 import jax
 import tyro
-from jax._src import xla_bridge
 
 from botorl.agents.sac import SACAgent, SACConfig
 from botorl.benchmarks import flops as flopmod
@@ -146,13 +145,22 @@ def _summarize(row: dict[str, Any], peak: float) -> None:
         row["peak_fraction"] = row["gflops"] / peak
 
 
+def _backend_started() -> bool:
+    """Whether JAX's XLA backend has started; True where this JAX does not say."""
+    try:
+        from jax._src import xla_bridge  # lazy: JAX's private module, so a JAX without it only warns as before
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):
+        return True
+
+
 def run(cfg: BenchConfig, twin: Callable[[BenchConfig], Any] | None = None) -> dict[str, Any]:
     """``twin``: starts the d3rlpy worker (benchmarks/against_d3rlpy.py) whose same updates are
     timed in the same rounds, once the options are checked."""
     if cfg.threads == 1:
         # XLA reads XLA_FLAGS when its backend starts, not when jax is imported (this module
         # imports it): the flag is too late only once a backend exists (bench called in-process)
-        if xla_bridge.backends_are_initialized():
+        if _backend_started():
             _log("bench: --threads 1 must be set before JAX starts; XLA keeps its threads")
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
                                    " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1").strip()
