@@ -168,9 +168,10 @@ def stage_loop(agents, update: Callable, chunk: Callable[[int], int], step: int,
     """Every stage's loop, from ``step`` to ``schedule.total``: ``update(agents, step, k)`` ->
     (agents, metrics or None: the update added its own) runs k = ``chunk(step)`` updates in one
     jitted call (the offline stages) or one online step; the window's means are checked (``check``
-    may raise; at every call with ``check_every_call``) and logged at the schedule's points. After
-    a SIGTERM / SIGINT: the checkpoint of this very step (``save(step, agents, interrupted=True)``:
-    with the metrics window), then ``Interrupted``. Returns the agents."""
+    may raise; at every call with ``check_every_call``) and logged, the agents evaluated and saved
+    (``save(step, agents, False)``) at the schedule's points. After a SIGTERM / SIGINT: the
+    checkpoint of this very step (``interrupted`` True: with the metrics window), then
+    ``Interrupted``. Returns the agents."""
     while step < schedule.total:
         k = chunk(step)
         agents, metrics = update(agents, step, k)
