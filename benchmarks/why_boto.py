@@ -25,7 +25,16 @@ from pathlib import Path
 import numpy as np
 
 from botorl.experiments.pairs import Pair, read_pairs_csv
-from botorl.experiments.stats import EQUAL, bootstrap_mean_ci, fmt_ci, pyplot, save_figure, t_interval, wilcoxon_p
+from botorl.experiments.stats import (
+    ZERO,
+    bootstrap_mean_ci,
+    fmt_ci,
+    holm,
+    pyplot,
+    save_figure,
+    t_interval,
+    wilcoxon_signed_rank,
+)
 
 ENDPOINTS = ("dip", "success_10k")
 # arm -> how its runs are labelled in paired.csv (label without variants, alpha, variant test)
@@ -112,18 +121,6 @@ def block_bootstrap(d: Diffs, n_boot: int = N_BOOT, seed: int = 0) -> tuple[floa
     return float(lo), float(hi)
 
 
-def holm(pvalues: list[float]) -> list[float]:
-    """Holm's step-down adjusted p-values over all the tests given, as the plan fixes the family
-    (a test without data, p nan, stays nan but still counts in m: conservative)."""
-    idx = [i for i, p in enumerate(pvalues) if math.isfinite(p)]
-    order = sorted(idx, key=lambda i: pvalues[i])
-    m, out, running = len(pvalues), [math.nan] * len(pvalues), 0.0
-    for rank, i in enumerate(order):
-        running = max(running, min(1.0, (m - rank) * pvalues[i]))
-        out[i] = running
-    return out
-
-
 def name(arm: str) -> str:
     return "(a) WSRL" if arm == "a" else f"({arm}) {ARMS[arm]}"
 
@@ -138,8 +135,8 @@ def primary_rows(t: dict) -> list[dict]:
                 "endpoint": endpoint, "comparison": f"{name(x)} − {name(y)}", "n": len(v),
                 "mean": float(v.mean()) if len(v) else math.nan,
                 "boot": bootstrap_mean_ci(v, n_boot=N_BOOT), "block": block_bootstrap(d), "t": t_interval(v),
-                "bew": (int((v > EQUAL).sum()), int((abs(v) <= EQUAL).sum()), int((v < -EQUAL).sum())),
-                "p": wilcoxon_p(v),
+                "bew": (int((v > ZERO).sum()), int((abs(v) <= ZERO).sum()), int((v < -ZERO).sum())),
+                "p": wilcoxon_signed_rank(v)[0],
             })
     for r, adj in zip(rows, holm([r["p"] for r in rows])):
         r["p_holm"] = adj

@@ -90,7 +90,7 @@ def test_pairs_are_runs_of_one_pretraining_and_the_statistics_match_a_hand_compu
     half = 3.182446 * math.sqrt(0.1075 / 3) / 2
     assert dip.t_lo == pytest.approx(0.125 - half, abs=1e-5) and dip.t_hi == pytest.approx(0.125 + half, abs=1e-5)
     # Wilcoxon: the zeros dropped, 2 positive differences: exact two-sided p = 2 * 1/4
-    assert dip.wilcoxon_p == pytest.approx(0.5)
+    assert dip.wilcoxon_p == pytest.approx(0.5) and dip.wilcoxon_method == "exact"
     # the bootstrap CI lies inside the range of the differences and brackets the mean
     assert d.min() <= dip.boot_lo <= 0.125 <= dip.boot_hi <= d.max()
     ten = cells[("boto+calql", "success_10k")]

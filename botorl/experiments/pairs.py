@@ -26,7 +26,7 @@ from botorl.envs.metric import Metric
 from botorl.experiments.dip import DIP_WINDOW, run_dip
 from botorl.experiments.runs import Run, group_by, relative
 from botorl.experiments.stats import (
-    EQUAL,
+    ZERO,
     alpha_text,
     bootstrap_mean_ci,
     check_bootstrap,
@@ -39,7 +39,7 @@ from botorl.experiments.stats import (
     pyplot,
     save_figure,
     t_interval,
-    wilcoxon_p,
+    wilcoxon_signed_rank,
 )
 from botorl.io import CSV_LIMIT, atomic_write_text, read_bounded
 from botorl.pipeline.shared_pretrain import fingerprint_of
@@ -180,6 +180,7 @@ class PairedCell:
     equal: int
     worse: int
     wilcoxon_p: float
+    wilcoxon_method: str  # 'exact', 'normal' (with ties) or 'none' (no nonzero difference)
     noise_floor = property(_noise_floor)
 
 
@@ -198,8 +199,8 @@ def paired_table(pairs: Sequence[Pair], *, quantities: Sequence[str] = QUANTITIE
                 first.task, first.label, first.alpha, first.reference, q, n,
                 mean_se([p.ref[q] for p in group])[0], mean_se([p.other[q] for p in group])[0],
                 mean, se, lo, hi, t_lo, t_hi,
-                sum(v > EQUAL for v in fin), sum(abs(v) <= EQUAL for v in fin), sum(v < -EQUAL for v in fin),
-                wilcoxon_p(d),
+                sum(v > ZERO for v in fin), sum(abs(v) <= ZERO for v in fin), sum(v < -ZERO for v in fin),
+                *wilcoxon_signed_rank(d),
             ))
     return cells
 
@@ -256,7 +257,8 @@ def paired_markdown(cells: Sequence[PairedCell], confidence: float, *,
         ([c.task, f"{c.label} − {c.reference}" + (" (noise floor)" if c.noise_floor else ""), alpha_text(c.alpha),
           _name(c.quantity, (metrics or {}).get(c.task)), c.n, f"{c.ref_mean:.2f}", f"{c.other_mean:.2f}",
           f"{c.mean:+.3f}", fmt_ci(c.boot_lo, c.boot_hi, 3), fmt_ci(c.t_lo, c.t_hi, 3),
-          f"{c.better} / {c.equal} / {c.worse}", "-" if not math.isfinite(c.wilcoxon_p) else f"{c.wilcoxon_p:.3f}"]
+          f"{c.better} / {c.equal} / {c.worse}",
+          "-" if not math.isfinite(c.wilcoxon_p) else f"{c.wilcoxon_p:.3f} ({c.wilcoxon_method})"]
          for c in cells if c.quantity in quantities))
 
 
@@ -270,7 +272,7 @@ def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") ->
         for p in group:
             j = rng.uniform(-0.015, 0.015)
             ax.plot([0, 1], [p.ref[quantity] + j, p.other[quantity] + j], "-o", ms=3, lw=0.8, alpha=0.6,
-                    color="tab:green" if p.diff(quantity) > EQUAL else "tab:red" if p.diff(quantity) < -EQUAL
+                    color="tab:green" if p.diff(quantity) > ZERO else "tab:red" if p.diff(quantity) < -ZERO
                     else "grey")
         mean, _, n = mean_se([p.diff(quantity) for p in group])
         ax.set_xticks([0, 1], [group[0].reference, group[0].label.replace(" [", "\n[")], fontsize=7)

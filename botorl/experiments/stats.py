@@ -80,7 +80,7 @@ def bootstrap_mean_ci(
     return float(lo), float(hi)
 
 
-EQUAL = 1e-9  # differences within this are ties
+ZERO = 1e-9  # |d| <= ZERO counts as a zero ("equal") difference, and |d|s this close as tied
 
 
 def t_interval(values: Sequence[float], confidence: float = 0.95) -> tuple[float, float]:
@@ -92,12 +92,130 @@ def t_interval(values: Sequence[float], confidence: float = 0.95) -> tuple[float
     return mean - half, mean + half
 
 
-def wilcoxon_p(values: Sequence[float]) -> float:
-    """Two-sided Wilcoxon signed-rank p-value; zero differences dropped; nan if none is left."""
-    d = np.asarray([v for v in values if math.isfinite(v) and abs(v) > EQUAL], dtype=np.float64)
-    if d.size == 0:
+def _abs_ranks(a: np.ndarray) -> tuple[np.ndarray, list[int]]:
+    """Average ranks of ``a`` (1 = smallest) and the sizes of its tie groups; values within
+    ZERO of their neighbour tie, so that 0.7 - 0.4 and 0.3 are one value, not two."""
+    order = np.argsort(a, kind="stable")
+    ranks, sizes = np.empty(a.size, np.float64), []
+    start = 0
+    for i in range(1, a.size + 1):
+        if i == a.size or a[order[i]] - a[order[i - 1]] > ZERO:
+            ranks[order[start:i]] = (start + 1 + i) / 2  # the mean of ranks start+1 .. i
+            sizes.append(i - start)
+            start = i
+    return ranks, sizes
+
+
+def _subset_sum_counts(n: int) -> np.ndarray:
+    """counts[w] = how many subsets of {1, ..., n} sum to w: W+'s null distribution times 2^n
+    (dynamic programming; int64 is exact, 2^50 fits)."""
+    counts = np.zeros(n * (n + 1) // 2 + 1, np.int64)
+    counts[0] = 1
+    for k in range(1, n + 1):
+        counts[k:] = counts[k:] + counts[:-k]  # the right side is evaluated before the write
+    return counts
+
+
+EXACT_MAX_N = 50  # the plan's limit for the exact test
+
+
+def wilcoxon_signed_rank(d: Sequence[float]) -> tuple[float, str]:
+    """Two-sided Wilcoxon signed-rank p, and the method used, as a plan states it: zeros
+    (|d| <= ZERO) and non-finite values dropped; 'exact' (the null distribution of W+, the rank
+    sum of the positive d, counted by dynamic programming) when no |d| ties and n <= 50, else
+    'normal': z = (W+ - n(n+1)/4) / sqrt(n(n+1)(2n+1)/24 - sum(t^3 - t)/48) over tie groups of
+    size t, no continuity correction. (nan, 'none') when no difference is left. botorl's own
+    code, so the p does not change with the installed SciPy (scipy.stats.wilcoxon's default
+    method has changed between versions)."""
+    x = np.asarray([v for v in d if v is not None and math.isfinite(v) and abs(v) > ZERO], dtype=np.float64)
+    n = int(x.size)
+    if n == 0:
+        return math.nan, "none"
+    ranks, ties = _abs_ranks(np.abs(x))
+    w_plus = float(ranks[x > 0].sum())
+    if max(ties) == 1 and n <= EXACT_MAX_N:
+        counts = _subset_sum_counts(n)
+        w = int(round(w_plus))
+        total = float(2**n)
+        below, above = counts[: w + 1].sum() / total, counts[w:].sum() / total
+        return min(1.0, 2 * min(below, above)), "exact"
+    mean = n * (n + 1) / 4
+    var = n * (n + 1) * (2 * n + 1) / 24 - sum(t**3 - t for t in ties) / 48
+    z = (w_plus - mean) / math.sqrt(var)
+    return float(min(1.0, 2 * stats.norm.sf(abs(z)))), "normal"
+
+
+def holm(pvalues: Sequence[float]) -> list[float]:
+    """Holm's step-down adjusted p-values over all the tests given: sorted ascending, the k-th is
+    max over j <= k of min(1, (m - j + 1) p_(j)). A test without data (p nan) stays nan but
+    still counts in m, as a plan that names it fixes the family (conservative)."""
+    idx = [i for i, p in enumerate(pvalues) if math.isfinite(p)]
+    order = sorted(idx, key=lambda i: pvalues[i])
+    m, out, running = len(pvalues), [math.nan] * len(pvalues), 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * pvalues[i]))
+        out[i] = running
+    return out
+
+
+def block_range(values: Sequence[float], blocks: Sequence[str]) -> tuple[float, float, list[tuple[str, float]]]:
+    """The smallest and largest block mean, and each block's mean (sorted by block name); nan,
+    nan, [] without values. Reported as the "range of block means", never as a CI: with B
+    blocks a whole-block bootstrap draws "all one block" with probability B^-B per block
+    (1/27 for 3), so below ~10 blocks its 95% interval is just this range."""
+    by_block: dict[str, list[float]] = {}
+    for v, b in zip(values, blocks, strict=True):
+        if v is not None and math.isfinite(v):
+            by_block.setdefault(str(b), []).append(float(v))
+    means = [(b, float(np.mean(by_block[b]))) for b in sorted(by_block)]
+    if not means:
+        return math.nan, math.nan, []
+    return min(m for _, m in means), max(m for _, m in means), means
+
+
+def tost(d: Sequence[float], margin: float, alpha: float = 0.05) -> dict[str, Any]:
+    """Two one-sided t-tests of the mean paired difference against the margin +-``margin``:
+    {'ci90': the (1 - 2 alpha) t-interval, 'margin', 'p': the larger one-sided p,
+    'verdict': 'equivalent' (that interval inside [-margin, +margin]), 'different' (else, when
+    the (1 - alpha) t-interval excludes 0) or 'undecided'}. Fewer than 2 values: nan, undecided."""
+    mean, se, n = mean_se(d)
+    ci = t_interval(d, 1 - 2 * alpha)
+    out = {"ci90": ci, "margin": margin, "p": math.nan, "verdict": "undecided"}
+    if n < 2:
+        return out
+    if se > 0:
+        lower = float(stats.t.sf((mean + margin) / se, n - 1))  # H0: mean <= -margin
+        upper = float(stats.t.cdf((mean - margin) / se, n - 1))  # H0: mean >= +margin
+        out["p"] = max(lower, upper)
+    else:  # all differences equal: no spread, the mean is known
+        out["p"] = 0.0 if abs(mean) < margin else 1.0
+    lo95, hi95 = t_interval(d, 1 - alpha)
+    if -margin <= ci[0] and ci[1] <= margin:
+        out["verdict"] = "equivalent"
+    elif lo95 > 0 or hi95 < 0:
+        out["verdict"] = "different"
+    return out
+
+
+Z95 = float(stats.norm.ppf(0.975))  # 1.96: a two-sided 95% normal quantile
+
+
+def detectable_effect(sd: float, n: int, power: float = 0.8, alpha: float = 0.05) -> float:
+    """The smallest paired mean difference a two-sided level-``alpha`` test detects with
+    probability ``power`` from n pairs of per-pair SD ``sd``: (z_{1-alpha/2} + z_power) sd / sqrt(n)
+    (normal approximation; 2.80 sd / sqrt(n) at the defaults); nan for n < 2."""
+    if n < 2 or not math.isfinite(sd):
         return math.nan
-    return float(stats.wilcoxon(d, zero_method="wilcox", alternative="two-sided").pvalue)
+    z = float(stats.norm.ppf(1 - alpha / 2)) + float(stats.norm.ppf(power))
+    return z * sd / math.sqrt(n)
+
+
+def half_width_n(sd: float, half_width: float) -> int:
+    """Pairs needed for a 95% CI half-width of ``half_width`` at per-pair SD ``sd``:
+    ceil((1.96 sd / half_width)^2)."""
+    if not half_width > 0:
+        raise ValueError(f"half_width must be > 0, got {half_width!r}")
+    return math.ceil((Z95 * sd / half_width) ** 2)
 
 
 def csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
