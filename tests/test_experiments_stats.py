@@ -26,6 +26,7 @@ def test_wilcoxon_exact_by_counting_subsets():
     # n = 5, all positive: W+ = 15, only the full set of {1..5} reaches it: P(W+ >= 15) = 1/32,
     # two-sided p = 2/32
     assert wilcoxon_signed_rank([0.1, 0.2, 0.3, 0.4, 0.5]) == (pytest.approx(2 / 32), "exact")
+    assert type(wilcoxon_signed_rank([0.1, 0.2])[0]) is float  # not numpy's: it is written to reports
     # d = 1, -2, 3, 4: W+ = 1 + 3 + 4 = 8; subsets of {1,2,3,4} summing to >= 8: {4,3,1}, {4,3,2},
     # {4,3,2,1} -> 3/16, P(W+ <= 8) = 14/16, p = 2 * 3/16
     assert wilcoxon_signed_rank([1.0, -2.0, 3.0, 4.0]) == (pytest.approx(6 / 16), "exact")
