@@ -173,6 +173,12 @@ def test_an_env_state_naming_a_numpy_function_calls_nothing(tmp_path, monkeypatc
         bad["layers"]["env"]["np_random"]["bit_generator"] = name
         with pytest.raises(ValueError, match="bit generator"):
             set_env_state(env, bad)
+    for name in ("step", "reset", "__class__", "__dict__"):  # a file's data never shadows a method
+        bad = json.loads(json.dumps(good))
+        bad["layers"]["env"]["attrs"][name] = 1
+        with pytest.raises(ValueError, match="no plain attribute"):
+            set_env_state(env, bad)
+    assert callable(env.unwrapped.step)
     env.close()
     assert not marker.exists()
 

@@ -146,6 +146,9 @@ def set_env_state(env: gym.Env, state: dict[str, Any]) -> None:
         if type(obj).__name__ != saved["class"]:
             raise ValueError(f"env state: {path} is a {type(obj).__name__} here, a {saved['class']} in the state")
         for name, enc in saved["attrs"].items():
+            # plain attributes only: a name the file gives must not shadow a method (env.step) or a dunder
+            if not isinstance(name, str) or name.startswith("__") or callable(getattr(type(obj), name, None)):
+                raise ValueError(f"env state: {path} names attribute {name!r}, which is no plain attribute")
             val = _decode(enc)
             cur = obj.__dict__.get(name)
             if isinstance(cur, np.ndarray) and isinstance(val, np.ndarray) and cur.shape == val.shape \
