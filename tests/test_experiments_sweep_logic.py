@@ -117,7 +117,7 @@ def test_retry_limit_and_user_errors(tmp_path, fake, monkeypatch, capsys):
     assert len(starts(out / "t1/wsrl/seed0")) == 2  # 1 + max_retries launches
     assert "FAILED t1/wsrl/seed0: exited with code 1" in capsys.readouterr().err
     monkeypatch.setenv("FAKE_EXIT", "2")  # BotorlError: a retry cannot help
-    assert sweep_main(args) == 1
+    assert sweep_main(args) == 2  # every failed trial refused its input: the sweep's exit 2 too (issue 51)
     assert len(starts(out / "t1/wsrl/seed0")) == 3
     monkeypatch.delenv("FAKE_EXIT")
     assert sweep_main(args) == 0  # the same command again retries the failed trial
@@ -285,7 +285,7 @@ def test_orphan_of_an_earlier_sweep_is_stopped(tmp_path):
     sleeper = [sys.executable, "-c", "import time; time.sleep(120)"]
     from botorl.experiments.backend_local import TOKEN_ENV, sweep_token
 
-    token = sweep_token()  # the orphan was started by a sweep: it carries the sweep's token (issue 39)
+    token = sweep_token(tmp_path)  # the orphan was started by a sweep of tmp_path: it carries its token (issue 39)
     orphan = subprocess.Popen(sleeper + [str(run_dir.resolve())], env={**os.environ, TOKEN_ENV: token})
     stranger = subprocess.Popen(sleeper + ["unrelated"])
     bystander = subprocess.Popen(sleeper + [str(run_dir.resolve())])  # works on the directory, no sweep started it
@@ -299,22 +299,22 @@ def test_orphan_of_an_earlier_sweep_is_stopped(tmp_path):
         for tok in (None, token, "0" * 32):
             write_json_atomic(run_dir / TRIAL_PID, {"pid": bystander.pid, "start": start_time(bystander.pid),
                                                     "host": host, "token": tok})
-            assert not stop_orphan(run_dir)
+            assert not stop_orphan(run_dir, tmp_path)
         assert bystander.poll() is None
         write_json_atomic(run_dir / TRIAL_PID, {"pid": stranger.pid, "start": start_time(stranger.pid), "host": host})
-        assert not stop_orphan(run_dir)  # a pid that is not this trial's is never touched
+        assert not stop_orphan(run_dir, tmp_path)  # a pid that is not this trial's is never touched
         assert stranger.poll() is None
         # the trial's pid with another start time: the pid of a process that ended, reused
         write_json_atomic(run_dir / TRIAL_PID, {"pid": orphan.pid, "start": start_time(orphan.pid) - 1, "host": host})
-        assert not stop_orphan(run_dir)
+        assert not stop_orphan(run_dir, tmp_path)
         write_json_atomic(run_dir / TRIAL_PID, {"pid": orphan.pid, "host": host})  # no start time: not a record
-        assert not stop_orphan(run_dir)
+        assert not stop_orphan(run_dir, tmp_path)
         assert orphan.poll() is None
         write_json_atomic(run_dir / TRIAL_PID, {"pid": orphan.pid, "start": start_time(orphan.pid), "host": host})
-        assert not stop_orphan(run_dir)  # no token recorded
+        assert not stop_orphan(run_dir, tmp_path)  # no token recorded
         write_json_atomic(run_dir / TRIAL_PID, {"pid": orphan.pid, "start": start_time(orphan.pid), "host": host,
                                                 "token": token})
-        assert stop_orphan(run_dir)
+        assert stop_orphan(run_dir, tmp_path)
         assert orphan.wait(timeout=20) == -signal.SIGTERM
     finally:
         for p in (orphan, stranger, bystander):

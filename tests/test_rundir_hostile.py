@@ -47,8 +47,10 @@ def _kill(*procs):
 # ----------------------------------------------------------------------------- 1. the sweep's Ray cleanup
 def test_ray_cleanup_deletes_and_signals_only_what_it_recorded(tmp_path):
     from botorl.experiments.backend_local import process_record
-    from botorl.experiments.backend_ray import cleanup_previous
+    from botorl.experiments.backend_ray import cleanup_previous, make_ray_temp_dir
 
+    out = tmp_path / "sweep"  # the sweep folder whose sweep.json is read
+    out.mkdir()
     ray_dir = tempfile.mkdtemp(prefix="botorl-ray-", dir="/tmp")  # as anyone on the machine can make
     link = Path(tempfile.mkdtemp(prefix="botorl-ray-", dir="/tmp"))
     victim = tmp_path / "precious"
@@ -61,30 +63,34 @@ def test_ray_cleanup_deletes_and_signals_only_what_it_recorded(tmp_path):
 
     bystander = subprocess.Popen(SLEEPER + [needle, str(link)])  # mentions both strings
     # the process an earlier sweep started carries that sweep's secret token (issue 39)
-    token = sweep_token()
+    token = sweep_token(out)
     recorded = subprocess.Popen(SLEEPER, env={**os.environ, TOKEN_ENV: token})
+    made = make_ray_temp_dir(out)  # the dir the earlier sweep of `out` made
     try:
         # issue 39: the bystander's real pid and start time (world-readable in /proc), with or
         # without a token, are no order to stop it
         real = {"pid": bystander.pid, "start": start_time(bystander.pid)}
         for manifest in ({"ray_local_temp_dir": needle}, {"ray_local_temp_dir": str(link)},
                          {"ray_local_temp_dir": str(victim)}, {"ray_local_temp_dir": ["/tmp"]},
+                         {"ray_local_temp_dir": ray_dir}, {"ray_local_temp_dir": {**made, "path": ray_dir}},
                          {"ray_local_processes": [{"pid": bystander.pid, "start": 1}, {"pid": bystander.pid},
                                                   "x", {"pid": 1, "start": 0}, {"pid": os.getpid(), "start": 0}]},
                          {"ray_local_processes": [real, {**real, "token": token}, {**real, "token": "0" * 32}]}):
-            cleanup_previous(manifest)
-            assert (victim / "data").read_text() == "keep me", manifest
+            cleanup_previous(manifest, out)
+            assert (victim / "data").read_text() == "keep me" and Path(ray_dir).is_dir(), manifest
             assert bystander.poll() is None, manifest
         assert link.is_symlink()
         # control: the dir and the process the earlier sweep did record go
-        cleanup_previous({"ray_local_temp_dir": ray_dir, "ray_local_processes": [process_record(recorded.pid, token)]})
-        assert not Path(ray_dir).exists()
+        earlier = {"ray_local_temp_dir": made, "ray_local_processes": [process_record(recorded.pid, token)]}
+        cleanup_previous(earlier, out)
+        assert not Path(made["path"]).exists() and Path(ray_dir).is_dir()
         assert recorded.wait(timeout=20) != 0
         assert bystander.poll() is None
     finally:
         _kill(bystander, recorded)
         link.unlink(missing_ok=True)
         shutil.rmtree(ray_dir, ignore_errors=True)
+        shutil.rmtree(made["path"], ignore_errors=True)
 
 
 # ----------------------------------------------------------------------------- 1. locks and appenders

@@ -2,9 +2,9 @@
 ``Dataset`` with raw rewards (docs/tasks.md, "Loaders"): D4RL hdf5, Minari (by id or folder),
 Cal-QL's adroit-binary ``.npy`` pair, DAPG human demos (pickle or botorl's ``.npz``).
 
-Pickle-based files execute code when loaded, so botorl opens them only from a path the user
-named, never by searching, and never inside ``refuse_pickle(origin)`` (paths read back from a
-run directory) unless ``--allow-pickle``.
+Pickle-based files are read by ``safe.read_plain_pickle`` (plain data only, nothing called), and
+only from a path the user named, never by searching, and never inside ``refuse_pickle(origin)``
+(paths read back from a run directory) unless ``--allow-pickle``.
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ import contextlib
 import contextvars
 import json
 import os
-import pickle
 import sys
 from pathlib import Path
 from typing import Callable, Sequence
@@ -24,7 +23,7 @@ from minari import MinariDataset
 
 from botorl.data.dataset import Dataset, validate
 from botorl.data.minari_io import SPLIT_KEY, FlatCacheInvalid, minari_root, read_flat, rebuild_flat
-from botorl.data.safe import check_hdf5, check_npz, regular_file
+from botorl.data.safe import check_hdf5, check_npz, read_plain_pickle, regular_file
 from botorl.envs.adroit import DOOR_SUCCESS_ANGLE
 from botorl.envs.registry import get_task, is_registered
 from botorl.envs.user import flatten_obs, obs_keys_of
@@ -348,10 +347,9 @@ def _load_pickle_array(path: Path, what: str):
                               "pass --allow-pickle to `botorl resume`/`botorl eval`, or name it yourself: `botorl run "
                               f"... --data.path {path}`.")
     try:
-        if path.suffix == ".npy":
-            return np.load(path, allow_pickle=True)
-        with open(path, "rb") as fh:
-            return pickle.load(fh)
+        return read_plain_pickle(path, what)
+    except DataFormatError:
+        raise
     except Exception as err:
         raise DataFormatError(f"{path}: cannot be read as a {what} ({type(err).__name__}: {err}). Check that this "
                               "is the right file (pickle-based files are opened only from paths you name).") from None

@@ -2,13 +2,18 @@
 directory's config.json, which is data, never orders. Only a regular file is opened (a FIFO would
 hang the reader, a device would be read without end); a ``.npz`` is sized from its headers before
 any array is inflated; an HDF5 file that stores data outside itself (external storage, external
-links, virtual datasets) is refused, since it could make botorl read any file or a FIFO.
+links, virtual datasets) is refused, since it could make botorl read any file or a FIFO. A pickle
+(Cal-QL's ``.npy`` object arrays, DAPG's demos) is read by ``read_plain_pickle`` alone, which builds
+nothing but plain data: a pickle that names any other callable is refused before it is called.
 """
 
 from __future__ import annotations
 
+import codecs
+import collections
 import hashlib
 import os
+import pickle
 import resource
 import stat
 import zipfile
@@ -168,3 +173,64 @@ def fingerprint(path: str | os.PathLike | None, minari_root: Path | None = None)
     except OSError as err:
         raise DataFormatError(f"data.path {path}: cannot be read to check it ({err}).") from None
     return {"path": str(path), "size": size, "sha256": h.hexdigest()}
+
+
+# ----------------------------------------------------------------------------- pickles
+# What a pickle may build here: dicts, lists, tuples, numbers, strings, bytes, bools and None (pickle's
+# own opcodes, which name no callable) and NumPy arrays, scalars and dtypes. These are the globals their
+# pickles name, as NumPy 1 (numpy.core) and 2 (numpy._core) spell them, each mapped to the very object
+# (taken from NumPy's own pickles, so no module a file names is imported); ``_codecs.encode`` and
+# ``bytes()`` are how a protocol-2 pickle spells bytes and empty bytes, and OrderedDict is a plain dict.
+
+
+def _latin1(text, encoding="latin1"):
+    if encoding not in ("latin1", "latin-1") or not isinstance(text, str):
+        raise pickle.UnpicklingError(f"_codecs.encode with encoding {encoding!r}")
+    return codecs.encode(text, "latin1")
+
+
+def _empty_bytes() -> bytes:
+    return b""
+
+
+def _plain_globals() -> dict[tuple[str, str], object]:
+    table = {("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype, ("_codecs", "encode"): _latin1,
+             ("collections", "OrderedDict"): collections.OrderedDict, ("builtins", "bytes"): _empty_bytes,
+             ("__builtin__", "bytes"): _empty_bytes}
+    for core in ("numpy.core", "numpy._core"):
+        table[(f"{core}.multiarray", "_reconstruct")] = np.ndarray((0,)).__reduce__()[0]
+        table[(f"{core}.multiarray", "scalar")] = np.float64(0).__reduce__()[0]
+        table[(f"{core}.numeric", "_frombuffer")] = np.zeros(1).__reduce_ex__(5)[0]
+    return table
+
+
+_PLAIN_GLOBALS = _plain_globals()
+
+
+class _PlainUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str):
+        try:
+            return _PLAIN_GLOBALS[(module, name)]
+        except (KeyError, TypeError):
+            raise DataFormatError(f"names {module}.{name}") from None
+
+
+def read_plain_pickle(path: Path, what: str):
+    """The data a pickle file holds (``.npy``: an object array's), built only from plain containers,
+    numbers, strings and NumPy arrays; DataFormatError when it names anything else, which is never
+    called (a pickle's callables can run any code)."""
+    with open(path, "rb") as fh:
+        try:
+            if path.suffix == ".npy":
+                version = np.lib.format.read_magic(fh)
+                read_header = {(1, 0): np.lib.format.read_array_header_1_0,
+                               (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+                if read_header is None:
+                    raise ValueError(f".npy format version {version}, which botorl does not read")
+                read_header(fh)
+            # latin1: the bytes of arrays a Python 2 pickle stored as str (NumPy's advice for np.load)
+            return _PlainUnpickler(fh, encoding="latin1").load()
+        except DataFormatError as err:
+            raise DataFormatError(f"{path}: this {what} {err}, which botorl does not load: botorl unpickles only "
+                                  "dicts, lists, tuples, numbers, strings and NumPy arrays, as anything else a pickle "
+                                  "names could run code. Convert the file to a .npz of plain arrays.") from None

@@ -88,8 +88,17 @@ def _encode_rng(rng) -> dict | None:
     return {"bit_generator": st["bit_generator"], "state": _encode(st)}
 
 
+# The bit generators a state may name: a fixed table, as the name comes from a file (envs.json) and
+# NumPy's namespace holds functions too (np.random.test would run NumPy's test suite).
+BIT_GENERATORS = {bg.__name__: bg for bg in (np.random.PCG64, np.random.PCG64DXSM, np.random.Philox,
+                                             np.random.SFC64, np.random.MT19937)}
+
+
 def _decode_rng(d: dict) -> np.random.Generator:
-    bg = getattr(np.random, d["bit_generator"])()
+    name = d["bit_generator"]
+    if not isinstance(name, str) or name not in BIT_GENERATORS:
+        raise ValueError(f"bit generator {name!r} is none of {', '.join(BIT_GENERATORS)}")
+    bg = BIT_GENERATORS[name]()
     bg.state = _decode(d["state"])
     return np.random.Generator(bg)
 
@@ -137,6 +146,9 @@ def set_env_state(env: gym.Env, state: dict[str, Any]) -> None:
         if type(obj).__name__ != saved["class"]:
             raise ValueError(f"env state: {path} is a {type(obj).__name__} here, a {saved['class']} in the state")
         for name, enc in saved["attrs"].items():
+            # plain attributes only: a name the file gives must not shadow a method (env.step) or a dunder
+            if not isinstance(name, str) or name.startswith("__") or callable(getattr(type(obj), name, None)):
+                raise ValueError(f"env state: {path} names attribute {name!r}, which is no plain attribute")
             val = _decode(enc)
             cur = obj.__dict__.get(name)
             if isinstance(cur, np.ndarray) and isinstance(val, np.ndarray) and cur.shape == val.shape \

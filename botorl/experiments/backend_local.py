@@ -25,15 +25,37 @@ TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan d
 # A sweep signals only processes it started: each carries this variable with the sweep's secret
 # token in its environment (inherited by Ray's daemons, the trials and their children), which
 # /proc/PID/environ shows to this user only. A pid and start time in a file name a process; they
-# do not prove that a sweep started it (anyone can read both from /proc).
+# do not prove that a sweep started it (anyone can read both from /proc). The token names the sweep
+# folder by its identity (device, inode): a file can copy a token, but a copy of the folder (another
+# inode) names none of the original sweep's processes, even those that do carry its token.
 TOKEN_ENV = "BOTORL_SWEEP_TOKEN"
-_TOKEN_FORM = re.compile(r"[0-9a-f]{32}")
+_TOKEN_FORM = re.compile(r"[0-9a-f]{32}-[0-9a-f]+-[0-9a-f]+")
 
 
 @functools.cache
-def sweep_token() -> str:
-    """This process's secret token (made once, 128 random bits)."""
-    return secrets.token_hex(16)
+def _secret() -> str:
+    return secrets.token_hex(16)  # this process's, made once (128 random bits)
+
+
+def folder_identity(path: str | os.PathLike) -> str | None:
+    """``DEVICE-INODE`` of the folder ``path`` (None if it is gone): what a move keeps and a copy does not."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return f"{st.st_dev:x}-{st.st_ino:x}"
+
+
+def sweep_token(out: str | os.PathLike) -> str:
+    """This process's token for its sweep of the folder ``out``: the secret and the folder's identity."""
+    return f"{_secret()}-{folder_identity(out)}"
+
+
+def own_token(token: Any, out: str | os.PathLike) -> bool:
+    """Whether ``token`` (read back from a file) is one a sweep made for the folder ``out`` as it is now."""
+    ident = folder_identity(out)
+    return (ident is not None and isinstance(token, str) and _TOKEN_FORM.fullmatch(token) is not None
+            and token.endswith(f"-{ident}"))
 
 
 def carries_token(pid: int, token: Any) -> bool:
@@ -57,16 +79,26 @@ SINGLE_THREAD_ENV = dict.fromkeys(("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "M
                                    "TF_NUM_INTEROP_THREADS"), "1")
 
 
-def trial_env(single_thread: bool) -> dict[str, str]:
-    """A trial's environment: this process's with the sweep's token (which lets a later sweep stop
-    the trial if orphaned) and, for a trial on one core, SINGLE_THREAD_ENV."""
-    env = {**os.environ, TOKEN_ENV: sweep_token()}
+def trial_env(token: str, single_thread: bool) -> dict[str, str]:
+    """A trial's environment: this process's with the sweep's ``token`` (which lets a later sweep
+    stop the trial if orphaned) and, for a trial on one core, SINGLE_THREAD_ENV."""
+    env = {**os.environ, TOKEN_ENV: token}
     if single_thread:
         env.update(SINGLE_THREAD_ENV)
         if extra := env.get("BOTORL_SWEEP_XLA_FLAGS", "").strip():
             env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {extra}".strip()
     env.setdefault("PYTHONUNBUFFERED", "1")
     return env
+
+
+def isolated(env: dict[str, str]) -> dict[str, str]:
+    """``env`` for a trial that imports nothing from the folders it runs in (a sweep folder may hold
+    anything, e.g. a planted numpy.py): PYTHONSAFEPATH, so Python puts neither the working directory
+    (``-m``) nor a script's folder on sys.path, in the trial and in any Python it starts; and only
+    PYTHONPATH's absolute entries, as an empty or relative one names the working directory."""
+    entries = [e for e in env.get("PYTHONPATH", "").split(os.pathsep) if os.path.isabs(e)]
+    out = {k: v for k, v in env.items() if k != "PYTHONPATH"}
+    return {**out, "PYTHONSAFEPATH": "1", **({"PYTHONPATH": os.pathsep.join(entries)} if entries else {})}
 
 
 def cmdline(pid: int) -> str:
@@ -102,11 +134,12 @@ def process_record(pid: int, token: str) -> dict[str, Any] | None:
     return None if start is None else {"pid": int(pid), "start": start, "token": token}
 
 
-def recorded_alive(record: Any) -> int | None:
+def recorded_alive(record: Any, out: str | os.PathLike) -> int | None:
     """The pid of ``record`` (``process_record``, as read back from a file) if that very process
-    still runs, is this user's and carries the record's token in its environment, else None: a
-    record names a process, never a pattern, and the token proves a sweep started it."""
-    if not isinstance(record, dict):
+    still runs, is this user's and carries the record's token in its environment, a token made for
+    the sweep folder ``out``, else None: a record names a process, never a pattern, and the token
+    proves that a sweep of this folder started it."""
+    if not isinstance(record, dict) or not own_token(record.get("token"), out):
         return None
     pid, start = record.get("pid"), record.get("start")
     if type(pid) is not int or type(start) is not int or pid <= 1 or pid == os.getpid():
@@ -135,12 +168,13 @@ def descendants(pids: list[int]) -> list[int]:
     return out
 
 
-def stop_recorded(records: Any, timeout: float = 10.0) -> int:
+def stop_recorded(records: Any, out: str | os.PathLike, timeout: float = 10.0) -> int:
     """SIGTERM (then SIGKILL) the processes ``records`` name that still run (same pid, same
-    start time, this user's), with their descendants; nothing else. The number stopped."""
+    start time, this user's, a token of the sweep folder ``out``), with their descendants of the
+    same token; nothing else. The number stopped."""
     victims: list[dict[str, Any]] = []
     for rec in records if isinstance(records, list) else []:
-        root = recorded_alive(rec)
+        root = recorded_alive(rec, out)
         if root is None:
             continue
         token = rec["token"]  # a descendant is stopped only if it carries the same token
@@ -150,26 +184,26 @@ def stop_recorded(records: Any, timeout: float = 10.0) -> int:
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.kill(r["pid"], signal.SIGTERM)
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and any(recorded_alive(r) for r in victims):
+    while time.monotonic() < deadline and any(recorded_alive(r, out) for r in victims):
         time.sleep(0.1)
     for r in victims:
-        if recorded_alive(r):
+        if recorded_alive(r, out):
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.kill(r["pid"], signal.SIGKILL)
     return len(victims)
 
 
-def stop_orphan(run_dir: Path, timeout: float = 15.0) -> bool:
-    """Stop a trial process left from an earlier sweep of this directory (same host only): the
-    process the trial's pid file records (pid and start time), if it still runs and still works
-    on this directory."""
+def stop_orphan(run_dir: Path, out: Path, timeout: float = 15.0) -> bool:
+    """Stop a trial process left from an earlier sweep of the folder ``out`` (same host only): the
+    process the trial's pid file records (pid, start time and token), if it still runs, carries a
+    token of this very folder and still works on this directory."""
     info = read_json_object(Path(run_dir) / TRIAL_PID)
     if info is None or info.get("host") != socket.gethostname():
         return False
-    pid = recorded_alive(info)
+    pid = recorded_alive(info, out)
     if pid is None or str(Path(run_dir).resolve()) not in cmdline(pid):
         return False
-    stop_recorded([info], timeout)
+    stop_recorded([info], out, timeout)
     return True
 
 
@@ -180,12 +214,13 @@ def usable_cores() -> list[int]:
         return list(range(os.cpu_count() or 1))
 
 
-def spawn(cmd: list[str], log, run_dir, env: dict, cwd: str, block=None, **record) -> subprocess.Popen:
-    """``cmd`` started under the launcher (child.py) on the cores ``block``, its output appended to
-    ``log``, and its pid file (``TRIAL_PID``: pid, start time, host and ``record``) written."""
+def spawn(cmd: list[str], log, run_dir, env: dict, block=None, **record) -> subprocess.Popen:
+    """``cmd`` started under the launcher (child.py) on the cores ``block``, in ``run_dir`` with an
+    ``isolated`` module path, its output appended to ``log``, and its pid file (``TRIAL_PID``: pid,
+    start time, host and ``record``) written."""
     with os.fdopen(open_regular(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT), "ab") as logf:
         proc = subprocess.Popen(launcher(cmd, os.getpid(), block), stdout=logf, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, env=env, cwd=cwd)
+                                stdin=subprocess.DEVNULL, env=isolated(env), cwd=run_dir)
     atomic_write_json(Path(run_dir) / TRIAL_PID, {"pid": proc.pid, "start": start_time(proc.pid),
                                                   "host": socket.gethostname(), "token": env.get(TOKEN_ENV),
                                                   **record})
@@ -219,7 +254,7 @@ class LocalBackend:
         block = self.core_block(slot) if (slot is not None and self.pinned) else None
         # "cpu": the one core of a single-core block (the manifest's field before blocks), else None
         cpu = block[0] if block and len(block) == 1 else None
-        proc = spawn(cmd, log, run_dir, trial_env(cpu is not None), str(sweep.out), block, cpu=cpu, cpus=block)
+        proc = spawn(cmd, log, run_dir, trial_env(sweep_token(sweep.out), cpu is not None), block, cpu=cpu, cpus=block)
         sweep.entry(trial).update(pid=proc.pid, cpu=cpu, cpus=block)
         return proc
 

@@ -18,7 +18,7 @@ from botorl.errors import BotorlError, ConfigError
 from botorl.experiments.grid import build_grid, load_grid_file, parse_seeds
 from botorl.experiments.pairs import read_pairs_csv, write_paired_report
 from botorl.experiments.report import make_report, select_alpha
-from botorl.experiments.runner import Sweep, SweepOptions, next_action
+from botorl.experiments.runner import USER_ERROR_EXIT, Sweep, SweepOptions, next_action
 from botorl.experiments.runs import find_runs, group_by
 from botorl.pipeline.tracking import require_wandb
 
@@ -102,13 +102,16 @@ def sweep_main(argv: list[str]) -> int:
     failed = [tid for tid, e in states.items() if e["state"] != "finished"]
     n = len(states)
     print(f"botorl sweep: {n - len(failed)}/{n} trials finished in {sweep.out}")
+    # a trial that exited 2 refused its input (its directory, its settings): retrying cannot help
+    refused = [tid for tid in failed if states[tid].get("returncode") == USER_ERROR_EXIT]
     for tid in failed:
-        reason = (states[tid].get("error") or states[tid]["state"]).splitlines()[0]
+        lines = (states[tid].get("error") or states[tid]["state"]).splitlines()
+        reason = lines[0] + (f" {lines[-1].strip()}" if tid in refused and len(lines) > 1 else "")
         print(f"  FAILED {tid}: {reason} (log: {sweep.out / tid / 'sweep-trial.log'})", file=sys.stderr)
     if failed:
-        print("botorl sweep: start the same command again to retry the failed trials (finished ones are kept).",
-              file=sys.stderr)
-    return 1 if failed else 0
+        print("botorl sweep: start the same command again to retry the failed trials (finished ones are kept)"
+              + ("; those refused need their directory or settings fixed first." if refused else "."), file=sys.stderr)
+    return 0 if not failed else USER_ERROR_EXIT if len(refused) == len(failed) else 1
 
 
 def _check_trial_configs(sweep) -> None:

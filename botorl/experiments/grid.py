@@ -185,7 +185,7 @@ def parse_overrides(value: Any) -> dict[str, str]:
     return {key: str(val) for key, val in items}  # YAML's true, null: "True", "None", as the command line writes them
 
 
-# Overrides that name a file or folder. Trials run in the sweep's folder (--out), not where the
+# Overrides that name a file or folder. Trials run in their own folders under --out, not where the
 # sweep was started, so a relative path would name another place there: each is made absolute
 # against the folder the sweep starts in (data.path only where it exists: it may be a Minari id).
 PATH_OVERRIDES = ("pretrained", "data.path", "data.demos")

@@ -156,7 +156,7 @@ class Sweep:
 
     def _load_manifest(self) -> None:
         old = read_json_object(self.out / MANIFEST, SWEEP_JSON_LIMIT) or {}
-        cleanup_previous_ray(old)
+        cleanup_previous_ray(old, self.out)
         old_grid, grid = old.get("grid") or {}, self.grid.to_json()
         for field in ("profile", "overrides"):
             if old_grid and old_grid.get(field) != grid[field]:
@@ -201,7 +201,7 @@ class Sweep:
 
     def prepare(self, trial: Trial) -> tuple[Path, list[str], Path]:
         run_dir = self.run_dir(trial)
-        stop_orphan(run_dir)
+        stop_orphan(run_dir, self.out)
         cfg = self.config(trial)
         action, cmd = trial_command(cfg, run_dir, self.opt.command, self.out if self.opt.share_pretraining else None)
         run_dir.mkdir(parents=True, exist_ok=True)
