@@ -189,9 +189,10 @@ def report_main(argv: list[str]) -> int:
     report_seeds = _seed_flag("--report-seeds", args.report_seeds)
     if args.select_alpha:  # refuse before writing anything when held-out selection is impossible
         select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **stats)
-    out = Path(args.out) if args.out else Path(args.dirs[0]) / "report"
+    root = None if args.out else Path(args.dirs[0])  # DIR/report: nothing written outside DIR
+    out = Path(args.out) if args.out else root / "report"
     result = make_report(dirs, out, grid_points=args.grid_points, dip_window=args.dip_window, select_seeds=select_seeds,
-                         report_seeds=report_seeds, extra_pairs=extra_pairs, **stats)
+                         report_seeds=report_seeds, extra_pairs=extra_pairs, root=root, **stats)
     print(result.summary_text())
     if args.select_alpha and result.selection is not None:
         print(result.selection.text())
