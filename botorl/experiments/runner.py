@@ -167,7 +167,7 @@ class Sweep:
                     f"asks for {grid[field]!r}. Runs of one sweep directory share their settings (tasks, methods, "
                     "seeds and alphas may be added); use another --out or the same profile and overrides."
                 )
-        trials = old.get("trials", {}) if isinstance(old.get("trials"), dict) else {}
+        trials = old.get("trials", {})
         history = list(old.get("invocations", [])) + [{"started": _now(), "grid": grid, "backend": self.opt.backend}]
         self.manifest = {
             "version": 1,
@@ -202,6 +202,12 @@ class Sweep:
             old = read_json_bounded(path, SWEEP_JSON_LIMIT)
             if not isinstance(old, dict):
                 raise ValueError("not a JSON object")
+            for key, kind in (("grid", dict), ("trials", dict), ("invocations", list)):
+                if not isinstance(old.get(key, kind()), kind):
+                    raise ValueError(f"its {key!r} is not a JSON {'object' if kind is dict else 'list'}")
+            for name, entry in old.get("trials", {}).items():
+                if not isinstance(entry, dict) or type(entry.get("launches", 0)) is not int:
+                    raise ValueError(f"its record of trial {name!r} is not botorl's")
         except (OSError, ValueError) as err:
             raise BotorlError(
                 f"{path} cannot be read ({err}); it records this sweep's invocations and trials, so botorl leaves it "
