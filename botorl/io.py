@@ -139,7 +139,8 @@ UNSHARE_LIMIT = 1 << 30  # the largest hard-linked file copied to be written in 
 
 
 class UnsafeFileError(BotorlError):
-    """A file botorl writes in a run directory is a symbolic link or not a regular file."""
+    """A file botorl writes in a run directory is a symbolic link or not a regular file, or a
+    folder on the way to it is a link."""
 
 
 def _not_regular(path: Path, what: str) -> UnsafeFileError:
@@ -213,7 +214,8 @@ def _private_copy(path: Path, fd: int) -> tuple[int, str]:
 def unshare(path: str | os.PathLike, fd: int, prepare: Callable[[int], None] | None = None) -> int:
     """Replace ``path``, a hard link open as ``fd``, by a copy of its own (atomically, in its
     folder), so that writing to it leaves its other names as they were; returns the copy's fd
-    (``fd`` is closed). ``prepare(new_fd)`` runs before the rename (a lock takes its flock there)."""
+    and closes ``fd`` (on an error ``fd`` stays open, the caller's). ``prepare(new_fd)`` runs
+    before the rename (a lock takes its flock there)."""
     path = Path(path)
     new, tmp = _private_copy(path, fd)
     try:

@@ -316,7 +316,7 @@ def resume_main(argv: list[str]) -> int:
                 finished = read_json(status_file).get("status") == "finished"
             except (OSError, ValueError, AttributeError) as err:
                 finished = False  # no summary yet, or a damaged one: the resume rebuilds it
-                if os.path.lexists(status_file):  # never silently: what it held is rebuilt from the checkpoints and logs
+                if os.path.lexists(status_file):  # never silently (it is rebuilt from the checkpoints and logs)
                     print(f"botorl: warning: {status_file} cannot be read ({err}); the resume writes it afresh from "
                           f"the run's checkpoints and logs.", file=sys.stderr)
             if finished:

@@ -276,7 +276,8 @@ class EventsFile:
 
         data = event.SerializeToString()
         header = struct.pack("Q", len(data))
-        self._file.write(header + struct.pack("I", masked_crc32c(header)) + data + struct.pack("I", masked_crc32c(data)))
+        crc = struct.pack("I", masked_crc32c(header)), struct.pack("I", masked_crc32c(data))
+        self._file.write(header + crc[0] + data + crc[1])
 
     def flush(self) -> None:
         self._file.flush()
