@@ -93,7 +93,8 @@ def test_a_linked_checkpoints_folder_is_refused_before_latest_json_is_repaired(t
 
 
 def test_report_writes_only_under_the_folder_it_was_given(tmp_path, capsys):
-    """Issue 51: `botorl report DIR` wrote through `DIR/report` when that was a link."""
+    """Issue 51: `botorl report DIR` wrote through `DIR/report` when that was a link; so did an
+    `--out` inside DIR. An `--out` elsewhere is the user's own (a link there is honoured)."""
     outside, _ = _outside(tmp_path)
     d = tmp_path / "runs" / "run"
     d.mkdir(parents=True)
@@ -102,9 +103,10 @@ def test_report_writes_only_under_the_folder_it_was_given(tmp_path, capsys):
     (d / "eval.csv").write_text("stage,env_step,success\nfinetune,0,1\nfinetune,10000,0.5\n")
     (tmp_path / "runs" / "report").symlink_to(outside)
     before = _state(outside)
-    assert botorl_main(["report", str(tmp_path / "runs")]) == 2
-    err = capsys.readouterr().err
-    assert "report is a symbolic link" in err and "Traceback" not in err, err
+    for out in ([], ["--out", str(tmp_path / "runs" / "report" / "sub")]):  # the default, or named inside DIR
+        assert botorl_main(["report", str(tmp_path / "runs"), *out]) == 2
+        err = capsys.readouterr().err
+        assert "report is a symbolic link" in err and "Traceback" not in err, err
     assert _state(outside) == before
 
 

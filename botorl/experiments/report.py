@@ -494,9 +494,9 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
                 grid_points: int = 101, dip_window: float = DIP_WINDOW, select_seeds: Sequence[int] | None = None,
                 report_seeds: Sequence[int] | None = None, extra_pairs: Sequence[Pair] = (),
                 root: Path | None = None) -> ReportResult:
-    """The report of the finished runs under ``dirs`` in ``out``; ``root``: the folder the user
-    gave that holds ``out`` (``DIR/report``: ``DIR``), from which no folder down to ``out`` may be
-    a link (io.own_folder), so the report is written under it; None: ``out`` itself was given."""
+    """The report of the finished runs under ``dirs`` in ``out``; ``root``: the directory reported
+    on that holds ``out`` (``DIR/report``: ``DIR``), from which no folder down to ``out`` may be a
+    link (io.own_folder), so the report is written under it; None: ``out`` is the user's own."""
     check_bootstrap(n_boot, confidence)
     if not (isinstance(dip_window, (int, float)) and math.isfinite(dip_window) and dip_window > 0):
         raise ConfigError(f"--dip-window must be a positive number of online env steps, got {dip_window!r}.")
