@@ -184,9 +184,12 @@ def own_folder(root: str | os.PathLike, folder: str | os.PathLike, *, make: bool
     return folder
 
 
-def _private_copy(path: Path, fd: int) -> tuple[int, str]:
-    """A new file in ``path``'s folder holding the bytes of ``fd`` (open on ``path``, perhaps for
-    writing only): its fd (read-write, at the end) and its name, for the caller to rename over ``path``."""
+def unshare(path: str | os.PathLike, fd: int, prepare: Callable[[int], None] | None = None) -> int:
+    """Replace ``path``, a hard link open as ``fd`` (perhaps for writing only), by a copy of its
+    own (atomically, in its folder), so that writing to it leaves its other names as they were;
+    returns the copy's fd (read-write, at its end) and closes ``fd`` (on an error ``fd`` stays
+    open, the caller's). ``prepare(new_fd)`` runs before the rename (a lock takes its flock there)."""
+    path = Path(path)
     size = os.fstat(fd).st_size
     if size > UNSHARE_LIMIT:
         raise UnsafeFileError(
@@ -202,23 +205,6 @@ def _private_copy(path: Path, fd: int) -> tuple[int, str]:
         while chunk := os.read(src, 1 << 20):
             os.write(new, chunk)
         os.fsync(new)
-    except BaseException:
-        os.close(new)
-        os.unlink(tmp)
-        raise
-    finally:
-        os.close(src)
-    return new, tmp
-
-
-def unshare(path: str | os.PathLike, fd: int, prepare: Callable[[int], None] | None = None) -> int:
-    """Replace ``path``, a hard link open as ``fd``, by a copy of its own (atomically, in its
-    folder), so that writing to it leaves its other names as they were; returns the copy's fd
-    and closes ``fd`` (on an error ``fd`` stays open, the caller's). ``prepare(new_fd)`` runs
-    before the rename (a lock takes its flock there)."""
-    path = Path(path)
-    new, tmp = _private_copy(path, fd)
-    try:
         if prepare is not None:
             prepare(new)
         os.replace(tmp, path)
@@ -227,6 +213,8 @@ def unshare(path: str | os.PathLike, fd: int, prepare: Callable[[int], None] | N
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+    finally:
+        os.close(src)
     os.close(fd)
     return new
 
