@@ -6,6 +6,7 @@ so run directories stay readable by a shared group.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import io
@@ -15,7 +16,7 @@ import os
 import stat
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from botorl.errors import BotorlError
 
@@ -23,9 +24,15 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)  # reading the umask needs setting it; restored at once
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, root: str | os.PathLike | None = None) -> Path:
+    """``data`` as the file ``path``; ``root``: the folder the user gave, from which every folder
+    down to ``path``'s is made or checked to be a real one (``own_folder``). A link or a hard link
+    at ``path`` itself is replaced (a rename never follows one), its target left as it was."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if root is None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    else:
+        own_folder(root, path.parent)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         os.fchmod(fd, 0o666 & ~_UMASK)
@@ -44,8 +51,8 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     return path
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    return atomic_write_bytes(path, text.encode())
+def atomic_write_text(path: str | os.PathLike, text: str, *, root: str | os.PathLike | None = None) -> Path:
+    return atomic_write_bytes(path, text.encode(), root=root)
 
 
 def jsonable(x: Any) -> Any:
@@ -65,10 +72,11 @@ def jsonable(x: Any) -> Any:
     return str(x)
 
 
-def atomic_write_json(path: str | os.PathLike, obj: Any, *, indent: int | None = 2, exact: bool = False) -> Path:
+def atomic_write_json(path: str | os.PathLike, obj: Any, *, indent: int | None = 2, exact: bool = False,
+                      root: str | os.PathLike | None = None) -> Path:
     """JSON with numpy scalars unwrapped and non-finite floats made valid JSON (NaN -> null);
     ``exact``: ``obj`` as Python's json writes it (NaN / Infinity kept, to be read back exactly)."""
-    return atomic_write_text(path, json.dumps(obj if exact else jsonable(obj), indent=indent) + "\n")
+    return atomic_write_text(path, json.dumps(obj if exact else jsonable(obj), indent=indent) + "\n", root=root)
 
 
 # OSErrors that say the machine cannot take the output (not a bug in botorl): exit 2 with a
@@ -89,11 +97,12 @@ def pyplot():
     return plt
 
 
-def atomic_save_figure(fig: Any, path: str | os.PathLike, **savefig_kwargs: Any) -> Path:
+def atomic_save_figure(fig: Any, path: str | os.PathLike, *, root: str | os.PathLike | None = None,
+                       **savefig_kwargs: Any) -> Path:
     """``fig.savefig`` written atomically; the format comes from ``path``'s suffix."""
     out = io.BytesIO()
     fig.savefig(out, format=Path(path).suffix.lstrip(".") or None, **savefig_kwargs)
-    return atomic_write_bytes(path, out.getvalue())
+    return atomic_write_bytes(path, out.getvalue(), root=root)
 
 
 def pid_alive(pid: int) -> bool:
@@ -113,18 +122,25 @@ def file_sha256(path: str | os.PathLike) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
-# Files inside a run, population or sweep directory. Such a directory is data from anywhere (a
-# colleague's archive, a shared disk): a file in it may be a symbolic link to something outside,
-# a FIFO that blocks whoever opens it, a device or a huge file. Readers take only regular files
-# of a bounded size; appenders and locks open without following a link.
+# Files inside a run, population, sweep or report directory. Such a directory is data from
+# anywhere (a colleague's archive, a shared disk, a `cp -al` snapshot): a file or folder in it may
+# be a symbolic link to something outside, a hard link to a file outside, a FIFO that blocks
+# whoever opens it, a device or a huge file. Readers take only regular files of a bounded size.
+# Writers go through one mechanism: the folders from the one the user gave down to the file are
+# real folders (``own_folder``); whole files are replaced by a rename (``atomic_write_bytes``);
+# a file written in place (a log appended to, a lock) is opened without following a link
+# (``open_regular``) and, when it has another name (a hard link), first replaced by a copy of its
+# own, so the other name never changes.
 
 JSON_LIMIT = 16 << 20  # config.json, summary.json, population.json, a checkpoint's state.json, ...
 SWEEP_JSON_LIMIT = 64 << 20  # sweep.json: a grid of thousands of trials, each with its log tail
 CSV_LIMIT = 64 << 20
+UNSHARE_LIMIT = 1 << 30  # the largest hard-linked file copied to be written in place (a run's log: LOG_LIMIT)
 
 
 class UnsafeFileError(BotorlError):
-    """A file botorl writes in a run directory is a symbolic link or not a regular file."""
+    """A file botorl writes in a run directory is a symbolic link or not a regular file, or a
+    folder on the way to it is a link."""
 
 
 def _not_regular(path: Path, what: str) -> UnsafeFileError:
@@ -134,29 +150,116 @@ def _not_regular(path: Path, what: str) -> UnsafeFileError:
     )
 
 
-def open_regular(path: str | os.PathLike, flags: int, mode: int = 0o644) -> int:
+def own_folder(root: str | os.PathLike, folder: str | os.PathLike, *, make: bool = True) -> Path:
+    """``folder`` (``root`` or a folder under it), made if missing (``make``), with every folder
+    from ``root`` down to it checked to be a real folder, not a symbolic link: ``root`` is the
+    folder the user gave (taken as given: a link there is the user's own choice), and what botorl
+    writes under it stays under it, whatever the directory holds. UnsafeFileError (exit 2) otherwise."""
+    root, folder = Path(root), Path(folder)
+    try:
+        parts = folder.relative_to(root).parts
+    except ValueError:
+        parts = ("..",)
+    if ".." in parts:
+        raise UnsafeFileError(f"{folder} is not inside {root}; botorl writes only inside the folder it was given.")
+    if make:
+        root.mkdir(parents=True, exist_ok=True)
+    here = root
+    for part in parts:
+        here = here / part
+        if make:
+            with contextlib.suppress(FileExistsError):
+                os.mkdir(here)
+        try:
+            mode = os.lstat(here).st_mode
+        except FileNotFoundError:
+            if make:
+                raise
+            break  # nothing below it yet: nothing to check
+        if not stat.S_ISDIR(mode):
+            what = "a symbolic link" if stat.S_ISLNK(mode) else "not a folder"
+            raise UnsafeFileError(
+                f"{here} is {what}; botorl writes only into real folders inside {root} (a link there could make it "
+                f"write anywhere). Remove it (or give another folder) and run the command again.")
+    return folder
+
+
+def unshare(path: str | os.PathLike, fd: int, prepare: Callable[[int], None] | None = None) -> int:
+    """Replace ``path``, a hard link open as ``fd`` (perhaps for writing only), by a copy of its
+    own (atomically, in its folder), so that writing to it leaves its other names as they were;
+    returns the copy's fd (read-write, at its end) and closes ``fd`` (on an error ``fd`` stays
+    open, the caller's). ``prepare(new_fd)`` runs before the rename (a lock takes its flock there)."""
+    path = Path(path)
+    size = os.fstat(fd).st_size
+    if size > UNSHARE_LIMIT:
+        raise UnsafeFileError(
+            f"{path} is a hard link ({size:,} bytes, shared with a file outside this folder or a copy made with "
+            f"`cp -al`); botorl writes only files of its own. Make a real copy of the directory (`cp -a`) and run the "
+            f"command on that.")
+    src = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    new, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        if os.fstat(src).st_ino != os.fstat(fd).st_ino:
+            raise UnsafeFileError(f"{path} changed while botorl opened it; run the command again.")
+        os.fchmod(new, 0o666 & ~_UMASK)
+        while chunk := os.read(src, 1 << 20):
+            os.write(new, chunk)
+        os.fsync(new)
+        if prepare is not None:
+            prepare(new)
+        os.replace(tmp, path)
+    except BaseException:
+        os.close(new)
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    finally:
+        os.close(src)
+    os.close(fd)
+    return new
+
+
+def open_regular(path: str | os.PathLike, flags: int, mode: int = 0o644, *, root: str | os.PathLike | None = None,
+                 shared: bool = False) -> int:
     """``os.open`` of a regular file that follows no symbolic link and never blocks on a FIFO
     (``O_NONBLOCK``: a FIFO or device is opened, seen and closed); ``UnsafeFileError`` (exit 2)
-    otherwise."""
+    otherwise. ``root``: the folder the user gave (``own_folder`` checks the way down). Opened for
+    writing, a hard link is first replaced by a copy of its own (``unshare``) unless ``shared``
+    (the caller does it: ``RunLock``, under its flock)."""
     path = Path(path)
-    try:
-        fd = os.open(path, flags | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, mode)
+    if root is not None:
+        own_folder(root, path.parent)
+    try:  # O_TRUNC after the checks below: truncating a hard link empties its other names too
+        fd = os.open(path, flags & ~os.O_TRUNC | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, mode)
     except OSError as err:
         if err.errno == errno.ELOOP:
             raise _not_regular(path, "a symbolic link") from None
         if err.errno == errno.ENXIO:  # a FIFO without a reader, opened for writing
             raise _not_regular(path, "a FIFO") from None
+        if err.errno == errno.EISDIR:
+            raise _not_regular(path, "a directory") from None
         raise
-    st = os.fstat(fd)
-    if not stat.S_ISREG(st.st_mode):
-        os.close(fd)
-        raise _not_regular(path, "a directory" if stat.S_ISDIR(st.st_mode) else "a special file")
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise _not_regular(path, "a directory" if stat.S_ISDIR(st.st_mode) else "a special file")
+        if st.st_nlink > 1 and flags & (os.O_WRONLY | os.O_RDWR) and not shared:
+            fd, copy = -1, unshare(path, fd)  # unshare closed the link's fd
+            os.close(copy)
+            return open_regular(path, flags, mode, shared=True)  # the copy, now the only name of its file
+        if flags & os.O_TRUNC:
+            os.ftruncate(fd, 0)
+    except BaseException:
+        if fd >= 0:
+            os.close(fd)
+        raise
     return fd
 
 
-def append_text(path: str | os.PathLike, text: str) -> None:
-    """Append ``text`` to the regular file ``path`` (created if missing), following no link."""
-    fd = open_regular(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666 & ~_UMASK)
+def append_text(path: str | os.PathLike, text: str, *, root: str | os.PathLike | None = None) -> None:
+    """Append ``text`` to the regular file ``path`` (created if missing), following no link and
+    writing no other name of it (``open_regular``)."""
+    fd = open_regular(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666 & ~_UMASK, root=root)
     with os.fdopen(fd, "w", newline="") as f:
         f.write(text)
         f.flush()
@@ -215,7 +318,9 @@ def read_json_bounded(path: str | os.PathLike, limit: int = JSON_LIMIT) -> Any:
 
 def read_json_object(path: str | os.PathLike, limit: int = JSON_LIMIT) -> dict[str, Any] | None:
     """The JSON object in ``path`` (a regular file of at most ``limit`` bytes), else None: for
-    files botorl may find missing, cut short or not its own (a sweep's, a run's being written)."""
+    files botorl may find missing, cut short or not its own (a sweep's, a run's being written).
+    Never for a record that nothing else holds, which must not be taken for none and replaced
+    (sweep.json: ``Sweep._read_manifest``, exit 2)."""
     try:
         data = read_json_bounded(path, limit)
         return data if isinstance(data, dict) else None

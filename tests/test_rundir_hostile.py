@@ -582,12 +582,129 @@ def test_property_sweep_json(hostile_root, f):
     sweep.save()
     _plant(out / "sweep.json", *f, (out / "sweep.json").read_bytes(), outside)
     before = _snapshot(outside)
+    planted = os.lstat(out / "sweep.json")
     try:
         sweep._load_manifest()
         sweep.save()
     except BotorlError:
-        pass
+        # issue 51: a record that cannot be read is left as it was, never replaced by a fresh one
+        now = os.lstat(out / "sweep.json")
+        assert (now.st_ino, now.st_mode, now.st_size, now.st_mtime_ns) == \
+            (planted.st_ino, planted.st_mode, planted.st_size, planted.st_mtime_ns)
     assert _snapshot(outside) == before
+
+
+# Links (issue 51): any one name botorl writes in a run or sweep directory, or a folder on the
+# way to one, made a symbolic link or a hard link to something outside; then every writer of
+# that directory runs (no training: the writers on their own). Exit 2 or success, and the
+# outside never changes.
+RUN_NAMES = (".lock", "config.json", "summary.json", "eval.csv", "curve.png", "metrics", "metrics/pretrain.csv",
+             "metrics/pretrain.jsonl", "metrics/q_probe.csv", "checkpoints", "checkpoints/latest.json",
+             "checkpoints/pretrain-final", "tb")
+SWEEP_NAMES = (".sweep.lock", "sweep.json", "t1", "t1/wsrl", "t1/wsrl/seed0", "t1/wsrl/seed0/sweep-trial.log",
+               "t1/wsrl/seed0/sweep-trial-config.json", "t1/wsrl/seed0/summary.json")
+FOLDERS = {"metrics", "checkpoints", "checkpoints/pretrain-final", "tb", "t1", "t1/wsrl", "t1/wsrl/seed0"}
+
+
+def planted_link(names):
+    """(name, kind): which name becomes a link, and what kind (a folder cannot be hard-linked)."""
+    return st.sampled_from(names).flatmap(lambda n: st.tuples(
+        st.just(n), st.sampled_from(["symlink"] if n in FOLDERS else ["symlink", "hardlink"])))
+
+
+def _plant_link(root: Path, name: str, kind: str, outside: Path) -> None:
+    path = root / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+    if name in FOLDERS:
+        (outside / "folder").mkdir(exist_ok=True)
+        (outside / "folder" / "keep").write_text("keep me")
+        path.symlink_to(outside / "folder", target_is_directory=True)
+    elif kind == "symlink":
+        path.symlink_to(outside / "keep")
+    else:
+        os.link(outside / "keep", path)
+
+
+def _make_file(path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("{}\n")
+
+
+def _outside_state(outside: Path) -> dict:
+    return {str(p.relative_to(outside)): (p.stat().st_ino, p.read_bytes())
+            for p in sorted(outside.rglob("*")) if p.is_file() and not p.is_symlink()}
+
+
+@PROPERTY
+@given(link=planted_link(RUN_NAMES))
+@pytest.mark.timeout(120)
+def test_property_links_in_a_run_directory(hostile_root, link):
+    from botorl.io import atomic_save_figure, atomic_write_json, pyplot
+    from botorl.pipeline.checkpoint import CheckpointManager
+    from botorl.pipeline.rundir import EVAL_COLUMNS, CsvLog, MetricsLogger, RunDir, RunLock
+
+    case, outside = _case(hostile_root)
+    run = RunDir(case / "run")
+    run.create()
+    for name in RUN_NAMES:  # every name there first, as a run that stopped leaves them
+        (run.root / name).mkdir(parents=True, exist_ok=True) if name in FOLDERS else _make_file(run.root / name)
+    _plant_link(run.root, *link, outside)
+    before = _outside_state(outside)
+    try:
+        with RunLock(run.root):
+            run.create()
+            atomic_write_json(run.config, {"task": "t"}, root=run.root)
+            logger = MetricsLogger(run, tensorboard=True)
+            logger.log("pretrain", 1, {"loss": 0.5})
+            logger.truncate("pretrain", 0)
+            logger.close()
+            for log in (CsvLog(run.eval_csv, EVAL_COLUMNS, root=run.root),
+                        CsvLog(run.metrics / "q_probe.csv", ["stage", "step"], root=run.root)):
+                log.append({"stage": "finetune", "step": 1, "env_step": 1, "success": 1.0})
+                log.truncate(lambda r: True)
+            ck = CheckpointManager(run.checkpoints)
+            ck.save("pretrain-final", state={"stage": "pretrain", "stage_done": True}, arrays={"x": {"a": [1.0]}})
+            ck.latest()
+            fig = pyplot().figure()
+            atomic_save_figure(fig, run.curve, root=run.root)
+            pyplot().close(fig)
+            atomic_write_json(run.summary, {"status": "finished"}, root=run.root)
+    except BotorlError as err:
+        assert "link" in str(err), err
+    assert _outside_state(outside) == before
+
+
+@PROPERTY
+@given(link=planted_link(SWEEP_NAMES))
+@pytest.mark.timeout(120)
+def test_property_links_in_a_sweep_directory(hostile_root, link):
+    """The sweep's own writes (its lock and sweep.json, a trial's folder, config and log) up to the
+    launch of the trial, which is a process of its own (`test_hostile_links.py` runs one)."""
+    from botorl.experiments.grid import build_grid
+    from botorl.experiments.runner import Sweep, SweepOptions
+
+    case, outside = _case(hostile_root)
+    out = case / "sw"
+    for name in SWEEP_NAMES:
+        (out / name).mkdir(parents=True, exist_ok=True) if name in FOLDERS else _make_file(out / name)
+    _plant_link(out, *link, outside)
+    before = _outside_state(outside)
+    sweep = Sweep(build_grid(tasks="t1", methods="wsrl", seeds="0"),
+                  SweepOptions(out=out, progress=False, command=[sys.executable, "-c", "pass"]))
+    try:
+        with sweep._lock:
+            sweep._check_folders()
+            sweep._load_manifest()
+            sweep.save()
+            sweep.prepare(sweep.trials[0])
+            sweep.save()
+    except BotorlError as err:
+        assert "link" in str(err) or "cannot be read" in str(err), err
+    assert _outside_state(outside) == before
 
 
 # ----------------------------------------------------------------------------- 4. every interrupted run resumes
@@ -605,6 +722,26 @@ def test_a_damaged_metrics_tail_is_cut_back_on_resume(two_seeds, tmp_path, capsy
     steps = [json.loads(x)["step"] for x in (d / "metrics" / "finetune.jsonl").read_text().splitlines()]
     assert steps == sorted(set(steps)) and 999 not in steps
     assert json.loads((d / "summary.json").read_text())["status"] == "finished"
+
+
+def test_resuming_a_cp_al_snapshot_leaves_the_original_as_it_was(two_seeds, tmp_path, capsys):
+    """Issue 51: resuming a `cp -al` snapshot of an interrupted run wrote the original's `.lock`
+    (and would have appended to its logs): every file botorl writes in place is first replaced by
+    a copy of its own, so the snapshot resumes and the original keeps every byte and inode."""
+    orig = _copy_run(two_seeds / "s0", tmp_path / "orig")
+    (orig / ".lock").write_text("4242\n")  # the interrupted run's
+    snap = tmp_path / "snap"
+    subprocess.run(["cp", "-al", str(orig), str(snap)], check=True)
+
+    def state(d):
+        return {str(p.relative_to(d)): (p.stat().st_ino, p.read_bytes()) for p in sorted(d.rglob("*")) if p.is_file()}
+
+    before = state(orig)
+    assert botorl_main(["resume", str(snap), "--no-progress", "--from", "boto-final"]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    assert state(orig) == before
+    assert json.loads((snap / "summary.json").read_text())["status"] == "finished"
+    assert (snap / ".lock").stat().st_ino != (orig / ".lock").stat().st_ino
 
 
 def test_resume_hint_names_a_checkpoint_that_passes(two_seeds, tmp_path, capsys):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+import os
 import re
 import shlex
 import sys
@@ -193,8 +194,10 @@ def report_main(argv: list[str]) -> int:
     if args.select_alpha:  # refuse before writing anything when held-out selection is impossible
         select_alpha(runs, select_seeds=select_seeds, report_seeds=report_seeds, **stats)
     out = Path(args.out) if args.out else Path(args.dirs[0]) / "report"
+    # out inside a DIR reported on (DIR/report, the default): no link on the way down from DIR
+    root = next((Path(d) for d in args.dirs if Path(os.path.abspath(out)).is_relative_to(os.path.abspath(d))), None)
     result = make_report(dirs, out, grid_points=args.grid_points, dip_window=args.dip_window, select_seeds=select_seeds,
-                         report_seeds=report_seeds, extra_pairs=extra_pairs, **stats)
+                         report_seeds=report_seeds, extra_pairs=extra_pairs, root=root, **stats)
     print(result.summary_text())
     if args.select_alpha and result.selection is not None:
         print(result.selection.text())

@@ -49,7 +49,7 @@ from botorl.experiments.stats import (
     seed_stats,
     stratified_bootstrap_iqm,
 )
-from botorl.io import atomic_write_text
+from botorl.io import atomic_write_text, own_folder
 from botorl.pipeline.provenance import comparable
 
 POINTS = (("initial", "success_initial"), ("10k", "success_10k"), ("final", "success_final"))
@@ -492,14 +492,18 @@ def environment_notes(runs: Sequence[Run], rel) -> list[str]:
 
 def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confidence: float = 0.95, seed: int = 0,
                 grid_points: int = 101, dip_window: float = DIP_WINDOW, select_seeds: Sequence[int] | None = None,
-                report_seeds: Sequence[int] | None = None, extra_pairs: Sequence[Pair] = ()) -> ReportResult:
+                report_seeds: Sequence[int] | None = None, extra_pairs: Sequence[Pair] = (),
+                root: Path | None = None) -> ReportResult:
+    """The report of the finished runs under ``dirs`` in ``out``; ``root``: the directory reported
+    on that holds ``out`` (``DIR/report``: ``DIR``), from which no folder down to ``out`` may be a
+    link (io.own_folder), so the report is written under it; None: ``out`` is the user's own."""
     check_bootstrap(n_boot, confidence)
     if not (isinstance(dip_window, (int, float)) and math.isfinite(dip_window) and dip_window > 0):
         raise ConfigError(f"--dip-window must be a positive number of online env steps, got {dip_window!r}.")
     runs, skipped = find_runs(dirs)
     boot = dict(n_boot=n_boot, confidence=confidence, seed=seed)
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    own_folder(out if root is None else root, out)
 
     def rel(path) -> str:
         return relative(path, out)

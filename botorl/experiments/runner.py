@@ -33,7 +33,8 @@ from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, stop_orpha
 from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial, group_populations
-from botorl.io import SWEEP_JSON_LIMIT, append_text, atomic_write_json, read_bounded, read_json_object
+from botorl.io import (SWEEP_JSON_LIMIT, append_text, atomic_write_json, own_folder, read_bounded, read_json_bounded,
+                       read_json_object)
 from botorl.pipeline import preempt, shared_pretrain
 from botorl.pipeline.rundir import POPULATION_FILE, RunLock
 
@@ -155,7 +156,7 @@ class Sweep:
         return self.configs[trial.relpath]
 
     def _load_manifest(self) -> None:
-        old = read_json_object(self.out / MANIFEST, SWEEP_JSON_LIMIT) or {}
+        old = self._read_manifest()
         cleanup_previous_ray(old, self.out)
         old_grid, grid = old.get("grid") or {}, self.grid.to_json()
         for field in ("profile", "overrides"):
@@ -166,7 +167,7 @@ class Sweep:
                     f"asks for {grid[field]!r}. Runs of one sweep directory share their settings (tasks, methods, "
                     "seeds and alphas may be added); use another --out or the same profile and overrides."
                 )
-        trials = old.get("trials", {}) if isinstance(old.get("trials"), dict) else {}
+        trials = old.get("trials", {})
         history = list(old.get("invocations", [])) + [{"started": _now(), "grid": grid, "backend": self.opt.backend}]
         self.manifest = {
             "version": 1,
@@ -190,11 +191,41 @@ class Sweep:
                     mtime = (self.run_dir(trial) / "summary.json").stat().st_mtime
                     entry["ended"] = _dt.datetime.fromtimestamp(mtime).isoformat(timespec="seconds")
 
+    def _read_manifest(self) -> dict[str, Any]:
+        """The sweep.json an earlier invocation wrote ({} if none): one that cannot be read (over its
+        size limit, not a regular file, not a JSON object) is exit 2 and left as it was, never
+        replaced by a fresh one (it holds the sweep's history and its trials' records)."""
+        path = self.out / MANIFEST
+        if not os.path.lexists(path):
+            return {}
+        try:
+            old = read_json_bounded(path, SWEEP_JSON_LIMIT)
+            if not isinstance(old, dict):
+                raise ValueError("not a JSON object")
+            for key, kind in (("grid", dict), ("trials", dict), ("invocations", list)):
+                if not isinstance(old.get(key, kind()), kind):
+                    raise ValueError(f"its {key!r} is not a JSON {'object' if kind is dict else 'list'}")
+            for name, entry in old.get("trials", {}).items():
+                if not isinstance(entry, dict) or type(entry.get("launches", 0)) is not int:
+                    raise ValueError(f"its record of trial {name!r} is not botorl's")
+        except (OSError, ValueError) as err:
+            raise BotorlError(
+                f"{path} cannot be read ({err}); it records this sweep's invocations and trials, so botorl leaves it "
+                f"as it was. Move it aside (e.g. `mv {path} {path}.bad`) to start its record afresh (finished trials "
+                f"are found again in their run directories), or give another --out.") from None
+        return old
+
+    def _check_folders(self) -> None:
+        """Every trial's run directory, where it exists, is a real folder inside --out (no link on
+        the way, io.own_folder): a trial never reads or writes outside the sweep."""
+        for trial in self.trials:
+            own_folder(self.out, self.run_dir(trial), make=False)
+
     def save(self) -> None:
         self.manifest["updated"] = _now()
         states = [self.manifest["trials"][t.relpath]["state"] for t in self.trials]
         self.manifest["counts"] = {s: states.count(s) for s in sorted(set(states))}
-        atomic_write_json(self.out / MANIFEST, self.manifest)
+        atomic_write_json(self.out / MANIFEST, self.manifest, root=self.out)
 
     def entry(self, trial: Trial) -> dict[str, Any]:
         return self.manifest["trials"][trial.relpath]
@@ -204,16 +235,17 @@ class Sweep:
         stop_orphan(run_dir, self.out)
         cfg = self.config(trial)
         action, cmd = trial_command(cfg, run_dir, self.opt.command, self.out if self.opt.share_pretraining else None)
-        run_dir.mkdir(parents=True, exist_ok=True)
+        own_folder(self.out, run_dir)
         if action == "run":
             # a stand-in command's own task has no RunConfig: it gets the fields the grid gives it
-            atomic_write_json(run_dir / TRIAL_CONFIG, trial.fields if cfg is None else to_dict(cfg), exact=True)
+            atomic_write_json(run_dir / TRIAL_CONFIG, trial.fields if cfg is None else to_dict(cfg), exact=True,
+                              root=self.out)
         log = run_dir / TRIAL_LOG
         entry = self.entry(trial)
         entry["launches"] += 1
         entry.update(state="running", action=action, started=_now(), ended=None, command=cmd, pid=None, cpu=None)
         append_text(log, f"\n===== botorl sweep: attempt {entry['launches']} ({action}) at {_now()}\n"
-                         + "===== " + " ".join(cmd) + "\n")
+                         + "===== " + " ".join(cmd) + "\n", root=self.out)
         return run_dir, cmd, log
 
     def _finish(self, trial: Trial, returncode: int, queue: deque[Trial]) -> None:
@@ -263,6 +295,7 @@ class Sweep:
         self._lock.acquire()
         running: dict[int, tuple[Trial, Any]] = {}  # by worker slot: the trial, its Popen or Ray ObjectRef
         try:
+            self._check_folders()
             self._load_manifest()
             self.save()
             queue: deque[Trial] = deque(t for t in self.trials if self.entry(t)["state"] != "finished")

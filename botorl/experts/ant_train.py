@@ -31,7 +31,7 @@ import numpy as np
 from tqdm import tqdm
 
 from botorl.envs.ant_goal import ACTION_DIM, HORIZON, OBS_DIM, AntGoalSim, NumpyActor, actor_arrays
-from botorl.io import atomic_save_figure, atomic_write_bytes, atomic_write_json, pyplot
+from botorl.io import append_text, atomic_save_figure, atomic_write_bytes, atomic_write_json, pyplot
 from botorl.jaxsetup import setup_jax
 
 
@@ -187,6 +187,12 @@ CURVE_FIELDS = ["env_steps", "updates", "seconds", "eval_goals_per_1000", "eval_
                 "train_episode_return", "temperature", "critic_loss"]
 
 
+def _csv_line(row: list) -> str:
+    buf = io.StringIO()
+    csv.writer(buf).writerow(row)
+    return buf.getvalue()
+
+
 def train(cfg: AntTrainConfig) -> dict:
     """Train (or continue training) the goal-reaching ant; returns the final state dict."""
     # lazy: JAX; the spawned simulation workers import this module, and need none
@@ -224,8 +230,7 @@ def train(cfg: AntTrainConfig) -> dict:
     state["calls"] += 1
     curve_path = out / "curve.csv"
     if not curve_path.exists():
-        with open(curve_path, "w", newline="") as fh:
-            csv.writer(fh).writerow(CURVE_FIELDS)
+        append_text(curve_path, _csv_line(CURVE_FIELDS))
 
     chunk = max(cfg.num_workers, 1) * cfg.envs_per_worker * cfg.rollout_len  # env steps per iteration
     capacity = max(chunk, (cfg.buffer_size // chunk) * chunk)
@@ -257,8 +262,7 @@ def train(cfg: AntTrainConfig) -> dict:
                round(float(np.mean(returns)), 1) if returns else "",
                round(float(metrics.get("temperature", float("nan"))), 5) if metrics else "",
                round(float(metrics.get("critic_loss", float("nan"))), 4) if metrics else ""]
-        with open(curve_path, "a", newline="") as fh:
-            csv.writer(fh).writerow(row)
+        append_text(curve_path, _csv_line(row))  # never through a link (botorl/io.py)
         print("eval " + " ".join(f"{k}={v}" for k, v in zip(CURVE_FIELDS, row)), flush=True)
         returns.clear()
 

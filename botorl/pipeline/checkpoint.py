@@ -25,7 +25,7 @@ import numpy as np
 from botorl.data.minari_io import minari_root
 from botorl.data.safe import data_files, fingerprint
 from botorl.errors import ConfigError, DataFormatError
-from botorl.io import atomic_write_json, file_sha256
+from botorl.io import atomic_write_json, file_sha256, open_regular, own_folder
 from botorl.pipeline import faults
 from botorl.pipeline.rundir import read_json
 
@@ -144,31 +144,37 @@ def _info(name: str, state: dict[str, Any]) -> dict[str, Any]:
 class CheckpointManager:
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
-        self.root.mkdir(parents=True, exist_ok=True)
+        # the run directory (``RunDir.checkpoints``' parent): a checkpoints folder that is a link
+        # would take every checkpoint, and latest.json's repair, outside it (io.own_folder)
+        self.run_root = self.root.parent
+        own_folder(self.run_root, self.root)
 
     def save(self, name: str, *, state: dict[str, Any], agent: Any = None,
              save_agent: Callable[[str, Any], None] | None = None, arrays: dict[str, dict[str, Any]] | None = None,
              documents: dict[str, Any] | None = None) -> Path:
         tmp = self.root / f".tmp-{name}-{os.getpid()}"
+        if tmp.is_symlink():  # rmtree refuses a link (and so follows nothing); the link alone goes
+            tmp.unlink()
         shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
+        own_folder(self.run_root, tmp)
         if agent is not None:
             assert save_agent is not None
             save_agent(str(tmp / "agent.ckpt"), agent)
         faults.checkpoint(name, "files")
         for key, group in (arrays or {}).items():
-            with open(tmp / f"{key}.npz", "wb") as f:
+            with os.fdopen(open_regular(tmp / f"{key}.npz", os.O_WRONLY | os.O_CREAT | os.O_EXCL), "wb") as f:
                 np.savez(f, **{k: np.asarray(v) for k, v in group.items() if v is not None})
                 f.flush()
                 os.fsync(f.fileno())
         for key, doc in (documents or {}).items():  # "state" and "MANIFEST" are the checkpoint's own
             # plain json (NaN / Infinity kept as such: an env's state must come back exactly)
-            atomic_write_json(tmp / f"{key}.json", doc, indent=None, exact=True)
-        atomic_write_json(tmp / "state.json", state)
+            atomic_write_json(tmp / f"{key}.json", doc, indent=None, exact=True, root=self.run_root)
+        atomic_write_json(tmp / "state.json", state, root=self.run_root)
         files = {q.name: {"size": q.stat().st_size, "sha256": file_sha256(q)} for q in sorted(tmp.iterdir())
                  if q.is_file() and not q.name.startswith(".")}
         seq = int(max([0.0, *(self.order(n)[0] for n in self.names())])) + 1  # after every checkpoint's
-        atomic_write_json(tmp / MANIFEST, {"name": name, "seq": seq, "time": time.time(), "files": files})
+        atomic_write_json(tmp / MANIFEST, {"name": name, "seq": seq, "time": time.time(), "files": files},
+                          root=self.run_root)
         _fsync_dir(tmp)
         final, trash = self.root / name, self.root / f".trash-{name}-{os.getpid()}"
         if final.exists():  # re-saving the same name (e.g. after a resume): swap, then remove
@@ -179,7 +185,7 @@ class CheckpointManager:
         _fsync_dir(self.root)
         faults.checkpoint(name, "renamed")
         previous = self._latest_name()
-        atomic_write_json(self.root / LATEST, _info(name, state))
+        atomic_write_json(self.root / LATEST, _info(name, state), root=self.run_root)
         self._prune(keep={name, previous} - {None})
         return final
 
@@ -308,7 +314,7 @@ class CheckpointManager:
     def select(self, name: str) -> dict[str, Any]:
         """Make checkpoint ``name`` the one ``latest()`` returns (``botorl resume --from NAME``)."""
         self.verify_named(name)
-        atomic_write_json(self.root / LATEST, _info(name, self.state(name)))
+        atomic_write_json(self.root / LATEST, _info(name, self.state(name)), root=self.run_root)
         return self.latest()
 
     def order(self, name: str) -> tuple[float, float]:
@@ -344,7 +350,7 @@ class CheckpointManager:
                 print(f"botorl: warning: {'; '.join(bad)}. Falling back to the previous checkpoint, {name}.",
                       file=sys.stderr)
                 with contextlib.suppress(OSError):  # a read-only run directory (eval): nothing to repair
-                    atomic_write_json(self.root / LATEST, _info(name, self.state(name)))
+                    atomic_write_json(self.root / LATEST, _info(name, self.state(name)), root=self.run_root)
             return _info(name, self.state(name))
         if bad:
             print(f"botorl: warning: {'; '.join(bad)}; no checkpoint passes the check.", file=sys.stderr)

@@ -27,7 +27,7 @@ from botorl.configs.resolve import BOUNDS, check_bounds, validate
 from botorl.configs.schema import RunConfig, from_dict, to_dict
 from botorl.envs.registry import get_task
 from botorl.errors import BotorlError, ConfigError
-from botorl.io import atomic_write_json, open_regular
+from botorl.io import atomic_write_json, open_regular, own_folder
 from botorl.jaxsetup import matmul_precision, setup_jax
 from botorl.pipeline import preempt, shared_pretrain, stages
 from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step, \
@@ -153,8 +153,9 @@ def run_main(argv: list[str]) -> int:
         with io_guard(out):
             environment = environment_record()  # what the run was made with (pipeline/provenance.py)
             for c, r in zip(member_cfgs, runs):
+                own_folder(out, r.root)  # a member's folder planted as a link would take its run outside --out
                 r.create()
-                atomic_write_json(r.config, {**to_dict(c), "environment": environment})
+                atomic_write_json(r.config, {**to_dict(c), "environment": environment}, root=out)
             if not single:
                 write_population_file(out, cfg, member_cfgs, "running", ["running"] * len(members), {})
         what = (f"(profile {cfg.profile}, seed {cfg.seed})" if single else
@@ -313,8 +314,11 @@ def resume_main(argv: list[str]) -> int:
         else:
             try:
                 finished = read_json(status_file).get("status") == "finished"
-            except (OSError, ValueError, AttributeError):
-                finished = False  # no summary yet, or a damaged one: the resume rewrites it
+            except (OSError, ValueError, AttributeError) as err:
+                finished = False  # no summary yet, or a damaged one: the resume rebuilds it
+                if os.path.lexists(status_file):  # never silently (it is rebuilt from the checkpoints and logs)
+                    print(f"botorl: warning: {status_file} cannot be read ({err}); the resume writes it afresh from "
+                          f"the run's checkpoints and logs.", file=sys.stderr)
             if finished:
                 print(f"botorl: {root} has finished already; nothing to resume.", file=sys.stderr)
                 summaries = [read_summary(r) for r in runs]

@@ -15,6 +15,8 @@ import io
 import json
 import math
 import os
+import socket
+import struct
 import sys
 import time
 from pathlib import Path
@@ -22,7 +24,7 @@ from typing import Any, Callable
 
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import (IO_FAULTS, UnsafeFileError, append_text, atomic_write_bytes, jsonable, open_regular,
-                       read_bounded, read_bounded_bytes)
+                       own_folder, read_bounded, read_bounded_bytes, unshare)
 from botorl.io import read_json_bounded as read_json  # what every reader of a run's JSON files calls
 
 LOCK_FILE = ".lock"
@@ -46,14 +48,10 @@ class RunDir:
         self.tb = self.root / "tb"
 
     def create(self) -> None:
-        self.root.mkdir(parents=True, exist_ok=True)
-        for sub in (self.metrics, self.checkpoints, self.tb):
-            # a folder replaced by a link would take the run's writes outside its directory
-            if sub.is_symlink():
-                raise UnsafeFileError(f"{sub} is a symbolic link; botorl writes a run's files only inside its "
-                                      f"directory. Remove the link (or give another --out) and run the command again.")
-        self.metrics.mkdir(exist_ok=True)
-        self.checkpoints.mkdir(exist_ok=True)
+        # a folder replaced by a link would take the run's writes outside its directory
+        own_folder(self.root, self.tb, make=False)
+        own_folder(self.root, self.metrics)
+        own_folder(self.root, self.checkpoints)
 
 
 def check_out(out: Path) -> None:
@@ -117,8 +115,7 @@ class RunLock:
     def acquire(self) -> "RunLock":
         if self._fd is not None:
             return self
-        self.root.mkdir(parents=True, exist_ok=True)
-        fd = open_regular(self.path, os.O_RDWR | os.O_CREAT, 0o644)  # never through a link
+        fd = open_regular(self.path, os.O_RDWR | os.O_CREAT, 0o644, root=self.root, shared=True)  # never through a link
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as err:
@@ -131,6 +128,15 @@ class RunLock:
                     f"{self.path}). Wait for it to finish or stop it, or give another --out."
                 ) from None
             raise
+        if os.fstat(fd).st_nlink > 1:
+            # a hard link (a `cp -al` snapshot's lock is the original run's; or a file outside):
+            # replaced, under its flock, by a file of its own, locked before the rename, so its
+            # other names keep their bytes and no second owner gets in between
+            try:
+                fd = unshare(self.path, fd, prepare=lambda new: fcntl.flock(new, fcntl.LOCK_EX | fcntl.LOCK_NB))
+            except BaseException:
+                os.close(fd)
+                raise
         os.ftruncate(fd, 0)
         os.pwrite(fd, (self.stamp or f"{os.getpid()}\n").encode(), 0)
         self._fd = fd
@@ -181,8 +187,9 @@ def log_lines(path: Path, *, warn: bool = False) -> list[str]:
 class CsvLog:
     """Append-only CSV with a fixed header (the first row's keys; later extra keys dropped)."""
 
-    def __init__(self, path: Path, columns: list[str] | None = None):
+    def __init__(self, path: Path, columns: list[str] | None = None, *, root: Path | None = None):
         self.path = Path(path)
+        self.root = root  # the run directory: no folder between it and the log is a link (io.own_folder)
         header = next(csv.reader(log_lines(self.path)[:1]), None)  # an existing log keeps its own columns
         self.columns = header or (list(columns) if columns else None)
 
@@ -195,7 +202,7 @@ class CsvLog:
         if new:
             w.writeheader()
         w.writerow({k: _fmt(row.get(k, "")) for k in self.columns})
-        append_text(self.path, buf.getvalue())
+        append_text(self.path, buf.getvalue(), root=self.root)
 
     def rows(self, *, warn: bool = False) -> list[dict[str, str]]:
         return [r for r in csv.DictReader(log_lines(self.path, warn=warn)) if r]
@@ -210,7 +217,7 @@ class CsvLog:
         w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
         w.writeheader()
         w.writerows(r for r in rows if keep(r))
-        atomic_write_bytes(self.path, buf.getvalue().encode())
+        atomic_write_bytes(self.path, buf.getvalue().encode(), root=self.root)
 
 
 def _fmt(v: Any) -> Any:
@@ -219,11 +226,12 @@ def _fmt(v: Any) -> Any:
 
 
 class JsonlLog:
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, *, root: Path | None = None):
         self.path = Path(path)
+        self.root = root  # as CsvLog's
 
     def append(self, row: dict[str, Any]) -> None:
-        append_text(self.path, json.dumps(jsonable(row)) + "\n")
+        append_text(self.path, json.dumps(jsonable(row)) + "\n", root=self.root)
 
     def truncate(self, keep) -> None:
         if not self.path.exists():
@@ -234,31 +242,73 @@ class JsonlLog:
                 row = json.loads(line)
                 if keep(row):
                     out.append(json.dumps(row))
-        atomic_write_bytes(self.path, ("\n".join(out) + ("\n" if out else "")).encode())
+        atomic_write_bytes(self.path, ("\n".join(out) + ("\n" if out else "")).encode(), root=self.root)
 
 
 def _warn(msg: str) -> None:
     print(f"botorl: warning: {msg}", file=sys.stderr)
 
 
+class EventsFile:
+    """A TensorBoard events file (TFRecord framing: the record's length, its masked CRC-32C, the
+    record, its masked CRC-32C; tensorboardX's protos and checksum) that botorl makes new
+    (``O_EXCL``: a name already there, a link's included, is never opened, so nothing outside the
+    run is written). ``write_event``, ``flush`` and ``close`` as tensorboardX's ``EventsWriter``."""
+
+    def __init__(self, logdir: Path, root: Path | None = None):
+        from tensorboardX.proto.event_pb2 import Event  # lazy: optional dependency (the tensorboard extra)
+
+        name = f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}"
+        for k in range(100):  # a name taken (another process this second, a planted file): the next
+            try:
+                fd = open_regular(logdir / (f"{name}.{k}" if k else name), os.O_WRONLY | os.O_CREAT | os.O_EXCL,
+                                  root=root)
+                break
+            except FileExistsError:
+                continue
+        else:
+            raise FileExistsError(errno.EEXIST, "no free events file name", str(logdir / name))
+        self._file = os.fdopen(fd, "wb")
+        self.write_event(Event(wall_time=time.time(), file_version="brain.Event:2"))
+
+    def write_event(self, event) -> None:
+        from tensorboardX.record_writer import masked_crc32c  # lazy: as in __init__
+
+        data = event.SerializeToString()
+        header = struct.pack("Q", len(data))
+        crc = struct.pack("I", masked_crc32c(header)), struct.pack("I", masked_crc32c(data))
+        self._file.write(header + crc[0] + data + crc[1])
+
+    def flush(self) -> None:
+        self._file.flush()
+        os.fsync(self._file.fileno())
+
+    def close(self) -> None:
+        try:
+            self.flush()
+        finally:
+            self._file.close()
+
+
 class TBWriter:
-    """TensorBoard scalars written in the caller's thread (tensorboardX's ``EventsWriter``).
+    """TensorBoard scalars written in the caller's thread (``EventsFile``).
 
     ``SummaryWriter``'s background thread dies on ENOSPC / EROFS and its full queue then blocks
     the run forever; here the first I/O error turns TensorBoard off with one warning instead.
-    Non-finite values are skipped (TensorBoard rejects them).
+    Non-finite values are skipped (TensorBoard rejects them). ``root``: the run directory
+    (``io.own_folder``).
     """
 
-    def __init__(self, logdir: Path, flush_secs: float = 30.0):
-        from tensorboardX.event_file_writer import EventsWriter  # lazy: optional dependency (the tensorboard extra)
+    def __init__(self, logdir: Path, flush_secs: float = 30.0, root: Path | None = None):
+        import tensorboardX  # noqa: F401  lazy: optional dependency (the tensorboard extra); ImportError: off
 
         self.logdir = Path(logdir)
         self.flush_secs = flush_secs
         self._writer = None
         self._next_flush = time.monotonic() + flush_secs
         try:
-            self.logdir.mkdir(parents=True, exist_ok=True)
-            self._writer = EventsWriter(str(self.logdir / "events"))
+            own_folder(root if root is not None else self.logdir, self.logdir)
+            self._writer = EventsFile(self.logdir, root)
         except OSError as err:
             self._disable(err)
 
@@ -309,7 +359,7 @@ class MetricsLogger:
         self._wandb = wandb_run
         if tensorboard:
             with contextlib.suppress(ImportError):  # tensorboardX is optional
-                self._tb = TBWriter(run.tb)
+                self._tb = TBWriter(run.tb, root=run.root)
 
     def _wandb_log(self, data: dict[str, Any]) -> None:
         # W&B talks to its own service process; a failure there must not stop the run.
@@ -321,7 +371,8 @@ class MetricsLogger:
 
     def _logs(self, stage: str) -> tuple[CsvLog, JsonlLog]:
         if stage not in self._by_stage:
-            self._by_stage[stage] = CsvLog(self.run.metrics / f"{stage}.csv"), JsonlLog(self.run.metrics / f"{stage}.jsonl")
+            self._by_stage[stage] = (CsvLog(self.run.metrics / f"{stage}.csv", root=self.run.root),
+                                     JsonlLog(self.run.metrics / f"{stage}.jsonl", root=self.run.root))
         return self._by_stage[stage]
 
     def log(self, stage: str, step: int, metrics: dict[str, Any]) -> None:

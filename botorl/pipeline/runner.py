@@ -97,8 +97,8 @@ class MemberRun:
         self.run = run
         run.create()
         self.logger = MetricsLogger(run, tensorboard=cfg.tensorboard, wandb_run=wandb_run)
-        self.eval_log = CsvLog(run.eval_csv, EVAL_COLUMNS)
-        self.q_log = CsvLog(run.metrics / "q_probe.csv", ["stage", "step", "q_data", "q_uniform"])
+        self.eval_log = CsvLog(run.eval_csv, EVAL_COLUMNS, root=run.root)
+        self.q_log = CsvLog(run.metrics / "q_probe.csv", ["stage", "step", "q_data", "q_uniform"], root=run.root)
         self.error = error  # set when this member diverged (the others go on)
 
 
@@ -290,7 +290,7 @@ class RunContext:
         summary = build_summary(member.cfg, member.run, status, self.stage_seconds(), error)
         if not self.single:
             summary["population"] = str(self.root)
-        atomic_write_json(member.run.summary, summary)
+        atomic_write_json(member.run.summary, summary, root=member.run.root)
         return summary
 
     def write_summary(self, status: str, error: str | None = None) -> None:
@@ -315,7 +315,7 @@ def write_population_file(root: Path, cfg: RunConfig, member_cfgs: list[RunConfi
             "total_seconds": round(sum(stage_seconds.values()), 3), "config": to_dict(cfg)}
     if error:
         data["error"] = error
-    atomic_write_json(Path(root) / POPULATION_FILE, data)
+    atomic_write_json(Path(root) / POPULATION_FILE, data, root=root)
 
 
 def _eval_rows(run: RunDir) -> list[dict[str, float]]:
@@ -556,7 +556,7 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
     ax.set_title(f"{cfg.task} / {cfg.method} / seed {cfg.seed}")
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
-    atomic_save_figure(fig, run.curve, dpi=110)
+    atomic_save_figure(fig, run.curve, root=run.root, dpi=110)
     plt.close(fig)
     return run.curve
 

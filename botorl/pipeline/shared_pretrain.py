@@ -102,7 +102,8 @@ def load(ctx, sources: list[Path]):
         for name in ("pretrain.csv", "pretrain.jsonl"):
             if (src / "metrics" / name).is_file() and src.resolve() != member.run.root.resolve():
                 try:
-                    atomic_write_bytes(member.run.metrics / name, read_bounded_bytes(src / "metrics" / name, LOG_LIMIT))
+                    atomic_write_bytes(member.run.metrics / name, read_bounded_bytes(src / "metrics" / name, LOG_LIMIT),
+                                       root=member.run.root)
                 except ValueError as err:  # not a regular file, or a huge one: the logs only, not the run
                     print(f"botorl: warning: {src / 'metrics' / name} not copied ({err}).", file=sys.stderr)
     return stack(agents)

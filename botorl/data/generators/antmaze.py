@@ -25,7 +25,7 @@ from botorl.envs.ant_goal import NumpyActor
 from botorl.envs.antmaze import SUCCESS_RADIUS, layout, make_maze_env  # the mazes: botorl/envs/antmaze.py
 from botorl.envs.pointmaze import cell_to_xy, free_cells, next_cell_table
 from botorl.errors import BotorlError
-from botorl.io import pyplot
+from botorl.io import atomic_save_figure, pyplot
 
 ACTION_NOISE = 0.2  # create_antmaze_dataset.py --action-noise
 WAYPOINT_THRESHOLD = 0.45  # controller.py waypoint_threshold
@@ -297,10 +297,6 @@ def plot_coverage(ds, path, maze: str | None = None, title: str | None = None, m
     st = maze_stats(ds, maze)
     ax.set_title(title or f"{len(ds):,} steps, {st['cells_covered']}/{st['cells_free']} cells covered", fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=120)
+    atomic_save_figure(fig, path, dpi=120)
     plt.close(fig)
-    os.replace(tmp, path)
-    return path
+    return Path(path)
