@@ -140,9 +140,10 @@ def _env() -> dict[str, str]:
             "JAX_PLATFORMS": "cpu"}
 
 
-def _study(args: list[str], tmp_path: Path, **kw) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "botorl.cli", "study", *args], cwd=tmp_path, env=_env(),
-                            start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, **kw)
+def _study(args: list[str], tmp_path: Path, **env: str) -> subprocess.Popen:
+    """`botorl study ...` in its own process group (so that a test can kill -9 all of it)."""
+    return subprocess.Popen([sys.executable, "-m", "botorl.cli", "study", *args], cwd=tmp_path, env=_env() | env,
+                            start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
 
 
 # ----------------------------------------------------------------------------- the file's checks
@@ -254,7 +255,7 @@ def test_an_arm_from_another_pre_training_is_refused(tmp_path):
     plan = _write(tmp_path, SMOKE.split("[[blocks]]")[0].format(commit="0123abc", size=1, runs=tmp_path / "runs")
                   + TWO_ARMS)
     proc = _study(["run", str(plan), "--trial-command", f"{sys.executable} {standin}", "--unfrozen"], tmp_path,
-                  env={**_env(), "STANDIN_SALT_METHOD": "wsrl", "STANDIN_SLEEP": "0"})
+                  STANDIN_SALT_METHOD="wsrl", STANDIN_SLEEP="0")
     out = proc.communicate(timeout=300)[0].decode()
     assert proc.returncode == 2, out
     assert "b0/a" in out and "do not start from the pre-training of arm 'b'" in out and "Traceback" not in out
@@ -346,3 +347,39 @@ def test_study_1_reproduces_its_pooled_numbers(tmp_path):
     assert [round(x, 2) for x in dip["e-a"]["block_range"]] == [0.16, 0.23]
     floor = next(r for r in res["floors"] if r["endpoint"] == "dip" and r["comparison"] == "f2-b")
     assert round(floor["sd"], 2) == 0.45 and [round(x, 2) for x in floor["spread"]] == [-0.80, 0.97]
+
+
+def _record(folder: Path, method: str, seed: int, sha: str, success: list[float], q_after: float) -> None:
+    """A run's three records by hand: evaluations at steps 0 (the warm-up's), 30 (fine-tuning's
+    first) and 10, 20, 40."""
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text(json.dumps({"task": "pointmaze-umaze", "method": method, "seed": seed,
+                                                    "environment": {"commit": "0123abc" + "0" * 33}}))
+    (folder / "summary.json").write_text(json.dumps({"status": "finished", "task": "pointmaze-umaze", "method": method,
+                                                     "seed": seed, "alpha": None, "pretrain_sha256": sha * 64}))
+    rows = ["stage,env_step,success,return,q_data,q_uniform", "warmup,0,1,0,2.0,1.0",
+            f"finetune,30,{success[2]},0,{q_after},{q_after / 2}"]
+    rows += [f"finetune,{s},{v},0,0,0" for s, v in zip((10, 20, 40), (success[0], success[1], success[3]))]
+    (folder / "eval.csv").write_text("\n".join(rows) + "\n")
+
+
+def test_the_report_reads_records_by_hand_and_pairs_only_one_pre_training(tmp_path):
+    plan = _write(tmp_path, SMOKE.split("[[blocks]]")[0].format(commit="0123abc", size=1, runs=tmp_path / "runs")
+                  + TWO_ARMS.replace('seeds = "0"', 'seeds = "0-1"')
+                  + '[analysis]\nendpoints = ["dip", "window_mean"]\nprimary = ["b-a"]\nwindow_end = 30\n')
+    results = plan.parent / "results" / "b0"
+    _record(results / "b" / "pointmaze-umaze" / "seed0", "boto", 0, "a", [0.5, 1.0, 0.5, 1.0], 4.0)
+    _record(results / "a" / "pointmaze-umaze" / "seed0", "wsrl", 0, "a", [0.0, 0.0, 1.0, 1.0], 2.0)
+    _record(results / "b" / "pointmaze-umaze" / "seed1", "boto", 1, "b", [1.0, 1.0, 1.0, 1.0], 2.0)
+    _record(results / "a" / "pointmaze-umaze" / "seed1", "wsrl", 1, "c", [0.0, 0.0, 0.0, 0.0], 2.0)
+    rec = Records(load_study(plan))
+    # seed 0: dip over steps 0..30 is min(1, .5, 1, .5) - 1 = -0.5 against min(1, 0, 0, 1) - 1 = -1
+    assert rec.differences("b", "a", "dip") == ([0.5], ["b0"])
+    # window_mean: evaluations after 0 up to 30: (0.5 + 1 + 0.5) / 3 against (0 + 0 + 1) / 3
+    np.testing.assert_allclose(rec.differences("b", "a", "window_mean")[0], [1 / 3])
+    np.testing.assert_allclose(rec.differences("b", "a", "q_uniform_change")[0], [1.0])  # (4 - 2) / 2 - (1 - 1)
+    assert len(rec.unpaired) == 1  # seed 1: two pre-trainings, never a pair
+    assert rec.commits == {"0123abc" + "0" * 33: 4}
+    assert cli(["study", "report", str(plan)]) == 0
+    text = (plan.parent / "analysis" / "analysis.md").read_text()
+    assert "not paired: b0/b/pointmaze-umaze/1 and b0/a/pointmaze-umaze/1" in text and "not the frozen" not in text

@@ -187,8 +187,7 @@ def load_study(path: str | Path) -> Study:
     tasks = s.strings("tasks")
     if not tasks:
         s.fail("tasks", "is missing or empty; name the task(s) every arm runs")
-    for field, value in (("set", s.strings("set")),):
-        _overrides(s, field, value)
+    _overrides(s, "set", s.strings("set"))
     blocks = _blocks(path, top.get("blocks", list, hint="add [[blocks]] tables with name and seeds"))
     arms = _arms(path, top.get("arms", list, hint="add [[arms]] tables"), s)
     keys = [a.key for a in arms]

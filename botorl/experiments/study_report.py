@@ -73,6 +73,8 @@ class Records:
     def __init__(self, study: Study):
         self.study = study
         self.values: dict[Key, dict[str, float]] = {}
+        self.digests: dict[Key, str] = {}  # the pre-trained agent each recorded run starts from
+        self.unpaired: set[tuple[Key, Key]] = set()  # same block, task and seed, yet two pre-trainings
         self.commits: Counter = Counter()
         self.notes: list[str] = []
         for block in study.blocks:
@@ -92,6 +94,8 @@ class Records:
             for r in runs:
                 v = endpoints_of(r, self.study.window_end)
                 self.values[(block.name, arm.key, r.task, r.seed)] = v | q_around_boto(r.path)
+                if r.pretrain_sha256:
+                    self.digests[(block.name, arm.key, r.task, r.seed)] = r.pretrain_sha256
                 env = r.config.get("environment")
                 self.commits[str(env.get("commit")) if isinstance(env, dict) else "not recorded"] += 1
 
@@ -128,16 +132,22 @@ class Records:
                           "records, so its runs' commit and pre-training digests cannot be checked here")
 
     def differences(self, x: str, y: str, quantity: str) -> tuple[list[float], list[str]]:
-        """x − y per (block, task, seed) that ran both, with each difference's block."""
+        """x − y per (block, task, seed) that ran both from one pre-training (where the records
+        name it), with each difference's block."""
         vals, blocks = [], []
         for key in sorted(self.values):
             block, arm, task, seed = key
-            other = self.values.get((block, y, task, seed))
-            if arm == x and other is not None:
-                d = self.values[key].get(quantity, math.nan) - other.get(quantity, math.nan)
-                if math.isfinite(d):
-                    vals.append(d)
-                    blocks.append(block)
+            other = self.values.get(pair := (block, y, task, seed))
+            if arm != x or other is None:
+                continue
+            a, b = self.digests.get(key), self.digests.get(pair)
+            if a and b and a != b:  # two pre-trainings: no pair (`study run` refuses to make them)
+                self.unpaired.add((key, pair))
+                continue
+            d = self.values[key].get(quantity, math.nan) - other.get(quantity, math.nan)
+            if math.isfinite(d):
+                vals.append(d)
+                blocks.append(block)
         return vals, blocks
 
     def arm_values(self, arm: str, quantity: str) -> list[float]:
@@ -365,6 +375,8 @@ def markdown(rec: Records, res: dict[str, list[dict]], names: dict[str, str], he
     lines += [f"- deviation: `study run` of {inv.get('started')} ran with --unfrozen: {inv['unfrozen']}"
               for inv in state.get("invocations", []) if isinstance(inv, dict) and inv.get("unfrozen")]
     lines += [f"- {note}" for note in rec.notes]
+    lines += [f"- not paired: {'/'.join(map(str, k))} and {'/'.join(map(str, p))} start from different pre-trainings "
+              "(pretrain_sha256)" for k, p in sorted(rec.unpaired)]
     lines += ["", "## Arms (mean over their runs)", "",
               md_table(head, ([r[0], r[1], *(_num(v, ".2f") for v in r[2:])] for r in arm_rows)), "",
               f"## Primary comparisons ({n_primary} tests, Holm)", "", comparison_table(res["primary"], names, True), ""]
