@@ -24,11 +24,13 @@ import sys
 import time
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 from botorl.errors import BotorlError, ConfigError, Interrupted
 from botorl.experiments import child
-from botorl.experiments.grid import format_alpha, parse_methods, parse_overrides, parse_seeds
+from botorl.experiments.cli import check_trial_configs
+from botorl.experiments.grid import build_grid, format_alpha, parse_methods, parse_overrides, parse_seeds
 from botorl.experiments.runs import find_runs
 from botorl.io import JSON_LIMIT, atomic_write_bytes, atomic_write_json, read_bounded_bytes, read_json_object
 from botorl.pipeline.provenance import botorl_commit
@@ -111,6 +113,21 @@ class Study:
         return args + (["--set", *sets] if sets else [])
 
 
+def arm_config(study: Study, arm: Arm, task: str):
+    """The RunConfig an arm's sweep gives its first seed on ``task``, built and checked as
+    `botorl sweep` does before it launches anything; a ConfigError names the arm."""
+    grid = build_grid(tasks=task, methods=arm.method, seeds=[study.blocks[0].seeds[0]],
+                      alphas=None if arm.alpha is None else [arm.alpha], overrides=list(study.set) + list(arm.set),
+                      profile=study.profile)
+    built: dict[str, Any] = {}
+    sweep = SimpleNamespace(trials=grid.trials()[:1], config=lambda t: built.setdefault("cfg", grid.config(t)))
+    try:
+        check_trial_configs(sweep)
+    except ConfigError as err:
+        raise ConfigError(f"{study.path}: [[arms]] {arm.key} on {task}: {err}") from None
+    return built["cfg"]
+
+
 def seeds_text(seeds: tuple[int, ...]) -> str:
     """``200-207`` for a run of seeds, else ``1,3,5``."""
     if len(seeds) > 1 and list(seeds) == list(range(seeds[0], seeds[-1] + 1)):
@@ -173,10 +190,10 @@ def load_study(path: str | Path) -> Study:
         raw = tomllib.loads(read_bounded_bytes(path, JSON_LIMIT).decode())
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such study file.") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"{path}: cannot read the study file ({err}).") from None
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{path}: not valid TOML ({err}).") from None
+    except (OSError, ValueError) as err:  # ValueError: not a regular file, too large, not UTF-8
+        raise ConfigError(f"{path}: cannot read the study file ({err}).") from None
     top = _Table(path, "the file:", raw, ("study", "blocks", "arms", "analysis"))
     s = _Table(path, "[study]", top.get("study", dict, hint="start the file with a [study] table"),
                ("name", "question", "commit", "tasks", "profile", "set", "population_size", "runs", "results",
@@ -326,6 +343,9 @@ class StudyRun:
             raise ConfigError(f"{study.path}: {deviation}. Check out the frozen commit with a clean tree, or run with "
                               "--unfrozen, which records the deviation in the results.")
         self.deviation = deviation
+        for arm in study.arms:  # a typo in a task or an override fails now, not in every block's sweep
+            for task in study.tasks:
+                arm_config(study, arm, task)
         self.state_path = study.results / STATE
         self.state = read_json_object(self.state_path) or {}
 
@@ -366,9 +386,11 @@ class StudyRun:
         pending = [j for j in self.jobs() if not self.done(*j)]
         running: dict[tuple[Block, Arm], subprocess.Popen] = {}
         failed: list[str] = []
+        codes: set[int] = set()
         try:
             while (pending and not failed) or running:
-                for job in [j for j in pending if self._ready(*j)][: self.lanes - len(running)] if not failed else []:
+                ready = [] if failed else [j for j in pending if self._ready(*j)]  # after a failure: no new arm
+                for job in ready[: self.lanes - len(running)]:
                     pending.remove(job)
                     running[job] = self._start(*job)
                 for job, proc in list(running.items()):
@@ -377,6 +399,7 @@ class StudyRun:
                         if code == 0:
                             self._finish(*job)
                         else:
+                            codes.add(code)
                             failed.append(f"{job[0].name}/{job[1].key} (sweep exit {code}; log {self._log(*job)})")
                 time.sleep(0.2)
         except BaseException as err:
@@ -390,7 +413,7 @@ class StudyRun:
         if failed:
             print(f"botorl study: {', '.join(failed)} failed; start the same command again to retry "
                   "(finished runs are kept).", file=sys.stderr)
-            return 1
+            return 2 if 2 in codes else 1  # 2: a sweep refused its settings, which a retry cannot mend
         print(f"botorl study: every arm of {self.study.name} finished; records in {self.study.results}")
         return 0
 

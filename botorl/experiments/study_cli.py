@@ -61,4 +61,4 @@ def main(argv: list[str]) -> int:
         for f in report(study, Path(args.out) if args.out else study.path.parent / "analysis"):
             print(f"  wrote {f}")
         return 0
-    raise ConfigError(f"botorl study: unknown action {what!r}; use `run` or `report`.\n{USAGE}")
+    raise ConfigError(f"unknown action {what!r}; use `run` or `report`.\n{USAGE}")

@@ -22,7 +22,6 @@ import numpy as np
 from botorl.configs.schema import flatten, to_dict
 from botorl.errors import ConfigError
 from botorl.experiments.dip import run_dip
-from botorl.experiments.grid import build_grid
 from botorl.experiments.manipulation import q_around_boto
 from botorl.experiments.pairs import canonical_label, read_pairs_csv
 from botorl.experiments.report import make_report
@@ -43,7 +42,7 @@ from botorl.experiments.stats import (
     tost,
     wilcoxon_signed_rank,
 )
-from botorl.experiments.study import ENDPOINTS, STATE, Block, Study, comparison_text, seeds_text
+from botorl.experiments.study import ENDPOINTS, STATE, Block, Study, arm_config, comparison_text, seeds_text
 from botorl.io import atomic_write_text, read_json_object
 
 Key = tuple[str, str, str, int]  # (block, arm, task, seed)
@@ -169,13 +168,7 @@ def arm_labels(study: Study, seen: list[str]) -> dict[str, tuple[str, float | No
         keys.setdefault(base, set()).update(v.split("=", 1)[0] for v in variant.rstrip("]").split(", ") if v)
     out = {}
     for arm in study.arms:
-        grid = build_grid(tasks=study.tasks[0], methods=arm.method, seeds=[study.blocks[0].seeds[0]],
-                          alphas=None if arm.alpha is None else [arm.alpha],
-                          overrides=list(study.set) + list(arm.set), profile=study.profile)
-        try:
-            cfg = grid.config(grid.trials()[0])
-        except ConfigError as err:
-            raise ConfigError(f"{study.path}: [[arms]] {arm.key}: its settings do not build a run ({err}).") from None
+        cfg = arm_config(study, arm, study.tasks[0])
         base = f"boto+{cfg.pretrain}" if cfg.method == "boto" and cfg.pretrain else cfg.method
         flat = flatten(to_dict(cfg))
         variant = ", ".join(f"{k}={json.dumps(flat.get(k), sort_keys=True)}" for k in sorted(keys.get(base, ())))
