@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from botorl.experiments.pairs import read_pairs_csv
@@ -26,6 +27,7 @@ def test_wilcoxon_exact_by_counting_subsets():
     # n = 5, all positive: W+ = 15, only the full set of {1..5} reaches it: P(W+ >= 15) = 1/32,
     # two-sided p = 2/32
     assert wilcoxon_signed_rank([0.1, 0.2, 0.3, 0.4, 0.5]) == (pytest.approx(2 / 32), "exact")
+    assert type(wilcoxon_signed_rank([0.1, 0.2])[0]) is float  # not numpy's: it is written to reports
     # d = 1, -2, 3, 4: W+ = 1 + 3 + 4 = 8; subsets of {1,2,3,4} summing to >= 8: {4,3,1}, {4,3,2},
     # {4,3,2,1} -> 3/16, P(W+ <= 8) = 14/16, p = 2 * 3/16
     assert wilcoxon_signed_rank([1.0, -2.0, 3.0, 4.0]) == (pytest.approx(6 / 16), "exact")
@@ -134,3 +136,21 @@ def test_study_1_holm_p_with_the_plans_wilcoxon():
     assert all(len(d(x, y, q)) == 24 for x, y, q in tests) and {m for _, m in ps} == {"normal"}
     adjusted = [round(p, 3) for p in holm([p for p, _ in ps])]
     assert adjusted[:3] == [0.041, 0.030, 0.041]
+
+
+def test_wilcoxon_agrees_with_scipy_where_scipy_is_told_the_method():
+    # an independent implementation as a cross-check: SciPy's explicit methods (not its
+    # version-dependent default) on tied and on untied samples
+    from scipy import stats
+
+    rng = np.random.default_rng(0)
+    for n in (6, 13, 30):
+        tied = rng.integers(-3, 5, n).astype(float) / 4  # steps of 0.25, as success rates tie
+        tied = tied[tied != 0]
+        p, method = wilcoxon_signed_rank(tied)
+        assert method == "normal"
+        assert p == pytest.approx(stats.wilcoxon(tied, method="approx", correction=False).pvalue, rel=1e-9)
+        untied = rng.normal(0.3, 1.0, n)
+        p, method = wilcoxon_signed_rank(untied)
+        assert method == "exact"
+        assert p == pytest.approx(stats.wilcoxon(untied, method="exact").pvalue, rel=1e-9)

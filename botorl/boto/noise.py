@@ -5,9 +5,11 @@
   choice** (no source gives it; docs/methods.md, "BOTO: the choices the paper leaves open").
 * **gaussian**: ``a_bar ~ Normal(a, sigma^2 I)`` (the bandit figure 3, unclipped there to
   compare with the closed-form Q*).
-* **none**: ``a_bar = a``, so the penalty is 0 and the BOTO stage is a plain soft-backup re-fit
-  of the critic on D_offline u D_warmup: the ablation's *re-fit control*, the same data, steps
-  and optimiser as BOTO with no bound (docs/results/why-boto.md).
+* **none**: ``a_bar = a``, so the penalty is 0 and the BOTO stage is a soft-backup re-fit of
+  the critic on D_offline u D_warmup: the ablation's *re-fit control*, the same data, steps
+  and optimiser as BOTO with no bound. Its target keeps BOTO's entropy term (unless
+  ``backup_entropy`` is off), which pre-training and fine-tuning do not use: not a plain
+  re-fit with their own target (docs/results/why-boto.md).
 
 All return ``(a_bar, info)``, ``info`` per row: ``uniform`` (drawn from the uniform component)
 and ``t`` (the noise scale; sigma for the Gaussian kind).

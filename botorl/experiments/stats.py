@@ -138,7 +138,7 @@ def wilcoxon_signed_rank(d: Sequence[float]) -> tuple[float, str]:
         w = int(round(w_plus))
         total = float(2**n)
         below, above = counts[: w + 1].sum() / total, counts[w:].sum() / total
-        return min(1.0, 2 * min(below, above)), "exact"
+        return float(min(1.0, 2 * min(below, above))), "exact"
     mean = n * (n + 1) / 4
     var = n * (n + 1) * (2 * n + 1) / 24 - sum(t**3 - t for t in ties) / 48
     z = (w_plus - mean) / math.sqrt(var)
