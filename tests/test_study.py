@@ -383,3 +383,4 @@ def test_the_report_reads_records_by_hand_and_pairs_only_one_pre_training(tmp_pa
     assert cli(["study", "report", str(plan)]) == 0
     text = (plan.parent / "analysis" / "analysis.md").read_text()
     assert "not paired: b0/b/pointmaze-umaze/1 and b0/a/pointmaze-umaze/1" in text and "not the frozen" not in text
+    assert "| Q change, uniform actions | (b) b − (a) a | 1 | +1.00 |" in text  # the manipulation check
