@@ -193,7 +193,7 @@ def comparison_row(rec: Records, c: tuple[str, str], quantity: str) -> dict:
            "better": int((x > ZERO).sum()), "equal": int((abs(x) <= ZERO).sum()), "worse": int((x < -ZERO).sum()),
            "block_range": (lo, hi), "block_means": per_block, "p": p, "method": method, "p_holm": math.nan,
            "detectable": detectable_effect(sd, len(v)), "tost": None}
-    if c in s.equivalence:
+    if c in s.equivalence and quantity in ENDPOINTS:  # a margin is in the endpoints' units, not Q's
         row["tost"] = tost(v, s.equivalence[c])
     return row
 
