@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import tyro
 
@@ -22,14 +22,14 @@ report: the analysis from the records alone (markdown, CSV, a figure, the sweeps
 class RunArgs:
     """Run every block's arms of a study file as sweeps, resumably (the same command continues)."""
 
-    study: tyro.conf.Positional[str]
+    study: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="STUDY.toml")]
     """the study file (TOML)"""
     lanes: int = 1
     """arms run side by side (an arm that reuses a pre-training waits for the arm that makes it)"""
     unfrozen: bool = False
     """run although botorl is not at the study's frozen commit with a clean tree; recorded in the results"""
     workers: Optional[int] = None
-    """each sweep's --workers (None: the sweep's default, one per usable core)"""
+    """each sweep's --workers (None: one per usable core, as a sweep chooses)"""
     trial_command: Optional[str] = None
     """each sweep's --trial-command (testing)"""
 
@@ -38,7 +38,7 @@ class RunArgs:
 class ReportArgs:
     """Write a study's analysis from its committed records alone."""
 
-    study: tyro.conf.Positional[str]
+    study: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="STUDY.toml")]
     """the study file (TOML)"""
     out: Optional[str] = None
     """output folder (None: analysis/ beside the study file)"""
