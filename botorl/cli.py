@@ -32,10 +32,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("botorl.benchmarks.suite:main", "measure update speed, or what a paper run costs"),
     "sweep": ("botorl.experiments.cli:sweep_main", "run a grid of tasks x methods x seeds x alphas"),
     "report": ("botorl.experiments.cli:report_main", "Table 1 and Figure 5 from finished runs"),
+    "study": ("botorl.experiments.study_cli:main", "run a pre-registered study file, resumably, and report it"),
 }
 
 
-PREEMPTIBLE = ("run", "resume", "sweep")
+PREEMPTIBLE = ("run", "resume", "sweep", "study")
 
 
 def _usage() -> str:

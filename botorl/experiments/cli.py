@@ -92,7 +92,7 @@ def sweep_main(argv: list[str]) -> int:
     command = shlex.split(args.trial_command) if args.trial_command else None
     sweep = Sweep(grid, SweepOptions(**{**same, "out": Path(args.out), "command": command}))
     if not args.trial_command:  # a stand-in command may know other tasks and options
-        _check_trial_configs(sweep)
+        check_trial_configs(sweep)
     if args.dry_run:
         for trial in sweep.trials:
             print(f"{next_action(sweep.run_dir(trial)):6s}  {trial.relpath}")
@@ -115,7 +115,7 @@ def sweep_main(argv: list[str]) -> int:
     return 0 if not failed else USER_ERROR_EXIT if len(refused) == len(failed) else 1
 
 
-def _check_trial_configs(sweep) -> None:
+def check_trial_configs(sweep) -> None:
     """Build the config of each (task, method, pre-training)'s first trial, which the sweep keeps
     for it, so an unknown task, a typo in --set or a bad profile fails once, now, instead of in
     every trial."""

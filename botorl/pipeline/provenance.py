@@ -36,7 +36,7 @@ def package_version(name: str) -> str | None:
         return None
 
 
-def _commit() -> str | None:
+def botorl_commit() -> str | None:
     """botorl's git commit (``+dirty`` when tracked files differ), or None outside a checkout."""
     root = Path(__file__).resolve().parents[2]
     if not (root / ".git").exists():
@@ -68,7 +68,7 @@ def environment_record() -> dict:
 
     devices = jax.devices()
     return {
-        "commit": _commit(),
+        "commit": botorl_commit(),
         "python": platform.python_version(),
         "versions": {name: package_version(name) for name in PACKAGES},
         "cpu": _cpu(),
