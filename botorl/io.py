@@ -13,6 +13,7 @@ import json
 import math
 import os
 import stat
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -107,8 +108,13 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
-def file_sha256(path: str | os.PathLike) -> str:
+def file_sha256(path: str | os.PathLike, limit: int) -> str:
+    """The SHA-256 of the file ``path``, sized first: ValueError naming its size and ``limit``
+    when it holds more (a 1 TB sparse file is refused at once, not read for minutes)."""
     with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        if size > limit:
+            raise ValueError(f"{Path(path).name} is {size:,} bytes, more than the {limit:,} botorl reads of such a file")
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
@@ -203,12 +209,27 @@ def read_bounded(path: str | os.PathLike, limit: int, *, tail: bool = False) -> 
         raise ValueError(f"{path.name} is not UTF-8 text ({err.reason} at byte {err.start})") from None
 
 
+def _finite_float(text: str) -> float:
+    v = float(text)
+    if math.isinf(v):  # 1e400: no number botorl writes (it writes Infinity, or "inf", as such)
+        raise ValueError(f"the number {text[:40]} is beyond a float")
+    return v
+
+
+def _float_sized_int(text: str) -> int:
+    v = int(text)
+    if abs(v) > sys.float_info.max:  # 10**400: would overflow wherever it meets a float
+        raise ValueError(f"the number {text[:40]}... is beyond a float")
+    return v
+
+
 def read_json_bounded(path: str | os.PathLike, limit: int = JSON_LIMIT) -> Any:
     """The JSON document in the regular file ``path`` (at most ``limit`` bytes); ValueError
-    (not a regular file, too large, not UTF-8, not JSON, nested too deep) or OSError."""
+    (not a regular file, too large, not UTF-8, not JSON, nested too deep, a number beyond a
+    float) or OSError."""
     text = read_bounded(path, limit)
     try:
-        return json.loads(text)
+        return json.loads(text, parse_float=_finite_float, parse_int=_float_sized_int)
     except RecursionError:
         raise ValueError(f"{Path(path).name} is nested too deeply to be a botorl file") from None
 

@@ -392,7 +392,7 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     for p in (out, meta):  # again: the minutes of conversion are time for a swap
         check_replaceable(p, force)
     atomic_write_bytes(out, model)
-    if file_sha256(out) != contract["sha256"]:  # what is on disk is what was verified
+    if file_sha256(out, MAX_MODEL_BYTES) != contract["sha256"]:  # what is on disk is what was verified
         raise BotorlError(f"{out} does not read back as written (sha256 differs); check the disk and export again.")
     atomic_write_json(meta, contract)
     return contract
@@ -424,7 +424,7 @@ def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path)
             raise ConfigError(f"{path} is a policy of task {contract.get('task')!r} (its contract says), not of this "
                               f"run's {cfg.task!r}; give the run it was exported from.")
         want = contract.get("sha256")
-        if not isinstance(want, str) or file_sha256(path) != want:
+        if not isinstance(want, str) or hashlib.sha256(_model_bytes(path)).hexdigest() != want:
             raise ConfigError(f"{path} is not the file its contract describes (sha256 differs): it changed since "
                               f"`botorl export`; export it again.")
 

@@ -22,6 +22,7 @@ import subprocess
 from importlib import metadata
 from pathlib import Path
 
+from botorl.agents.checkpoint import AGENT_LIMIT
 from botorl.io import file_sha256
 
 PACKAGES = ("botorl", "jax", "jaxlib", "flax", "optax", "numpy", "mujoco", "gymnasium")
@@ -106,5 +107,8 @@ def pretrain_sha256(checkpoints: Path) -> str | None:
         return None
     key = (str(path), st.st_size, st.st_mtime_ns)
     if key not in _CACHE:
-        _CACHE[key] = file_sha256(path)
+        try:
+            _CACHE[key] = file_sha256(path, AGENT_LIMIT)
+        except ValueError:  # far larger than any agent: no agent of botorl's, so no digest to pair runs by
+            return None
     return _CACHE[key]
