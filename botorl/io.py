@@ -6,6 +6,7 @@ so run directories stay readable by a shared group.
 
 from __future__ import annotations
 
+import csv
 import errno
 import hashlib
 import io
@@ -16,9 +17,9 @@ import stat
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable
 
-from botorl.errors import BotorlError
+from botorl.errors import BotorlError, ConfigError
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)  # reading the umask needs setting it; restored at once
@@ -152,6 +153,8 @@ def open_regular(path: str | os.PathLike, flags: int, mode: int = 0o644) -> int:
             raise _not_regular(path, "a symbolic link") from None
         if err.errno == errno.ENXIO:  # a FIFO without a reader, opened for writing
             raise _not_regular(path, "a FIFO") from None
+        if err.errno == errno.EISDIR:  # a folder, opened for writing (a lock file, a log)
+            raise _not_regular(path, "a directory") from None
         raise
     st = os.fstat(fd)
     if not stat.S_ISREG(st.st_mode):
@@ -232,6 +235,33 @@ def read_json_bounded(path: str | os.PathLike, limit: int = JSON_LIMIT) -> Any:
         return json.loads(text, parse_float=_finite_float, parse_int=_float_sized_int)
     except RecursionError:
         raise ValueError(f"{Path(path).name} is nested too deeply to be a botorl file") from None
+
+
+# Bytes of an output folder's path: Linux opens paths under 4,096 bytes (PATH_MAX), names of at most
+# 255 (NAME_MAX); 512 are left for what botorl makes inside (a sweep's trial, a checkpoint's files).
+MAX_PATH = 4096 - 512
+
+
+def check_path_text(flag: str, path: str) -> None:
+    """ConfigError unless ``path`` (the text given for ``flag``) names a folder Linux can open with
+    botorl's files inside: not empty (which would mean the working directory), at most
+    ``MAX_PATH`` bytes, 255 a name."""
+    if not str(path).strip():
+        raise ConfigError(f"{flag} is empty; give a folder, e.g. {flag} runs/my-run.")
+    raw = os.fsencode(str(path))
+    if len(raw) > MAX_PATH or any(len(part) > 255 for part in raw.split(b"/")):
+        raise ConfigError(f"{flag} {str(path)[:60]}... is {len(raw):,} bytes long; give a path of at most {MAX_PATH:,} "
+                          f"bytes whose names are at most 255 bytes each.")
+
+
+def csv_rows(lines: Iterable[str], name: str) -> tuple[list[str] | None, list[dict[str, str]]]:
+    """(header, rows) of CSV text; ValueError naming the file for what the csv module refuses (a
+    field over its size limit, a NUL byte), so a reader's ``except ValueError`` covers a bad CSV."""
+    try:
+        reader = csv.DictReader(lines)
+        return reader.fieldnames, list(reader)
+    except csv.Error as err:
+        raise ValueError(f"{name} is not CSV botorl wrote ({err})") from None
 
 
 def read_json_object(path: str | os.PathLike, limit: int = JSON_LIMIT) -> dict[str, Any] | None:

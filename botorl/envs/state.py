@@ -125,10 +125,58 @@ def get_env_state(env: gym.Env) -> dict[str, Any]:
     return {"format": FORMAT, "layers": layers, "mujoco": sims}
 
 
-def set_env_state(env: gym.Env, state: dict[str, Any]) -> None:
-    """Restore ``get_env_state``'s dict into ``env`` (built the same way: same task and wrappers)."""
+def _ints(v: Any):
+    """Every integer in a decoded attribute value (inside containers and integer arrays)."""
+    if isinstance(v, np.ndarray):
+        if v.dtype.kind in "iu" and v.size:
+            yield int(np.abs(v.astype(object)).max())
+    elif isinstance(v, (list, tuple, set, frozenset)):
+        for x in v:
+            yield from _ints(x)
+    elif isinstance(v, dict):
+        for x in v.values():
+            yield from _ints(x)
+    elif isinstance(v, int) and not isinstance(v, bool):
+        yield abs(v)
+
+
+def _count_bound(env: gym.Env, limit: int | None) -> int | None:
+    """The largest integer a restored attribute may take: the fresh env's episode horizon (a step
+    counter never passes it), at most ``limit`` (None: no bound beyond the horizon)."""
+    e = env
+    while isinstance(e, gym.Wrapper):
+        if isinstance(e, gym.wrappers.TimeLimit):
+            return int(e._max_episode_steps) if limit is None else min(limit, int(e._max_episode_steps))
+        e = e.env
+    return limit
+
+
+def _check_counts(path: str, name: str, val: Any, cur: Any, bound: int | None) -> None:
+    """ValueError when the restored ``val`` of attribute ``name`` changes the fresh env's ``cur``
+    and holds an integer beyond ``bound``: a count such as ``frame_skip = 10**9`` would make one
+    env step run for hours, where no signal stops it. A seed is no count."""
+    if bound is None or "seed" in name or (type(val) is type(cur) and _same(val, cur)):
+        return
+    big = max(_ints(val), default=0)
+    if big > bound:
+        raise ValueError(f"env state: {path}.{name} holds {big:,}, more than the episode's {bound:,} steps; it is "
+                         f"no state of this task's env")
+
+
+def _same(a: Any, b: Any) -> bool:
+    try:
+        return bool(np.array_equal(a, b)) if isinstance(a, np.ndarray) else bool(a == b)
+    except Exception:  # noqa: BLE001 - values whose == is not a truth value
+        return False
+
+
+def set_env_state(env: gym.Env, state: dict[str, Any], limit: int | None = None) -> None:
+    """Restore ``get_env_state``'s dict into ``env`` (built the same way: same task and wrappers).
+    ``limit``: the largest episode horizon a config may give; a restored integer that changes an
+    attribute may not exceed it, nor the env's own horizon (``_check_counts``)."""
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise ValueError(f"not an env state of format {FORMAT!r}")
+    bound = _count_bound(env, limit)
     layers = dict(_layers(env))
     if set(layers) != set(state["layers"]):
         raise ValueError(f"env state of layers {sorted(state['layers'])} does not fit this env ({sorted(layers)})")
@@ -139,6 +187,7 @@ def set_env_state(env: gym.Env, state: dict[str, Any]) -> None:
         for name, enc in saved["attrs"].items():
             val = _decode(enc)
             cur = obj.__dict__.get(name)
+            _check_counts(path, name, val, cur, bound)
             if isinstance(cur, np.ndarray) and isinstance(val, np.ndarray) and cur.shape == val.shape \
                     and cur.dtype == val.dtype and cur.flags.writeable:
                 cur[...] = val  # in place: other objects may hold a view of it

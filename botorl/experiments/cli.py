@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import io
+import os
 import re
 import shlex
 import sys
@@ -21,6 +22,7 @@ from botorl.experiments.pairs import read_pairs_csv, write_paired_report
 from botorl.experiments.report import make_report, select_alpha
 from botorl.experiments.runner import Sweep, SweepOptions, next_action
 from botorl.experiments.runs import find_runs, group_by
+from botorl.pipeline.rundir import check_out
 from botorl.pipeline.tracking import require_wandb
 
 
@@ -90,6 +92,7 @@ def _gather_set(argv: list[str]) -> list[str]:
 def sweep_main(argv: list[str]) -> int:
     args = tyro.cli(SweepArgs, args=_gather_set(list(argv)), prog="botorl sweep")
     check_ranges(args)
+    check_out(args.out)
     file_fields = load_grid_file(args.grid) if args.grid else None
     grid = build_grid(file_fields, tasks=args.tasks, methods=args.methods, seeds=args.seeds, alphas=args.alphas,
                       overrides=list(args.set) if args.set else None, profile=args.profile)
@@ -171,10 +174,12 @@ class ReportArgs:
 def report_main(argv: list[str]) -> int:
     args = tyro.cli(ReportArgs, args=list(argv), prog="botorl report")
     check_ranges(args)
+    if args.out is not None:
+        check_out(args.out)
     extra_pairs = []
     for p in args.pairs_from:
         try:
-            extra_pairs += read_pairs_csv(Path(p))
+            extra_pairs += read_pairs_csv(Path(os.path.realpath(p)))  # a regular file of bounded size
         except (OSError, KeyError, ValueError, TypeError) as err:
             raise ConfigError(f"--pairs-from {p}: not a paired.csv that `botorl report` wrote ({err}).") from None
     if not args.dirs and not extra_pairs:

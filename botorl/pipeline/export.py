@@ -25,6 +25,7 @@ import numpy as np
 
 from botorl import __version__ as botorl_version
 from botorl.configs.custom import ensure_task, register_given
+from botorl.configs.resolve import MAX_PARAMS
 from botorl.envs.registry import get_task
 from botorl.envs.user import action_from_env, is_unit_box
 from botorl.envs.wrappers import TaskEnv
@@ -270,13 +271,21 @@ def _model_bytes(path: Path) -> bytes:
 
 
 # A botorl policy is a straight chain of layers; a loop (whose trip count can be 2**62) or a branch
-# is no policy of botorl's, and onnxruntime would run it without bound.
+# is no policy of botorl's, and onnxruntime would run it without bound. Nor is a convolution, an
+# einsum or a recurrent cell: operators whose work the bounds below do not count.
 CONTROL_FLOW = ("Loop", "Scan", "If", "SequenceMap")
+UNCOUNTED = ("Conv", "ConvTranspose", "ConvInteger", "QLinearConv", "DeformConv", "Einsum", "LSTM", "GRU", "RNN",
+             "MatMulInteger", "QLinearMatMul")
+# Per observation row: the MatMul/Gemm work and any one tensor of the largest actor a config may give
+# (resolve.MAX_PARAMS weights), and all node outputs together four times that.
+MAX_ROW_FLOPS = 2 * MAX_PARAMS
+MAX_ROW_TENSOR = MAX_PARAMS
+MAX_ROW_ELEMENTS = 4 * MAX_PARAMS
 
 
 def check_graph(model: bytes, where) -> None:
-    """ConfigError when the model (bytes) holds a control-flow operator, anywhere in its graph or
-    functions; nothing is run."""
+    """ConfigError when the model (bytes) holds a control-flow or uncounted operator, anywhere in
+    its graph or functions, or when its work is not bounded (``graph_work``); nothing is run."""
     onnx = require("onnx")["onnx"]
     try:
         proto = onnx.load_from_string(model)
@@ -289,6 +298,67 @@ def check_graph(model: bytes, where) -> None:
         raise ConfigError(f"{where} holds the control-flow operator(s) {', '.join(bad)}; a policy botorl exports is "
                           f"a plain chain of layers, and a loop could run without end. Give a model `botorl export` "
                           f"wrote.")
+    odd = sorted({n.op_type for n in nodes if n.op_type in UNCOUNTED or n.domain not in ("", "ai.onnx")})
+    if odd or proto.functions:
+        raise ConfigError(f"{where} holds operators no botorl policy has ({', '.join(odd) or 'model-local functions'}), "
+                          f"whose work botorl cannot bound. Give a model `botorl export` wrote.")
+    one, two = graph_work(onnx, proto, 1, where), graph_work(onnx, proto, 2, where)
+    flops, elements = one
+    if two[0] > 2 * flops or two[1] > 2 * elements:  # work that grows faster than the batch
+        raise ConfigError(f"{where}: its work grows faster than the number of observations ({flops:,} FLOPs for one, "
+                          f"{two[0]:,} for two); a policy acts on each observation alone. Give a model `botorl export` wrote.")
+    if flops > MAX_ROW_FLOPS or elements > MAX_ROW_ELEMENTS:
+        raise ConfigError(f"{where}: its graph does {flops:,} MatMul/Gemm FLOPs and makes {elements:,} values per "
+                          f"observation, more than the largest policy botorl trains ({MAX_ROW_FLOPS:,} and "
+                          f"{MAX_ROW_ELEMENTS:,}); it would run for hours. Give a model `botorl export` wrote.")
+
+
+def graph_work(onnx, proto, batch: int, where) -> tuple[int, int]:
+    """(MatMul/Gemm FLOPs, values made by all nodes) of one call on ``batch`` observations, from
+    ONNX's shape inference; ConfigError when a node's output has a shape inference cannot fix (it
+    would depend on the observations' values: a ``Range`` or ``ConstantOfShape`` sized by data) or
+    one tensor holds more than ``MAX_ROW_TENSOR`` values per observation."""
+    model = onnx.ModelProto()
+    model.CopyFrom(proto)
+    inputs = [i for i in model.graph.input if i.name not in {t.name for t in model.graph.initializer}]
+    for i in inputs:
+        dims = i.type.tensor_type.shape.dim
+        if len(dims) != 2 or not dims[1].HasField("dim_value"):
+            raise ConfigError(f"{where}: input {i.name!r} is not (batch, width) with a fixed width; a botorl policy "
+                              f"takes (batch, obs_dim) observations.")
+        dims[0].Clear()
+        dims[0].dim_value = batch
+    try:
+        inferred = onnx.shape_inference.infer_shapes(model, strict_mode=True, data_prop=True)
+    except Exception as err:  # noqa: BLE001 - onnx's inference errors
+        raise ConfigError(f"{where}: its graph's shapes cannot be inferred ({type(err).__name__}: {str(err)[:200]}); "
+                          f"give a model `botorl export` wrote.") from None
+    g = inferred.graph
+    shapes = {t.name: list(t.dims) for t in g.initializer}
+    for v in [*g.input, *g.value_info, *g.output]:
+        dims = v.type.tensor_type.shape.dim
+        shapes[v.name] = [d.dim_value if d.HasField("dim_value") else None for d in dims] \
+            if v.type.tensor_type.HasField("shape") else None
+    flops = elements = 0
+    for node in g.node:
+        for out in filter(None, node.output):
+            dims = shapes.get(out)
+            if dims is None or None in dims:
+                raise ConfigError(f"{where}: node {node.name or node.op_type} ({node.op_type}) makes {out!r} of a shape "
+                                  f"that depends on the observations' values, so its size has no bound; give a model "
+                                  f"`botorl export` wrote.")
+            size = int(np.prod(dims, dtype=object))
+            if size > MAX_ROW_TENSOR * batch:
+                raise ConfigError(f"{where}: node {node.name or node.op_type} ({node.op_type}) makes {size:,} values "
+                                  f"for {batch} observation(s), more than {MAX_ROW_TENSOR:,} each; give a model "
+                                  f"`botorl export` wrote.")
+            elements += size
+        if node.op_type in ("MatMul", "Gemm"):
+            a, out = shapes.get(node.input[0]) or [1], shapes[node.output[0]]
+            trans_a = any(at.name == "transA" and at.i for at in node.attribute)
+            k = a[0] if (trans_a or len(a) == 1) else a[-1]
+            flops += 2 * int(np.prod(out, dtype=object)) * int(k or 1)
+    return flops, elements
 
 
 def max_gap(a, b) -> tuple[float, int]:
