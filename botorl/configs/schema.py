@@ -156,11 +156,11 @@ class EvalConfig:
     """Evaluation (as WSRL and Cal-QL evaluate; the docs' Methods page, "Evaluation")."""
 
     episodes: int = 20
-    """Deterministic episodes per evaluation."""
+    """Deterministic episodes per evaluation (at most 1,000: configs.resolve.BOUNDS)."""
     interval: int = 5_000
     """Online env steps between evaluations (plus one at step 0 and one at the end)."""
     num_envs: int = 20
-    """Envs stepped in lockstep (one batched policy call per step)."""
+    """Envs stepped in lockstep (one batched policy call per step; at most 64)."""
     q_pairs: int = 1_000
     """Dataset (s, a) pairs for the q_data / q_uniform statistics."""
     dense_interval: int = 0
