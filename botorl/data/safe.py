@@ -52,9 +52,9 @@ def data_cap() -> int:
     return cap
 
 
-def regular_file(path: str | os.PathLike, what: str = "data file", limit: int | None = None) -> Path:
-    """``path`` if it is a regular file (a link to one is fine) of at most ``limit`` bytes (None:
-    ``data_cap()``), else DataFormatError naming it (and the size and the cap)."""
+def regular_file(path: str | os.PathLike, what: str = "data file") -> Path:
+    """``path`` if it is a regular file (a link to one is fine) of at most ``data_cap()`` bytes,
+    else DataFormatError naming it (and its size and the cap)."""
     p = Path(path)
     try:
         st = os.stat(p)
@@ -63,7 +63,7 @@ def regular_file(path: str | os.PathLike, what: str = "data file", limit: int | 
     if not stat.S_ISREG(st.st_mode):
         kind = "a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file (a FIFO, device or socket)"
         raise DataFormatError(f"{p}: the {what} is {kind}; botorl reads data only from regular files.")
-    cap = data_cap() if limit is None else limit
+    cap = data_cap()
     if st.st_size > cap:
         raise DataFormatError(f"{p}: the {what} is {st.st_size:,} bytes, more than botorl reads ({cap:,} bytes, "
                               f"{cap / 2**30:.1f} GiB); give a smaller file.")
@@ -97,11 +97,7 @@ def check_npz(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np.dt
             if other is not None:
                 raise DataFormatError(f"{p}: member {other[:200]!r} is not a .npy array; a .npz botorl reads holds "
                                       f"only arrays (np.savez writes them).")
-            inflated = sum(i.file_size for i in infos)  # what the zip says its members inflate to
-            if inflated > cap:
-                raise DataFormatError(f"{p}: its members inflate to {inflated / 2**30:.1f} GiB, more than botorl "
-                                      f"reads ({cap / 2**30:.1f} GiB); give a smaller dataset.")
-            check_inflation(p, inflated, "members")
+            check_inflation(p, sum(i.file_size for i in infos), "members")  # what the zip says they inflate to
             for info in infos:
                 with z.open(info) as f:
                     fmt = np.lib.format

@@ -140,15 +140,15 @@ def _ints(v: Any):
         yield abs(v)
 
 
-def _count_bound(env: gym.Env, limit: int | None) -> int | None:
-    """The largest integer a restored attribute may take: the fresh env's episode horizon (a step
-    counter never passes it), at most ``limit`` (None: no bound beyond the horizon)."""
+def _count_bound(env: gym.Env, steps: int) -> int | None:
+    """The largest integer a restored attribute may take: no counter passes the fresh env's episode
+    horizon or, counted over episodes, the ``steps`` the env has taken (None: no horizon known)."""
     e = env
     while isinstance(e, gym.Wrapper):
         if isinstance(e, gym.wrappers.TimeLimit):
-            return int(e._max_episode_steps) if limit is None else min(limit, int(e._max_episode_steps))
+            return max(int(e._max_episode_steps), steps)
         e = e.env
-    return limit
+    return None
 
 
 def _check_counts(path: str, name: str, val: Any, cur: Any, bound: int | None) -> None:
@@ -159,8 +159,8 @@ def _check_counts(path: str, name: str, val: Any, cur: Any, bound: int | None) -
         return
     big = max(_ints(val), default=0)
     if big > bound:
-        raise ValueError(f"env state: {path}.{name} holds {big:,}, more than the episode's {bound:,} steps; it is "
-                         f"no state of this task's env")
+        raise ValueError(f"env state: {path}.{name} holds {big:,}, more than the {bound:,} steps of an episode or "
+                         f"of the run so far; it is no state of this task's env")
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -170,13 +170,13 @@ def _same(a: Any, b: Any) -> bool:
         return False
 
 
-def set_env_state(env: gym.Env, state: dict[str, Any], limit: int | None = None) -> None:
+def set_env_state(env: gym.Env, state: dict[str, Any], steps: int = 0) -> None:
     """Restore ``get_env_state``'s dict into ``env`` (built the same way: same task and wrappers).
-    ``limit``: the largest episode horizon a config may give; a restored integer that changes an
-    attribute may not exceed it, nor the env's own horizon (``_check_counts``)."""
+    ``steps``: the env steps taken before the state was saved; a restored integer that changes an
+    attribute may exceed neither them nor the env's episode horizon (``_check_counts``)."""
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise ValueError(f"not an env state of format {FORMAT!r}")
-    bound = _count_bound(env, limit)
+    bound = _count_bound(env, steps)
     layers = dict(_layers(env))
     if set(layers) != set(state["layers"]):
         raise ValueError(f"env state of layers {sorted(state['layers'])} does not fit this env ({sorted(layers)})")
