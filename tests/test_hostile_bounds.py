@@ -148,8 +148,11 @@ def test_hdf5_datasets_are_bounded_and_links_lead_somewhere(tmp_path, capsys):
 
 
 @pytest.mark.timeout(60)
-def test_dataset_fields_must_be_numbers():
+def test_dataset_fields_must_be_numbers(tmp_path):
+    import h5py
+
     from botorl.data.dataset import Dataset
+    from botorl.data.loaders import load_d4rl_hdf5
     from botorl.data.user import from_arrays
     from botorl.envs.user import UserTask
 
@@ -167,6 +170,11 @@ def test_dataset_fields_must_be_numbers():
             Dataset(*(({**good, field: bad})[k] for k in ("observations", "actions", "rewards", "next_observations",
                                                           "terminals")))
     assert len(from_arrays(good, task, source="crafted")) == n  # control
+    with h5py.File(tmp_path / "complex.hdf5", "w") as f:  # a D4RL file: read as stored, then checked
+        for k, v in {**good, "observations": np.ones((n, 3), np.complex64)}.items():
+            f.create_dataset(k, data=v)
+    with pytest.raises(DataFormatError, match="observations has dtype complex64"):
+        load_d4rl_hdf5(tmp_path / "complex.hdf5")
 
 
 def _onnx_model(nodes, initializers=(), width: int = 4):

@@ -57,8 +57,8 @@ def numeric(x, field: str, source: str) -> np.ndarray:
     objects are no data)."""
     a = np.asarray(x)
     if a.dtype.kind not in "biuf":
-        raise DataFormatError(f"{source}: {field} has dtype {a.dtype} ({a.dtype.kind!r}); the data must be numbers "
-                              f"(booleans, integers or floats). Save {field} as a numeric array.")
+        raise DataFormatError(f"{source}: {field} has dtype {a.dtype}, which cannot be read as numbers; the data must "
+                              f"be booleans, integers or floats. Save {field} as a numeric array.")
     return a
 
 
