@@ -432,13 +432,15 @@ def test_any_npz_is_read_from_its_headers_or_refused(tmp_path_factory, names, sh
 def _ranged_fields():
     from botorl.benchmarks.suite import BenchConfig
     from botorl.boto.bandit import BanditConfig
+    from botorl.data.cli import Generate, Info
     from botorl.envs.cli import CheckConfig
     from botorl.experiments.cli import ReportArgs, SweepArgs
     from botorl.pipeline.cli import EvalArgs
 
     out = []
     for cls, required in ((SweepArgs, {"out": "s"}), (ReportArgs, {"dirs": ("d",)}), (EvalArgs, {"dir": "d"}),
-                          (CheckConfig, {"task": "t"}), (BanditConfig, {}), (BenchConfig, {})):
+                          (CheckConfig, {"task": "t"}), (BanditConfig, {}), (BenchConfig, {}), (Generate, {"task": "t"}),
+                          (Info, {"target": "t"})):
         hints = typing.get_type_hints(cls, include_extras=True)
         for f in dataclasses.fields(cls):
             bound = next((m for m in getattr(hints[f.name], "__metadata__", ()) if isinstance(m, Range)), None)
@@ -454,7 +456,7 @@ def test_every_command_number_flag_has_a_range():
     """The flags the issue found unbounded carry a Range (and the strategy below draws them all)."""
     have = {(cls.__name__, name) for cls, _, name, _ in RANGED}
     assert {("SweepArgs", "workers"), ("SweepArgs", "population_size"), ("ReportArgs", "grid_points"),
-            ("ReportArgs", "seed"), ("EvalArgs", "episodes")} <= have
+            ("ReportArgs", "seed"), ("EvalArgs", "episodes"), ("Generate", "steps")} <= have
 
 
 @settings(max_examples=150, deadline=None)
