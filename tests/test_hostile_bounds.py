@@ -435,12 +435,13 @@ def _ranged_fields():
     from botorl.data.cli import Generate, Info
     from botorl.envs.cli import CheckConfig
     from botorl.experiments.cli import ReportArgs, SweepArgs
+    from botorl.experts.ant_train import AntTrainConfig
     from botorl.pipeline.cli import EvalArgs
 
     out = []
     for cls, required in ((SweepArgs, {"out": "s"}), (ReportArgs, {"dirs": ("d",)}), (EvalArgs, {"dir": "d"}),
                           (CheckConfig, {"task": "t"}), (BanditConfig, {}), (BenchConfig, {}), (Generate, {"task": "t"}),
-                          (Info, {"target": "t"})):
+                          (Info, {"target": "t"}), (AntTrainConfig, {})):
         hints = typing.get_type_hints(cls, include_extras=True)
         for f in dataclasses.fields(cls):
             bound = next((m for m in getattr(hints[f.name], "__metadata__", ()) if isinstance(m, Range)), None)
