@@ -330,6 +330,8 @@ def _convert(tp: Any, value: Any, name: str) -> Any:
                 continue
         raise wrong
     if dataclasses.is_dataclass(tp):
+        if value is None:  # a section set to null ("data": null) is no config
+            raise TypeError(f"{name!r} is null; it must be an object")
         return from_dict(tp, value, name + ".")
     if origin is tuple:  # tuple[X, ...]
         if not isinstance(value, (list, tuple)):
