@@ -25,7 +25,6 @@ import numpy as np
 
 from botorl import __version__ as botorl_version
 from botorl.configs.custom import ensure_task, register_given
-from botorl.configs.resolve import MAX_PARAMS
 from botorl.envs.registry import get_task
 from botorl.envs.user import action_from_env, is_unit_box
 from botorl.envs.wrappers import TaskEnv
@@ -276,16 +275,15 @@ def _model_bytes(path: Path) -> bytes:
 CONTROL_FLOW = ("Loop", "Scan", "If", "SequenceMap")
 UNCOUNTED = ("Conv", "ConvTranspose", "ConvInteger", "QLinearConv", "DeformConv", "Einsum", "LSTM", "GRU", "RNN",
              "MatMulInteger", "QLinearMatMul")
-# Per observation row: the MatMul/Gemm work and any one tensor of the largest actor a config may give
-# (resolve.MAX_PARAMS weights), and all node outputs together four times that.
-MAX_ROW_FLOPS = 2 * MAX_PARAMS
-MAX_ROW_TENSOR = MAX_PARAMS
-MAX_ROW_ELEMENTS = 4 * MAX_PARAMS
 
 
 def check_graph(model: bytes, where) -> None:
     """ConfigError when the model (bytes) holds a control-flow or uncounted operator, anywhere in
-    its graph or functions, or when its work is not bounded (``graph_work``); nothing is run."""
+    its graph or functions, or when its work is not bounded (``graph_work``); nothing is run. The
+    bounds, per observation: the MatMul/Gemm FLOPs and any one tensor of the largest actor a config
+    may give (``configs.resolve.MAX_PARAMS`` weights), all node outputs together four times that."""
+    from botorl.configs.resolve import MAX_PARAMS  # lazy: JAX (the configs' schema); botorl.api imports this module
+
     onnx = require("onnx")["onnx"]
     try:
         proto = onnx.load_from_string(model)
@@ -302,22 +300,22 @@ def check_graph(model: bytes, where) -> None:
     if odd or proto.functions:
         raise ConfigError(f"{where} holds operators no botorl policy has ({', '.join(odd) or 'model-local functions'}), "
                           f"whose work botorl cannot bound. Give a model `botorl export` wrote.")
-    one, two = graph_work(onnx, proto, 1, where), graph_work(onnx, proto, 2, where)
+    one, two = graph_work(onnx, proto, 1, where, MAX_PARAMS), graph_work(onnx, proto, 2, where, MAX_PARAMS)
     flops, elements = one
     if two[0] > 2 * flops or two[1] > 2 * elements:  # work that grows faster than the batch
         raise ConfigError(f"{where}: its work grows faster than the number of observations ({flops:,} FLOPs for one, "
                           f"{two[0]:,} for two); a policy acts on each observation alone. Give a model `botorl export` wrote.")
-    if flops > MAX_ROW_FLOPS or elements > MAX_ROW_ELEMENTS:
+    if flops > 2 * MAX_PARAMS or elements > 4 * MAX_PARAMS:
         raise ConfigError(f"{where}: its graph does {flops:,} MatMul/Gemm FLOPs and makes {elements:,} values per "
-                          f"observation, more than the largest policy botorl trains ({MAX_ROW_FLOPS:,} and "
-                          f"{MAX_ROW_ELEMENTS:,}); it would run for hours. Give a model `botorl export` wrote.")
+                          f"observation, more than the largest policy botorl trains ({2 * MAX_PARAMS:,} and "
+                          f"{4 * MAX_PARAMS:,}); it would run for hours. Give a model `botorl export` wrote.")
 
 
-def graph_work(onnx, proto, batch: int, where) -> tuple[int, int]:
+def graph_work(onnx, proto, batch: int, where, max_tensor: int) -> tuple[int, int]:
     """(MatMul/Gemm FLOPs, values made by all nodes) of one call on ``batch`` observations, from
     ONNX's shape inference; ConfigError when a node's output has a shape inference cannot fix (it
     would depend on the observations' values: a ``Range`` or ``ConstantOfShape`` sized by data) or
-    one tensor holds more than ``MAX_ROW_TENSOR`` values per observation."""
+    one tensor holds more than ``max_tensor`` values per observation."""
     model = onnx.ModelProto()
     model.CopyFrom(proto)
     inputs = [i for i in model.graph.input if i.name not in {t.name for t in model.graph.initializer}]
@@ -348,9 +346,9 @@ def graph_work(onnx, proto, batch: int, where) -> tuple[int, int]:
                                   f"that depends on the observations' values, so its size has no bound; give a model "
                                   f"`botorl export` wrote.")
             size = int(np.prod(dims, dtype=object))
-            if size > MAX_ROW_TENSOR * batch:
+            if size > max_tensor * batch:
                 raise ConfigError(f"{where}: node {node.name or node.op_type} ({node.op_type}) makes {size:,} values "
-                                  f"for {batch} observation(s), more than {MAX_ROW_TENSOR:,} each; give a model "
+                                  f"for {batch} observation(s), more than {max_tensor:,} each; give a model "
                                   f"`botorl export` wrote.")
             elements += size
         if node.op_type in ("MatMul", "Gemm"):
