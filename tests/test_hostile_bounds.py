@@ -344,7 +344,8 @@ def test_cli_flags_refuse_values_outside_their_range(tmp_path, capsys):
     assert not (tmp_path / "s").exists()
 
 
-@pytest.mark.parametrize("out", ["", "/proc/botorl-out", "FILE", "/tmp/" + "a" * 5000])
+@pytest.mark.parametrize("out", ["", "/proc/botorl-out", "FILE", "/tmp/" + "a" * 5000],
+                         ids=["empty", "under-proc", "a-file", "5000-chars"])
 def test_out_is_a_folder_botorl_can_make(tmp_path, capsys, out):
     (tmp_path / "FILE").write_text("keep")
     out = str(tmp_path / "FILE") if out == "FILE" else out
