@@ -7,6 +7,7 @@ so run directories stay readable by a shared group.
 from __future__ import annotations
 
 import contextlib
+import csv
 import errno
 import hashlib
 import io
@@ -14,11 +15,12 @@ import json
 import math
 import os
 import stat
+import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
-from botorl.errors import BotorlError
+from botorl.errors import BotorlError, ConfigError
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)  # reading the umask needs setting it; restored at once
@@ -116,8 +118,13 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
-def file_sha256(path: str | os.PathLike) -> str:
+def file_sha256(path: str | os.PathLike, limit: int) -> str:
+    """The SHA-256 of the file ``path``, sized first: ValueError naming its size and ``limit``
+    when it holds more (a 1 TB sparse file is refused at once, not read for minutes)."""
     with open(path, "rb") as f:
+        size = os.fstat(f.fileno()).st_size
+        if size > limit:
+            raise ValueError(f"{Path(path).name} is {size:,} bytes, more than the {limit:,} botorl reads of such a file")
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
@@ -306,14 +313,56 @@ def read_bounded(path: str | os.PathLike, limit: int, *, tail: bool = False) -> 
         raise ValueError(f"{path.name} is not UTF-8 text ({err.reason} at byte {err.start})") from None
 
 
+def _finite_float(text: str) -> float:
+    v = float(text)
+    if math.isinf(v):  # 1e400: no number botorl writes (it writes Infinity, or "inf", as such)
+        raise ValueError(f"the number {text[:40]} is beyond a float")
+    return v
+
+
+def _float_sized_int(text: str) -> int:
+    v = int(text)
+    if abs(v) > sys.float_info.max:  # 10**400: would overflow wherever it meets a float
+        raise ValueError(f"the number {text[:40]}... is beyond a float")
+    return v
+
+
 def read_json_bounded(path: str | os.PathLike, limit: int = JSON_LIMIT) -> Any:
     """The JSON document in the regular file ``path`` (at most ``limit`` bytes); ValueError
-    (not a regular file, too large, not UTF-8, not JSON, nested too deep) or OSError."""
+    (not a regular file, too large, not UTF-8, not JSON, nested too deep, a number beyond a
+    float) or OSError."""
     text = read_bounded(path, limit)
     try:
-        return json.loads(text)
+        return json.loads(text, parse_float=_finite_float, parse_int=_float_sized_int)
     except RecursionError:
         raise ValueError(f"{Path(path).name} is nested too deeply to be a botorl file") from None
+
+
+# Bytes of an output folder's path: Linux opens paths under 4,096 bytes (PATH_MAX), names of at most
+# 255 (NAME_MAX); 512 are left for what botorl makes inside (a sweep's trial, a checkpoint's files).
+MAX_PATH = 4096 - 512
+
+
+def check_path_text(flag: str, path: str) -> None:
+    """ConfigError unless ``path`` (the text given for ``flag``) names a folder Linux can open with
+    botorl's files inside: not empty (which would mean the working directory), at most
+    ``MAX_PATH`` bytes, 255 a name."""
+    if not str(path).strip():
+        raise ConfigError(f"{flag} is empty; give a folder, e.g. {flag} runs/my-run.")
+    raw = os.fsencode(str(path))
+    if len(raw) > MAX_PATH or any(len(part) > 255 for part in raw.split(b"/")):
+        raise ConfigError(f"{flag} {str(path)[:60]}... is {len(raw):,} bytes long; give a path of at most {MAX_PATH:,} "
+                          f"bytes whose names are at most 255 bytes each.")
+
+
+def csv_rows(lines: Iterable[str], name: str) -> tuple[list[str] | None, list[dict[str, str]]]:
+    """(header, rows) of CSV text; ValueError naming the file for what the csv module refuses (a
+    field over its size limit, a NUL byte), so a reader's ``except ValueError`` covers a bad CSV."""
+    try:
+        reader = csv.DictReader(lines)
+        return reader.fieldnames, list(reader)
+    except csv.Error as err:
+        raise ValueError(f"{name} is not CSV botorl wrote ({err})") from None
 
 
 def read_json_object(path: str | os.PathLike, limit: int = JSON_LIMIT) -> dict[str, Any] | None:

@@ -190,7 +190,7 @@ def test_counts_a_config_json_gives_are_checked_before_the_env_is_made(planted, 
             err = capsys.readouterr().err
             assert words in err and "Traceback" not in err, (cmd, err)
     assert botorl_main(["eval", str(runs["this:x"]), "--episodes", str(10**12)]) == 2
-    assert "give 1 to 1,000,000 episodes" in capsys.readouterr().err
+    assert "--episodes 1000000000000 is out of range: give a number from 1 to 1,000" in capsys.readouterr().err
     assert not marker.exists()
 
 

@@ -77,8 +77,9 @@ def _widths(v) -> bool:
 
 
 SAC_CHECKS = ACTOR_CRITIC_CHECKS + (
-    ("num_min_critics", lambda c: c.num_min_critics >= 1 and (c.subsample_replace or c.num_min_critics <= c.num_critics),
-     "must be >= 1 and, without replacement, <= num_critics"),
+    # drawn with replacement or not, a subset larger than the ensemble only repeats its members
+    ("num_min_critics", lambda c: 1 <= c.num_min_critics <= c.num_critics,
+     "must be in [1, num_critics = {num_critics}] (--network.num-critics)"),
     ("actor_objective", lambda c: c.actor_objective in ("min", "mean"), 'use "min" (WSRL) or "mean" (RLPD)'),
     ("utd_ratio", lambda c: c.utd_ratio >= 1, "must be >= 1"),
     ("tau", lambda c: 0.0 < c.tau <= 1.0, "the Polyak rate must be in (0, 1]"),

@@ -20,7 +20,7 @@ import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Annotated, Any, Callable, Optional
 
 import jax
 import tyro
@@ -31,7 +31,7 @@ from botorl.benchmarks import workloads as wl
 from botorl.benchmarks.online_loop import OnlineLoop
 from botorl.benchmarks.paper import main as paper_main
 from botorl.envs.registry import get_task
-from botorl.errors import BotorlError
+from botorl.errors import BotorlError, Range, check_ranges
 from botorl.io import atomic_write_json
 from botorl.jaxsetup import setup_jax
 
@@ -48,15 +48,15 @@ class BenchConfig:
     """fewer repeats, shorter timings, a smaller set of workloads"""
     only: Optional[str] = None
     """comma-separated workload names (default: all; --quick: sac2,calql,online_utd4)"""
-    repeats: int = 5
+    repeats: Annotated[int, Range(1, 1000)] = 5
     """interleaved rounds; figures are medians over them"""
-    min_time: float = 1.5
+    min_time: Annotated[float, Range(0.01, 3600)] = 1.5
     """seconds per timed block"""
     loop: bool = True
     """also time the whole online loop (env + buffer + update)"""
     tiny: bool = False
     """toy network sizes (for tests: compiles in seconds)"""
-    threads: int = 0
+    threads: Annotated[int, Range(0, 1024)] = 0
     """threads of both sides: 0 = all cores (XLA's and torch's default); 1 = one thread each
     (XLA: no Eigen thread pool; torch.set_num_threads(1)), less hurt by a loaded machine"""
 
@@ -296,6 +296,7 @@ def main(argv: list[str] | None = None, twin: Callable[[BenchConfig], Any] | Non
         return paper_main(argv)
     paper = "" if twin else " (`botorl bench --paper --help`: what a whole paper run costs)"
     cfg = tyro.cli(BenchConfig, args=argv, prog=prog, description=__doc__.split("\n")[0] + paper)
+    check_ranges(cfg)
     result = run(cfg, twin)
     print(format_table(result))
     if cfg.json:

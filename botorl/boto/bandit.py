@@ -13,6 +13,7 @@ from __future__ import annotations
 import time
 from dataclasses import asdict, dataclass
 from functools import partial
+from typing import Annotated
 from pathlib import Path
 
 import jax
@@ -33,6 +34,7 @@ from botorl.boto.config import BOTOConfig
 from botorl.boto.objective import ObjectiveSettings, boto_update_many_fn
 from botorl.boto.theory import gaussian_log_density, namdp_exact
 from botorl.data.generators.bandit import generate_1d, generate_pinwheel
+from botorl.errors import Range, check_ranges
 from botorl.io import atomic_save_figure, atomic_write_json, pyplot
 from botorl.jaxsetup import setup_jax
 
@@ -48,18 +50,18 @@ class BanditConfig:
 
     out: str = "runs/bandit"
     """output folder (PNGs and bandit.json)"""
-    seed: int = 0
-    fig3_transitions: int = 1000
+    seed: Annotated[int, Range(0, 2**31 - 1)] = 0
+    fig3_transitions: Annotated[int, Range(2, 10**7)] = 1000
     """rows of the bandit-1d dataset"""
-    fig3_steps: int = 3000
+    fig3_steps: Annotated[int, Range(1, 10**7)] = 3000
     """BOTO critic steps per alpha (Figure 3)"""
-    fig3_batch_size: int = 256
-    fig3_lr: float = 3e-3
-    grid_points: int = 401
-    fig2_transitions: int = 2000
+    fig3_batch_size: Annotated[int, Range(1, 1 << 20)] = 256
+    fig3_lr: Annotated[float, Range(0, 10)] = 3e-3
+    grid_points: Annotated[int, Range(2, 100_000)] = 401
+    fig2_transitions: Annotated[int, Range(2, 10**7)] = 2000
     """rows of the bandit-pinwheel dataset"""
-    fig2_boto_steps: int = 2000
-    fig2_offline_steps: int = 400
+    fig2_boto_steps: Annotated[int, Range(1, 10**7)] = 2000
+    fig2_offline_steps: Annotated[int, Range(1, 10**7)] = 400
     """CQL / Cal-QL / IQL update steps (Figure 2)"""
     fig2_log_sigma: float = -20.0
     skip_fig2: bool = False
@@ -319,6 +321,7 @@ def plot_fig2(res: dict, path: Path) -> None:
 
 def main(argv: list[str]) -> int:
     cfg = tyro.cli(BanditConfig, args=argv, description="Reproduce the paper's bandit figures 2 and 3.")
+    check_ranges(cfg)
     setup_jax()
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)

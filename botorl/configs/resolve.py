@@ -3,7 +3,9 @@ a ``ConfigError`` (exit code 2) that names the field and says what to change."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import math
 from dataclasses import replace
 
 from botorl.boto.config import check_alpha
@@ -16,6 +18,7 @@ from botorl.data.safe import machine_memory
 from botorl.envs.metric import check_refs
 from botorl.envs.registry import get_task
 from botorl.errors import ConfigError
+from botorl.io import check_path_text
 from botorl.jaxsetup import check_precision
 
 
@@ -101,14 +104,33 @@ BOUNDS = {
     "online.steps": 10**12,
     "online.random_steps": 10**12,
     "data.steps": 10**9,  # rows a generator makes
-    "eval.episodes": 10**6,
-    "eval.num_envs": 1024,
+    # one evaluation: 1,000 episodes of a 300-step maze, or 64 envs made (about 0.3 s each), take
+    # minutes on a 2-core machine; 10**6 episodes took hours, 1,024 envs half an hour to make
+    "eval.episodes": 1_000,
+    "eval.num_envs": 64,
     "env.max_steps": 10**7,  # an episode's horizon
     "env.obs_dim": 1 << 20,  # a task of one's own: the policy's input and output widths
     "env.action_dim": 1 << 16,
     "checkpoint_every": 10**12,
 }
 MAX_DEPTH = 64  # hidden layers of one network
+# Weights of the hidden layers of the actor and of the whole critic ensemble together: 2**28 (1 GiB of
+# float32, before Adam's two moments and the target copy) is 100x the paper's 4x256 critics x 10; a
+# layer within MAX_WIDTH can still ask for more (65536 x 65536 is 4 billion weights).
+MAX_PARAMS = 1 << 28
+# Float fields where inf means something (no tolerance, no clip); NaN is never a setting.
+INF_MEANS = ("data.action_tolerance", "offline.cql.cql_clip_diff_min", "offline.cql.cql_clip_diff_max")
+
+
+def _floats(obj, prefix: str = ""):
+    """(dotted name, value) of every float of a config, inside tuples too."""
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            yield from _floats(v, f"{prefix}{f.name}.")
+        for x in (v if isinstance(v, tuple) else (v,)):
+            if isinstance(x, float):
+                yield prefix + f.name, x
 
 
 def check_bounds(cfg: RunConfig) -> None:
@@ -130,10 +152,23 @@ def check_bounds(cfg: RunConfig) -> None:
                 isinstance(d, int) and not isinstance(d, bool) and 1 <= d <= MAX_WIDTH for d in dims):
             raise ConfigError(f"--{name} = {dims!r} is invalid: give positive layer widths, e.g. 256 256, 1 to "
                               f"{MAX_DEPTH} layers; a layer is at most {MAX_WIDTH:,} units wide.")
+    net = cfg.network
+    dims = [net.actor_hidden_dims, *[net.critic_hidden_dims] * net.num_critics]
+    params = sum(a * b for d in dims for a, b in zip(d, d[1:]))
+    if params > MAX_PARAMS:
+        raise ConfigError(f"--network.actor-hidden-dims {' '.join(map(str, net.actor_hidden_dims))} and "
+                          f"--network.critic-hidden-dims {' '.join(map(str, net.critic_hidden_dims))} x "
+                          f"--network.num-critics {net.num_critics} make {params:,} hidden-layer weights, more than "
+                          f"{MAX_PARAMS:,}; give narrower layers or fewer critics.")
     tol = cfg.data.action_tolerance
     if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol >= 0:  # NaN too
         raise ConfigError(f"--data.action-tolerance = {tol!r} is invalid: give a number >= 0 (the largest "
                           f"|action| - 1 accepted in the data; inf accepts any).")
+    for name, v in _floats(cfg):
+        if math.isnan(v) or (math.isinf(v) and name not in INF_MEANS):
+            raise ConfigError(f"--{name} = {v!r} is invalid: give a finite number.")
+    if cfg.out is not None:
+        check_path_text("--out", cfg.out)
 
 
 def _check_sizes(cfg: RunConfig, method, need) -> None:

@@ -156,11 +156,11 @@ class EvalConfig:
     """Evaluation (as WSRL and Cal-QL evaluate; the docs' Methods page, "Evaluation")."""
 
     episodes: int = 20
-    """Deterministic episodes per evaluation."""
+    """Deterministic episodes per evaluation (at most 1,000: configs.resolve.BOUNDS)."""
     interval: int = 5_000
     """Online env steps between evaluations (plus one at step 0 and one at the end)."""
     num_envs: int = 20
-    """Envs stepped in lockstep (one batched policy call per step)."""
+    """Envs stepped in lockstep (one batched policy call per step; at most 64)."""
     q_pairs: int = 1_000
     """Dataset (s, a) pairs for the q_data / q_uniform statistics."""
     dense_interval: int = 0
@@ -288,40 +288,74 @@ def to_dict(cfg: Any) -> Any:
     return cfg
 
 
-def from_dict(cls: type, data: dict[str, Any]) -> Any:
-    """Rebuild a (nested) config dataclass from ``to_dict`` output; unknown keys are ignored."""
+def from_dict(cls: type, data: dict[str, Any], where: str = "") -> Any:
+    """Rebuild a (nested) config dataclass from ``to_dict`` output; unknown keys are ignored. A
+    value of the wrong type (a string where a number belongs, null in a field that takes none, a
+    number beyond a float) is a TypeError naming its dotted field (``where``: the section's)."""
     hints = typing.get_type_hints(cls)
     if not isinstance(data, Mapping):
-        raise TypeError(f"{cls.__name__} needs a JSON object, not {type(data).__name__}")
-    for f in dataclasses.fields(cls):  # a section set to null ("data": null) is no config
-        if f.name in data and data[f.name] is None and dataclasses.is_dataclass(hints[f.name]):
-            raise TypeError(f"{f.name!r} is null; it must be an object")
-    return cls(**{f.name: _convert(hints[f.name], data[f.name]) for f in dataclasses.fields(cls) if f.name in data})
+        raise TypeError(f"{where.rstrip('.') or cls.__name__} needs a JSON object, not {_shown(data)}")
+    return cls(**{f.name: _convert(hints[f.name], data[f.name], where + f.name)
+                  for f in dataclasses.fields(cls) if f.name in data})
 
 
-def _convert(tp: Any, value: Any) -> Any:
-    if value is None:
-        return None
+def _shown(value: Any) -> str:
+    text = "null" if value is None else json.dumps(value, default=str) if isinstance(value, (list, dict)) else repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _kind(tp: Any) -> str:
+    """What a field of type ``tp`` takes, in the words of a message."""
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        for a in args:  # the first that fits
+        return " or ".join(_kind(a) for a in typing.get_args(tp))
+    if origin is Literal:
+        return "one of " + ", ".join(map(repr, typing.get_args(tp)))
+    if origin is tuple:
+        return "a list"
+    return {str: "a string", int: "an integer", float: "a number", bool: "true or false",
+            type(None): "null"}.get(tp, "an object" if dataclasses.is_dataclass(tp) else str(tp))
+
+
+def _convert(tp: Any, value: Any, name: str) -> Any:
+    origin = typing.get_origin(tp)
+    wrong = TypeError(f"{name} = {_shown(value)} is invalid: give {_kind(tp)}")
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in typing.get_args(tp):
+            return None
+        for a in [a for a in typing.get_args(tp) if a is not type(None)]:  # the first that fits
             try:
-                return _convert(a, value)
+                return _convert(a, value, name)
             except (TypeError, ValueError):
                 continue
-        return value
+        raise wrong
     if dataclasses.is_dataclass(tp):
-        return from_dict(tp, value)
+        if value is None:  # a section set to null ("data": null) is no config
+            raise TypeError(f"{name!r} is null; it must be an object")
+        return from_dict(tp, value, name + ".")
     if origin is tuple:  # tuple[X, ...]
+        if not isinstance(value, (list, tuple)):
+            raise wrong
         args = typing.get_args(tp)
-        return tuple(_convert(args[0] if args else Any, v) for v in value)
-    if (tp in (str, bool) and not isinstance(value, tp)) or (tp in (int, float) and isinstance(value, bool)):
-        raise TypeError
-    if tp is float:
-        return float(value)  # also to_dict's "inf", "-inf"
-    if tp is int:
-        if isinstance(value, float) and not value.is_integer():
-            raise TypeError
+        return tuple(_convert(args[0] if args else Any, v, f"{name}[{i}]") for i, v in enumerate(value))
+    if origin is Literal:
+        if isinstance(value, bool) or value not in typing.get_args(tp):
+            raise wrong
+        return value
+    if tp is str or tp is bool:
+        if not isinstance(value, tp):
+            raise wrong
+        return value
+    if tp is int:  # 3.0 is 3; 3.5, "3" and true are no integer
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or \
+                (isinstance(value, float) and not value.is_integer()):
+            raise wrong
         return int(value)
+    if tp is float:  # a number, or to_dict's "inf" / "-inf"
+        if isinstance(value, bool) or not (isinstance(value, (int, float)) or value in ("inf", "-inf")):
+            raise wrong
+        try:
+            return float(value)
+        except OverflowError:
+            raise TypeError(f"{name} = {_shown(value)} is invalid: the number is beyond a float") from None
     return value

@@ -19,8 +19,11 @@ from botorl.data.generators import DEFAULT_STEPS, GENERATORS, get_generator
 from botorl.data.generators.antmaze import maze_stats, plot_coverage
 from botorl.data.loaders import load_minari, load_path
 from botorl.data.tasks import load_task_data
+from botorl.configs.members import SEED_LIMIT
 from botorl.envs.registry import get_task
-from botorl.errors import BotorlError
+from botorl.errors import BotorlError, Range, check_ranges
+
+MAX_ROWS = 10**9  # rows a generator makes, as --data.steps allows (configs.resolve.BOUNDS)
 
 
 @dataclasses.dataclass
@@ -29,9 +32,9 @@ class Generate:
 
     task: Annotated[str, tyro.conf.Positional]
     """task name, e.g. pointmaze-large, door-binary-local, bandit-pinwheel, bandit-1d"""
-    steps: Optional[int] = None
+    steps: Annotated[Optional[int], Range(1, MAX_ROWS)] = None
     """dataset size in env steps (default: the task's default, e.g. 1,000,000 for pointmaze)"""
-    seed: int = 0
+    seed: Annotated[int, Range(0, SEED_LIMIT - 1)] = 0
     """generator seed"""
     out: Optional[Path] = None
     """also write a copy here: a folder named like name-v0 becomes that Minari dataset;
@@ -46,9 +49,9 @@ class Generate:
 class _Target:
     target: Annotated[str, tyro.conf.Positional]
     """a task name (its cached generated data, or its downloaded data), or a dataset path"""
-    steps: Optional[int] = None
+    steps: Annotated[Optional[int], Range(1, MAX_ROWS)] = None
     """only the cached dataset of this size"""
-    seed: Optional[int] = None
+    seed: Annotated[Optional[int], Range(0, SEED_LIMIT - 1)] = None
     """only the cached dataset of this seed"""
 
 
@@ -159,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         prog="botorl data",
         description="Generate botorl's own datasets and show dataset statistics.",
     )
+    check_ranges(cfg)
     if isinstance(cfg, Generate):
         return _generate(cfg)
     if isinstance(cfg, Plot):

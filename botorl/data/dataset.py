@@ -51,6 +51,17 @@ def _source(metadata: dict | None) -> str:
     return str((metadata or {}).get("source", "<in-memory dataset>"))
 
 
+def numeric(x, field: str, source: str) -> np.ndarray:
+    """``x`` as an array of booleans, integers or reals; DataFormatError naming the field for any
+    other dtype (byte strings or text parse as numbers, complex numbers lose their imaginary part,
+    objects are no data)."""
+    a = np.asarray(x)
+    if a.dtype.kind not in "biuf":
+        raise DataFormatError(f"{source}: {field} has dtype {a.dtype}, which cannot be read as numbers; the data must "
+                              f"be booleans, integers or floats. Save {field} as a numeric array.")
+    return a
+
+
 class Dataset:
     """Flat offline transitions (see the module docstring).
 
@@ -64,11 +75,11 @@ class Dataset:
                  infos: dict[str, np.ndarray] | None = None, metadata: dict[str, Any] | None = None, *,
                  raw_action_max: float | None = None):
         src = _source(metadata)
-        obs = np.asarray(observations, dtype=np.float32)
-        nobs = np.asarray(next_observations, dtype=np.float32)
-        act = np.asarray(actions, dtype=np.float32)
-        rew = np.asarray(rewards, dtype=np.float32)
-        term = np.asarray(terminals).astype(bool)
+        obs = numeric(observations, "observations", src).astype(np.float32, copy=False)
+        nobs = numeric(next_observations, "next_observations", src).astype(np.float32, copy=False)
+        act = numeric(actions, "actions", src).astype(np.float32, copy=False)
+        rew = numeric(rewards, "rewards", src).astype(np.float32, copy=False)
+        term = numeric(terminals, "terminals", src).astype(bool)
         obs, nobs, act = (x[:, None] if x.ndim == 1 else x for x in (obs, nobs, act))
         rew, term = (x.reshape(-1) if x.ndim == 2 and x.shape[1] == 1 else x for x in (rew, term))
         n = obs.shape[0]
@@ -85,9 +96,9 @@ class Dataset:
                                   "file is truncated or was written inconsistently.")
         if n == 0:
             raise DataFormatError(f"{src}: the dataset has no transitions.")
-        ends = term.copy() if episode_ends is None else np.asarray(episode_ends).astype(bool).reshape(-1)
+        ends = term.copy() if episode_ends is None else numeric(episode_ends, "episode_ends", src).astype(bool).reshape(-1)
         if mc_returns is not None:
-            mc_returns = np.asarray(mc_returns, dtype=np.float32).reshape(-1)
+            mc_returns = numeric(mc_returns, "mc_returns", src).astype(np.float32).reshape(-1)
         for name, v in (("episode_ends", ends), ("mc_returns", mc_returns)):
             if v is not None and v.shape != (n,):
                 raise DataFormatError(f"{src}: {name} has shape {v.shape}, expected ({n},).")

@@ -21,7 +21,7 @@ import h5py
 import numpy as np
 from minari import MinariDataset
 
-from botorl.data.dataset import Dataset, validate
+from botorl.data.dataset import Dataset, numeric, validate
 from botorl.data.minari_io import SPLIT_KEY, FlatCacheInvalid, minari_root, read_flat, rebuild_flat
 from botorl.data.safe import check_hdf5, check_npz, read_plain_pickle, regular_file
 from botorl.envs.adroit import DOOR_SUCCESS_ANGLE
@@ -134,13 +134,14 @@ def load_d4rl_hdf5(path: str | os.PathLike, *, max_episode_steps: int | None = N
             raise DataFormatError(f"{p}: missing D4RL field(s) {missing} (found {sorted(f.keys())}). A D4RL file "
                                   "needs observations, actions, rewards, terminals (and usually timeouts).")
         try:
-            obs = np.asarray(f["observations"], np.float32)
-            act = np.asarray(f["actions"], np.float32)
+            # each field as stored, its dtype checked (complex numbers, byte strings), then converted
+            obs = numeric(f["observations"], "observations", str(p)).astype(np.float32)
+            act = numeric(f["actions"], "actions", str(p)).astype(np.float32)
+            rew = numeric(f["rewards"], "rewards", str(p)).astype(np.float32).reshape(-1)
+            term = numeric(f["terminals"], "terminals", str(p)).reshape(-1).astype(bool)
             if actions_to_unit is not None:
                 act = np.asarray(actions_to_unit(act), np.float32)
-            rew = np.asarray(f["rewards"], np.float32).reshape(-1)
-            term = np.asarray(f["terminals"]).reshape(-1).astype(bool)
-            tout = np.asarray(f["timeouts"]).reshape(-1).astype(bool) if "timeouts" in f else None
+            tout = numeric(f["timeouts"], "timeouts", str(p)).reshape(-1).astype(bool) if "timeouts" in f else None
             key = next((k for k in ("infos/success", "infos/goal_achieved") if k in f), None)
             success = None if key is None else np.asarray(f[key]).reshape(-1).astype(np.float32)
         except (ValueError, TypeError, OSError, AttributeError) as err:  # bytes where numbers belong, a group

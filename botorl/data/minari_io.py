@@ -35,7 +35,7 @@ from minari.dataset.minari_dataset import parse_dataset_id
 from tqdm import tqdm
 
 from botorl.data.dataset import ACTION_CLIP, Dataset, segments
-from botorl.data.safe import check_npz, regular_file
+from botorl.data.safe import check_npz, data_cap, regular_file
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import atomic_write_bytes, file_sha256, pid_alive
 
@@ -287,7 +287,7 @@ def _write_flat(ds: Dataset, path: Path, meta: dict) -> None:
     check = {"content_sha256": np.asarray(_content_sha256(arrays))}
     if source.exists():
         check.update(source_size=np.asarray(source.stat().st_size, np.int64),
-                     source_sha256=np.asarray(file_sha256(source)))
+                     source_sha256=np.asarray(file_sha256(source, data_cap())))
     buf = io.BytesIO()
     np.savez(buf, **arrays, **check)
     atomic_write_bytes(path, buf.getvalue())
@@ -317,7 +317,7 @@ def read_flat(folder: Path) -> Dataset | None:
         raise FlatCacheInvalid(f"{path} was written without checksums of its source (an older botorl)")
     if not source.exists():
         raise FlatCacheInvalid(f"{path}: its source {source} is missing")
-    if int(arrays["source_size"]) != source.stat().st_size or str(arrays["source_sha256"]) != file_sha256(source):
+    if int(arrays["source_size"]) != source.stat().st_size or str(arrays["source_sha256"]) != file_sha256(source, data_cap()):
         raise FlatCacheInvalid(f"{path} was made from a different {source} (size or sha256 differ)")
     body = {k: v for k, v in arrays.items() if k not in _CHECK_KEYS}
     if _content_sha256(body) != str(arrays["content_sha256"]):

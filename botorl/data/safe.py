@@ -1,10 +1,13 @@
 """Checks a data file passes before botorl reads it: a data path can come from a run
 directory's config.json, which is data, never orders. Only a regular file is opened (a FIFO would
-hang the reader, a device would be read without end); a ``.npz`` is sized from its headers before
-any array is inflated; an HDF5 file that stores data outside itself (external storage, external
-links, virtual datasets) is refused, since it could make botorl read any file or a FIFO. A pickle
-(Cal-QL's ``.npy`` object arrays, DAPG's demos) is read by ``read_plain_pickle`` alone, which builds
-nothing but plain data: a pickle that names any other callable is refused before it is called.
+hang the reader, a device would be read without end), and it is sized before it is hashed or
+read; a ``.npz`` is sized from its headers before any array is inflated, every member whatever its
+name; an HDF5 file that stores data outside itself (external storage, external links, virtual
+datasets) or holds a soft link that leads nowhere is refused, since it could make botorl read any
+file or a FIFO. A file whose arrays inflate far beyond its bytes on disk (a few MB of deflate that
+declare gigabytes) is refused whatever the machine's memory: no offline RL dataset compresses so.
+A pickle (Cal-QL's ``.npy`` object arrays, DAPG's demos) is read by ``read_plain_pickle`` alone, which
+builds nothing but plain data: a pickle that names any other callable is refused before it is called.
 """
 
 from __future__ import annotations
@@ -25,6 +28,11 @@ import numpy as np
 from botorl.errors import DataFormatError
 
 MAX_DATA_BYTES = 64 << 30  # one dataset's arrays: far above any offline RL dataset botorl reads
+# Inflation: a file may declare up to INFLATE_FREE bytes of arrays whatever it holds on disk, more
+# only at most MAX_INFLATION times its size (float data deflate about 1.1-3x; a deflated run of
+# zeros 1000x, which is how a few MB declare gigabytes).
+INFLATE_FREE = 256 << 20
+MAX_INFLATION = 100
 
 
 def machine_memory() -> int:
@@ -50,7 +58,8 @@ def data_cap() -> int:
 
 
 def regular_file(path: str | os.PathLike, what: str = "data file") -> Path:
-    """``path`` if it is a regular file (a link to one is fine), else DataFormatError naming it."""
+    """``path`` if it is a regular file (a link to one is fine) of at most ``data_cap()`` bytes,
+    else DataFormatError naming it (and its size and the cap)."""
     p = Path(path)
     try:
         st = os.stat(p)
@@ -59,23 +68,42 @@ def regular_file(path: str | os.PathLike, what: str = "data file") -> Path:
     if not stat.S_ISREG(st.st_mode):
         kind = "a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file (a FIFO, device or socket)"
         raise DataFormatError(f"{p}: the {what} is {kind}; botorl reads data only from regular files.")
+    cap = data_cap()
+    if st.st_size > cap:
+        raise DataFormatError(f"{p}: the {what} is {st.st_size:,} bytes, more than botorl reads ({cap:,} bytes, "
+                              f"{cap / 2**30:.1f} GiB); give a smaller file.")
     return p
+
+
+def check_inflation(path: Path, declared: int, what: str = "arrays") -> None:
+    """DataFormatError when ``declared`` bytes of arrays are more than ``INFLATE_FREE`` and more
+    than ``MAX_INFLATION`` times ``path``'s size on disk (a compression bomb)."""
+    on_disk = os.stat(path).st_size
+    if declared > max(INFLATE_FREE, MAX_INFLATION * on_disk):
+        raise DataFormatError(f"{path}: its {what} declare {declared:,} bytes from {on_disk:,} on disk, more than "
+                              f"{MAX_INFLATION}x; no dataset compresses so (a compression bomb?). Save the data "
+                              f"uncompressed (np.savez, an HDF5 file without gzip).")
 
 
 def check_npz(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
     """The arrays of a ``.npz`` (name -> (shape, dtype)) from their headers, without inflating
-    them; DataFormatError for a file that is no plain zip of ``.npy`` arrays, holds object arrays
-    (a pickle), declares more bytes than ``data_cap()`` or more than it holds, or names an array
-    both as a leaf and as a group (``observations`` and ``observations/goal``)."""
+    them; DataFormatError for a file that is no plain zip of ``.npy`` arrays (a member of any
+    other name: np.load would inflate it unchecked), holds object arrays (a pickle), declares more
+    bytes than ``data_cap()``, more than it holds or far more than its size (``check_inflation``),
+    or names an array both as a leaf and as a group (``observations`` and ``observations/goal``)."""
     p = regular_file(path, ".npz file")
     cap = data_cap()
     out: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
     total = 0
     try:
         with zipfile.ZipFile(p) as z:
-            for info in z.infolist():
-                if not info.filename.endswith(".npy"):
-                    continue
+            infos = z.infolist()
+            other = next((i.filename for i in infos if not i.filename.endswith(".npy")), None)
+            if other is not None:
+                raise DataFormatError(f"{p}: member {other[:200]!r} is not a .npy array; a .npz botorl reads holds "
+                                      f"only arrays (np.savez writes them).")
+            check_inflation(p, sum(i.file_size for i in infos), "members")  # what the zip says they inflate to
+            for info in infos:
                 with z.open(info) as f:
                     fmt = np.lib.format
                     v1 = fmt.read_magic(f) == (1, 0)
@@ -105,7 +133,8 @@ def check_npz(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np.dt
 
 def check_hdf5(f, path) -> None:
     """DataFormatError when the open h5py file ``f`` stores data outside itself (external links,
-    external storage, virtual datasets) or declares more than ``data_cap()`` bytes."""
+    external storage, virtual datasets), holds a link that leads nowhere (to itself, to nothing) or
+    declares more than ``data_cap()`` bytes, or far more than its size (``check_inflation``)."""
     cap = data_cap()
     total = 0
     todo = [f]
@@ -116,9 +145,13 @@ def check_hdf5(f, path) -> None:
             if isinstance(link, h5py.ExternalLink):
                 raise DataFormatError(f"{path}: {group.name.rstrip('/')}/{name} links to another file "
                                       f"({link.filename}); botorl reads only data stored in the file itself.")
+            try:
+                node = group[name]
+            except (KeyError, RuntimeError, OSError, ValueError) as err:  # a soft link to itself or to nothing
+                raise DataFormatError(f"{path}: {group.name.rstrip('/')}/{name} cannot be opened ({err}): a link "
+                                      f"that leads nowhere; remove it from the file.") from None
             if isinstance(link, h5py.SoftLink):
                 continue  # a name for something in this file, visited where it lives
-            node = group[name]
             if isinstance(node, h5py.Group):
                 todo.append(node)
                 continue
@@ -131,6 +164,7 @@ def check_hdf5(f, path) -> None:
             if total > cap:
                 raise DataFormatError(f"{path}: its datasets declare {total / 2**30:.1f} GiB, more than botorl reads "
                                       f"({cap / 2**30:.1f} GiB).")
+    check_inflation(Path(path), total, "datasets")
 
 
 def data_files(path: str | os.PathLike, minari_root: Path | None = None) -> list[Path]:
@@ -158,14 +192,18 @@ def data_files(path: str | os.PathLike, minari_root: Path | None = None) -> list
 def fingerprint(path: str | os.PathLike | None, minari_root: Path | None = None) -> dict:
     """``{"path", "size", "sha256"}`` of what a run reads for ``data.path`` (``data_files``; None:
     the task's own data, made or named by botorl, which the config's digest covers). An integrity
-    check: it says the data did not change, not who made them."""
+    check: it says the data did not change, not who made them. Every file is sized before any is
+    hashed (a 1 TB sparse file is refused at once, not read for minutes)."""
     if path is None:
         return {"path": None}
     h = hashlib.sha256()
     size = 0
     try:
-        for f in data_files(path, minari_root):
-            regular_file(f)
+        files = data_files(path, minari_root)
+        if sum(regular_file(f).stat().st_size for f in files) > data_cap():
+            raise DataFormatError(f"data.path {path}: its files hold more than botorl reads ({data_cap() / 2**30:.1f} "
+                                  f"GiB, half this machine's memory at most); give a smaller dataset.")
+        for f in files:
             with open(f, "rb") as fh:
                 size += os.fstat(fh.fileno()).st_size
                 h.update(f.name.encode() + b"\0")

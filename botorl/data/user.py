@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from botorl.data import loaders
-from botorl.data.dataset import Dataset, validate
+from botorl.data.dataset import Dataset, numeric, validate
 from botorl.data.safe import check_npz
 from botorl.envs.user import UserTask, action_from_env, flatten_obs, is_unit_box
 from botorl.errors import DataFormatError, DatasetNotFoundError
@@ -46,7 +46,7 @@ def _obs(x, task: UserTask, field: str, source: str) -> np.ndarray:
         except Exception as err:
             raise DataFormatError(f"{source}: {field} cannot be flattened as the env's dict observations "
                                   f"(keys {', '.join(task.obs_keys)}): {err}") from None
-    a = np.asarray(x, dtype=np.float32)
+    a = numeric(x, field, source).astype(np.float32)
     return a.reshape(a.shape[0], -1) if a.ndim >= 2 else a.reshape(-1, 1)
 
 
@@ -78,14 +78,14 @@ def from_arrays(arrays: Mapping, task: UserTask, *, source: str) -> Dataset:
     nobs = _obs(arrays["next_observations"], task, "next_observations", source)
     _check_obs(obs.shape[1], task, source, "observations")
     _check_obs(nobs.shape[1], task, source, "next_observations")
-    act = np.asarray(arrays["actions"], dtype=np.float64)
+    act = numeric(arrays["actions"], "actions", source).astype(np.float64)
     act = act.reshape(-1, 1) if act.ndim == 1 else act.reshape(act.shape[0], -1)
     if act.shape[1] == task.action_dim and not is_unit_box(task.action_low, task.action_high):
         act = action_from_env(act, task.action_low, task.action_high)
     flags = {}
     for k in ("terminals",) + OPTIONAL:
         if k in arrays and arrays[k] is not None:
-            v = np.asarray(arrays[k])
+            v = numeric(arrays[k], k, source)
             if v.dtype.kind == "f" and not np.isfinite(v).all():
                 raise DataFormatError(f"{source}: field {k!r} has NaN/inf values; give 0/1 (or booleans) per row.")
             flags[k] = v.reshape(-1).astype(bool)

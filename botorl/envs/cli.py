@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 import tyro
@@ -14,6 +15,7 @@ import tyro
 from botorl.data.tasks import data_status
 from botorl.envs.metric import episode_success
 from botorl.envs.registry import TaskSpec, get_task, list_tasks
+from botorl.errors import Range, check_ranges
 
 
 @dataclass
@@ -30,9 +32,9 @@ class CheckConfig:
 
     task: tyro.conf.Positional[str]
     """task name (see `botorl tasks`)"""
-    steps: int = 1000
+    steps: Annotated[int, Range(1, 10**7)] = 1000
     """number of env steps"""
-    seed: int = 0
+    seed: Annotated[int, Range(0, 2**31 - 1)] = 0
 
 
 def list_main(cfg: ListConfig) -> int:
@@ -115,5 +117,7 @@ def check_main(cfg: CheckConfig) -> int:
 
 def main(argv: list[str]) -> int:
     if argv and argv[0] == "check":
-        return check_main(tyro.cli(CheckConfig, args=argv[1:], prog="botorl tasks check"))
+        cfg = tyro.cli(CheckConfig, args=argv[1:], prog="botorl tasks check")
+        check_ranges(cfg)
+        return check_main(cfg)
     return list_main(tyro.cli(ListConfig, args=argv, prog="botorl tasks"))

@@ -134,10 +134,58 @@ def get_env_state(env: gym.Env) -> dict[str, Any]:
     return {"format": FORMAT, "layers": layers, "mujoco": sims}
 
 
-def set_env_state(env: gym.Env, state: dict[str, Any]) -> None:
-    """Restore ``get_env_state``'s dict into ``env`` (built the same way: same task and wrappers)."""
+def _ints(v: Any):
+    """Every integer in a decoded attribute value (inside containers and integer arrays)."""
+    if isinstance(v, np.ndarray):
+        if v.dtype.kind in "iu" and v.size:
+            yield int(np.abs(v.astype(object)).max())
+    elif isinstance(v, (list, tuple, set, frozenset)):
+        for x in v:
+            yield from _ints(x)
+    elif isinstance(v, dict):
+        for x in v.values():
+            yield from _ints(x)
+    elif isinstance(v, int) and not isinstance(v, bool):
+        yield abs(v)
+
+
+def _count_bound(env: gym.Env, steps: int) -> int | None:
+    """The largest integer a restored attribute may take: no counter passes the fresh env's episode
+    horizon or, counted over episodes, the ``steps`` the env has taken (None: no horizon known)."""
+    e = env
+    while isinstance(e, gym.Wrapper):
+        if isinstance(e, gym.wrappers.TimeLimit):
+            return max(int(e._max_episode_steps), steps)
+        e = e.env
+    return None
+
+
+def _check_counts(path: str, name: str, val: Any, cur: Any, bound: int | None) -> None:
+    """ValueError when the restored ``val`` of attribute ``name`` changes the fresh env's ``cur``
+    and holds an integer beyond ``bound``: a count such as ``frame_skip = 10**9`` would make one
+    env step run for hours, where no signal stops it. A seed is no count."""
+    if bound is None or "seed" in name or (type(val) is type(cur) and _same(val, cur)):
+        return
+    big = max(_ints(val), default=0)
+    if big > bound:
+        raise ValueError(f"env state: {path}.{name} holds {big:,}, more than the {bound:,} steps of an episode or "
+                         f"of the run so far; it is no state of this task's env")
+
+
+def _same(a: Any, b: Any) -> bool:
+    try:
+        return bool(np.array_equal(a, b)) if isinstance(a, np.ndarray) else bool(a == b)
+    except Exception:  # noqa: BLE001 - values whose == is not a truth value
+        return False
+
+
+def set_env_state(env: gym.Env, state: dict[str, Any], steps: int = 0) -> None:
+    """Restore ``get_env_state``'s dict into ``env`` (built the same way: same task and wrappers).
+    ``steps``: the env steps taken before the state was saved; a restored integer that changes an
+    attribute may exceed neither them nor the env's episode horizon (``_check_counts``)."""
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise ValueError(f"not an env state of format {FORMAT!r}")
+    bound = _count_bound(env, steps)
     layers = dict(_layers(env))
     if set(layers) != set(state["layers"]):
         raise ValueError(f"env state of layers {sorted(state['layers'])} does not fit this env ({sorted(layers)})")
@@ -151,6 +199,7 @@ def set_env_state(env: gym.Env, state: dict[str, Any]) -> None:
                 raise ValueError(f"env state: {path} names attribute {name!r}, which is no plain attribute")
             val = _decode(enc)
             cur = obj.__dict__.get(name)
+            _check_counts(path, name, val, cur, bound)
             if isinstance(cur, np.ndarray) and isinstance(val, np.ndarray) and cur.shape == val.shape \
                     and cur.dtype == val.dtype and cur.flags.writeable:
                 cur[...] = val  # in place: other objects may hold a view of it

@@ -11,17 +11,23 @@ import re
 import shlex
 import sys
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional
 
 import tyro
 
-from botorl.errors import BotorlError, ConfigError
+from botorl.configs.members import MAX_MEMBERS, SEED_LIMIT
+from botorl.errors import BotorlError, ConfigError, Range, check_ranges
 from botorl.experiments.grid import build_grid, load_grid_file, parse_seeds
 from botorl.experiments.pairs import read_pairs_csv, write_paired_report
 from botorl.experiments.report import make_report, select_alpha
 from botorl.experiments.runner import USER_ERROR_EXIT, Sweep, SweepOptions, next_action
 from botorl.experiments.runs import find_runs, group_by
+from botorl.pipeline.rundir import check_out
 from botorl.pipeline.tracking import require_wandb
+
+
+MAX_WORKERS = 1024  # parallel trials (local: processes, ray: CPUs of a local instance)
+MAX_GRID_POINTS = 100_000  # points of Figure 5's env-step grid (its default 101)
 
 
 @dataclasses.dataclass
@@ -46,15 +52,15 @@ class SweepArgs:
     """config overrides dotted.path=value, set in every trial's config as `botorl run --dotted.path value` sets it"""
     backend: Literal["sequential", "local", "ray"] = "local"
     """sequential: one at a time; local: --workers pinned processes (one per core unless given); ray: Ray tasks"""
-    workers: Optional[int] = None
+    workers: Annotated[Optional[int], Range(1, MAX_WORKERS)] = None
     """parallel trials (local: each pinned to its own block of cores, C // workers of them; ray: CPUs of a local instance); None: one per usable core"""
-    max_retries: int = 2
+    max_retries: Annotated[int, Range(0, 100)] = 2
     """a failed trial is resumed from its checkpoint at most this many times per invocation"""
     ray_address: Optional[str] = None
     """existing Ray cluster (e.g. auto or ray://head:10001); None: start a local instance"""
     trial_command: Optional[str] = None
     """command that stands in for `python -m botorl.cli` (testing); gets run/resume arguments"""
-    population_size: int = 1
+    population_size: Annotated[int, Range(1, MAX_MEMBERS, "members of one population")] = 1
     """train the trials of each (task, method, pre-training) K at a time as populations (one process,
     one jitted update for all members); 1: one process per trial"""
     share_pretraining: bool = True
@@ -85,6 +91,8 @@ def _gather_set(argv: list[str]) -> list[str]:
 
 def sweep_main(argv: list[str]) -> int:
     args = tyro.cli(SweepArgs, args=_gather_set(list(argv)), prog="botorl sweep")
+    check_ranges(args)
+    check_out(args.out)
     file_fields = load_grid_file(args.grid) if args.grid else None
     grid = build_grid(file_fields, tasks=args.tasks, methods=args.methods, seeds=args.seeds, alphas=args.alphas,
                       overrides=list(args.set) if args.set else None, profile=args.profile)
@@ -151,11 +159,11 @@ class ReportArgs:
     """bootstrap resamples for the IQM confidence intervals"""
     confidence: float = 0.95
     """confidence level of the IQM intervals"""
-    seed: int = 0
+    seed: Annotated[int, Range(0, SEED_LIMIT - 1)] = 0
     """seed of the bootstrap"""
-    grid_points: int = 101
+    grid_points: Annotated[int, Range(2, MAX_GRID_POINTS)] = 101
     """points of the common env-step grid of Figure 5"""
-    dip_window: int = 10_000
+    dip_window: Annotated[int, Range(0, 10**12)] = 10_000
     """the dip: lowest success over evaluations with 0 <= env_step <= this, minus success at step 0"""
     select_seeds: Optional[str] = None
     """seeds that choose alpha (e.g. 0-3 or 0,2,4); None: the first half of each alpha's sorted seeds"""
@@ -168,10 +176,13 @@ class ReportArgs:
 
 def report_main(argv: list[str]) -> int:
     args = tyro.cli(ReportArgs, args=list(argv), prog="botorl report")
+    check_ranges(args)
+    if args.out is not None:
+        check_out(args.out)
     extra_pairs = []
     for p in args.pairs_from:
         try:
-            extra_pairs += read_pairs_csv(Path(p))
+            extra_pairs += read_pairs_csv(Path(os.path.realpath(p)))  # a regular file of bounded size
         except (OSError, KeyError, ValueError, TypeError) as err:
             raise ConfigError(f"--pairs-from {p}: not a paired.csv that `botorl report` wrote ({err}).") from None
     if not args.dirs and not extra_pairs:

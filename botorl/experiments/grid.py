@@ -21,6 +21,7 @@ from botorl.configs.members import Member, parse_alphas
 from botorl.configs.methods import METHODS, PRETRAIN_ALGOS
 from botorl.errors import ConfigError
 from botorl.experiments.runs import group_by
+from botorl.io import read_bounded
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,12 +274,21 @@ _GridLoader.add_implicit_resolver(
 )
 
 
+GRID_LIMIT = 1 << 20  # bytes of a --grid file: a few lines of YAML
+
+
 def load_grid_file(path: str | Path) -> dict[str, Any]:
+    """The fields of a ``--grid`` YAML file: a regular file (a link to one is fine; a FIFO would
+    hang, /dev/zero never end) of at most ``GRID_LIMIT`` bytes."""
     path = Path(path)
     try:
-        data = yaml.load(path.read_text(), Loader=_GridLoader)  # noqa: S506 (a SafeLoader)
+        text = read_bounded(os.path.realpath(path), GRID_LIMIT)
     except FileNotFoundError:
         raise ConfigError(f"Grid file {path} does not exist; check the --grid path.") from None
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"--grid {path}: {err}; give a YAML file (tasks, methods, seeds, ...).") from None
+    try:
+        data = yaml.load(text, Loader=_GridLoader)  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as err:
         raise ConfigError(f"Grid file {path} is not valid YAML: {err}") from None
     if data is None:

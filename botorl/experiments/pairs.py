@@ -12,7 +12,6 @@ binary success. The statistics per group and quantity: docs/running.md, "botorl 
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import io
 import json
@@ -41,7 +40,7 @@ from botorl.experiments.stats import (
     t_interval,
     wilcoxon_signed_rank,
 )
-from botorl.io import CSV_LIMIT, atomic_write_text, read_bounded
+from botorl.io import CSV_LIMIT, atomic_write_text, csv_rows, read_bounded
 from botorl.pipeline.shared_pretrain import fingerprint_of
 
 REFERENCE = "wsrl"
@@ -224,12 +223,13 @@ def read_pairs_csv(path: Path) -> list[Pair]:
             return math.nan
 
     with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:
-        return [Pair(
+        rows = csv_rows(f, path.name)[1]
+    return [Pair(
             row["task"], int(row["seed"]) if row["seed"] else None, canonical_label(row["method"]),
             float(row["alpha"]) if row["alpha"] else None, canonical_label(row["reference"]),
             {q: num(row[f"{q}_reference"]) for q in QUANTITIES}, {q: num(row[f"{q}_method"]) for q in QUANTITIES},
             row.get("reference_path", ""), row.get("path", ""),
-        ) for row in csv.DictReader(f)]
+        ) for row in rows]
 
 
 def paired_cells_csv(cells: Sequence[PairedCell]) -> str:

@@ -4,7 +4,6 @@ only when they are regular files of a bounded size (botorl.io.read_bounded)."""
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import io
 import json
@@ -21,7 +20,7 @@ from botorl.configs.methods import METHODS
 from botorl.configs.schema import flatten
 from botorl.envs.metric import Metric
 from botorl.envs.metric import of_config as metric_of_config
-from botorl.io import CSV_LIMIT, read_bounded, read_json_bounded, read_json_object
+from botorl.io import CSV_LIMIT, csv_rows, read_bounded, read_json_bounded, read_json_object
 
 
 @dataclasses.dataclass
@@ -82,14 +81,14 @@ def read_eval_csv(path: Path, metric: Metric = Metric()) -> tuple[np.ndarray, np
     it (several stages evaluate at env_step 0; the last is what fine-tuning starts from)."""
     col = metric.column
     with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:
-        reader = csv.DictReader(f)
-        if reader.fieldnames is None or not {"env_step", col} <= set(reader.fieldnames):
-            raise ValueError(f"{path.name} has no env_step/{col} columns (header {reader.fieldnames})")
-        by_step: dict[float, float] = {}
-        for row in reader:
-            step, value = _num(row.get("env_step")), metric.of(_num(row.get("success")), _num(row.get("return")))
-            if math.isfinite(step) and step >= 0 and math.isfinite(value):
-                by_step[step] = value
+        header, rows = csv_rows(f, path.name)
+    if header is None or not {"env_step", col} <= set(header):
+        raise ValueError(f"{path.name} has no env_step/{col} columns (header {header})")
+    by_step: dict[float, float] = {}
+    for row in rows:
+        step, value = _num(row.get("env_step")), metric.of(_num(row.get("success")), _num(row.get("return")))
+        if math.isfinite(step) and step >= 0 and math.isfinite(value):
+            by_step[step] = value
     steps = np.asarray(sorted(by_step), dtype=np.float64)
     return steps, np.asarray([by_step[s] for s in steps], dtype=np.float64)
 

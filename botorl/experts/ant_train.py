@@ -25,12 +25,14 @@ import os
 import time
 from dataclasses import dataclass
 from functools import partial
+from typing import Annotated
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from botorl.envs.ant_goal import ACTION_DIM, HORIZON, OBS_DIM, AntGoalSim, NumpyActor, actor_arrays
+from botorl.errors import Range, check_ranges
 from botorl.io import append_text, atomic_save_figure, atomic_write_bytes, atomic_write_json, pyplot
 from botorl.jaxsetup import setup_jax
 
@@ -41,38 +43,38 @@ class AntTrainConfig:
 
     out: str = "runs/ant_goal"
     """folder for the checkpoint, the learning curve and the exported actor (resumes from it)"""
-    total_env_steps: int = 20_000_000
+    total_env_steps: Annotated[int, Range(1, 10**12)] = 20_000_000
     """stop after this many environment steps (all ants together)"""
-    time_limit_s: float = 0.0
+    time_limit_s: Annotated[float, Range(0, 10**7)] = 0.0
     """stop (and checkpoint) after this many seconds of this call; 0 = no limit"""
-    seed: int = 0
-    num_workers: int = 0
+    seed: Annotated[int, Range(0, 2**31 - 1)] = 0
+    num_workers: Annotated[int, Range(0, 1024)] = 0
     """simulation processes; 0 = step the ants in this process"""
-    envs_per_worker: int = 4
-    rollout_len: int = 8
+    envs_per_worker: Annotated[int, Range(1, 1024)] = 4
+    rollout_len: Annotated[int, Range(1, 10**6)] = 8
     """env steps per ant per iteration"""
-    updates_per_iter: int = 16
-    batch_size: int = 1024
-    buffer_size: int = 2_000_000
-    start_steps: int = 50_000
+    updates_per_iter: Annotated[int, Range(1, 10**4)] = 16
+    batch_size: Annotated[int, Range(1, 1 << 20)] = 1024
+    buffer_size: Annotated[int, Range(1, 10**9)] = 2_000_000
+    start_steps: Annotated[int, Range(0, 10**12)] = 50_000
     """random-action steps before the first update (and after a resume: policy steps)"""
     hidden: tuple[int, ...] = (256, 256, 256)
-    num_critics: int = 2
-    lr: float = 3e-4
-    discount: float = 0.99
-    tau: float = 0.005
-    init_temp: float = 0.1
-    eval_every_s: float = 30.0
-    checkpoint_every_s: float = 60.0
+    num_critics: Annotated[int, Range(1, 1024)] = 2
+    lr: Annotated[float, Range(0, 1)] = 3e-4
+    discount: Annotated[float, Range(0, 1)] = 0.99
+    tau: Annotated[float, Range(0, 1)] = 0.005
+    init_temp: Annotated[float, Range(1e-8, 1e4)] = 0.1
+    eval_every_s: Annotated[float, Range(0, 10**7)] = 30.0
+    checkpoint_every_s: Annotated[float, Range(0, 10**7)] = 60.0
     progress: bool = True
     eval_maze: str = ""
     """only evaluate: the waypoint controller with the actor (--actor, default the shipped one)
     from the evaluation start to the evaluation goal of this maze (umaze, medium, large)"""
     actor: str = ""
     """actor .npz for --eval-maze (default: the shipped assets/ant_goal_actor.npz)"""
-    episodes: int = 20
+    episodes: Annotated[int, Range(1, 1_000)] = 20
     """episodes for --eval-maze"""
-    action_noise: float = 0.0
+    action_noise: Annotated[float, Range(0, 10)] = 0.0
     """Gaussian action noise for --eval-maze (the data use 0.2)"""
 
 
@@ -348,6 +350,7 @@ def main(argv: list[str]) -> int:
 
     cfg = tyro.cli(AntTrainConfig, args=argv, prog="botorl train-ant",
                    description="Train the goal-reaching ant with SAC (resumable: rerun with the same --out).")
+    check_ranges(cfg)
     if cfg.eval_maze:
         # lazy: --eval-maze only; `python -m` this file (below) runs without the CLI's dependencies
         from botorl.data.generators.antmaze import evaluate_controller, load_actor

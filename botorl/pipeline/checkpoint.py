@@ -23,7 +23,7 @@ from typing import Any, Callable
 import numpy as np
 
 from botorl.data.minari_io import minari_root
-from botorl.data.safe import data_files, fingerprint
+from botorl.data.safe import check_npz, data_files, fingerprint, machine_memory
 from botorl.errors import ConfigError, DataFormatError
 from botorl.io import atomic_write_json, file_sha256, open_regular, own_folder
 from botorl.pipeline import faults
@@ -31,6 +31,12 @@ from botorl.pipeline.rundir import read_json
 
 LATEST = "latest.json"
 MANIFEST = "MANIFEST.json"
+
+
+def file_limit() -> int:
+    """Bytes one checkpoint file may hold: what it restores goes into memory, so at most this
+    machine's (else 64 GiB); a larger file is refused before it is hashed."""
+    return machine_memory() or 1 << 36
 
 
 _DATA_SEEN: dict[tuple, dict] = {}
@@ -127,6 +133,7 @@ def _fsync_dir(path: Path) -> None:
 
 def load_npz(path: Path) -> dict[str, np.ndarray]:
     try:
+        check_npz(path)  # every member sized from its header before any is inflated
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
     except Exception as err:  # truncated zip, bad header, object arrays
@@ -170,7 +177,7 @@ class CheckpointManager:
             # plain json (NaN / Infinity kept as such: an env's state must come back exactly)
             atomic_write_json(tmp / f"{key}.json", doc, indent=None, exact=True, root=self.run_root)
         atomic_write_json(tmp / "state.json", state, root=self.run_root)
-        files = {q.name: {"size": q.stat().st_size, "sha256": file_sha256(q)} for q in sorted(tmp.iterdir())
+        files = {q.name: {"size": q.stat().st_size, "sha256": file_sha256(q, file_limit())} for q in sorted(tmp.iterdir())
                  if q.is_file() and not q.name.startswith(".")}
         seq = int(max([0.0, *(self.order(n)[0] for n in self.names())])) + 1  # after every checkpoint's
         atomic_write_json(tmp / MANIFEST, {"name": name, "seq": seq, "time": time.time(), "files": files},
@@ -245,7 +252,11 @@ class CheckpointManager:
         size = path.stat().st_size
         if size != want.get("size"):
             raise CheckpointCorrupt(f"checkpoint {name}: {fname} has {size} bytes, its manifest says {want.get('size')}.")
-        if file_sha256(path) != want.get("sha256"):
+        try:
+            digest = file_sha256(path, file_limit())
+        except ValueError as err:
+            raise CheckpointCorrupt(f"checkpoint {name}: {err}; it is no checkpoint botorl wrote.") from None
+        if digest != want.get("sha256"):
             raise CheckpointCorrupt(f"checkpoint {name}: {fname} does not match its sha256 checksum (the file changed "
                                     f"after it was written).")
         return path

@@ -26,7 +26,7 @@ from botorl.configs.members import MEMBER_NAME, Streams, is_population, member_c
 from botorl.configs.resolve import BOUNDS, check_bounds, validate
 from botorl.configs.schema import RunConfig, from_dict, to_dict
 from botorl.envs.registry import get_task
-from botorl.errors import BotorlError, ConfigError
+from botorl.errors import BotorlError, ConfigError, Range, check_ranges
 from botorl.io import atomic_write_json, open_regular, own_folder
 from botorl.jaxsetup import matmul_precision, setup_jax
 from botorl.pipeline import preempt, shared_pretrain, stages
@@ -260,7 +260,8 @@ class EvalArgs:
 
     dir: _Dir
     """the run directory"""
-    episodes: Annotated[int | None, tyro.conf.arg(metavar="N", help_behavior_hint="(default: the run's eval.episodes)")] = None
+    episodes: Annotated[int | None, tyro.conf.arg(metavar="N", help_behavior_hint="(default: the run's eval.episodes)"),
+                        Range(1, BOUNDS["eval.episodes"])] = None
     """evaluation episodes"""
     checkpoint: Annotated[str | None, tyro.conf.arg(metavar="NAME", help_behavior_hint="(default: the latest)")] = None
     """checkpoint folder name in DIR/checkpoints"""
@@ -340,8 +341,7 @@ def _print_result(result: dict) -> None:
 
 def eval_main(argv: list[str]) -> int:
     args = tyro.cli(EvalArgs, args=argv, prog="botorl eval")
-    if args.episodes is not None and not 1 <= args.episodes <= BOUNDS["eval.episodes"]:
-        raise ConfigError(f"--episodes {args.episodes}: give 1 to {BOUNDS['eval.episodes']:,} episodes.")
+    check_ranges(args)
     setup_jax()
     # the checkpoint's identity before the task is made or data read (--policy: the contract's)
     run, cfg = read_run(args.dir, "evaluate", validate=True, entry=args.env,

@@ -270,13 +270,20 @@ def _model_bytes(path: Path) -> bytes:
 
 
 # A botorl policy is a straight chain of layers; a loop (whose trip count can be 2**62) or a branch
-# is no policy of botorl's, and onnxruntime would run it without bound.
+# is no policy of botorl's, and onnxruntime would run it without bound. Nor is a convolution, an
+# einsum or a recurrent cell: operators whose work the bounds below do not count.
 CONTROL_FLOW = ("Loop", "Scan", "If", "SequenceMap")
+UNCOUNTED = ("Conv", "ConvTranspose", "ConvInteger", "QLinearConv", "DeformConv", "Einsum", "LSTM", "GRU", "RNN",
+             "MatMulInteger", "QLinearMatMul")
 
 
 def check_graph(model: bytes, where) -> None:
-    """ConfigError when the model (bytes) holds a control-flow operator, anywhere in its graph or
-    functions; nothing is run."""
+    """ConfigError when the model (bytes) holds a control-flow or uncounted operator, anywhere in
+    its graph or functions, or when its work is not bounded (``graph_work``); nothing is run. The
+    bounds, per observation: the MatMul/Gemm FLOPs and any one tensor of the largest actor a config
+    may give (``configs.resolve.MAX_PARAMS`` weights), all node outputs together four times that."""
+    from botorl.configs.resolve import MAX_PARAMS  # lazy: JAX (the configs' schema); botorl.api imports this module
+
     onnx = require("onnx")["onnx"]
     try:
         proto = onnx.load_from_string(model)
@@ -289,6 +296,67 @@ def check_graph(model: bytes, where) -> None:
         raise ConfigError(f"{where} holds the control-flow operator(s) {', '.join(bad)}; a policy botorl exports is "
                           f"a plain chain of layers, and a loop could run without end. Give a model `botorl export` "
                           f"wrote.")
+    odd = sorted({n.op_type for n in nodes if n.op_type in UNCOUNTED or n.domain not in ("", "ai.onnx")})
+    if odd or proto.functions:
+        raise ConfigError(f"{where} holds operators no botorl policy has ({', '.join(odd) or 'model-local functions'}), "
+                          f"whose work botorl cannot bound. Give a model `botorl export` wrote.")
+    one, two = graph_work(onnx, proto, 1, where, MAX_PARAMS), graph_work(onnx, proto, 2, where, MAX_PARAMS)
+    flops, elements = one
+    if two[0] > 2 * flops or two[1] > 2 * elements:  # work that grows faster than the batch
+        raise ConfigError(f"{where}: its work grows faster than the number of observations ({flops:,} FLOPs for one, "
+                          f"{two[0]:,} for two); a policy acts on each observation alone. Give a model `botorl export` wrote.")
+    if flops > 2 * MAX_PARAMS or elements > 4 * MAX_PARAMS:
+        raise ConfigError(f"{where}: its graph does {flops:,} MatMul/Gemm FLOPs and makes {elements:,} values per "
+                          f"observation, more than the largest policy botorl trains ({2 * MAX_PARAMS:,} and "
+                          f"{4 * MAX_PARAMS:,}); it would run for hours. Give a model `botorl export` wrote.")
+
+
+def graph_work(onnx, proto, batch: int, where, max_tensor: int) -> tuple[int, int]:
+    """(MatMul/Gemm FLOPs, values made by all nodes) of one call on ``batch`` observations, from
+    ONNX's shape inference; ConfigError when a node's output has a shape inference cannot fix (it
+    would depend on the observations' values: a ``Range`` or ``ConstantOfShape`` sized by data) or
+    one tensor holds more than ``max_tensor`` values per observation."""
+    model = onnx.ModelProto()
+    model.CopyFrom(proto)
+    inputs = [i for i in model.graph.input if i.name not in {t.name for t in model.graph.initializer}]
+    for i in inputs:
+        dims = i.type.tensor_type.shape.dim
+        if len(dims) != 2 or not dims[1].HasField("dim_value"):
+            raise ConfigError(f"{where}: input {i.name!r} is not (batch, width) with a fixed width; a botorl policy "
+                              f"takes (batch, obs_dim) observations.")
+        dims[0].Clear()
+        dims[0].dim_value = batch
+    try:
+        inferred = onnx.shape_inference.infer_shapes(model, strict_mode=True, data_prop=True)
+    except Exception as err:  # noqa: BLE001 - onnx's inference errors
+        raise ConfigError(f"{where}: its graph's shapes cannot be inferred ({type(err).__name__}: {str(err)[:200]}); "
+                          f"give a model `botorl export` wrote.") from None
+    g = inferred.graph
+    shapes = {t.name: list(t.dims) for t in g.initializer}
+    for v in [*g.input, *g.value_info, *g.output]:
+        dims = v.type.tensor_type.shape.dim
+        shapes[v.name] = [d.dim_value if d.HasField("dim_value") else None for d in dims] \
+            if v.type.tensor_type.HasField("shape") else None
+    flops = elements = 0
+    for node in g.node:
+        for out in filter(None, node.output):
+            dims = shapes.get(out)
+            if dims is None or None in dims:
+                raise ConfigError(f"{where}: node {node.name or node.op_type} ({node.op_type}) makes {out!r} of a shape "
+                                  f"that depends on the observations' values, so its size has no bound; give a model "
+                                  f"`botorl export` wrote.")
+            size = int(np.prod(dims, dtype=object))
+            if size > max_tensor * batch:
+                raise ConfigError(f"{where}: node {node.name or node.op_type} ({node.op_type}) makes {size:,} values "
+                                  f"for {batch} observation(s), more than {max_tensor:,} each; give a model "
+                                  f"`botorl export` wrote.")
+            elements += size
+        if node.op_type in ("MatMul", "Gemm"):
+            a, out = shapes.get(node.input[0]) or [1], shapes[node.output[0]]
+            trans_a = any(at.name == "transA" and at.i for at in node.attribute)
+            k = a[0] if (trans_a or len(a) == 1) else a[-1]
+            flops += 2 * int(np.prod(out, dtype=object)) * int(k or 1)
+    return flops, elements
 
 
 def max_gap(a, b) -> tuple[float, int]:
@@ -392,7 +460,7 @@ def export_policy(run_dir, path, checkpoint: str | None = None, format: str = "o
     for p in (out, meta):  # again: the minutes of conversion are time for a swap
         check_replaceable(p, force)
     atomic_write_bytes(out, model)
-    if file_sha256(out) != contract["sha256"]:  # what is on disk is what was verified
+    if file_sha256(out, MAX_MODEL_BYTES) != contract["sha256"]:  # what is on disk is what was verified
         raise BotorlError(f"{out} does not read back as written (sha256 differs); check the disk and export again.")
     atomic_write_json(meta, contract)
     return contract
@@ -424,7 +492,7 @@ def check_against_run(model: OnnxPolicy, contract: dict | None, cfg, path: Path)
             raise ConfigError(f"{path} is a policy of task {contract.get('task')!r} (its contract says), not of this "
                               f"run's {cfg.task!r}; give the run it was exported from.")
         want = contract.get("sha256")
-        if not isinstance(want, str) or file_sha256(path) != want:
+        if not isinstance(want, str) or hashlib.sha256(_model_bytes(path)).hexdigest() != want:
             raise ConfigError(f"{path} is not the file its contract describes (sha256 differs): it changed since "
                               f"`botorl export`; export it again.")
 

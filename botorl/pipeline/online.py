@@ -92,7 +92,8 @@ class OnlineState:
             if len(doc["envs"]) != n or online["obs"].shape[0] != n:
                 raise ValueError(f"it holds {len(doc['envs'])} envs, the run has {n} members")
             for env, st in zip(self.envs, doc["envs"]):
-                set_env_state(env, st)
+                # the env steps so far, as the run's budget bounds them (state.json is data too)
+                set_env_state(env, st, min(self.step, self.cfg.steps))
             self.obs = np.array(online["obs"], np.float32)
             self.ep_succ = np.array(online["ep_succ"], np.float64)
             if "drawn_actions" in online:  # an accelerator may compute the fused call's draw in other bits

@@ -23,6 +23,7 @@ from importlib import metadata
 from pathlib import Path
 
 from botorl.io import file_sha256
+from botorl.pipeline.checkpoint import file_limit
 
 PACKAGES = ("botorl", "jax", "jaxlib", "flax", "optax", "numpy", "mujoco", "gymnasium")
 ENV_PREFIXES = ("XLA_", "JAX_", "BOTORL_CPU")  # settings of the environment that change numbers
@@ -106,5 +107,8 @@ def pretrain_sha256(checkpoints: Path) -> str | None:
         return None
     key = (str(path), st.st_size, st.st_mtime_ns)
     if key not in _CACHE:
-        _CACHE[key] = file_sha256(path)
+        try:
+            _CACHE[key] = file_sha256(path, file_limit())
+        except ValueError:  # more than this machine holds: no agent of botorl's, so no digest to pair runs by
+            return None
     return _CACHE[key]

@@ -23,8 +23,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from botorl.errors import BotorlError, ConfigError
-from botorl.io import (IO_FAULTS, UnsafeFileError, append_text, atomic_write_bytes, jsonable, open_regular,
-                       own_folder, read_bounded, read_bounded_bytes, unshare)
+from botorl.io import (IO_FAULTS, UnsafeFileError, append_text, atomic_write_bytes, check_path_text, csv_rows,
+                       jsonable, open_regular, own_folder, read_bounded, read_bounded_bytes, unshare)
 from botorl.io import read_json_bounded as read_json  # what every reader of a run's JSON files calls
 
 LOCK_FILE = ".lock"
@@ -54,17 +54,21 @@ class RunDir:
         own_folder(self.root, self.checkpoints)
 
 
-def check_out(out: Path) -> None:
-    """ConfigError (exit 2) unless ``--out`` can be a run directory: not an existing file, not
-    inside the kernel's pseudo file systems (/proc, /sys, /dev)."""
+def check_out(out: str | Path, flag: str = "--out") -> Path:
+    """``out`` as a Path, or ConfigError (exit 2) unless the text given for ``flag`` can be an
+    output folder (a run's, a sweep's, a report's): a path Linux can open (``check_path_text``),
+    not an existing file, not inside the kernel's pseudo file systems (/proc, /sys, /dev)."""
+    check_path_text(flag, str(out))
+    out = Path(out)
     resolved = Path(os.path.realpath(out))
     if resolved.parts[1:2] and resolved.parts[1] in ("proc", "sys", "dev"):
-        raise ConfigError(f"--out {out} is inside /{resolved.parts[1]}, the kernel's view of the machine, not a place "
-                          f"for files; give a folder on a disk, e.g. --out runs/my-run.")
+        raise ConfigError(f"{flag} {out} is inside /{resolved.parts[1]}, the kernel's view of the machine, not a place "
+                          f"for files; give a folder on a disk, e.g. {flag} runs/my-run.")
     first = next((p for p in (out, *out.parents) if p.exists()), None)  # the nearest part that exists
     if first is not None and not first.is_dir():
         where = "is an existing file" if first == out else f"is inside {first}, an existing file"
-        raise ConfigError(f"--out {out} {where}, not a folder; give a new folder (or an existing one) for the run.")
+        raise ConfigError(f"{flag} {out} {where}, not a folder; give a new folder (or an existing one).")
+    return out
 
 
 # ----------------------------------------------------------------------------- ownership
@@ -190,8 +194,14 @@ class CsvLog:
     def __init__(self, path: Path, columns: list[str] | None = None, *, root: Path | None = None):
         self.path = Path(path)
         self.root = root  # the run directory: no folder between it and the log is a link (io.own_folder)
-        header = next(csv.reader(log_lines(self.path)[:1]), None)  # an existing log keeps its own columns
+        header = self._read(log_lines(self.path)[:1])[0]  # an existing log keeps its own columns
         self.columns = header or (list(columns) if columns else None)
+
+    def _read(self, lines: list[str]):
+        try:
+            return csv_rows(lines, str(self.path))
+        except ValueError as err:  # a field over the csv module's limit, a NUL byte
+            raise UnsafeFileError(f"{err}. Remove the file (or give another --out) and run the command again.") from None
 
     def append(self, row: dict[str, Any]) -> None:
         new = not self.path.exists() or self.path.stat().st_size == 0
@@ -205,7 +215,7 @@ class CsvLog:
         append_text(self.path, buf.getvalue(), root=self.root)
 
     def rows(self, *, warn: bool = False) -> list[dict[str, str]]:
-        return [r for r in csv.DictReader(log_lines(self.path, warn=warn)) if r]
+        return [r for r in self._read(log_lines(self.path, warn=warn))[1] if r]
 
     def truncate(self, keep) -> None:
         """Keep only rows for which ``keep(row)`` is true (atomic rewrite)."""
