@@ -14,7 +14,7 @@ import pytest
 from botorl.agents import population as AP
 from botorl.data.replay import ReplayBuffer
 from botorl.errors import ConfigError
-from botorl.pipeline import population as P
+from botorl.pipeline import memory as P
 
 O, A = 4, 2
 

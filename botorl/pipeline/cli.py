@@ -34,8 +34,8 @@ from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, che
     full_identity
 from botorl.pipeline.evaluation import QProbe, evaluate_command
 from botorl.pipeline.export import contract_path, evaluate_exported, export_policy
+from botorl.pipeline.memory import check_fits
 from botorl.pipeline.policy import check_checkpoint, read_run
-from botorl.pipeline.population import check_fits
 from botorl.pipeline.provenance import environment_record
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_guard, read_json
 from botorl.pipeline.runner import build_summary, execute, format_population, format_summary, load_offline, \
