@@ -18,8 +18,8 @@ from botorl.errors import BotorlError, ConfigError
 from botorl.experiments.grid import build_grid, load_grid_file, parse_seeds
 from botorl.experiments.pairs import read_pairs_csv, write_paired_report
 from botorl.experiments.report import make_report, select_alpha
-from botorl.experiments.runner import Sweep, SweepOptions, next_action
 from botorl.experiments.runs import find_runs, group_by
+from botorl.experiments.sweep import Sweep, SweepOptions, next_action
 from botorl.pipeline.tracking import require_wandb
 
 
