@@ -19,7 +19,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from botorl.agents import checkpoint as agent_ckpt
+from botorl.agents import agent_file
 from botorl.configs.build import build_config
 from botorl.configs.custom import register_given
 from botorl.configs.members import MEMBER_NAME, Streams, is_population, member_config, population
@@ -360,7 +360,7 @@ def _eval(args, run, cfg) -> dict:
     spec = get_task(cfg.task)
     d = transform_dataset(cfg, spec, load_run_data(cfg, run.config, args.allow_pickle))
     like = stages.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)
-    agent = agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like)
+    agent = agent_file.load(ckpt.file(name, "agent.ckpt"), like=like)
     probe = QProbe(d.observations, d.actions, seed=Streams.PROBE, size=cfg.eval.q_pairs)
     with matmul_precision(cfg.precision):  # the run's own
         return evaluate_command(lambda o: agent.eval_actions(o[0])[None], cfg, cfg.eval.episodes,

@@ -18,7 +18,7 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
-from botorl.agents import checkpoint as agent_ckpt
+from botorl.agents import agent_file
 from botorl.agents import population
 from botorl.configs.members import Member, Streams
 from botorl.configs.methods import get_method
@@ -185,8 +185,8 @@ class RunContext:
         """The population's agents saved under ``name`` (``like``: a stacked template)."""
         path = self.ckpt.file(name, "agent.ckpt")
         if self.single:  # the member's own agent
-            return population.stack([agent_ckpt.load(path, like=population.member_of(like, 0))])
-        return agent_ckpt.load(path, like=like)
+            return population.stack([agent_file.load(path, like=population.member_of(like, 0))])
+        return agent_file.load(path, like=like)
 
     def _stored(self, x):
         """Per-member lists (alone, or as the values of a dict) as a single run stores them: its item."""
@@ -215,13 +215,13 @@ class RunContext:
             "time": time.time(),
         }
         self.ckpt.save(name, state=state, agent=population.member_of(agents, 0) if self.single else agents,
-                       save_agent=agent_ckpt.save, arrays=saved.get("arrays"), documents=saved.get("documents"))
+                       save_agent=agent_file.save, arrays=saved.get("arrays"), documents=saved.get("documents"))
         if not self.single and done:
             # each member's own agent in its run directory, for `botorl eval MEMBER_DIR`
             for i, member in enumerate(self.members):
                 CheckpointManager(member.run.checkpoints).save(
                     name, state={**state, "np_rng": None, "extra": {}, "member": i, "identity": [state["identity"][i]]},
-                    agent=population.member_of(agents, i), save_agent=agent_ckpt.save)
+                    agent=population.member_of(agents, i), save_agent=agent_file.save)
         self.write_summary("running")
 
     def contents(self, point: dict) -> dict:
