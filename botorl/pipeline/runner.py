@@ -23,7 +23,7 @@ from botorl.agents import population
 from botorl.configs.members import Member, Streams
 from botorl.configs.methods import get_method
 from botorl.configs.schema import RunConfig, to_dict
-from botorl.data.dataset import Dataset, RewardTransform
+from botorl.data.dataset import FIELDS, Dataset, RewardTransform
 from botorl.data.dataset import validate as validate_dataset
 from botorl.data.loaders import refuse_pickle
 from botorl.data.tasks import load_task_data
@@ -39,8 +39,6 @@ from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkp
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
 from botorl.pipeline.rundir import EVAL_COLUMNS, POPULATION_FILE, CsvLog, MetricsLogger, RunDir, number, read_json
 from botorl.pipeline.provenance import pretrain_sha256
-
-_DS_FIELDS = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends", "mc_returns")
 
 
 # ---------------------------------------------------------------------------- data
@@ -406,8 +404,7 @@ def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | No
         d_warmups, agents = stages.warmup(cfg, member_cfgs, agents, ctx.loop, hooks)
         if d_warmups is not None:  # its end's checkpoint: the loop's state, and D_warmup for BOTO
             end = ctx.loop.state_dict()
-            end["arrays"].update({k: {f: getattr(dw, f) for f in _DS_FIELDS if getattr(dw, f) is not None}
-                                  for k, dw in zip(ctx.warmup_keys(), d_warmups)})
+            end["arrays"].update({k: dw.arrays() for k, dw in zip(ctx.warmup_keys(), d_warmups)})
     elif stage == "boto":
         if resume is not None and agents is None:
             agents = _templates(member_cfgs, "boto", d)
@@ -509,7 +506,7 @@ def _load_warmups(ckpt: CheckpointManager, keys: list[str]) -> list[Dataset] | N
     saved = [ckpt.arrays(checkpoint_name("warmup", None), key) for key in keys]
     if not all(saved):
         return None
-    return [Dataset(**{k: a.get(k) for k in _DS_FIELDS}, metadata={"source": "D_warmup (checkpoint)"}) for a in saved]
+    return [Dataset(**{k: a.get(k) for k in FIELDS}, metadata={"source": "D_warmup (checkpoint)"}) for a in saved]
 
 
 def _truncate_logs(member: "MemberRun", order: tuple[str, ...], mid: dict | None, done: list[str]) -> None:

@@ -26,6 +26,7 @@ from botorl.agents.common import jit_q_mean
 from botorl.agents.cql import CQLAgent
 from botorl.agents.iql import IQLAgent
 from botorl.agents.sac import SACAgent
+from botorl.batch import BATCH_KEYS
 from botorl.boto.phase import boto_updates
 from botorl.configs.members import Streams
 from botorl.configs.methods import get_method
@@ -315,9 +316,8 @@ def warmup(cfg, member_cfgs, agents, state: OnlineState, hooks: Hooks) -> tuple[
     for i, ends in enumerate(ended):
         episode_ends = np.zeros(n, bool)
         episode_ends[ends] = True
-        dw = Dataset(*(rows[k][i, :n] for k in ("observations", "actions", "rewards", "next_observations")),
-                     rows["dones"][i, :n] > 0.5, episode_ends=episode_ends,
-                     metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})
+        dw = Dataset.of_batch({k: rows[k][i, :n] for k in BATCH_KEYS}, episode_ends=episode_ends,
+                              metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})
         d_warmups.append(dw._replace(mc_returns=state.mc_returns(dw)))
     # the rewards as the env gave them
     hooks.log("warmup", n, [{"episodes": state.episodes[i], "success_rate": float(np.mean(s)) if s else float("nan"),
