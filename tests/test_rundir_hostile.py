@@ -161,7 +161,7 @@ def _crafted_population(out: Path, *extra: str) -> Path:
     from botorl.configs.members import population
     from botorl.configs.schema import to_dict
     from botorl.pipeline.rundir import RunDir
-    from botorl.pipeline.runner import write_population_file
+    from botorl.pipeline.summary import write_population_file
 
     cfg = replace(_smoke_config("--seeds", "0,1", *extra), out=str(out))
     members, member_cfgs = population(cfg)

@@ -38,8 +38,9 @@ from botorl.pipeline.memory import check_fits
 from botorl.pipeline.policy import check_checkpoint, read_run
 from botorl.pipeline.provenance import environment_record
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_guard, read_json
-from botorl.pipeline.runner import build_summary, execute, format_population, format_summary, load_offline, \
-    load_run_data, read_summary, transform_dataset, write_population_file
+from botorl.pipeline.runner import execute, load_offline, load_run_data, transform_dataset
+from botorl.pipeline.summary import build_summary, format_population, format_summary, read_summary, \
+    write_population_file
 from botorl.pipeline.tracking import require_wandb
 
 
