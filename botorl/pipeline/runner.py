@@ -269,7 +269,7 @@ class RunContext:
             summary.write_population_file(self.root, self.cfg, self.member_cfgs, status, [s["status"] for s in out],
                                           seconds, error)
 
-# ---------------------------------------------------------------------------- the run
+
 # ---------------------------------------------------------------------------- the stages
 # What runs each stage, given the run's agents and D_warmups (and the checkpoint it resumes from,
 # read by the runner): (agents, D_warmups, what its end-of-stage checkpoint keeps). The online
@@ -317,6 +317,7 @@ def _finetune(ctx: RunContext, agents, d_warmups, resume: dict | None):
 STAGES = {"pretrain": _pretrain, "warmup": _warmup, "boto": _boto, "finetune": _finetune}
 
 
+# ---------------------------------------------------------------------------- the run
 def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_runs: list[RunDir],
             d_offline_raw: Dataset, *, resume: bool = False) -> list[dict[str, Any]]:
     """Train the members (configs that differ in seed and alpha only) as one population whose
