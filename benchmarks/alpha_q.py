@@ -38,7 +38,7 @@ DISTANCES = (0.1, 0.3, 1.0, 2.0)
 def _pretrained(task: str, seed: int, root: Path, profile: str):
     """The pre-trained agent, D_offline (transformed) and D_warmup of a WSRL run that stops
     after its warm-up (made once, resumed if it was cut)."""
-    from botorl.agents import checkpoint as agent_ckpt
+    from botorl.agents import agent_file
     from botorl.configs.presets import make_preset
     from botorl.configs.schema import RunConfig, from_dict
     from botorl.data.dataset import Dataset
@@ -61,7 +61,7 @@ def _pretrained(task: str, seed: int, root: Path, profile: str):
     spec = get_task(cfg.task)
     d_off = transform_dataset(cfg, spec, load_offline(cfg, spec))
     ckpt = CheckpointManager(run / "checkpoints")
-    agent = agent_ckpt.load(ckpt.file("pretrain-final", "agent.ckpt"),
+    agent = agent_file.load(ckpt.file("pretrain-final", "agent.ckpt"),
                             like=make_pretrain_agent(cfg, d_off.obs_dim, d_off.action_dim, cfg.seed))
     a = ckpt.arrays("warmup-final", "warmup")
     d_warm = Dataset(a["observations"], a["actions"], a["rewards"], a["next_observations"], a["terminals"],

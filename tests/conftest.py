@@ -15,7 +15,7 @@ os.environ["MINARI_DATASETS_PATH"] = tempfile.mkdtemp(prefix="botorl-minari-")
 os.environ["BOTORL_DATA_DIR"] = tempfile.mkdtemp(prefix="botorl-data-")
 os.environ.setdefault("MUJOCO_GL", "egl")
 # Two CPU devices on any machine, so the population tests exercise the split of members over
-# devices (pipeline/population.py) whatever the core count; subprocess runs inherit it.
+# devices (agents/population.py) whatever the core count; subprocess runs inherit it.
 os.environ.setdefault("BOTORL_CPU_DEVICES", "2")
 
 from botorl.data.dataset import BATCH_KEYS  # noqa: E402

@@ -6,7 +6,7 @@ import jax
 import numpy as np
 import pytest
 
-from botorl.agents import checkpoint
+from botorl.agents import agent_file
 from botorl.agents.cql import CQLAgent, CQLConfig
 from botorl.agents.iql import IQLAgent, IQLConfig
 from botorl.agents.sac import SACAgent, SACConfig
@@ -81,9 +81,9 @@ def test_update_many_on_device_draws_its_batches_inside_the_call(stepped):
 def test_checkpoint_round_trip_is_bit_identical(stepped, tmp_path):
     _, agent, bs = stepped
     path = tmp_path / "agent.ckpt"
-    checkpoint.save(path, agent)
+    agent_file.save(path, agent)
     template = type(agent).create(agent.config, O, A, seed=123)
-    loaded = checkpoint.load(path, like=template)
+    loaded = agent_file.load(path, like=template)
     one = {k: v[0] for k, v in bs.items()}
     a1, m1 = agent.update(one)
     a2, m2 = loaded.update(one)
@@ -97,14 +97,14 @@ def test_checkpoint_bad_file(tmp_path, stepped):
     bad = tmp_path / "bad.ckpt"
     bad.write_bytes(b"not a checkpoint")
     with pytest.raises(BotorlError):
-        checkpoint.load(bad, like=agent)
+        agent_file.load(bad, like=agent)
     with pytest.raises(BotorlError):
-        checkpoint.load(tmp_path / "missing.ckpt", like=agent)
+        agent_file.load(tmp_path / "missing.ckpt", like=agent)
     # A checkpoint of another architecture.
     other = SACAgent.create(SACConfig(actor_hidden_dims=(4,), critic_hidden_dims=(4,), num_critics=2), O, A, seed=0)
-    checkpoint.save(tmp_path / "other.ckpt", other)
+    agent_file.save(tmp_path / "other.ckpt", other)
     with pytest.raises(BotorlError):
-        checkpoint.load(tmp_path / "other.ckpt", like=agent)
+        agent_file.load(tmp_path / "other.ckpt", like=agent)
 
 
 def test_sample_and_eval_actions_shapes_and_rng(stepped):

@@ -99,7 +99,7 @@ def test_each_trial_runs_the_config_its_old_command_line_built(tmp_path):
     command reads it back (--config) and sets nothing else but --out and --no-progress."""
     from botorl.configs.build import build_config
     from botorl.configs.schema import to_dict
-    from botorl.experiments.runner import Sweep, SweepOptions
+    from botorl.experiments.sweep import Sweep, SweepOptions
 
     task = "pointmaze-umaze"
     cases = [  # (grid, population size, each unit's old `botorl run` arguments)

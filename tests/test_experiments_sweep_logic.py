@@ -22,7 +22,7 @@ import pytest
 from botorl.errors import BotorlError
 from botorl.experiments.cli import sweep_main
 from botorl.experiments.grid import build_grid
-from botorl.experiments.runner import Sweep, SweepOptions, next_action
+from botorl.experiments.sweep import Sweep, SweepOptions, next_action
 
 # Speaks the `botorl run --config FILE --out DIR` / `botorl resume DIR` protocol of CONTRACTS.md "Runs"
 # (FILE: the trial's config, here the grid's fields of a task botorl does not know).
@@ -277,7 +277,7 @@ def test_ray_backend_without_ray_is_a_clear_error(tmp_path, fake, monkeypatch):
 
 
 def test_orphan_of_an_earlier_sweep_is_stopped(tmp_path):
-    from botorl.experiments.runner import TRIAL_PID, stop_orphan
+    from botorl.experiments.sweep import TRIAL_PID, stop_orphan
     from botorl.io import atomic_write_json as write_json_atomic
 
     run_dir = tmp_path / "t1" / "wsrl" / "seed0"

@@ -199,7 +199,7 @@ def test_modules_planted_in_a_sweep_folder_never_run(tmp_path, monkeypatch):
     from test_experiments_sweep_logic import FAKE
 
     from botorl.experiments.grid import build_grid
-    from botorl.experiments.runner import Sweep, SweepOptions
+    from botorl.experiments.sweep import Sweep, SweepOptions
 
     marker = tmp_path / "pwned"
     mods = tmp_path / "mods"
@@ -290,7 +290,7 @@ def test_a_copied_sweep_signals_and_deletes_nothing_of_the_original(tmp_path, fa
     from botorl.experiments.backend_local import TOKEN_ENV, TRIAL_PID, process_record, sweep_token
     from botorl.experiments.backend_ray import make_ray_temp_dir
     from botorl.experiments.grid import build_grid
-    from botorl.experiments.runner import Sweep, SweepOptions
+    from botorl.experiments.sweep import Sweep, SweepOptions
 
     a, b = tmp_path / "A", tmp_path / "B"
     rel = Path("t1") / "wsrl" / "seed0"
@@ -328,7 +328,7 @@ def test_a_pid_file_or_sweep_json_naming_a_bystander_or_another_temp_dir_changes
     from botorl.experiments.backend_local import TRIAL_PID, process_record, sweep_token
     from botorl.experiments.backend_ray import make_ray_temp_dir
     from botorl.experiments.grid import build_grid
-    from botorl.experiments.runner import Sweep, SweepOptions
+    from botorl.experiments.sweep import Sweep, SweepOptions
 
     out = tmp_path / "sw"
     run_dir = out / "t1" / "wsrl" / "seed0"

@@ -114,7 +114,7 @@ def test_a_sweep_writes_nothing_through_its_links(tmp_path):
     """Hard links at `.sweep.lock` and a trial's log leave the file outside as it was, and the
     sweep finishes; a trial or method folder that is a link is exit 2 before anything is written."""
     from botorl.experiments.grid import build_grid
-    from botorl.experiments.runner import LOCKFILE, TRIAL_LOG, Sweep, SweepOptions
+    from botorl.experiments.sweep import LOCKFILE, TRIAL_LOG, Sweep, SweepOptions
 
     outside, precious = _outside(tmp_path)
     before = _state(outside)

@@ -23,7 +23,7 @@ from botorl.cli import main as cli_main
 from botorl.envs.metric import Metric, check_refs, headline_of_summary, normalised_score, of_config
 from botorl.errors import ConfigError
 from botorl.experiments.report import make_report
-from botorl.pipeline.runner import format_population, format_summary
+from botorl.pipeline.summary import format_population, format_summary
 
 
 REPO = Path(__file__).resolve().parents[1]

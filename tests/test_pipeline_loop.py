@@ -1,8 +1,10 @@
 """The loop every stage runs (``stages.stage_loop``; pre-training and the BOTO stage here), on a
-counting update of two members: its calls, checks, logs and checkpoints against the points
+``Stage`` whose update counts, of two members: its calls, checks, logs and checkpoints against the points
 worked out by hand for 10 steps in calls of 3, logs every 4 and checkpoints every 6."""
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,30 +14,37 @@ from botorl.configs.schema import OnlineConfig
 from botorl.data.dataset import RewardTransform
 from botorl.data.replay import ReplayBuffer
 from botorl.pipeline.online import OnlineState
-from botorl.pipeline.stages import Schedule, Window, stage_loop
+from botorl.pipeline.stages import Schedule, Stage, stage_loop
 
 
 def _run(start: int = 0, check_every_call: bool = False):
     seen: dict[str, list] = {"calls": [], "checks": [], "logs": [], "saves": []}
 
-    def update(agents, step, k):
-        seen["calls"].append((step, k))
-        # member i's metric "x" is step + i * k; a 2-d metric is not a scalar and is left out
-        return agents + k, {"x": np.array([step, step + k], np.float32), "m": np.zeros((2, 3))}
+    class Probe(Stage):
+        """Two members; member i's metric "x" is step + i * k, a 2-d metric is not a scalar and is left out."""
 
-    class Bar:
-        n = start
+        name = "probe"
 
-        def update(self, k):
-            self.n += k
+        def chunk(self, step):
+            return min(3, 10 - step)
 
-    bar = Bar()
-    agents = stage_loop(start, update, lambda s: min(3, 10 - s), start, Schedule(10, 4, 6), Window(2), bar,
-                        stage="probe", check=lambda s, ms: seen["checks"].append((s, ms)),
-                        log=lambda s, ms: seen["logs"].append((s, ms)),
-                        save=lambda s, a, interrupted: seen["saves"].append((s, a, interrupted)),
-                        check_every_call=check_every_call)
-    return agents, bar.n, seen
+        def update(self, agents, step, k):
+            seen["calls"].append((step, k))
+            return agents + k, {"x": np.array([step, step + k], np.float32), "m": np.zeros((2, 3))}
+
+        def check(self, step, ms):
+            seen["checks"].append((step, ms))
+
+        def log(self, step, ms):
+            seen["logs"].append((step, ms))
+
+        def save(self, step, agents, interrupted):
+            seen["saves"].append((step, agents, interrupted))
+
+    probe = Probe(SimpleNamespace(progress=True), [None, None], None, Schedule(10, 4, 6))
+    probe.check_every_call = check_every_call
+    agents = stage_loop(probe, start, start, "probe")
+    return agents, probe.bar.n, seen
 
 
 def test_stage_loop_points_and_window_means():

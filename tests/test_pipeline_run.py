@@ -221,7 +221,7 @@ def test_divergence_stops_with_last_good_checkpoint(tmp_path, monkeypatch, capsy
 
 
 def test_summary_text_of_a_run_shorter_than_10k(boto_run):
-    from botorl.pipeline.runner import format_summary
+    from botorl.pipeline.summary import format_summary
 
     text = format_summary(json.loads((boto_run / "summary.json").read_text()))
     assert "env step -" not in text and "no evaluation at 10k: the run ends at env step 40" in text

@@ -1,5 +1,6 @@
-"""Populations: member parsing (botorl.pipeline.population), stacking and the mapped entry
-points (botorl.agents.population, the BOTO update), per-member sampling and the replay buffer's member axis, the memory check.
+"""Populations: member parsing (botorl.configs.members), stacking and the mapped entry
+points (botorl.agents.population, the BOTO update), per-member sampling and the replay buffer's member axis, the memory check
+(botorl.pipeline.memory).
 
 Independence is the property everything rests on: member i of a population computes what a
 population of one (= the agent's own jitted function) computes for the same seed, to float
@@ -14,7 +15,7 @@ import pytest
 from botorl.agents import population as AP
 from botorl.data.replay import ReplayBuffer
 from botorl.errors import ConfigError
-from botorl.pipeline import population as P
+from botorl.pipeline import memory as P
 
 O, A = 4, 2
 

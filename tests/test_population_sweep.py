@@ -13,7 +13,7 @@ import textwrap
 import pytest
 
 from botorl.experiments.grid import build_grid, group_populations
-from botorl.experiments.runner import Sweep, SweepOptions, next_action
+from botorl.experiments.sweep import Sweep, SweepOptions, next_action
 
 FAKE_POP = textwrap.dedent(
     """

@@ -93,18 +93,18 @@ def test_legacy_checkpoint_without_manifest_is_read(tmp_path):
 def test_agent_file_checksum(tmp_path):
     import jax
 
-    from botorl.agents import checkpoint as agent_ckpt
+    from botorl.agents import agent_file
     from botorl.agents.sac import SACAgent, SACConfig
 
     agent = SACAgent.create(SACConfig(actor_hidden_dims=(8,), critic_hidden_dims=(8,), num_critics=2), 3, 2, seed=0)
-    p = agent_ckpt.save(tmp_path / "a.ckpt", agent)
-    back = agent_ckpt.load(p, like=agent)
+    p = agent_file.save(tmp_path / "a.ckpt", agent)
+    back = agent_file.load(p, like=agent)
     assert all(np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(agent), jax.tree_util.tree_leaves(back)))
     raw = bytearray(p.read_bytes())
     raw[len(raw) // 2] ^= 0x01  # one bit inside the parameters
     p.write_bytes(bytes(raw))
     with pytest.raises(DataFormatError, match="sha256|cannot be read"):
-        agent_ckpt.load(p, like=agent)
+        agent_file.load(p, like=agent)
 
 
 # ----------------------------------------------------------------------------- through the CLI

@@ -400,7 +400,7 @@ def test_population_file_names_the_member_directories(tmp_path):
     population.json must name those (`botorl resume POPDIR` reads them)."""
     from botorl.pipeline.cli import build_config
     from botorl.configs.members import member_config
-    from botorl.pipeline.runner import write_population_file
+    from botorl.pipeline.summary import write_population_file
 
     cfg = build_config(["--task", FAMILIES["pointmaze"], "--profile", "smoke"])
     assert cfg.alpha is not None

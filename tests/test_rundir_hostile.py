@@ -122,7 +122,7 @@ def test_run_lock_refuses_a_fifo_without_hanging(tmp_path):
 
 def test_sweep_lock_does_not_follow_a_link(tmp_path):
     from botorl.experiments.grid import build_grid
-    from botorl.experiments.runner import LOCKFILE, Sweep, SweepOptions
+    from botorl.experiments.sweep import LOCKFILE, Sweep, SweepOptions
 
     out = tmp_path / "sw"
     out.mkdir()
@@ -167,7 +167,7 @@ def _crafted_population(out: Path, *extra: str) -> Path:
     from botorl.configs.members import population
     from botorl.configs.schema import to_dict
     from botorl.pipeline.rundir import RunDir
-    from botorl.pipeline.runner import write_population_file
+    from botorl.pipeline.summary import write_population_file
 
     cfg = replace(_smoke_config("--seeds", "0,1", *extra), out=str(out))
     members, member_cfgs = population(cfg)
@@ -570,7 +570,7 @@ def test_property_checkpoint_metadata(hostile_root, f, which):
 def test_property_sweep_json(hostile_root, f):
     """sweep.json as the next sweep reads it (cleanup of an earlier Ray instance included)."""
     from botorl.experiments.grid import build_grid
-    from botorl.experiments.runner import Sweep, SweepOptions
+    from botorl.experiments.sweep import Sweep, SweepOptions
 
     case, outside = _case(hostile_root)
     out = case / "sw"
@@ -685,7 +685,7 @@ def test_property_links_in_a_sweep_directory(hostile_root, link):
     """The sweep's own writes (its lock and sweep.json, a trial's folder, config and log) up to the
     launch of the trial, which is a process of its own (`test_hostile_links.py` runs one)."""
     from botorl.experiments.grid import build_grid
-    from botorl.experiments.runner import Sweep, SweepOptions
+    from botorl.experiments.sweep import Sweep, SweepOptions
 
     case, outside = _case(hostile_root)
     out = case / "sw"
@@ -757,7 +757,7 @@ def test_resume_hint_names_a_checkpoint_that_passes(two_seeds, tmp_path, capsys)
 def test_sweep_resumes_pickle_tasks_with_the_users_own_data_path(tmp_path):
     from botorl.configs.schema import to_dict
     from botorl.experiments.grid import build_grid
-    from botorl.experiments.runner import trial_command
+    from botorl.experiments.sweep import trial_command
 
     npy = tmp_path / "door2_sparse.npy"
     grid = build_grid(tasks="door-binary-v0", methods="wsrl", seeds="0", profile="smoke",

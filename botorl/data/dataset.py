@@ -16,8 +16,10 @@ import numpy as np
 from botorl.batch import BATCH_KEYS, Batch
 from botorl.errors import DataFormatError
 
-# The per-row fields of a Dataset, in the order of its constructor's arguments.
-_ROWS = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends")
+# The per-row arrays of a Dataset, named here only, in the order of its constructor's arguments:
+# a transition's five, then where episodes end and their Monte-Carlo returns (None: unknown).
+TRANSITION_FIELDS = ("observations", "actions", "rewards", "next_observations", "terminals")
+FIELDS = TRANSITION_FIELDS + ("episode_ends", "mc_returns")
 
 # Actions are kept strictly inside the open box so that atanh (tanh-squashed policies'
 # log-probabilities of dataset actions) stays finite; 1e-5 as in jaxrl/IQL/Cal-QL.
@@ -146,9 +148,18 @@ class Dataset:
         return int(self.episode_ends.sum())
 
     def _replace(self, **changes) -> "Dataset":
-        fields = {k: getattr(self, k) for k in _ROWS + ("mc_returns", "infos", "raw_action_max")}
+        fields = {k: getattr(self, k) for k in FIELDS + ("infos", "raw_action_max")}
         fields["metadata"] = copy.deepcopy(self.metadata)
         return Dataset(**{**fields, **changes})
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Its per-row arrays by name (``FIELDS``; mc_returns where known): ``Dataset(**arrays)`` again."""
+        return {k: getattr(self, k) for k in FIELDS if getattr(self, k) is not None}
+
+    @classmethod
+    def of_batch(cls, rows: Batch, **kw) -> "Dataset":
+        """The transitions of a Batch's rows (``dones`` as terminals; its mc_returns not kept)."""
+        return cls(*(rows[k] for k in BATCH_KEYS[:4]), rows["dones"] > 0.5, **kw)
 
     def episode_slices(self) -> list[slice]:
         """Row ranges of the episodes, in order."""
@@ -157,7 +168,7 @@ class Dataset:
     def episodes(self) -> Iterator[dict[str, np.ndarray]]:
         """Yield each episode as a dict of its rows (views, not copies)."""
         for sl in self.episode_slices():
-            ep = {k: getattr(self, k)[sl] for k in _ROWS[:5]}
+            ep = {k: getattr(self, k)[sl] for k in TRANSITION_FIELDS}
             if self.mc_returns is not None:
                 ep["mc_returns"] = self.mc_returns[sl]
             for k, v in self.infos.items():
@@ -230,7 +241,7 @@ class Dataset:
         if self.metadata.get("mc_returns") != other.metadata.get("mc_returns"):
             meta.pop("mc_returns", None)
         return Dataset(
-            *(np.concatenate([getattr(self, k), getattr(other, k)]) for k in _ROWS),
+            *(np.concatenate([getattr(self, k), getattr(other, k)]) for k in TRANSITION_FIELDS + ("episode_ends",)),
             mc,
             {k: np.concatenate([self.infos[k], other.infos[k]]) for k in keys},
             meta,

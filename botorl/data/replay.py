@@ -110,10 +110,8 @@ class ReplayBuffer:
         if not len(rows):
             return
         idx = (member, np.asarray(rows))
-        a = self._arrays
-        ep = Dataset(a["observations"][idx], a["actions"][idx], a["rewards"][idx], a["next_observations"][idx],
-                     a["dones"][idx] > 0.5, metadata={"source": "online episode"})
-        a["mc_returns"][idx] = mc_returns(ep)
+        ep = Dataset.of_batch({k: a[idx] for k, a in self._arrays.items()}, metadata={"source": "online episode"})
+        self._arrays["mc_returns"][idx] = mc_returns(ep)
 
     # ------------------------------------------------------------------ sampling
     def batch_at(self, idx: np.ndarray) -> Batch:

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 
 from botorl.data import loaders
-from botorl.data.dataset import Dataset, numeric, validate
+from botorl.data.dataset import TRANSITION_FIELDS, Dataset, numeric, validate
 from botorl.data.safe import check_npz
 from botorl.envs.user import UserTask, action_from_env, flatten_obs, is_unit_box
 from botorl.errors import DataFormatError, DatasetNotFoundError
 
-REQUIRED = ("observations", "actions", "rewards", "next_observations", "terminals")
+REQUIRED = TRANSITION_FIELDS
 OPTIONAL = ("timeouts", "episode_ends")
 
 # task name -> (the data's path or "", the Dataset) registered in this process

@@ -228,7 +228,7 @@ def spawn(cmd: list[str], log, run_dir, env: dict, block=None, **record) -> subp
 
 
 class LocalBackend:
-    """Trials as child processes of the sweep (``sweep`` is the ``runner.Sweep``)."""
+    """Trials as child processes of the sweep (``sweep`` is the ``sweep.Sweep``)."""
 
     def __init__(self, sweep):
         self.sweep = sweep

@@ -20,8 +20,8 @@ from botorl.errors import BotorlError, ConfigError, Range, check_ranges
 from botorl.experiments.grid import build_grid, load_grid_file, parse_seeds
 from botorl.experiments.pairs import read_pairs_csv, write_paired_report
 from botorl.experiments.report import make_report, select_alpha
-from botorl.experiments.runner import USER_ERROR_EXIT, Sweep, SweepOptions, next_action
 from botorl.experiments.runs import find_runs, group_by
+from botorl.experiments.sweep import USER_ERROR_EXIT, Sweep, SweepOptions, next_action
 from botorl.pipeline.rundir import check_out
 from botorl.pipeline.tracking import require_wandb
 

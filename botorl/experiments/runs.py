@@ -180,7 +180,7 @@ def _load_run(run_dir: Path) -> Run | Skipped:
 
 
 def _points_of(steps: np.ndarray, values: np.ndarray) -> dict[str, float]:
-    """The summary's three points (pipeline/runner.py) from the curve: step 0, the first
+    """The summary's three points (pipeline/summary.py) from the curve: step 0, the first
     evaluation at or after 10k, the last."""
     at0, after = values[steps == 0], values[steps >= 10_000]
     return {"initial": float(at0[-1]) if at0.size else math.nan, "10k": float(after[0]) if after.size else math.nan,

@@ -200,7 +200,7 @@ def train(cfg: AntTrainConfig) -> dict:
     # lazy: JAX; the spawned simulation workers import this module, and need none
     import jax
 
-    from botorl.agents import checkpoint, sac
+    from botorl.agents import agent_file, sac
 
     def host_actor(agent) -> dict:
         return actor_arrays(jax.device_get(agent.actor.params), agent.config.log_std_min, agent.config.log_std_max)
@@ -226,7 +226,7 @@ def train(cfg: AntTrainConfig) -> dict:
     state = {"env_steps": 0, "updates": 0, "seconds": 0.0, "calls": 0, "config": dataclasses.asdict(cfg)}
     resumed = (out / "agent.ckpt").exists() and (out / "state.json").exists()
     if resumed:
-        agent = checkpoint.load(out / "agent.ckpt", like=agent)
+        agent = agent_file.load(out / "agent.ckpt", like=agent)
         state.update({k: v for k, v in json.loads((out / "state.json").read_text()).items() if k != "config"})
         print(f"resuming from {out}: {state['env_steps']:,} env steps, {state['updates']:,} updates", flush=True)
     state["calls"] += 1
@@ -250,7 +250,7 @@ def train(cfg: AntTrainConfig) -> dict:
                disable=not cfg.progress)
 
     def save():
-        checkpoint.save(out / "agent.ckpt", agent)
+        agent_file.save(out / "agent.ckpt", agent)
         state["seconds"] = base_seconds + time.time() - t0
         atomic_write_json(out / "state.json", state, indent=1)
         export_actor(params, out / "actor.npz", {"env_steps": state["env_steps"], "updates": state["updates"],

@@ -395,3 +395,15 @@ class CheckpointManager:
     def arrays(self, name: str, key: str) -> dict[str, np.ndarray] | None:
         p = self.root / name / f"{key}.npz"
         return load_npz(self.file(name, p.name)) if p.exists() else None
+
+
+def resume_point(ckpt: CheckpointManager, member_cfgs: list, resume: bool):
+    """(the newest checkpoint, {done_stages, stage_seconds}, failed members, the mid-stage point or None)."""
+    latest = ckpt.latest() if resume else None
+    if latest is None:
+        return None, {"done_stages": [], "stage_seconds": {}}, {}, None
+    st = ckpt.state(latest["name"])
+    check_identity(st, [full_identity(c) for c in member_cfgs], ckpt.root, latest["name"])
+    mid = None if st["stage_done"] else {"name": latest["name"], "stage": st["stage"], "step": st["step"]}
+    return latest, {"done_stages": list(st["done_stages"]), "stage_seconds": dict(st["stage_seconds"])}, \
+        st.get("failed") or {}, mid

@@ -19,7 +19,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from botorl.agents import checkpoint as agent_ckpt
+from botorl.agents import agent_file
 from botorl.configs.build import build_config
 from botorl.configs.custom import register_given
 from botorl.configs.members import MEMBER_NAME, Streams, is_population, member_config, population
@@ -34,12 +34,13 @@ from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, che
     full_identity
 from botorl.pipeline.evaluation import QProbe, evaluate_command
 from botorl.pipeline.export import contract_path, evaluate_exported, export_policy
+from botorl.pipeline.memory import check_fits
 from botorl.pipeline.policy import check_checkpoint, read_run
-from botorl.pipeline.population import check_fits
 from botorl.pipeline.provenance import environment_record
 from botorl.pipeline.rundir import POPULATION_FILE, RunDir, RunLock, check_out, io_guard, read_json
-from botorl.pipeline.runner import build_summary, execute, format_population, format_summary, load_offline, \
-    load_run_data, read_summary, transform_dataset, write_population_file
+from botorl.pipeline.runner import execute, load_offline, load_run_data, transform_dataset
+from botorl.pipeline.summary import build_summary, format_population, format_summary, read_summary, \
+    write_population_file
 from botorl.pipeline.tracking import require_wandb
 
 
@@ -364,7 +365,7 @@ def _eval(args, run, cfg) -> dict:
     spec = get_task(cfg.task)
     d = transform_dataset(cfg, spec, load_run_data(cfg, run.config, args.allow_pickle))
     like = stages.agent_template(cfg, state["stage"], d.obs_dim, d.action_dim, cfg.seed)
-    agent = agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like)
+    agent = agent_file.load(ckpt.file(name, "agent.ckpt"), like=like)
     probe = QProbe(d.observations, d.actions, seed=Streams.PROBE, size=cfg.eval.q_pairs)
     with matmul_precision(cfg.precision):  # the run's own
         return evaluate_command(lambda o: agent.eval_actions(o[0])[None], cfg, cfg.eval.episodes,

@@ -94,7 +94,7 @@ def load_agent(run_dir, checkpoint: str | None = None):
 
 def _load(run_dir, checkpoint):
     # lazy: JAX, as in read_run
-    from botorl.agents import checkpoint as agent_ckpt
+    from botorl.agents import agent_file
     from botorl.pipeline import stages
 
     setup_jax()
@@ -102,7 +102,7 @@ def _load(run_dir, checkpoint):
     ckpt, name, state = check_checkpoint(run, cfg, checkpoint)
     io = task_io(cfg)
     like = stages.agent_template(cfg, state["stage"], io["obs_dim"], io["action_dim"], cfg.seed)
-    return agent_ckpt.load(ckpt.file(name, "agent.ckpt"), like=like), cfg, io, name
+    return agent_file.load(ckpt.file(name, "agent.ckpt"), like=like), cfg, io, name
 
 
 class Policy:

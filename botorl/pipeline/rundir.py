@@ -432,3 +432,29 @@ def number(v: Any) -> float:
         return float(v)
     except (TypeError, ValueError):
         return math.inf
+
+
+class MemberRun:
+    """One member of a population: its own config (seed, alpha), run directory and logs."""
+
+    def __init__(self, cfg, run: RunDir, wandb_run=None, error: str | None = None):
+        self.cfg = cfg
+        self.run = run
+        run.create()
+        self.logger = MetricsLogger(run, tensorboard=cfg.tensorboard, wandb_run=wandb_run)
+        self.eval_log = CsvLog(run.eval_csv, EVAL_COLUMNS, root=run.root)
+        self.q_log = CsvLog(run.metrics / "q_probe.csv", ["stage", "step", "q_data", "q_uniform"], root=run.root)
+        self.error = error  # set when this member diverged (the others go on)
+
+    def truncate_logs(self, order: tuple[str, ...], mid: dict | None, done: list[str]) -> None:
+        """Forget a member's log rows written after the checkpoint a resume starts from."""
+        def kept(stage: str) -> int:  # the last step of a stage's logs that stays: its mid-stage checkpoint's
+            return int(mid["step"]) if (mid is not None and mid["stage"] == stage) else -1
+
+        for stage in order:
+            if stage not in done:
+                self.logger.truncate(stage, kept(stage))
+        if "finetune" not in done:
+            # evaluations of finished stages (the warm-up's) stay; fine-tuning's up to its checkpoint
+            self.eval_log.truncate(lambda r: r.get("stage") in done or number(r.get("env_step")) <= kept("finetune"))
+        self.q_log.truncate(lambda r: r.get("stage") in done)

@@ -16,31 +16,22 @@ from typing import Any
 
 import jax
 import numpy as np
-from tqdm.auto import tqdm
 
-from botorl.agents import checkpoint as agent_ckpt
-from botorl.agents import population
-from botorl.configs.members import Member, Streams
+from botorl.agents import agent_file, population
+from botorl.configs.members import Streams
 from botorl.configs.methods import get_method
-from botorl.configs.schema import RunConfig, to_dict
-from botorl.data.dataset import Dataset, RewardTransform
+from botorl.configs.schema import RunConfig
+from botorl.data.dataset import FIELDS, Dataset, RewardTransform
 from botorl.data.dataset import validate as validate_dataset
 from botorl.data.loaders import refuse_pickle
 from botorl.data.tasks import load_task_data
-from botorl.envs.metric import headline_of_summary
-from botorl.envs.metric import of_config as metric_of_config
 from botorl.envs.registry import get_task
-from botorl.errors import BotorlError, ConfigError, Interrupted, TrainingDivergedError
-from botorl.io import atomic_save_figure, atomic_write_json, pyplot
+from botorl.errors import ConfigError, Interrupted, TrainingDivergedError
 from botorl.jaxsetup import matmul_precision
-from botorl.pipeline import evaluation, preempt, shared_pretrain, tracking
-from botorl.pipeline import stages
-from botorl.pipeline.checkpoint import CheckpointManager, check_identity, checkpoint_name, full_identity
+from botorl.pipeline import evaluation, preempt, shared_pretrain, stages, summary, tracking
+from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_name, full_identity, resume_point
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
-from botorl.pipeline.rundir import EVAL_COLUMNS, POPULATION_FILE, CsvLog, MetricsLogger, RunDir, number, read_json
-from botorl.pipeline.provenance import pretrain_sha256
-
-_DS_FIELDS = ("observations", "actions", "rewards", "next_observations", "terminals", "episode_ends", "mc_returns")
+from botorl.pipeline.rundir import POPULATION_FILE, MemberRun, RunDir
 
 
 # ---------------------------------------------------------------------------- data
@@ -89,19 +80,6 @@ def with_mc_returns(cfg: RunConfig, spec, ds: Dataset) -> Dataset:
 
 
 # ---------------------------------------------------------------------------- context
-class MemberRun:
-    """One member of a population: its own config (seed, alpha), run directory and logs."""
-
-    def __init__(self, cfg: RunConfig, run: RunDir, wandb_run=None, error: str | None = None):
-        self.cfg = cfg
-        self.run = run
-        run.create()
-        self.logger = MetricsLogger(run, tensorboard=cfg.tensorboard, wandb_run=wandb_run)
-        self.eval_log = CsvLog(run.eval_csv, EVAL_COLUMNS, root=run.root)
-        self.q_log = CsvLog(run.metrics / "q_probe.csv", ["stage", "step", "q_data", "q_uniform"], root=run.root)
-        self.error = error  # set when this member diverged (the others go on)
-
-
 class RunContext:
     """What the stages share: the members (each its config, run directory and logs), the
     method and task, the offline data (held once) and its probe, evaluation, the divergence
@@ -111,20 +89,21 @@ class RunContext:
     def __init__(self, cfg: RunConfig, spec, root: Path, members: list[MemberRun], d_offline: Dataset, state: dict):
         self.cfg, self.method, self.spec = cfg, get_method(cfg.method), spec
         self.root, self.members, self.n = Path(root), members, len(members)
+        self.member_cfgs = [member.cfg for member in members]
         self.single = members[0].run.root == self.root
+        self.population = None if self.single else self.root  # where population.json is
         self.ckpt = CheckpointManager(RunDir(root).checkpoints)
         self.d_offline = d_offline
         self.probe = QProbe(d_offline.observations, d_offline.actions, seed=Streams.PROBE, size=cfg.eval.q_pairs)
         self.state = state  # done_stages, stage_seconds
-        self.failed: set[int] = {i for i, m in enumerate(members) if m.error}
         self._envs = None
         self.loop = None  # the online loop's state (stages.online_state), from the warm-up to fine-tuning's end
         self._stage = None
         self._stage_t0 = 0.0
 
     def live(self, ms: list):
-        """(member, its item of ``ms``) for the members that have not failed."""
-        return [(member, m) for i, (member, m) in enumerate(zip(self.members, ms)) if i not in self.failed]
+        """(member, its item of ``ms``) for the members that have not failed (a failed one has its error)."""
+        return [(member, m) for member, m in zip(self.members, ms) if not member.error]
 
     def log(self, stage: str, step: int, rows: list[dict]) -> None:
         """Each live member's row of ``rows`` into its metrics/<stage> logs."""
@@ -136,8 +115,8 @@ class RunContext:
         checkpoint stays); in a larger one a diverged member is marked failed and the rest go on."""
         bad = [", ".join(f"{k} = {v}" for k, v in sorted(m.items()) if not math.isfinite(v)) for m in ms]
         diverged = f"training diverged in stage {stage!r} near step {step}: "
-        for i, b in enumerate(bad):
-            if not b or i in self.failed:
+        for member, b in zip(self.members, bad):
+            if not b or member.error:
                 continue
             if self.n == 1:
                 last = self.ckpt.latest()
@@ -146,19 +125,14 @@ class RunContext:
                     f"{diverged}{b}. The last good state is kept ({where} in {self.ckpt.root}). Lower the "
                     f"learning rates (e.g. --offline.cql.critic_lr, --online.sac.critic_lr), check the data's reward "
                     f"scale, or run another seed; `botorl resume` would start again from that checkpoint.")
-            self.failed.add(i)
-            self.members[i].error = f"{diverged}{b}. The other members went on. Lower the learning rates or run another seed."
-            self.write_member_summary(i, "failed")
-            print(f"botorl: member {self.members[i].run.root.name} failed: {self.members[i].error}", file=sys.stderr)
-        if len(self.failed) == self.n:
+            member.error = f"{diverged}{b}. The other members went on. Lower the learning rates or run another seed."
+            summary.write_member_summary(member, "failed", self.stage_seconds(), population=self.population)
+            print(f"botorl: member {member.run.root.name} failed: {member.error}", file=sys.stderr)
+        if all(member.error for member in self.members):
             raise TrainingDivergedError(
                 f"every member of the population diverged (stage {stage!r}, near step {step}); each member's "
                 f"summary.json says how. Lower the learning rates (e.g. --online.sac.critic_lr) or check the data's "
                 f"reward scale.")
-
-    def bar(self, total: int, initial: int, desc: str, unit: str = "step"):
-        return tqdm(total=total, initial=initial, desc=desc, unit=unit, dynamic_ncols=True,
-                    disable=not self.cfg.progress, mininterval=1.0, smoothing=0.05)
 
     # -- time
     def begin_stage(self, stage: str) -> None:
@@ -185,14 +159,19 @@ class RunContext:
         """The population's agents saved under ``name`` (``like``: a stacked template)."""
         path = self.ckpt.file(name, "agent.ckpt")
         if self.single:  # the member's own agent
-            return population.stack([agent_ckpt.load(path, like=population.member_of(like, 0))])
-        return agent_ckpt.load(path, like=like)
+            return population.stack([agent_file.load(path, like=population.member_of(like, 0))])
+        return agent_file.load(path, like=like)
 
     def _stored(self, x):
         """Per-member lists (alone, or as the values of a dict) as a single run stores them: its item."""
         if isinstance(x, dict):
             return {k: self._stored(v) for k, v in x.items()}
         return x[0] if self.single and isinstance(x, list) else x
+
+    def templates(self, stage: str):
+        """The members' agents as a checkpoint of ``stage`` holds them (for loading it)."""
+        d = self.d_offline
+        return population.stack([stages.agent_template(c, stage, d.obs_dim, d.action_dim, c.seed) for c in self.member_cfgs])
 
     def warmup_keys(self) -> list[str]:
         return ["warmup"] if self.single else [f"warmup-m{i}" for i in range(self.n)]
@@ -211,17 +190,17 @@ class RunContext:
             "stage_seconds": self.stage_seconds(),
             "np_rng": self._stored(saved.get("np_rng")),
             "extra": self._stored(saved.get("extra") or {}),
-            "failed": {str(i): self.members[i].error for i in sorted(self.failed)},
+            "failed": {str(i): member.error for i, member in enumerate(self.members) if member.error},
             "time": time.time(),
         }
         self.ckpt.save(name, state=state, agent=population.member_of(agents, 0) if self.single else agents,
-                       save_agent=agent_ckpt.save, arrays=saved.get("arrays"), documents=saved.get("documents"))
+                       save_agent=agent_file.save, arrays=saved.get("arrays"), documents=saved.get("documents"))
         if not self.single and done:
             # each member's own agent in its run directory, for `botorl eval MEMBER_DIR`
             for i, member in enumerate(self.members):
                 CheckpointManager(member.run.checkpoints).save(
                     name, state={**state, "np_rng": None, "extra": {}, "member": i, "identity": [state["identity"][i]]},
-                    agent=population.member_of(agents, i), save_agent=agent_ckpt.save)
+                    agent=population.member_of(agents, i), save_agent=agent_file.save)
         self.write_summary("running")
 
     def contents(self, point: dict) -> dict:
@@ -282,150 +261,63 @@ class RunContext:
         for member in self.members:
             member.logger.close()
 
-    # -- summary
-    def write_member_summary(self, i: int, status: str, error: str | None = None) -> dict[str, Any]:
-        member = self.members[i]
-        if i in self.failed:
-            status, error = "failed", member.error
-        summary = build_summary(member.cfg, member.run, status, self.stage_seconds(), error)
-        if not self.single:
-            summary["population"] = str(self.root)
-        atomic_write_json(member.run.summary, summary, root=member.run.root)
-        return summary
-
     def write_summary(self, status: str, error: str | None = None) -> None:
         """Every member's summary.json (and a population's population.json)."""
-        out = [self.write_member_summary(i, status, error) for i in range(self.n)]
-        if not self.single:
-            write_population_file(self.root, self.cfg, [member.cfg for member in self.members], status,
-                                  [s["status"] for s in out], self.stage_seconds(), error)
+        seconds = self.stage_seconds()
+        out = [summary.write_member_summary(m, status, seconds, error, self.population) for m in self.members]
+        if self.population is not None:
+            summary.write_population_file(self.root, self.cfg, self.member_cfgs, status, [s["status"] for s in out],
+                                          seconds, error)
 
 
-def write_population_file(root: Path, cfg: RunConfig, member_cfgs: list[RunConfig], status: str,
-                          member_status: list[str], stage_seconds: dict, error: str | None = None) -> None:
-    uses_alpha = get_method(cfg.method).uses_alpha
-    # `name`: the member's run directory as it was made: without --alphas a BOTO member takes the
-    # preset's alpha but its directory is seed<k> (`botorl resume POPDIR` reads this name)
-    members = [{**Member(c.seed, c.alpha if uses_alpha else None).to_json(), "status": st,
-                **({"name": Path(c.out).name} if c.out else {})} for c, st in zip(member_cfgs, member_status)]
-    if status == "finished" and any(st != "finished" for st in member_status):
-        status = "finished" if any(st == "finished" for st in member_status) else "failed"
-    data = {"task": cfg.task, "method": cfg.method, "pretrain": cfg.pretrain, "profile": cfg.profile,
-            "status": status, "members": members, "stage_seconds": {k: round(v, 3) for k, v in stage_seconds.items()},
-            "total_seconds": round(sum(stage_seconds.values()), 3), "config": to_dict(cfg)}
-    if error:
-        data["error"] = error
-    atomic_write_json(Path(root) / POPULATION_FILE, data, root=root)
+# ---------------------------------------------------------------------------- the stages
+# What runs each stage, given the run's agents and D_warmups (and the checkpoint it resumes from,
+# read by the runner): (agents, D_warmups, what its end-of-stage checkpoint keeps). The online
+# loop's state (``ctx.loop``) is made at the warm-up's start and kept for fine-tuning.
+def _pretrain(ctx: RunContext, agents, d_warmups, resume: dict | None):
+    if ctx.cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
+        agents = shared_pretrain.load(ctx, shared_pretrain.match(ctx.member_cfgs, ctx.cfg.pretrained))
+    else:
+        agents = stages.Pretrain(ctx.cfg, ctx.member_cfgs, ctx.d_offline, ctx).train(resume)
+    ctx.log_q("pretrain", ctx.cfg.offline.steps, agents)
+    return agents, d_warmups, None
 
 
-def _eval_rows(run: RunDir) -> list[dict[str, float]]:
-    rows = []
-    for r in CsvLog(run.eval_csv, EVAL_COLUMNS).rows():
-        try:
-            rows.append({"env_step": int(float(r["env_step"])), "success": float(r["success"]),
-                         "return": float(r["return"]), "q_data": float(r["q_data"] or "nan"),
-                         "q_uniform": float(r["q_uniform"] or "nan")})
-        except (KeyError, TypeError, ValueError):
-            continue  # a line cut by a kill
-    return sorted(rows, key=lambda r: r["env_step"])
-
-
-def build_summary(cfg: RunConfig, run: RunDir, status: str, stage_seconds: dict, error: str | None = None) -> dict:
-    rows = _eval_rows(run)
-    # the evaluations at step 0, at the first at or after 10k online steps (exactly 10k with the
-    # presets), and the last one (at online.steps once the run has finished)
-    initial = {r["env_step"]: r for r in rows}.get(0)
-    after_10k = [r for r in rows if r["env_step"] >= 10_000]
-    final = rows[-1] if rows else None
-    metric = metric_of_config(cfg)
-    # the return always; success or the normalised score where it is the task's metric (absent, not 0, elsewhere)
-    points = {}
-    for name in (n for n in ("success", "return", "score") if n in ("return", metric.name)):
-        for when, row in (("initial", initial), ("10k", after_10k[0] if after_10k else None), ("final", final)):
-            points[f"{name}_{when}"] = None if row is None else \
-                row["return"] if name == "return" else metric.of(row["success"], row["return"])
-    out = {
-        "task": cfg.task,
-        "method": cfg.method,
-        "seed": cfg.seed,
-        "alpha": cfg.alpha,
-        "pretrain": cfg.pretrain,
-        "profile": cfg.profile,
-        **points,
-        "env_step_10k": after_10k[0]["env_step"] if after_10k else None,
-        "env_step_final": final["env_step"] if final else None,
-        "q_data_initial": initial["q_data"] if initial else None,
-        "q_uniform_initial": initial["q_uniform"] if initial else None,
-        "stage_seconds": {k: round(v, 3) for k, v in stage_seconds.items()},
-        "total_seconds": round(sum(stage_seconds.values()), 3),
-        "online_steps": cfg.online.steps,
-        # the pre-trained agent this run starts from: `botorl report` pairs runs by it
-        "pretrain_sha256": pretrain_sha256(run.checkpoints),
-        "status": status,
-        "run_dir": str(run.root),
-    }
-    if cfg.env.success_off:  # a task of one's own whose env says nothing of success
-        out["success_off"] = cfg.env.success_off
-    if error:
-        out["error"] = error
-    return out
-
-
-# ---------------------------------------------------------------------------- the run
-def _templates(member_cfgs: list[RunConfig], stage: str, d: Dataset):
-    return population.stack([stages.agent_template(c, stage, d.obs_dim, d.action_dim, c.seed) for c in member_cfgs])
-
-
-def _resume_point(ckpt: CheckpointManager, member_cfgs: list[RunConfig], resume: bool):
-    """(the newest checkpoint, {done_stages, stage_seconds}, failed members, the mid-stage point or None)."""
-    latest = ckpt.latest() if resume else None
-    if latest is None:
-        return None, {"done_stages": [], "stage_seconds": {}}, {}, None
-    st = ckpt.state(latest["name"])
-    check_identity(st, [full_identity(c) for c in member_cfgs], ckpt.root, latest["name"])
-    mid = None if st["stage_done"] else {"name": latest["name"], "stage": st["stage"], "step": st["step"]}
-    return latest, {"done_stages": list(st["done_stages"]), "stage_seconds": dict(st["stage_seconds"])}, \
-        st.get("failed") or {}, mid
-
-
-def _run_stage(ctx: RunContext, stage: str, agents, d_warmups, resume: dict | None):
-    """One stage of the method, given its inputs (and any checkpoint it resumes from, read here):
-    (agents, D_warmups, what its end-of-stage checkpoint keeps). The online loop's state
-    (``ctx.loop``) is made at the warm-up's start and kept for fine-tuning."""
-    cfg, end, member_cfgs, d = ctx.cfg, None, [member.cfg for member in ctx.members], ctx.d_offline
-    hooks = stages.Hooks(ctx.log, ctx.check, ctx.bar, ctx.evaluate, ctx.log_evaluation, ctx.save)
-    resume = None if resume is None else ctx.contents(resume)
-    if stage == "pretrain":
-        if cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
-            agents = shared_pretrain.load(ctx, shared_pretrain.match(member_cfgs, cfg.pretrained))
-        else:
-            agents = stages.pretrain(cfg, member_cfgs, d, hooks, resume)
-        ctx.log_q("pretrain", cfg.offline.steps, agents)
-    elif stage == "warmup":  # the online loop starts here, and fine-tuning goes on with it
-        ctx.loop = stages.online_state(cfg, member_cfgs, ctx.method, ctx.spec, d, ctx.mc_returns)
-        d_warmups, agents = stages.warmup(cfg, member_cfgs, agents, ctx.loop, hooks)
-        if d_warmups is not None:  # its end's checkpoint: the loop's state, and D_warmup for BOTO
-            end = ctx.loop.state_dict()
-            end["arrays"].update({k: {f: getattr(dw, f) for f in _DS_FIELDS if getattr(dw, f) is not None}
-                                  for k, dw in zip(ctx.warmup_keys(), d_warmups)})
-    elif stage == "boto":
-        if resume is not None and agents is None:
-            agents = _templates(member_cfgs, "boto", d)
-        agents = stages.boto(cfg, member_cfgs, agents, d, d_warmups, hooks, resume)
-        ctx.log_q("boto", cfg.boto.boto_steps, agents)
-    elif stage == "finetune":
-        if agents is None:  # rlpd, or a resume inside fine-tuning of a method without pre-training
-            agents = _templates(member_cfgs, "pretrain", d) if ctx.method.pretrains else None
-        if ctx.loop is None:  # a method without a warm-up, or a run resumed after it: from its checkpoint
-            ctx.loop = stages.online_state(cfg, member_cfgs, ctx.method, ctx.spec, d, ctx.mc_returns)
-            warm = "warmup" in ctx.method.stages and cfg.warmup.steps > 0
-            saved = resume or (ctx.contents({"name": checkpoint_name("warmup", None)}) if warm else None)
-            if saved is not None:
-                ctx.loop.load_state_dict(saved)
-        agents = stages.finetune(cfg, member_cfgs, ctx.method, agents, ctx.loop, ctx.probe.observations, hooks, resume)
+def _warmup(ctx: RunContext, agents, d_warmups, resume: dict | None):
+    ctx.loop = stages.online_state(ctx.cfg, ctx.member_cfgs, ctx.method, ctx.spec, ctx.d_offline, ctx.mc_returns)
+    d_warmups, agents = stages.Warmup(ctx.cfg, ctx.member_cfgs, ctx.loop, ctx).train(agents)
+    if d_warmups is None:
+        return agents, None, None
+    end = ctx.loop.state_dict()  # its end's checkpoint: the loop's state, and D_warmup for BOTO
+    end["arrays"].update({k: dw.arrays() for k, dw in zip(ctx.warmup_keys(), d_warmups)})
     return agents, d_warmups, end
 
 
+def _boto(ctx: RunContext, agents, d_warmups, resume: dict | None):
+    if resume is not None and agents is None:
+        agents = ctx.templates("boto")
+    agents = stages.Boto(ctx.cfg, ctx.member_cfgs, ctx.d_offline, d_warmups, ctx).train(agents, resume)
+    ctx.log_q("boto", ctx.cfg.boto.boto_steps, agents)
+    return agents, d_warmups, None
+
+
+def _finetune(ctx: RunContext, agents, d_warmups, resume: dict | None):
+    if agents is None:  # rlpd, or a resume inside fine-tuning of a method without pre-training
+        agents = ctx.templates("pretrain") if ctx.method.pretrains else None
+    if ctx.loop is None:  # a method without a warm-up, or a run resumed after it: from its checkpoint
+        ctx.loop = stages.online_state(ctx.cfg, ctx.member_cfgs, ctx.method, ctx.spec, ctx.d_offline, ctx.mc_returns)
+        warm = "warmup" in ctx.method.stages and ctx.cfg.warmup.steps > 0
+        saved = resume or (ctx.contents({"name": checkpoint_name("warmup", None)}) if warm else None)
+        if saved is not None:
+            ctx.loop.load_state_dict(saved)
+    finetune = stages.Finetune(ctx.cfg, ctx.member_cfgs, ctx.loop, ctx)
+    return finetune.train(ctx.method, agents, ctx.probe.observations, resume), d_warmups, None
+
+
+STAGES = {"pretrain": _pretrain, "warmup": _warmup, "boto": _boto, "finetune": _finetune}
+
+
+# ---------------------------------------------------------------------------- the run
 def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_runs: list[RunDir],
             d_offline_raw: Dataset, *, resume: bool = False) -> list[dict[str, Any]]:
     """Train the members (configs that differ in seed and alpha only) as one population whose
@@ -435,13 +327,13 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
     root.mkdir(parents=True, exist_ok=True)
     d_offline = transform_dataset(cfg, spec, d_offline_raw)
     ckpt = CheckpointManager(RunDir(root).checkpoints)
-    latest, state, failed, mid = _resume_point(ckpt, member_cfgs, resume)
+    latest, state, failed, mid = resume_point(ckpt, member_cfgs, resume)
     wandb_runs = tracking.start(member_cfgs, member_runs)  # one W&B run per member (None: no --wandb)
     members = [MemberRun(c, r, w, failed.get(str(i)))
                for i, (c, r, w) in enumerate(zip(member_cfgs, member_runs, wandb_runs))]
     ctx = RunContext(cfg, spec, root, members, d_offline, state)
     for member in members:
-        _truncate_logs(member, method.stages, mid, state["done_stages"])
+        member.truncate_logs(method.stages, mid, state["done_stages"])
     if latest is not None:
         where = f"{mid['stage']} step {mid['step']}" if mid else f"the end of {state['done_stages'][-1]}"
         print(f"botorl: resuming {root} from {where} (checkpoint {latest['name']})", file=sys.stderr)
@@ -454,7 +346,7 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
         with preempt.deferred(), matmul_precision(cfg.precision):
             if state["done_stages"]:
                 last = state["done_stages"][-1]
-                agents = ctx.load_agents(checkpoint_name(last, None), _templates(member_cfgs, last, d_offline))
+                agents = ctx.load_agents(checkpoint_name(last, None), ctx.templates(last))
             if "warmup" in state["done_stages"]:
                 d_warmups = _load_warmups(ckpt, ctx.warmup_keys())
             for stage in method.stages:
@@ -463,8 +355,8 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
                 if preempt.requested():  # between two stages: the last one's final checkpoint is the point
                     raise preempt.interrupted()
                 ctx.begin_stage(stage)
-                resume_at = mid if (mid is not None and mid["stage"] == stage) else None
-                agents, d_warmups, end = _run_stage(ctx, stage, agents, d_warmups, resume_at)
+                at = ctx.contents(mid) if mid is not None and mid["stage"] == stage else None  # its mid-stage point
+                agents, d_warmups, end = STAGES[stage](ctx, agents, d_warmups, at)
                 ctx.end_stage()
                 state["done_stages"].append(stage)
                 ctx.save(stage, None, agents, end)
@@ -474,7 +366,7 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
             ctx.write_summary("interrupted")
         elif isinstance(err, TrainingDivergedError):
             ctx.write_summary("failed", error=str(err))
-            _finish_outputs(ctx)
+            summary.plot_curves(members)
         else:
             ctx.write_summary("interrupted" if isinstance(err, KeyboardInterrupt) else "failed",
                               error=f"{type(err).__name__}: {err}")
@@ -487,118 +379,15 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
         tracking.finish(wandb_runs, 128 + err.signum, seconds=min(tracking.timeout(), 10.0))
         raise
     ctx.write_summary("finished")
-    summaries = [read_summary(member.run) for member in members]
-    _finish_outputs(ctx)
+    summaries = [summary.read_summary(member.run) for member in members]
+    summary.plot_curves(members)
     ctx.close()
     tracking.finish(wandb_runs)
     return summaries
-
-
-def read_summary(run: RunDir) -> dict[str, Any]:
-    try:
-        summary = read_json(run.summary)
-    except (OSError, ValueError) as err:
-        raise BotorlError(f"{run.summary} cannot be read ({err}); `botorl resume {run.root}` rewrites it.") from None
-    if not isinstance(summary, dict):
-        raise BotorlError(f"{run.summary} is not a run summary (a JSON object); `botorl resume {run.root}` "
-                          f"rewrites it.")
-    return summary
 
 
 def _load_warmups(ckpt: CheckpointManager, keys: list[str]) -> list[Dataset] | None:
     saved = [ckpt.arrays(checkpoint_name("warmup", None), key) for key in keys]
     if not all(saved):
         return None
-    return [Dataset(**{k: a.get(k) for k in _DS_FIELDS}, metadata={"source": "D_warmup (checkpoint)"}) for a in saved]
-
-
-def _truncate_logs(member: "MemberRun", order: tuple[str, ...], mid: dict | None, done: list[str]) -> None:
-    """Forget a member's log rows written after the checkpoint a resume starts from."""
-    def kept(stage: str) -> int:  # the last step of a stage's logs that stays: its mid-stage checkpoint's
-        return int(mid["step"]) if (mid is not None and mid["stage"] == stage) else -1
-
-    for stage in order:
-        if stage not in done:
-            member.logger.truncate(stage, kept(stage))
-    if "finetune" not in done:
-        # evaluations of finished stages (the warm-up's) stay; fine-tuning's up to its checkpoint
-        member.eval_log.truncate(lambda r: r.get("stage") in done or number(r.get("env_step")) <= kept("finetune"))
-    member.q_log.truncate(lambda r: r.get("stage") in done)
-
-
-def _finish_outputs(ctx: RunContext) -> None:
-    for member in ctx.members:
-        try:
-            plot_curve(member.run, member.cfg)
-        except Exception as err:  # a plot must never fail a run
-            print(f"botorl: could not draw {member.run.curve} ({err})", file=sys.stderr)
-
-
-def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
-    rows = _eval_rows(run)
-    if not rows:
-        return None
-    plt = pyplot()
-    metric = metric_of_config(cfg)
-    x = [r["env_step"] for r in rows]
-    y = [metric.of(r["success"], r["return"]) for r in rows]
-    fig, ax = plt.subplots(figsize=(6, 3.6))
-    label = cfg.method if cfg.alpha is None else f"{cfg.method} (alpha={cfg.alpha:+.2f})"
-    ax.plot(x, y, marker="o", ms=3, label=label)
-    start = cfg.warmup.steps if "warmup" in get_method(cfg.method).stages else 0
-    if start > 0:
-        ax.axvspan(0, start, color="0.9", label="warm-up (frozen policy, no updates)")
-    ax.axvline(start, color="k", ls="--", lw=1, label="fine-tuning starts")
-    ax.set_xlabel("online env steps (warm-up included)")
-    ax.set_ylabel(metric.label)
-    if metric.bounded:
-        ax.set_ylim(-0.03, 1.03)
-    ax.set_title(f"{cfg.task} / {cfg.method} / seed {cfg.seed}")
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    atomic_save_figure(fig, run.curve, root=run.root, dpi=110)
-    plt.close(fig)
-    return run.curve
-
-
-def _f(v) -> str:
-    return "-" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))
-
-
-def format_population(summaries: list[dict]) -> str:
-    name = headline_of_summary(summaries[0]) if summaries else "success"
-    lines = [f"{'member':<22} {'status':<9} {'initial':>8} {'10k':>8} {'final':>8}  run directory"]
-    if name != "success":
-        lines.insert(0, f"{name}:")
-    for s in summaries:
-        member = Path(s["run_dir"]).name
-        lines.append(f"{member:<22} {s['status']:<9} {_f(s.get(name + '_initial')):>8} {_f(s.get(name + '_10k')):>8} "
-                     f"{_f(s.get(name + '_final')):>8}  {s['run_dir']}")
-    secs = summaries[0].get("stage_seconds", {}) if summaries else {}
-    lines.append("stage seconds (whole population): " + ", ".join(f"{k} {v:.1f}" for k, v in secs.items()))
-    return "\n".join(lines)
-
-
-def format_summary(summary: dict) -> str:
-    name = headline_of_summary(summary)  # the task's headline metric: success, else (normalised) return
-    lines = [
-        f"task {summary['task']}  method {summary['method']}  seed {summary['seed']}  alpha {_f(summary['alpha'])}  "
-        f"pretrain {_f(summary['pretrain'])}  profile {summary.get('profile')}  status {summary['status']}",
-        "",
-        f"{'stage':<10} {'seconds':>9}",
-    ]
-    lines += [f"{k:<10} {v:>9.1f}" for k, v in summary["stage_seconds"].items()]
-    lines.append(f"{'total':<10} {summary['total_seconds']:>9.1f}")
-    lines += [
-        "",
-        f"{name:<10} {'initial':>8} {'10k':>8} {'final':>8}",
-        f"{'':<10} {_f(summary.get(name + '_initial')):>8} {_f(summary.get(name + '_10k')):>8} "
-        f"{_f(summary.get(name + '_final')):>8}",
-        (f"(10k = eval at env step {summary['env_step_10k']}, final = {_f(summary.get('env_step_final'))})"
-         if summary.get("env_step_10k") is not None else
-         f"(no evaluation at 10k: the run ends at env step {_f(summary.get('env_step_final'))})"),
-        f"run directory: {summary['run_dir']}",
-    ]
-    if summary.get("success_off"):
-        lines.insert(-1, f"success is off: {summary['success_off']}")
-    return "\n".join(lines)
+    return [Dataset(**{k: a.get(k) for k in FIELDS}, metadata={"source": "D_warmup (checkpoint)"}) for a in saved]

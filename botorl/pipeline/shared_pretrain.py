@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from botorl.agents import checkpoint as agent_ckpt
+from botorl.agents import agent_file
 from botorl.agents.population import stack
 from botorl.configs.schema import RunConfig, from_dict, to_dict
 from botorl.errors import ConfigError
@@ -98,7 +98,7 @@ def load(ctx, sources: list[Path]):
     agents = []
     for src, member in zip(sources, ctx.members):
         like = make_pretrain_agent(member.cfg, d.obs_dim, d.action_dim, member.cfg.seed)
-        agents.append(agent_ckpt.load(str(src / "checkpoints" / PRETRAIN_FINAL / "agent.ckpt"), like=like))
+        agents.append(agent_file.load(str(src / "checkpoints" / PRETRAIN_FINAL / "agent.ckpt"), like=like))
         for name in ("pretrain.csv", "pretrain.jsonl"):
             if (src / "metrics" / name).is_file() and src.resolve() != member.run.root.resolve():
                 try:

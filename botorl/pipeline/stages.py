@@ -1,13 +1,13 @@
 """The four stages of a run (``pretrain``, ``warmup``, ``boto``, ``finetune``; their inputs and
-outputs: docs/architecture.md), each a function from explicit inputs to its outputs.
+outputs: docs/architecture.md), each a ``Stage`` from explicit inputs to its outputs.
 
-Every stage runs ``stage_loop``; the warm-up and fine-tuning run it over one online loop state
-(``OnlineState``). A stage reads no run context: it gets ``Hooks``, its callbacks into the
-runner, which does every checkpoint read and write and hands a resumed stage the checkpoint's
-contents as ``resume``. ``agents`` are a population's agents stacked on a leading axis (a single
-run is one of one), each member's streams seeded by its own seed only (docs/populations.md). Log,
-checkpoint and evaluation points follow from the step alone (``Schedule``), so a stage given
-``resume`` continues exactly (docs/reliability.md).
+A ``Stage`` says what it does at its schedule's points, and ``stage_loop`` calls it; the warm-up
+and fine-tuning run over one online loop state (``OnlineState``). A stage reads no run context:
+it gets ``run``, its callbacks into the runner, which does every checkpoint read and write and
+hands a resumed stage the checkpoint's contents as ``resume``. ``agents`` are a population's
+agents stacked on a leading axis (a single run is one of one), each member's streams seeded by
+its own seed only (docs/populations.md). Log, checkpoint and evaluation points follow from the
+step alone (``Schedule``), so a stage given ``resume`` continues exactly (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -20,12 +20,14 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm.auto import tqdm
 
 from botorl.agents import population  # by module: a test swaps its functions to count calls
 from botorl.agents.common import jit_q_mean
 from botorl.agents.cql import CQLAgent
 from botorl.agents.iql import IQLAgent
 from botorl.agents.sac import SACAgent
+from botorl.batch import BATCH_KEYS
 from botorl.boto.phase import boto_updates
 from botorl.configs.members import Streams
 from botorl.configs.methods import get_method
@@ -33,12 +35,6 @@ from botorl.data.dataset import Dataset, RewardTransform
 from botorl.data.replay import ReplayBuffer
 from botorl.pipeline import faults, preempt
 from botorl.pipeline.online import OnlineState
-
-# A stage's callbacks into its run (runner.RunContext's): ``log`` and ``check`` (stage, step, one
-# item per member; check may raise), ``bar`` (a progress bar), ``evaluate(agents, step)`` -> rows,
-# ``log_evaluation(rows, step)`` (unchanged policies' rows again), and ``save(stage, step, agents,
-# state_dict)`` (step None: the stage's end).
-Hooks = namedtuple("Hooks", "log check bar evaluate log_evaluation save")
 
 
 # ---------------------------------------------------------------------------- agents
@@ -155,103 +151,145 @@ class Rate:
         return rate
 
 
-def pretrain_groups(member_cfgs) -> tuple[list[int], list[int]]:
-    """(the first member of each seed, each member's index into that list)."""
-    first: dict[int, int] = {}
-    group = [first.setdefault(c.seed, len(first)) for c in member_cfgs]
-    return [group.index(g) for g in range(len(first))], group
+# ---------------------------------------------------------------------------- the loop
+class Stage:
+    """What a stage does at its schedule's points, which ``stage_loop`` calls. By default it checks,
+    logs and saves the agents through ``run``, its callbacks into the run (runner.RunContext:
+    ``log`` and ``check`` (stage, step, an item per member), ``evaluate(agents, step)`` -> rows,
+    ``log_evaluation(rows, step)``, ``save(stage, step, agents, state_dict)``), and evaluates nothing."""
+
+    name = ""
+    check_every_call = False  # check after every call, not only at log and checkpoint points
+
+    def __init__(self, cfg, member_cfgs, run, schedule: Schedule):
+        self.cfg, self.member_cfgs, self.n, self.run = cfg, member_cfgs, len(member_cfgs), run
+        self.schedule, self.window, self.bar = schedule, Window(len(member_cfgs)), None
+
+    def chunk(self, step: int) -> int:
+        return 1
+
+    def update(self, agents, step: int, k: int):
+        """One step of the online loop ``self.state`` (the warm-up's and fine-tuning's): act, step
+        the envs, store; one UTD update while ``state.learning``, as WSRL's finetune.py, whose
+        warm-up is this loop with learning off. The offline stages update otherwise."""
+        return self.state.advance(agents, self.window), None
+
+    def check(self, step: int, ms: list[dict]) -> None:
+        self.run.check(self.name, step, ms)
+
+    def log(self, step: int, ms: list[dict]) -> None:
+        self.run.log(self.name, step, ms)
+
+    def evaluate(self, agents, step: int) -> None:
+        pass
+
+    def save(self, step: int, agents, interrupted: bool) -> None:
+        self.run.save(self.name, step, agents, {})
 
 
-def stage_loop(agents, update: Callable, chunk: Callable[[int], int], step: int, schedule: Schedule,
-               window: Window, bar, *, stage: str, check: Callable, log: Callable, save: Callable,
-               evaluate: Callable | None = None, check_every_call: bool = False):
-    """Every stage's loop, from ``step`` to ``schedule.total``: ``update(agents, step, k)`` ->
-    (agents, metrics or None: the update added its own) runs k = ``chunk(step)`` updates in one
-    jitted call (the offline stages) or one online step; the window's means are checked (``check``
-    may raise; at every call with ``check_every_call``) and logged, the agents evaluated and saved
-    (``save(step, agents, False)``) at the schedule's points. After a SIGTERM / SIGINT: the
-    checkpoint of this very step (``interrupted`` True: with the metrics window), then
-    ``Interrupted``. Returns the agents."""
-    while step < schedule.total:
-        k = chunk(step)
-        agents, metrics = update(agents, step, k)
-        if metrics is not None:
-            window.add(metrics)
-        prev, step = step, step + k
-        bar.update(k)
-        due = schedule(prev, step)
-        if due.log or due.checkpoint or check_every_call:
-            ms = window.flush()
-            check(step, ms)
-            if due.log:
-                log(step, ms)
-        if due.evaluate:
-            evaluate(agents, step)
-        if due.checkpoint:
-            save(step, agents, False)
-        faults.step(stage, step)
-        if step < schedule.total and preempt.requested():
-            if not due.checkpoint:
-                save(step, agents, True)
-            raise preempt.interrupted()
-    return agents
+def stage_loop(stage: Stage, agents, step: int, desc: str, unit: str = "step"):
+    """Every stage's loop, from ``step`` to ``stage.schedule.total`` under a progress bar (``desc``):
+    ``stage.update(agents, step, k)`` -> (agents, metrics or None: the update added its own) runs
+    k = ``stage.chunk(step)`` updates in one jitted call (the offline stages) or one online step;
+    the window's means per member are checked (``check`` may raise; at every call with
+    ``check_every_call``) and logged, the agents evaluated and saved (``save(step, agents,
+    False)``) at the schedule's points. After a SIGTERM / SIGINT: the checkpoint of this very
+    step (``save(step, agents, True)``: with the metrics window), then ``Interrupted``. Returns
+    the agents."""
+    schedule, window = stage.schedule, stage.window
+    with tqdm(total=schedule.total, initial=step, desc=desc, unit=unit, dynamic_ncols=True,
+              disable=not stage.cfg.progress, mininterval=1.0, smoothing=0.05) as stage.bar:
+        while step < schedule.total:
+            k = stage.chunk(step)
+            agents, metrics = stage.update(agents, step, k)
+            if metrics is not None:
+                window.add(metrics)
+            prev, step = step, step + k
+            stage.bar.update(k)
+            due = schedule(prev, step)
+            if due.log or due.checkpoint or stage.check_every_call:
+                ms = window.flush()
+                stage.check(step, ms)
+                if due.log:
+                    stage.log(step, ms)
+            if due.evaluate:
+                stage.evaluate(agents, step)
+            if due.checkpoint:
+                stage.save(step, agents, False)
+            faults.step(stage.name, step)
+            if step < schedule.total and preempt.requested():
+                if not due.checkpoint:
+                    stage.save(step, agents, True)
+                raise preempt.interrupted()
+        return agents
 
 
 # ---------------------------------------------------------------------------- stage 1
-def pretrain(cfg, member_cfgs, d: Dataset, hooks: Hooks, resume: dict | None = None):
+class Pretrain(Stage):
     """Offline pre-training with the configured algorithm on the transformed D_offline ``d``
-    (held once; each member samples its own batches)."""
-    oc, n = cfg.offline, len(member_cfgs)
-    # Members of one seed differ only in BOTO's alpha, which pre-training does not read: they
-    # share one pre-training (computed once, by the first of them; mid-stage checkpoints hold
-    # one agent per seed) and each gets its copy at the end.
-    reps, group = pretrain_groups(member_cfgs)
-    streams = [Streams.of(member_cfgs[r]) for r in reps]
-    agents = population.stack([make_pretrain_agent(member_cfgs[r], d.obs_dim, d.action_dim, s.pretrain)
-                               for r, s in zip(reps, streams)])
-    rngs, step, window = [np.random.default_rng(s.pretrain_batches) for s in streams], 0, Window(len(reps))
-    if resume is not None:
-        agents = resume["agents"](agents)
-        step, states = int(resume["step"]), resume.get("np_rng")
-        for rng, st in zip(rngs, states if isinstance(states, list) else [states] * len(reps)):
-            if st is not None:  # as saved; else from its seed
-                rng.bit_generator.state = st
-        window.load(resume["arrays"].get("window"))
-    on_device = jax.default_backend() != "cpu" if oc.sample_on_device is None else oc.sample_on_device
-    if on_device:
-        arrays = d.to_device()
-        # the key of each call follows from (seed, step), so a resumed run draws the same batches
-        base_keys = [jax.random.PRNGKey(s.pretrain_keys) for s in streams]
+    (held once; each member samples its own batches). Members of one seed differ only in BOTO's
+    alpha, which pre-training does not read: they share one pre-training (computed once, by the
+    first of them; mid-stage checkpoints hold one agent per seed) and each gets its copy at the end."""
 
-        def update(agents, step: int, k: int):
-            keys = jnp.stack([jax.random.fold_in(bk, step) for bk in base_keys])
-            return population.update_many_on_device(agents, arrays, keys, k, oc.batch_size)
-    else:
-        def update(agents, step: int, k: int):
-            return population.update_many(agents, d.sample_members(rngs, oc.batch_size, k))
+    name = "pretrain"
 
-    rate = Rate(step)
-    shared = f" x {len(reps)} seeds for {n} members" if len(reps) < n else f" x {n} members"
+    def __init__(self, cfg, member_cfgs, d: Dataset, run):
+        oc, first = cfg.offline, {}  # the first member of each seed, and each member's index into them
+        self.group = [first.setdefault(c.seed, len(first)) for c in member_cfgs]
+        self.reps = [self.group.index(g) for g in range(len(first))]
+        super().__init__(cfg, [member_cfgs[r] for r in self.reps], run,
+                         Schedule(oc.steps, oc.log_every, cfg.checkpoint_every))
+        self.d, self.oc, self.streams = d, oc, [Streams.of(c) for c in self.member_cfgs]
+        self.rngs = [np.random.default_rng(s.pretrain_batches) for s in self.streams]
+        on_device = jax.default_backend() != "cpu" if oc.sample_on_device is None else oc.sample_on_device
+        self.arrays = d.to_device() if on_device else None  # D_offline on the device, where batches are drawn
+        # there the key of each call follows from (seed, step), so a resumed run draws the same batches
+        self.base_keys = [jax.random.PRNGKey(s.pretrain_keys) for s in self.streams] if on_device else None
 
-    def log(step: int, per_seed: list[dict]) -> None:
-        ms, steps_per_s = [per_seed[g] for g in group], rate(step)
-        hooks.log("pretrain", step, [{**m, "steps_per_s": steps_per_s} for m in ms])
-        bar.set_postfix(loss=f"{ms[0].get('critic_loss', float('nan')):.3g}", q=f"{ms[0].get('q_data', float('nan')):.3g}")
+    def update(self, agents, step: int, k: int):
+        if self.arrays is None:
+            return population.update_many(agents, self.d.sample_members(self.rngs, self.oc.batch_size, k))
+        keys = jnp.stack([jax.random.fold_in(bk, step) for bk in self.base_keys])
+        return population.update_many_on_device(agents, self.arrays, keys, k, self.oc.batch_size)
 
-    def save(step: int, agents, interrupted: bool) -> None:
-        w = window.state_dict() if interrupted else None
-        hooks.save("pretrain", step, agents, {"np_rng": [r.bit_generator.state for r in rngs],
-                                              "arrays": {"window": w} if w else None})
-
-    with hooks.bar(oc.steps, step, f"pretrain ({cfg.pretrain})" + (shared if n > 1 else "")) as bar:
+    def chunk(self, step: int) -> int:
         # a call ends at the next checkpoint boundary so that checkpoints land on multiples
-        agents = stage_loop(
-            agents, update, lambda s: min(oc.updates_per_call, oc.steps - s, cfg.checkpoint_every - s % cfg.checkpoint_every),
-            step, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every), window, bar, stage="pretrain",
-            check=lambda step, per_seed: hooks.check("pretrain", step, [per_seed[g] for g in group]), log=log, save=save)
-    if len(reps) < n:
-        agents = jax.tree_util.tree_map(lambda x: x[np.asarray(group)], agents)
-    return agents
+        every = self.cfg.checkpoint_every
+        return min(self.oc.updates_per_call, self.oc.steps - step, every - step % every)
+
+    def check(self, step: int, per_seed: list[dict]) -> None:
+        self.run.check(self.name, step, [per_seed[g] for g in self.group])
+
+    def log(self, step: int, per_seed: list[dict]) -> None:
+        ms, steps_per_s = [per_seed[g] for g in self.group], self.rate(step)
+        self.run.log(self.name, step, [{**m, "steps_per_s": steps_per_s} for m in ms])
+        self.bar.set_postfix(loss=f"{ms[0].get('critic_loss', float('nan')):.3g}",
+                             q=f"{ms[0].get('q_data', float('nan')):.3g}")
+
+    def save(self, step: int, agents, interrupted: bool) -> None:
+        w = self.window.state_dict() if interrupted else None
+        self.run.save(self.name, step, agents, {"np_rng": [r.bit_generator.state for r in self.rngs],
+                                                "arrays": {"window": w} if w else None})
+
+    def train(self, resume: dict | None = None):
+        """The pre-trained agents of every member (from ``resume``'s checkpoint where given)."""
+        n, reps = len(self.group), len(self.reps)
+        agents = population.stack([make_pretrain_agent(c, self.d.obs_dim, self.d.action_dim, s.pretrain)
+                                   for c, s in zip(self.member_cfgs, self.streams)])
+        step = 0
+        if resume is not None:
+            agents = resume["agents"](agents)
+            step, states = int(resume["step"]), resume.get("np_rng")
+            for rng, st in zip(self.rngs, states if isinstance(states, list) else [states] * reps):
+                if st is not None:  # as saved; else from its seed
+                    rng.bit_generator.state = st
+            self.window.load(resume["arrays"].get("window"))
+        self.rate = Rate(step)
+        shared = f" x {reps} seeds for {n} members" if reps < n else f" x {n} members"
+        agents = stage_loop(self, agents, step, f"pretrain ({self.cfg.pretrain})" + (shared if n > 1 else ""))
+        if reps < n:
+            agents = jax.tree_util.tree_map(lambda x: x[np.asarray(self.group)], agents)
+        return agents
 
 
 # ---------------------------------------------------------------------------- the online loop
@@ -269,14 +307,6 @@ def online_state(cfg, member_cfgs, method, spec, offline: Dataset | None, mc_ret
     return state
 
 
-def online_loop(state: OnlineState, agents, schedule: Schedule, window: Window, bar, **kw):
-    """``stage_loop`` over the online loop ``state``: one ``state.advance`` a step (act, step the
-    envs, store; one UTD update while ``state.learning``), as WSRL's finetune.py, whose warm-up
-    is this loop with learning off."""
-    return stage_loop(agents, lambda agents, step, k: (state.advance(agents, window), None), lambda step: 1,
-                      state.step, schedule, window, bar, **kw)
-
-
 # ---------------------------------------------------------------------------- stage 2a
 def _reseed_online(member_cfgs, agents):
     """The pre-trained agents' keys, folded with ``online_reseed`` for the members that set it,
@@ -291,105 +321,130 @@ def _reseed_online(member_cfgs, agents):
     return agents.replace(rng=jax.device_put(jnp.stack(keys), where))
 
 
-def warmup(cfg, member_cfgs, agents, state: OnlineState, hooks: Hooks) -> tuple[list[Dataset] | None, Any]:
+class Warmup(Stage):
     """D_warmup: the online loop ``state`` (at step 0) for ``warmup.steps`` env steps with learning
     off, as WSRL's finetune.py: the frozen pre-trained policy acts (stochastic), nothing updates.
     These are the first online steps: fine-tuning goes on with the same loop. The frozen policy's
     step-0 evaluation is logged again at each evaluation point passed. D_warmup is each member's
-    buffer rows, MC returns by the loop's rule (``state.mc_returns``). No mid-stage checkpoint: a
-    resume runs it again from the pre-training's end (the same D_warmup)."""
-    n, N = cfg.warmup.steps, len(member_cfgs)
-    if n == 0:
-        return None, agents
-    agents = _reseed_online(member_cfgs, agents)
-    first = hooks.evaluate(agents, state.step)
-    state.learning, state.ended = False, [[] for _ in range(N)]
-    with hooks.bar(n, 0, "warm-up (frozen policy)", unit="env step") as bar:
-        agents = online_loop(
-            state, agents, Schedule(n, n, n + 1, evaluate=lambda step: step % cfg.eval.interval == 0 and step < n),
-            Window(N), bar, stage="warmup", evaluate=lambda agents, step: hooks.log_evaluation(first, step),
-            check=lambda step, ms: None, log=lambda step, ms: None, save=lambda step, agents, interrupted: None)
-    ended, state.ended, state.learning = state.ended, None, True
-    rows, t = state.buffer.state_dict(), state.reward
-    d_warmups = []
-    for i, ends in enumerate(ended):
-        episode_ends = np.zeros(n, bool)
-        episode_ends[ends] = True
-        dw = Dataset(*(rows[k][i, :n] for k in ("observations", "actions", "rewards", "next_observations")),
-                     rows["dones"][i, :n] > 0.5, episode_ends=episode_ends,
-                     metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})
-        d_warmups.append(dw._replace(mc_returns=state.mc_returns(dw)))
-    # the rewards as the env gave them
-    hooks.log("warmup", n, [{"episodes": state.episodes[i], "success_rate": float(np.mean(s)) if s else float("nan"),
-                             "reward_mean": float((np.mean(rows["rewards"][i, :n]) - t.bias) / t.scale)}
-                            for i, s in enumerate(state.recent_success)])
-    state.recent_success = [[] for _ in range(N)]  # fine-tuning's train_success: its own episodes
-    return d_warmups, agents
+    buffer rows, MC returns by the loop's rule (``state.mc_returns``). Nothing learns, so nothing
+    is checked or logged in the loop, and no mid-stage checkpoint: a resume runs it again from
+    the pre-training's end (the same D_warmup)."""
+
+    name = "warmup"
+
+    def __init__(self, cfg, member_cfgs, state: OnlineState, run):
+        n, self.state = cfg.warmup.steps, state
+        super().__init__(cfg, member_cfgs, run,
+                         Schedule(n, n, n + 1, evaluate=lambda step: step % cfg.eval.interval == 0 and step < n))
+
+    def _nothing(self, *args) -> None:
+        pass
+
+    check = log = save = _nothing
+
+    def evaluate(self, agents, step: int) -> None:
+        self.run.log_evaluation(self.first, step)
+
+    def train(self, agents) -> tuple[list[Dataset] | None, Any]:
+        """(each member's D_warmup, the agents); (None, agents) without a warm-up."""
+        n, N, state = self.cfg.warmup.steps, self.n, self.state
+        if n == 0:
+            return None, agents
+        agents = _reseed_online(self.member_cfgs, agents)
+        self.first = self.run.evaluate(agents, state.step)
+        state.learning, state.ended = False, [[] for _ in range(N)]
+        agents = stage_loop(self, agents, state.step, "warm-up (frozen policy)", unit="env step")
+        ended, state.ended, state.learning = state.ended, None, True
+        rows, t = state.buffer.state_dict(), state.reward
+        d_warmups = []
+        for i, ends in enumerate(ended):
+            episode_ends = np.zeros(n, bool)
+            episode_ends[ends] = True
+            dw = Dataset.of_batch({k: rows[k][i, :n] for k in BATCH_KEYS}, episode_ends=episode_ends,
+                                  metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})
+            d_warmups.append(dw._replace(mc_returns=state.mc_returns(dw)))
+        # the rewards as the env gave them
+        self.run.log("warmup", n, [{"episodes": state.episodes[i], "success_rate": float(np.mean(s)) if s else float("nan"),
+                                    "reward_mean": float((np.mean(rows["rewards"][i, :n]) - t.bias) / t.scale)}
+                                   for i, s in enumerate(state.recent_success)])
+        state.recent_success = [[] for _ in range(N)]  # fine-tuning's train_success: its own episodes
+        return d_warmups, agents
 
 
 # ---------------------------------------------------------------------------- stage 2b
-def boto(cfg, member_cfgs, agents, d: Dataset, d_warmups: list[Dataset] | None, hooks: Hooks,
-         resume: dict | None = None):
+class Boto(Stage):
     """BOTO critic training on D_offline u D_warmup, each member with its own alpha and
     D_warmup (botorl.boto.phase.boto_updates in the stage loop, with this run's logs and
-    checkpoints)."""
-    bc, n, start = cfg.boto, len(member_cfgs), 0
-    if resume is not None:
-        agents, start = resume["agents"](agents), int(resume["step"])
-    alphas = [c.alpha for c in member_cfgs]
-    update = boto_updates(agents, d, d_warmups or [None] * n, bc, alphas, [Streams.of(c).boto for c in member_cfgs])
-    t0 = time.perf_counter()
+    checkpoints). The batches of a call follow from its index (boto_updates): no generator state
+    to save, and calls are not cut at checkpoint points (train_boto's calls, so its numbers); the
+    metrics are checked after every call, and a log point logs its call's."""
 
-    def log(step: int, ms: list[dict]) -> None:
-        hooks.log("boto", step, [{"seconds": time.perf_counter() - t0, **m} for m in ms])
-        bar.set_postfix(loss=f"{ms[0]['critic_loss']:.3g}", q_data=f"{ms[0]['q_data']:.3g}")
+    name = "boto"
+    check_every_call = True
 
-    label = f"BOTO alpha={alphas[0]:+.2f}" if n == 1 else f"BOTO x {n} members"
-    with hooks.bar(bc.boto_steps, start, label) as bar:
-        # the batches of a call follow from its index (boto_updates): no generator state to save,
-        # and calls are not cut at checkpoint points (train_boto's calls, so its numbers); the
-        # metrics are checked after every call, and a log point logs its call's
-        return stage_loop(agents, update, lambda s: min(bc.steps_per_call, bc.boto_steps - s), start,
-                          Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every),
-                          Window(n), bar, stage="boto", check=lambda step, ms: hooks.check("boto", step, ms),
-                          log=log, save=lambda step, agents, interrupted: hooks.save("boto", step, agents, {}),
-                          check_every_call=True)
+    def __init__(self, cfg, member_cfgs, d: Dataset, d_warmups: list[Dataset] | None, run):
+        bc = cfg.boto
+        super().__init__(cfg, member_cfgs, run,
+                         Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every))
+        self.d, self.d_warmups, self.alphas = d, d_warmups or [None] * self.n, [c.alpha for c in member_cfgs]
+
+    def chunk(self, step: int) -> int:
+        return min(self.cfg.boto.steps_per_call, self.cfg.boto.boto_steps - step)
+
+    def log(self, step: int, ms: list[dict]) -> None:
+        self.run.log(self.name, step, [{"seconds": time.perf_counter() - self.t0, **m} for m in ms])
+        self.bar.set_postfix(loss=f"{ms[0]['critic_loss']:.3g}", q_data=f"{ms[0]['q_data']:.3g}")
+
+    def train(self, agents, resume: dict | None = None):
+        start = 0
+        if resume is not None:
+            agents, start = resume["agents"](agents), int(resume["step"])
+        self.update = boto_updates(agents, self.d, self.d_warmups, self.cfg.boto, self.alphas,
+                                   [Streams.of(c).boto for c in self.member_cfgs])
+        self.t0 = time.perf_counter()
+        label = f"BOTO alpha={self.alphas[0]:+.2f}" if self.n == 1 else f"BOTO x {self.n} members"
+        return stage_loop(self, agents, start, label)
 
 
 # ---------------------------------------------------------------------------- stage 3
-def finetune(cfg, member_cfgs, method, agents, state: OnlineState, probe_observations: np.ndarray, hooks: Hooks,
-             resume: dict | None = None):
+class Finetune(Stage):
     """Online learning: the online loop ``state`` (online_state; after the warm-up, where it
     left it; resumed, as the runner restored it) from its step to ``online.steps`` (the warm-up's
     env steps counted, as WSRL) with the fine-tuning learners, evaluating at its start, at
     ``eval.due`` points and at the end; what decides the future besides the agents is ``state``.
     Every method with a warm-up starts warm (configs/methods.py), so its buffer keeps D_warmup."""
-    oc, n = cfg.online, len(member_cfgs)
-    agents = start_finetuning(cfg, member_cfgs, method, agents, state.buffer.action_dim, probe_observations)
-    window = Window(n)
-    if resume is not None:
-        agents = resume["agents"](agents)
-        window.load(resume["arrays"].get("window"))
-    # where the updates keep them (members split over the CPU devices) from the first step on: on one
-    # device, a resumed run's loaded agents would compile another policy program (other last bits)
-    agents = population.placed(agents, every_leaf=True)[0]
-    if resume is None:  # a checkpoint comes after a step: a resumed fine-tuning is past its start
-        hooks.evaluate(agents, state.step)
-    rate = Rate(state.step)
 
-    def evaluate(agents, step: int) -> None:
-        bar.set_postfix(success=f"{hooks.evaluate(agents, step)[0]['success']:.2f}")
+    name = "finetune"
 
-    def save(step: int, agents, interrupted: bool) -> None:
-        sd, w = state.state_dict(), window.state_dict() if interrupted else None
+    def __init__(self, cfg, member_cfgs, state: OnlineState, run):
+        oc, self.state = cfg.online, state
+        due = lambda step: cfg.eval.due(step, oc.steps, cfg.warmup.steps)  # noqa: E731
+        super().__init__(cfg, member_cfgs, run, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every, due))
+
+    def log(self, step: int, ms: list[dict]) -> None:
+        self.run.log(self.name, step, self.state.log_rows(ms, self.rate(step)))
+
+    def evaluate(self, agents, step: int) -> None:
+        self.bar.set_postfix(success=f"{self.run.evaluate(agents, step)[0]['success']:.2f}")
+
+    def save(self, step: int, agents, interrupted: bool) -> None:
+        sd, w = self.state.state_dict(), self.window.state_dict() if interrupted else None
         if w:
             sd["arrays"]["window"] = w
-        hooks.save("finetune", step, agents, sd)
+        self.run.save(self.name, step, agents, sd)
 
-    label = f"fine-tune ({cfg.method})" + (f" x {n} members" if n > 1 else "")
-    with state, hooks.bar(oc.steps, state.step, label, unit="env step") as bar:
-        return online_loop(state, agents, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every,
-                                                   evaluate=lambda step: cfg.eval.due(step, oc.steps, cfg.warmup.steps)),
-                           window, bar, stage="finetune", evaluate=evaluate,
-                           check=lambda step, ms: hooks.check("finetune", step, ms),
-                           log=lambda step, ms: hooks.log("finetune", step, state.log_rows(ms, rate(step))), save=save)
+    def train(self, method, agents, probe_observations: np.ndarray, resume: dict | None = None):
+        cfg, state = self.cfg, self.state
+        agents = start_finetuning(cfg, self.member_cfgs, method, agents, state.buffer.action_dim, probe_observations)
+        if resume is not None:
+            agents = resume["agents"](agents)
+            self.window.load(resume["arrays"].get("window"))
+        # where the updates keep them (members split over the CPU devices) from the first step on: on one
+        # device, a resumed run's loaded agents would compile another policy program (other last bits)
+        agents = population.placed(agents, every_leaf=True)[0]
+        if resume is None:  # a checkpoint comes after a step: a resumed fine-tuning is past its start
+            self.run.evaluate(agents, state.step)
+        self.rate = Rate(state.step)
+        label = f"fine-tune ({cfg.method})" + (f" x {self.n} members" if self.n > 1 else "")
+        with state:
+            return stage_loop(self, agents, state.step, label, unit="env step")

@@ -45,7 +45,7 @@ def load(path: str | os.PathLike, like):
     """Restore the agent saved at ``path`` into the structure of the template ``like``."""
     path = Path(path)
     if not path.is_file():
-        raise DataFormatError(f"checkpoint {path} does not exist; give the path of a file written by botorl.agents.checkpoint.save.")
+        raise DataFormatError(f"checkpoint {path} does not exist; give the path of a file written by botorl.agents.agent_file.save.")
     try:
         # a regular file only (no link, FIFO or device), and not more than a population's agents hold
         payload = serialization.msgpack_restore(read_bounded_bytes(path, AGENT_LIMIT))

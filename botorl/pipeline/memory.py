@@ -12,6 +12,7 @@ import jax
 import numpy as np
 
 from botorl.configs.methods import get_method
+from botorl.data.dataset import TRANSITION_FIELDS
 from botorl.errors import ConfigError
 from botorl.pipeline.stages import agent_template, make_pretrain_agent
 
@@ -131,8 +132,7 @@ def estimate(cfg, n: int, d_raw, spec) -> dict[str, int]:
               oc.utd * oc.batch_size * cfg.network.num_critics) * width * layers * 2
     batch_rows = max(cfg.offline.updates_per_call * cfg.offline.batch_size, cfg.boto.steps_per_call * cfg.boto.batch_size,
                      oc.utd * oc.batch_size)
-    offline_bytes = 3 * sum(getattr(d_raw, k).nbytes for k in ("observations", "actions", "rewards",
-                                                             "next_observations", "terminals"))
+    offline_bytes = 3 * sum(getattr(d_raw, k).nbytes for k in TRANSITION_FIELDS)
     envs = 1 + cfg.eval.envs_per_member
     return estimate_memory(num_members=n, agent_bytes=agent_bytes, buffer_rows=rows, warmup_rows=warm, obs_dim=O,
                            action_dim=A, batch_rows=batch_rows, activation_floats=act, offline_bytes=offline_bytes,
