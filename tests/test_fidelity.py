@@ -24,7 +24,7 @@ from botorl.data.dataset import Dataset
 from botorl.data.replay import ReplayBuffer
 from botorl.errors import ConfigError
 from botorl.pipeline.stages import make_pretrain_agent
-from conftest import FinishedRows, sample_mixed
+from helpers import FinishedRows, sample_mixed
 
 O, A, B = 4, 2, 32
 

@@ -187,7 +187,7 @@ def test_union_sampling_matches_concat(dataset):
 
 
 def test_member_replay_matches_replay_buffer(dataset):
-    from conftest import sample_mixed
+    from helpers import sample_mixed
 
     rng = np.random.default_rng(2)
     n, cap = 3, 50
@@ -218,7 +218,7 @@ def test_sample_active_draws_each_active_member_as_a_single_run(dataset):
     """The fine-tuning batch of a population with an inactive member (Cal-QL online before its
     first episode ends): each active member draws exactly what its single run draws, from
     its own rows (the flat gather must index the right member), the inactive one nothing."""
-    from conftest import FinishedRows, sample_mixed
+    from helpers import FinishedRows, sample_mixed
 
     rng = np.random.default_rng(4)
     n, cap = 3, 40

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import subprocess_env as _env
+from helpers import subprocess_env as _env
 
 from botorl.cli import main as botorl_main
 
