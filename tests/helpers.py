@@ -122,3 +122,9 @@ def sample_mixed(
     axis = 0 if num_batches is None else 1
     return {k: np.concatenate([p[k] for p in parts], axis=axis) for k in BATCH_KEYS}
 
+
+def as_minibatches(batch: dict, utd: int, axis: int = 0) -> dict:
+    """``batch`` with its rows (at ``axis``) split into ``utd`` critic minibatches, (B, ...) ->
+    (utd, B / utd, ...): one SAC update at UTD ``utd``, laid out as the online loop passes it."""
+    return {k: v.reshape(v.shape[:axis] + (utd, v.shape[axis] // utd) + v.shape[axis + 1:]) for k, v in batch.items()}
+

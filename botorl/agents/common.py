@@ -203,7 +203,8 @@ class ActorCriticAgent:
     (SAC, CQL, IQL): a tanh-Gaussian actor, a critic ensemble and its target parameters."""
 
     def update(self, batch):
-        """One learning step (SAC: UTD u critic steps + 1 actor + 1 temperature); jitted."""
+        """One learning step (SAC: u critic steps + 1 actor + 1 temperature on a batch of u
+        minibatches, (u, B, ...), or one, (B, ...)); jitted."""
         return jit_update(self, checked_batch(batch))
 
     def update_many(self, batches):

@@ -46,7 +46,6 @@ class CQLConfig(SACConfig):
     """CQL / Cal-QL pre-training; defaults are Cal-QL on antmaze (the docs' Methods page)."""
 
     num_critics: int = 10  # WSRL pre-trains with the fine-tuning ensemble size
-    utd_ratio: int = 1
     max_target_backup: bool = True
     cql_n_actions: int = 10
     cql_importance_sample: bool = True

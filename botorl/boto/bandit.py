@@ -68,7 +68,7 @@ class BanditConfig:
 
 # The small networks of every bandit critic (gamma = 0: every transition is terminal).
 SMALL_SAC = dict(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), actor_layer_norm=False, critic_layer_norm=False,
-                 num_critics=2, num_min_critics=2, subsample_replace=False, discount=0.0, utd_ratio=1)
+                 num_critics=2, num_min_critics=2, subsample_replace=False, discount=0.0)
 
 
 def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections import namedtuple
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import jax
@@ -48,22 +48,11 @@ def make_pretrain_agent(cfg, obs_dim: int, action_dim: int, seed: int):
     return CQLAgent.create(cfg.offline.cql, obs_dim, action_dim, seed)
 
 
-def continued_learner(cfg, agents):
-    """The pre-trained agent(s) as a "continue" method fine-tunes them: its own loss at the run's
-    UTD. Pre-training took one batch per critic step (configs/resolve.py); online, an update
-    splits its utd x B rows into utd critic minibatches (IQL's layout is per update instead)."""
-    if not hasattr(agents.config, "utd_ratio"):
-        return agents
-    return agents.replace(config=replace(agents.config, utd_ratio=cfg.online.utd))
-
-
 def agent_template(cfg, stage: str, obs_dim: int, action_dim: int, seed: int):
     """An agent with the structure a checkpoint of ``stage`` holds (for loading it): the
     fine-tuning learner in fine-tuning, the pre-training agent before."""
-    if stage != "finetune":
+    if stage != "finetune" or get_method(cfg.method).finetune_start == "continue":
         return make_pretrain_agent(cfg, obs_dim, action_dim, seed)
-    if get_method(cfg.method).finetune_start == "continue":
-        return continued_learner(cfg, make_pretrain_agent(cfg, obs_dim, action_dim, seed))
     return SACAgent.create(cfg.online.sac, obs_dim, action_dim, seed)
 
 
@@ -79,7 +68,8 @@ def start_finetuning(cfg, member_cfgs, method, agents, action_dim: int, probe_ob
     if start == "scratch":
         return population.stack([SACAgent.create(oc.sac, probe_observations.shape[1], action_dim, Streams.of(c).scratch)
                                  for c in member_cfgs])
-    return continued_learner(cfg, agents)  # "continue": the pre-trained agent keeps its own loss
+    # "continue": the pre-trained agent keeps its own loss, at the online UTD its batches carry
+    return agents
 
 
 def q_fn(agent):
