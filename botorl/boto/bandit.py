@@ -23,7 +23,7 @@ import tyro
 from scipy.stats import gaussian_kde
 from tqdm.auto import tqdm
 
-from botorl.agents.common import TrainState, jit_q_mean
+from botorl.agents.common import TrainState, jit_agent_q_mean
 from botorl.agents.cql import CQLAgent, CQLConfig
 from botorl.agents.iql import IQLAgent, IQLConfig
 from botorl.agents.population import q_mean
@@ -250,7 +250,7 @@ def run_fig2(cfg: BanditConfig) -> dict:
     methods = {f"BOTO alpha={a:+.0f}": (q_grid_b[i], q_uni_b[i], q_data_b[i]) for i, a in enumerate(FIG2_ALPHAS)}
 
     def q_of(agent, acts):
-        return np.asarray(jit_q_mean(agent, jnp.zeros((len(acts), ds.obs_dim), jnp.float32), jnp.asarray(acts)))
+        return np.asarray(jit_agent_q_mean(agent, jnp.zeros((len(acts), ds.obs_dim), jnp.float32), jnp.asarray(acts)))
 
     for name, agent in offline.items():
         methods[name] = (q_of(agent, grid), q_of(agent, uniform), q_of(agent, data_acts))

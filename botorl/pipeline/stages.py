@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from botorl.agents import population  # by module: a test swaps its functions to count calls
-from botorl.agents.common import jit_q_mean
+from botorl.agents.common import jit_agent_q_mean
 from botorl.agents.cql import CQLAgent
 from botorl.agents.iql import IQLAgent
 from botorl.agents.sac import SACAgent
@@ -74,7 +74,7 @@ def start_finetuning(cfg, member_cfgs, method, agents, action_dim: int, probe_ob
 
 def q_fn(agent):
     """Q(s, a) averaged over one agent's critic ensemble, on host arrays (for QProbe)."""
-    return lambda o, a: np.asarray(jit_q_mean(agent, jnp.asarray(o), jnp.asarray(a)))
+    return lambda o, a: np.asarray(jit_agent_q_mean(agent, jnp.asarray(o), jnp.asarray(a)))
 
 
 # ---------------------------------------------------------------------------- the loop's pieces
