@@ -57,11 +57,9 @@ def test_parse_seeds_and_alphas():
     for bad in ("0.5,0.5", "-1.5", "0,2", "1:-1:0.5", "a"):
         with pytest.raises(ConfigError):
             P.parse_alphas(bad)
-    ms = P.make_members([0, 1], [-0.5, 0.5], P.get_method("boto"))
+    ms = P.make_members([0, 1], [-0.5, 0.5])
     assert [(m.seed, m.alpha) for m in ms] == [(0, -0.5), (1, -0.5), (0, 0.5), (1, 0.5)]
     assert ms[0].name == "alpha-0.50-seed0" and P.Member(3).name == "seed3"
-    with pytest.raises(ConfigError, match="no BOTO phase"):
-        P.make_members([0], [0.5], P.get_method("wsrl"))
 
 
 # ------------------------------------------------------------------ stacking and vmapped updates

@@ -73,13 +73,12 @@ def resolve(cfg: RunConfig) -> RunConfig:
     spec = get_task(cfg.task)
     method = get_method(cfg.method)
     cfg = replace(cfg, pretrain=resolve_pretrain(cfg.method, cfg.pretrain))  # first: Cal-QL's switch copies it
-    for flag in [f for f, given in (("--alpha", cfg.alpha), ("--alphas", cfg.alphas)) if given is not None]:
-        method.refuse_alpha(flag)
     # a population's shared config holds its first member's seed and alpha
     seed = cfg.seed if cfg.seeds is None else parse_seeds(cfg.seeds)[0]
-    given = cfg.alpha if cfg.alphas is None else parse_alphas(cfg.alphas)[0]
-    # given None: the task's (the paper's per-task value)
-    alpha = float(paper_settings(spec)[0] if given is None else given) if method.uses_alpha else None
+    alpha = cfg.alpha  # a method without BOTO keeps the one given, which validate refuses
+    if method.uses_alpha:
+        given = cfg.alpha if cfg.alphas is None else parse_alphas(cfg.alphas)[0]
+        alpha = float(paper_settings(spec)[0] if given is None else given)  # None: the task's, the paper's
 
     # The UTD is no agent field: an update's batch carries it (online: online.utd minibatches, SAC's
     # train_step), so pre-training takes one batch per critic step, as WSRL's and Cal-QL's loops do.
@@ -203,6 +202,12 @@ def validate(cfg: RunConfig) -> None:
     method = get_method(cfg.method)
     if cfg.profile not in PROFILES:
         raise ConfigError(f"unknown profile {cfg.profile!r} (--profile); choose one of {', '.join(PROFILES)}.")
+    # alpha enters here, whatever gave the config (flags, a sweep, a file read back), and is checked
+    # here alone: the population's members and the BOTO stage take it as checked
+    if flag := next((f for f, v in (("--alpha", cfg.alpha), ("--alphas", cfg.alphas)) if v is not None), None):
+        method.refuse_alpha(flag)
+    if method.uses_alpha:
+        check_alpha(cfg.alpha)
 
     def need(cond: bool, field: str, value, what: str) -> None:
         if not cond:
@@ -227,8 +232,6 @@ def validate(cfg: RunConfig) -> None:
     if cfg.online.buffer_capacity is not None:
         need(cfg.online.buffer_capacity >= 1, "online.buffer_capacity", cfg.online.buffer_capacity, "must be positive or None")
     _check_sizes(cfg, method, need)  # the layer widths: check_bounds
-    if method.uses_alpha:
-        check_alpha(cfg.alpha)
     parse_seeds(cfg.seeds)  # None: no population, nothing to check
     parse_alphas(cfg.alphas)
     if "warmup" in method.stages and cfg.online.steps <= cfg.warmup.steps:
