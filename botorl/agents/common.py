@@ -22,7 +22,8 @@ from botorl.networks import CriticEnsemble, TanhGaussianActor, sample_tanh_gauss
 
 __all__ = [
     "TrainState", "acting_view", "update_fn", "update_many_fn", "sample_fn", "eval_fn", "q_mean_fn",
-    "update_many_on_device_fn", "jit_agent_update", "jit_agent_update_many", "jit_agent_sample", "jit_agent_eval", "jit_agent_q_mean", "adam",
+    "update_many_on_device_fn", "jit_agent_update", "jit_agent_update_many", "jit_agent_sample", "jit_agent_eval",
+    "jit_agent_q_mean", "adam",
     "train_state", "checked_batch", "chunk_size", "summed_value_and_grad", "update_many_on_device", "sample_batches",
     "module_def", "ActorCriticAgent", "check_fields",
 ]

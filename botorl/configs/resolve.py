@@ -62,9 +62,9 @@ def check_derived(cfg: RunConfig) -> None:
     for section in AGENT_CONFIGS:
         agent_cfg = _at(cfg, section)
         for f in DERIVED:
-            if hasattr(agent_cfg, f) and getattr(agent_cfg, f) != (want := _source(cfg, f)):
-                raise ConfigError(f"{section}.{f} = {getattr(agent_cfg, f)!r} differs from {DERIVED[f]} = {want!r}, the "
-                                  f"one field that sets it for every agent: the config was edited. Set {DERIVED[f]} "
+            if hasattr(agent_cfg, f) and (got := getattr(agent_cfg, f)) != (want := _source(cfg, f)):
+                raise ConfigError(f"{section}.{f} = {got!r} differs from {DERIVED[f]} = {want!r}, the one field that "
+                                  f"sets it for every agent: the config was edited. Set {DERIVED[f]} "
                                   f"(--{DERIVED[f].replace('_', '-')}) instead.")
 
 

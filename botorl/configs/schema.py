@@ -6,8 +6,9 @@ Every field can be set as ``--<dotted.path> VALUE`` (``--online.steps 2000``,
 One fact, one field: the network sizes (``network.*``), the UTD ratio (``online.utd``) and the
 CQL/Cal-QL switch (``pretrain``) are set here only; ``resolve`` derives the agent configs' copies
 (``configs.resolve.DERIVED``), the command line refuses their flags, and a config read back whose
-copy differs is refused (``check_derived``). The UTD has no copy: the online update's batch carries it. A run's ``seed`` and
-``alpha`` are top-level fields (a population's: ``seeds`` and ``alphas``, configs/members.py).
+copy differs is refused (``check_derived``); the UTD has no copy, as the online update's batch
+carries it. A run's ``seed`` and ``alpha`` are top-level fields (a population's: ``seeds`` and
+``alphas``, configs/members.py).
 """
 
 from __future__ import annotations
