@@ -28,12 +28,17 @@ from botorl.agents.sac import SACAgent, SACConfig
 from botorl.jaxsetup import setup_jax
 
 
-def _batch(rng, n, rows, obs, act):
-    return {"observations": rng.normal(size=(n, rows, obs)).astype(np.float32),
-            "actions": rng.uniform(-0.9, 0.9, (n, rows, act)).astype(np.float32),
-            "rewards": rng.normal(size=(n, rows)).astype(np.float32),
-            "next_observations": rng.normal(size=(n, rows, obs)).astype(np.float32),
-            "dones": np.zeros((n, rows), np.float32), "mc_returns": np.zeros((n, rows), np.float32)}
+UTD = 4
+
+
+def _batch(rng, n, obs, act, rows=256):
+    """Each of ``n`` members' update at UTD 4: 4 critic minibatches of ``rows``, (n, 4, rows, ...)."""
+    lead = (n, UTD, rows)
+    return {"observations": rng.normal(size=lead + (obs,)).astype(np.float32),
+            "actions": rng.uniform(-0.9, 0.9, lead + (act,)).astype(np.float32),
+            "rewards": rng.normal(size=lead).astype(np.float32),
+            "next_observations": rng.normal(size=lead + (obs,)).astype(np.float32),
+            "dones": np.zeros(lead, np.float32), "mc_returns": np.zeros(lead, np.float32)}
 
 
 def two_calls(agents, batch, obs):
@@ -57,17 +62,16 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     setup_jax()
     if args.size == "full":
-        cfg, O, A = SACConfig(actor_hidden_dims=(256, 256), critic_hidden_dims=(256,) * 4, num_critics=10, utd_ratio=4), 29, 8
+        cfg, O, A = SACConfig(actor_hidden_dims=(256, 256), critic_hidden_dims=(256,) * 4, num_critics=10), 29, 8
     else:
-        cfg, O, A = SACConfig(actor_hidden_dims=(64, 64), critic_hidden_dims=(64, 64), num_critics=4, utd_ratio=4), 4, 2
-    rows = cfg.utd_ratio * 256
+        cfg, O, A = SACConfig(actor_hidden_dims=(64, 64), critic_hidden_dims=(64, 64), num_critics=4), 4, 2
     out = {"size": args.size, "backend": jax.default_backend(), "jax": jax.__version__, "rows": []}
-    print(f"online step, {args.size} size, UTD {cfg.utd_ratio}, {jax.default_backend()} ({jax.device_count()} devices)")
+    print(f"online step, {args.size} size, UTD {UTD}, {jax.default_backend()} ({jax.device_count()} devices)")
     print(f"{'members':>7s} {'2 calls ms/step':>16s} {'1 call ms/step':>15s} {'speed-up':>9s}")
     for n in (int(m) for m in args.members.split(",")):
         start = AP.stack([SACAgent.create(cfg, O, A, seed=s) for s in range(n)])
         rng = np.random.default_rng(0)
-        batches = [_batch(rng, n, rows, O, A) for _ in range(4)]
+        batches = [_batch(rng, n, O, A) for _ in range(4)]
         obs = [rng.normal(size=(n, O)).astype(np.float32) for _ in range(4)]
         # the same numbers, bit for bit, and every program compiled before timing
         a2, x2 = two_calls(start, batches[0], obs[0])

@@ -86,7 +86,7 @@ def _agents(workload: str, size: str, n: int):
     if workload == "iql":
         cfg = _fields(IQLConfig, **net, value_hidden_dims=s["hidden"])
         return [IQLAgent.create(cfg, s["obs"], s["act"], seed) for seed in range(n)]
-    cfg = _fields(SACConfig, **net, utd_ratio=4, max_target_backup=s["backup"], num_backup_actions=s["n_actions"])
+    cfg = _fields(SACConfig, **net, max_target_backup=s["backup"], num_backup_actions=s["n_actions"])
     return [SACAgent.create(cfg, s["obs"], s["act"], seed) for seed in range(n)]
 
 
@@ -96,7 +96,7 @@ def build(workload: str, size: str, n: int, k: int):
     agents = P.stack(_agents(workload, size, n))
     state = {"agents": agents}
     if workload == "online":
-        batch = make_batch(4 * 256, s["obs"], s["act"], 0, lead=(n,))
+        batch = make_batch(256, s["obs"], s["act"], 0, lead=(n, 4))  # UTD 4: 4 minibatches of 256
 
         def call(a):
             return P.update(a, batch)[0]

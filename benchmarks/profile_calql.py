@@ -81,7 +81,7 @@ def main(argv=None) -> int:
     O, A, B, N = args.obs_dim, args.action_dim, args.batch, args.critics
     cfg = CQLConfig(actor_hidden_dims=(256, 256), critic_hidden_dims=hidden, num_critics=N,
                     calql=True, cql_lagrange=False, max_target_backup=True, num_backup_actions=10,
-                    cql_n_actions=10, utd_ratio=1)
+                    cql_n_actions=10)
     agent = CQLAgent.create(cfg, O, A, 0)
     batch = make_batch(B, O, A)
     key = jax.random.PRNGKey(1)

@@ -1,13 +1,12 @@
-"""Shared test fixtures. Each area's tests live in tests/test_<area>_*.py."""
+"""Shared test fixtures and the environment every test runs in; the helpers tests share are in
+helpers.py. Each area's tests live in tests/test_<area>_*.py."""
 
 from __future__ import annotations
 
 import os
 import tempfile
 from pathlib import Path
-from typing import Sequence
 
-import numpy as np
 import pytest
 
 # Tests must never reach the network or a user's datasets.
@@ -18,14 +17,12 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 # devices (agents/population.py) whatever the core count; subprocess runs inherit it.
 os.environ.setdefault("BOTORL_CPU_DEVICES", "2")
 
-from botorl.data.dataset import BATCH_KEYS  # noqa: E402
-from botorl.data.replay import split_counts  # noqa: E402
-from botorl.errors import BotorlError  # noqa: E402
 from botorl.jaxsetup import setup_jax  # noqa: E402
+
+from helpers import REPO_ROOT  # noqa: E402
 
 setup_jax()
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED = REPO_ROOT.parent / "shared"
 
 
@@ -36,113 +33,6 @@ def door_demos_path() -> Path:
     if not path.exists():
         pytest.skip(f"{path} is not present")
     return path
-
-
-def load_example(name: str):
-    """``examples/<name>.py`` imported as a module (the examples are scripts, not a package)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(f"{name}_example", REPO_ROOT / "examples" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def subprocess_env() -> dict[str, str]:
-    """The environment of a botorl subprocess: this checkout first on the path."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO_ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
-
-
-def sigkill_in_finetune(cmd: list[str], out: Path, *, cwd=None, timeout: float = 600):
-    """Start ``cmd`` (a `botorl run`), SIGKILL it as soon as ``out`` holds a mid-fine-tuning
-    checkpoint, and return (the step it was killed at, the process). Fails the test when no
-    such checkpoint appears; latest.json must never be read half-written (atomic writes)."""
-    import json
-    import signal
-    import subprocess
-    import time
-
-    proc = subprocess.Popen(cmd, cwd=cwd, env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            start_new_session=True)
-    latest = out / "checkpoints" / "latest.json"
-    killed_at = None
-    deadline = time.time() + timeout
-    try:
-        while time.time() < deadline and proc.poll() is None:
-            if latest.exists():
-                try:
-                    info = json.loads(latest.read_text())
-                except json.JSONDecodeError:
-                    raise AssertionError("latest.json was read half-written") from None
-                if info["stage"] == "finetune" and not info["stage_done"]:
-                    os.kill(proc.pid, signal.SIGKILL)
-                    killed_at = info["step"]
-                    break
-            time.sleep(0.02)
-    finally:
-        if proc.poll() is None and killed_at is None:
-            os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=30)
-    assert killed_at is not None, f"no mid-stage checkpoint appeared; stderr: {proc.stderr.read().decode()[-2000:]}"
-    return killed_at, proc
-
-
-# ------------------------------------------------------------------ reference samplers for the replay tests
-
-
-class FinishedRows:
-    """The rows of a single ``ReplayBuffer`` whose episode has ended, oldest first (a live view):
-    the reference for ``ReplayBuffer.sample_members(..., finished=True)``."""
-
-    def __init__(self, buffer):
-        self.buffer = buffer
-
-    def __len__(self) -> int:
-        return self.buffer.finished_len()
-
-    def batch_at(self, idx: np.ndarray) -> dict:
-        b = self.buffer
-        oldest = b.insert_index if b.size == b.capacity else 0
-        return b.batch_at((oldest + np.asarray(idx)) % b.capacity)
-
-    def sample(self, rng: np.random.Generator, batch_size: int, num_batches: int | None = None) -> dict:
-        if len(self) == 0:
-            raise BotorlError("no finished episode in the replay buffer yet; wait for one to end before sampling.")
-        shape = (batch_size,) if num_batches is None else (num_batches, batch_size)
-        return self.batch_at(rng.integers(0, len(self), size=shape))
-
-
-def sample_mixed(
-    sources,
-    ratios: Sequence[float],
-    rng: np.random.Generator,
-    batch_size: int,
-    num_batches: int | None = None,
-) -> dict:
-    """One Batch whose rows come from ``sources`` in proportion ``ratios``: the reference for
-    ``ReplayBuffer.sample_members(..., offline=...)``.
-
-    Rows are grouped by source in the order given (source 0's rows first); each source is
-    sampled uniformly with replacement. An empty source's share goes to the non-empty ones
-    (in proportion to their ratios), so RLPD-style mixing works before the first online
-    step; if all are empty this raises. With ``num_batches=K`` the result is (K, B, ...).
-    """
-    if len(sources) != len(ratios):
-        raise ValueError(f"{len(sources)} sources but {len(ratios)} ratios")
-    ratios = [float(r) if len(s) > 0 else 0.0 for s, r in zip(sources, ratios)]
-    if sum(ratios) <= 0:
-        raise BotorlError("sample_mixed: every source with a positive ratio is empty; nothing to sample.")
-    counts = split_counts(ratios, batch_size)
-    parts = []
-    for src, c in zip(sources, counts):
-        if c == 0:
-            continue
-        shape = (c,) if num_batches is None else (num_batches, c)
-        parts.append(src.batch_at(rng.integers(0, len(src), size=shape)))
-    axis = 0 if num_batches is None else 1
-    return {k: np.concatenate([p[k] for p in parts], axis=axis) for k in BATCH_KEYS}
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -11,12 +11,13 @@ from botorl.agents.cql import CQLAgent, CQLConfig
 from botorl.agents.iql import IQLAgent, IQLConfig
 from botorl.agents.sac import SACAgent, SACConfig
 from botorl.errors import BotorlError, ConfigError
+from helpers import as_minibatches
 
 O, A, B, K = 4, 2, 8, 3
 
 MAKERS = {
     "sac_utd2": lambda: SACAgent.create(
-        SACConfig(actor_hidden_dims=(16,), critic_hidden_dims=(16,), num_critics=3, utd_ratio=2, max_target_backup=True,
+        SACConfig(actor_hidden_dims=(16,), critic_hidden_dims=(16,), num_critics=3, max_target_backup=True,
                   num_backup_actions=2, backup_entropy=True), O, A, seed=0),
     "calql": lambda: CQLAgent.create(
         CQLConfig(actor_hidden_dims=(16,), critic_hidden_dims=(16,), num_critics=2, cql_n_actions=2, num_backup_actions=2,
@@ -26,9 +27,13 @@ MAKERS = {
 }
 
 
-def batches(seed):
+UTD = {"sac_utd2": 2}  # the makers whose updates take their batch as this many critic minibatches
+
+
+def batches(seed, utd=1):
+    """K batches of B rows; at UTD u, each as u minibatches of B / u rows: (K, u, B / u, ...)."""
     r = np.random.default_rng(seed)
-    return {
+    flat = {
         "observations": r.normal(size=(K, B, O)).astype(np.float32),
         "actions": r.uniform(-0.9, 0.9, (K, B, A)).astype(np.float32),
         "rewards": r.normal(size=(K, B)).astype(np.float32),
@@ -36,6 +41,7 @@ def batches(seed):
         "dones": (r.uniform(size=(K, B)) < 0.2).astype(np.float32),
         "mc_returns": r.normal(size=(K, B)).astype(np.float32),
     }
+    return as_minibatches(flat, utd, axis=1) if utd > 1 else flat
 
 
 def leaves_close(x, y, atol):
@@ -48,7 +54,7 @@ def leaves_close(x, y, atol):
 def stepped(request):
     """(agent0, agent after K single updates) -- the single-update path compiled once."""
     agent0 = MAKERS[request.param]()
-    bs = batches(1)
+    bs = batches(1, UTD.get(request.param, 1))
     agent = agent0
     for i in range(K):
         agent, _ = agent.update({k: v[i] for k, v in bs.items()})
@@ -68,7 +74,8 @@ def test_update_many_on_device_draws_its_batches_inside_the_call(stepped):
     from botorl.agents.common import sample_batches, update_many_on_device
 
     agent0, _, bs = stepped
-    arrays = {k: jax.numpy.asarray(v.reshape((K * B,) + v.shape[2:])) for k, v in bs.items()}
+    rows = bs["rewards"].ndim  # the axes before a row's own: (K, B) or (K, u, B / u)
+    arrays = {k: jax.numpy.asarray(v.reshape((K * B,) + v.shape[rows:])) for k, v in bs.items()}
     key = jax.random.PRNGKey(11)
     on_device, _ = update_many_on_device(agent0, arrays, key, K, B)
     host, _ = agent0.update_many(jax.device_get(sample_batches(arrays, key, K, B)))
@@ -142,7 +149,7 @@ def test_from_pretrained_takes_actor_and_critic(stepped):
     cfg_fields = dict(actor_hidden_dims=(16,), critic_hidden_dims=(16,), num_critics=n)
     for f in ("actor_layer_norm", "critic_layer_norm", "state_dependent_std", "log_std_min", "log_std_max"):
         cfg_fields[f] = getattr(agent.config, f)
-    sac = SACAgent.from_pretrained(agent, SACConfig(**cfg_fields, utd_ratio=1))
+    sac = SACAgent.from_pretrained(agent, SACConfig(**cfg_fields))
     np.testing.assert_array_equal(sac.critic.params["members"]["Dense_0"]["kernel"],
                                   agent.critic.params["members"]["Dense_0"]["kernel"])
     for x, y in zip(jax.tree_util.tree_leaves(sac.actor.params), jax.tree_util.tree_leaves(agent.actor.params)):

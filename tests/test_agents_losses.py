@@ -109,7 +109,7 @@ def test_tanh_gaussian_log_prob_matches_numpy():
 
 @pytest.mark.parametrize("replace", [True, False])
 def test_subset_min_target(replace):
-    cfg = SACConfig(**TINY, num_min_critics=2, subsample_replace=replace, backup_entropy=True, utd_ratio=1)
+    cfg = SACConfig(**TINY, num_min_critics=2, subsample_replace=replace, backup_entropy=True)
     agent = SACAgent.create(cfg, O, A, seed=1)
     # Distinct target params so the subset matters.
     agent = agent.replace(target_critic_params=jax.tree_util.tree_map(lambda x: x * 1.3 + 0.01, agent.critic.params))
@@ -159,7 +159,7 @@ def test_two_critic_baseline_target_is_min_of_both_and_penalises_both():
 
 def test_max_target_backup():
     n = 3
-    cfg = SACConfig(**TINY, num_min_critics=3, max_target_backup=True, num_backup_actions=n, backup_entropy=True, utd_ratio=1)
+    cfg = SACConfig(**TINY, num_min_critics=3, max_target_backup=True, num_backup_actions=n, backup_entropy=True)
     agent = SACAgent.create(cfg, O, A, seed=2)
     batch = make_batch(1)
     key = jax.random.PRNGKey(11)

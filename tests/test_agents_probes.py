@@ -13,6 +13,7 @@ import pytest
 from botorl.agents.cql import CQLAgent, CQLConfig
 from botorl.agents.iql import IQLAgent, IQLConfig
 from botorl.agents.sac import SACAgent, SACConfig
+from helpers import as_minibatches
 
 NET = dict(actor_hidden_dims=(32, 32), critic_hidden_dims=(32, 32), num_critics=2, num_min_critics=2)
 B, K = 64, 50
@@ -56,7 +57,7 @@ def q_at(agent, obs_row, actions):
 @pytest.mark.parametrize(
     "make",
     [
-        lambda: SACAgent.create(SACConfig(**NET, critic_lr=3e-3, utd_ratio=1), 1, 1, seed=0),
+        lambda: SACAgent.create(SACConfig(**NET, critic_lr=3e-3), 1, 1, seed=0),
         # A small fixed CQL weight w biases data Q upward by about w/2; 0.05 keeps it in tolerance.
         lambda: CQLAgent.create(CQLConfig(**NET, critic_lr=3e-3, cql_lagrange=False, cql_weight=0.05, cql_n_actions=4), 1, 1, seed=0),
     ],
@@ -95,19 +96,19 @@ def chain_batches(seed, n_chunks, gamma_unused=None):
 
 
 @pytest.mark.parametrize(
-    "make",
+    "make, utd",
     [
-        lambda: SACAgent.create(SACConfig(**NET, critic_lr=3e-3, discount=0.9, tau=0.05, utd_ratio=2), 3, 1, seed=1),
-        lambda: IQLAgent.create(
+        (lambda: SACAgent.create(SACConfig(**NET, critic_lr=3e-3, discount=0.9, tau=0.05), 3, 1, seed=1), 2),
+        (lambda: IQLAgent.create(
             IQLConfig(actor_hidden_dims=(32, 32), critic_hidden_dims=(32, 32), value_hidden_dims=(32, 32),
-                      critic_lr=3e-3, value_lr=3e-3, discount=0.9, tau=0.05, expectile=0.7), 3, 1, seed=1),
+                      critic_lr=3e-3, value_lr=3e-3, discount=0.9, tau=0.05, expectile=0.7), 3, 1, seed=1), 1),
     ],
     ids=["sac", "iql"],
 )
-def test_two_state_chain_discount(make):
+def test_two_state_chain_discount(make, utd):
     # Q(s1, a) = 1 (terminal), Q(s0, a) = 0 + 0.9 * V(s1) = 0.9 for every action.
     agent = make()
-    agent, _ = train(agent, chain_batches(1, 8))
+    agent, _ = train(agent, [as_minibatches(c, utd, axis=1) if utd > 1 else c for c in chain_batches(1, 8)])
     acts = np.linspace(-0.9, 0.9, 7)[:, None]
     q0 = q_at(agent, [1, 0, 0], acts)
     q1 = q_at(agent, [0, 1, 0], acts)

@@ -54,7 +54,7 @@ def obs():
 @pytest.fixture(scope="module")
 def known_actor_agent():
     """A SAC agent whose actor outputs MEAN and LOG_STD at every state."""
-    agent = SACAgent.create(SACConfig(**NET, utd_ratio=1), O, A, seed=0)
+    agent = SACAgent.create(SACConfig(**NET), O, A, seed=0)
     p = jax.tree_util.tree_map(lambda x: x, agent.actor.params)
     p["mean"] = {"kernel": jnp.zeros_like(p["mean"]["kernel"]), "bias": jnp.asarray(MEAN)}
     p["log_std"] = {"kernel": jnp.zeros_like(p["log_std"]["kernel"]), "bias": jnp.asarray(LOG_STD)}
@@ -86,7 +86,7 @@ def test_flat_critic_falls_back_to_init_temp(known_actor_agent, obs):
 
 def test_relu_critic_without_layer_norm_falls_back(obs):
     # A ReLU network is piecewise linear in the action: its Hessian is 0, no curvature to use.
-    agent = SACAgent.create(SACConfig(**NET, critic_layer_norm=False, utd_ratio=1), O, A, seed=1)
+    agent = SACAgent.create(SACConfig(**NET, critic_layer_norm=False), O, A, seed=1)
     tau0, info = stationary_temperature(agent, obs, init_temp=1.0)
     assert (tau0, info["rule"], info["used"]) == (1.0, "fallback", 0.0)
 
@@ -105,7 +105,7 @@ def iql_agent():
 def sac_config_for(agent, **kw):
     fields = {f: getattr(agent.config, f) for f in
               ("actor_layer_norm", "critic_layer_norm", "state_dependent_std", "log_std_min", "log_std_max")}
-    return SACConfig(**NET, **fields, utd_ratio=1, **kw)
+    return SACConfig(**NET, **fields, **kw)
 
 
 def test_from_iql_starts_at_the_rules_value(iql_agent, obs):
@@ -133,7 +133,7 @@ def test_from_iql_without_curvature_warns_and_uses_init_temp(obs):
 
 
 def test_from_calql_keeps_the_carried_temperature(obs):
-    cfg = CQLConfig(**NET, cql_n_actions=2, num_backup_actions=2, calql=True, utd_ratio=1)
+    cfg = CQLConfig(**NET, cql_n_actions=2, num_backup_actions=2, calql=True)
     calql = CQLAgent.create(cfg, O, A, seed=5)
     calql = calql.replace(temp=calql.temp.replace(params={"log_temp": jnp.asarray(math.log(0.037), jnp.float32)}))
     with warnings.catch_warnings():

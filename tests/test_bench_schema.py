@@ -51,7 +51,7 @@ def test_online_loop_times_the_fine_tuning_loop():
     from botorl.envs.registry import get_task
 
     spec = get_task("pointmaze-umaze")
-    agent = SACAgent.create(SACConfig(actor_hidden_dims=(8,), critic_hidden_dims=(8,), num_critics=2, utd_ratio=2),
+    agent = SACAgent.create(SACConfig(actor_hidden_dims=(8,), critic_hidden_dims=(8,), num_critics=2),
                             spec.obs_dim, spec.action_dim, 0)
     loop = OnlineLoop(agent, spec, batch=4, utd=2, prefill=10)
     with loop.state:

@@ -7,7 +7,7 @@ import pytest
 
 from botorl.data.dataset import Dataset
 from botorl.data.replay import ReplayBuffer, split_counts
-from conftest import sample_mixed
+from helpers import sample_mixed
 
 
 def row(i):

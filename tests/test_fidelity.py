@@ -24,7 +24,7 @@ from botorl.data.dataset import Dataset
 from botorl.data.replay import ReplayBuffer
 from botorl.errors import ConfigError
 from botorl.pipeline.stages import make_pretrain_agent
-from conftest import FinishedRows, sample_mixed
+from helpers import FinishedRows, sample_mixed
 
 O, A, B = 4, 2, 32
 
@@ -57,7 +57,8 @@ def test_every_critic_of_the_ensemble_is_distinct(warm_started):
     assert cfg.network.num_critics == 4 and cfg.online.sac.num_critics == 4
     rng = np.random.default_rng(1)
     for _ in range(3):
-        online, _ = online.update({k: np.concatenate([v] * cfg.online.utd) for k, v in _batch(rng).items()})
+        # an online update: utd critic minibatches, (utd, B, ...)
+        online, _ = online.update({k: np.stack([v] * cfg.online.utd) for k, v in _batch(rng).items()})
     kernel = np.asarray(online.critic.params["members"]["MLP_0"]["Dense_0"]["kernel"])  # (N, in, H)
     for i, j in itertools.combinations(range(kernel.shape[0]), 2):
         assert np.abs(kernel[i] - kernel[j]).max() > 1e-3, f"critics {i} and {j} are copies"

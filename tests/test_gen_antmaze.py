@@ -115,7 +115,7 @@ def test_goal_is_redrawn_when_reached():
 def tiny_agent():
     from botorl.agents.sac import SACAgent, SACConfig
 
-    cfg = SACConfig(actor_hidden_dims=(16, 16), critic_hidden_dims=(16, 16), num_critics=2, utd_ratio=1)
+    cfg = SACConfig(actor_hidden_dims=(16, 16), critic_hidden_dims=(16, 16), num_critics=2)
     return SACAgent.create(cfg, 29, 8, seed=0)
 
 

@@ -16,18 +16,20 @@ pytestmark = [pytest.mark.gpu,
               pytest.mark.skipif(jax.default_backend() not in ("gpu", "cuda", "rocm"), reason="needs a GPU")]
 
 
-def _batch(rng, n_rows, obs=29, act=8):
-    return {"observations": rng.normal(size=(n_rows, obs)).astype(np.float32),
-            "actions": rng.uniform(-0.9, 0.9, (n_rows, act)).astype(np.float32),
-            "rewards": rng.normal(size=n_rows).astype(np.float32),
-            "next_observations": rng.normal(size=(n_rows, obs)).astype(np.float32),
-            "dones": np.zeros(n_rows, np.float32), "mc_returns": np.zeros(n_rows, np.float32)}
+def _batch(rng, utd=4, rows=256, obs=29, act=8):
+    """One update's batch at UTD 4: 4 critic minibatches of 256 rows, (4, 256, ...), the actor's 1,024."""
+    n = (utd, rows)
+    return {"observations": rng.normal(size=n + (obs,)).astype(np.float32),
+            "actions": rng.uniform(-0.9, 0.9, n + (act,)).astype(np.float32),
+            "rewards": rng.normal(size=n).astype(np.float32),
+            "next_observations": rng.normal(size=n + (obs,)).astype(np.float32),
+            "dones": np.zeros(n, np.float32), "mc_returns": np.zeros(n, np.float32)}
 
 
 def _full_sac():
     from botorl.agents.sac import SACConfig
 
-    return SACConfig(actor_hidden_dims=(256, 256), critic_hidden_dims=(256,) * 4, num_critics=10, utd_ratio=4)
+    return SACConfig(actor_hidden_dims=(256, 256), critic_hidden_dims=(256,) * 4, num_critics=10)
 
 
 def test_full_size_online_step_on_the_device():
@@ -36,7 +38,7 @@ def test_full_size_online_step_on_the_device():
     agent = SACAgent.create(_full_sac(), obs_dim=29, action_dim=8, seed=0)
     rng = np.random.default_rng(0)
     for _ in range(3):
-        agent, info = agent.update(_batch(rng, 1024))
+        agent, info = agent.update(_batch(rng))
     assert all(np.isfinite(float(v)) for v in jax.tree_util.tree_leaves(info))
     assert agent.critic.params is not None and jax.tree_util.tree_leaves(agent.critic.params)[0].devices() <= set(jax.devices())
 
@@ -53,7 +55,7 @@ def test_population_of_16_members_is_each_member_alone(precision):
     cfg = _full_sac()
     members = [SACAgent.create(cfg, obs_dim=29, action_dim=8, seed=s) for s in range(16)]
     rng = np.random.default_rng(1)
-    batches = [_batch(rng, 1024) for _ in range(16)]
+    batches = [_batch(rng) for _ in range(16)]
     stacked = {k: np.stack([b[k] for b in batches]) for k in batches[0]}
     with matmul_precision(precision):
         pop, _ = AP.update(AP.stack(members), stacked)

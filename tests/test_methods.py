@@ -39,6 +39,31 @@ def test_the_target_entropy_is_set_in_one_place():
     assert [name for name, _ in sets] == ["resolve.py"], sets
 
 
+def test_a_runs_alpha_is_checked_once_where_it_enters(monkeypatch):
+    """The run's config: validate refuses an alpha for a method without BOTO and checks its
+    range, once; the population's members and the BOTO stage (boto_updates) take it as checked."""
+    import numpy as np
+
+    from botorl.agents.population import stack
+    from botorl.agents.sac import SACAgent, SACConfig
+    from botorl.boto import phase
+    from botorl.configs import members, resolve
+    from botorl.configs.methods import Method
+    from botorl.data.dataset import Dataset
+    from botorl.pipeline.cli import build_config
+
+    calls = []
+    for module in (resolve, members, phase):
+        monkeypatch.setattr(module, "check_alpha", lambda a, *_, m=module.__name__: calls.append((m, a)))
+    monkeypatch.setattr(Method, "refuse_alpha", lambda self, flag: calls.append(("refuse", flag)))
+    cfg = build_config(["--profile", "smoke", "--seeds", "0-1", "--alphas", "-0.5,0.5"])
+    _, member_cfgs = members.population(cfg)
+    agent = SACAgent.create(SACConfig(actor_hidden_dims=(8,), critic_hidden_dims=(8,), num_critics=2), 3, 2, 0)
+    data = Dataset(np.zeros((10, 3)), np.zeros((10, 2)), np.zeros(10), np.zeros((10, 3)), np.zeros(10))
+    phase.boto_updates(stack([agent] * 4), data, [None] * 4, cfg.boto, [c.alpha for c in member_cfgs], [0, 1, 0, 1])
+    assert calls == [("refuse", "--alpha"), ("botorl.configs.resolve", -0.5)]
+
+
 def test_the_boto_stage_checks_alpha_once(monkeypatch):
     # train_boto checks its alphas on entry, not again at every call's population update
     import numpy as np

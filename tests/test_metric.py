@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import load_example
-from conftest import subprocess_env as _env
+from helpers import load_example
+from helpers import subprocess_env as _env
 
 import botorl
 from botorl.cli import main as cli_main

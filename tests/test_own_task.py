@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import sigkill_in_finetune
-from conftest import load_example
-from conftest import subprocess_env as _env
+from helpers import sigkill_in_finetune
+from helpers import load_example
+from helpers import subprocess_env as _env
 from gymnasium import spaces
 
 import botorl

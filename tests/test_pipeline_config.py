@@ -146,6 +146,54 @@ def test_run_config_file(tmp_path, capsys):
         build_config(["--config", str(tmp_path / "missing.json")])
 
 
+@pytest.mark.parametrize("section, field, value", [
+    ("online.sac", "critic_hidden_dims", [10**9]),  # would pass the bounds on network.* and exhaust memory
+    ("offline.iql", "value_hidden_dims", [8]),
+    ("offline.cql", "num_critics", 3),
+    ("offline.cql", "calql", False),  # pretrain says calql
+])
+def test_a_config_file_whose_agent_copy_differs_is_refused(tmp_path, capsys, section, field, value):
+    """A derived field is never taken from a file (`--config`, a run's config.json): one whose
+    agent's copy differs from the run-config field it copies is exit 2 naming both, before any
+    work, and in seconds (the critic-width case built a 10**9-unit layer before)."""
+    import json
+    import time
+
+    from botorl.configs.resolve import DERIVED
+    from botorl.pipeline.policy import read_run
+
+    doc = to_dict(resolve(make_preset("pointmaze-umaze", "smoke", "boto")))
+    outer, inner = section.split(".")
+    doc[outer][inner][field] = value
+    path = tmp_path / "cfg.json"
+    path.write_text(json.dumps(doc))
+    start = time.monotonic()
+    code, err = _run(capsys, tmp_path, "--config", str(path))
+    assert code == 2 and time.monotonic() - start < 30
+    assert f"{section}.{field} = " in err and DERIVED[field] in err and "Traceback" not in err, err
+    run = tmp_path / "r"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps(doc))
+    with pytest.raises(ConfigError, match=f"{section}.{field} = .* differs from {DERIVED[field]}"):
+        read_run(run)
+
+
+def test_a_config_file_from_before_the_utd_left_the_agents_still_runs(tmp_path):
+    """A file written when the agents' configs held a copy of the UTD (``utd_ratio``) reads back
+    as the same config: the UTD is online.utd's, and the run keeps its identity (so resumes)."""
+    import json
+
+    from botorl.configs.schema import run_identity
+
+    cfg = resolve(make_preset("pointmaze-umaze", "smoke", "calql"))
+    doc = to_dict(cfg)
+    doc["online"]["sac"]["utd_ratio"], doc["offline"]["cql"]["utd_ratio"] = cfg.online.utd, 1
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    assert build_config(["--config", str(tmp_path / "old.json")]) == cfg
+    # the digests of this very config before the field left the schema (commit 8a7021f)
+    assert (run_identity(cfg)["config"], run_identity(cfg)["pretraining"]) == ("442f01618c14703c", "6ca13608f9b565d7")
+
+
 def test_quick_pointmaze_pretrain_default_and_budget():
     # The paper's pipeline on every profile: BOTO and WSRL pre-train with Cal-QL; on quick
     # pointmaze with 2 action samples per kind, 128-row batches and one budget for every
@@ -312,7 +360,7 @@ def test_a_derived_agent_field_is_refused_naming_its_one_flag(capsys, flag, name
     assert flag[0].split("=")[0] in err and f"give {names} instead" in err
 
 
-def test_each_agent_takes_network_and_utd_from_the_one_field():
+def test_each_agent_takes_network_from_the_one_field_and_no_utd():
     from botorl.configs.resolve import DERIVED
 
     cfg = build_config(["--method", "calql", "--profile", "smoke", "--online.utd", "3", "--network.num-critics", "5",
@@ -320,10 +368,9 @@ def test_each_agent_takes_network_and_utd_from_the_one_field():
     for agent in (cfg.offline.cql, cfg.offline.iql, cfg.online.sac):
         assert agent.num_critics == 5 and agent.critic_hidden_dims == (8, 8) and not agent.critic_layer_norm
     assert cfg.offline.iql.value_hidden_dims == (8, 8)
-    # one batch per pre-training critic step whatever the online UTD; calql takes online.utd
-    # when fine-tuning starts (test_calql_pretrains_on_one_batch_per_critic_step)
-    assert cfg.online.sac.utd_ratio == 3 and cfg.offline.cql.utd_ratio == 1
-    assert build_config(["--profile", "smoke", "--online.utd", "3"]).offline.cql.utd_ratio == 1  # BOTO pre-trains
+    # the UTD is online.utd alone: an update's batch carries it as its minibatches
+    # (test_calql_pretrains_on_one_batch_per_critic_step), so no agent config holds a copy
+    assert not [f for a in (cfg.offline.cql, cfg.offline.iql, cfg.online.sac) for f in vars(a) if "utd" in f]
     assert set(DERIVED) <= {f for a in (cfg.offline.cql, cfg.offline.iql) for f in vars(a)}
 
 
@@ -413,9 +460,6 @@ def test_wsrl_settings_in_every_method_and_profile(profile):
             want = {"boto": -adim, "wsrl": -adim, "rlpd": -adim / 2}.get(method)
             assert sac.target_entropy == want, (task, method)
             assert cql.target_entropy is None
-            # pre-training takes one batch per critic step, whatever the online UTD
-            assert cql.utd_ratio == 1, (task, method)
-            assert sac.utd_ratio == cfg.online.utd
 
 
 def test_lagrange_penalty_is_the_multiplier_alone():

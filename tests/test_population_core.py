@@ -58,11 +58,9 @@ def test_parse_seeds_and_alphas():
     for bad in ("0.5,0.5", "-1.5", "0,2", "1:-1:0.5", "a"):
         with pytest.raises(ConfigError):
             P.parse_alphas(bad)
-    ms = P.make_members([0, 1], [-0.5, 0.5], P.get_method("boto"))
+    ms = P.make_members([0, 1], [-0.5, 0.5])
     assert [(m.seed, m.alpha) for m in ms] == [(0, -0.5), (1, -0.5), (0, 0.5), (1, 0.5)]
     assert ms[0].name == "alpha-0.50-seed0" and P.Member(3).name == "seed3"
-    with pytest.raises(ConfigError, match="no BOTO phase"):
-        P.make_members([0], [0.5], P.get_method("wsrl"))
 
 
 # ------------------------------------------------------------------ stacking and vmapped updates
@@ -188,7 +186,7 @@ def test_union_sampling_matches_concat(dataset):
 
 
 def test_member_replay_matches_replay_buffer(dataset):
-    from conftest import sample_mixed
+    from helpers import sample_mixed
 
     rng = np.random.default_rng(2)
     n, cap = 3, 50
@@ -219,7 +217,7 @@ def test_sample_active_draws_each_active_member_as_a_single_run(dataset):
     """The fine-tuning batch of a population with an inactive member (Cal-QL online before its
     first episode ends): each active member draws exactly what its single run draws, from
     its own rows (the flat gather must index the right member), the inactive one nothing."""
-    from conftest import FinishedRows, sample_mixed
+    from helpers import FinishedRows, sample_mixed
 
     rng = np.random.default_rng(4)
     n, cap = 3, 40

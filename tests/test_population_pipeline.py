@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import subprocess_env as _env
+from helpers import subprocess_env as _env
 
 from botorl.cli import main as botorl_main
 

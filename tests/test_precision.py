@@ -30,6 +30,9 @@ def test_default_is_tf32_and_leaves_the_run_identity_as_before_the_field():
 
     kept = {k: v for k, v in flat.items()
             if k not in _NOT_STATE and not k.startswith(("eval.", "metric.")) and not k.endswith("log_every")}
+    # and the agents' former copies of the UTD, kept at their values for the same reason
+    # (test_pipeline_config.py::test_a_config_file_from_before_the_utd_left_the_agents_still_runs)
+    kept.update({"online.sac.utd_ratio": cfg.online.utd, "offline.cql.utd_ratio": 1})
     assert old == _digest(kept)
     # another precision computes other numbers: another run
     cfg.precision = "highest"
@@ -75,7 +78,7 @@ def _dots(text: str) -> list[tuple[str, bool]]:
 def test_every_matmul_of_an_update_runs_at_the_precision(precision, want):
     """The SAC update (critics with LayerNorm, actor, temperature) lowered under the policy: every
     dot carries it, except LayerNorm's row statistics, which ask for HIGHEST themselves."""
-    from botorl.agents.common import jit_update
+    from botorl.agents.common import jit_agent_update
     from botorl.agents.sac import SACAgent, SACConfig
 
     agent = SACAgent.create(SACConfig(actor_hidden_dims=(8, 8), critic_hidden_dims=(8, 8), num_critics=2,
@@ -85,14 +88,14 @@ def test_every_matmul_of_an_update_runs_at_the_precision(precision, want):
              "rewards": np.zeros(4, np.float32), "next_observations": rng.normal(size=(4, 3)).astype(np.float32),
              "dones": np.zeros(4, np.float32), "mc_returns": np.zeros(4, np.float32)}
     with matmul_precision(precision):
-        dots = _dots(jit_update.lower(agent, batch).as_text())
+        dots = _dots(jit_agent_update.lower(agent, batch).as_text())
     layers = [ln for ln, stats in dots if not stats]
     assert len(layers) >= 16  # forward and backward of actor and critics
     assert all(want in ln for ln in layers), [ln for ln in layers if want not in ln][:2]
     assert all("precision = [HIGHEST, HIGHEST]" in ln for ln, stats in dots if stats)
     # and outside the policy's scope the dots are JAX's default, as before the field
     assert all("precision = [DEFAULT, DEFAULT]" in ln and "algorithm" not in ln
-               for ln, stats in _dots(jit_update.lower(agent, batch).as_text()) if not stats)
+               for ln, stats in _dots(jit_agent_update.lower(agent, batch).as_text()) if not stats)
 
 
 def test_a_config_file_from_before_the_field_still_runs(tmp_path):

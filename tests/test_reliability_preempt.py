@@ -151,6 +151,7 @@ def test_signal_before_training_leaves_nothing_to_resume(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # a population run to the end, and one signalled and resumed
 def test_population_signal_resumes_exactly(tmp_path, capsys):
     """A population of two hit by SIGTERM in fine-tuning: one checkpoint of the population at
     that step, every member and population.json ``interrupted``; resumed, every member ends as

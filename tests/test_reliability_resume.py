@@ -311,6 +311,7 @@ def test_sigkill_then_resume(reference, family, every_stage, tmp_path):
 
 # ----------------------------------------------------------------------------- populations
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # an uninterrupted population and two killed ones, resumed
 def test_population_resumes_exactly(tmp_path, capsys):
     """A population of two (each member its own env) killed in BOTO and in fine-tuning: every
     member, and the population's own checkpoint, end as in the uninterrupted population."""

@@ -880,7 +880,7 @@ def test_ctrl_c_during_shutdown_exits_130_quietly():
     import subprocess
     import sys
 
-    from conftest import subprocess_env
+    from helpers import subprocess_env
 
     code = ("import atexit, os, signal, sys, time\n"
             "atexit.register(lambda: (os.kill(os.getpid(), signal.SIGINT), time.sleep(5)))\n"
@@ -899,7 +899,7 @@ def test_output_into_a_closed_pipe_ends_quietly():
     import subprocess
     import sys
 
-    from conftest import subprocess_env
+    from helpers import subprocess_env
 
     read_end, write_end = os.pipe()
     os.close(read_end)

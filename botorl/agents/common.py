@@ -22,7 +22,8 @@ from botorl.networks import CriticEnsemble, TanhGaussianActor, sample_tanh_gauss
 
 __all__ = [
     "TrainState", "acting_view", "update_fn", "update_many_fn", "sample_fn", "eval_fn", "q_mean_fn",
-    "update_many_on_device_fn", "jit_update", "jit_update_many", "jit_sample", "jit_eval", "jit_q_mean", "adam",
+    "update_many_on_device_fn", "jit_agent_update", "jit_agent_update_many", "jit_agent_sample", "jit_agent_eval",
+    "jit_agent_q_mean", "adam",
     "train_state", "checked_batch", "chunk_size", "summed_value_and_grad", "update_many_on_device", "sample_batches",
     "module_def", "ActorCriticAgent", "check_fields",
 ]
@@ -87,8 +88,9 @@ def summed_value_and_grad(loss_fn, params, rows, per_chunk: int):
 
 # ------------------------------------------------------------------ the traced bodies
 # One agent's update, update_many, action draws and Q mean as plain traced functions: the
-# ``jit_*`` below are these jitted (the agents' methods call them), and a population maps the
-# same functions over its member axis (agents/population.py).
+# ``jit_agent_*`` below are these jitted for one agent (its methods call them), and a population
+# maps the same functions over its member axis and jits that (``population.jit_update`` and the
+# rest, agents/population.py).
 def update_fn(agent, batch):
     return agent.train_step(batch)
 
@@ -135,19 +137,19 @@ def update_many_on_device_fn(agent, arrays, key, num_updates: int, batch_size: i
     return update_many_fn(agent, sample_batches(arrays, key, num_updates, batch_size))
 
 
-jit_update = jax.jit(update_fn)
-jit_update_many = jax.jit(update_many_fn)
-jit_sample = jax.jit(sample_fn)
-jit_eval = jax.jit(eval_fn)
-jit_q_mean = jax.jit(q_mean_fn)
-_jit_update_many_on_device = jax.jit(update_many_on_device_fn, static_argnames=("num_updates", "batch_size"))
+jit_agent_update = jax.jit(update_fn)
+jit_agent_update_many = jax.jit(update_many_fn)
+jit_agent_sample = jax.jit(sample_fn)
+jit_agent_eval = jax.jit(eval_fn)
+jit_agent_q_mean = jax.jit(q_mean_fn)
+_jit_agent_update_many_on_device = jax.jit(update_many_on_device_fn, static_argnames=("num_updates", "batch_size"))
 
 
 def update_many_on_device(agent, arrays: dict, key: jax.Array, num_updates: int, batch_size: int):
     """``agent.update_many`` on ``num_updates`` uniform batches drawn inside the jitted call
     from ``arrays`` (``Dataset.to_device()``): no host sampling or copy per call, what an
     accelerator wants (``offline.sample_on_device``). Same key, same batches."""
-    return _jit_update_many_on_device(agent, checked_batch(arrays), key, num_updates, batch_size)
+    return _jit_agent_update_many_on_device(agent, checked_batch(arrays), key, num_updates, batch_size)
 
 
 def checked_batch(batch) -> Batch:
@@ -203,19 +205,20 @@ class ActorCriticAgent:
     (SAC, CQL, IQL): a tanh-Gaussian actor, a critic ensemble and its target parameters."""
 
     def update(self, batch):
-        """One learning step (SAC: UTD u critic steps + 1 actor + 1 temperature); jitted."""
-        return jit_update(self, checked_batch(batch))
+        """One learning step (SAC: u critic steps + 1 actor + 1 temperature on a batch of u
+        minibatches, (u, B, ...), or one, (B, ...)); jitted."""
+        return jit_agent_update(self, checked_batch(batch))
 
     def update_many(self, batches):
         """K updates in one call (``lax.scan``); batches have a leading axis K."""
-        return jit_update_many(self, checked_batch(batches))
+        return jit_agent_update_many(self, checked_batch(batches))
 
     def sample_actions(self, observations):
-        actions, rng = jit_sample(acting_view(self), jnp.asarray(observations, jnp.float32))
+        actions, rng = jit_agent_sample(acting_view(self), jnp.asarray(observations, jnp.float32))
         return actions, self.replace(rng=rng)
 
     def eval_actions(self, observations):
-        return jit_eval(acting_view(self), jnp.asarray(observations, jnp.float32))
+        return jit_agent_eval(acting_view(self), jnp.asarray(observations, jnp.float32))
 
     @classmethod
     def _init(cls, config, obs_dim: int, action_dim: int, seed: int):

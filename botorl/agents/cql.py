@@ -38,7 +38,7 @@ from botorl.agents.common import (
     RATE_WHY, TrainState, check_fields, chunk_size, is_rate, module_def, summed_value_and_grad, train_state,
 )
 from botorl.agents.sac import SAC_CHECKS, SACAgent, SACConfig
-from botorl.networks import CriticEnsemble, Temperature, sample_tanh_gaussian
+from botorl.networks import CriticEnsemble, LagrangeMultiplier, sample_tanh_gaussian
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,6 @@ class CQLConfig(SACConfig):
     """CQL / Cal-QL pre-training; defaults are Cal-QL on antmaze (the docs' Methods page)."""
 
     num_critics: int = 10  # WSRL pre-trains with the fine-tuning ensemble size
-    utd_ratio: int = 1
     max_target_backup: bool = True
     cql_n_actions: int = 10
     cql_importance_sample: bool = True
@@ -84,7 +83,7 @@ class CQLAgent(SACAgent):
     @classmethod
     def create(cls, config: CQLConfig | None = None, obs_dim: int = 0, action_dim: int = 0, seed: int = 0):
         agent = super().create(CQLConfig() if config is None else config, obs_dim, action_dim, seed)
-        l_def = module_def(Temperature, init_value=math.exp(agent.config.cql_lagrange_init_log))
+        l_def = module_def(LagrangeMultiplier, init_value=math.exp(agent.config.cql_lagrange_init_log))
         lagrange = train_state(l_def, jax.random.PRNGKey(0), agent.config.cql_lagrange_lr)
         return agent.replace(lagrange=lagrange)
 

@@ -1,9 +1,11 @@
 """SAC with a critic ensemble: the online learner of the WSRL protocol (stage 3).
 
 One ``update(batch)`` is one environment step's worth of learning at UTD ratio u, as WSRL
-does it: the batch of u*B rows is split into u minibatches; each gets a critic step followed
-by its Polyak update (tau); then one actor step and one temperature step use the whole
-batch. (WSRL: zhouzypaul/wsrl, "utd" handling in the SAC agent's update; RLPD does the same.)
+does it: the batch holds u minibatches of B rows, stacked (u, B, ...); each gets a critic step
+followed by its Polyak update (tau); then one actor step and one temperature step use all u*B
+rows. The UTD is the batch's leading axis, so it is no config field: one fact, the run's
+``online.utd``, passed with the batch (WSRL: zhouzypaul/wsrl, "utd" handling in the SAC
+agent's update; RLPD's ``update(batch, utd_ratio)`` does the same).
 
 WSRL's and RLPD's choices are ``SACConfig`` fields (``subsample_replace``,
 ``actor_objective``). The max-target backup (antmaze) takes, over ``num_backup_actions`` next
@@ -63,7 +65,6 @@ class SACConfig:
     backup_entropy: bool = False
     max_target_backup: bool = False
     num_backup_actions: int = 10
-    utd_ratio: int = 4
     # Rows per chunk of a gradient that is a sum over rows (agents/common.py): None -> sized to
     # the CPU's caches, 0 -> one chunk. Speed only: the same result up to float rounding.
     chunk_rows: int | None = None
@@ -81,7 +82,6 @@ SAC_CHECKS = ACTOR_CRITIC_CHECKS + (
     ("num_min_critics", lambda c: 1 <= c.num_min_critics <= c.num_critics,
      "must be in [1, num_critics = {num_critics}] (--network.num-critics)"),
     ("actor_objective", lambda c: c.actor_objective in ("min", "mean"), 'use "min" (WSRL) or "mean" (RLPD)'),
-    ("utd_ratio", lambda c: c.utd_ratio >= 1, "must be >= 1"),
     ("tau", lambda c: 0.0 < c.tau <= 1.0, "the Polyak rate must be in (0, 1]"),
     ("discount", lambda c: 0.0 <= c.discount <= 1.0, "must be in [0, 1]"),
     ("init_temp", lambda c: c.init_temp > 0, "the temperature must be positive"),
@@ -248,20 +248,17 @@ class SACAgent(ActorCriticAgent, struct.PyTreeNode):
         return self.replace(temp=self.temp.apply_gradients(grads=grads)), info
 
     def train_step(self, batch):
+        """One update at UTD u: ``batch`` is u critic minibatches stacked (u, B, ...), an online
+        step's (u = ``online.utd``), or one minibatch (B, ...), u = 1 (pre-training, benchmarks)."""
         rng, k_critic, k_actor = jax.random.split(self.rng, 3)
         agent = self.replace(rng=rng)
-        u = self.config.utd_ratio
-        bsz = batch["rewards"].shape[0]
-        if bsz % u != 0:
-            raise ConfigError(
-                f"the batch has {bsz} rows but utd_ratio is {u}: the batch of an update is split into "
-                f"utd_ratio critic minibatches, so its size must be a multiple of utd_ratio."
-            )
-        minis = jax.tree_util.tree_map(lambda x: x.reshape((u, bsz // u) + x.shape[1:]), batch)
-        keys = jax.random.split(k_critic, u)
-        agent, c_infos = jax.lax.scan(lambda a, xs: a.critic_step(*xs), agent, (minis, keys))
+        if batch["rewards"].ndim == 1:
+            batch = jax.tree_util.tree_map(lambda x: x[None], batch)
+        u = batch["rewards"].shape[0]
+        agent, c_infos = jax.lax.scan(lambda a, xs: a.critic_step(*xs), agent, (batch, jax.random.split(k_critic, u)))
         info = {k: v[-1] for k, v in c_infos.items()}
-        agent, a_info = agent.actor_step(batch, k_actor)
+        rows = jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[2:]), batch)  # the actor's: all u x B
+        agent, a_info = agent.actor_step(rows, k_actor)
         agent, t_info = agent.temp_step(a_info["entropy"])
         return agent, {**info, **a_info, **t_info}
 

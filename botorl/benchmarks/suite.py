@@ -232,7 +232,7 @@ def _loop_benchmark(w: wl.Workload, repeats: int, min_time: float) -> dict[str, 
     spec = get_task("antmaze-large-diverse-v2")
     obs_dim, action_dim = spec.obs_dim, spec.action_dim
     agent = SACAgent.create(SACConfig(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden,
-                                      num_critics=w.num_critics, utd_ratio=w.utd), obs_dim, action_dim, 0)
+                                      num_critics=w.num_critics), obs_dim, action_dim, 0)
     loop = OnlineLoop(agent, spec, w.batch, w.utd, prefill=max(w.batch * w.utd, 2000))
     # The update alone on the env's shapes (the same jit cache entry as the table's row
     # when those are the same).

@@ -112,27 +112,27 @@ def _bound(agent: Any, call: Callable, batch: Any, updates_per_call: int) -> Bou
 def build(w: Workload, seed: int = 0) -> Bound:
     """The botorl side of a workload."""
     nets = dict(actor_hidden_dims=w.actor_hidden, critic_hidden_dims=w.critic_hidden, num_critics=w.num_critics)
-    rows = w.batch
+    lead = ()
     if w.algo == "boto":
         # K critic steps per jitted call (lax.scan) as the BOTO phase runs them; the q_data /
         # q_uniform forward passes once per call cost a few % of a step at K = 10
-        agent = SACAgent.create(SACConfig(**nets, utd_ratio=1), w.obs_dim, w.action_dim, seed)
+        agent = SACAgent.create(SACConfig(**nets), w.obs_dim, w.action_dim, seed)
         settings = ObjectiveSettings.resolve(BOTOConfig(), agent)
         batches = make_batch(w.batch, w.obs_dim, w.action_dim, seed, lead=(BOTO_STEPS_PER_CALL,))
         return _bound(agent, lambda a, b: boto_update_many(a, b, 0.5, settings), batches, BOTO_STEPS_PER_CALL)
     if w.algo in ("sac", "online"):
-        agent = SACAgent.create(SACConfig(**nets, utd_ratio=w.utd), w.obs_dim, w.action_dim, seed)
-        rows = w.batch * w.utd
+        agent = SACAgent.create(SACConfig(**nets), w.obs_dim, w.action_dim, seed)
+        lead = (w.utd,) if w.utd > 1 else ()  # UTD u: u minibatches of B rows, (u, B, ...)
     elif w.algo in ("calql", "cql"):
         # a fixed CQL weight (no Lagrange step), as on the d3rlpy side
-        cfg = CQLConfig(**nets, utd_ratio=1, calql=w.algo == "calql", cql_n_actions=w.n_action_samples,
+        cfg = CQLConfig(**nets, calql=w.algo == "calql", cql_n_actions=w.n_action_samples,
                         max_target_backup=True, num_backup_actions=w.n_action_samples, cql_lagrange=False)
         agent = CQLAgent.create(cfg, w.obs_dim, w.action_dim, seed)
     elif w.algo == "iql":
         agent = IQLAgent.create(IQLConfig(**nets, value_hidden_dims=w.critic_hidden), w.obs_dim, w.action_dim, seed)
     else:
         raise ValueError(f"unknown workload algo {w.algo!r}")
-    batch = make_batch(rows, w.obs_dim, w.action_dim, seed)
+    batch = make_batch(w.batch, w.obs_dim, w.action_dim, seed, lead)
     if w.scan_k == 1:
         return _bound(agent, lambda a, b: a.update(b), batch, 1)
     batch = jax.tree_util.tree_map(lambda x: jax.numpy.stack([x] * w.scan_k), batch)

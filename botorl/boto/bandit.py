@@ -24,7 +24,7 @@ import tyro
 from scipy.stats import gaussian_kde
 from tqdm.auto import tqdm
 
-from botorl.agents.common import TrainState, jit_q_mean
+from botorl.agents.common import TrainState, jit_agent_q_mean
 from botorl.agents.cql import CQLAgent, CQLConfig
 from botorl.agents.iql import IQLAgent, IQLConfig
 from botorl.agents.population import q_mean
@@ -70,7 +70,7 @@ class BanditConfig:
 
 # The small networks of every bandit critic (gamma = 0: every transition is terminal).
 SMALL_SAC = dict(actor_hidden_dims=(16,), critic_hidden_dims=(64, 64), actor_layer_norm=False, critic_layer_norm=False,
-                 num_critics=2, num_min_critics=2, subsample_replace=False, discount=0.0, utd_ratio=1)
+                 num_critics=2, num_min_critics=2, subsample_replace=False, discount=0.0)
 
 
 def _in_chunks(state, step, steps: int, chunk: int, desc: str, progress: bool):
@@ -252,7 +252,7 @@ def run_fig2(cfg: BanditConfig) -> dict:
     methods = {f"BOTO alpha={a:+.0f}": (q_grid_b[i], q_uni_b[i], q_data_b[i]) for i, a in enumerate(FIG2_ALPHAS)}
 
     def q_of(agent, acts):
-        return np.asarray(jit_q_mean(agent, jnp.zeros((len(acts), ds.obs_dim), jnp.float32), jnp.asarray(acts)))
+        return np.asarray(jit_agent_q_mean(agent, jnp.zeros((len(acts), ds.obs_dim), jnp.float32), jnp.asarray(acts)))
 
     for name, agent in offline.items():
         methods[name] = (q_of(agent, grid), q_of(agent, uniform), q_of(agent, data_acts))

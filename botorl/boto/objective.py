@@ -14,6 +14,8 @@ over alpha trains several critics in one program.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import jax
 import jax.numpy as jnp
 
@@ -26,8 +28,22 @@ from botorl.errors import ConfigError
 from botorl.networks import sample_tanh_gaussian
 
 
-class ObjectiveSettings(BOTOConfig):
-    """A ``BOTOConfig`` resolved against one agent: the static (hashable) settings of the BOTO step."""
+@dataclass(frozen=True)
+class ObjectiveSettings:
+    """What one BOTO critic step reads, every value resolved (``resolve``: a ``BOTOConfig``'s
+    None fields taken from the agent it trains); static and hashable, as the jitted step keys on it."""
+
+    noise: str
+    log_sigma: float
+    sigma: float
+    weight_fn: str | float
+    clip: bool
+    num_min_critics: int
+    subsample_replace: bool
+    backup_entropy: bool
+    discount: float
+    tau: float
+    train_actor: bool
 
     @classmethod
     def resolve(cls, config: BOTOConfig, agent) -> "ObjectiveSettings":
@@ -50,18 +66,19 @@ class ObjectiveSettings(BOTOConfig):
                 f"temperature; {type(agent).__name__} has none. Convert it first with "
                 f"SACAgent.from_pretrained(agent), or keep the actor frozen (train_actor=False)."
             )
-        return cls(**{
-            **vars(config),
-            "log_sigma": float(config.log_sigma),
-            "sigma": float(config.sigma),
-            "clip": bool(config.clip),
-            "num_min_critics": int(k),
-            "subsample_replace": bool(replace),
-            "backup_entropy": bool(config.backup_entropy and hasattr(agent, "temp")),
-            "discount": float(acfg.discount if config.discount is None else config.discount),
-            "tau": float(acfg.tau if config.tau is None else config.tau),
-            "train_actor": bool(config.train_actor),
-        })
+        return cls(
+            noise=config.noise,
+            log_sigma=float(config.log_sigma),
+            sigma=float(config.sigma),
+            weight_fn=config.weight_fn,
+            clip=bool(config.clip),
+            num_min_critics=int(k),
+            subsample_replace=bool(replace),
+            backup_entropy=bool(config.backup_entropy and hasattr(agent, "temp")),
+            discount=float(acfg.discount if config.discount is None else config.discount),
+            tau=float(acfg.tau if config.tau is None else config.tau),
+            train_actor=bool(config.train_actor),
+        )
 
 
 # ----------------------------------------------------------------------------- pure pieces
@@ -161,6 +178,7 @@ def boto_update(agent, batch, alpha: float, config: BOTOConfig | ObjectiveSettin
 
 def population_update_many(agents, batches, alphas, settings: ObjectiveSettings):
     """``boto_update_many`` of every member of a population (agents/population.py), each with its
-    own alpha; ``batches`` (N, K, B, ...), ``alphas`` (N,), checked by the caller (``train_boto``)."""
+    own alpha; ``batches`` (N, K, B, ...), ``alphas`` (N,), checked where they entered (the run's config,
+    ``configs.resolve.validate``, or ``phase.train_boto``), not here."""
     b = {k: as_f32(batches[k]) for k in TRANSITION_KEYS}
     return _jit_population_update_many(*placed(agents, b, as_f32(alphas)), settings=settings)

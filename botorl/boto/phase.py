@@ -58,8 +58,8 @@ def boto_updates(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alp
                  seeds: Sequence[int]) -> Callable:
     """``update(agents, step, k)`` -> (agents, stacked metrics): k BOTO steps of every member in
     one jitted call, member i with ``alphas[i]`` on D_offline u ``d_warmups[i]`` (None: none),
-    the batches of the call at ``step`` from ``default_rng([seeds[i], step // steps_per_call])``."""
-    check_alpha(alphas[0] if len(alphas) == 1 else alphas)  # once, not at every call's update
+    the batches of the call at ``step`` from ``default_rng([seeds[i], step // steps_per_call])``;
+    ``alphas`` as checked where they entered (the run's config: configs.resolve.validate; ``train_boto``)."""
     settings = ObjectiveSettings.resolve(config, member_of(agents, 0))
     alphas = np.asarray(alphas, np.float32)
 
@@ -80,6 +80,7 @@ def train_boto(agents, d_offline, d_warmups: Sequence, config: BOTOConfig, alpha
     agents and one dict of floats per member (the means over the call's steps of
     ``boto_update_many``'s metrics); it may raise to stop (the agents before the call are then
     the last good ones)."""
+    check_alpha(alphas[0] if len(alphas) == 1 else alphas)  # once, not at every call's update
     update = boto_updates(agents, d_offline, d_warmups, config, alphas, seeds)
     end = config.boto_steps if end_step is None else end_step
     step = start_step

@@ -60,8 +60,10 @@ def _refuse_derived(argv: list[str]) -> None:
             continue
         name = key[len(prefix):].replace("-", "_")
         name = name[3:] if name.startswith("no_") else name
-        if name in DERIVED:
-            src = "--" + DERIVED[name].replace("_", "-")
+        # utd_ratio: the agents' copy of the UTD until the update's batch carried it
+        src = DERIVED.get(name, "online.utd" if name == "utd_ratio" else None)
+        if src is not None:
+            src = "--" + src.replace("_", "-")
             raise ConfigError(f"{key}: every agent takes this from {src}, the one field that holds it (pre-training "
                               f"and fine-tuning alike); give {src} instead.")
 
@@ -185,6 +187,11 @@ def _load_config(argv: list[str]):
         if isinstance(data, dict):
             # a file written before the field: its runs computed at JAX's default, which is tf32
             data.setdefault("precision", "tf32")
+            # a file from before the agents' configs lost their copy of the UTD: online.utd holds it
+            for outer, inner in (("online", "sac"), ("offline", "cql")):
+                section = data.get(outer)
+                if isinstance(section, dict) and isinstance(section.get(inner), dict):
+                    section[inner].pop("utd_ratio", None)
         cfg = schema.from_dict(schema.RunConfig, data)
         if json.dumps(schema.to_dict(cfg), sort_keys=True) != json.dumps(data, sort_keys=True):  # missing, unknown, mistyped
             raise ValueError("not every field of a run config, as botorl writes it")

@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 from typing import Sequence
 
 from botorl.boto.config import check_alpha
-from botorl.configs.methods import Method, get_method
+from botorl.configs.methods import get_method
 from botorl.errors import ConfigError
 
 
@@ -149,14 +149,13 @@ def parse_alphas(value, flag: str = "--alphas") -> list[float]:
     return alphas
 
 
-def make_members(seeds: Sequence[int], alphas: Sequence[float | None], method: Method) -> list[Member]:
-    """Every (seed, alpha) pair, alpha-major. ``alphas`` empty or [None]: one alpha (the preset's)."""
+def make_members(seeds: Sequence[int], alphas: Sequence[float | None]) -> list[Member]:
+    """Every (seed, alpha) pair, alpha-major. ``alphas`` empty or [None]: one alpha (the preset's);
+    a method without BOTO has none (its config was refused, ``configs.resolve.validate``)."""
     alphas = list(alphas) or [None]
     if len(seeds) * len(alphas) > MAX_MEMBERS:
         raise ConfigError(f"{len(seeds):,} seeds x {len(alphas):,} alphas make {len(seeds) * len(alphas):,} members; at "
                           f"most {MAX_MEMBERS:,} are allowed. Give fewer --seeds or --alphas.")
-    if any(a is not None for a in alphas):
-        method.refuse_alpha("--alphas")
     # never empty nor repeated: parse_seeds and parse_alphas refuse both
     return [Member(int(s), None if a is None else float(a)) for a in alphas for s in seeds]
 
@@ -178,5 +177,5 @@ def population(cfg) -> tuple[list[Member], list]:
     """The members of the population ``cfg`` describes (see ``make_members``) and their configs."""
     seeds = [cfg.seed] if cfg.seeds is None else parse_seeds(cfg.seeds)
     alphas = [None] if cfg.alphas is None else parse_alphas(cfg.alphas)
-    members = make_members(seeds, alphas, get_method(cfg.method))
+    members = make_members(seeds, alphas)
     return members, [member_config(cfg, m.seed, m.alpha) for m in members]

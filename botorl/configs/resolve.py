@@ -31,7 +31,6 @@ DERIVED = {
     "actor_layer_norm": "network.layer_norm",
     "critic_layer_norm": "network.layer_norm",
     "num_critics": "network.num_critics",
-    "utd_ratio": "online.utd",
     "calql": "pretrain",
 }
 
@@ -41,45 +40,63 @@ def _at(cfg: RunConfig, path: str):
     return functools.reduce(getattr, path.split("."), cfg)
 
 
+def _source(cfg: RunConfig, field: str):
+    """The value of ``DERIVED[field]`` as the agents' configs hold it."""
+    v = _at(cfg, DERIVED[field])
+    if field == "calql":
+        return v == "calql"  # the CQL loss is Cal-QL's when Cal-QL pre-trains
+    return tuple(v) if isinstance(v, list) else v  # hashable: the jitted functions key on configs
+
+
 def derive(agent_cfg, cfg: RunConfig, **special):
     """``agent_cfg`` (an agent's config) with its ``DERIVED`` fields taken from ``cfg``; ``special``
-    gives the values that are no copy (Cal-QL's switch, a method's own UTD)."""
-    def value(path: str):
-        v = _at(cfg, path)
-        return tuple(v) if isinstance(v, list) else v  # hashable: the jitted functions key on configs
-
-    derived = {f: value(src) for f, src in DERIVED.items() if hasattr(agent_cfg, f)}
+    gives values that are no copy (IQL's critic subset, the log-std range a warm start inherits)."""
+    derived = {f: _source(cfg, f) for f in DERIVED if hasattr(agent_cfg, f)}
     return replace(agent_cfg, **{**derived, **special})
+
+
+AGENT_CONFIGS = ("offline.cql", "offline.iql", "online.sac")
+
+
+def check_derived(cfg: RunConfig) -> None:
+    """ConfigError for a config read back (``--config``, a run's config.json) whose agent configs
+    disagree with a field they copy: the agents build from their own configs, so such a copy would
+    escape every check of its source (the size bounds among them)."""
+    for section in AGENT_CONFIGS:
+        agent_cfg = _at(cfg, section)
+        for f in DERIVED:
+            if hasattr(agent_cfg, f) and (got := getattr(agent_cfg, f)) != (want := _source(cfg, f)):
+                raise ConfigError(f"{section}.{f} = {got!r} differs from {DERIVED[f]} = {want!r}, the one field that "
+                                  f"sets it for every agent: the config was edited. Set {DERIVED[f]} "
+                                  f"(--{DERIVED[f].replace('_', '-')}) instead.")
 
 
 def resolve(cfg: RunConfig) -> RunConfig:
     """Fill the derived fields: pretrain, alpha, and what the pipeline owns in agent configs."""
     spec = get_task(cfg.task)
     method = get_method(cfg.method)
-    pretrain = resolve_pretrain(cfg.method, cfg.pretrain)
-    for flag in [f for f, given in (("--alpha", cfg.alpha), ("--alphas", cfg.alphas)) if given is not None]:
-        method.refuse_alpha(flag)
+    cfg = replace(cfg, pretrain=resolve_pretrain(cfg.method, cfg.pretrain))  # first: Cal-QL's switch copies it
     # a population's shared config holds its first member's seed and alpha
     seed = cfg.seed if cfg.seeds is None else parse_seeds(cfg.seeds)[0]
-    given = cfg.alpha if cfg.alphas is None else parse_alphas(cfg.alphas)[0]
-    # given None: the task's (the paper's per-task value)
-    alpha = float(paper_settings(spec)[0] if given is None else given) if method.uses_alpha else None
+    alpha = cfg.alpha  # a method without BOTO keeps the one given, which validate refuses
+    if method.uses_alpha:
+        given = cfg.alpha if cfg.alphas is None else parse_alphas(cfg.alphas)[0]
+        alpha = float(paper_settings(spec)[0] if given is None else given)  # None: the task's, the paper's
 
-    # Pre-training takes one batch per critic step whatever the online UTD, as WSRL's and Cal-QL's
-    # offline loops do; calql/cql continued online get online.utd when fine-tuning starts
-    # (pipeline/stages.py, continued_learner), not here, as the same agent pre-trains first.
-    cql = derive(cfg.offline.cql, cfg, calql=(pretrain == "calql"), utd_ratio=1)
+    # The UTD is no agent field: an update's batch carries it (online: online.utd minibatches, SAC's
+    # train_step), so pre-training takes one batch per critic step, as WSRL's and Cal-QL's loops do.
+    cql = derive(cfg.offline.cql, cfg)
     sac = derive(cfg.online.sac, cfg)
     # IQL pre-trains the networks fine-tuning takes over (the paper's: sizes, LayerNorm,
     # ensemble, state-dependent std); its value network has the critic's hidden sizes. It keeps
     # IQL's log-std range [-5, 2], which the SAC learner then inherits.
     iql = derive(cfg.offline.iql, cfg, num_min_critics=min(cfg.offline.iql.num_min_critics, cfg.network.num_critics),
                  state_dependent_std=sac.state_dependent_std)
-    if pretrain == "iql" and method.finetune_start == "warm_start":
+    if cfg.pretrain == "iql" and method.finetune_start == "warm_start":
         sac = replace(sac, log_std_min=iql.log_std_min, log_std_max=iql.log_std_max)
     if sac.target_entropy is None and method.target_entropy_per_dim is not None:
         sac = replace(sac, target_entropy=method.target_entropy_per_dim * spec.action_dim)
-    return replace(cfg, seed=seed, pretrain=pretrain, alpha=alpha, offline=replace(cfg.offline, cql=cql, iql=iql),
+    return replace(cfg, seed=seed, alpha=alpha, offline=replace(cfg.offline, cql=cql, iql=iql),
                    online=replace(cfg.online, sac=sac))
 
 
@@ -135,7 +152,8 @@ def _floats(obj, prefix: str = ""):
 
 def check_bounds(cfg: RunConfig) -> None:
     """ConfigError for a count or size beyond its cap (``BOUNDS``, ``MAX_WIDTH``, ``MAX_DEPTH``),
-    or of the wrong type; needs no task, data or JAX, so it runs first on a config read back from
+    or of the wrong type, or an agent's copy of a network size that differs from it
+    (``check_derived``); needs no task, data or JAX, so it runs first on a config read back from
     a run directory."""
     for name, cap in BOUNDS.items():
         v = _at(cfg, name)
@@ -169,6 +187,7 @@ def check_bounds(cfg: RunConfig) -> None:
             raise ConfigError(f"--{name} = {v!r} is invalid: give a finite number.")
     if cfg.out is not None:
         check_path_text("--out", cfg.out)
+    check_derived(cfg)  # and so the agents build what the bounds above checked
 
 
 def _check_sizes(cfg: RunConfig, method, need) -> None:
@@ -218,6 +237,12 @@ def validate(cfg: RunConfig) -> None:
     method = get_method(cfg.method)
     if cfg.profile not in PROFILES:
         raise ConfigError(f"unknown profile {cfg.profile!r} (--profile); choose one of {', '.join(PROFILES)}.")
+    # alpha enters here, whatever gave the config (flags, a sweep, a file read back), and is checked
+    # here alone: the population's members and the BOTO stage take it as checked
+    if flag := next((f for f, v in (("--alpha", cfg.alpha), ("--alphas", cfg.alphas)) if v is not None), None):
+        method.refuse_alpha(flag)
+    if method.uses_alpha:
+        check_alpha(cfg.alpha)
 
     def need(cond: bool, field: str, value, what: str) -> None:
         if not cond:
@@ -242,8 +267,6 @@ def validate(cfg: RunConfig) -> None:
     if cfg.online.buffer_capacity is not None:
         need(cfg.online.buffer_capacity >= 1, "online.buffer_capacity", cfg.online.buffer_capacity, "must be positive or None")
     _check_sizes(cfg, method, need)  # the layer widths: check_bounds
-    if method.uses_alpha:
-        check_alpha(cfg.alpha)
     parse_seeds(cfg.seeds)  # None: no population, nothing to check
     parse_alphas(cfg.alphas)
     if "warmup" in method.stages and cfg.online.steps <= cfg.warmup.steps:

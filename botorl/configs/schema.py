@@ -5,8 +5,10 @@ Every field can be set as ``--<dotted.path> VALUE`` (``--online.steps 2000``,
 
 One fact, one field: the network sizes (``network.*``), the UTD ratio (``online.utd``) and the
 CQL/Cal-QL switch (``pretrain``) are set here only; ``resolve`` derives the agent configs' copies
-(``configs.resolve.DERIVED``) and the command line refuses their flags. A run's ``seed`` and
-``alpha`` are top-level fields (a population's: ``seeds`` and ``alphas``, configs/members.py).
+(``configs.resolve.DERIVED``), the command line refuses their flags, and a config read back whose
+copy differs is refused (``check_derived``); the UTD has no copy, as the online update's batch
+carries it. A run's ``seed`` and ``alpha`` are top-level fields (a population's: ``seeds`` and
+``alphas``, configs/members.py).
 """
 
 from __future__ import annotations
@@ -139,7 +141,8 @@ class OnlineConfig:
     batch_size: int = 256
     """Rows per critic update; an env step's update uses utd x batch_size rows (the actor all)."""
     utd: int = 4
-    """Critic updates per env step (WSRL/BOTO 4; Cal-QL/CQL/IQL baselines 1; RLPD 4 here)."""
+    """Critic updates per env step (WSRL/BOTO 4; Cal-QL/CQL/IQL baselines 1; RLPD 4 here): each
+    update's batch is utd minibatches of batch_size rows, the only place the agents read it."""
     offline_ratio: float = 0.0
     """Share of each batch drawn from D_offline (WSRL/BOTO: 0; baselines and RLPD: 0.5)."""
     random_steps: int = 0
@@ -273,6 +276,9 @@ def run_identity(cfg: "RunConfig") -> dict[str, Any]:
         # the default, and what every run before the field computed (JAX's default on a GPU is
         # TF32): left out, so those runs keep their identity and resume
         del flat["precision"]
+    # the UTD the agent configs held before it became the update batch's leading axis (online.utd
+    # online, 1 in pre-training): in the digests still, so the runs before keep their identity
+    flat.update({"online.sac.utd_ratio": cfg.online.utd, "offline.cql.utd_ratio": 1})
     pre = {k: v for k, v in flat.items() if k.startswith(("data.", "network.", "offline."))}
     return {"task": cfg.task, "method": cfg.method, "pretrain": cfg.pretrain, "pretraining": _digest(pre),
             "seed": cfg.seed, "alpha": cfg.alpha, "config": _digest(flat)}

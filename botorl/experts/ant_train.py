@@ -85,7 +85,7 @@ def sac_config(cfg: AntTrainConfig):
         actor_hidden_dims=tuple(cfg.hidden), critic_hidden_dims=tuple(cfg.hidden), actor_layer_norm=True,
         critic_layer_norm=True, num_critics=cfg.num_critics, num_min_critics=cfg.num_critics,
         subsample_replace=False, actor_objective="min", actor_lr=cfg.lr, critic_lr=cfg.lr, temp_lr=cfg.lr,
-        discount=cfg.discount, tau=cfg.tau, init_temp=cfg.init_temp, backup_entropy=True, utd_ratio=1,
+        discount=cfg.discount, tau=cfg.tau, init_temp=cfg.init_temp, backup_entropy=True,
         chunk_rows=0,
     )
 

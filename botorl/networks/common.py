@@ -122,3 +122,10 @@ class Temperature(nn.Module):
         log_temp = self.param("log_temp", lambda _: jnp.full((), jnp.log(self.init_value), jnp.float32))
         return jnp.exp(log_temp)
 
+
+# CQL's Lagrange multiplier alpha' (agents/cql.py) is a positive scalar learnt through its log,
+# exactly the temperature's parametrisation (Cal-QL's JaxCQL builds both from one Scalar), so it
+# is this module under its own name; its parameter keeps the name ``log_temp``, which
+# checkpoints hold.
+LagrangeMultiplier = Temperature
+

@@ -167,12 +167,11 @@ class OnlineState:
         active = [r > 0 or (self.offline is not None and not self.finished_only) for r in rows]
         if not any(active):
             return agents
-        u, B = oc.utd, oc.batch_size
-        b = self.buffer.sample_members(self.rngs, B, u, active=active, finished=self.finished_only,
+        # (N, u, B, ...), u = the UTD, each minibatch with the offline/online mix: one update of u
+        # critic minibatches (SAC's train_step), or u updates of B rows ("per_update": IQL's)
+        b = self.buffer.sample_members(self.rngs, oc.batch_size, oc.utd, active=active, finished=self.finished_only,
                                        offline=self.offline, offline_ratio=oc.offline_ratio)
-        many = self.method.batch_layout == "per_update"  # (N, u, B, ...): u updates
-        if not many:  # (N, u, B, ...) -> (N, u*B, ...): each critic minibatch keeps the offline/online mix
-            b = {k: v.reshape((n, u * B) + v.shape[3:]) for k, v in b.items()}
+        many = self.method.batch_layout == "per_update"
         if all(active):
             # one dispatch for the update and the next step's action; the agents keep the rng they
             # had before the draw until that step takes it, so a checkpoint now is the separate calls'

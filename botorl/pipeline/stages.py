@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections import namedtuple
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, Callable
 
 import jax
@@ -23,7 +23,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from botorl.agents import population  # by module: a test swaps its functions to count calls
-from botorl.agents.common import jit_q_mean
+from botorl.agents.common import jit_agent_q_mean
 from botorl.agents.cql import CQLAgent
 from botorl.agents.iql import IQLAgent
 from botorl.agents.sac import SACAgent
@@ -44,22 +44,11 @@ def make_pretrain_agent(cfg, obs_dim: int, action_dim: int, seed: int):
     return CQLAgent.create(cfg.offline.cql, obs_dim, action_dim, seed)
 
 
-def continued_learner(cfg, agents):
-    """The pre-trained agent(s) as a "continue" method fine-tunes them: its own loss at the run's
-    UTD. Pre-training took one batch per critic step (configs/resolve.py); online, an update
-    splits its utd x B rows into utd critic minibatches (IQL's layout is per update instead)."""
-    if not hasattr(agents.config, "utd_ratio"):
-        return agents
-    return agents.replace(config=replace(agents.config, utd_ratio=cfg.online.utd))
-
-
 def agent_template(cfg, stage: str, obs_dim: int, action_dim: int, seed: int):
     """An agent with the structure a checkpoint of ``stage`` holds (for loading it): the
     fine-tuning learner in fine-tuning, the pre-training agent before."""
-    if stage != "finetune":
+    if stage != "finetune" or get_method(cfg.method).finetune_start == "continue":
         return make_pretrain_agent(cfg, obs_dim, action_dim, seed)
-    if get_method(cfg.method).finetune_start == "continue":
-        return continued_learner(cfg, make_pretrain_agent(cfg, obs_dim, action_dim, seed))
     return SACAgent.create(cfg.online.sac, obs_dim, action_dim, seed)
 
 
@@ -75,12 +64,13 @@ def start_finetuning(cfg, member_cfgs, method, agents, action_dim: int, probe_ob
     if start == "scratch":
         return population.stack([SACAgent.create(oc.sac, probe_observations.shape[1], action_dim, Streams.of(c).scratch)
                                  for c in member_cfgs])
-    return continued_learner(cfg, agents)  # "continue": the pre-trained agent keeps its own loss
+    # "continue": the pre-trained agent keeps its own loss, at the online UTD its batches carry
+    return agents
 
 
 def q_fn(agent):
     """Q(s, a) averaged over one agent's critic ensemble, on host arrays (for QProbe)."""
-    return lambda o, a: np.asarray(jit_q_mean(agent, jnp.asarray(o), jnp.asarray(a)))
+    return lambda o, a: np.asarray(jit_agent_q_mean(agent, jnp.asarray(o), jnp.asarray(a)))
 
 
 # ---------------------------------------------------------------------------- the loop's pieces
