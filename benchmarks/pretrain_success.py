@@ -6,7 +6,8 @@
 Pre-trains the quick profile's agent for ``--pretrain`` (Cal-QL by default) on the task's data
 and evaluates the deterministic policy (the run's evaluation: ``eval.episodes`` episodes from
 the evaluation seeds) every ``--every`` steps, printing success, return, the mean Q on the
-batch's data actions and the wall time per step. This is how the quick profile's pre-training
+batch's data actions and the wall time per step (all of it, and the training alone: without the
+evaluations and the first call, which compiles). This is how the quick profile's pre-training
 budget on pointmaze was chosen (docs/results/pretraining.md). It uses the pipeline's own pieces (the
 preset, the data, the agent, the population's batched calls) with a population of one.
 """
@@ -17,6 +18,7 @@ import argparse
 import time
 from dataclasses import replace
 
+import jax
 import numpy as np
 
 from botorl.configs.presets import make_preset
@@ -87,19 +89,28 @@ def main(argv=None) -> int:
           f"{cfg.network.critic_hidden_dims} LN {cfg.network.layer_norm}, lagrange {cfg.offline.cql.cql_lagrange}, "
           f"max-target {cfg.offline.cql.max_target_backup}", flush=True)
     K, step, t0 = 50, 0, time.perf_counter()
+    eval_s = first_call_s = 0.0  # evaluations and the first call (XLA's compile), kept out of "train ms/step"
     while step < args.steps:
         agents, metrics = P.update_many(agents, d.sample_members(rngs, offline.batch_size, K))
         step += K
+        if step == K:
+            jax.block_until_ready(metrics)
+            first_call_s = time.perf_counter() - t0
         if step % args.every == 0 or step >= args.steps:
+            jax.block_until_ready(metrics)
             train_s = time.perf_counter() - t0
+            t_eval = time.perf_counter()
             sts = run_episodes(lambda o: P.eval_actions(agents, o), envs, episodes=cfg.eval.episodes,
                                success_mode=spec.success_mode, seeds=[100_000 + 1000 * s for s in seeds],
                                max_steps=spec.max_episode_steps)
             succ = np.array([st.success for st in sts])
             q = float(np.mean(np.asarray(metrics["q_data"]))) if "q_data" in metrics else float("nan")
             per = " ".join(f"{x:.2f}" for x in succ) if len(seeds) > 1 else ""
+            train_only = (train_s - eval_s - first_call_s) / max(step - K, 1)
+            eval_s += time.perf_counter() - t_eval
             print(f"step {step:>7}  success {succ.mean():.2f}  {per}  return {np.mean([st.episode_return for st in sts]):7.2f}"
-                  f"  q_data {q:8.1f}  {1000 * train_s / step:.2f} ms/step", flush=True)
+                  f"  q_data {q:8.1f}  {1000 * train_s / step:.2f} ms/step  (train {1000 * train_only:.2f} ms/step "
+                  f"after the first call's {first_call_s:.0f} s; evaluations {eval_s:.0f} s)", flush=True)
     return 0
 
 
