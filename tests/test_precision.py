@@ -50,7 +50,7 @@ def test_bad_precision_is_exit_2_on_the_command_line_and_in_a_config_file(tmp_pa
     doc["precision"] = "half"
     (tmp_path / "cfg.json").write_text(json.dumps(doc))
     assert botorl_main(["run", "--config", str(tmp_path / "cfg.json"), "--out", str(tmp_path / "r2")]) == 2
-    assert "precision 'half'" in capsys.readouterr().err
+    assert "precision = 'half'" in capsys.readouterr().err
 
 
 def test_member_tolerance_follows_the_input_roundoff():

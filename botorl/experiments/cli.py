@@ -3,11 +3,8 @@ the dip, held-out alpha selection: docs/running.md)."""
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 import os
-import re
 import shlex
 import sys
 from pathlib import Path
@@ -16,14 +13,13 @@ from typing import Annotated, Literal, Optional
 import tyro
 
 from botorl.configs.members import MAX_MEMBERS, SEED_LIMIT
-from botorl.errors import BotorlError, ConfigError, Range, check_ranges
+from botorl.errors import ConfigError, Range, check_ranges
 from botorl.experiments.grid import build_grid, load_grid_file, parse_seeds
 from botorl.experiments.pairs import read_pairs_csv, write_paired_report
 from botorl.experiments.report import make_report, select_alpha
-from botorl.experiments.runs import find_runs, group_by
-from botorl.experiments.sweep import USER_ERROR_EXIT, Sweep, SweepOptions, next_action
+from botorl.experiments.runs import find_runs
+from botorl.experiments.sweep import USER_ERROR_EXIT, Sweep, SweepOptions, check_trial_configs, next_action
 from botorl.pipeline.rundir import check_out
-from botorl.pipeline.tracking import require_wandb
 
 
 MAX_WORKERS = 1024  # parallel trials (local: processes, ray: CPUs of a local instance)
@@ -121,28 +117,6 @@ def sweep_main(argv: list[str]) -> int:
         print("botorl sweep: start the same command again to retry the failed trials (finished ones are kept)"
               + ("; those refused need their directory or settings fixed first." if refused else "."), file=sys.stderr)
     return 0 if not failed else USER_ERROR_EXIT if len(refused) == len(failed) else 1
-
-
-def check_trial_configs(sweep) -> None:
-    """Build the config of each (task, method, pre-training)'s first trial, which the sweep keeps
-    for it, so an unknown task, a typo in --set or a bad profile fails once, now, instead of in
-    every trial."""
-    for trial in [ts[0] for ts in group_by(sweep.trials, lambda t: (t.task, t.method, t.pretrain)).values()]:
-        captured = io.StringIO()
-        try:
-            with contextlib.redirect_stderr(captured), contextlib.redirect_stdout(captured):
-                cfg = sweep.config(trial)
-            if cfg.wandb:  # once, now, rather than exit 2 in every trial
-                require_wandb()
-        except BotorlError as err:
-            raise ConfigError(f"Sweep trial {trial.relpath}: {err}") from None
-        except SystemExit:
-            text = re.sub(r"[-─━│╭╮╰╯]{3,}|[│╭╮╰╯]", " ", captured.getvalue())  # tyro's box drawing
-            tail = " ".join(text.split())[-500:]
-            raise ConfigError(
-                f"Sweep trial {trial.relpath}: `botorl run` rejects its settings ({tail}). Check --profile and the "
-                "--set / grid overrides (dotted.path=value; `botorl run --help` lists the fields)."
-            ) from None
 
 
 @dataclasses.dataclass

@@ -29,9 +29,9 @@ from typing import Any
 
 from botorl.errors import BotorlError, ConfigError, Interrupted
 from botorl.experiments import child
-from botorl.experiments.cli import check_trial_configs
 from botorl.experiments.grid import build_grid, format_alpha, parse_methods, parse_overrides, parse_seeds
 from botorl.experiments.runs import find_runs
+from botorl.experiments.sweep import check_trial_configs
 from botorl.io import JSON_LIMIT, atomic_write_bytes, atomic_write_json, read_bounded_bytes, read_json_object
 from botorl.pipeline.provenance import botorl_commit
 from botorl.pipeline.rundir import RunLock
@@ -130,7 +130,7 @@ def arm_config(study: Study, arm: Arm, task: str):
 
 def seeds_text(seeds: tuple[int, ...]) -> str:
     """``200-207`` for a run of seeds, else ``1,3,5``."""
-    if len(seeds) > 1 and list(seeds) == list(range(seeds[0], seeds[-1] + 1)):
+    if len(seeds) > 1 and list(seeds) == list(range(seeds[0], seeds[0] + len(seeds))):
         return f"{seeds[0]}-{seeds[-1]}"
     return ",".join(map(str, seeds))
 

@@ -55,7 +55,7 @@ def main(argv: list[str]) -> int:
                         trial_command=args.trial_command).run()
     if what == "report":
         args = tyro.cli(ReportArgs, args=rest, prog="botorl study report")
-        from botorl.experiments.study_report import report  # matplotlib and the report's code: only here
+        from botorl.experiments.study_report import report  # lazy: matplotlib and the report's code, only for `report`
 
         study = load_study(args.study)
         for f in report(study, Path(args.out) if args.out else study.path.parent / "analysis"):

@@ -14,7 +14,9 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime as _dt
+import io
 import os
+import re
 import signal
 import socket
 import sys
@@ -33,10 +35,12 @@ from botorl.experiments.backend_local import TRIAL_PID, LocalBackend, stop_orpha
 from botorl.experiments.backend_ray import RayBackend
 from botorl.experiments.backend_ray import cleanup_previous as cleanup_previous_ray
 from botorl.experiments.grid import Grid, Trial, group_populations
+from botorl.experiments.runs import group_by
 from botorl.io import (SWEEP_JSON_LIMIT, append_text, atomic_write_json, own_folder, read_bounded, read_json_bounded,
                        read_json_object)
 from botorl.pipeline import preempt, shared_pretrain
 from botorl.pipeline.rundir import POPULATION_FILE, RunLock
+from botorl.pipeline.tracking import require_wandb
 
 MANIFEST = "sweep.json"
 LOCKFILE = ".sweep.lock"
@@ -340,3 +344,24 @@ class Sweep:
             self._lock.release()
         return self.manifest
 
+
+def check_trial_configs(sweep) -> None:
+    """Build the config of each (task, method, pre-training)'s first trial, which the sweep keeps
+    for it, so an unknown task, a typo in --set or a bad profile fails once, now, instead of in
+    every trial."""
+    for trial in [ts[0] for ts in group_by(sweep.trials, lambda t: (t.task, t.method, t.pretrain)).values()]:
+        captured = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(captured), contextlib.redirect_stdout(captured):
+                cfg = sweep.config(trial)
+            if cfg.wandb:  # once, now, rather than exit 2 in every trial
+                require_wandb()
+        except BotorlError as err:
+            raise ConfigError(f"Sweep trial {trial.relpath}: {err}") from None
+        except SystemExit:
+            text = re.sub(r"[-─━│╭╮╰╯]{3,}|[│╭╮╰╯]", " ", captured.getvalue())  # tyro's box drawing
+            tail = " ".join(text.split())[-500:]
+            raise ConfigError(
+                f"Sweep trial {trial.relpath}: `botorl run` rejects its settings ({tail}). Check --profile and the "
+                "--set / grid overrides (dotted.path=value; `botorl run --help` lists the fields)."
+            ) from None

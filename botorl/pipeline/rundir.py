@@ -310,7 +310,7 @@ class TBWriter:
     """
 
     def __init__(self, logdir: Path, flush_secs: float = 30.0, root: Path | None = None):
-        import tensorboardX  # noqa: F401  lazy: optional dependency (the tensorboard extra); ImportError: off
+        import tensorboardX  # noqa: F401  # lazy: optional dependency (the tensorboard extra); ImportError: off
 
         self.logdir = Path(logdir)
         self.flush_secs = flush_secs
