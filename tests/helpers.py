@@ -3,6 +3,7 @@ conftest.py, which pytest loads first (it sets the environment these run in)."""
 
 from __future__ import annotations
 
+import builtins
 import os
 from pathlib import Path
 from typing import Sequence
@@ -128,3 +129,13 @@ def as_minibatches(batch: dict, utd: int, axis: int = 0) -> dict:
     (utd, B / utd, ...): one SAC update at UTD ``utd``, laid out as the online loop passes it."""
     return {k: v.reshape(v.shape[:axis] + (utd, v.shape[axis] // utd) + v.shape[axis + 1:]) for k, v in batch.items()}
 
+
+class Payload:
+    """A crafted pickle's object: unpickling it creates ``marker`` (a stand-in for any shell command);
+    the hostile-input tests show botorl never does."""
+
+    def __init__(self, marker: Path):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (builtins.open, (self.marker, "w"))

@@ -20,18 +20,16 @@ import collections
 import json
 import os
 import pickle
-import signal
 import socket
 import subprocess
 import sys
 import tempfile
-import textwrap
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import subprocess_env
+from helpers import Payload, subprocess_env
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -41,16 +39,6 @@ from botorl.data.safe import read_plain_pickle
 from botorl.errors import DataFormatError
 
 EXAMPLES = int(os.environ.get("BOTORL_HYPOTHESIS_EXAMPLES", "25"))
-
-
-class _Payload:
-    """Unpickling this creates ``marker`` (a stand-in for any shell command)."""
-
-    def __init__(self, marker: Path):
-        self.marker = str(marker)
-
-    def __reduce__(self):
-        return (builtins.open, (self.marker, "w"))
 
 
 def _object_npy(path: Path, items: list) -> Path:
@@ -64,13 +52,13 @@ def _object_npy(path: Path, items: list) -> Path:
 # ----------------------------------------------------------------------------- pickles
 def test_a_crafted_npy_runs_nothing_and_data_info_exits_2(tmp_path, capsys):
     marker = tmp_path / "pwned"
-    evil = _object_npy(tmp_path / "door2_sparse.npy", [_Payload(marker)])
+    evil = _object_npy(tmp_path / "door2_sparse.npy", [Payload(marker)])
     assert botorl_main(["data", "info", str(evil)]) == 2
     err = capsys.readouterr().err
     assert "names io.open" in err and "Traceback" not in err and str(evil) in err, err
     assert not marker.exists()
     evil_pickle = tmp_path / "door-v0_demos.pickle"
-    evil_pickle.write_bytes(pickle.dumps([{"observations": _Payload(marker)}]))
+    evil_pickle.write_bytes(pickle.dumps([{"observations": Payload(marker)}]))
     assert botorl_main(["data", "info", str(evil_pickle)]) == 2
     assert "names io.open" in capsys.readouterr().err and not marker.exists()
     np.load(evil, allow_pickle=True)  # control: NumPy's own loader runs it, so the checks above can fail
@@ -124,13 +112,13 @@ def test_any_pickle_gives_its_plain_data_or_exit_2_and_runs_nothing(tree, protoc
     with tempfile.TemporaryDirectory() as d:
         marker = Path(d) / "pwned"
 
-        class Payload:
+        class _Payload:
             def __reduce__(self):
                 return (callable_, (str(marker), "w") if callable_ is builtins.open else (str(marker),))
 
         def planted(x):
             if isinstance(x, str) and x == "PAYLOAD":
-                return Payload()
+                return _Payload()
             if isinstance(x, list):
                 return [planted(v) for v in x]
             if isinstance(x, tuple):

@@ -7,7 +7,6 @@ tracebacks.
 
 from __future__ import annotations
 
-import builtins
 import errno
 import json
 import os
@@ -22,6 +21,7 @@ import pytest
 
 from botorl.cli import main as botorl_main
 from botorl.errors import DataFormatError
+from helpers import Payload
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -32,19 +32,9 @@ def _env():
     return env
 
 
-class _Payload:
-    """Unpickling this creates ``marker`` (a stand-in for any shell command)."""
-
-    def __init__(self, marker: Path):
-        self.marker = str(marker)
-
-    def __reduce__(self):
-        return (builtins.open, (self.marker, "w"))
-
-
 def _evil_npy(path: Path, marker: Path) -> Path:
     arr = np.empty(1, dtype=object)
-    arr[0] = _Payload(marker)
+    arr[0] = Payload(marker)
     np.save(path, arr, allow_pickle=True)
     return path
 
