@@ -14,7 +14,6 @@ from botorl.experiments.stats import (
     ZERO,
     block_range,
     detectable_effect,
-    half_width_n,
     holm,
     tost,
     wilcoxon_signed_rank,
@@ -102,14 +101,10 @@ def test_tost_verdicts():
     assert r["verdict"] == "undecided" and math.isnan(r["p"])
 
 
-def test_detectable_effect_and_pairs_for_a_half_width():
+def test_detectable_effect():
     # (1.959964 + 0.841621) * 0.46 / sqrt(24) = 2.801585 * 0.093897 = 0.26306
     assert detectable_effect(0.46, 24) == pytest.approx(0.26306, abs=1e-4)
     assert math.isnan(detectable_effect(0.46, 1))
-    # (1.96 * 0.46 / 0.1)^2 = 9.016^2 = 81.29 -> 82 pairs
-    assert half_width_n(0.46, 0.1) == 82
-    # 2 x the half-width: a quarter of the pairs, rounded up: 20.32 -> 21
-    assert half_width_n(0.46, 0.2) == 21
 
 
 def test_study_1_holm_p_with_the_plans_wilcoxon():

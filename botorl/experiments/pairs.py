@@ -23,7 +23,7 @@ import numpy as np
 
 from botorl.envs.metric import Metric
 from botorl.experiments.dip import DIP_WINDOW, run_dip
-from botorl.experiments.runs import Run, group_by, relative
+from botorl.experiments.runs import Run, group_by, relative, to_float
 from botorl.experiments.stats import (
     ZERO,
     alpha_text,
@@ -216,18 +216,12 @@ def pairs_csv(pairs: Sequence[Pair]) -> str:
 
 def read_pairs_csv(path: Path) -> list[Pair]:
     """The pairs a report wrote (``paired.csv``), to combine several reports' pairs."""
-    def num(v: str) -> float:
-        try:
-            return float(v)
-        except ValueError:
-            return math.nan
-
     with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:
         rows = csv_rows(f, path.name)[1]
     return [Pair(
             row["task"], int(row["seed"]) if row["seed"] else None, canonical_label(row["method"]),
             float(row["alpha"]) if row["alpha"] else None, canonical_label(row["reference"]),
-            {q: num(row[f"{q}_reference"]) for q in QUANTITIES}, {q: num(row[f"{q}_method"]) for q in QUANTITIES},
+            {q: to_float(row[f"{q}_reference"]) for q in QUANTITIES}, {q: to_float(row[f"{q}_method"]) for q in QUANTITIES},
             row.get("reference_path", ""), row.get("path", ""),
         ) for row in rows]
 

@@ -63,7 +63,8 @@ class Skipped:
     reason: str
 
 
-def _num(v: Any) -> float:
+def to_float(v: Any) -> float:
+    """``v`` as a float; nan for what is no number (a field cut short, edited or missing)."""
     try:
         return float(v)
     except (TypeError, ValueError):
@@ -86,7 +87,7 @@ def read_eval_csv(path: Path, metric: Metric = Metric()) -> tuple[np.ndarray, np
         raise ValueError(f"{path.name} has no env_step/{col} columns (header {header})")
     by_step: dict[float, float] = {}
     for row in rows:
-        step, value = _num(row.get("env_step")), metric.of(_num(row.get("success")), _num(row.get("return")))
+        step, value = to_float(row.get("env_step")), metric.of(to_float(row.get("success")), to_float(row.get("return")))
         if math.isfinite(step) and step >= 0 and math.isfinite(value):
             by_step[step] = value
     steps = np.asarray(sorted(by_step), dtype=np.float64)
@@ -150,7 +151,7 @@ def _load_run(run_dir: Path) -> Run | Skipped:
         steps, success = read_eval_csv(eval_path, metric)
     except (OSError, ValueError) as err:
         return Skipped(run_dir, f"eval.csv unreadable ({err})")
-    points = {p: _num(summary.get(f"{metric.name}_{p}")) for p in ("initial", "10k", "final")}
+    points = {p: to_float(summary.get(f"{metric.name}_{p}")) for p in ("initial", "10k", "final")}
     if f"{metric.name}_initial" not in summary:  # a summary from before the metric's fields: its eval.csv
         points = _points_of(steps, success)
     alpha = field("alpha")
@@ -164,7 +165,7 @@ def _load_run(run_dir: Path) -> Run | Skipped:
         task=str(field("task")),
         method=str(field("method")),
         pretrain=None if field("pretrain") in (None, "") else str(field("pretrain")),
-        alpha=None if alpha is None or not math.isfinite(_num(alpha)) else round(float(alpha), 6),
+        alpha=None if alpha is None or not math.isfinite(to_float(alpha)) else round(float(alpha), 6),
         seed=None if seed is None else int(seed),
         success_initial=points["initial"],
         success_10k=points["10k"],
@@ -189,9 +190,9 @@ def _points_of(steps: np.ndarray, values: np.ndarray) -> dict[str, float]:
 
 def _dense_from(config: dict) -> float | None:
     ev, wu = config.get("eval"), config.get("warmup")
-    if not isinstance(ev, dict) or not isinstance(wu, dict) or not _num(ev.get("dense_interval")) > 0:
+    if not isinstance(ev, dict) or not isinstance(wu, dict) or not to_float(ev.get("dense_interval")) > 0:
         return None
-    start = _num(wu.get("steps"))
+    start = to_float(wu.get("steps"))
     return start if math.isfinite(start) and start >= 0 else None
 
 

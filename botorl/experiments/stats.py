@@ -197,9 +197,6 @@ def tost(d: Sequence[float], margin: float, alpha: float = 0.05) -> dict[str, An
     return out
 
 
-Z95 = float(stats.norm.ppf(0.975))  # 1.96: a two-sided 95% normal quantile
-
-
 def detectable_effect(sd: float, n: int, power: float = 0.8, alpha: float = 0.05) -> float:
     """The smallest paired mean difference a two-sided level-``alpha`` test detects with
     probability ``power`` from n pairs of per-pair SD ``sd``: (z_{1-alpha/2} + z_power) sd / sqrt(n)
@@ -208,14 +205,6 @@ def detectable_effect(sd: float, n: int, power: float = 0.8, alpha: float = 0.05
         return math.nan
     z = float(stats.norm.ppf(1 - alpha / 2)) + float(stats.norm.ppf(power))
     return z * sd / math.sqrt(n)
-
-
-def half_width_n(sd: float, half_width: float) -> int:
-    """Pairs needed for a 95% CI half-width of ``half_width`` at per-pair SD ``sd``:
-    ceil((1.96 sd / half_width)^2)."""
-    if not half_width > 0:
-        raise ValueError(f"half_width must be > 0, got {half_width!r}")
-    return math.ceil((Z95 * sd / half_width) ** 2)
 
 
 def csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
