@@ -477,7 +477,6 @@ def dapg_trajectories(p: Path, keys: Sequence[str] = ("observations", "actions",
 
 
 def load_dapg_demos(path: str | os.PathLike, *, binary_reward: bool = False,
-                    success_fn: Callable[[np.ndarray], np.ndarray] | None = door_success,
                     drop_unsuccessful: bool = True, obs_dim: int | None = None, action_dim: int | None = None,
                     action_tolerance: float = ADROIT_ACTION_TOLERANCE) -> Dataset:
     """DAPG human demos: the original list-of-dicts pickle or botorl's ``.npz``
@@ -488,8 +487,6 @@ def load_dapg_demos(path: str | os.PathLike, *, binary_reward: bool = False,
     first success, which is terminal; demos that never succeed are dropped when
     ``drop_unsuccessful``, else kept with reward -1 throughout.
     """
-    if binary_reward and success_fn is None:
-        raise ValueError("binary_reward=True needs a success_fn")
     p = _require_file(path, "DAPG demo")
     trajs = dapg_trajectories(p)
     episodes = []
@@ -498,7 +495,7 @@ def load_dapg_demos(path: str | os.PathLike, *, binary_reward: bool = False,
         if len(o) < 2:
             continue
         o_, no_, a_, r_ = o[:-1], o[1:], a[:-1], r[:-1].astype(np.float32)
-        succ = np.asarray(success_fn(no_), bool) if success_fn is not None else np.zeros(len(o_), bool)
+        succ = np.asarray(door_success(no_), bool)
         term = np.zeros(len(o_), bool)
         if binary_reward:
             hit = np.flatnonzero(succ)
