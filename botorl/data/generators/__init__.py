@@ -7,7 +7,7 @@ from __future__ import annotations
 import importlib
 from typing import Callable
 
-from botorl.errors import BotorlError, ConfigError
+from botorl.errors import ConfigError
 
 # task -> (generator in this package, default dataset size in transitions / env steps). Sizes:
 # pointmaze as D4RL maze2d-large (1M); antmaze D4RL's / Minari's 1M per dataset
@@ -32,20 +32,9 @@ DEFAULT_STEPS: dict[str, int] = {task: steps for task, (_, steps) in _TABLE.item
 
 
 def get_generator(task: str) -> Callable:
-    """The generator function of ``task``; a clear ``BotorlError`` if it is unknown or missing."""
+    """The generator function of ``task``; a ConfigError naming the tasks with one if it has none."""
     if task not in GENERATORS:
         raise ConfigError(f"botorl cannot generate data for {task!r}; tasks with a generator: "
                           f"{', '.join(GENERATORS)}. Other tasks read downloaded data (see `botorl tasks`).")
     module_name, func_name = GENERATORS[task].split(":")
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as err:
-        if err.name and module_name.startswith(err.name):
-            raise BotorlError(f"the data generator for {task!r} ({GENERATORS[task]}) is not part of this "
-                              "botorl installation yet; update botorl, or use another task.") from None
-        raise
-    func = getattr(module, func_name, None)
-    if func is None:
-        raise BotorlError(f"the data generator for {task!r} ({GENERATORS[task]}) is missing its function "
-                          f"{func_name!r}; this botorl installation is incomplete.")
-    return func
+    return getattr(importlib.import_module(module_name), func_name)
