@@ -25,19 +25,12 @@ import io
 import math
 from pathlib import Path
 
+from botorl.experiments.runs import to_float
 from botorl.io import CSV_LIMIT, read_bounded
 
 # the keys of what q_around_boto returns, in the order a table shows them
 MANIPULATION_KEYS = ("q_data_before", "q_data_after", "q_data_change",
                      "q_uniform_before", "q_uniform_after", "q_uniform_change")
-
-
-def _value(row: dict | None, key: str) -> float:
-    """A row's number, nan where the row or its value is missing or not a number."""
-    try:
-        return float(row[key]) if row and row.get(key) not in (None, "") else math.nan
-    except ValueError:
-        return math.nan
 
 
 def q_around_boto(run: Path) -> dict[str, float]:
@@ -58,11 +51,11 @@ def q_around_boto(run: Path) -> dict[str, float]:
     with io.StringIO(read_bounded(path, CSV_LIMIT), newline="") as f:
         for row in csv.DictReader(f):
             stage = row.get("stage")
-            if before is None and stage == "warmup" and _value(row, "env_step") == 0:
+            if before is None and stage == "warmup" and to_float(row.get("env_step")) == 0:
                 before = row
             elif after is None and stage == "finetune":
                 after = row
     for q in ("q_data", "q_uniform"):
-        out[f"{q}_before"], out[f"{q}_after"] = _value(before, q), _value(after, q)
+        out[f"{q}_before"], out[f"{q}_after"] = to_float((before or {}).get(q)), to_float((after or {}).get(q))
         out[f"{q}_change"] = out[f"{q}_after"] - out[f"{q}_before"]
     return out
