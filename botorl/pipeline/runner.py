@@ -31,6 +31,7 @@ from botorl.jaxsetup import matmul_precision
 from botorl.pipeline import evaluation, preempt, shared_pretrain, stages, summary, tracking
 from botorl.pipeline.checkpoint import CheckpointManager, checkpoint_name, full_identity, resume_point
 from botorl.pipeline.evaluation import QProbe, make_eval_envs
+from botorl.pipeline.online import OnlineState
 from botorl.pipeline.rundir import POPULATION_FILE, MemberRun, RunDir
 
 
@@ -97,7 +98,8 @@ class RunContext:
         self.probe = QProbe(d_offline.observations, d_offline.actions, seed=Streams.PROBE, size=cfg.eval.q_pairs)
         self.state = state  # done_stages, stage_seconds
         self._envs = None
-        self.loop = None  # the online loop's state (stages.online_state), from the warm-up to fine-tuning's end
+        self.loop = None  # the online loop's state (online_loop), from the warm-up to fine-tuning's end
+        self.d_warmups = None  # each member's D_warmup: the warm-up's, or its checkpoint's on a resume after it
         self._stage = None
         self._stage_t0 = 0.0
 
@@ -154,7 +156,24 @@ class RunContext:
         """The MC returns of an episode or D_warmup by the offline data's rule: the online loop's."""
         return with_mc_returns(self.cfg, self.spec, ds).mc_returns
 
+    def online_loop(self, resume: dict | None = None) -> OnlineState:
+        """The online loop's state (stages.online_state), made at the warm-up's start and kept to
+        fine-tuning's end; one made at fine-tuning's start (a method without a warm-up, or a run
+        resumed after it) is restored from its checkpoint: ``resume``'s, else the warm-up's end."""
+        if self.loop is None:
+            self.loop = stages.online_state(self.cfg, self.member_cfgs, self.method, self.spec, self.d_offline,
+                                            self.mc_returns)
+            warm = "warmup" in self.state["done_stages"] and self.cfg.warmup.steps > 0
+            saved = resume or (self.contents({"name": checkpoint_name("warmup", None)}) if warm else None)
+            if saved is not None:
+                self.loop.load_state_dict(saved)
+        return self.loop
+
     # -- checkpoints
+    def load_pretrained(self):
+        """The members' agents pre-trained by the runs ``--pretrained`` names (shared_pretrain.py)."""
+        return shared_pretrain.load(self, shared_pretrain.match(self.member_cfgs, self.cfg.pretrained))
+
     def load_agents(self, name: str, like):
         """The population's agents saved under ``name`` (``like``: a stacked template)."""
         path = self.ckpt.file(name, "agent.ckpt")
@@ -271,50 +290,8 @@ class RunContext:
 
 
 # ---------------------------------------------------------------------------- the stages
-# What runs each stage, given the run's agents and D_warmups (and the checkpoint it resumes from,
-# read by the runner): (agents, D_warmups, what its end-of-stage checkpoint keeps). The online
-# loop's state (``ctx.loop``) is made at the warm-up's start and kept for fine-tuning.
-def _pretrain(ctx: RunContext, agents, d_warmups, resume: dict | None):
-    if ctx.cfg.pretrained is not None:  # the same numbers another run computed (shared_pretrain.py)
-        agents = shared_pretrain.load(ctx, shared_pretrain.match(ctx.member_cfgs, ctx.cfg.pretrained))
-    else:
-        agents = stages.Pretrain(ctx.cfg, ctx.member_cfgs, ctx.d_offline, ctx).train(resume)
-    ctx.log_q("pretrain", ctx.cfg.offline.steps, agents)
-    return agents, d_warmups, None
-
-
-def _warmup(ctx: RunContext, agents, d_warmups, resume: dict | None):
-    ctx.loop = stages.online_state(ctx.cfg, ctx.member_cfgs, ctx.method, ctx.spec, ctx.d_offline, ctx.mc_returns)
-    d_warmups, agents = stages.Warmup(ctx.cfg, ctx.member_cfgs, ctx.loop, ctx).train(agents)
-    if d_warmups is None:
-        return agents, None, None
-    end = ctx.loop.state_dict()  # its end's checkpoint: the loop's state, and D_warmup for BOTO
-    end["arrays"].update({k: dw.arrays() for k, dw in zip(ctx.warmup_keys(), d_warmups)})
-    return agents, d_warmups, end
-
-
-def _boto(ctx: RunContext, agents, d_warmups, resume: dict | None):
-    if resume is not None and agents is None:
-        agents = ctx.templates("boto")
-    agents = stages.Boto(ctx.cfg, ctx.member_cfgs, ctx.d_offline, d_warmups, ctx).train(agents, resume)
-    ctx.log_q("boto", ctx.cfg.boto.boto_steps, agents)
-    return agents, d_warmups, None
-
-
-def _finetune(ctx: RunContext, agents, d_warmups, resume: dict | None):
-    if agents is None:  # rlpd, or a resume inside fine-tuning of a method without pre-training
-        agents = ctx.templates("pretrain") if ctx.method.pretrains else None
-    if ctx.loop is None:  # a method without a warm-up, or a run resumed after it: from its checkpoint
-        ctx.loop = stages.online_state(ctx.cfg, ctx.member_cfgs, ctx.method, ctx.spec, ctx.d_offline, ctx.mc_returns)
-        warm = "warmup" in ctx.method.stages and ctx.cfg.warmup.steps > 0
-        saved = resume or (ctx.contents({"name": checkpoint_name("warmup", None)}) if warm else None)
-        if saved is not None:
-            ctx.loop.load_state_dict(saved)
-    finetune = stages.Finetune(ctx.cfg, ctx.member_cfgs, ctx.loop, ctx)
-    return finetune.train(ctx.method, agents, ctx.probe.observations, resume), d_warmups, None
-
-
-STAGES = {"pretrain": _pretrain, "warmup": _warmup, "boto": _boto, "finetune": _finetune}
+# What runs each stage (made from the run context; ``train(agents, resume)``), in the method's order.
+STAGES = {"pretrain": stages.Pretrain, "warmup": stages.Warmup, "boto": stages.Boto, "finetune": stages.Finetune}
 
 
 # ---------------------------------------------------------------------------- the run
@@ -339,7 +316,7 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
         print(f"botorl: resuming {root} from {where} (checkpoint {latest['name']})", file=sys.stderr)
     ctx.write_summary("running")
 
-    agents = d_warmups = None
+    agents = None
     try:
         # SIGTERM / SIGINT: the stages stop at a step with a checkpoint; every matmul at the
         # config's precision (traced inside, so every jitted call of the stages follows it)
@@ -348,7 +325,7 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
                 last = state["done_stages"][-1]
                 agents = ctx.load_agents(checkpoint_name(last, None), ctx.templates(last))
             if "warmup" in state["done_stages"]:
-                d_warmups = _load_warmups(ckpt, ctx.warmup_keys())
+                ctx.d_warmups = _load_warmups(ckpt, ctx.warmup_keys())
             for stage in method.stages:
                 if stage in state["done_stages"]:
                     continue
@@ -356,10 +333,11 @@ def execute(cfg: RunConfig, member_cfgs: list[RunConfig], root: Path, member_run
                     raise preempt.interrupted()
                 ctx.begin_stage(stage)
                 at = ctx.contents(mid) if mid is not None and mid["stage"] == stage else None  # its mid-stage point
-                agents, d_warmups, end = STAGES[stage](ctx, agents, d_warmups, at)
+                run = STAGES[stage](ctx)
+                agents = run.train(agents, at)
                 ctx.end_stage()
                 state["done_stages"].append(stage)
-                ctx.save(stage, None, agents, end)
+                ctx.save(stage, None, agents, run.end)
     except BaseException as err:  # a signal, a divergence, a Ctrl-C or a bug: the run can be resumed
         ctx.end_stage()
         if isinstance(err, Interrupted):

@@ -1,13 +1,14 @@
 """The four stages of a run (``pretrain``, ``warmup``, ``boto``, ``finetune``; their inputs and
-outputs: docs/architecture.md), each a ``Stage`` from explicit inputs to its outputs.
+outputs: docs/architecture.md), each a ``Stage``: made from ``run`` (runner.RunContext: the run's
+config, members, data and callbacks), ``train(agents, resume)`` gives the stage's agents.
 
 A ``Stage`` says what it does at its schedule's points, and ``stage_loop`` calls it; the warm-up
-and fine-tuning run over one online loop state (``OnlineState``). A stage reads no run context:
-it gets ``run``, its callbacks into the runner, which does every checkpoint read and write and
-hands a resumed stage the checkpoint's contents as ``resume``. ``agents`` are a population's
-agents stacked on a leading axis (a single run is one of one), each member's streams seeded by
-its own seed only (docs/populations.md). Log, checkpoint and evaluation points follow from the
-step alone (``Schedule``), so a stage given ``resume`` continues exactly (docs/reliability.md).
+and fine-tuning run over one online loop state (``OnlineState``). The runner does every
+checkpoint read and write and hands a resumed stage the checkpoint's contents as ``resume``;
+``end`` is what the stage's end-of-stage checkpoint keeps besides the agents. ``agents`` are a
+population's agents stacked on a leading axis (a single run is one of one), each member's streams
+seeded by its own seed only (docs/populations.md). Log, checkpoint and evaluation points follow
+from the step alone (``Schedule``), so a stage given ``resume`` continues exactly (docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from __future__ import annotations
 import time
 from collections import namedtuple
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -146,10 +147,12 @@ class Stage:
     """What a stage does at its schedule's points, which ``stage_loop`` calls. By default it checks,
     logs and saves the agents through ``run``, its callbacks into the run (runner.RunContext:
     ``log`` and ``check`` (stage, step, an item per member), ``evaluate(agents, step)`` -> rows,
-    ``log_evaluation(rows, step)``, ``save(stage, step, agents, state_dict)``), and evaluates nothing."""
+    ``log_evaluation(rows, step)``, ``save(stage, step, agents, state_dict)``). A stage whose
+    ``Schedule`` has evaluation points has its own ``evaluate(agents, step)``."""
 
     name = ""
     check_every_call = False  # check after every call, not only at log and checkpoint points
+    end = None
 
     def __init__(self, cfg, member_cfgs, run, schedule: Schedule):
         self.cfg, self.member_cfgs, self.n, self.run = cfg, member_cfgs, len(member_cfgs), run
@@ -169,9 +172,6 @@ class Stage:
 
     def log(self, step: int, ms: list[dict]) -> None:
         self.run.log(self.name, step, ms)
-
-    def evaluate(self, agents, step: int) -> None:
-        pass
 
     def save(self, step: int, agents, interrupted: bool) -> None:
         self.run.save(self.name, step, agents, {})
@@ -223,18 +223,14 @@ class Pretrain(Stage):
 
     name = "pretrain"
 
-    def __init__(self, cfg, member_cfgs, d: Dataset, run):
-        oc, first = cfg.offline, {}  # the first member of each seed, and each member's index into them
-        self.group = [first.setdefault(c.seed, len(first)) for c in member_cfgs]
+    def __init__(self, run):
+        cfg, oc, first = run.cfg, run.cfg.offline, {}  # the first member of each seed; each member's index into them
+        self.group = [first.setdefault(c.seed, len(first)) for c in run.member_cfgs]
         self.reps = [self.group.index(g) for g in range(len(first))]
-        super().__init__(cfg, [member_cfgs[r] for r in self.reps], run,
+        super().__init__(cfg, [run.member_cfgs[r] for r in self.reps], run,
                          Schedule(oc.steps, oc.log_every, cfg.checkpoint_every))
-        self.d, self.oc, self.streams = d, oc, [Streams.of(c) for c in self.member_cfgs]
+        self.d, self.oc, self.streams = run.d_offline, oc, [Streams.of(c) for c in self.member_cfgs]
         self.rngs = [np.random.default_rng(s.pretrain_batches) for s in self.streams]
-        on_device = jax.default_backend() != "cpu" if oc.sample_on_device is None else oc.sample_on_device
-        self.arrays = d.to_device() if on_device else None  # D_offline on the device, where batches are drawn
-        # there the key of each call follows from (seed, step), so a resumed run draws the same batches
-        self.base_keys = [jax.random.PRNGKey(s.pretrain_keys) for s in self.streams] if on_device else None
 
     def update(self, agents, step: int, k: int):
         if self.arrays is None:
@@ -261,9 +257,20 @@ class Pretrain(Stage):
         self.run.save(self.name, step, agents, {"np_rng": [r.bit_generator.state for r in self.rngs],
                                                 "arrays": {"window": w} if w else None})
 
-    def train(self, resume: dict | None = None):
-        """The pre-trained agents of every member (from ``resume``'s checkpoint where given)."""
-        n, reps = len(self.group), len(self.reps)
+    def train(self, agents, resume: dict | None = None):
+        """The pre-trained agents of every member: those of the runs ``--pretrained`` names (the same
+        numbers, read by the runner: shared_pretrain.py), else trained here (from ``resume``'s
+        checkpoint where given)."""
+        agents = self.run.load_pretrained() if self.cfg.pretrained is not None else self.pretrain(resume)
+        self.run.log_q(self.name, self.oc.steps, agents)
+        return agents
+
+    def pretrain(self, resume: dict | None):
+        n, reps, oc = len(self.group), len(self.reps), self.oc
+        on_device = jax.default_backend() != "cpu" if oc.sample_on_device is None else oc.sample_on_device
+        self.arrays = self.d.to_device() if on_device else None  # D_offline on the device, where batches are drawn
+        # there the key of each call follows from (seed, step), so a resumed run draws the same batches
+        self.base_keys = [jax.random.PRNGKey(s.pretrain_keys) for s in self.streams] if on_device else None
         agents = population.stack([make_pretrain_agent(c, self.d.obs_dim, self.d.action_dim, s.pretrain)
                                    for c, s in zip(self.member_cfgs, self.streams)])
         step = 0
@@ -318,13 +325,14 @@ class Warmup(Stage):
     step-0 evaluation is logged again at each evaluation point passed. D_warmup is each member's
     buffer rows, MC returns by the loop's rule (``state.mc_returns``). Nothing learns, so nothing
     is checked or logged in the loop, and no mid-stage checkpoint: a resume runs it again from
-    the pre-training's end (the same D_warmup)."""
+    the pre-training's end (the same D_warmup). The loop ``state`` is the run's (``run.online_loop``),
+    made here; D_warmup goes to ``run.d_warmups``, and with the loop's state into ``end``."""
 
     name = "warmup"
 
-    def __init__(self, cfg, member_cfgs, state: OnlineState, run):
-        n, self.state = cfg.warmup.steps, state
-        super().__init__(cfg, member_cfgs, run,
+    def __init__(self, run):
+        cfg, n = run.cfg, run.cfg.warmup.steps
+        super().__init__(cfg, run.member_cfgs, run,
                          Schedule(n, n, n + 1, evaluate=lambda step: step % cfg.eval.interval == 0 and step < n))
 
     def _nothing(self, *args) -> None:
@@ -335,11 +343,11 @@ class Warmup(Stage):
     def evaluate(self, agents, step: int) -> None:
         self.run.log_evaluation(self.first, step)
 
-    def train(self, agents) -> tuple[list[Dataset] | None, Any]:
-        """(each member's D_warmup, the agents); (None, agents) without a warm-up."""
-        n, N, state = self.cfg.warmup.steps, self.n, self.state
+    def train(self, agents, resume: dict | None = None):
+        n, N, state = self.cfg.warmup.steps, self.n, self.run.online_loop()
+        self.state = state
         if n == 0:
-            return None, agents
+            return agents
         agents = _reseed_online(self.member_cfgs, agents)
         self.first = self.run.evaluate(agents, state.step)
         state.learning, state.ended = False, [[] for _ in range(N)]
@@ -358,7 +366,9 @@ class Warmup(Stage):
                                     "reward_mean": float((np.mean(rows["rewards"][i, :n]) - t.bias) / t.scale)}
                                    for i, s in enumerate(state.recent_success)])
         state.recent_success = [[] for _ in range(N)]  # fine-tuning's train_success: its own episodes
-        return d_warmups, agents
+        self.run.d_warmups, self.end = d_warmups, state.state_dict()  # its end's checkpoint: the loop, and D_warmup
+        self.end["arrays"].update({k: dw.arrays() for k, dw in zip(self.run.warmup_keys(), d_warmups)})
+        return agents
 
 
 # ---------------------------------------------------------------------------- stage 2b
@@ -372,11 +382,11 @@ class Boto(Stage):
     name = "boto"
     check_every_call = True
 
-    def __init__(self, cfg, member_cfgs, d: Dataset, d_warmups: list[Dataset] | None, run):
-        bc = cfg.boto
-        super().__init__(cfg, member_cfgs, run,
+    def __init__(self, run):
+        cfg, bc = run.cfg, run.cfg.boto
+        super().__init__(cfg, run.member_cfgs, run,
                          Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every))
-        self.d, self.d_warmups, self.alphas = d, d_warmups or [None] * self.n, [c.alpha for c in member_cfgs]
+        self.alphas = [c.alpha for c in self.member_cfgs]
 
     def chunk(self, step: int) -> int:
         return min(self.cfg.boto.steps_per_call, self.cfg.boto.boto_steps - step)
@@ -389,27 +399,29 @@ class Boto(Stage):
         start = 0
         if resume is not None:
             agents, start = resume["agents"](agents), int(resume["step"])
-        self.update = boto_updates(agents, self.d, self.d_warmups, self.cfg.boto, self.alphas,
-                                   [Streams.of(c).boto for c in self.member_cfgs])
+        self.update = boto_updates(agents, self.run.d_offline, self.run.d_warmups or [None] * self.n, self.cfg.boto,
+                                   self.alphas, [Streams.of(c).boto for c in self.member_cfgs])
         self.t0 = time.perf_counter()
         label = f"BOTO alpha={self.alphas[0]:+.2f}" if self.n == 1 else f"BOTO x {self.n} members"
-        return stage_loop(self, agents, start, label)
+        agents = stage_loop(self, agents, start, label)
+        self.run.log_q(self.name, self.cfg.boto.boto_steps, agents)
+        return agents
 
 
 # ---------------------------------------------------------------------------- stage 3
 class Finetune(Stage):
-    """Online learning: the online loop ``state`` (online_state; after the warm-up, where it
-    left it; resumed, as the runner restored it) from its step to ``online.steps`` (the warm-up's
+    """Online learning: the online loop ``state`` (``run.online_loop``: after the warm-up, where it
+    left it; resumed, as the runner restores it) from its step to ``online.steps`` (the warm-up's
     env steps counted, as WSRL) with the fine-tuning learners, evaluating at its start, at
     ``eval.due`` points and at the end; what decides the future besides the agents is ``state``.
     Every method with a warm-up starts warm (configs/methods.py), so its buffer keeps D_warmup."""
 
     name = "finetune"
 
-    def __init__(self, cfg, member_cfgs, state: OnlineState, run):
-        oc, self.state = cfg.online, state
+    def __init__(self, run):
+        cfg, oc = run.cfg, run.cfg.online
         due = lambda step: cfg.eval.due(step, oc.steps, cfg.warmup.steps)  # noqa: E731
-        super().__init__(cfg, member_cfgs, run, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every, due))
+        super().__init__(cfg, run.member_cfgs, run, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every, due))
 
     def log(self, step: int, ms: list[dict]) -> None:
         self.run.log(self.name, step, self.state.log_rows(ms, self.rate(step)))
@@ -423,9 +435,11 @@ class Finetune(Stage):
             sd["arrays"]["window"] = w
         self.run.save(self.name, step, agents, sd)
 
-    def train(self, method, agents, probe_observations: np.ndarray, resume: dict | None = None):
-        cfg, state = self.cfg, self.state
-        agents = start_finetuning(cfg, self.member_cfgs, method, agents, state.buffer.action_dim, probe_observations)
+    def train(self, agents, resume: dict | None = None):
+        cfg, run = self.cfg, self.run
+        self.state = state = run.online_loop(resume)
+        agents = start_finetuning(cfg, self.member_cfgs, run.method, agents, state.buffer.action_dim,
+                                  run.probe.observations)
         if resume is not None:
             agents = resume["agents"](agents)
             self.window.load(resume["arrays"].get("window"))
