@@ -21,6 +21,7 @@ def _rows(path):
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow  # ~70 s: a benchmark's whole run, resumed
 def test_alpha_q_measures_the_chosen_arms_and_resumes(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     args = ["--task", "pointmaze-umaze", "--profile", "smoke", "--seeds", "0-0", "--steps", "5,10", "--states", "20",

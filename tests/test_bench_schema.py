@@ -40,6 +40,7 @@ def test_unknown_workload_is_a_user_error():
         main(["--only", "nope"])
 
 
+@pytest.mark.slow  # ~25 s: a benchmark's workload; test_schema runs the others
 def test_online_loop_times_the_fine_tuning_loop():
     """The loop benchmark runs fine-tuning's own step (OnlineState.advance): every env step
     lands in the replay buffer and updates the agent."""

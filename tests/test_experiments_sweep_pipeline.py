@@ -71,6 +71,9 @@ def processes_in(out: Path) -> list[int]:
             if p.name.isdigit() and int(p.name) != me and _mentions(int(p.name), str(out))]
 
 
+# slow (~3 min): test_experiments_sweep_logic kills a sweep's process group and completes it with the
+# same command, and test_study kills a study mid-arm and resumes it, in the default suite
+@pytest.mark.slow
 @pytest.mark.timeout(1200)
 def test_local_full_grid_killed_and_restarted(tmp_path):
     """4 real trials, 2 pinned workers; SIGKILL only the sweep process mid-grid (its trials
@@ -141,6 +144,9 @@ def test_sequential_backend(tmp_path):
     assert first["cpu"] is None and second["cpu"] is None  # not pinned
 
 
+# slow (~75 s, most of it Ray starting): Ray is an optional extra; test_sequential_backend runs the
+# same grid through the backend interface in the default suite
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_ray_backend(tmp_path):
     pytest.importorskip("ray", reason="the ray backend needs `pip install 'botorl[ray]'`")

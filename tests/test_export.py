@@ -275,6 +275,7 @@ def own(tmp_path_factory):
     return d, run
 
 
+@pytest.mark.slow  # ~75 s (a run of a task of one's own, then export); the shipped tasks' contract is tested above
 def test_own_task_contract_and_eval_policy(own):
     d, run = own
     contract = json.loads((d / "policy.onnx.json").read_text())

@@ -272,6 +272,9 @@ def test_cli_bad_reference_scores_exit_2(drift, monkeypatch, capsys, args, messa
     assert not (drift / "runs" / "bad").exists()
 
 
+# slow (~60 s): the metric's parts are tested one by one above, and the pendulum's summary, curve
+# and table in the default suite
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_cli_normalised_score_end_to_end(drift, monkeypatch, capsys):
     """--ref-min-score/--ref-max-score: config.json records the metric, summary.json has score_*

@@ -265,6 +265,9 @@ def test_example_runs(tmp_path):
 
 
 # ------------------------------------------------------------------ the CLI: run, kill -9, resume
+# slow (~60 s): kill -9 and resume are tested on the shipped tasks (test_reliability_resume), and a
+# task of one's own runs end to end in test_example_runs
+@pytest.mark.slow
 @pytest.mark.timeout(600)
 def test_cli_entry_point_kill_resume_eval_policy(work, tmp_path):
     cwd = tmp_path / "user"

@@ -98,8 +98,11 @@ def _data_for(task: str, tmp: Path) -> list[str]:
 
 @pytest.mark.parametrize(
     "task",
-    ["antmaze-large-diverse-v2", "antmaze-large-play-v2", "kitchen-partial-v0", "kitchen-mixed-v0",
-     "door-binary-v0", "pen-binary-v0"],
+    # one task a family in the default suite (each family compiles its own shapes, ~40-60 s);
+    # the other three run with -m slow
+    ["antmaze-large-diverse-v2", "kitchen-mixed-v0",
+     *(pytest.param(t, marks=pytest.mark.slow)
+       for t in ("antmaze-large-play-v2", "kitchen-partial-v0", "door-binary-v0", "pen-binary-v0"))],
 )
 def test_paper_task_smoke(task, tmp_path):
     extra = _data_for(task, tmp_path)

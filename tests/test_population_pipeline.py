@@ -122,6 +122,9 @@ def test_every_method_as_a_population(tmp_path, method):
         assert _csv(out / name / "metrics" / "finetune.csv")
 
 
+# slow (~65 s): test_pipeline_run's dense-window test runs two arms over one pre-training in the
+# default suite
+@pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_alphas_of_one_seed_share_one_pretraining(tmp_path, monkeypatch):
     """BOTO at two alphas from one seed pre-trains once (one agent in every pre-training call

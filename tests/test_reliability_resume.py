@@ -281,7 +281,8 @@ def _chain(points: dict[str, int], every_stage: bool) -> list[tuple[dict, str]]:
 
 
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize("family, every_stage", [("pointmaze", False)] + [
+# all slow: test_kill_in_stage_resumes_exactly kills a run in each stage in the default suite
+@pytest.mark.parametrize("family, every_stage", [pytest.param("pointmaze", False, marks=pytest.mark.slow)] + [
     pytest.param(f, True, marks=pytest.mark.slow) for f in ("pointmaze", "door", "antmaze", "kitchen")],
     ids=lambda x: {True: "every-stage", False: "twice"}.get(x, x) if isinstance(x, bool) else x)
 def test_sigkill_then_resume(reference, family, every_stage, tmp_path):
