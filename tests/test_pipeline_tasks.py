@@ -98,8 +98,9 @@ def _data_for(task: str, tmp: Path) -> list[str]:
 
 @pytest.mark.parametrize(
     "task",
-    # one task a family in the default suite (each family compiles its own shapes, ~40-60 s);
-    # the other three run with -m slow
+    # antmaze and kitchen once each in the default suite (each task family compiles its own
+    # shapes, ~40-60 s); the other four with -m slow (the Adroit wrapper's door-binary-local run
+    # stays: test_door_binary_local_with_demos_option)
     ["antmaze-large-diverse-v2", "kitchen-mixed-v0",
      *(pytest.param(t, marks=pytest.mark.slow)
        for t in ("antmaze-large-play-v2", "kitchen-partial-v0", "door-binary-v0", "pen-binary-v0"))],

@@ -90,19 +90,21 @@ def _resume(d: Path, capsys) -> str:
 
 
 # stage, the step the signal lands at, the signal, the checkpoint the resume starts from
-# the warm-up and BOTO cases are slow (~15 s each): the default suite signals the first and the
-# last stage, and SIGTERM and SIGINT
 CASES = [
     ("pretrain", 15, signal.SIGTERM, "pretrain-step000000015"),
-    pytest.param("warmup", 12, signal.SIGTERM, "pretrain-final", marks=pytest.mark.slow),  # no mid-warm-up checkpoint: it starts again (exact)
-    pytest.param("boto", 15, signal.SIGTERM, "boto-step000000015", marks=pytest.mark.slow),
+    ("warmup", 12, signal.SIGTERM, "pretrain-final"),  # no mid-warm-up checkpoint: it starts again (exact)
+    ("boto", 15, signal.SIGTERM, "boto-step000000015"),
     # SIGINT takes SIGTERM's path (one handler for both, botorl/pipeline/preempt.py); mid log
     # window: its metrics are saved too
     ("finetune", 55, signal.SIGINT, "finetune-step000000055"),
 ]
+# slow (~15 s each): the default suite signals the first and the last stage, and SIGTERM and SIGINT
+SLOW_STAGES = ("warmup", "boto")
 
 
-@pytest.mark.parametrize("stage, step, sig, ckpt", CASES, ids=[f"{v[0]}-{v[2].name}" for v in (getattr(c, "values", c) for c in CASES)])
+@pytest.mark.parametrize("stage, step, sig, ckpt", [
+    pytest.param(*c, id=f"{c[0]}-{c[2].name}", marks=[pytest.mark.slow] if c[0] in SLOW_STAGES else [])
+    for c in CASES])
 def test_signal_in_stage_checkpoints_and_resumes_exactly(reference, tmp_path, capsys, stage, step, sig, ckpt):
     out, pause = tmp_path / "run", tmp_path / "pause"
     proc = _paused(["run", "--task", TASK, *ARGS, "--out", str(out)], f"{stage}:{step}", pause)
