@@ -9,7 +9,11 @@ the evaluation seeds) every ``--every`` steps, printing success, return, the mea
 batch's data actions and the wall time per step (all of it, and the training alone: without the
 evaluations and the first call, which compiles). This is how the quick profile's pre-training
 budget on pointmaze was chosen (docs/results/pretraining.md). It uses the pipeline's own pieces (the
-preset, the data, the agent, the population's batched calls) with a population of one.
+preset, the data, the agent, the population's batched calls) with a population of one, and the
+pipeline's JAX settings (``setup_jax``: one CPU device per core, over which a population is
+split): with ``--seeds``, the members' numbers are then the ones a ``botorl run`` of those seeds
+computes, bit for bit. On another device count they are other draws from the same distribution
+(the split changes XLA's float rounding, and training amplifies it; docs/results/pretraining.md, t6).
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from botorl.envs.registry import get_task
 from botorl.agents import population as P
 from botorl.pipeline.evaluation import make_eval_envs, run_episodes
 from botorl.configs.members import parse_seeds
+from botorl.jaxsetup import setup_jax
 from botorl.pipeline.runner import load_offline, transform_dataset
 from botorl.pipeline.stages import make_pretrain_agent
 
@@ -65,6 +70,7 @@ def main(argv=None) -> int:
                         "e.g. network.critic_hidden_dims=128,128 (repeatable)")
     p.add_argument("--profile", default="quick", help="the preset the probe starts from")
     args = p.parse_args(argv)
+    setup_jax()  # before the first array: the device split `botorl run` uses
 
     cfg = make_preset(args.task, args.profile, "wsrl", args.pretrain)
     for item in args.set:
