@@ -18,7 +18,7 @@ import stat
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Sequence
 
 from botorl.errors import BotorlError, ConfigError
 
@@ -363,6 +363,16 @@ def csv_rows(lines: Iterable[str], name: str) -> tuple[list[str] | None, list[di
         return reader.fieldnames, list(reader)
     except csv.Error as err:
         raise ValueError(f"{name} is not CSV botorl wrote ({err})") from None
+
+
+def csv_text(header: Sequence[str] | None, rows: Iterable[Sequence[Any]]) -> str:
+    """CSV text of ``rows`` under ``header`` (None: no header row, for rows appended to a log)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    if header is not None:
+        w.writerow(header)
+    w.writerows(rows)
+    return buf.getvalue()
 
 
 def read_json_object(path: str | os.PathLike, limit: int = JSON_LIMIT) -> dict[str, Any] | None:

@@ -8,8 +8,6 @@ each end, resample runs with replacement within each task; paired statistics for
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 import textwrap
 from typing import Any, Iterable, Sequence
@@ -18,7 +16,7 @@ import numpy as np
 from scipy import stats
 
 from botorl.errors import ConfigError
-from botorl.io import atomic_save_figure, pyplot
+from botorl.io import atomic_save_figure, csv_text, pyplot  # csv_text: the report's modules take it from here
 
 
 def mean_se(values: Sequence[float]) -> tuple[float, float, int]:
@@ -205,14 +203,6 @@ def detectable_effect(sd: float, n: int, power: float = 0.8, alpha: float = 0.05
         return math.nan
     z = float(stats.norm.ppf(1 - alpha / 2)) + float(stats.norm.ppf(power))
     return z * sd / math.sqrt(n)
-
-
-def csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(header)
-    w.writerows(rows)
-    return buf.getvalue()
 
 
 def md_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:

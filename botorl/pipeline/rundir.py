@@ -8,10 +8,8 @@ line and on resume cut back to the checkpoint's step (``truncate``), so no row a
 from __future__ import annotations
 
 import contextlib
-import csv
 import errno
 import fcntl
-import io
 import json
 import math
 import os
@@ -24,7 +22,7 @@ from typing import Any, Callable
 
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import (IO_FAULTS, UnsafeFileError, append_text, atomic_write_bytes, check_path_text, csv_rows,
-                       jsonable, open_regular, own_folder, read_bounded, read_bounded_bytes, unshare)
+                       csv_text, jsonable, open_regular, own_folder, read_bounded, read_bounded_bytes, unshare)
 from botorl.io import read_json_bounded as read_json  # what every reader of a run's JSON files calls
 
 LOCK_FILE = ".lock"
@@ -207,12 +205,8 @@ class CsvLog:
         new = not self.path.exists() or self.path.stat().st_size == 0
         if self.columns is None:
             self.columns = list(row.keys())
-        buf = io.StringIO()
-        w = csv.DictWriter(buf, fieldnames=self.columns, extrasaction="ignore", lineterminator="\n")
-        if new:
-            w.writeheader()
-        w.writerow({k: _fmt(row.get(k, "")) for k in self.columns})
-        append_text(self.path, buf.getvalue(), root=self.root)
+        text = csv_text(self.columns if new else None, [[_fmt(row.get(k, "")) for k in self.columns]])
+        append_text(self.path, text, root=self.root)
 
     def rows(self, *, warn: bool = False) -> list[dict[str, str]]:
         return [r for r in self._read(log_lines(self.path, warn=warn))[1] if r]
@@ -222,12 +216,9 @@ class CsvLog:
         if not self.path.exists():
             return
         rows = self.rows(warn=True)
-        buf = io.StringIO()
         cols = self.columns or (list(rows[0].keys()) if rows else [])
-        w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
-        w.writeheader()
-        w.writerows(r for r in rows if keep(r))
-        atomic_write_bytes(self.path, buf.getvalue().encode(), root=self.root)
+        text = csv_text(cols, ([r.get(k, "") for k in cols] for r in rows if keep(r)))
+        atomic_write_bytes(self.path, text.encode(), root=self.root)
 
 
 def _fmt(v: Any) -> Any:
