@@ -9,6 +9,7 @@ import itertools
 import json
 import math
 from collections import Counter
+from functools import partial
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -504,10 +505,7 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
     boot = dict(n_boot=n_boot, confidence=confidence, seed=seed)
     out = Path(out)
     own_folder(out if root is None else root, out)
-
-    def rel(path) -> str:
-        return relative(path, out)
-
+    rel = partial(relative, base=out)
     files: list[Path] = []
     notes: list[str] = []
     dips, no_dip = dips_of(runs, dip_window)
@@ -543,8 +541,7 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
             )
     for name, text in (("table1.csv", cells_csv(cells)), ("aggregate_iqm.csv", aggregate_csv(aggs)),
                        ("dip_runs.csv", dip_runs_csv(dips, relative_to=out, metric=dip_what))):
-        atomic_write_text(out / name, text)
-        files.append(out / name)
+        files.append(atomic_write_text(out / name, text))
     if runs:
         figure5(runs, out / "figure5.png", grid_points=grid_points)
         files.append(out / "figure5.png")
@@ -615,11 +612,9 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
         md += ["## Skipped run directories", ""] + [f"- `{rel(s.path)}`: {s.reason}" for s in skipped] + [""]
     if notes:
         md += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]
-    atomic_write_text(out / "report.md", "\n".join(md))
-    files.insert(0, out / "report.md")
+    files.insert(0, atomic_write_text(out / "report.md", "\n".join(md)))
     if selection is not None and selection.choices:
-        atomic_write_text(out / "alpha_selection.txt", selection.text() + "\n")
-        files.append(out / "alpha_selection.txt")
+        files.append(atomic_write_text(out / "alpha_selection.txt", selection.text() + "\n"))
     # outputs of an earlier report into the same folder that this one does not replace would
     # read as this report's
     for stale in ("alpha_selection.txt", "dip.png", "alpha_sensitivity.png", "alpha_sensitivity.csv", "figure5.png"):
