@@ -26,7 +26,7 @@ from botorl.configs.members import MEMBER_NAME, Streams, is_population, member_c
 from botorl.configs.resolve import BOUNDS, check_bounds, validate
 from botorl.configs.schema import RunConfig, from_dict, to_dict
 from botorl.envs.registry import get_task
-from botorl.errors import BotorlError, ConfigError, Range, check_ranges
+from botorl.errors import BotorlError, ConfigError, Range, check_ranges, warn
 from botorl.io import atomic_write_json, open_regular, own_folder
 from botorl.jaxsetup import matmul_precision, setup_jax
 from botorl.pipeline import preempt, shared_pretrain, stages
@@ -319,8 +319,8 @@ def resume_main(argv: list[str]) -> int:
             except (OSError, ValueError, AttributeError) as err:
                 finished = False  # no summary yet, or a damaged one: the resume rebuilds it
                 if os.path.lexists(status_file):  # never silently (it is rebuilt from the checkpoints and logs)
-                    print(f"botorl: warning: {status_file} cannot be read ({err}); the resume writes it afresh from "
-                          f"the run's checkpoints and logs.", file=sys.stderr)
+                    warn(f"{status_file} cannot be read ({err}); the resume writes it afresh from "
+                         f"the run's checkpoints and logs.")
             if finished:
                 print(f"botorl: {root} has finished already; nothing to resume.", file=sys.stderr)
                 summaries = [read_summary(r) for r in runs]

@@ -15,12 +15,12 @@ import math
 import os
 import socket
 import struct
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
 
 from botorl.errors import BotorlError, ConfigError
+from botorl.errors import warn as _warn  # the log readers name their flag `warn`
 from botorl.io import (IO_FAULTS, UnsafeFileError, append_text, atomic_write_bytes, check_path_text, csv_rows,
                        csv_text, jsonable, open_regular, own_folder, read_bounded, read_bounded_bytes, unshare)
 from botorl.io import read_json_bounded as read_json  # what every reader of a run's JSON files calls
@@ -244,10 +244,6 @@ class JsonlLog:
                 if keep(row):
                     out.append(json.dumps(row))
         atomic_write_bytes(self.path, ("\n".join(out) + ("\n" if out else "")).encode(), root=self.root)
-
-
-def _warn(msg: str) -> None:
-    print(f"botorl: warning: {msg}", file=sys.stderr)
 
 
 class EventsFile:
