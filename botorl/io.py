@@ -101,9 +101,11 @@ def pyplot():
 
 def atomic_save_figure(fig: Any, path: str | os.PathLike, *, root: str | os.PathLike | None = None,
                        **savefig_kwargs: Any) -> Path:
-    """``fig.savefig`` written atomically; the format comes from ``path``'s suffix."""
+    """``fig.savefig`` written atomically, and the figure closed (pyplot keeps every open one in
+    memory until the process ends); the format comes from ``path``'s suffix."""
     out = io.BytesIO()
     fig.savefig(out, format=Path(path).suffix.lstrip(".") or None, **savefig_kwargs)
+    pyplot().close(fig)
     return atomic_write_bytes(path, out.getvalue(), root=root)
 
 

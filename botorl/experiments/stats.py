@@ -253,12 +253,11 @@ def label_colors(labels: Iterable[str]) -> dict:
 
 
 def save_figure(fig, path, title: str, **savefig: Any) -> None:
-    """The figure with its title wrapped to its width, written atomically and closed."""
+    """The figure with its title wrapped to its width, written atomically (and closed)."""
     chars = max(20, int(fig.get_figwidth() * 11))  # ~11 characters an inch at 10 pt
     fig.suptitle("\n".join(textwrap.wrap(title, chars)), fontsize=10)
     fig.tight_layout()
     atomic_save_figure(fig, path, **savefig)
-    pyplot().close(fig)
 
 
 def line_label(label: str, alpha: float | None, multi_alpha: bool) -> str:
