@@ -24,7 +24,7 @@ import numpy as np
 from botorl.data.minari_io import minari_root
 from botorl.data.safe import check_npz, data_files, fingerprint, machine_memory
 from botorl.errors import ConfigError, DataFormatError, warn
-from botorl.io import atomic_write_json, file_sha256, open_regular, own_folder
+from botorl.io import atomic_write_json, file_sha256, open_regular, own_folder, read_json_object
 from botorl.pipeline import faults
 from botorl.pipeline.rundir import read_json
 
@@ -196,11 +196,8 @@ class CheckpointManager:
         return final
 
     def _latest_name(self) -> str | None:
-        try:
-            info = read_json(self.root / LATEST)
-            return str(info["name"]) if isinstance(info, dict) and info.get("name") else None
-        except (OSError, ValueError, KeyError, TypeError):
-            return None
+        info = read_json_object(self.root / LATEST) or {}  # unreadable: none
+        return str(info["name"]) if info.get("name") else None
 
     def _manifest(self, name: str) -> dict[str, Any] | None:
         p = self.root / name / MANIFEST
