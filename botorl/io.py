@@ -241,13 +241,11 @@ def open_regular(path: str | os.PathLike, flags: int, mode: int = 0o644, *, root
     try:  # O_TRUNC after the checks below: truncating a hard link empties its other names too
         fd = os.open(path, flags & ~os.O_TRUNC | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, mode)
     except OSError as err:
-        if err.errno == errno.ELOOP:
-            raise _not_regular(path, "a symbolic link") from None
-        if err.errno == errno.ENXIO:  # a FIFO without a reader, opened for writing
-            raise _not_regular(path, "a FIFO") from None
-        if err.errno == errno.EISDIR:
-            raise _not_regular(path, "a directory") from None
-        raise
+        # ENXIO: a FIFO without a reader, opened for writing
+        what = {errno.ELOOP: "a symbolic link", errno.ENXIO: "a FIFO", errno.EISDIR: "a directory"}.get(err.errno)
+        if what is None:
+            raise
+        raise _not_regular(path, what) from None
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
@@ -293,10 +291,7 @@ def read_bounded_bytes(path: str | os.PathLike, limit: int, *, tail: bool = Fals
         if tail and st.st_size > limit:
             os.lseek(fd, st.st_size - limit, os.SEEK_SET)
         chunks, left = [], limit
-        while left > 0:
-            b = os.read(fd, min(left, 1 << 20))
-            if not b:
-                break
+        while left > 0 and (b := os.read(fd, min(left, 1 << 20))):  # to the end, at most limit bytes
             chunks.append(b)
             left -= len(b)
     finally:
