@@ -203,7 +203,7 @@ def mean_se_curves(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return mean, se, count
 
 
-def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
+def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> Path:
     plt = pyplot()
     metrics = task_metrics(runs)
     tasks = sorted({r.task for r in runs})
@@ -240,8 +240,8 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
         else:
             ax.legend(fontsize=7, loc="best")
     what = metric_words(runs)[1]
-    save_figure(fig, path, f"{what[0].upper() + what[1:]} during online fine-tuning (mean ± standard error over seeds)",
-                dpi=120)
+    return save_figure(fig, path, f"{what[0].upper() + what[1:]} during online fine-tuning (mean ± standard error "
+                                  "over seeds)", dpi=120)
 
 
 @dataclasses.dataclass
@@ -280,11 +280,11 @@ def alpha_csv(rows: Sequence[AlphaRow]) -> str:
 
 
 def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WINDOW,
-                 metrics: dict[str, Metric] | None = None) -> bool:
+                 metrics: dict[str, Metric] | None = None) -> Path | None:
     """Per task: success (``metrics``: the task's headline metric) at 10k and final against alpha
-    (top), the dip (bottom); False without a sweep."""
+    (top), the dip (bottom); the path written, None without a sweep."""
     if not rows:
-        return False
+        return None
     tasks = sorted({r.task for r in rows})
     fig, axes = pyplot().subplots(2, len(tasks), figsize=(4.6 * len(tasks), 6.4), squeeze=False, sharex=True)
     for col, task in enumerate(tasks):
@@ -317,8 +317,7 @@ def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WI
             ax.set_xlim(-1.05, 1.05)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
-    save_figure(fig, path, "Alpha sensitivity (mean ± standard error over seeds)", dpi=120)
-    return True
+    return save_figure(fig, path, "Alpha sensitivity (mean ± standard error over seeds)", dpi=120)
 
 
 def seeds_text(seeds: Iterable[int]) -> str:
@@ -543,17 +542,15 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
                        ("dip_runs.csv", dip_runs_csv(dips, relative_to=out, metric=dip_what))):
         files.append(atomic_write_text(out / name, text))
     if runs:
-        figure5(runs, out / "figure5.png", grid_points=grid_points)
-        files.append(out / "figure5.png")
+        files.append(figure5(runs, out / "figure5.png", grid_points=grid_points))
         if dip_cells:
-            dip_figure(dip_cells, out / "dip.png", window=dip_window, confidence=confidence, metrics=metrics)
-            files.append(out / "dip.png")
+            files.append(dip_figure(dip_cells, out / "dip.png", window=dip_window, confidence=confidence,
+                                    metrics=metrics))
         else:
             notes.append("no run has a dip (see the reasons): no dip figure")
         alpha_rows = alpha_table(runs, dip_window)
-        if alpha_figure(alpha_rows, out / "alpha_sensitivity.png", window=dip_window, metrics=metrics):
-            atomic_write_text(out / "alpha_sensitivity.csv", alpha_csv(alpha_rows))
-            files += [out / "alpha_sensitivity.png", out / "alpha_sensitivity.csv"]
+        if alpha_png := alpha_figure(alpha_rows, out / "alpha_sensitivity.png", window=dip_window, metrics=metrics):
+            files += [alpha_png, atomic_write_text(out / "alpha_sensitivity.csv", alpha_csv(alpha_rows))]
         else:
             notes.append("no alpha sweep among the runs (boto with >= 2 alphas on a task): no alpha figure")
     else:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import textwrap
+from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np
@@ -252,12 +253,12 @@ def label_colors(labels: Iterable[str]) -> dict:
     return {lab: pyplot().cm.tab10(i % 10) for i, lab in enumerate(sorted(set(labels)))}
 
 
-def save_figure(fig, path, title: str, **savefig: Any) -> None:
-    """The figure with its title wrapped to its width, written atomically (and closed)."""
+def save_figure(fig, path, title: str, **savefig: Any) -> Path:
+    """The figure with its title wrapped to its width, written atomically (and closed); its path."""
     chars = max(20, int(fig.get_figwidth() * 11))  # ~11 characters an inch at 10 pt
     fig.suptitle("\n".join(textwrap.wrap(title, chars)), fontsize=10)
     fig.tight_layout()
-    atomic_save_figure(fig, path, **savefig)
+    return atomic_save_figure(fig, path, **savefig)
 
 
 def line_label(label: str, alpha: float | None, multi_alpha: bool) -> str:
