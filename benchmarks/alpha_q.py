@@ -267,7 +267,6 @@ def _write(out: Path, rows, scales, steps) -> None:
     ax2.legend(fontsize=7)
     fig.tight_layout()
     atomic_save_figure(fig, out / "alpha_q.png")
-    plt.close(fig)
 
 
 if __name__ == "__main__":

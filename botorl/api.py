@@ -9,7 +9,6 @@ no JAX).
 from __future__ import annotations
 
 import os
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -19,7 +18,7 @@ from botorl.configs.build import override_args
 from botorl.data import user as data_user
 from botorl.envs import registry
 from botorl.envs.user import entry_of, import_entry, make_spec, probe
-from botorl.errors import BotorlError, ConfigError
+from botorl.errors import BotorlError, ConfigError, warn
 from botorl.pipeline.export import export_policy
 from botorl.pipeline.policy import load_agent, load_policy
 from botorl.pipeline.rundir import POPULATION_FILE, read_json
@@ -57,7 +56,7 @@ def register_task(name: str, make_env: Callable[[int], Any] | str, dataset, max_
     registry.register(spec)
     data_user.hold(name, ref, ds)
     if task.success_off and success_key is not None:
-        print(f"botorl: warning: task {name!r}: {task.success_off}.", file=sys.stderr)
+        warn(f"task {name!r}: {task.success_off}.")
     return spec
 
 

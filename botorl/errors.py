@@ -6,6 +6,7 @@ A command's number flags carry their range (``Range``), checked in one place (``
 from __future__ import annotations
 
 import dataclasses
+import sys
 import typing
 
 
@@ -29,6 +30,11 @@ class ConfigError(BotorlError):
 
 class TrainingDivergedError(BotorlError):
     """A loss became NaN or inf; the last good checkpoint is kept."""
+
+
+def warn(message: str) -> None:
+    """What botorl tells the user and goes on (stderr; stdout holds a command's result)."""
+    print(f"botorl: warning: {message}", file=sys.stderr)
 
 
 class Interrupted(KeyboardInterrupt):

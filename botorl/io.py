@@ -18,7 +18,7 @@ import stat
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Sequence
 
 from botorl.errors import BotorlError, ConfigError
 
@@ -101,9 +101,11 @@ def pyplot():
 
 def atomic_save_figure(fig: Any, path: str | os.PathLike, *, root: str | os.PathLike | None = None,
                        **savefig_kwargs: Any) -> Path:
-    """``fig.savefig`` written atomically; the format comes from ``path``'s suffix."""
+    """``fig.savefig`` written atomically, and the figure closed (pyplot keeps every open one in
+    memory until the process ends); the format comes from ``path``'s suffix."""
     out = io.BytesIO()
     fig.savefig(out, format=Path(path).suffix.lstrip(".") or None, **savefig_kwargs)
+    pyplot().close(fig)
     return atomic_write_bytes(path, out.getvalue(), root=root)
 
 
@@ -239,13 +241,11 @@ def open_regular(path: str | os.PathLike, flags: int, mode: int = 0o644, *, root
     try:  # O_TRUNC after the checks below: truncating a hard link empties its other names too
         fd = os.open(path, flags & ~os.O_TRUNC | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, mode)
     except OSError as err:
-        if err.errno == errno.ELOOP:
-            raise _not_regular(path, "a symbolic link") from None
-        if err.errno == errno.ENXIO:  # a FIFO without a reader, opened for writing
-            raise _not_regular(path, "a FIFO") from None
-        if err.errno == errno.EISDIR:
-            raise _not_regular(path, "a directory") from None
-        raise
+        # ENXIO: a FIFO without a reader, opened for writing
+        what = {errno.ELOOP: "a symbolic link", errno.ENXIO: "a FIFO", errno.EISDIR: "a directory"}.get(err.errno)
+        if what is None:
+            raise
+        raise _not_regular(path, what) from None
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
@@ -291,10 +291,7 @@ def read_bounded_bytes(path: str | os.PathLike, limit: int, *, tail: bool = Fals
         if tail and st.st_size > limit:
             os.lseek(fd, st.st_size - limit, os.SEEK_SET)
         chunks, left = [], limit
-        while left > 0:
-            b = os.read(fd, min(left, 1 << 20))
-            if not b:
-                break
+        while left > 0 and (b := os.read(fd, min(left, 1 << 20))):  # to the end, at most limit bytes
             chunks.append(b)
             left -= len(b)
     finally:
@@ -363,6 +360,16 @@ def csv_rows(lines: Iterable[str], name: str) -> tuple[list[str] | None, list[di
         return reader.fieldnames, list(reader)
     except csv.Error as err:
         raise ValueError(f"{name} is not CSV botorl wrote ({err})") from None
+
+
+def csv_text(header: Sequence[str] | None, rows: Iterable[Sequence[Any]]) -> str:
+    """CSV text of ``rows`` under ``header`` (None: no header row, for rows appended to a log)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    if header is not None:
+        w.writerow(header)
+    w.writerows(rows)
+    return buf.getvalue()
 
 
 def read_json_object(path: str | os.PathLike, limit: int = JSON_LIMIT) -> dict[str, Any] | None:

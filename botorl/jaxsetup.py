@@ -13,6 +13,14 @@ from pathlib import Path
 from botorl.errors import BotorlError, ConfigError
 
 
+def usable_cores() -> list[int]:
+    """The cores this process may run on: its affinity (every core where the system does not say)."""
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return list(range(os.cpu_count() or 1))
+
+
 def cpu_device_count() -> int:
     """JAX CPU devices for this process: one per core it may run on (its affinity, so a sweep
     worker pinned to 2 of 8 cores gets 2), or ``BOTORL_CPU_DEVICES``."""
@@ -25,10 +33,7 @@ def cpu_device_count() -> int:
         if n < 1:
             raise ConfigError(f"BOTORL_CPU_DEVICES={env!r}: give at least 1 (1 turns the split off).")
         return n
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
+    return len(usable_cores())
 
 
 @functools.cache

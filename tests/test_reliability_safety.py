@@ -199,14 +199,14 @@ def test_tensorboard_io_error_turns_tb_off(tmp_path, capsys):
     tb.add_scalar("x/nan", float("nan"), 1)  # skipped, no "NaN or Inf" message
     tb.add_scalar("x/ok", 1.0, 1)
 
-    class Full:
-        def write_event(self, ev):
+    class Full:  # the events file on a full disk: every write, flush and close fails
+        def write(self, *data):
             raise OSError(errno.ENOSPC, "No space left on device")
 
-        def close(self):
-            raise OSError(errno.ENOSPC, "No space left on device")
+        flush = close = write
 
-    tb._writer = Full()
+    tb._file.close()
+    tb._file = Full()
     t0 = time.perf_counter()
     for i in range(100):
         tb.add_scalar("x/ok", 1.0, i)

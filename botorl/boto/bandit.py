@@ -204,7 +204,6 @@ def plot_fig3(res: dict, path: Path) -> None:
         else:
             a.legend(fontsize=7, loc="lower left")
     atomic_save_figure(fig, path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
 
 
 # ----------------------------------------------------------------------------- Figure 2
@@ -313,7 +312,6 @@ def plot_fig2(res: dict, path: Path) -> None:
     fig.suptitle("bandit-pinwheel: Q over the action square (top; dots = data, coloured by reward) "
                  "and KDE of Q values (bottom)", fontsize=11)
     atomic_save_figure(fig, path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
 
 
 # ----------------------------------------------------------------------------- I/O and CLI

@@ -13,7 +13,6 @@ import contextlib
 import contextvars
 import json
 import os
-import sys
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -27,7 +26,7 @@ from botorl.data.safe import check_hdf5, check_npz, read_plain_pickle, regular_f
 from botorl.envs.adroit import DOOR_SUCCESS_ANGLE
 from botorl.envs.registry import get_task, is_registered
 from botorl.envs.user import flatten_obs, obs_keys_of
-from botorl.errors import ConfigError, DataFormatError, DatasetNotFoundError
+from botorl.errors import ConfigError, DataFormatError, DatasetNotFoundError, warn
 
 # ----------------------------------------------------------------------------- hints
 
@@ -269,8 +268,7 @@ def load_minari(id_or_path: str | os.PathLike, *, obs_keys: Sequence[str] | None
         except FlatCacheInvalid as err:
             flat = None
             rebuild = True
-            print(f"botorl: warning: not using the flat cache: {err}; reading the Minari data in {data_path} "
-                  "and rebuilding the cache.", file=sys.stderr)
+            warn(f"not using the flat cache: {err}; reading the Minari data in {data_path} and rebuilding the cache.")
         if flat is not None:
             return validate(flat, obs_dim, action_dim, action_tolerance)
     if not (data_path / "metadata.json").exists() and not (data_path / "main_data.hdf5").exists():

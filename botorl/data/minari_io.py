@@ -34,7 +34,7 @@ from minari.data_collector import EpisodeBuffer
 from minari.dataset.minari_dataset import parse_dataset_id
 from tqdm import tqdm
 
-from botorl.data.dataset import ACTION_CLIP, Dataset, segments
+from botorl.data.dataset import ACTION_CLIP, TRANSITION_FIELDS, Dataset, segments
 from botorl.data.safe import check_npz, data_cap, regular_file
 from botorl.errors import BotorlError, ConfigError
 from botorl.io import atomic_write_bytes, file_sha256, pid_alive
@@ -47,6 +47,7 @@ SPLIT_KEY = "botorl_split"
 # Minari's hdf5 layout costs about 1-5 ms per episode to read, a minute for 1M pointmaze steps;
 # the same rows stored flat beside the ``data`` folder (Minari ignores it) load at once.
 FLAT_FILE = "botorl_flat.npz"
+FLAT_FIELDS = TRANSITION_FIELDS + ("episode_ends",)  # the rows it holds (not mc_returns: a run makes its own)
 # Temporary roots of write_minari: ``.botorl-tmp-<host>-<pid>-<random>``; one whose process is
 # gone (a `botorl data generate` killed with -9) is removed by the next write into the root.
 TMP_PREFIX = ".botorl-tmp-"
@@ -276,13 +277,9 @@ def write_minari(dataset: Dataset, dataset_id: str | None = None, *, path: str |
 def _write_flat(ds: Dataset, path: Path, meta: dict) -> None:
     """The flat copy, with the size and sha256 of its source ``data/main_data.hdf5`` and a checksum
     of its own rows, written atomically."""
-    arrays = {
-        "observations": ds.observations, "actions": ds.actions, "rewards": ds.rewards,
-        "next_observations": ds.next_observations, "terminals": ds.terminals,
-        "episode_ends": ds.episode_ends, "raw_action_max": np.asarray(ds.raw_action_max),
-        "botorl_metadata": np.asarray(json.dumps(meta, default=_json_default)),
-    }
-    arrays.update({f"infos/{k}": v for k, v in ds.infos.items()})
+    arrays = {**{k: getattr(ds, k) for k in FLAT_FIELDS}, "raw_action_max": np.asarray(ds.raw_action_max),
+              "botorl_metadata": np.asarray(json.dumps(meta, default=_json_default)),
+              **{f"infos/{k}": v for k, v in ds.infos.items()}}
     source = Path(path).parent / "data" / "main_data.hdf5"
     check = {"content_sha256": np.asarray(_content_sha256(arrays))}
     if source.exists():
@@ -329,8 +326,7 @@ def read_flat(folder: Path) -> Dataset | None:
         raise FlatCacheInvalid(f"{path}: stored actions reach {amax:.6g}, but the recorded action range is {raw:.6g}")
     infos = {k[6:]: v for k, v in body.items() if k.startswith("infos/")}
     meta = {"source": str(folder), "format": "minari", "botorl": json.loads(str(body["botorl_metadata"]))}
-    return Dataset(body["observations"], act, body["rewards"], body["next_observations"], body["terminals"],
-                   body["episode_ends"], infos=infos, metadata=meta, raw_action_max=raw)
+    return Dataset(**{k: body[k] for k in FLAT_FIELDS}, infos=infos, metadata=meta, raw_action_max=raw)
 
 
 def rebuild_flat(ds: Dataset, folder: Path) -> None:

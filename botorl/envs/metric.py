@@ -112,10 +112,7 @@ def of_config(config: Mapping[str, Any] | Any) -> Metric:
 def headline_of_summary(summary: Mapping[str, Any]) -> str:
     """The metric a summary.json is about: the one whose ``_initial`` it carries (success first,
     as a goal task's summary also carries the return)."""
-    for name in ("success", "score", "return"):
-        if f"{name}_initial" in summary:
-            return name
-    return "success"
+    return next((name for name in ("success", "score", "return") if f"{name}_initial" in summary), "success")
 
 
 def episode_success(prev: float, success, mode: str) -> float:

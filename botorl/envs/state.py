@@ -139,11 +139,8 @@ def _ints(v: Any):
     if isinstance(v, np.ndarray):
         if v.dtype.kind in "iu" and v.size:
             yield int(np.abs(v.astype(object)).max())
-    elif isinstance(v, (list, tuple, set, frozenset)):
-        for x in v:
-            yield from _ints(x)
-    elif isinstance(v, dict):
-        for x in v.values():
+    elif isinstance(v, (list, tuple, set, frozenset, dict)):
+        for x in v.values() if isinstance(v, dict) else v:
             yield from _ints(x)
     elif isinstance(v, int) and not isinstance(v, bool):
         yield abs(v)

@@ -18,6 +18,7 @@ from typing import Any
 
 from botorl.experiments.child import launcher
 from botorl.io import atomic_write_json, open_regular, read_json_object
+from botorl.jaxsetup import usable_cores
 
 ABORT_WAIT_S = 60.0  # a stopped trial's last update chunk and checkpoint; SLURM's default KillWait is 30 s
 TRIAL_PID = ".sweep-trial.json"  # pid/host of the attempt now running (orphan detection)
@@ -205,13 +206,6 @@ def stop_orphan(run_dir: Path, out: Path, timeout: float = 15.0) -> bool:
         return False
     stop_recorded([info], out, timeout)
     return True
-
-
-def usable_cores() -> list[int]:
-    try:
-        return sorted(os.sched_getaffinity(0))
-    except AttributeError:
-        return list(range(os.cpu_count() or 1))
 
 
 def spawn(cmd: list[str], log, run_dir, env: dict, block=None, **record) -> subprocess.Popen:

@@ -138,9 +138,9 @@ def dip_markdown(cells: Sequence[DipCell], window: float, confidence: float, met
 
 
 def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidence: float,
-               metrics: dict[str, Metric] | None = None) -> None:
+               metrics: dict[str, Metric] | None = None) -> Path:
     """Per task and group: the mean dip with its bootstrap CI, each run's dip a dot beside it
-    (``metrics``: each task's headline metric; success where not given)."""
+    (``metrics``: each task's headline metric; success where not given); the path written."""
     plt = pyplot()
     tasks = list(dict.fromkeys(c.task for c in cells))  # in the cells' order (dip_table sorts them)
     most = max(sum(1 for c in cells if c.task == t) for t in tasks)
@@ -170,5 +170,5 @@ def dip_figure(cells: Sequence[DipCell], path: Path, *, window: float, confidenc
         ax.set_title(task)
         ax.set_ylabel(f"dip (lowest {metric.label} in 0..{window / 1000:g}k − {metric.label} at 0)", fontsize=8)
         ax.grid(alpha=0.3, axis="y")
-    save_figure(fig, path, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are single runs",
-                dpi=120)
+    return save_figure(fig, path, f"The dip: mean over runs with {100 * confidence:g}% bootstrap CI; grey dots are "
+                                  "single runs", dpi=120)

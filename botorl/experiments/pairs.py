@@ -256,9 +256,9 @@ def paired_markdown(cells: Sequence[PairedCell], confidence: float, *,
          for c in cells if c.quantity in quantities))
 
 
-def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") -> None:
+def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") -> Path:
     """One panel per group: each pair a line from the reference's value to the other's (jittered
-    so that equal pairs stay visible)."""
+    so that equal pairs stay visible); the path written."""
     groups = _groups(pairs)
     fig, axes = panels(len(groups), 3.2, 3.0, min(4, len(groups)), sharey=True)
     rng = np.random.default_rng(0)
@@ -274,14 +274,14 @@ def pairs_figure(pairs: Sequence[Pair], path: Path, *, quantity: str = "dip") ->
         ax.set_title(f"{group[0].task}{a}\nmean difference {mean:+.3f} (n={n})", fontsize=8)
         ax.set_xlim(-0.3, 1.3)
     axes[0][0].set_ylabel(_NAMES[quantity], fontsize=8)
-    save_figure(fig, path, f"Paired runs (same pre-training): {_NAMES[quantity]}, one line per pair; "
-                           "green: the method above the reference, red: below")
+    return save_figure(fig, path, f"Paired runs (same pre-training): {_NAMES[quantity]}, one line per pair; "
+                                  "green: the method above the reference, red: below")
 
 
 def difference_figure(cells: Sequence[PairedCell], path: Path, *, confidence: float = 0.95,
-                      quantities: Sequence[str] = TABLE_QUANTITIES, metric: Metric | None = None) -> None:
+                      quantities: Sequence[str] = TABLE_QUANTITIES, metric: Metric | None = None) -> Path:
     """Per quantity, each group's mean paired difference with its bootstrap CI (thick) and
-    t-interval (thin); the noise floor's rows in grey."""
+    t-interval (thin); the noise floor's rows in grey. The path written."""
     rows = [c for c in cells if c.quantity == quantities[0]]
     labels = [f"{c.task} {c.label}{'' if c.alpha is None else f' α={c.alpha:+.1f}'}" for c in rows]
     fig, axes = pyplot().subplots(1, len(quantities), figsize=(3.6 * len(quantities), 0.45 * len(rows) + 1.4),
@@ -302,9 +302,9 @@ def difference_figure(cells: Sequence[PairedCell], path: Path, *, confidence: fl
     axes[0][0].set_yticks(range(len(rows)), labels, fontsize=7)
     axes[0][0].invert_yaxis()
     reference = rows[0].reference if rows else "the reference"
-    save_figure(fig, path, f"Paired differences, method − {reference}: mean, {100 * confidence:g}% bootstrap CI "
-                           "(thick) and t-interval (thin); grey: the noise floor (the reference against itself, "
-                           "another online seed)")
+    return save_figure(fig, path, f"Paired differences, method − {reference}: mean, {100 * confidence:g}% bootstrap "
+                                  "CI (thick) and t-interval (thin); grey: the noise floor (the reference against "
+                                  "itself, another online seed)")
 
 
 def write_paired(pairs: Sequence[Pair], out: Path, *, n_boot: int, confidence: float, seed: int,
@@ -312,13 +312,12 @@ def write_paired(pairs: Sequence[Pair], out: Path, *, n_boot: int, confidence: f
     """paired.csv, paired_table.csv, the two figures and the markdown section's lines
     (``metrics``: each task's headline metric, which the table names; success where not given)."""
     cells = paired_table(pairs, n_boot=n_boot, confidence=confidence, seed=seed)
-    atomic_write_text(out / "paired.csv", pairs_csv(pairs))
-    atomic_write_text(out / "paired_table.csv", paired_cells_csv(cells))
-    pairs_figure(pairs, out / "paired_dips.png")
     common = set((metrics or {}).values())  # the titles name the metric when every task has the same
-    difference_figure(cells, out / "paired_differences.png", confidence=confidence,
-                      metric=common.pop() if len(common) == 1 else None)
-    files = [out / "paired.csv", out / "paired_table.csv", out / "paired_dips.png", out / "paired_differences.png"]
+    files = [atomic_write_text(out / "paired.csv", pairs_csv(pairs)),
+             atomic_write_text(out / "paired_table.csv", paired_cells_csv(cells)),
+             pairs_figure(pairs, out / "paired_dips.png"),
+             difference_figure(cells, out / "paired_differences.png", confidence=confidence,
+                               metric=common.pop() if len(common) == 1 else None)]
     pct = f"{100 * confidence:g}%"
     md = [
         "## Paired comparison (runs from the same pre-training)",

@@ -9,6 +9,7 @@ import itertools
 import json
 import math
 from collections import Counter
+from functools import partial
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -202,7 +203,7 @@ def mean_se_curves(curves: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return mean, se, count
 
 
-def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
+def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> Path:
     plt = pyplot()
     metrics = task_metrics(runs)
     tasks = sorted({r.task for r in runs})
@@ -239,8 +240,8 @@ def figure5(runs: Sequence[Run], path: Path, *, grid_points: int = 101) -> None:
         else:
             ax.legend(fontsize=7, loc="best")
     what = metric_words(runs)[1]
-    save_figure(fig, path, f"{what[0].upper() + what[1:]} during online fine-tuning (mean ± standard error over seeds)",
-                dpi=120)
+    return save_figure(fig, path, f"{what[0].upper() + what[1:]} during online fine-tuning (mean ± standard error "
+                                  "over seeds)", dpi=120)
 
 
 @dataclasses.dataclass
@@ -279,11 +280,11 @@ def alpha_csv(rows: Sequence[AlphaRow]) -> str:
 
 
 def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WINDOW,
-                 metrics: dict[str, Metric] | None = None) -> bool:
+                 metrics: dict[str, Metric] | None = None) -> Path | None:
     """Per task: success (``metrics``: the task's headline metric) at 10k and final against alpha
-    (top), the dip (bottom); False without a sweep."""
+    (top), the dip (bottom); the path written, None without a sweep."""
     if not rows:
-        return False
+        return None
     tasks = sorted({r.task for r in rows})
     fig, axes = pyplot().subplots(2, len(tasks), figsize=(4.6 * len(tasks), 6.4), squeeze=False, sharex=True)
     for col, task in enumerate(tasks):
@@ -316,8 +317,7 @@ def alpha_figure(rows: Sequence[AlphaRow], path: Path, *, window: float = DIP_WI
             ax.set_xlim(-1.05, 1.05)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
-    save_figure(fig, path, "Alpha sensitivity (mean ± standard error over seeds)", dpi=120)
-    return True
+    return save_figure(fig, path, "Alpha sensitivity (mean ± standard error over seeds)", dpi=120)
 
 
 def seeds_text(seeds: Iterable[int]) -> str:
@@ -504,10 +504,7 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
     boot = dict(n_boot=n_boot, confidence=confidence, seed=seed)
     out = Path(out)
     own_folder(out if root is None else root, out)
-
-    def rel(path) -> str:
-        return relative(path, out)
-
+    rel = partial(relative, base=out)
     files: list[Path] = []
     notes: list[str] = []
     dips, no_dip = dips_of(runs, dip_window)
@@ -543,20 +540,17 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
             )
     for name, text in (("table1.csv", cells_csv(cells)), ("aggregate_iqm.csv", aggregate_csv(aggs)),
                        ("dip_runs.csv", dip_runs_csv(dips, relative_to=out, metric=dip_what))):
-        atomic_write_text(out / name, text)
-        files.append(out / name)
+        files.append(atomic_write_text(out / name, text))
     if runs:
-        figure5(runs, out / "figure5.png", grid_points=grid_points)
-        files.append(out / "figure5.png")
+        files.append(figure5(runs, out / "figure5.png", grid_points=grid_points))
         if dip_cells:
-            dip_figure(dip_cells, out / "dip.png", window=dip_window, confidence=confidence, metrics=metrics)
-            files.append(out / "dip.png")
+            files.append(dip_figure(dip_cells, out / "dip.png", window=dip_window, confidence=confidence,
+                                    metrics=metrics))
         else:
             notes.append("no run has a dip (see the reasons): no dip figure")
         alpha_rows = alpha_table(runs, dip_window)
-        if alpha_figure(alpha_rows, out / "alpha_sensitivity.png", window=dip_window, metrics=metrics):
-            atomic_write_text(out / "alpha_sensitivity.csv", alpha_csv(alpha_rows))
-            files += [out / "alpha_sensitivity.png", out / "alpha_sensitivity.csv"]
+        if alpha_png := alpha_figure(alpha_rows, out / "alpha_sensitivity.png", window=dip_window, metrics=metrics):
+            files += [alpha_png, atomic_write_text(out / "alpha_sensitivity.csv", alpha_csv(alpha_rows))]
         else:
             notes.append("no alpha sweep among the runs (boto with >= 2 alphas on a task): no alpha figure")
     else:
@@ -615,11 +609,9 @@ def make_report(dirs: Sequence[Path], out: Path, *, n_boot: int = 2000, confiden
         md += ["## Skipped run directories", ""] + [f"- `{rel(s.path)}`: {s.reason}" for s in skipped] + [""]
     if notes:
         md += ["## Notes", ""] + [f"- {n}" for n in notes] + [""]
-    atomic_write_text(out / "report.md", "\n".join(md))
-    files.insert(0, out / "report.md")
+    files.insert(0, atomic_write_text(out / "report.md", "\n".join(md)))
     if selection is not None and selection.choices:
-        atomic_write_text(out / "alpha_selection.txt", selection.text() + "\n")
-        files.append(out / "alpha_selection.txt")
+        files.append(atomic_write_text(out / "alpha_selection.txt", selection.text() + "\n"))
     # outputs of an earlier report into the same folder that this one does not replace would
     # read as this report's
     for stale in ("alpha_selection.txt", "dip.png", "alpha_sensitivity.png", "alpha_sensitivity.csv", "figure5.png"):

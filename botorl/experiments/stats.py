@@ -8,17 +8,16 @@ each end, resample runs with replacement within each task; paired statistics for
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 import textwrap
+from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np
 from scipy import stats
 
 from botorl.errors import ConfigError
-from botorl.io import atomic_save_figure, pyplot
+from botorl.io import atomic_save_figure, csv_text, pyplot  # csv_text: the report's modules take it from here
 
 
 def mean_se(values: Sequence[float]) -> tuple[float, float, int]:
@@ -207,14 +206,6 @@ def detectable_effect(sd: float, n: int, power: float = 0.8, alpha: float = 0.05
     return z * sd / math.sqrt(n)
 
 
-def csv_text(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(header)
-    w.writerows(rows)
-    return buf.getvalue()
-
-
 def md_table(header: Sequence[str], rows: Iterable[Sequence[Any]]) -> str:
     """A markdown table: the header, its rule, one line a row."""
     lines = ["| " + " | ".join(map(str, cells)) + " |" for cells in [header, *rows]]
@@ -262,13 +253,12 @@ def label_colors(labels: Iterable[str]) -> dict:
     return {lab: pyplot().cm.tab10(i % 10) for i, lab in enumerate(sorted(set(labels)))}
 
 
-def save_figure(fig, path, title: str, **savefig: Any) -> None:
-    """The figure with its title wrapped to its width, written atomically and closed."""
+def save_figure(fig, path, title: str, **savefig: Any) -> Path:
+    """The figure with its title wrapped to its width, written atomically (and closed); its path."""
     chars = max(20, int(fig.get_figwidth() * 11))  # ~11 characters an inch at 10 pt
     fig.suptitle("\n".join(textwrap.wrap(title, chars)), fontsize=10)
     fig.tight_layout()
-    atomic_save_figure(fig, path, **savefig)
-    pyplot().close(fig)
+    return atomic_save_figure(fig, path, **savefig)
 
 
 def line_label(label: str, alpha: float | None, multi_alpha: bool) -> str:

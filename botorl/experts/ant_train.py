@@ -342,7 +342,6 @@ def plot_curve(csv_path, png_path) -> None:
     ax.grid(alpha=0.3)
     fig.tight_layout()
     atomic_save_figure(fig, png_path, dpi=110)
-    plt.close(fig)
 
 
 def main(argv: list[str]) -> int:

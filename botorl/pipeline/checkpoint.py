@@ -15,7 +15,6 @@ import contextlib
 import os
 import shutil
 import stat
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -24,8 +23,8 @@ import numpy as np
 
 from botorl.data.minari_io import minari_root
 from botorl.data.safe import check_npz, data_files, fingerprint, machine_memory
-from botorl.errors import ConfigError, DataFormatError
-from botorl.io import atomic_write_json, file_sha256, open_regular, own_folder
+from botorl.errors import ConfigError, DataFormatError, warn
+from botorl.io import atomic_write_json, file_sha256, open_regular, own_folder, read_json_object
 from botorl.pipeline import faults
 from botorl.pipeline.rundir import read_json
 
@@ -74,15 +73,15 @@ def check_identity(state: dict[str, Any], expected: list[dict[str, Any]], where:
     read), the checkpoint's is not compared."""
     got = state.get("identity")
     if got is None:
-        print(f"botorl: warning: checkpoint {name} in {where} records no run identity (written before checkpoints "
-              f"recorded their run); it is taken to belong to this run's config.json.", file=sys.stderr)
+        warn(f"checkpoint {name} in {where} records no run identity (written before checkpoints "
+             f"recorded their run); it is taken to belong to this run's config.json.")
         return
     if isinstance(got, list) and all(isinstance(g, dict) for g in got):
         if not all("data" in e for e in expected):
             got = [{k: v for k, v in g.items() if k != "data"} for g in got]
         elif not all("data" in g for g in got):
-            print(f"botorl: warning: checkpoint {name} in {where} records no fingerprint of its data (written before "
-                  f"checkpoints recorded one); the data are taken to be the ones it was trained on.", file=sys.stderr)
+            warn(f"checkpoint {name} in {where} records no fingerprint of its data (written before "
+                 f"checkpoints recorded one); the data are taken to be the ones it was trained on.")
             expected = [{k: v for k, v in e.items() if k != "data"} for e in expected]
     if got == expected:
         return
@@ -197,11 +196,8 @@ class CheckpointManager:
         return final
 
     def _latest_name(self) -> str | None:
-        try:
-            info = read_json(self.root / LATEST)
-            return str(info["name"]) if isinstance(info, dict) and info.get("name") else None
-        except (OSError, ValueError, KeyError, TypeError):
-            return None
+        info = read_json_object(self.root / LATEST) or {}  # unreadable: none
+        return str(info["name"]) if info.get("name") else None
 
     def _manifest(self, name: str) -> dict[str, Any] | None:
         p = self.root / name / MANIFEST
@@ -358,13 +354,12 @@ class CheckpointManager:
                 bad.append(reason)
                 continue
             if bad:
-                print(f"botorl: warning: {'; '.join(bad)}. Falling back to the previous checkpoint, {name}.",
-                      file=sys.stderr)
+                warn(f"{'; '.join(bad)}. Falling back to the previous checkpoint, {name}.")
                 with contextlib.suppress(OSError):  # a read-only run directory (eval): nothing to repair
                     atomic_write_json(self.root / LATEST, _info(name, self.state(name)), root=self.run_root)
             return _info(name, self.state(name))
         if bad:
-            print(f"botorl: warning: {'; '.join(bad)}; no checkpoint passes the check.", file=sys.stderr)
+            warn(f"{'; '.join(bad)}; no checkpoint passes the check.")
         return None
 
     def exists(self, name: str) -> bool:

@@ -26,8 +26,8 @@ from botorl.configs.members import MEMBER_NAME, Streams, is_population, member_c
 from botorl.configs.resolve import BOUNDS, check_bounds, validate
 from botorl.configs.schema import RunConfig, from_dict, to_dict
 from botorl.envs.registry import get_task
-from botorl.errors import BotorlError, ConfigError, Range, check_ranges
-from botorl.io import atomic_write_json, open_regular, own_folder
+from botorl.errors import BotorlError, ConfigError, Range, check_ranges, warn
+from botorl.io import atomic_write_json, open_regular, own_folder, read_json_object
 from botorl.jaxsetup import matmul_precision, setup_jax
 from botorl.pipeline import preempt, shared_pretrain, stages
 from botorl.pipeline.checkpoint import CheckpointCorrupt, CheckpointManager, check_identity, checkpoint_step, \
@@ -47,11 +47,8 @@ from botorl.pipeline.tracking import require_wandb
 def _mark_failed(path: Path, reason: str, fresh=None) -> None:
     """``path`` (a summary.json or population.json) says ``failed`` with the reason, when it can
     still be written; where none can be read, ``fresh()``'s (a summary with every contract key)."""
-    try:
-        data = read_json(path) if path.exists() else None
-    except (OSError, ValueError):
-        data = None
-    if not isinstance(data, dict):
+    data = read_json_object(path)
+    if data is None:
         if fresh is None:
             return
         try:
@@ -319,8 +316,8 @@ def resume_main(argv: list[str]) -> int:
             except (OSError, ValueError, AttributeError) as err:
                 finished = False  # no summary yet, or a damaged one: the resume rebuilds it
                 if os.path.lexists(status_file):  # never silently (it is rebuilt from the checkpoints and logs)
-                    print(f"botorl: warning: {status_file} cannot be read ({err}); the resume writes it afresh from "
-                          f"the run's checkpoints and logs.", file=sys.stderr)
+                    warn(f"{status_file} cannot be read ({err}); the resume writes it afresh from "
+                         f"the run's checkpoints and logs.")
             if finished:
                 print(f"botorl: {root} has finished already; nothing to resume.", file=sys.stderr)
                 summaries = [read_summary(r) for r in runs]

@@ -10,7 +10,6 @@ returns filled when one ends; ``batch_layout``; botorl/configs/methods.py).
 
 from __future__ import annotations
 
-import sys
 from typing import Callable
 
 import jax
@@ -21,6 +20,7 @@ from botorl.data.dataset import Dataset, RewardTransform
 from botorl.data.replay import ReplayBuffer
 from botorl.envs.metric import episode_success
 from botorl.envs.state import get_env_state, set_env_state
+from botorl.errors import warn
 from botorl.pipeline.checkpoint import CheckpointCorrupt
 
 
@@ -84,9 +84,8 @@ class OnlineState:
         self.resumes = int(extra.get("resumes", 0)) + 1
         doc, online = state["documents"].get("envs"), arrays.get("online")
         if doc is None or online is None:
-            print("botorl: warning: this checkpoint has no env state (written by an older botorl); fine-tuning "
-                  "continues with new episodes, so the run will not repeat an uninterrupted one exactly.",
-                  file=sys.stderr)
+            warn("this checkpoint has no env state (written by an older botorl); fine-tuning "
+                 "continues with new episodes, so the run will not repeat an uninterrupted one exactly.")
             return self.reset([s + 100_003 * self.resumes for s in self.seeds])
         try:
             if len(doc["envs"]) != n or online["obs"].shape[0] != n:

@@ -8,23 +8,21 @@ line and on resume cut back to the checkpoint's step (``truncate``), so no row a
 from __future__ import annotations
 
 import contextlib
-import csv
 import errno
 import fcntl
-import io
 import json
 import math
 import os
 import socket
 import struct
-import sys
 import time
 from pathlib import Path
 from typing import Any, Callable
 
 from botorl.errors import BotorlError, ConfigError
+from botorl.errors import warn as _warn  # the log readers name their flag `warn`
 from botorl.io import (IO_FAULTS, UnsafeFileError, append_text, atomic_write_bytes, check_path_text, csv_rows,
-                       jsonable, open_regular, own_folder, read_bounded, read_bounded_bytes, unshare)
+                       csv_text, jsonable, open_regular, own_folder, read_bounded, read_bounded_bytes, unshare)
 from botorl.io import read_json_bounded as read_json  # what every reader of a run's JSON files calls
 
 LOCK_FILE = ".lock"
@@ -207,12 +205,8 @@ class CsvLog:
         new = not self.path.exists() or self.path.stat().st_size == 0
         if self.columns is None:
             self.columns = list(row.keys())
-        buf = io.StringIO()
-        w = csv.DictWriter(buf, fieldnames=self.columns, extrasaction="ignore", lineterminator="\n")
-        if new:
-            w.writeheader()
-        w.writerow({k: _fmt(row.get(k, "")) for k in self.columns})
-        append_text(self.path, buf.getvalue(), root=self.root)
+        text = csv_text(self.columns if new else None, [[_fmt(row.get(k, "")) for k in self.columns]])
+        append_text(self.path, text, root=self.root)
 
     def rows(self, *, warn: bool = False) -> list[dict[str, str]]:
         return [r for r in self._read(log_lines(self.path, warn=warn))[1] if r]
@@ -222,12 +216,9 @@ class CsvLog:
         if not self.path.exists():
             return
         rows = self.rows(warn=True)
-        buf = io.StringIO()
         cols = self.columns or (list(rows[0].keys()) if rows else [])
-        w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
-        w.writeheader()
-        w.writerows(r for r in rows if keep(r))
-        atomic_write_bytes(self.path, buf.getvalue().encode(), root=self.root)
+        text = csv_text(cols, ([r.get(k, "") for k in cols] for r in rows if keep(r)))
+        atomic_write_bytes(self.path, text.encode(), root=self.root)
 
 
 def _fmt(v: Any) -> Any:
@@ -255,53 +246,11 @@ class JsonlLog:
         atomic_write_bytes(self.path, ("\n".join(out) + ("\n" if out else "")).encode(), root=self.root)
 
 
-def _warn(msg: str) -> None:
-    print(f"botorl: warning: {msg}", file=sys.stderr)
-
-
-class EventsFile:
-    """A TensorBoard events file (TFRecord framing: the record's length, its masked CRC-32C, the
-    record, its masked CRC-32C; tensorboardX's protos and checksum) that botorl makes new
-    (``O_EXCL``: a name already there, a link's included, is never opened, so nothing outside the
-    run is written). ``write_event``, ``flush`` and ``close`` as tensorboardX's ``EventsWriter``."""
-
-    def __init__(self, logdir: Path, root: Path | None = None):
-        from tensorboardX.proto.event_pb2 import Event  # lazy: optional dependency (the tensorboard extra)
-
-        name = f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}"
-        for k in range(100):  # a name taken (another process this second, a planted file): the next
-            try:
-                fd = open_regular(logdir / (f"{name}.{k}" if k else name), os.O_WRONLY | os.O_CREAT | os.O_EXCL,
-                                  root=root)
-                break
-            except FileExistsError:
-                continue
-        else:
-            raise FileExistsError(errno.EEXIST, "no free events file name", str(logdir / name))
-        self._file = os.fdopen(fd, "wb")
-        self.write_event(Event(wall_time=time.time(), file_version="brain.Event:2"))
-
-    def write_event(self, event) -> None:
-        from tensorboardX.record_writer import masked_crc32c  # lazy: as in __init__
-
-        data = event.SerializeToString()
-        header = struct.pack("Q", len(data))
-        crc = struct.pack("I", masked_crc32c(header)), struct.pack("I", masked_crc32c(data))
-        self._file.write(header + crc[0] + data + crc[1])
-
-    def flush(self) -> None:
-        self._file.flush()
-        os.fsync(self._file.fileno())
-
-    def close(self) -> None:
-        try:
-            self.flush()
-        finally:
-            self._file.close()
-
-
 class TBWriter:
-    """TensorBoard scalars written in the caller's thread (``EventsFile``).
+    """TensorBoard scalars written in the caller's thread, into an events file botorl makes new
+    (``O_EXCL``: a name already there, a link's included, is never opened, so nothing outside the
+    run is written), records in TFRecord framing (the record's length, its masked CRC-32C, the
+    record, its masked CRC-32C; tensorboardX's protos and checksum).
 
     ``SummaryWriter``'s background thread dies on ENOSPC / EROFS and its full queue then blocks
     the run forever; here the first I/O error turns TensorBoard off with one warning instead.
@@ -310,51 +259,79 @@ class TBWriter:
     """
 
     def __init__(self, logdir: Path, flush_secs: float = 30.0, root: Path | None = None):
-        import tensorboardX  # noqa: F401  # lazy: optional dependency (the tensorboard extra); ImportError: off
+        # lazy: optional dependency (the tensorboard extra); ImportError: off
+        from tensorboardX.proto.event_pb2 import Event
 
         self.logdir = Path(logdir)
         self.flush_secs = flush_secs
-        self._writer = None
+        self._file = None
         self._next_flush = time.monotonic() + flush_secs
         try:
             own_folder(root if root is not None else self.logdir, self.logdir)
-            self._writer = EventsFile(self.logdir, root)
+            self._file = os.fdopen(self._new_file(root), "wb")
+            self._write(Event(wall_time=time.time(), file_version="brain.Event:2"))
         except OSError as err:
             self._disable(err)
 
+    def _new_file(self, root: Path | None) -> int:
+        name = f"events.out.tfevents.{int(time.time()):010d}.{socket.gethostname()}"
+        for k in range(100):  # a name taken (another process this second, a planted file): the next
+            with contextlib.suppress(FileExistsError):
+                return open_regular(self.logdir / (f"{name}.{k}" if k else name), os.O_WRONLY | os.O_CREAT | os.O_EXCL,
+                                    root=root)
+        raise FileExistsError(errno.EEXIST, "no free events file name", str(self.logdir / name))
+
     @property
     def enabled(self) -> bool:
-        return self._writer is not None
+        return self._file is not None
+
+    def _write(self, event) -> None:
+        from tensorboardX.record_writer import masked_crc32c  # lazy: as in __init__
+
+        data = event.SerializeToString()
+        header = struct.pack("Q", len(data))
+        crc = struct.pack("I", masked_crc32c(header)), struct.pack("I", masked_crc32c(data))
+        self._file.write(header + crc[0] + data + crc[1])
+
+    def _sync(self) -> None:
+        self._file.flush()
+        os.fsync(self._file.fileno())
+
+    def _close(self) -> None:
+        """Synced and closed; TensorBoard is off from here on, whatever the close raises."""
+        try:
+            self._sync()
+        finally:
+            f, self._file = self._file, None
+            f.close()
 
     def _disable(self, err: BaseException) -> None:
         _warn(f"TensorBoard logging to {self.logdir} turned off ({type(err).__name__}: {err}); "
               "the CSV/JSONL logs in metrics/ go on.")
-        w, self._writer = self._writer, None
-        if w is not None:
+        if self._file is not None:
             with contextlib.suppress(Exception):
-                w.close()
+                self._close()
 
     def add_scalar(self, tag: str, value: Any, step: int) -> None:
         v = number(value)
-        if self._writer is None or not math.isfinite(v):  # not a number, or one TensorBoard rejects
+        if self._file is None or not math.isfinite(v):  # not a number, or one TensorBoard rejects
             return
         try:
             # lazy: optional dependency (the tensorboard extra), as in __init__
             from tensorboardX.proto.event_pb2 import Event
             from tensorboardX.summary import scalar
 
-            self._writer.write_event(Event(wall_time=time.time(), step=int(step), summary=scalar(tag, v)))
+            self._write(Event(wall_time=time.time(), step=int(step), summary=scalar(tag, v)))
             if time.monotonic() >= self._next_flush:
                 self._next_flush = time.monotonic() + self.flush_secs
-                self._writer.flush()
+                self._sync()
         except OSError as err:
             self._disable(err)
 
     def close(self) -> None:
-        if self._writer is not None:
-            w, self._writer = self._writer, None
+        if self._file is not None:
             try:
-                w.close()
+                self._close()
             except OSError as err:
                 _warn(f"TensorBoard events in {self.logdir} could not be closed ({err}).")
 

@@ -8,14 +8,13 @@ chunks) equals its own; without one, an error names the closest and how it diffe
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
 from botorl.agents import agent_file
 from botorl.agents.population import stack
 from botorl.configs.schema import RunConfig, from_dict, to_dict
-from botorl.errors import ConfigError
+from botorl.errors import ConfigError, warn
 from botorl.io import atomic_write_bytes, read_bounded_bytes
 from botorl.pipeline.rundir import LOG_LIMIT, read_json
 from botorl.pipeline.stages import make_pretrain_agent
@@ -105,5 +104,5 @@ def load(ctx, sources: list[Path]):
                     atomic_write_bytes(member.run.metrics / name, read_bounded_bytes(src / "metrics" / name, LOG_LIMIT),
                                        root=member.run.root)
                 except ValueError as err:  # not a regular file, or a huge one: the logs only, not the run
-                    print(f"botorl: warning: {src / 'metrics' / name} not copied ({err}).", file=sys.stderr)
+                    warn(f"{src / 'metrics' / name} not copied ({err}).")
     return stack(agents)

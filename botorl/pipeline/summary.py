@@ -146,7 +146,6 @@ def plot_curve(run: RunDir, cfg: RunConfig) -> Path | None:
     ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
     atomic_save_figure(fig, run.curve, root=run.root, dpi=110)
-    plt.close(fig)
     return run.curve
 
 

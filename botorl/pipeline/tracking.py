@@ -7,13 +7,12 @@ from __future__ import annotations
 
 import hashlib
 import os
-import sys
 import threading
 from pathlib import Path
 
 from botorl.configs.methods import get_method
 from botorl.configs.schema import to_dict
-from botorl.errors import ConfigError
+from botorl.errors import ConfigError, warn
 
 MIN_VERSION = (0, 19, 10)  # reinit="create_new": several live runs in one process (a population)
 INSTALL = 'pip install "botorl[wandb]"'
@@ -121,12 +120,11 @@ def start(cfgs: list, runs: list) -> list:
         try:
             ok, wb = bounded(init, limit)
         except Exception as err:
-            print(f"botorl: warning: W&B did not start ({type(err).__name__}: {err}); the run goes on without it.",
-                  file=sys.stderr)
+            warn(f"W&B did not start ({type(err).__name__}: {err}); the run goes on without it.")
             ok, wb = True, None
         if not ok:
-            print(f"botorl: warning: W&B did not start within {limit:g} s (no network? WANDB_MODE=offline logs "
-                  f"locally); the run goes on without it.", file=sys.stderr)
+            warn(f"W&B did not start within {limit:g} s (no network? WANDB_MODE=offline logs "
+                 f"locally); the run goes on without it.")
         if wb is None:
             finish([w for w in out if w is not None], 1)
             return [None] * len(cfgs)
@@ -148,8 +146,8 @@ def finish(wandb_runs: list, exit_code: int = 0, seconds: float | None = None) -
     try:
         ok, _ = bounded(all_of, limit)
     except Exception as err:
-        print(f"botorl: warning: W&B finish failed ({type(err).__name__}: {err}).", file=sys.stderr)
+        warn(f"W&B finish failed ({type(err).__name__}: {err}).")
         return
     if not ok:
-        print(f"botorl: warning: W&B did not finish within {limit:g} s; its last data may not be uploaded "
-              f"(`wandb sync` the run's wandb folder to send them).", file=sys.stderr)
+        warn(f"W&B did not finish within {limit:g} s; its last data may not be uploaded "
+             f"(`wandb sync` the run's wandb folder to send them).")

@@ -298,5 +298,4 @@ def plot_coverage(ds, path, maze: str | None = None, title: str | None = None, m
     ax.set_title(title or f"{len(ds):,} steps, {st['cells_covered']}/{st['cells_free']} cells covered", fontsize=9)
     fig.tight_layout()
     atomic_save_figure(fig, path, dpi=120)
-    plt.close(fig)
     return Path(path)
