@@ -161,10 +161,9 @@ class _Table:
                 self.fail(field, f"is missing{'; ' + hint if hint else ''}")
             return default
         value = self.data[field]
-        if isinstance(value, bool) and bool not in (kind if isinstance(kind, tuple) else (kind,)):
-            self.fail(field, f"must be {_kind_name(kind)}, got {value!r}")
-        if not isinstance(value, kind):
-            self.fail(field, f"must be {_kind_name(kind)}, got {value!r}")
+        kinds = kind if isinstance(kind, tuple) else (kind,)
+        if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):  # true is no number here
+            self.fail(field, f"must be {_kind_name(kinds)}, got {value!r}")
         if check is not None and not check(value):
             self.fail(field, f"is {value!r}; {hint}")
         return value
@@ -176,8 +175,7 @@ class _Table:
         return tuple(value)
 
 
-def _kind_name(kind) -> str:
-    kinds = kind if isinstance(kind, tuple) else (kind,)
+def _kind_name(kinds: tuple) -> str:
     names = {str: "text", int: "a whole number", float: "a number", bool: "true or false", list: "a list",
              dict: "a table"}
     return " or ".join(names.get(k, k.__name__) for k in kinds)
