@@ -200,18 +200,16 @@ def comparison_row(rec: Records, c: tuple[str, str], quantity: str) -> dict:
 
 def analyse(rec: Records) -> dict[str, list[dict]]:
     s = rec.study
-    primary = [comparison_row(rec, c, e) for e in s.endpoints for c in s.primary]
-    for row, adj in zip(primary, holm([r["p"] for r in primary])):
+    res = {kind: [comparison_row(rec, c, e) for e in s.endpoints for c in getattr(s, kind)]
+           for kind in ("primary", "secondary", "floors")}
+    for row, adj in zip(res["primary"], holm([r["p"] for r in res["primary"]])):
         row["p_holm"] = adj
-    secondary = [comparison_row(rec, c, e) for e in s.endpoints for c in s.secondary]
-    floors = [comparison_row(rec, c, e) for e in s.endpoints for c in s.floors]
-    for r in floors:
+    for r in res["floors"]:
         v, _ = rec.differences(*tuple(r["comparison"].split("-")), r["endpoint"])
         r["spread"] = tuple(np.quantile(v, [0.025, 0.975])) if v else (math.nan, math.nan)
     # did the BOTO stage move Q beyond what the other arm's did (the manipulation check)
     manipulation = [comparison_row(rec, c, q) for q in MANIPULATION for c in s.primary + s.secondary]
-    return {"primary": primary, "secondary": secondary, "floors": floors,
-            "manipulation": [r for r in manipulation if r["n"]]}
+    return res | {"manipulation": [r for r in manipulation if r["n"]]}
 
 
 # ----------------------------------------------------------------------------- writing
@@ -268,14 +266,15 @@ def rows_csv(groups: dict[str, list[dict]]) -> str:
     return csv_text(head, out)
 
 
-def arms_table(rec: Records, quantities: tuple[str, ...]) -> tuple[list[str], list[list]]:
-    quantities = tuple(q for q in quantities if any(rec.arm_values(a.key, q) for a in rec.study.arms))
+def arms_table(rec: Records, fmt) -> tuple[list[str], list[list]]:
+    """Each arm's runs and mean of every quantity some arm has, as ``fmt`` writes a mean."""
+    quantities = tuple(q for q in ENDPOINTS + MANIPULATION if any(rec.arm_values(a.key, q) for a in rec.study.arms))
     head = ["arm", "runs", *(NAMES[q] for q in quantities)]
     rows = []
     for arm in rec.study.arms:
         n = len({k for k in rec.values if k[1] == arm.key})
         means = [np.mean(v) if (v := rec.arm_values(arm.key, q)) else math.nan for q in quantities]
-        rows.append([f"({arm.key}) {arm.label}", n, *means])
+        rows.append([f"({arm.key}) {arm.label}", n, *map(fmt, means)])
     return head, rows
 
 
@@ -329,9 +328,7 @@ def report(study: Study, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     files = [atomic_write_text(out / "comparisons.csv", rows_csv(res)),
              atomic_write_text(out / "commands.sh", commands(study))]
-    head, arm_rows = arms_table(rec, ENDPOINTS + MANIPULATION)
-    files.append(atomic_write_text(out / "arms.csv", csv_text(head, ([r[0], r[1], *map(fmt_float, r[2:])]
-                                                                     for r in arm_rows))))
+    files.append(atomic_write_text(out / "arms.csv", csv_text(*arms_table(rec, fmt_float))))
     figure(rec, res, names, out / "paired_differences.png")
     files.append(out / "paired_differences.png")
     blocks = []
@@ -343,12 +340,11 @@ def report(study: Study, out: Path) -> list[Path]:
             blocks.append(f"[{block.name}]({block.name}/report.md)")
         elif block.paired_csv is not None and (block.paired_csv.parent / "report.md").is_file():
             blocks.append(f"[{block.name}]({os.path.relpath(block.paired_csv.parent / 'report.md', out)})")
-    files.append(atomic_write_text(out / "analysis.md", markdown(rec, res, names, head, arm_rows, blocks)))
+    files.append(atomic_write_text(out / "analysis.md", markdown(rec, res, names, blocks)))
     return files
 
 
-def markdown(rec: Records, res: dict[str, list[dict]], names: dict[str, str], head: list[str], arm_rows: list,
-             blocks: list[str]) -> str:
+def markdown(rec: Records, res: dict[str, list[dict]], names: dict[str, str], blocks: list[str]) -> str:
     s = rec.study
     n_primary = len(res["primary"])
     lines = [f"# Study {s.name}", "", s.question, "",
@@ -371,7 +367,7 @@ def markdown(rec: Records, res: dict[str, list[dict]], names: dict[str, str], he
     lines += [f"- not paired: {'/'.join(map(str, k))} and {'/'.join(map(str, p))} start from different pre-trainings "
               "(pretrain_sha256)" for k, p in sorted(rec.unpaired)]
     lines += ["", "## Arms (mean over their runs)", "",
-              md_table(head, ([r[0], r[1], *(_num(v, ".2f") for v in r[2:])] for r in arm_rows)), "",
+              md_table(*arms_table(rec, lambda v: _num(v, ".2f"))), "",
               f"## Primary comparisons ({n_primary} tests, Holm)", "", comparison_table(res["primary"], names, True), ""]
     if res["secondary"]:
         lines += ["## Secondary comparisons (no correction)", "", comparison_table(res["secondary"], names, False), ""]
