@@ -357,13 +357,6 @@ class StudyRun:
     def _save(self) -> None:
         atomic_write_json(self.state_path, self.state)
 
-    def _command(self, block: Block, arm: Arm) -> list[str]:
-        args = self.study.sweep_args(block, arm)
-        args += ["--no-progress"] + ([] if self.workers is None else ["--workers", str(self.workers)])
-        args += [] if self.trial_command is None else ["--trial-command", self.trial_command]
-        # dies with the study (PR_SET_PDEATHSIG), so a kill -9 of it leaves no sweep behind
-        return child.launcher([sys.executable, "-m", "botorl.cli", "sweep", *args], os.getpid())
-
     def run(self) -> int:
         s = self.study
         lock = RunLock(s.runs, ".study.lock", f"pid {os.getpid()}", lambda who: BotorlError(
@@ -423,14 +416,18 @@ class StudyRun:
         return self.study.runs / block.name / f"{arm.key}.log"
 
     def _start(self, block: Block, arm: Arm) -> subprocess.Popen:
-        cmd = self._command(block, arm)
+        args = self.study.sweep_args(block, arm)
         entry = self.state["arms"].setdefault(f"{block.name}/{arm.key}", {})
-        entry.update(command=["botorl", "sweep", *self.study.sweep_args(block, arm)], started=_now(), ended=None)
+        entry.update(command=["botorl", "sweep", *args], started=_now(), ended=None)  # as a reader would type it
         entry.setdefault("first_started", entry["started"])
         self._save()
         log = self._log(block, arm)
         log.parent.mkdir(parents=True, exist_ok=True)
         print(f"botorl study: {block.name}/{arm.key} ({arm.label}) started; log {log}", flush=True)
+        args += ["--no-progress"] + ([] if self.workers is None else ["--workers", str(self.workers)])
+        args += [] if self.trial_command is None else ["--trial-command", self.trial_command]
+        # dies with the study (PR_SET_PDEATHSIG), so a kill -9 of it leaves no sweep behind
+        cmd = child.launcher([sys.executable, "-m", "botorl.cli", "sweep", *args], os.getpid())
         with open(log, "ab") as f:
             return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
 
