@@ -187,7 +187,7 @@ def comparison_row(rec: Records, c: tuple[str, str], quantity: str) -> dict:
     sd = float(x.std(ddof=1)) if len(x) > 1 else math.nan
     lo, hi, per_block = block_range(v, blocks)
     p, method = wilcoxon_signed_rank(v)
-    row = {"endpoint": quantity, "comparison": comparison_text(c), "n": len(v),
+    row = {"endpoint": quantity, "comparison": comparison_text(c), "pair": c, "n": len(v),
            "mean": float(x.mean()) if len(v) else math.nan, "sd": sd,
            "boot": bootstrap_mean_ci(v, n_boot=s.n_boot, seed=s.boot_seed), "t": t_interval(v),
            "better": int((x > ZERO).sum()), "equal": int((abs(x) <= ZERO).sum()), "worse": int((x < -ZERO).sum()),
@@ -205,7 +205,7 @@ def analyse(rec: Records) -> dict[str, list[dict]]:
     for row, adj in zip(res["primary"], holm([r["p"] for r in res["primary"]])):
         row["p_holm"] = adj
     for r in res["floors"]:
-        v, _ = rec.differences(*tuple(r["comparison"].split("-")), r["endpoint"])
+        v, _ = rec.differences(*r["pair"], r["endpoint"])
         r["spread"] = tuple(np.quantile(v, [0.025, 0.975])) if v else (math.nan, math.nan)
     # did the BOTO stage move Q beyond what the other arm's did (the manipulation check)
     manipulation = [comparison_row(rec, c, q) for q in MANIPULATION for c in s.primary + s.secondary]
@@ -240,10 +240,9 @@ def comparison_table(rows: list[dict], names: dict[str, str], holm_column: bool)
     head += ["detectable at 80% power", "equivalence (TOST)"]
     out = []
     for r in rows:
-        x, y = r["comparison"].split("-")
-        cells = [NAMES[r["endpoint"]], f"{names[x]} − {names[y]}", r["n"], _num(r["mean"]), fmt_ci(*r["boot"]),
-                 fmt_ci(*r["t"]), f"{r['better']} / {r['equal']} / {r['worse']}", _span(*r["block_range"]),
-                 f"{_p(r['p'])} ({r['method']})"]
+        cells = [NAMES[r["endpoint"]], " − ".join(names[k] for k in r["pair"]), r["n"], _num(r["mean"]),
+                 fmt_ci(*r["boot"]), fmt_ci(*r["t"]), f"{r['better']} / {r['equal']} / {r['worse']}",
+                 _span(*r["block_range"]), f"{_p(r['p'])} ({r['method']})"]
         cells += [_p(r["p_holm"])] if holm_column else []
         out.append(cells + [_num(r["detectable"], ".2f"), _tost_text(r["tost"])])
     return md_table(head, out)
@@ -313,7 +312,7 @@ def figure(rec: Records, res: dict[str, list[dict]], names: dict[str, str], path
         ax.axvline(0, color="black", lw=0.8)
         ax.set_title(NAMES[endpoint])
         ax.set_xlabel("paired difference")
-    axes[0][0].set_yticks(range(len(comps)), [f"{names[x]} − {names[y]}" for x, y in comps], fontsize=7)
+    axes[0][0].set_yticks(range(len(comps)), [" − ".join(names[k] for k in c) for c in comps], fontsize=7)
     axes[0][0].invert_yaxis()
     save_figure(fig, path, f"{s.name}: paired differences per pre-training (dots), their mean (diamond); grey: "
                            "the noise floors, shaded: their 2.5-97.5% range")
@@ -374,7 +373,7 @@ def markdown(rec: Records, res: dict[str, list[dict]], names: dict[str, str], bl
     if res["floors"]:
         lines += ["## Noise floors (spread of the paired differences)", "", md_table(
             ["endpoint", "floor", "pairs", "mean", "SD", "2.5-97.5% range"],
-            ([NAMES[r["endpoint"]], f"{names[r['comparison'].split('-')[0]]} − {names[r['comparison'].split('-')[1]]}",
+            ([NAMES[r["endpoint"]], " − ".join(names[k] for k in r["pair"]),
               r["n"], _num(r["mean"]), _num(r["sd"], ".2f"), fmt_ci(*r["spread"])] for r in res["floors"])),
                   "", "A comparison whose mean lies inside its floor's range is not told from chance by this design.",
                   ""]
