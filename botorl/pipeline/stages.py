@@ -335,10 +335,7 @@ class Warmup(Stage):
         cfg, n = run.cfg, run.cfg.warmup.steps
         super().__init__(run, Schedule(n, n, n + 1, evaluate=lambda step: step % cfg.eval.interval == 0 and step < n))
 
-    def _nothing(self, *args) -> None:
-        pass
-
-    check = log = save = _nothing
+    check = log = save = lambda self, *args: None  # noqa: E731 - nothing learns: nothing to check, log or keep
 
     def evaluate(self, agents, step: int) -> None:
         self.run.log_evaluation(self.first, step)
@@ -355,10 +352,8 @@ class Warmup(Stage):
         ended, state.ended, state.learning = state.ended, None, True
         rows, t = state.buffer.state_dict(), state.reward
         d_warmups = []
-        for i, ends in enumerate(ended):
-            episode_ends = np.zeros(n, bool)
-            episode_ends[ends] = True
-            dw = Dataset.of_batch({k: rows[k][i, :n] for k in BATCH_KEYS}, episode_ends=episode_ends,
+        for i, ends in enumerate(ended):  # ends: the rows where one of member i's episodes ended
+            dw = Dataset.of_batch({k: rows[k][i, :n] for k in BATCH_KEYS}, episode_ends=np.isin(np.arange(n), ends),
                                   metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})
             d_warmups.append(dw._replace(mc_returns=state.mc_returns(dw)))
         # the rewards as the env gave them
