@@ -163,7 +163,9 @@ class _Table:
         value = self.data[field]
         kinds = kind if isinstance(kind, tuple) else (kind,)
         if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):  # true is no number here
-            self.fail(field, f"must be {_kind_name(kinds)}, got {value!r}")
+            names = {str: "text", int: "a whole number", float: "a number", bool: "true or false", list: "a list",
+                     dict: "a table"}
+            self.fail(field, f"must be {' or '.join(names.get(k, k.__name__) for k in kinds)}, got {value!r}")
         if check is not None and not check(value):
             self.fail(field, f"is {value!r}; {hint}")
         return value
@@ -173,12 +175,6 @@ class _Table:
         if not all(isinstance(v, str) for v in value):
             self.fail(field, "must be a list of strings")
         return tuple(value)
-
-
-def _kind_name(kinds: tuple) -> str:
-    names = {str: "text", int: "a whole number", float: "a number", bool: "true or false", list: "a list",
-             dict: "a table"}
-    return " or ".join(names.get(k, k.__name__) for k in kinds)
 
 
 def load_study(path: str | Path) -> Study:
