@@ -203,16 +203,14 @@ def load_study(path: str | Path) -> Study:
     arms = _arms(path, top.get("arms", list, hint="add [[arms]] tables"), s)
     keys = [a.key for a in arms]
     reference = s.get("reference", str, check=lambda k: k in keys, hint=f"name one of the arms ({', '.join(keys)})")
-    base = path.parent
     runs = Path(s.get("runs", str, f"study/{name}"))
-    results = base / s.get("results", str, "results")
+    results = path.parent / s.get("results", str, "results")
     size = s.get("population_size", int, None, check=lambda n: n >= 1, hint="give 1 or more")
     a = _Table(path, "[analysis]", top.get("analysis", dict, {}),
                ("endpoints", "primary", "secondary", "floors", "equivalence", "window_end", "n_boot", "boot_seed"))
     endpoints = a.strings("endpoints") or ("dip", "success_10k")
-    for e in endpoints:
-        if e not in ENDPOINTS:
-            a.fail("endpoints", f"names {e!r}, which is not an endpoint (known: {', '.join(ENDPOINTS)})")
+    if unknown := [e for e in endpoints if e not in ENDPOINTS]:
+        a.fail("endpoints", f"names {unknown[0]!r}, which is not an endpoint (known: {', '.join(ENDPOINTS)})")
     comps = {f: tuple(_comparison(a, f, c, keys) for c in a.strings(f)) for f in ("primary", "secondary", "floors")}
     margins = {}
     for text, margin in a.get("equivalence", dict, {}).items():
