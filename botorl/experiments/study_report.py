@@ -76,11 +76,8 @@ class Records:
         self.unpaired: set[tuple[Key, Key]] = set()  # same block, task and seed, yet two pre-trainings
         self.commits: Counter = Counter()
         self.notes: list[str] = []
-        for block in study.blocks:
-            if block.paired_csv is None:
-                self._read_block(block)
-            else:
-                self._read_legacy(block)
+        for block in study.blocks:  # a legacy block's runs are the rows of its paired.csv
+            (self._read_block if block.paired_csv is None else self._read_legacy)(block)
 
     def _read_block(self, block: Block) -> None:
         for arm in self.study.arms:
@@ -91,10 +88,10 @@ class Records:
             for s in skipped:
                 self.notes.append(f"{block.name}/{arm.key}: skipped {s.path.name} ({s.reason})")
             for r in runs:
-                v = endpoints_of(r, self.study.window_end)
-                self.values[(block.name, arm.key, r.task, r.seed)] = v | q_around_boto(r.path)
+                key = (block.name, arm.key, r.task, r.seed)
+                self.values[key] = endpoints_of(r, self.study.window_end) | q_around_boto(r.path)
                 if r.pretrain_sha256:
-                    self.digests[(block.name, arm.key, r.task, r.seed)] = r.pretrain_sha256
+                    self.digests[key] = r.pretrain_sha256
                 env = r.config.get("environment")
                 self.commits[str(env.get("commit")) if isinstance(env, dict) else "not recorded"] += 1
 
