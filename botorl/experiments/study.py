@@ -135,10 +135,6 @@ def seeds_text(seeds: tuple[int, ...]) -> str:
     return ",".join(map(str, seeds))
 
 
-def comparison_text(c: tuple[str, str]) -> str:
-    return f"{c[0]}-{c[1]}"
-
-
 # ----------------------------------------------------------------------------- reading the file
 
 class _Table:

@@ -42,7 +42,7 @@ from botorl.experiments.stats import (
     tost,
     wilcoxon_signed_rank,
 )
-from botorl.experiments.study import ENDPOINTS, STATE, Block, Study, arm_config, comparison_text, seeds_text
+from botorl.experiments.study import ENDPOINTS, STATE, Block, Study, arm_config, seeds_text
 from botorl.io import atomic_write_text, read_json_object
 
 Key = tuple[str, str, str, int]  # (block, arm, task, seed)
@@ -184,7 +184,7 @@ def comparison_row(rec: Records, c: tuple[str, str], quantity: str) -> dict:
     sd = float(x.std(ddof=1)) if len(x) > 1 else math.nan
     lo, hi, per_block = block_range(v, blocks)
     p, method = wilcoxon_signed_rank(v)
-    row = {"endpoint": quantity, "comparison": comparison_text(c), "pair": c, "n": len(v),
+    row = {"endpoint": quantity, "comparison": "-".join(c), "pair": c, "n": len(v),
            "mean": float(x.mean()) if len(v) else math.nan, "sd": sd,
            "boot": bootstrap_mean_ci(v, n_boot=s.n_boot, seed=s.boot_seed), "t": t_interval(v),
            "better": int((x > ZERO).sum()), "equal": int((abs(x) <= ZERO).sum()), "worse": int((x < -ZERO).sum()),
