@@ -253,6 +253,11 @@ def _run(capsys, tmp_path, *args):
         (["--pretrain", "bc"], ["unknown pre-training algorithm 'bc'"]),
         (["--eval.interval", "0"], ["--eval.interval = 0", "positive"]),
         (["--warmup.steps", "50"], ["--online.steps = 40 leaves no fine-tuning after the 50-step warm-up"]),
+        (["--seed", "1", "--seeds", "0-1"], ["--seed and --seeds are both given", "(e.g. --seeds 0-7)"]),
+        (["--alpha", "0.5", "--alphas", "-1,1"], ["--alpha and --alphas are both given", "(e.g. --alphas -1:1:0.25)"]),
+        (["--online.offline_ratio", "2"], ["--online.offline_ratio = 2.0 is invalid: must lie in [0, 1]."]),
+        (["--online.buffer_capacity", "0"], ["--online.buffer_capacity = 0 is invalid: must be positive or None."]),
+        (["--boto.batch_size", str(2**21)], ["--boto.batch_size = 2097152 is invalid: a batch size must be an integer"]),
     ],
 )
 def test_bad_configuration_exit_2(capsys, tmp_path, args, needles):

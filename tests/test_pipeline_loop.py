@@ -41,7 +41,7 @@ def _run(start: int = 0, check_every_call: bool = False):
         def save(self, step, agents, interrupted):
             seen["saves"].append((step, agents, interrupted))
 
-    probe = Probe(SimpleNamespace(progress=True), [None, None], None, Schedule(10, 4, 6))
+    probe = Probe(SimpleNamespace(cfg=SimpleNamespace(progress=True), member_cfgs=[None, None]), Schedule(10, 4, 6))
     probe.check_every_call = check_every_call
     agents = stage_loop(probe, start, start, "probe")
     return agents, probe.bar.n, seen

@@ -62,7 +62,7 @@ def test_group_populations_are_products():
             assert len({(t.task, t.method, t.pretrain) for t in j.trials}) == 1
         assert len({j.relpath for j in jobs}) == len(jobs)
     jobs = group_populations(trials, 6)  # 3 seeds -> 2 alphas per boto population
-    boto = [j for j in jobs if j.task == "t1" and j.method_label == "boto"]
+    boto = [j for j in jobs if j.task == "t1" and (j.method, j.pretrain) == ("boto", None)]
     assert [j.alphas for j in boto] == [(-1.0, 0.0), (0.5, 1.0)]
     assert boto[0].fields == {"task": "t1", "method": "boto", "seeds": "0,1,2", "alphas": "-1,0", "pretrain": None}
 

@@ -116,10 +116,9 @@ def build_config(argv: list[str]):
         "the config `botorl sweep` wrote for a trial. --print-config prints the resolved config as JSON and "
         "exits, writing nothing.",
     )
-    if cfg.seeds is not None and _given(argv, "--seed"):
-        raise ConfigError("--seed and --seeds are both given; a population takes --seeds (e.g. --seeds 0-7) only.")
-    if cfg.alphas is not None and _given(argv, "--alpha"):
-        raise ConfigError("--alpha and --alphas are both given; a population takes --alphas (e.g. --alphas -1:1:0.25) only.")
+    for one, example in (("seed", "0-7"), ("alpha", "-1:1:0.25")):  # a member's flag beside the population's
+        if getattr(cfg, f"{one}s") is not None and _given(argv, f"--{one}"):
+            raise ConfigError(f"--{one} and --{one}s are both given; a population takes --{one}s (e.g. --{one}s {example}) only.")
     cfg = resolve.resolve(cfg)
     resolve.validate(cfg)
     return cfg

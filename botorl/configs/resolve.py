@@ -193,10 +193,9 @@ def check_bounds(cfg: RunConfig) -> None:
 def _check_sizes(cfg: RunConfig, method, need) -> None:
     """Batch sizes and the replay buffer against a cap and against this machine's memory, before
     anything is allocated (a huge value is exit 2, not a MemoryError)."""
-    batches = {"offline.batch_size": cfg.offline.batch_size, "online.batch_size": cfg.online.batch_size,
-               "boto.batch_size": cfg.boto.batch_size}
-    for name, v in batches.items():
-        need(isinstance(v, int) and 1 <= v <= MAX_BATCH, name, v, f"a batch size must be an integer in [1, {MAX_BATCH:,}]")
+    for name in ("offline.batch_size", "online.batch_size", "boto.batch_size"):
+        need(name, lambda v: isinstance(v, int) and 1 <= v <= MAX_BATCH,
+             f"a batch size must be an integer in [1, {MAX_BATCH:,}]")
     try:
         spec = get_task(cfg.task)
     except ConfigError:
@@ -206,7 +205,7 @@ def _check_sizes(cfg: RunConfig, method, need) -> None:
     if cfg.online.buffer_capacity is not None and "finetune" in method.stages:
         # the warm-up's transitions go into the buffer, and Cal-QL samples finished episodes only
         least = max(warm, spec.max_episode_steps)
-        need(cfg.online.buffer_capacity >= least, "online.buffer_capacity", cfg.online.buffer_capacity,
+        need("online.buffer_capacity", lambda v: v >= least,
              f"the replay buffer must hold the warm-up's {warm} transitions and one whole episode "
              f"({spec.max_episode_steps} steps on {cfg.task}); give at least {least}, or leave it unset (None: the "
              f"whole online budget)")
@@ -244,28 +243,26 @@ def validate(cfg: RunConfig) -> None:
     if method.uses_alpha:
         check_alpha(cfg.alpha)
 
-    def need(cond: bool, field: str, value, what: str) -> None:
-        if not cond:
+    def need(field: str, ok, what: str) -> None:  # ``ok(the value of field)``, else ConfigError
+        if not ok(value := _at(cfg, field)):
             raise ConfigError(f"--{field} = {value!r} is invalid: {what}.")
 
     if cfg.pretrained is not None and "pretrain" not in method.stages:
         raise ConfigError(f"--pretrained {cfg.pretrained}: --method {cfg.method} has no pre-training to skip; "
                           f"drop --pretrained.")
     check_precision(cfg.precision)  # a config file's value: the command line's is checked by tyro
-    for name, v in (("seed", cfg.seed), ("data.seed", cfg.data.seed), ("online_reseed", cfg.online_reseed)):
+    for name in ("seed", "data.seed", "online_reseed"):
         # NumPy's generators take only non-negative seeds; 2**31 keeps JAX keys in int32
-        need(isinstance(v, int) and 0 <= v < 2**31, name, v, "a seed must be an integer in [0, 2**31)")
+        need(name, lambda v: isinstance(v, int) and 0 <= v < 2**31, "a seed must be an integer in [0, 2**31)")
 
     for names, least, what in ((BUDGETS, 0, "a step budget must be a non-negative integer (0 skips the work)"),
                                (POSITIVE, 1, "must be a positive integer")):
         for name in names:
-            v = _at(cfg, name)
-            need(isinstance(v, int) and v >= least, name, v, what)
-    need(isinstance(cfg.eval.dense_interval, int) and cfg.eval.dense_interval >= 0, "eval.dense_interval",
-         cfg.eval.dense_interval, "give the env steps between dense evaluations, or 0 for none")
-    need(0.0 <= cfg.online.offline_ratio <= 1.0, "online.offline_ratio", cfg.online.offline_ratio, "must lie in [0, 1]")
-    if cfg.online.buffer_capacity is not None:
-        need(cfg.online.buffer_capacity >= 1, "online.buffer_capacity", cfg.online.buffer_capacity, "must be positive or None")
+            need(name, lambda v: isinstance(v, int) and v >= least, what)
+    need("eval.dense_interval", lambda v: isinstance(v, int) and v >= 0,
+         "give the env steps between dense evaluations, or 0 for none")
+    need("online.offline_ratio", lambda v: 0.0 <= v <= 1.0, "must lie in [0, 1]")
+    need("online.buffer_capacity", lambda v: v is None or v >= 1, "must be positive or None")
     _check_sizes(cfg, method, need)  # the layer widths: check_bounds
     parse_seeds(cfg.seeds)  # None: no population, nothing to check
     parse_alphas(cfg.alphas)

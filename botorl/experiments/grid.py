@@ -67,10 +67,6 @@ class PopulationJob:
     alphas: tuple[float | None, ...] = (None,)
 
     @property
-    def method_label(self) -> str:
-        return method_label(self.method, self.pretrain)
-
-    @property
     def trials(self) -> list[Trial]:
         return [Trial(self.task, self.method, s, a, self.pretrain) for a in self.alphas for s in self.seeds]
 
@@ -79,7 +75,7 @@ class PopulationJob:
         """`<task>/<method>[-<pretrain>]/pop-<members>m-<hash>`: the same members, the same name."""
         key = json.dumps([list(self.seeds), [None if a is None else round(a, 6) for a in self.alphas]])
         digest = hashlib.sha1(key.encode()).hexdigest()[:8]
-        return f"{self.task}/{self.method_label}/pop-{len(self.seeds) * len(self.alphas)}m-{digest}"
+        return f"{self.task}/{method_label(self.method, self.pretrain)}/pop-{len(self.seeds) * len(self.alphas)}m-{digest}"
 
     def member_dir(self, trial: Trial) -> str:
         """A member's run directory, relative to the sweep directory."""

@@ -135,10 +135,6 @@ def seeds_text(seeds: tuple[int, ...]) -> str:
     return ",".join(map(str, seeds))
 
 
-def comparison_text(c: tuple[str, str]) -> str:
-    return f"{c[0]}-{c[1]}"
-
-
 # ----------------------------------------------------------------------------- reading the file
 
 class _Table:
@@ -161,10 +157,11 @@ class _Table:
                 self.fail(field, f"is missing{'; ' + hint if hint else ''}")
             return default
         value = self.data[field]
-        if isinstance(value, bool) and bool not in (kind if isinstance(kind, tuple) else (kind,)):
-            self.fail(field, f"must be {_kind_name(kind)}, got {value!r}")
-        if not isinstance(value, kind):
-            self.fail(field, f"must be {_kind_name(kind)}, got {value!r}")
+        kinds = kind if isinstance(kind, tuple) else (kind,)
+        if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):  # true is no number here
+            names = {str: "text", int: "a whole number", float: "a number", bool: "true or false", list: "a list",
+                     dict: "a table"}
+            self.fail(field, f"must be {' or '.join(names.get(k, k.__name__) for k in kinds)}, got {value!r}")
         if check is not None and not check(value):
             self.fail(field, f"is {value!r}; {hint}")
         return value
@@ -174,13 +171,6 @@ class _Table:
         if not all(isinstance(v, str) for v in value):
             self.fail(field, "must be a list of strings")
         return tuple(value)
-
-
-def _kind_name(kind) -> str:
-    kinds = kind if isinstance(kind, tuple) else (kind,)
-    names = {str: "text", int: "a whole number", float: "a number", bool: "true or false", list: "a list",
-             dict: "a table"}
-    return " or ".join(names.get(k, k.__name__) for k in kinds)
 
 
 def load_study(path: str | Path) -> Study:
@@ -209,16 +199,14 @@ def load_study(path: str | Path) -> Study:
     arms = _arms(path, top.get("arms", list, hint="add [[arms]] tables"), s)
     keys = [a.key for a in arms]
     reference = s.get("reference", str, check=lambda k: k in keys, hint=f"name one of the arms ({', '.join(keys)})")
-    base = path.parent
     runs = Path(s.get("runs", str, f"study/{name}"))
-    results = base / s.get("results", str, "results")
+    results = path.parent / s.get("results", str, "results")
     size = s.get("population_size", int, None, check=lambda n: n >= 1, hint="give 1 or more")
     a = _Table(path, "[analysis]", top.get("analysis", dict, {}),
                ("endpoints", "primary", "secondary", "floors", "equivalence", "window_end", "n_boot", "boot_seed"))
     endpoints = a.strings("endpoints") or ("dip", "success_10k")
-    for e in endpoints:
-        if e not in ENDPOINTS:
-            a.fail("endpoints", f"names {e!r}, which is not an endpoint (known: {', '.join(ENDPOINTS)})")
+    if unknown := [e for e in endpoints if e not in ENDPOINTS]:
+        a.fail("endpoints", f"names {unknown[0]!r}, which is not an endpoint (known: {', '.join(ENDPOINTS)})")
     comps = {f: tuple(_comparison(a, f, c, keys) for c in a.strings(f)) for f in ("primary", "secondary", "floors")}
     margins = {}
     for text, margin in a.get("equivalence", dict, {}).items():
@@ -359,13 +347,6 @@ class StudyRun:
     def _save(self) -> None:
         atomic_write_json(self.state_path, self.state)
 
-    def _command(self, block: Block, arm: Arm) -> list[str]:
-        args = self.study.sweep_args(block, arm)
-        args += ["--no-progress"] + ([] if self.workers is None else ["--workers", str(self.workers)])
-        args += [] if self.trial_command is None else ["--trial-command", self.trial_command]
-        # dies with the study (PR_SET_PDEATHSIG), so a kill -9 of it leaves no sweep behind
-        return child.launcher([sys.executable, "-m", "botorl.cli", "sweep", *args], os.getpid())
-
     def run(self) -> int:
         s = self.study
         lock = RunLock(s.runs, ".study.lock", f"pid {os.getpid()}", lambda who: BotorlError(
@@ -425,14 +406,18 @@ class StudyRun:
         return self.study.runs / block.name / f"{arm.key}.log"
 
     def _start(self, block: Block, arm: Arm) -> subprocess.Popen:
-        cmd = self._command(block, arm)
+        args = self.study.sweep_args(block, arm)
         entry = self.state["arms"].setdefault(f"{block.name}/{arm.key}", {})
-        entry.update(command=["botorl", "sweep", *self.study.sweep_args(block, arm)], started=_now(), ended=None)
+        entry.update(command=["botorl", "sweep", *args], started=_now(), ended=None)  # as a reader would type it
         entry.setdefault("first_started", entry["started"])
         self._save()
         log = self._log(block, arm)
         log.parent.mkdir(parents=True, exist_ok=True)
         print(f"botorl study: {block.name}/{arm.key} ({arm.label}) started; log {log}", flush=True)
+        args += ["--no-progress"] + ([] if self.workers is None else ["--workers", str(self.workers)])
+        args += [] if self.trial_command is None else ["--trial-command", self.trial_command]
+        # dies with the study (PR_SET_PDEATHSIG), so a kill -9 of it leaves no sweep behind
+        cmd = child.launcher([sys.executable, "-m", "botorl.cli", "sweep", *args], os.getpid())
         with open(log, "ab") as f:
             return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
 

@@ -42,7 +42,7 @@ from botorl.experiments.stats import (
     tost,
     wilcoxon_signed_rank,
 )
-from botorl.experiments.study import ENDPOINTS, STATE, Block, Study, arm_config, comparison_text, seeds_text
+from botorl.experiments.study import ENDPOINTS, STATE, Block, Study, arm_config, seeds_text
 from botorl.io import atomic_write_text, read_json_object
 
 Key = tuple[str, str, str, int]  # (block, arm, task, seed)
@@ -76,11 +76,8 @@ class Records:
         self.unpaired: set[tuple[Key, Key]] = set()  # same block, task and seed, yet two pre-trainings
         self.commits: Counter = Counter()
         self.notes: list[str] = []
-        for block in study.blocks:
-            if block.paired_csv is None:
-                self._read_block(block)
-            else:
-                self._read_legacy(block)
+        for block in study.blocks:  # a legacy block's runs are the rows of its paired.csv
+            (self._read_block if block.paired_csv is None else self._read_legacy)(block)
 
     def _read_block(self, block: Block) -> None:
         for arm in self.study.arms:
@@ -91,10 +88,10 @@ class Records:
             for s in skipped:
                 self.notes.append(f"{block.name}/{arm.key}: skipped {s.path.name} ({s.reason})")
             for r in runs:
-                v = endpoints_of(r, self.study.window_end)
-                self.values[(block.name, arm.key, r.task, r.seed)] = v | q_around_boto(r.path)
+                key = (block.name, arm.key, r.task, r.seed)
+                self.values[key] = endpoints_of(r, self.study.window_end) | q_around_boto(r.path)
                 if r.pretrain_sha256:
-                    self.digests[(block.name, arm.key, r.task, r.seed)] = r.pretrain_sha256
+                    self.digests[key] = r.pretrain_sha256
                 env = r.config.get("environment")
                 self.commits[str(env.get("commit")) if isinstance(env, dict) else "not recorded"] += 1
 
@@ -187,7 +184,7 @@ def comparison_row(rec: Records, c: tuple[str, str], quantity: str) -> dict:
     sd = float(x.std(ddof=1)) if len(x) > 1 else math.nan
     lo, hi, per_block = block_range(v, blocks)
     p, method = wilcoxon_signed_rank(v)
-    row = {"endpoint": quantity, "comparison": comparison_text(c), "n": len(v),
+    row = {"endpoint": quantity, "comparison": "-".join(c), "pair": c, "n": len(v),
            "mean": float(x.mean()) if len(v) else math.nan, "sd": sd,
            "boot": bootstrap_mean_ci(v, n_boot=s.n_boot, seed=s.boot_seed), "t": t_interval(v),
            "better": int((x > ZERO).sum()), "equal": int((abs(x) <= ZERO).sum()), "worse": int((x < -ZERO).sum()),
@@ -200,18 +197,16 @@ def comparison_row(rec: Records, c: tuple[str, str], quantity: str) -> dict:
 
 def analyse(rec: Records) -> dict[str, list[dict]]:
     s = rec.study
-    primary = [comparison_row(rec, c, e) for e in s.endpoints for c in s.primary]
-    for row, adj in zip(primary, holm([r["p"] for r in primary])):
+    res = {kind: [comparison_row(rec, c, e) for e in s.endpoints for c in getattr(s, kind)]
+           for kind in ("primary", "secondary", "floors")}
+    for row, adj in zip(res["primary"], holm([r["p"] for r in res["primary"]])):
         row["p_holm"] = adj
-    secondary = [comparison_row(rec, c, e) for e in s.endpoints for c in s.secondary]
-    floors = [comparison_row(rec, c, e) for e in s.endpoints for c in s.floors]
-    for r in floors:
-        v, _ = rec.differences(*tuple(r["comparison"].split("-")), r["endpoint"])
+    for r in res["floors"]:
+        v, _ = rec.differences(*r["pair"], r["endpoint"])
         r["spread"] = tuple(np.quantile(v, [0.025, 0.975])) if v else (math.nan, math.nan)
     # did the BOTO stage move Q beyond what the other arm's did (the manipulation check)
     manipulation = [comparison_row(rec, c, q) for q in MANIPULATION for c in s.primary + s.secondary]
-    return {"primary": primary, "secondary": secondary, "floors": floors,
-            "manipulation": [r for r in manipulation if r["n"]]}
+    return res | {"manipulation": [r for r in manipulation if r["n"]]}
 
 
 # ----------------------------------------------------------------------------- writing
@@ -242,10 +237,9 @@ def comparison_table(rows: list[dict], names: dict[str, str], holm_column: bool)
     head += ["detectable at 80% power", "equivalence (TOST)"]
     out = []
     for r in rows:
-        x, y = r["comparison"].split("-")
-        cells = [NAMES[r["endpoint"]], f"{names[x]} − {names[y]}", r["n"], _num(r["mean"]), fmt_ci(*r["boot"]),
-                 fmt_ci(*r["t"]), f"{r['better']} / {r['equal']} / {r['worse']}", _span(*r["block_range"]),
-                 f"{_p(r['p'])} ({r['method']})"]
+        cells = [NAMES[r["endpoint"]], " − ".join(names[k] for k in r["pair"]), r["n"], _num(r["mean"]),
+                 fmt_ci(*r["boot"]), fmt_ci(*r["t"]), f"{r['better']} / {r['equal']} / {r['worse']}",
+                 _span(*r["block_range"]), f"{_p(r['p'])} ({r['method']})"]
         cells += [_p(r["p_holm"])] if holm_column else []
         out.append(cells + [_num(r["detectable"], ".2f"), _tost_text(r["tost"])])
     return md_table(head, out)
@@ -268,14 +262,15 @@ def rows_csv(groups: dict[str, list[dict]]) -> str:
     return csv_text(head, out)
 
 
-def arms_table(rec: Records, quantities: tuple[str, ...]) -> tuple[list[str], list[list]]:
-    quantities = tuple(q for q in quantities if any(rec.arm_values(a.key, q) for a in rec.study.arms))
+def arms_table(rec: Records, fmt) -> tuple[list[str], list[list]]:
+    """Each arm's runs and mean of every quantity some arm has, as ``fmt`` writes a mean."""
+    quantities = tuple(q for q in ENDPOINTS + MANIPULATION if any(rec.arm_values(a.key, q) for a in rec.study.arms))
     head = ["arm", "runs", *(NAMES[q] for q in quantities)]
     rows = []
     for arm in rec.study.arms:
         n = len({k for k in rec.values if k[1] == arm.key})
         means = [np.mean(v) if (v := rec.arm_values(arm.key, q)) else math.nan for q in quantities]
-        rows.append([f"({arm.key}) {arm.label}", n, *means])
+        rows.append([f"({arm.key}) {arm.label}", n, *map(fmt, means)])
     return head, rows
 
 
@@ -314,7 +309,7 @@ def figure(rec: Records, res: dict[str, list[dict]], names: dict[str, str], path
         ax.axvline(0, color="black", lw=0.8)
         ax.set_title(NAMES[endpoint])
         ax.set_xlabel("paired difference")
-    axes[0][0].set_yticks(range(len(comps)), [f"{names[x]} − {names[y]}" for x, y in comps], fontsize=7)
+    axes[0][0].set_yticks(range(len(comps)), [" − ".join(names[k] for k in c) for c in comps], fontsize=7)
     axes[0][0].invert_yaxis()
     save_figure(fig, path, f"{s.name}: paired differences per pre-training (dots), their mean (diamond); grey: "
                            "the noise floors, shaded: their 2.5-97.5% range")
@@ -329,9 +324,7 @@ def report(study: Study, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     files = [atomic_write_text(out / "comparisons.csv", rows_csv(res)),
              atomic_write_text(out / "commands.sh", commands(study))]
-    head, arm_rows = arms_table(rec, ENDPOINTS + MANIPULATION)
-    files.append(atomic_write_text(out / "arms.csv", csv_text(head, ([r[0], r[1], *map(fmt_float, r[2:])]
-                                                                     for r in arm_rows))))
+    files.append(atomic_write_text(out / "arms.csv", csv_text(*arms_table(rec, fmt_float))))
     figure(rec, res, names, out / "paired_differences.png")
     files.append(out / "paired_differences.png")
     blocks = []
@@ -343,12 +336,11 @@ def report(study: Study, out: Path) -> list[Path]:
             blocks.append(f"[{block.name}]({block.name}/report.md)")
         elif block.paired_csv is not None and (block.paired_csv.parent / "report.md").is_file():
             blocks.append(f"[{block.name}]({os.path.relpath(block.paired_csv.parent / 'report.md', out)})")
-    files.append(atomic_write_text(out / "analysis.md", markdown(rec, res, names, head, arm_rows, blocks)))
+    files.append(atomic_write_text(out / "analysis.md", markdown(rec, res, names, blocks)))
     return files
 
 
-def markdown(rec: Records, res: dict[str, list[dict]], names: dict[str, str], head: list[str], arm_rows: list,
-             blocks: list[str]) -> str:
+def markdown(rec: Records, res: dict[str, list[dict]], names: dict[str, str], blocks: list[str]) -> str:
     s = rec.study
     n_primary = len(res["primary"])
     lines = [f"# Study {s.name}", "", s.question, "",
@@ -371,14 +363,14 @@ def markdown(rec: Records, res: dict[str, list[dict]], names: dict[str, str], he
     lines += [f"- not paired: {'/'.join(map(str, k))} and {'/'.join(map(str, p))} start from different pre-trainings "
               "(pretrain_sha256)" for k, p in sorted(rec.unpaired)]
     lines += ["", "## Arms (mean over their runs)", "",
-              md_table(head, ([r[0], r[1], *(_num(v, ".2f") for v in r[2:])] for r in arm_rows)), "",
+              md_table(*arms_table(rec, lambda v: _num(v, ".2f"))), "",
               f"## Primary comparisons ({n_primary} tests, Holm)", "", comparison_table(res["primary"], names, True), ""]
     if res["secondary"]:
         lines += ["## Secondary comparisons (no correction)", "", comparison_table(res["secondary"], names, False), ""]
     if res["floors"]:
         lines += ["## Noise floors (spread of the paired differences)", "", md_table(
             ["endpoint", "floor", "pairs", "mean", "SD", "2.5-97.5% range"],
-            ([NAMES[r["endpoint"]], f"{names[r['comparison'].split('-')[0]]} − {names[r['comparison'].split('-')[1]]}",
+            ([NAMES[r["endpoint"]], " − ".join(names[k] for k in r["pair"]),
               r["n"], _num(r["mean"]), _num(r["sd"], ".2f"), fmt_ci(*r["spread"])] for r in res["floors"])),
                   "", "A comparison whose mean lies inside its floor's range is not told from chance by this design.",
                   ""]

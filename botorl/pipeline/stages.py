@@ -154,9 +154,10 @@ class Stage:
     check_every_call = False  # check after every call, not only at log and checkpoint points
     end = None
 
-    def __init__(self, cfg, member_cfgs, run, schedule: Schedule):
-        self.cfg, self.member_cfgs, self.n, self.run = cfg, member_cfgs, len(member_cfgs), run
-        self.schedule, self.window, self.bar = schedule, Window(len(member_cfgs)), None
+    def __init__(self, run, schedule: Schedule, member_cfgs: list | None = None):  # None: every member of run's
+        self.cfg, self.run, self.schedule, self.bar = run.cfg, run, schedule, None
+        self.member_cfgs = run.member_cfgs if member_cfgs is None else member_cfgs
+        self.n, self.window = len(self.member_cfgs), Window(len(self.member_cfgs))
 
     def chunk(self, step: int) -> int:
         return 1
@@ -227,8 +228,8 @@ class Pretrain(Stage):
         cfg, oc, first = run.cfg, run.cfg.offline, {}  # the first member of each seed; each member's index into them
         self.group = [first.setdefault(c.seed, len(first)) for c in run.member_cfgs]
         self.reps = [self.group.index(g) for g in range(len(first))]
-        super().__init__(cfg, [run.member_cfgs[r] for r in self.reps], run,
-                         Schedule(oc.steps, oc.log_every, cfg.checkpoint_every))
+        super().__init__(run, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every),
+                         [run.member_cfgs[r] for r in self.reps])
         self.d, self.oc, self.streams = run.d_offline, oc, [Streams.of(c) for c in self.member_cfgs]
         self.rngs = [np.random.default_rng(s.pretrain_batches) for s in self.streams]
 
@@ -332,13 +333,9 @@ class Warmup(Stage):
 
     def __init__(self, run):
         cfg, n = run.cfg, run.cfg.warmup.steps
-        super().__init__(cfg, run.member_cfgs, run,
-                         Schedule(n, n, n + 1, evaluate=lambda step: step % cfg.eval.interval == 0 and step < n))
+        super().__init__(run, Schedule(n, n, n + 1, evaluate=lambda step: step % cfg.eval.interval == 0 and step < n))
 
-    def _nothing(self, *args) -> None:
-        pass
-
-    check = log = save = _nothing
+    check = log = save = lambda self, *args: None  # noqa: E731 - nothing learns: nothing to check, log or keep
 
     def evaluate(self, agents, step: int) -> None:
         self.run.log_evaluation(self.first, step)
@@ -355,10 +352,8 @@ class Warmup(Stage):
         ended, state.ended, state.learning = state.ended, None, True
         rows, t = state.buffer.state_dict(), state.reward
         d_warmups = []
-        for i, ends in enumerate(ended):
-            episode_ends = np.zeros(n, bool)
-            episode_ends[ends] = True
-            dw = Dataset.of_batch({k: rows[k][i, :n] for k in BATCH_KEYS}, episode_ends=episode_ends,
+        for i, ends in enumerate(ended):  # ends: the rows where one of member i's episodes ended
+            dw = Dataset.of_batch({k: rows[k][i, :n] for k in BATCH_KEYS}, episode_ends=np.isin(np.arange(n), ends),
                                   metadata={"source": f"D_warmup ({n} steps of the pre-trained policy)"})
             d_warmups.append(dw._replace(mc_returns=state.mc_returns(dw)))
         # the rewards as the env gave them
@@ -384,8 +379,7 @@ class Boto(Stage):
 
     def __init__(self, run):
         cfg, bc = run.cfg, run.cfg.boto
-        super().__init__(cfg, run.member_cfgs, run,
-                         Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every))
+        super().__init__(run, Schedule(bc.boto_steps, max(cfg.offline.log_every, bc.steps_per_call), cfg.checkpoint_every))
         self.alphas = [c.alpha for c in self.member_cfgs]
 
     def chunk(self, step: int) -> int:
@@ -421,7 +415,7 @@ class Finetune(Stage):
     def __init__(self, run):
         cfg, oc = run.cfg, run.cfg.online
         due = lambda step: cfg.eval.due(step, oc.steps, cfg.warmup.steps)  # noqa: E731
-        super().__init__(cfg, run.member_cfgs, run, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every, due))
+        super().__init__(run, Schedule(oc.steps, oc.log_every, cfg.checkpoint_every, due))
 
     def log(self, step: int, ms: list[dict]) -> None:
         self.run.log(self.name, step, self.state.log_rows(ms, self.rate(step)))
