@@ -376,7 +376,7 @@ def read_json_object(path: str | os.PathLike, limit: int = JSON_LIMIT) -> dict[s
     """The JSON object in ``path`` (a regular file of at most ``limit`` bytes), else None: for
     files botorl may find missing, cut short or not its own (a sweep's, a run's being written).
     Never for a record that nothing else holds, which must not be taken for none and replaced
-    (sweep.json: ``Sweep._read_manifest``, exit 2)."""
+    (sweep.json: ``Sweep.earlier_manifest``, exit 2)."""
     try:
         data = read_json_bounded(path, limit)
         return data if isinstance(data, dict) else None

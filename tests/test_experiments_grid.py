@@ -93,6 +93,31 @@ def test_sweep_cli_dry_run_and_errors(tmp_path, capsys):
     assert not (out / "sweep.json").exists()
 
 
+def test_sweep_folder_refuses_other_settings_in_dry_run_too(tmp_path, capsys):
+    """A sweep folder's runs share one profile and one set of overrides: another --set is exit 2
+    before anything is touched, in --dry-run as in the sweep itself (the dry run used to list the
+    earlier trials as "resume", which the sweep then refused)."""
+    from botorl.experiments.sweep import Sweep, SweepOptions
+
+    out = tmp_path / "sw"
+    out.mkdir()
+    grid = G.build_grid(tasks="pointmaze-umaze", methods="wsrl", seeds="0", profile="smoke", overrides=["eval.episodes=3"])
+    sweep = Sweep(grid, SweepOptions(out=out, progress=False))
+    sweep._load_manifest()
+    sweep.save()
+    before = (out / "sweep.json").read_bytes()
+    args = ["--tasks", "pointmaze-umaze", "--methods", "wsrl", "--seeds", "0", "--profile", "smoke", "--out", str(out)]
+    assert sweep_main(args + ["--set", "eval.episodes=3", "--dry-run"]) == 0  # the same settings: listed
+    assert "run     pointmaze-umaze/wsrl/seed0" in capsys.readouterr().out
+    for extra in (["--dry-run"], []):
+        with pytest.raises(BotorlError, match="holds a sweep made with overrides .*eval.episodes.*use another --out"):
+            sweep_main(args + ["--set", "eval.episodes=4"] + extra)
+    with pytest.raises(BotorlError, match="holds a sweep made with profile 'smoke'"):
+        sweep_main(args[:-4] + ["--out", str(out), "--set", "eval.episodes=3", "--dry-run"])
+    assert (out / "sweep.json").read_bytes() == before
+    assert [p.name for p in out.iterdir() if not p.name.startswith(".")] == ["sweep.json"]  # no trial folder
+
+
 def test_each_trial_runs_the_config_its_old_command_line_built(tmp_path):
     """A trial's config, built once in the sweep (Grid.config), equals field for field what
     `botorl run` built from the command line sweeps used to give the trial; the trial's

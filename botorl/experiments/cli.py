@@ -98,6 +98,7 @@ def sweep_main(argv: list[str]) -> int:
     if not args.trial_command:  # a stand-in command may know other tasks and options
         check_trial_configs(sweep)
     if args.dry_run:
+        sweep.earlier_manifest()
         for trial in sweep.trials:
             print(f"{next_action(sweep.run_dir(trial)):6s}  {trial.relpath}")
         print(f"{len(sweep.trials)} trials in {sweep.out}")

@@ -160,17 +160,8 @@ class Sweep:
         return self.configs[trial.relpath]
 
     def _load_manifest(self) -> None:
-        old = self._read_manifest()
-        cleanup_previous_ray(old, self.out)
-        old_grid, grid = old.get("grid") or {}, self.grid.to_json()
-        for field in ("profile", "overrides"):
-            if old_grid and old_grid.get(field) != grid[field]:
-                # finished trials are never rerun, so mixing settings would go unnoticed
-                raise BotorlError(
-                    f"{self.out / MANIFEST} holds a sweep made with {field} {old_grid.get(field)!r}, but this command "
-                    f"asks for {grid[field]!r}. Runs of one sweep directory share their settings (tasks, methods, "
-                    "seeds and alphas may be added); use another --out or the same profile and overrides."
-                )
+        old, grid = self.earlier_manifest(), self.grid.to_json()
+        cleanup_previous_ray(old, self.out)  # after the checks: a refused command touches no process
         trials = old.get("trials", {})
         history = list(old.get("invocations", [])) + [{"started": _now(), "grid": grid, "backend": self.opt.backend}]
         self.manifest = {
@@ -195,10 +186,11 @@ class Sweep:
                     mtime = (self.run_dir(trial) / "summary.json").stat().st_mtime
                     entry["ended"] = _dt.datetime.fromtimestamp(mtime).isoformat(timespec="seconds")
 
-    def _read_manifest(self) -> dict[str, Any]:
+    def earlier_manifest(self) -> dict[str, Any]:
         """The sweep.json an earlier invocation wrote ({} if none): one that cannot be read (over its
-        size limit, not a regular file, not a JSON object) is exit 2 and left as it was, never
-        replaced by a fresh one (it holds the sweep's history and its trials' records)."""
+        size limit, not a regular file, not a JSON object) or was made with another profile or other
+        overrides is exit 2 (`--dry-run` too) and left as it was, never replaced by a fresh one (it
+        holds the sweep's history and its trials' records)."""
         path = self.out / MANIFEST
         if not os.path.lexists(path):
             return {}
@@ -217,6 +209,15 @@ class Sweep:
                 f"{path} cannot be read ({err}); it records this sweep's invocations and trials, so botorl leaves it "
                 f"as it was. Move it aside (e.g. `mv {path} {path}.bad`) to start its record afresh (finished trials "
                 f"are found again in their run directories), or give another --out.") from None
+        old_grid, grid = old.get("grid") or {}, self.grid.to_json()
+        for field in ("profile", "overrides"):
+            if old_grid and old_grid.get(field) != grid[field]:
+                # finished trials are never rerun, so mixing settings would go unnoticed
+                raise BotorlError(
+                    f"{path} holds a sweep made with {field} {old_grid.get(field)!r}, but this command "
+                    f"asks for {grid[field]!r}. Runs of one sweep directory share their settings (tasks, methods, "
+                    "seeds and alphas may be added); use another --out or the same profile and overrides."
+                )
         return old
 
     def _check_folders(self) -> None:
