@@ -180,6 +180,17 @@ def test_a_bad_study_file_exits_2_naming_the_field(tmp_path, capsys, case, edit,
     assert field in capsys.readouterr().err
 
 
+def test_seeds_of_a_wrong_type_are_said_once(tmp_path):
+    # the type's message on its own, not nested inside "is not a seed set (...)"
+    good = _smoke(tmp_path).read_text()
+    path = _write(tmp_path, good.replace('seeds = "0-1"', "seeds = 1.5", 1), "bad.toml")
+    with pytest.raises(ConfigError) as err:
+        load_study(path)
+    text = str(err.value)
+    assert "seeds must be text or a whole number or a list, got 1.5" in text
+    assert "not a seed set" not in text and text.count("bad.toml") == 1
+
+
 def test_the_commit_must_be_the_frozen_one(tmp_path, monkeypatch, capsys):
     s = load_study(_smoke(tmp_path))
     assert frozen_deviation(s, "0123abc" + "f" * 33) is None

@@ -251,8 +251,9 @@ def _blocks(path: Path, items: list) -> tuple[Block, ...]:
     for i, item in enumerate(items):
         t = _Table(path, f"[[blocks]] #{i + 1}", item, ("name", "seeds", "paired_csv"))
         name = t.get("name", str, check=_NAME.fullmatch, hint="use lower-case letters, digits and '-'")
+        raw = t.get("seeds", (str, int, list))  # a wrong type is its own message, not nested below
         try:
-            seeds = tuple(parse_seeds(t.get("seeds", (str, int, list))))
+            seeds = tuple(parse_seeds(raw))
         except ConfigError as err:
             t.fail("seeds", f"is not a seed set ({err})")
         csv = t.get("paired_csv", str, None)
