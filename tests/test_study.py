@@ -24,7 +24,7 @@ from botorl.errors import ConfigError
 from botorl.experiments import study as study_mod
 from botorl.experiments.pairs import QUANTITIES, Pair, pairs_csv
 from botorl.experiments.study import frozen_deviation, load_study
-from botorl.experiments.study_report import Records, analyse
+from botorl.experiments.study_report import Records, analyse, report
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -395,3 +395,16 @@ def test_the_report_reads_records_by_hand_and_pairs_only_one_pre_training(tmp_pa
     text = (plan.parent / "analysis" / "analysis.md").read_text()
     assert "not paired: b0/b/pointmaze-umaze/1 and b0/a/pointmaze-umaze/1" in text and "not the frozen" not in text
     assert "| Q change, uniform actions | (b) b − (a) a | 1 | +1.00 |" in text  # the manipulation check
+
+
+def test_a_study_without_comparisons_reports_no_figure(tmp_path):
+    # a descriptive study (arms, no comparison): nothing to plot, so no figure listed or linked
+    plan = _write(tmp_path, SMOKE.split("[[blocks]]")[0].format(commit="0123abc", size=1, runs=tmp_path / "runs")
+                  + TWO_ARMS + '[analysis]\nendpoints = ["dip"]\nwindow_end = 30\n')
+    results = plan.parent / "results" / "b0"
+    _record(results / "b" / "pointmaze-umaze" / "seed0", "boto", 0, "a", [0.5, 1.0, 0.5, 1.0], 4.0)
+    _record(results / "a" / "pointmaze-umaze" / "seed0", "wsrl", 0, "a", [0.0, 0.0, 1.0, 1.0], 2.0)
+    files = report(load_study(plan), plan.parent / "analysis")
+    assert [f.name for f in files if f.suffix == ".png"] == []
+    assert not (plan.parent / "analysis" / "paired_differences.png").exists()
+    assert "paired_differences.png" not in (plan.parent / "analysis" / "analysis.md").read_text()

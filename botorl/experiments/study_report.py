@@ -285,13 +285,16 @@ def commands(study: Study) -> str:
     return "\n".join(lines + [f"botorl study report {shlex.quote(str(study.path))}", ""])
 
 
+def _plotted(s: Study) -> list[tuple[str, str]]:
+    """The comparisons the figure draws; a study without any (descriptive only) has no figure."""
+    return list(s.primary) + list(s.secondary) + list(s.floors)
+
+
 def figure(rec: Records, res: dict[str, list[dict]], names: dict[str, str], path: Path) -> None:
     """Every comparison's paired differences (a dot per pair, a diamond at the mean) per endpoint;
     the floors' 2.5-97.5% ranges shaded."""
     s = rec.study
-    comps = list(s.primary) + list(s.secondary) + list(s.floors)
-    if not comps:
-        return
+    comps = _plotted(s)
     plt = pyplot()
     fig, axes = plt.subplots(1, len(s.endpoints), figsize=(5.5 * len(s.endpoints), 1.2 + 0.45 * len(comps)),
                              sharey=True, squeeze=False)
@@ -325,8 +328,9 @@ def report(study: Study, out: Path) -> list[Path]:
     files = [atomic_write_text(out / "comparisons.csv", rows_csv(res)),
              atomic_write_text(out / "commands.sh", commands(study))]
     files.append(atomic_write_text(out / "arms.csv", csv_text(*arms_table(rec, fmt_float))))
-    figure(rec, res, names, out / "paired_differences.png")
-    files.append(out / "paired_differences.png")
+    if _plotted(study):
+        figure(rec, res, names, out / "paired_differences.png")
+        files.append(out / "paired_differences.png")
     blocks = []
     for block in study.blocks:
         folders = [d for a in study.arms if (d := study.records_dir(block, a)).is_dir()]
@@ -390,5 +394,6 @@ def markdown(rec: Records, res: dict[str, list[dict]], names: dict[str, str], bl
                   "paired.csv), so the check cannot be made from them.", ""]
     if blocks:
         lines += ["## Block reports", "", ", ".join(blocks), ""]
-    lines += ["![paired differences](paired_differences.png)", ""]
+    if _plotted(s):
+        lines += ["![paired differences](paired_differences.png)", ""]
     return "\n".join(lines)
